@@ -1,0 +1,463 @@
+"""fgnav's flight data model: frozen dataclasses of column arrays, one per sensor stream.
+
+Frames and units follow ../shared/DESIGN.md section 2: world z up (ENU-like), body FLU, SI units,
+time in float seconds on one clock. Quaternions are Hamilton ``[w, x, y, z]`` (field names end in
+``_wxyz``). Readers in this package return these types and know nothing of GTSAM.
+
+Every series has ``check(name)``, which raises :class:`FlightDataError` naming the stream and
+field when a value is non-finite, a shape is wrong, or time is not strictly increasing.
+Construction does not check (readers build, then call ``check``), so a bad series can be built
+and reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FlightDataError
+
+# ----------------------------------------------------------------------------------------------
+# Checks shared by all series
+# ----------------------------------------------------------------------------------------------
+
+
+def _check_time(name: str, t: np.ndarray) -> None:
+    if t.ndim != 1:
+        raise FlightDataError(f"{name}.t: expected a 1-D array of times, got shape {t.shape}")
+    if t.size == 0:
+        raise FlightDataError(f"{name}.t: the stream is empty (no samples)")
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise FlightDataError(f"{name}.t: non-finite time at sample {bad[0]} ({t[bad[0]]})")
+    dt = np.diff(t)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise FlightDataError(
+            f"{name}.t: time must be strictly increasing; sample {i + 1} (t={t[i + 1]!r}) "
+            f"does not follow sample {i} (t={t[i]!r}) ({bad.size} such samples)"
+        )
+
+
+def _check_column(
+    name: str, field_name: str, a: np.ndarray | None, n: int, width: int | None, optional=False
+) -> None:
+    if a is None:
+        if optional:
+            return
+        raise FlightDataError(f"{name}.{field_name}: missing")
+    expected = (n,) if width is None else (n, width)
+    if a.shape != expected:
+        raise FlightDataError(
+            f"{name}.{field_name}: expected shape {expected}, got {a.shape}"
+        )
+    if a.dtype.kind in "fc":
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            i = int(bad[0][0])
+            raise FlightDataError(
+                f"{name}.{field_name}: non-finite value at sample {i} (t index {i}): {a[i]}"
+            )
+
+
+def _check_quat(name: str, field_name: str, q: np.ndarray | None, n: int, optional=False) -> None:
+    _check_column(name, field_name, q, n, 4, optional)
+    if q is None:
+        return
+    norms = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
+    if bad.size:
+        i = int(bad[0])
+        raise FlightDataError(
+            f"{name}.{field_name}: quaternion at sample {i} has norm {norms[i]:.6f}, expected a "
+            f"unit quaternion [w, x, y, z]"
+        )
+
+
+def _as_array(x: Any, dtype=float) -> np.ndarray | None:
+    return None if x is None else np.asarray(x, dtype=dtype)
+
+
+class _Series:
+    """Mixin: common helpers of time series (``t`` is always the first field)."""
+
+    t: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Seconds between the first and last sample."""
+        return float(self.t[-1] - self.t[0]) if len(self) else 0.0
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate [Hz]."""
+        if len(self) < 2:
+            return 0.0
+        return float(1.0 / np.median(np.diff(self.t)))
+
+    def select(self, mask_or_index: np.ndarray):
+        """A new series of the same type with the rows picked by a boolean mask or index array."""
+        n = len(self)
+        changes = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == n:
+                changes[f.name] = v[mask_or_index]
+            elif isinstance(v, tuple) and len(v) == n:
+                idx = np.arange(n)[mask_or_index]
+                changes[f.name] = tuple(v[i] for i in idx)
+        return dataclasses.replace(self, **changes)
+
+    def between(self, t0: float, t1: float):
+        """Rows with ``t0 <= t <= t1``."""
+        return self.select((self.t >= t0) & (self.t <= t1))
+
+
+# ----------------------------------------------------------------------------------------------
+# Streams
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ImuSeries(_Series):
+    """IMU samples in the body frame (FLU).
+
+    Attributes:
+        t: (N,) time [s].
+        body_omega: (N, 3) angular rate of body w.r.t. world, in body [rad/s].
+        body_accel: (N, 3) specific force (accelerometer reading: acceleration minus gravity), in
+            body [m/s^2]; about (0, 0, +9.81) at rest with z up.
+    """
+
+    t: np.ndarray
+    body_omega: np.ndarray
+    body_accel: np.ndarray
+
+    def check(self, name: str = "imu") -> ImuSeries:
+        _check_time(name, self.t)
+        _check_column(name, "body_omega", self.body_omega, len(self), 3)
+        _check_column(name, "body_accel", self.body_accel, len(self), 3)
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class AttitudeSeries(_Series):
+    """Attitude from an AHRS or onboard filter.
+
+    Attributes:
+        t: (N,) time [s].
+        world_q_body_wxyz: (N, 4) unit quaternion ``[w, x, y, z]`` of ``world_R_body``.
+    """
+
+    t: np.ndarray
+    world_q_body_wxyz: np.ndarray
+
+    def check(self, name: str = "attitude") -> AttitudeSeries:
+        _check_time(name, self.t)
+        _check_quat(name, "world_q_body_wxyz", self.world_q_body_wxyz, len(self))
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class RangeSeries(_Series):
+    """Rangefinder readings along the sensor's axis (see ``Calibration.body_T_range``).
+
+    Attributes:
+        t: (N,) time [s].
+        range: (N,) measured distance along the beam [m].
+        quality: optional (N,) signal quality in [0, 1] (-1 when unknown).
+    """
+
+    t: np.ndarray
+    range: np.ndarray
+    quality: np.ndarray | None = None
+
+    def check(self, name: str = "range") -> RangeSeries:
+        _check_time(name, self.t)
+        _check_column(name, "range", self.range, len(self), None)
+        _check_column(name, "quality", self.quality, len(self), None, optional=True)
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class YawSeries(_Series):
+    """Heading measurements (magnetometer-like, or from visual odometry).
+
+    Attributes:
+        t: (N,) time [s].
+        yaw: (N,) yaw of ``world_R_body`` [rad], ZYX convention, in (-pi, pi].
+    """
+
+    t: np.ndarray
+    yaw: np.ndarray
+
+    def check(self, name: str = "yaw") -> YawSeries:
+        _check_time(name, self.t)
+        _check_column(name, "yaw", self.yaw, len(self), None)
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class SlamSeries(_Series):
+    """Camera poses from a monocular SLAM system, in the SLAM frame at an unknown scale.
+
+    Attributes:
+        t: (N,) image time [s] (the time the image was taken, not when the pose arrived).
+        slam_t_cam: (N, 3) camera position in the SLAM frame [SLAM units].
+        slam_q_cam_wxyz: (N, 4) camera orientation ``slam_R_cam`` as ``[w, x, y, z]``.
+        session: (N,) int map/session id; a new id at every map reset (new frame and scale).
+        latency: optional (N,) seconds between image time and the pose's arrival (online mode
+            feeds the pose at ``t + latency``).
+    """
+
+    t: np.ndarray
+    slam_t_cam: np.ndarray
+    slam_q_cam_wxyz: np.ndarray
+    session: np.ndarray
+    latency: np.ndarray | None = None
+
+    def check(self, name: str = "slam") -> SlamSeries:
+        _check_time(name, self.t)
+        _check_column(name, "slam_t_cam", self.slam_t_cam, len(self), 3)
+        _check_quat(name, "slam_q_cam_wxyz", self.slam_q_cam_wxyz, len(self))
+        _check_column(name, "session", self.session, len(self), None)
+        if self.session.dtype.kind not in "iu":
+            raise FlightDataError(f"{name}.session: expected integer ids, got {self.session.dtype}")
+        _check_column(name, "latency", self.latency, len(self), None, optional=True)
+        return self
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole camera with optional radial-tangential distortion (OpenCV order k1 k2 p1 p2 [k3]).
+
+    Attributes:
+        fx, fy, cx, cy: intrinsics [px].
+        width, height: image size [px].
+        distortion: distortion coefficients, empty for none.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: tuple[float, ...] = ()
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def check(self, name: str = "camera") -> CameraIntrinsics:
+        vals = [self.fx, self.fy, self.cx, self.cy, *self.distortion]
+        if not all(np.isfinite(vals)):
+            raise FlightDataError(f"{name}: non-finite intrinsics {vals}")
+        if self.fx <= 0 or self.fy <= 0 or self.width <= 0 or self.height <= 0:
+            raise FlightDataError(f"{name}: fx, fy, width, height must be positive")
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class ImageSeries(_Series):
+    """Images of one camera (grey or colour), as files or in memory.
+
+    Attributes:
+        t: (N,) exposure time [s].
+        paths: N image file paths (absolute, or relative to the flight folder), or None.
+        frames: (N, H, W) or (N, H, W, 3) uint8 array in memory, or None.
+        camera: intrinsics of the camera.
+    Exactly one of ``paths`` and ``frames`` is set.
+    """
+
+    t: np.ndarray
+    paths: tuple[Path, ...] | None = None
+    frames: np.ndarray | None = None
+    camera: CameraIntrinsics | None = None
+
+    def check(self, name: str = "images") -> ImageSeries:
+        _check_time(name, self.t)
+        if (self.paths is None) == (self.frames is None):
+            raise FlightDataError(f"{name}: exactly one of paths and frames must be set")
+        if self.paths is not None and len(self.paths) != len(self):
+            raise FlightDataError(f"{name}.paths: {len(self.paths)} paths for {len(self)} times")
+        if self.frames is not None and (self.frames.shape[0] != len(self)):
+            raise FlightDataError(f"{name}.frames: {self.frames.shape[0]} frames for {len(self)} times")
+        if self.camera is None:
+            raise FlightDataError(f"{name}.camera: intrinsics missing")
+        self.camera.check(f"{name}.camera")
+        return self
+
+    def load(self, i: int, grey: bool = True) -> np.ndarray:
+        """Image i as a uint8 array (grey by default)."""
+        if self.frames is not None:
+            img = self.frames[i]
+        else:
+            import cv2
+
+            flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_UNCHANGED
+            img = cv2.imread(str(self.paths[i]), flag)
+            if img is None:
+                raise FlightDataError(f"cannot read image {self.paths[i]} (missing or not an image)")
+            return img
+        if grey and img.ndim == 3:
+            import cv2
+
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        return img
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory(_Series):
+    """A body trajectory: ground truth, an onboard estimate, or an fgnav estimate.
+
+    Attributes:
+        t: (N,) time [s].
+        world_t_body: (N, 3) body position in world [m].
+        world_q_body_wxyz: (N, 4) body orientation ``world_R_body`` as ``[w, x, y, z]``.
+        world_v_body: optional (N, 3) body velocity in world [m/s].
+        gyro_bias: optional (N, 3) gyroscope bias [rad/s].
+        accel_bias: optional (N, 3) accelerometer bias [m/s^2].
+    """
+
+    t: np.ndarray
+    world_t_body: np.ndarray
+    world_q_body_wxyz: np.ndarray
+    world_v_body: np.ndarray | None = None
+    gyro_bias: np.ndarray | None = None
+    accel_bias: np.ndarray | None = None
+
+    def check(self, name: str = "trajectory") -> Trajectory:
+        _check_time(name, self.t)
+        n = len(self)
+        _check_column(name, "world_t_body", self.world_t_body, n, 3)
+        _check_quat(name, "world_q_body_wxyz", self.world_q_body_wxyz, n)
+        for f in ("world_v_body", "gyro_bias", "accel_bias"):
+            _check_column(name, f, getattr(self, f), n, 3, optional=True)
+        return self
+
+    def world_R_body(self) -> np.ndarray:
+        """(N, 3, 3) rotation matrices."""
+        from .geometry import quat_wxyz_to_matrix
+
+        return quat_wxyz_to_matrix(self.world_q_body_wxyz)
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibration and flight
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise densities (Kalibr/EuRoC convention).
+
+    Attributes:
+        gyro_noise_density: [rad/s/sqrt(Hz)].
+        accel_noise_density: [m/s^2/sqrt(Hz)].
+        gyro_random_walk: [rad/s^2/sqrt(Hz)].
+        accel_random_walk: [m/s^3/sqrt(Hz)].
+    """
+
+    gyro_noise_density: float = 1.7e-4
+    accel_noise_density: float = 2.0e-3
+    gyro_random_walk: float = 1.94e-5
+    accel_random_walk: float = 3.0e-3
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Fixed extrinsics and intrinsics.
+
+    Attributes:
+        body_T_cam: 4x4 pose of the camera in the body frame (camera: x right, y down, z forward
+            along the optical axis).
+        body_T_range: 4x4 pose of the rangefinder; its beam is the sensor's +z axis.
+        camera: camera intrinsics, or None.
+        imu_noise: IMU noise densities.
+        range_min, range_max: valid rangefinder interval [m].
+        time_offsets: per-stream clock offsets [s] already applied by the reader (metadata).
+    """
+
+    body_T_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    body_T_range: np.ndarray = field(default_factory=lambda: np.eye(4))
+    camera: CameraIntrinsics | None = None
+    imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    range_min: float = 0.0
+    range_max: float = float("inf")
+    time_offsets: dict[str, float] = field(default_factory=dict)
+
+    def check(self, name: str = "calib") -> Calibration:
+        for f in ("body_T_cam", "body_T_range"):
+            T = np.asarray(getattr(self, f), dtype=float)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise FlightDataError(f"{name}.{f}: expected a finite 4x4 matrix, got {T.shape}")
+            R = T[:3, :3]
+            if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+                raise FlightDataError(f"{name}.{f}: rotation part is not a proper rotation")
+            if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-12:
+                raise FlightDataError(f"{name}.{f}: last row must be [0, 0, 0, 1]")
+        if self.camera is not None:
+            self.camera.check(f"{name}.camera")
+        return self
+
+
+STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "ground_truth")
+
+
+@dataclass(frozen=True, eq=False)
+class Flight:
+    """One logged or simulated flight: whichever streams the log has, plus metadata.
+
+    Attributes:
+        name: short name.
+        source: where it came from (file path, "simulator", ...).
+        imu, attitude, range, yaw, slam, images: sensor streams, each optional.
+        ground_truth: reference body trajectory, optional (never used by estimators).
+        references: other trajectories recorded in the log, e.g. ``{"px4_ekf2": Trajectory}``;
+            they become baseline rows, never estimator inputs.
+        calib: calibration.
+        meta: free metadata: frames, units, truth values of the simulator (drag k, SLAM
+            similarity per session, ...), reader notes (skipped lines), etc.
+    """
+
+    name: str
+    source: str = ""
+    imu: ImuSeries | None = None
+    attitude: AttitudeSeries | None = None
+    range: RangeSeries | None = None
+    yaw: YawSeries | None = None
+    slam: SlamSeries | None = None
+    images: ImageSeries | None = None
+    ground_truth: Trajectory | None = None
+    references: dict[str, Trajectory] = field(default_factory=dict)
+    calib: Calibration = field(default_factory=Calibration)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def streams(self) -> dict[str, _Series]:
+        """The streams present, by name (``STREAMS`` order), references as ``ref:<name>``."""
+        out = {s: getattr(self, s) for s in STREAMS if getattr(self, s) is not None}
+        out.update({f"ref:{k}": v for k, v in self.references.items()})
+        return out
+
+    def check(self) -> Flight:
+        for name, s in self.streams().items():
+            s.check(f"{self.name}.{name}")
+        self.calib.check(f"{self.name}.calib")
+        return self
+
+    def time_window(self) -> tuple[float, float]:
+        """Overlap ``(t0, t1)`` of all sensor streams (ground truth and references excluded)."""
+        sensors = [getattr(self, s) for s in STREAMS[:-1] if getattr(self, s) is not None]
+        if not sensors:
+            raise FlightDataError(f"{self.name}: the flight has no sensor stream")
+        return max(s.t[0] for s in sensors), min(s.t[-1] for s in sensors)

@@ -1,0 +1,83 @@
+"""The ``fgnav`` command line: one entry point, one module per subcommand.
+
+Each subcommand lives in ``fgnav/commands/<name>.py`` and defines ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args) -> int``; ``run`` is a thin layer over a library call.
+A subcommand whose module does not exist yet is listed and says so when called.
+Known errors (:class:`fgnav.datasets.FgnavError`) print one line on stderr and exit with code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from fgnav.datasets.errors import FgnavError
+
+# name -> (module, help shown while the module is not available yet)
+COMMANDS: dict[str, str] = {
+    "info": "streams, rates, durations, gaps and time overlap of a flight",
+    "simulate": "simulate a flight with ground truth for every sensor",
+    "batch": "smooth a whole flight (batch solver)",
+    "online": "run the online fixed-lag smoother over a flight",
+    "compare": "run the smoothers and the filter baselines on a flight and compare them",
+    "demo": "simulate a flight and run the main job on it",
+}
+
+
+def _load(name: str):
+    try:
+        return importlib.import_module(f"fgnav.commands.{name}")
+    except ModuleNotFoundError as e:
+        if e.name == f"fgnav.commands.{name}":
+            return None
+        raise
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, object]]:
+    parser = argparse.ArgumentParser(
+        prog="fgnav",
+        description="Factor-graph smoothing back-end for multirotors flying without GPS.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    modules: dict[str, object] = {}
+    for name, fallback_help in COMMANDS.items():
+        mod = _load(name)
+        modules[name] = mod
+        if mod is None:
+            p = sub.add_parser(name, help=f"{fallback_help} (not available yet)")
+            p.add_argument("rest", nargs=argparse.REMAINDER)
+        else:
+            p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+            mod.add_arguments(p)
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, modules = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2) if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.command is None:
+        parser.print_help()
+        return 1
+    mod = modules[args.command]
+    if mod is None:
+        print(f"fgnav: '{args.command}' is not available yet in this version", file=sys.stderr)
+        return 1
+    try:
+        return int(mod.run(args) or 0)
+    except FgnavError as e:
+        print(f"fgnav {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except FileNotFoundError as e:
+        print(f"fgnav {args.command}: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of the ``fgnav`` CLI (see fgnav/cli.py)."""

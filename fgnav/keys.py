@@ -1,0 +1,46 @@
+"""GTSAM symbols of fgnav's variables (one place; see ../shared/DESIGN.md section 3).
+
+Per keyframe k: ``X(k)`` Pose3 ``world_T_body``, ``V(k)`` velocity ``world_v_body`` (3-vector),
+``B(k)`` ``imuBias.ConstantBias``. Slow variables, one per segment j: ``S(j)`` SLAM alignment,
+``D(j)`` drag coefficient, ``G(j)`` ground height.
+"""
+
+from __future__ import annotations
+
+import gtsam
+
+
+def X(k: int) -> int:
+    """Pose3 ``world_T_body`` at keyframe k."""
+    return gtsam.symbol("x", k)
+
+
+def V(k: int) -> int:
+    """Velocity ``world_v_body`` [m/s] at keyframe k."""
+    return gtsam.symbol("v", k)
+
+
+def B(k: int) -> int:
+    """IMU bias (``imuBias.ConstantBias``) at keyframe k."""
+    return gtsam.symbol("b", k)
+
+
+def S(j: int) -> int:
+    """SLAM alignment of SLAM session j (``Similarity3`` ``slam_T_world`` or per-axis scale)."""
+    return gtsam.symbol("s", j)
+
+
+def D(j: int) -> int:
+    """Drag coefficient k = mu/m [1/s] of segment j (scalar or per-axis vector)."""
+    return gtsam.symbol("d", j)
+
+
+def G(j: int) -> int:
+    """Ground height under the rangefinder [m] of terrain segment j."""
+    return gtsam.symbol("g", j)
+
+
+def describe(key: int) -> str:
+    """Human-readable ``x12`` form of a key."""
+    s = gtsam.Symbol(key)
+    return f"{chr(s.chr())}{s.index()}"

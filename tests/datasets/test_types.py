@@ -1,0 +1,75 @@
+"""Data model checks: each bad input gives an error naming the stream and field."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fgnav.datasets import FlightDataError, ImuSeries, SlamSeries, Trajectory
+from fgnav.datasets.geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    rpy_to_matrix,
+    so3_exp,
+    so3_log,
+    wrap_angle,
+    yaw_of,
+)
+
+
+def _imu(n=10):
+    t = np.arange(n) * 0.005
+    return ImuSeries(t, np.zeros((n, 3)), np.tile([0, 0, 9.81], (n, 1)))
+
+
+def test_good_series_passes():
+    assert _imu().check() is not None
+    assert _imu().rate_hz == pytest.approx(200.0)
+
+
+def test_non_increasing_time_is_named():
+    imu = _imu()
+    imu.t[5] = imu.t[4]
+    with pytest.raises(FlightDataError, match=r"imu\.t: time must be strictly increasing; sample 5"):
+        imu.check()
+
+
+def test_nan_is_named():
+    imu = _imu()
+    imu.body_accel[3, 1] = np.nan
+    with pytest.raises(FlightDataError, match=r"imu\.body_accel: non-finite value at sample 3"):
+        imu.check()
+
+
+def test_wrong_shape_and_empty():
+    with pytest.raises(FlightDataError, match="expected shape"):
+        ImuSeries(np.arange(3.0), np.zeros((3, 2)), np.zeros((3, 3))).check()
+    with pytest.raises(FlightDataError, match="empty"):
+        ImuSeries(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))).check()
+
+
+def test_non_unit_quaternion_and_float_session():
+    n = 4
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    q[2] = [2, 0, 0, 0]
+    with pytest.raises(FlightDataError, match="norm 2.0"):
+        Trajectory(np.arange(n, dtype=float), np.zeros((n, 3)), q).check()
+    with pytest.raises(FlightDataError, match="integer ids"):
+        SlamSeries(
+            np.arange(n, dtype=float), np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+            np.zeros(n),
+        ).check()
+
+
+def test_quaternion_round_trip_and_so3():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        R = so3_exp(rng.normal(size=3))
+        q = matrix_to_quat_wxyz(R)
+        assert np.allclose(quat_wxyz_to_matrix(q), R, atol=1e-12)
+        assert np.allclose(so3_exp(so3_log(R)), R, atol=1e-9)
+    R = rpy_to_matrix(0.1, -0.2, 3.0)
+    assert yaw_of(R) == pytest.approx(3.0)
+    assert wrap_angle(np.pi) == pytest.approx(np.pi)
+    assert wrap_angle(-np.pi) == pytest.approx(np.pi)
+    assert wrap_angle(3 * np.pi / 2) == pytest.approx(-np.pi / 2)
