@@ -1,0 +1,1 @@
+"""Flight simulator: ground truth for every sensor (see issue 3)."""

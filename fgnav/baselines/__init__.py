@@ -1,0 +1,1 @@
+"""Filter baselines: same inputs and same Estimate type as the smoothers."""

@@ -1,0 +1,84 @@
+"""The result type shared by the smoothers and every filter baseline.
+
+An :class:`Estimate` is what ``fgnav batch``, ``fgnav online`` and each baseline return, and what
+``fgnav.eval`` scores. Covariances follow GTSAM's Pose3 tangent order ``[rotation, translation]``
+in the body frame (right perturbation ``world_T_body * Exp(xi)``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fgnav.datasets import Trajectory
+from fgnav.datasets.errors import FlightDataError
+
+
+@dataclass(frozen=True, eq=False)
+class TimeSeries:
+    """A scalar or vector quantity over time (SLAM scale, drag k, ground height ...).
+
+    Attributes:
+        t: (N,) time [s].
+        value: (N,) or (N, D) values.
+        sigma: optional standard deviations, same shape as ``value``.
+    """
+
+    t: np.ndarray
+    value: np.ndarray
+    sigma: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """Output of an estimator over one flight.
+
+    Attributes:
+        method: name of the method (``"batch"``, ``"fixed-lag"``, ``"msf-ekf"`` ...).
+        trajectory: body states at the estimator's output times (pose, optional velocity and
+            biases) in fgnav's world frame (z up).
+        pose_cov: optional (N, 6, 6) marginal covariance of each pose, Pose3 tangent order
+            ``[rot, trans]`` in body frame.
+        vel_cov: optional (N, 3, 3) covariance of ``world_v_body``.
+        slam_scale: SLAM scale ``s`` (SLAM units per metre) per SLAM session id, final value.
+        slam_scale_sigma: its standard deviation per session, when known.
+        drag_k: final drag coefficient(s) [1/s] (1 or 2 values), or None.
+        drag_k_sigma: standard deviation of ``drag_k``, or None.
+        ground_height: final ground height [m] under the rangefinder, or None.
+        series: quantities over time for plots, e.g. ``{"slam_scale": TimeSeries, "drag_k": ...}``.
+        update_latency: optional (M,) wall time of each update [s] (online methods).
+        runtime_s: total wall time of the run [s].
+        causal: True when each state only used measurements up to its time (filters, the
+            fixed-lag smoother's newest state); False for smoothers' full-window estimates.
+        info: free diagnostics: options used, counts (solver failures, rejected measurements).
+    """
+
+    method: str
+    trajectory: Trajectory
+    pose_cov: np.ndarray | None = None
+    vel_cov: np.ndarray | None = None
+    slam_scale: dict[int, float] = field(default_factory=dict)
+    slam_scale_sigma: dict[int, float] = field(default_factory=dict)
+    drag_k: np.ndarray | None = None
+    drag_k_sigma: np.ndarray | None = None
+    ground_height: float | None = None
+    series: dict[str, TimeSeries] = field(default_factory=dict)
+    update_latency: np.ndarray | None = None
+    runtime_s: float = 0.0
+    causal: bool = False
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def check(self) -> Estimate:
+        self.trajectory.check(f"estimate[{self.method}].trajectory")
+        n = len(self.trajectory)
+        if self.pose_cov is not None and self.pose_cov.shape != (n, 6, 6):
+            raise FlightDataError(
+                f"estimate[{self.method}].pose_cov: expected ({n}, 6, 6), got {self.pose_cov.shape}"
+            )
+        if self.vel_cov is not None and self.vel_cov.shape != (n, 3, 3):
+            raise FlightDataError(
+                f"estimate[{self.method}].vel_cov: expected ({n}, 3, 3), got {self.vel_cov.shape}"
+            )
+        return self

@@ -1,0 +1,1 @@
+"""Evaluation: trajectory alignment, metrics (ATE, RPE, scale, velocity, yaw, NEES), reports."""

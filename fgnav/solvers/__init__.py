@@ -1,0 +1,1 @@
+"""Graph builder and solvers (batch and iSAM2 fixed-lag)."""
