@@ -1,0 +1,136 @@
+"""Frame conversions from logging conventions into fgnav's frames, in one tested place.
+
+fgnav's frames (../shared/DESIGN.md section 2): world z up, x/y level (ENU-like, gravity
+``(0, 0, -g)``); body x forward, y left, z up (FLU). Quaternions are Hamilton ``[w, x, y, z]``.
+
+Conventions converted here:
+
+* **PX4 / aerospace** (NED world, FRD body). Positions and velocities: ``x_enu = y_ned``,
+  ``y_enu = x_ned``, ``z_enu = -z_ned`` (the matrix ``ENU_R_NED``, a half turn about
+  ``(1, 1, 0)/sqrt(2)``, its own inverse). Body vectors (gyro, accelerometer, body velocity):
+  ``FLU = (x, -y, -z)`` of FRD (``FLU_R_FRD``, a half turn about x). Orientation::
+
+      world_R_body(ENU <- FLU) = ENU_R_NED @ ned_R_frd @ FRD_R_FLU
+
+  so PX4 yaw 0 (nose north) becomes fgnav yaw +pi/2 (the body x axis points along world +y =
+  north), and PX4 yaw +90 deg (east, clockwise seen from above) becomes fgnav yaw 0.
+  The same matrices convert any z-down world (e.g. PX4's ``FRD`` world frame of
+  ``vehicle_odometry``, whose x is an arbitrary heading): the result is a z-up right-handed
+  world whose yaw origin is rotated the same way.
+* **Y-up motion capture** (OptiTrack Motive's default: X, Y up, Z, right-handed). Both the mocap
+  world and the rigid body's local axes are Y-up; ``ZUP_R_YUP`` (a quarter turn about x) maps
+  ``(X, Y, Z) -> (X, -Z, Y)``. Orientation: ``world_R_rb(z-up) = ZUP_R_YUP @ R_yup @ ZUP_R_YUP^T``
+  (both frames converted). The rigid body's axes are whatever Motive was given at creation; the
+  fixed rotation to the vehicle's FLU body is a calibration (see :func:`align_rotation_sequences`).
+  Lengths in mm are converted with :data:`MM_TO_M`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+
+#: Rotation taking NED vectors to ENU (symmetric: also ``NED_R_ENU``).
+ENU_R_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+#: Rotation taking FRD body vectors to FLU (symmetric: also ``FRD_R_FLU``).
+FLU_R_FRD = np.diag([1.0, -1.0, -1.0])
+FRD_R_FLU = FLU_R_FRD
+#: Rotation taking Y-up mocap vectors ``(X, Y, Z)`` to z-up ``(X, -Z, Y)``.
+ZUP_R_YUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+#: Millimetres to metres.
+MM_TO_M = 1e-3
+
+
+def ned_to_enu(ned_v: np.ndarray) -> np.ndarray:
+    """World vectors (positions [m], velocities [m/s]) NED (..., 3) -> ENU-like z-up (..., 3)."""
+    v = np.asarray(ned_v, dtype=float)
+    return np.stack([v[..., 1], v[..., 0], -v[..., 2]], axis=-1)
+
+
+def frd_to_flu(frd_v: np.ndarray) -> np.ndarray:
+    """Body vectors (angular rate, specific force, body velocity) FRD (..., 3) -> FLU (..., 3)."""
+    v = np.asarray(frd_v, dtype=float)
+    return np.stack([v[..., 0], -v[..., 1], -v[..., 2]], axis=-1)
+
+
+def ned_R_frd_to_world_R_body(ned_R_frd: np.ndarray) -> np.ndarray:
+    """Orientation matrices ``ned_R_frd`` (..., 3, 3) -> fgnav ``world_R_body`` (ENU <- FLU)."""
+    R = np.asarray(ned_R_frd, dtype=float)
+    return ENU_R_NED @ R @ FRD_R_FLU
+
+
+def ned_q_frd_to_world_q_body(ned_q_frd_wxyz: np.ndarray) -> np.ndarray:
+    """PX4 attitude quaternions ``[w, x, y, z]`` (..., 4) rotating FRD into NED -> fgnav
+    ``world_q_body_wxyz`` (FLU into ENU), with ``w >= 0``."""
+    R = quat_wxyz_to_matrix(ned_q_frd_wxyz)
+    return matrix_to_quat_wxyz(ned_R_frd_to_world_R_body(R))
+
+
+def yup_to_zup(yup_v: np.ndarray) -> np.ndarray:
+    """World vectors of a Y-up mocap frame (..., 3) -> z-up ``(X, -Z, Y)`` (same unit)."""
+    v = np.asarray(yup_v, dtype=float)
+    return np.stack([v[..., 0], -v[..., 2], v[..., 1]], axis=-1)
+
+
+def yup_q_to_zup_q(yup_q_rb_wxyz: np.ndarray) -> np.ndarray:
+    """Mocap rigid-body quaternions ``[w, x, y, z]`` (..., 4) with Y-up world and Y-up body axes ->
+    z-up world and z-up body axes (``ZUP_R_YUP @ R @ ZUP_R_YUP^T``), with ``w >= 0``."""
+    R = quat_wxyz_to_matrix(yup_q_rb_wxyz)
+    return matrix_to_quat_wxyz(ZUP_R_YUP @ R @ ZUP_R_YUP.T)
+
+
+def tilt_angle(world_R_body: np.ndarray) -> np.ndarray:
+    """Angle [rad] between the body z axis and the world z axis (..., 3, 3) -> (...,)."""
+    R = np.asarray(world_R_body, dtype=float)
+    return np.arccos(np.clip(R[..., 2, 2], -1.0, 1.0))
+
+
+def _project_to_rotation(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation (Frobenius) to a 3x3 matrix (orthogonal Procrustes)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def align_rotation_sequences(
+    a_R_x: np.ndarray, b_R_y: np.ndarray, iterations: int = 50, tol: float = 1e-12
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fixed frame rotations that best align two attitude sources of one rigid motion.
+
+    Two systems observe the same body: source A gives ``a_R_x(t)`` (world a, body frame x),
+    source B gives ``b_R_y(t)`` (world b, body frame y). With fixed ``a_R_b`` and ``y_R_x``::
+
+        a_R_x(t) ~= a_R_b @ b_R_y(t) @ y_R_x
+
+    Both are found by alternating orthogonal Procrustes steps minimising the Frobenius residual
+    (equivalently the chordal distance) summed over samples. Needs rotation about at least two
+    axes to be unique.
+
+    Args:
+        a_R_x: (N, 3, 3) attitude from source A.
+        b_R_y: (N, 3, 3) attitude from source B at the same times.
+        iterations: maximum alternations.
+        tol: stop when the cost changes less than this.
+
+    Returns:
+        ``(a_R_b, y_R_x, residual_angle)``: the two fixed rotations and the (N,) residual angle
+        [rad] of each sample after alignment.
+    """
+    A = np.asarray(a_R_x, dtype=float)
+    B = np.asarray(b_R_y, dtype=float)
+    a_R_b = np.eye(3)
+    y_R_x = np.eye(3)
+    last = np.inf
+    for _ in range(iterations):
+        # a_R_b = argmax tr(a_R_b^T sum A (B y_R_x)^T)
+        a_R_b = _project_to_rotation(np.einsum("nij,nkj->ik", A, B @ y_R_x))
+        # y_R_x = argmax tr(y_R_x^T sum (a_R_b B)^T A)
+        y_R_x = _project_to_rotation(np.einsum("nji,njk->ik", a_R_b @ B, A))
+        cost = float(np.sum((A - a_R_b @ B @ y_R_x) ** 2))
+        if abs(last - cost) < tol:
+            break
+        last = cost
+    E = np.swapaxes(A, -1, -2) @ (a_R_b @ B @ y_R_x)
+    cos = np.clip((np.trace(E, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return a_R_b, y_R_x, np.arccos(cos)
