@@ -1,0 +1,74 @@
+"""Small numpy helpers shared by the factor modules (no frames of their own).
+
+GTSAM conventions used by every factor of ``fgnav.factors``:
+
+- ``Pose3`` ``world_T_body`` is perturbed on the right, ``world_T_body * Exp([omega, v])``: to first
+  order ``world_R_body -> world_R_body (I + [omega]x)`` and ``world_t_body -> world_t_body +
+  world_R_body v``. Jacobian columns are ``[omega (3), v (3)]``.
+- ``Similarity3`` ``slam_T_world`` = ``(R, t, s)`` maps a point ``p`` to ``s (R p + t)``; its tangent is
+  ``[omega (3), u (3), lambda (1)]`` and the first-order change of the mapped point is
+  ``s R ([omega]x^T p + u + lambda p)`` (GTSAM ``Similarity3::transformFrom`` H1).
+- Vectors (velocity, drag, ground height as a 1-vector) are perturbed by plain addition.
+- ``imuBias.ConstantBias`` tangent is ``[accelerometer (3), gyroscope (3)]``.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3-vector -> 3x3 skew-symmetric matrix ``[v]x`` with ``skew(a) @ b == cross(a, b)``."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def pose_parts(a_T_b: gtsam.Pose3 | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (3, 3) and translation (3,) of a ``gtsam.Pose3`` or a 4x4 homogeneous matrix."""
+    if isinstance(a_T_b, gtsam.Pose3):
+        m = a_T_b.matrix()
+    else:
+        m = np.asarray(a_T_b, dtype=float)
+        if m.shape != (4, 4):
+            raise ValueError(f"expected a Pose3 or a 4x4 pose matrix, got shape {m.shape}")
+    return m[:3, :3], m[:3, 3]
+
+
+def sim3_parts(a_T_b: gtsam.Similarity3) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R (3, 3), t (3,), s)`` of a ``gtsam.Similarity3`` that maps ``p -> s (R p + t)``."""
+    return a_T_b.rotation().matrix(), np.asarray(a_T_b.translation(), dtype=float), a_T_b.scale()
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> rotation vector (3,) (GTSAM ``Rot3.Logmap``)."""
+    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)), dtype=float)
+
+
+def so3_right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SO(3) at rotation vector ``phi``:
+    ``Log(Exp(phi) Exp(delta)) = phi + Jr^-1(phi) delta + O(|delta|^2)``."""
+    theta2 = float(phi @ phi)
+    K = skew(phi)
+    if theta2 < 1e-10:
+        return np.eye(3) + 0.5 * K + K @ K / 12.0
+    theta = np.sqrt(theta2)
+    coeff = 1.0 / theta2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))
+    return np.eye(3) + 0.5 * K + coeff * K @ K
+
+
+def as_vector(value: np.ndarray | float, size: int, name: str) -> np.ndarray:
+    """``value`` as a float vector of length ``size``; ``ValueError`` naming ``name`` otherwise."""
+    v = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
+    if v.shape != (size,):
+        raise ValueError(f"{name}: expected {size} values, got shape {np.shape(value)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name}: non-finite value {v}")
+    return v
+
+
+def check_noise_dim(noise_model: gtsam.noiseModel.Base, dim: int) -> None:
+    """Raise ``ValueError`` unless ``noise_model`` has dimension ``dim`` (a wrong row count crashes
+    GTSAM's solvers instead of raising)."""
+    if noise_model.dim() != dim:
+        raise ValueError(f"noise model has dimension {noise_model.dim()}, the factor needs {dim}")
