@@ -5,8 +5,8 @@ GTSAM conventions used by every factor of ``fgnav.factors``:
 - ``Pose3`` ``world_T_body`` is perturbed on the right, ``world_T_body * Exp([omega, v])``: to first
   order ``world_R_body -> world_R_body (I + [omega]x)`` and ``world_t_body -> world_t_body +
   world_R_body v``. Jacobian columns are ``[omega (3), v (3)]``.
-- ``Similarity3`` ``slam_T_world`` = ``(R, t, s)`` maps a point ``p`` to ``s (R p + t)``; its tangent is
-  ``[omega (3), u (3), lambda (1)]`` and the first-order change of the mapped point is
+- ``Similarity3`` ``slam_T_world`` = ``(R, t, s)`` maps ``p`` to ``s (R p + t)``; its tangent
+  is ``[omega (3), u (3), lambda (1)]`` and the first-order change of the mapped point is
   ``s R ([omega]x^T p + u + lambda p)`` (GTSAM ``Similarity3::transformFrom`` H1).
 - Vectors (velocity, drag, ground height as a 1-vector) are perturbed by plain addition.
 - ``imuBias.ConstantBias`` tangent is ``[accelerometer (3), gyroscope (3)]``.

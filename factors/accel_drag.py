@@ -11,7 +11,8 @@ drag, whatever the tilt: gravity does not appear. ``K = k I`` for a scalar drag 
 accelerometer bias (GTSAM's convention: measured = true + bias).
 
 Keys: ``X`` Pose3 ``world_T_body``, ``V`` velocity ``world_v_body`` [m/s] (Vector3), ``B``
-``imuBias.ConstantBias``, ``D`` drag coefficient: a Vector of size 1 (``k``) or 2 (``kx, ky``) [1/s].
+``imuBias.ConstantBias``, ``D`` drag coefficient: a Vector of size 1 (``k``) or 2 (``kx, ky``)
+[1/s].
 
 Residual (2,): unwhitened ``h(x) - z`` [m/s^2]; zero when the mean accelerometer xy equals
 ``-K u_xy + b_a,xy`` with ``u = world_R_body^T world_v_body``.
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-
 from fgnav.factors._jacobians import as_vector, check_noise_dim, pose_parts, skew
 
 ERROR_DIM = 2

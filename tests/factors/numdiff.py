@@ -1,8 +1,8 @@
 """Numerical Jacobians of GTSAM factors by central differences through ``Values.retract``.
 
 Each key's dimension comes from ``dims``; a perturbation ``delta`` of one key is applied with
-``values.retract(VectorValues)``, i.e. in GTSAM's local coordinates (right perturbation for Pose3 and
-Similarity3, addition for vectors), exactly the coordinates of the analytic Jacobians.
+``values.retract(VectorValues)``, i.e. in GTSAM's local coordinates (right perturbation for Pose3
+and Similarity3, addition for vectors), exactly the coordinates of the analytic Jacobians.
 """
 
 from __future__ import annotations

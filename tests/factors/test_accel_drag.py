@@ -5,8 +5,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-
 from fgnav.factors.accel_drag import accel_drag_error, make_accel_drag_factor, mean_accel_noise
+
 from fgnav.keys import B, D, V, X
 
 from .numdiff import assert_jacobians_close, random_pose, unit_noise
