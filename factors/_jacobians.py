@@ -72,3 +72,15 @@ def check_noise_dim(noise_model: gtsam.noiseModel.Base, dim: int) -> None:
     GTSAM's solvers instead of raising)."""
     if noise_model.dim() != dim:
         raise ValueError(f"noise model has dimension {noise_model.dim()}, the factor needs {dim}")
+
+
+def as_pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray, name: str) -> np.ndarray:
+    """A ``Pose3`` or 4x4 rigid pose as a 4x4 float matrix; ``ValueError`` naming ``name`` if it is
+    not a finite rigid transform."""
+    m = a_T_b.matrix() if isinstance(a_T_b, gtsam.Pose3) else np.asarray(a_T_b, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"{name}: expected a Pose3 or a finite 4x4 pose, got shape {m.shape}")
+    R = m[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name}: rotation block is not a rotation matrix")
+    return m.copy()

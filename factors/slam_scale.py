@@ -1,0 +1,310 @@
+"""Monocular-SLAM position factors with unknown scale (absolute, per-axis, relative, rotation).
+
+Measurement model (seed 000 eq. 4 and the scale ``lambda`` of seed 004 / Engel et al.; ethz-asl MSF
+``z = L C (p - p_wv + ...)``). The SLAM system reports the camera pose in its own frame ``slam`` at
+an unknown scale ``s`` [SLAM units per metre]::
+
+    slam_t_cam = s * slam_R_world * world_t_cam + slam_t_world + n                      (absolute)
+    world_t_cam = world_t_body + world_R_body * body_t_cam                              (lever arm)
+
+Variable ``S`` ``slam_T_world`` is a ``gtsam.Similarity3`` ``(R, t, s)``. GTSAM's ``Similarity3``
+maps a point as ``transformFrom(p) = s * (R p + t)``, so ``R = slam_R_world``, ``s`` is the scale
+and the translation held by GTSAM is ``t = slam_t_world / s`` (``slam_t_world = s * t``). Use
+``make_slam_T_world`` / ``slam_alignment_parts`` to convert. Tangent (GTSAM ``Similarity3``
+local coordinates): ``[omega (3), u (3), lambda (1)]``, right perturbation
+``slam_T_world * Exp(xi)``; to first order the scale becomes ``s exp(lambda)``.
+
+Factors of this module (residual = unwhitened ``h(x) - z``, SLAM units):
+
+- ``make_slam_position_factor`` (keys ``X, S``; 3-D): the absolute model above; zero when the
+  similarity maps the true camera position onto the measured one.
+- ``make_slam_axis_scale_factor`` (keys ``X``, per-axis scale Vector3 ``[kx, ky, kz]``; 3-D): seed
+  000's ``slam_t = diag(kx, ky, kz) world_t_cam`` (SLAM frame axes and origin equal the world's).
+- ``make_slam_relative_factor`` (keys ``X_i, X_j, S``; 3-D): the displacement
+  ``slam_t_cam_j - slam_t_cam_i = s slam_R_world (world_t_cam_j - world_t_cam_i)``; independent of
+  ``slam_t_world``, so a slow drift of the SLAM origin does not bias it (the translation part of
+  ``S`` gets no information from it).
+- ``make_slam_rotation_factor`` (keys ``X, S``; 3-D): ``Log(slam_R_cam_meas^T slam_R_world
+  world_R_body body_R_cam)`` [rad]; it makes the yaw of the SLAM frame (and roll/pitch) observable.
+
+Noise: isotropic in SLAM units (a SLAM position sigma of ``sigma_m`` metres is ``s * sigma_m``
+SLAM units); robust kernels recommended against SLAM jumps. Not modelled: time offset between SLAM
+and IMU (interpolate the keyframe first), SLAM map resets (start a new ``S`` variable), scale drift
+within one session (use a random walk between ``S`` variables), rolling shutter.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from fgnav.factors._jacobians import (
+    as_pose_matrix,
+    as_vector,
+    check_noise_dim,
+    pose_parts,
+    sim3_parts,
+    skew,
+    so3_log,
+    so3_right_jacobian_inv,
+)
+
+ERROR_DIM = 3
+
+
+def make_slam_T_world(
+    scale: float, slam_R_world: np.ndarray, slam_t_world: np.ndarray
+) -> gtsam.Similarity3:
+    """``Similarity3`` for ``p_slam = scale * slam_R_world p_world + slam_t_world``.
+
+    Args:
+        scale: SLAM units per metre (> 0).
+        slam_R_world: (3, 3) rotation from world to SLAM axes.
+        slam_t_world: (3,) world origin in the SLAM frame [SLAM units].
+    """
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0, got {scale}")
+    t = as_vector(slam_t_world, 3, "slam_t_world")
+    return gtsam.Similarity3(gtsam.Rot3(np.asarray(slam_R_world, dtype=float)), t / scale, scale)
+
+
+def slam_alignment_parts(slam_T_world: gtsam.Similarity3) -> tuple[float, np.ndarray, np.ndarray]:
+    """Inverse of ``make_slam_T_world``: ``(scale, slam_R_world (3, 3), slam_t_world (3,))``."""
+    R, t, s = sim3_parts(slam_T_world)
+    return s, R, s * t
+
+
+def _world_t_cam(world_T_body, body_t_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera position in world and its Jacobian (3x6) w.r.t. the pose's local coordinates."""
+    world_R_body, world_t_body = pose_parts(world_T_body)
+    p = world_t_body + world_R_body @ body_t_cam
+    p_D_pose = np.hstack([-world_R_body @ skew(body_t_cam), world_R_body])
+    return p, p_D_pose
+
+
+def slam_position_error(
+    world_T_body: gtsam.Pose3,
+    slam_T_world: gtsam.Similarity3,
+    slam_t_cam_meas: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Absolute SLAM position residual.
+
+    Args:
+        world_T_body: body pose in the world.
+        slam_T_world: alignment (see module docstring for GTSAM's ``Similarity3`` convention).
+        slam_t_cam_meas: (3,) measured camera position in the SLAM frame [SLAM units].
+        body_T_cam: camera pose in the body frame (only its translation, the lever arm, is used).
+
+    Returns:
+        ``(e (3,), [e_D_pose (3x6), e_D_sim (3x7)])``.
+    """
+    _, body_t_cam = pose_parts(body_T_cam)
+    p, p_D_pose = _world_t_cam(world_T_body, body_t_cam)
+    R, t, s = sim3_parts(slam_T_world)
+    sR = s * R
+    y = s * (R @ p + t)
+    e = y - np.asarray(slam_t_cam_meas, dtype=float)
+    e_D_sim = np.hstack([-sR @ skew(p), sR, (sR @ p)[:, None]])
+    return e, [sR @ p_D_pose, e_D_sim]
+
+
+def slam_axis_scale_error(
+    world_T_body: gtsam.Pose3,
+    axis_scale: np.ndarray,
+    slam_t_meas: np.ndarray,
+    body_t_cam: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Seed 000 per-axis scale residual ``diag(k) world_t_cam - slam_t_meas``.
+
+    Args:
+        world_T_body: body pose in the world.
+        axis_scale: (3,) ``[kx, ky, kz]`` [SLAM units per metre].
+        slam_t_meas: (3,) measured SLAM position [SLAM units].
+        body_t_cam: (3,) lever arm [m] (default zero: the body origin is measured, as in seed 000).
+
+    Returns:
+        ``(e (3,), [e_D_pose (3x6), e_D_scale (3x3)])``.
+    """
+    lever = np.zeros(3) if body_t_cam is None else np.asarray(body_t_cam, dtype=float)
+    p, p_D_pose = _world_t_cam(world_T_body, lever)
+    k = np.asarray(axis_scale, dtype=float)
+    e = k * p - np.asarray(slam_t_meas, dtype=float)
+    return e, [k[:, None] * p_D_pose, np.diag(p)]
+
+
+def slam_relative_error(
+    world_T_body_i: gtsam.Pose3,
+    world_T_body_j: gtsam.Pose3,
+    slam_T_world: gtsam.Similarity3,
+    slam_t_cam_i: np.ndarray,
+    slam_t_cam_j: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Relative SLAM displacement residual
+    ``s slam_R_world (world_t_cam_j - world_t_cam_i) - (slam_t_cam_j - slam_t_cam_i)``.
+
+    Returns:
+        ``(e (3,), [e_D_pose_i (3x6), e_D_pose_j (3x6), e_D_sim (3x7)])``; the translation columns
+        of ``e_D_sim`` are zero.
+    """
+    _, body_t_cam = pose_parts(body_T_cam)
+    p_i, p_i_D_pose = _world_t_cam(world_T_body_i, body_t_cam)
+    p_j, p_j_D_pose = _world_t_cam(world_T_body_j, body_t_cam)
+    R, _, s = sim3_parts(slam_T_world)
+    sR = s * R
+    d = p_j - p_i
+    y = sR @ d
+    e = y - (np.asarray(slam_t_cam_j, dtype=float) - np.asarray(slam_t_cam_i, dtype=float))
+    e_D_sim = np.hstack([-sR @ skew(d), np.zeros((3, 3)), y[:, None]])
+    return e, [-sR @ p_i_D_pose, sR @ p_j_D_pose, e_D_sim]
+
+
+def slam_rotation_error(
+    world_T_body: gtsam.Pose3,
+    slam_T_world: gtsam.Similarity3,
+    slam_R_cam_meas: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """SLAM orientation residual ``Log(slam_R_cam_meas^T slam_R_world world_R_body body_R_cam)``
+    [rad] (right-invariant error in the camera frame).
+
+    Returns:
+        ``(e (3,), [e_D_pose (3x6), e_D_sim (3x7)])``; only rotation columns are non-zero.
+    """
+    world_R_body, _ = pose_parts(world_T_body)
+    body_R_cam, _ = pose_parts(body_T_cam)
+    slam_R_world, _, _ = sim3_parts(slam_T_world)
+    world_R_cam = world_R_body @ body_R_cam
+    predicted = slam_R_world @ world_R_cam
+    e = so3_log(np.asarray(slam_R_cam_meas, dtype=float).T @ predicted)
+    Jr_inv = so3_right_jacobian_inv(e)
+    e_D_pose = np.zeros((3, 6))
+    e_D_pose[:, :3] = Jr_inv @ body_R_cam.T
+    e_D_sim = np.zeros((3, 7))
+    e_D_sim[:, :3] = Jr_inv @ world_R_cam.T
+    return e, [e_D_pose, e_D_sim]
+
+
+def make_slam_position_factor(
+    pose_key: int,
+    sim_key: int,
+    slam_t_cam_meas: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """Absolute SLAM position factor on ``(X: Pose3, S: Similarity3 slam_T_world)`` (3-D).
+
+    Args:
+        slam_t_cam_meas: (3,) camera position reported by SLAM [SLAM units].
+        body_T_cam: camera pose in the body frame (Pose3 or 4x4); its translation is the lever arm.
+        noise_model: 3-D noise in SLAM units (may be robust).
+    """
+    z = as_vector(slam_t_cam_meas, 3, "slam_t_cam_meas")
+    body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = slam_position_error(
+            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam
+        )
+        if H is not None:
+            H[0], H[1] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
+
+
+def make_slam_axis_scale_factor(
+    pose_key: int,
+    scale_key: int,
+    slam_t_meas: np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+    body_t_cam: np.ndarray | None = None,
+) -> gtsam.CustomFactor:
+    """Seed 000 per-axis scale factor on ``(X: Pose3, scale: Vector3 [kx, ky, kz])`` (3-D).
+
+    Args:
+        slam_t_meas: (3,) SLAM position [SLAM units], SLAM axes and origin equal to the world's.
+        noise_model: 3-D noise in SLAM units.
+        body_t_cam: optional (3,) lever arm [m].
+    """
+    z = as_vector(slam_t_meas, 3, "slam_t_meas")
+    lever = None if body_t_cam is None else as_vector(body_t_cam, 3, "body_t_cam")
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = slam_axis_scale_error(
+            values.atPose3(pose_key), values.atVector(scale_key), z, lever
+        )
+        if H is not None:
+            H[0], H[1] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_key, scale_key], error_fn)
+
+
+def make_slam_relative_factor(
+    pose_i_key: int,
+    pose_j_key: int,
+    sim_key: int,
+    slam_t_cam_i: np.ndarray,
+    slam_t_cam_j: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """Relative SLAM displacement factor on ``(X_i, X_j, S)`` (3-D; see module docstring).
+
+    The noise is that of a difference of two SLAM positions (``sqrt(2)`` times one position's sigma
+    for independent errors; less when SLAM errors are correlated over short intervals).
+    """
+    z_i = as_vector(slam_t_cam_i, 3, "slam_t_cam_i")
+    z_j = as_vector(slam_t_cam_j, 3, "slam_t_cam_j")
+    body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = slam_relative_error(
+            values.atPose3(pose_i_key),
+            values.atPose3(pose_j_key),
+            values.atSimilarity3(sim_key),
+            z_i,
+            z_j,
+            body_T_cam,
+        )
+        if H is not None:
+            H[0], H[1], H[2] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_i_key, pose_j_key, sim_key], error_fn)
+
+
+def make_slam_rotation_factor(
+    pose_key: int,
+    sim_key: int,
+    slam_R_cam_meas: np.ndarray,
+    body_T_cam: gtsam.Pose3 | np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """SLAM orientation factor on ``(X, S)`` (3-D, [rad]; see module docstring).
+
+    Args:
+        slam_R_cam_meas: (3, 3) camera orientation reported by SLAM.
+        body_T_cam: camera pose in the body frame; its rotation is used.
+        noise_model: 3-D noise [rad] on the rotation error expressed in the camera frame.
+    """
+    z = np.asarray(slam_R_cam_meas, dtype=float)
+    if z.shape != (3, 3) or not np.all(np.isfinite(z)):
+        raise ValueError(f"slam_R_cam_meas: expected a finite 3x3 rotation, got shape {z.shape}")
+    z = gtsam.Rot3(z).matrix()
+    body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = slam_rotation_error(
+            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam
+        )
+        if H is not None:
+            H[0], H[1] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
