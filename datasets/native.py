@@ -1,0 +1,568 @@
+"""fgnav's own flight folder format (in the spirit of EuRoC/ASL): plain text, one file per stream.
+
+Layout of a flight folder::
+
+    meta.json                  format name and version, flight name, source, streams, flight.meta
+    calib.yaml                 body_T_cam, body_T_range, camera, IMU noise, range limits, offsets
+    imu.csv                    t [s], omega_x..z [rad/s], accel_x..z [m/s^2]        (body FLU)
+    attitude.csv               t [s], q_w, q_x, q_y, q_z                       (world_R_body)
+    range.csv                  t [s], range [m] [, quality [-]]
+    yaw.csv                    t [s], yaw [rad]                           (of world_R_body, ZYX)
+    slam.csv                   t [s], x, y, z [slam], q_w..q_z, session [-] [, latency [s]]
+    ground_truth.csv           t [s], x, y, z [m], q_w..q_z [, v_x..v_z [m/s]]
+                               [, bg_x..bg_z [rad/s]] [, ba_x..ba_z [m/s^2]]
+    references/<name>.csv      same columns as ground_truth.csv
+    images.csv                 t [s], file (relative to the folder)
+    cam0/<t_ns>.png            images (named by integer-ns time)
+
+Frames and units are those of :mod:`fgnav.datasets.types` (world z up, body FLU, SI, float
+seconds). Each csv starts with a header naming its columns and units; optional column groups are
+written only when the series has them. Floats are written with ``repr`` (shortest text that
+reads back to the same float64), so ``read_flight(write_flight(f))`` reproduces every array
+exactly. ``flight.meta`` goes to ``meta.json``: numpy arrays and tuples become lists, numpy scalars
+Python numbers and dict keys strings (JSON has nothing else); anything else is an error.
+
+An :class:`~fgnav.datasets.types.ImageSeries` held in memory (``frames``) is written as PNG files
+(lossless); one held as files (``paths``) is copied. Read back, it has absolute ``paths``.
+
+Reading checks, in order: the header of each csv (a missing or unknown column is an error naming
+file and column), each value (non-numeric or non-finite -> error naming file, line and column),
+time order (error naming the lines), then ``flight.check()``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from . import _tables
+from .errors import FlightDataError, FlightFormatError
+from .types import (
+    AttitudeSeries,
+    Calibration,
+    CameraIntrinsics,
+    Flight,
+    ImageSeries,
+    ImuNoise,
+    ImuSeries,
+    RangeSeries,
+    SlamSeries,
+    Trajectory,
+    YawSeries,
+)
+
+log = logging.getLogger(__name__)
+
+FORMAT_NAME = "fgnav-flight"
+FORMAT_VERSION = 1
+META_FILE = "meta.json"
+CALIB_FILE = "calib.yaml"
+IMAGES_DIR = "cam0"
+REFERENCES_DIR = "references"
+
+
+# ----------------------------------------------------------------------------------------------
+# Column layout of each stream kind
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Group:
+    """Columns of one dataclass field: its csv column names, unit and whether it is optional."""
+
+    field: str
+    columns: tuple[str, ...]
+    unit: str
+    optional: bool = False
+    integer: bool = False
+
+
+_XYZ = ("x", "y", "z")
+_QUAT = ("q_w", "q_x", "q_y", "q_z")
+
+_TRAJECTORY = (
+    _Group("world_t_body", _XYZ, "m"),
+    _Group("world_q_body_wxyz", _QUAT, "-"),
+    _Group("world_v_body", ("v_x", "v_y", "v_z"), "m/s", optional=True),
+    _Group("gyro_bias", ("bg_x", "bg_y", "bg_z"), "rad/s", optional=True),
+    _Group("accel_bias", ("ba_x", "ba_y", "ba_z"), "m/s^2", optional=True),
+)
+
+LAYOUTS: dict[str, tuple[type, tuple[_Group, ...]]] = {
+    "imu": (
+        ImuSeries,
+        (
+            _Group("body_omega", ("omega_x", "omega_y", "omega_z"), "rad/s"),
+            _Group("body_accel", ("accel_x", "accel_y", "accel_z"), "m/s^2"),
+        ),
+    ),
+    "attitude": (AttitudeSeries, (_Group("world_q_body_wxyz", _QUAT, "-"),)),
+    "range": (
+        RangeSeries,
+        (_Group("range", ("range",), "m"), _Group("quality", ("quality",), "-", optional=True)),
+    ),
+    "yaw": (YawSeries, (_Group("yaw", ("yaw",), "rad"),)),
+    "slam": (
+        SlamSeries,
+        (
+            _Group("slam_t_cam", _XYZ, "slam"),
+            _Group("slam_q_cam_wxyz", _QUAT, "-"),
+            _Group("session", ("session",), "-", integer=True),
+            _Group("latency", ("latency",), "s", optional=True),
+        ),
+    ),
+    "ground_truth": (Trajectory, _TRAJECTORY),
+    "trajectory": (Trajectory, _TRAJECTORY),
+}
+"""Stream kind -> (series class, column groups after ``t [s]``)."""
+
+_SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency"}
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+# ----------------------------------------------------------------------------------------------
+# One stream <-> one csv
+# ----------------------------------------------------------------------------------------------
+
+
+def write_stream_csv(series: Any, path: str | Path, kind: str) -> Path:
+    """Write one series as a native csv (header with units, floats with ``repr``).
+
+    Args:
+        series: an ImuSeries, AttitudeSeries, RangeSeries, YawSeries, SlamSeries or Trajectory.
+        path: output file.
+        kind: its layout: ``"imu"``, ``"attitude"``, ``"range"``, ``"yaw"``, ``"slam"``,
+            ``"ground_truth"`` or ``"trajectory"``.
+    """
+    cls, groups = LAYOUTS[kind]
+    header = ["t [s]"]
+    cols: list[np.ndarray] = [np.asarray(series.t, dtype=float).reshape(-1, 1)]
+    integer_cols: set[int] = set()
+    for g in groups:
+        a = getattr(series, g.field)
+        if a is None:
+            continue
+        a = np.asarray(a)
+        a = a.reshape(-1, 1) if a.ndim == 1 else a
+        for c in g.columns:
+            if g.integer:
+                integer_cols.add(len(header))
+            header.append(f"{c} [{g.unit}]")
+        cols.append(a)
+    n = len(series.t)
+    lines = [",".join(header)]
+    for i in range(n):
+        parts: list[str] = []
+        for a in cols:
+            parts.extend(str(int(v)) if a.dtype.kind in "iub" else _fmt(v) for v in a[i])
+        lines.append(",".join(parts))
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def read_stream_csv(path: str | Path, kind: str) -> Any:
+    """Read one native csv written by :func:`write_stream_csv` and check it.
+
+    Raises:
+        FlightFormatError: missing/unknown column (naming it), non-numeric or non-finite value
+            (naming line and column), time not strictly increasing (naming the lines).
+    """
+    cls, groups = LAYOUTS[kind]
+    raw = _tables.read_raw(path, sep=",", header="first")
+    header = raw.header or []
+    index = {name: j for j, name in enumerate(header)}
+    if "t" not in index:
+        raise FlightFormatError(raw.path, f"missing column 't [s]' in the header {raw.header_raw}")
+    known = {"t"} | {c for g in groups for c in g.columns}
+    unknown = [h for h in header if h not in known]
+    if unknown:
+        raise FlightFormatError(
+            raw.path,
+            f"unknown column(s) {unknown} in the header; expected t and "
+            + ", ".join(f"{c} [{g.unit}]" for g in groups for c in g.columns)
+            + " (optional groups may be absent)",
+            line=1,
+        )
+    _tables.check_widths(raw, (len(header),), "as many as header columns")
+    t = _tables.to_values(raw, [index["t"]])[:, 0]
+    _tables.check_increasing(raw, t)
+    kwargs: dict[str, Any] = {"t": t}
+    for g in groups:
+        present = [c for c in g.columns if c in index]
+        if not present:
+            if g.optional:
+                continue
+            raise FlightFormatError(
+                raw.path, f"missing column '{g.columns[0]} [{g.unit}]' ({kind}.{g.field})", line=1
+            )
+        if len(present) != len(g.columns):
+            missing = next(c for c in g.columns if c not in index)
+            raise FlightFormatError(
+                raw.path, f"missing column '{missing} [{g.unit}]' ({kind}.{g.field})", line=1
+            )
+        js = [index[c] for c in g.columns]
+        if g.integer:
+            a = _read_int_column(raw, js[0])
+        else:
+            a = _tables.to_values(raw, js)
+            if g.field in _SCALAR_FIELDS:
+                a = a[:, 0]
+        kwargs[g.field] = a
+    series = cls(**kwargs)
+    try:
+        series.check(kind)
+    except FlightDataError as e:
+        raise FlightFormatError(raw.path, str(e)) from e
+    return series
+
+
+def _read_int_column(raw: _tables.RawTable, j: int) -> np.ndarray:
+    out = np.empty(len(raw.rows), dtype=np.int64)
+    for k, row in enumerate(raw.rows):
+        try:
+            out[k] = int(row[j])
+        except ValueError:
+            raise FlightFormatError(
+                raw.path,
+                f"{_tables.column_name(raw.header, j)}: expected an integer, found {row[j]!r}",
+                line=raw.lines[k],
+            ) from None
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibration <-> calib.yaml
+# ----------------------------------------------------------------------------------------------
+
+
+def _camera_to_dict(cam: CameraIntrinsics | None) -> dict[str, Any] | None:
+    if cam is None:
+        return None
+    return {
+        "fx": float(cam.fx),
+        "fy": float(cam.fy),
+        "cx": float(cam.cx),
+        "cy": float(cam.cy),
+        "width": int(cam.width),
+        "height": int(cam.height),
+        "distortion": [float(d) for d in cam.distortion],
+    }
+
+
+def _camera_from_dict(d: Any, path: Path, key: str) -> CameraIntrinsics | None:
+    if d is None:
+        return None
+    fields = ("fx", "fy", "cx", "cy", "width", "height", "distortion")
+    if not isinstance(d, Mapping):
+        raise FlightFormatError(path, f"{key}: expected a mapping with keys {list(fields)}")
+    missing = [f for f in fields if f not in d]
+    unknown = [k for k in d if k not in fields]
+    if missing or unknown:
+        raise FlightFormatError(
+            path, f"{key}: missing keys {missing}, unknown keys {unknown}; expected {list(fields)}"
+        )
+    try:
+        return CameraIntrinsics(
+            fx=float(d["fx"]),
+            fy=float(d["fy"]),
+            cx=float(d["cx"]),
+            cy=float(d["cy"]),
+            width=int(d["width"]),
+            height=int(d["height"]),
+            distortion=tuple(float(x) for x in d["distortion"]),
+        )
+    except (TypeError, ValueError) as e:
+        raise FlightFormatError(path, f"{key}: {e}") from e
+
+
+def calibration_to_dict(calib: Calibration) -> dict[str, Any]:
+    """Calibration as plain YAML-able types (4x4 matrices as nested lists)."""
+    return {
+        "body_T_cam": np.asarray(calib.body_T_cam, dtype=float).tolist(),
+        "body_T_range": np.asarray(calib.body_T_range, dtype=float).tolist(),
+        "camera": _camera_to_dict(calib.camera),
+        "imu_noise": {k: float(v) for k, v in dataclasses.asdict(calib.imu_noise).items()},
+        "range_min": float(calib.range_min),
+        "range_max": float(calib.range_max),
+        "time_offsets": {str(k): float(v) for k, v in calib.time_offsets.items()},
+    }
+
+
+def _matrix(d: Mapping, key: str, path: Path) -> np.ndarray:
+    try:
+        T = np.asarray(d[key], dtype=float)
+    except (TypeError, ValueError) as e:
+        raise FlightFormatError(path, f"{key}: expected a 4x4 matrix of numbers ({e})") from e
+    if T.shape != (4, 4):
+        raise FlightFormatError(path, f"{key}: expected a 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+def calibration_from_dict(d: Any, path: Path) -> Calibration:
+    """Inverse of :func:`calibration_to_dict`; errors name the file and key."""
+    keys = ("body_T_cam", "body_T_range", "camera", "imu_noise", "range_min", "range_max",
+            "time_offsets")
+    if not isinstance(d, Mapping):
+        raise FlightFormatError(path, f"expected a mapping with keys {list(keys)}")
+    missing = [k for k in keys if k not in d]
+    unknown = [k for k in d if k not in keys and k != "images_camera"]
+    if missing or unknown:
+        raise FlightFormatError(
+            path, f"missing keys {missing}, unknown keys {unknown}; expected {list(keys)}"
+        )
+    noise_fields = [f.name for f in dataclasses.fields(ImuNoise)]
+    noise = d["imu_noise"]
+    if not isinstance(noise, Mapping) or sorted(noise) != sorted(noise_fields):
+        raise FlightFormatError(path, f"imu_noise: expected exactly the keys {noise_fields}")
+    try:
+        return Calibration(
+            body_T_cam=_matrix(d, "body_T_cam", path),
+            body_T_range=_matrix(d, "body_T_range", path),
+            camera=_camera_from_dict(d["camera"], path, "camera"),
+            imu_noise=ImuNoise(**{k: float(v) for k, v in noise.items()}),
+            range_min=float(d["range_min"]),
+            range_max=float(d["range_max"]),
+            time_offsets={str(k): float(v) for k, v in (d["time_offsets"] or {}).items()},
+        )
+    except (TypeError, ValueError) as e:
+        raise FlightFormatError(path, str(e)) from e
+
+
+def read_calib_yaml(path: str | Path) -> Calibration:
+    """Read a native ``calib.yaml`` (as written by :func:`write_flight`)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FlightFormatError(p, "file not found")
+    try:
+        d = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise FlightFormatError(p, f"not valid YAML: {e}") from e
+    return calibration_from_dict(d, p)
+
+
+# ----------------------------------------------------------------------------------------------
+# meta.json
+# ----------------------------------------------------------------------------------------------
+
+
+def to_json_value(x: Any, where: str = "meta") -> Any:
+    """Convert metadata to JSON types: dict keys -> str, tuples and numpy arrays -> lists, numpy
+    scalars -> Python numbers, paths -> str, dataclasses -> dicts.
+
+    Raises:
+        FlightDataError: naming the entry (``meta["truth"]["k"]``) when a value has no JSON form.
+    """
+    if x is None or isinstance(x, bool | int | float | str):
+        return x
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return to_json_value(x.tolist(), where)
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, Mapping):
+        return {str(k): to_json_value(v, f"{where}[{k!r}]") for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [to_json_value(v, f"{where}[{i}]") for i, v in enumerate(x)]
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return to_json_value(dataclasses.asdict(x), where)
+    raise FlightDataError(
+        f"{where}: cannot store a {type(x).__name__} in meta.json (expected numbers, strings, "
+        f"lists, dicts or numpy arrays)"
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Whole flight
+# ----------------------------------------------------------------------------------------------
+
+_STREAM_FILES = {
+    "imu": "imu.csv",
+    "attitude": "attitude.csv",
+    "range": "range.csv",
+    "yaw": "yaw.csv",
+    "slam": "slam.csv",
+    "ground_truth": "ground_truth.csv",
+}
+
+
+def _image_name(t: float) -> str:
+    return str(int(round(t * 1e9)))
+
+
+def _write_images(images: ImageSeries, folder: Path) -> None:
+    import cv2
+
+    cam_dir = folder / IMAGES_DIR
+    cam_dir.mkdir(exist_ok=True)
+    names: list[str] = []
+    for i, t in enumerate(images.t):
+        stem = _image_name(float(t))
+        if images.frames is not None:
+            rel = f"{IMAGES_DIR}/{stem}.png"
+            if not cv2.imwrite(str(folder / rel), np.asarray(images.frames[i])):
+                raise FlightDataError(f"images.frames[{i}]: OpenCV could not write it as PNG")
+        else:
+            src = Path(images.paths[i])
+            rel = f"{IMAGES_DIR}/{stem}{src.suffix}"
+            dst = folder / rel
+            if not src.is_file():
+                raise FlightDataError(f"images.paths[{i}]: {src} does not exist")
+            if src.resolve() != dst.resolve():
+                shutil.copyfile(src, dst)
+        names.append(rel)
+    if len(set(names)) != len(names):
+        raise FlightDataError("images.t: two image times round to the same nanosecond")
+    lines = ["t [s],file"] + [f"{_fmt(t)},{n}" for t, n in zip(images.t, names, strict=True)]
+    (folder / "images.csv").write_text("\n".join(lines) + "\n")
+
+
+def _read_images(folder: Path, camera: CameraIntrinsics | None) -> ImageSeries:
+    path = folder / "images.csv"
+    raw = _tables.read_raw(path, sep=",", header="first")
+    if raw.header != ["t", "file"]:
+        raise FlightFormatError(path, f"expected the header 't [s],file', found {raw.header_raw}")
+    _tables.check_widths(raw, (2,), "t, file")
+    t = _tables.to_values(raw, [0])[:, 0]
+    _tables.check_increasing(raw, t)
+    paths = []
+    for k, row in enumerate(raw.rows):
+        p = (folder / row[1]).resolve()
+        if not p.is_file():
+            raise FlightFormatError(path, f"image file {p} not found", line=raw.lines[k])
+        paths.append(p)
+    return ImageSeries(t=t, paths=tuple(paths), camera=camera)
+
+
+def _check_reference_name(name: str) -> None:
+    if not name or "/" in name or "\\" in name or name.startswith("."):
+        raise FlightDataError(f"references[{name!r}]: the name must be a plain file name")
+
+
+def write_flight(flight: Flight, folder: str | Path, overwrite: bool = False) -> Path:
+    """Write a flight as a native folder.
+
+    Args:
+        flight: the flight; it is checked first (a bad flight is not written).
+        folder: output folder; created when missing.
+        overwrite: allow writing into a non-empty folder (files of this format are replaced;
+            other files are left alone).
+
+    Returns:
+        The folder.
+
+    Raises:
+        FlightDataError: the flight fails its checks, or meta holds a value without a JSON form.
+        FileExistsError: the folder is not empty and ``overwrite`` is False.
+    """
+    flight.check()
+    out = Path(folder)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{out}: folder is not empty (pass overwrite=True to replace)")
+    out.mkdir(parents=True, exist_ok=True)
+    meta_json = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "name": flight.name,
+        "source": flight.source,
+        "streams": [s for s in (*_STREAM_FILES, "images") if getattr(flight, s) is not None],
+        "references": sorted(flight.references),
+        "meta": to_json_value(flight.meta),
+    }
+    for stream, fname in _STREAM_FILES.items():
+        series = getattr(flight, stream)
+        if series is not None:
+            write_stream_csv(series, out / fname, stream)
+    for name, traj in flight.references.items():
+        _check_reference_name(name)
+        write_stream_csv(traj, out / REFERENCES_DIR / f"{name}.csv", "trajectory")
+    calib = calibration_to_dict(flight.calib)
+    if flight.images is not None:
+        calib["images_camera"] = _camera_to_dict(flight.images.camera)
+        _write_images(flight.images, out)
+    (out / CALIB_FILE).write_text(yaml.safe_dump(calib, sort_keys=False))
+    (out / META_FILE).write_text(json.dumps(meta_json, indent=1) + "\n")
+    log.info("wrote flight %r to %s (%s)", flight.name, out, ", ".join(meta_json["streams"]))
+    return out
+
+
+def is_native_folder(path: str | Path) -> bool:
+    """True when ``path`` is a folder holding a ``meta.json``."""
+    p = Path(path)
+    return p.is_dir() and (p / META_FILE).is_file()
+
+
+def read_flight(folder: str | Path) -> Flight:
+    """Read a native flight folder written by :func:`write_flight`.
+
+    Raises:
+        FlightFormatError: naming the file (and line/column) of the first problem found.
+        FlightDataError: the assembled flight fails ``flight.check()``.
+    """
+    root = Path(folder)
+    meta_path = root / META_FILE
+    if not meta_path.is_file():
+        raise FlightFormatError(root, f"not an fgnav flight folder ({META_FILE} not found)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as e:
+        raise FlightFormatError(meta_path, f"not valid JSON: {e.msg}", line=e.lineno) from e
+    required = ("format", "version", "name", "source", "streams", "references", "meta")
+    if not isinstance(meta, dict) or any(k not in meta for k in required):
+        raise FlightFormatError(meta_path, f"expected a JSON object with keys {list(required)}")
+    if meta["format"] != FORMAT_NAME:
+        raise FlightFormatError(
+            meta_path, f"format is {meta['format']!r}, expected {FORMAT_NAME!r}"
+        )
+    if not isinstance(meta["version"], int) or meta["version"] > FORMAT_VERSION:
+        raise FlightFormatError(
+            meta_path,
+            f"format version {meta['version']!r} is not supported (this fgnav reads up to "
+            f"{FORMAT_VERSION})",
+        )
+    valid = (*_STREAM_FILES, "images")
+    unknown = [s for s in meta["streams"] if s not in valid]
+    if unknown:
+        raise FlightFormatError(meta_path, f"unknown streams {unknown}; valid: {list(valid)}")
+    calib_path = root / CALIB_FILE
+    if not calib_path.is_file():
+        raise FlightFormatError(calib_path, "file not found")
+    try:
+        calib_dict = yaml.safe_load(calib_path.read_text())
+    except yaml.YAMLError as e:
+        raise FlightFormatError(calib_path, f"not valid YAML: {e}") from e
+    calib = calibration_from_dict(calib_dict, calib_path)
+    streams: dict[str, Any] = {}
+    for s in meta["streams"]:
+        if s == "images":
+            cam = _camera_from_dict(calib_dict.get("images_camera"), calib_path, "images_camera")
+            streams[s] = _read_images(root, cam)
+        else:
+            streams[s] = read_stream_csv(root / _STREAM_FILES[s], s)
+    references = {
+        name: read_stream_csv(root / REFERENCES_DIR / f"{name}.csv", "trajectory")
+        for name in meta["references"]
+    }
+    flight = Flight(
+        name=meta["name"],
+        source=meta["source"],
+        references=references,
+        calib=calib,
+        meta=meta["meta"],
+        **streams,
+    )
+    return flight.check()
