@@ -1,0 +1,543 @@
+"""Accuracy, consistency and timing metrics of an :class:`~fgnav.estimate.Estimate` against truth.
+
+Definitions (all computed after associating the estimate with ground truth interpolated at the
+estimate's times, then aligning it with the stated mode, see :mod:`fgnav.eval.align`):
+
+- **ATE** (absolute trajectory error): ``e_i = |gt_t_i - (s R est_t_i + t)|`` [m]; RMSE, mean,
+  median and max over the matched samples. Equal to evo's APE ``translation_part`` with the same
+  alignment (``evo_ape --align [--correct_scale]``).
+- **RPE per distance**: for every matched sample ``i`` the sample ``j > i`` whose distance travelled
+  along the ground truth from ``i`` is closest to ``delta_m`` (pairs more than ``RPE_REL_TOL *
+  delta_m`` off are not used); the error of the pair is the translation norm of the relative pose
+  error ``(gt_i^-1 gt_j)^-1 (est_i^-1 est_j)`` [m] (evo's RPE ``translation_part`` with
+  ``--delta_unit m --all_pairs --pairs_from_reference``, which gives the same pairs and errors).
+  ``rpe_pct`` is the mean of ``100 * e_ij / d_ij`` with ``d_ij`` the true path length between the
+  pair (the KITTI drift measure divides by the nominal segment length instead; the two differ by
+  at most ``RPE_REL_TOL``). ``rpe_rmse_m`` is the RMSE of ``e_ij``.
+- **Scale error** per SLAM session: ``100 (s_est - s_true) / s_true`` [%], final value from
+  ``Estimate.slam_scale``; mean of its absolute value over time from ``series["slam_scale"]``.
+- **Velocity RMSE** [m/s] of ``|gt_v - s R est_v|`` when both carry velocity.
+- **Yaw RMSE** [deg] of the wrapped difference of the ZYX yaw of aligned estimate and truth.
+- **NEES** (normalised estimation error squared, Bar-Shalom et al. 2001, sec. 5.4) where
+  ``pose_cov`` exists: position ``e^T P^-1 e`` with ``P = s^2 R world_R_body P_tt world_R_body^T
+  R^T`` (expected 3 for a consistent estimator), and pose ``xi^T P^-1 xi`` with ``xi =
+  Local(est_pose, gt_pose)`` in GTSAM's Pose3 tangent ``[rot, trans]`` (expected 6). Alignment fits
+  a few degrees of freedom to the errors, which lowers NEES slightly; use ``alignment="none"`` for
+  simulated flights whose world frame is the truth's.
+- **Timing**: median, 99th percentile and max of ``update_latency`` [s]; times real time =
+  estimate duration / ``runtime_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import wrap_angle, yaw_of
+from fgnav.datasets.types import SlamSeries, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.eval.align import (
+    DEFAULT_MAX_GT_GAP_S,
+    Alignment,
+    align,
+    associate,
+    umeyama,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Default RPE segment length [m]. Our flights are 30-100 m long (EuRoC MH_01: 80.6 m), so 10 m
+#: segments give many pairs; KITTI uses 100-800 m for cars.
+DEFAULT_RPE_DELTA_M = 10.0
+#: Relative tolerance on the path length of an RPE pair (evo's default ``rel_delta_tol``).
+RPE_REL_TOL = 0.1
+#: Coverage of the two-sided chi-square interval reported for the average NEES.
+NEES_CONFIDENCE = 0.95
+
+
+def _nan() -> float:
+    return float("nan")
+
+
+@dataclass
+class Metrics:
+    """Scores of one estimate against ground truth (see the module docstring for definitions).
+
+    Unavailable metrics are NaN (or empty dicts); counts say how many samples each used.
+    """
+
+    method: str
+    alignment: str
+    align_scale: float = 1.0
+    causal: bool = False
+    n_est: int = 0
+    n_matched: int = 0
+    n_unmatched_before: int = 0
+    n_unmatched_after: int = 0
+    n_unmatched_gap: int = 0
+    duration_s: float = field(default_factory=_nan)
+    path_length_m: float = field(default_factory=_nan)
+    ate_rmse_m: float = field(default_factory=_nan)
+    ate_mean_m: float = field(default_factory=_nan)
+    ate_median_m: float = field(default_factory=_nan)
+    ate_max_m: float = field(default_factory=_nan)
+    rpe_delta_m: float = field(default_factory=_nan)
+    rpe_pct: float = field(default_factory=_nan)
+    rpe_rmse_m: float = field(default_factory=_nan)
+    rpe_n_pairs: int = 0
+    scale_final_err_pct: dict[int, float] = field(default_factory=dict)
+    scale_mean_abs_err_pct: dict[int, float] = field(default_factory=dict)
+    vel_rmse_mps: float = field(default_factory=_nan)
+    n_vel: int = 0
+    yaw_rmse_deg: float = field(default_factory=_nan)
+    nees_pos: float = field(default_factory=_nan)
+    nees_pose: float = field(default_factory=_nan)
+    nees_pos_interval: tuple[float, float] = (math.nan, math.nan)
+    n_nees: int = 0
+    latency_p50_s: float = field(default_factory=_nan)
+    latency_p99_s: float = field(default_factory=_nan)
+    latency_max_s: float = field(default_factory=_nan)
+    runtime_s: float = field(default_factory=_nan)
+    times_real_time: float = field(default_factory=_nan)
+
+    @property
+    def scale_final_abs_err_pct(self) -> float:
+        """Largest absolute final scale error over sessions [%] (NaN without truth)."""
+        v = [abs(x) for x in self.scale_final_err_pct.values()]
+        return max(v) if v else math.nan
+
+    @property
+    def scale_mean_err_pct(self) -> float:
+        """Largest per-session mean absolute scale error over time [%] (NaN without truth)."""
+        v = list(self.scale_mean_abs_err_pct.values())
+        return max(v) if v else math.nan
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready dict (NaN becomes None; session keys become strings)."""
+        d = asdict(self)
+        d["scale_final_abs_err_pct"] = self.scale_final_abs_err_pct
+        d["scale_mean_err_pct"] = self.scale_mean_err_pct
+        return to_jsonable(d)
+
+    COLUMNS = (
+        ("method", "{:<14}", "method"),
+        ("align", "{:>5}", "alignment"),
+        ("ATE[m]", "{:>8.3f}", "ate_rmse_m"),
+        ("RPE[%]", "{:>7.2f}", "rpe_pct"),
+        ("scale[%]", "{:>8.2f}", "scale_final_abs_err_pct"),
+        ("vel[m/s]", "{:>8.3f}", "vel_rmse_mps"),
+        ("yaw[deg]", "{:>8.2f}", "yaw_rmse_deg"),
+        ("NEESpos", "{:>7.2f}", "nees_pos"),
+        ("p50[ms]", "{:>7.2f}", "latency_p50_ms"),
+        ("p99[ms]", "{:>7.2f}", "latency_p99_ms"),
+        ("xRT", "{:>7.1f}", "times_real_time"),
+        ("N", "{:>6d}", "n_matched"),
+    )
+
+    @property
+    def latency_p50_ms(self) -> float:
+        return 1e3 * self.latency_p50_s
+
+    @property
+    def latency_p99_ms(self) -> float:
+        return 1e3 * self.latency_p99_s
+
+    @classmethod
+    def header(cls) -> str:
+        """Column titles matching :meth:`row`."""
+        cells = []
+        for title, fmt, _ in cls.COLUMNS:
+            width = int("".join(ch for ch in fmt.split(".")[0] if ch.isdigit()))
+            cells.append(title.ljust(width) if "<" in fmt else title.rjust(width))
+        return " ".join(cells)
+
+    def row(self) -> str:
+        """One line of a fixed-width table (NaN shown as ``-``)."""
+        cells = []
+        for _, fmt, attr in self.COLUMNS:
+            v = getattr(self, attr)
+            width = int("".join(ch for ch in fmt.split(".")[0] if ch.isdigit()))
+            if isinstance(v, float) and not math.isfinite(v):
+                cells.append("-".rjust(width))
+            else:
+                cells.append(fmt.format(v))
+        return " ".join(cells)
+
+
+def format_table(metrics: list[Metrics]) -> str:
+    """Fixed-width table: a header and one :meth:`Metrics.row` per estimate."""
+    return "\n".join([Metrics.header(), *(m.row() for m in metrics)])
+
+
+def to_jsonable(x: Any) -> Any:
+    """Recursively convert numpy scalars/arrays, tuples and non-string keys for ``json.dump``;
+    non-finite floats become None."""
+    if isinstance(x, dict):
+        return {str(k): to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, np.bool_ | bool):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating | float):
+        f = float(x)
+        return f if math.isfinite(f) else None
+    if hasattr(x, "__fspath__"):
+        return str(x)
+    return x
+
+
+# ----------------------------------------------------------------------------------------------
+# Individual metrics (pure functions on arrays)
+# ----------------------------------------------------------------------------------------------
+
+
+def accumulated_distances(xyz: np.ndarray) -> np.ndarray:
+    """(N,) path length [m] from the first position to each position."""
+    steps = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def rpe_pairs(gt_xyz: np.ndarray, delta_m: float, rel_tol: float = RPE_REL_TOL) -> np.ndarray:
+    """(P, 2) index pairs ``(i, j)``: for each ``i``, the ``j > i`` whose path length along
+    ``gt_xyz`` from ``i`` is closest to ``delta_m`` (first such index on ties), kept when within
+    ``rel_tol * delta_m`` of it (the pairs of evo's ``filter_pairs_by_path(all_pairs=True)``)."""
+    if delta_m <= 0:
+        raise FlightDataError(f"rpe: delta_m must be positive, got {delta_m}")
+    D = accumulated_distances(np.asarray(gt_xyz, dtype=float))
+    n = D.size
+    pairs = []
+    for i in range(n - 1):
+        target = D[i] + delta_m
+        k = int(np.searchsorted(D, target, side="left"))
+        best_j, best_err = -1, math.inf
+        if k - 1 > i:
+            j_lo = max(int(np.searchsorted(D, D[k - 1], side="left")), i + 1)
+            best_j, best_err = j_lo, abs(D[j_lo] - D[i] - delta_m)
+        if k < n and k > i:
+            err = abs(D[k] - D[i] - delta_m)
+            if err < best_err:
+                best_j, best_err = k, err
+        if best_j > i and best_err <= rel_tol * delta_m:
+            pairs.append((i, best_j))
+    return np.asarray(pairs, dtype=int).reshape(-1, 2)
+
+
+def _poses(xyz: np.ndarray, R: np.ndarray) -> np.ndarray:
+    T = np.zeros((xyz.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = xyz
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    Ti = np.zeros_like(T)
+    Rt = np.transpose(T[:, :3, :3], (0, 2, 1))
+    Ti[:, :3, :3] = Rt
+    Ti[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+    Ti[:, 3, 3] = 1.0
+    return Ti
+
+
+def rpe_translation_errors(
+    gt_xyz: np.ndarray,
+    gt_R: np.ndarray,
+    est_xyz: np.ndarray,
+    est_R: np.ndarray,
+    pairs: np.ndarray,
+) -> np.ndarray:
+    """(P,) translation norms [m] of ``(gt_i^-1 gt_j)^-1 (est_i^-1 est_j)`` for the pairs."""
+    if pairs.shape[0] == 0:
+        return np.zeros(0)
+    i, j = pairs[:, 0], pairs[:, 1]
+    G = _poses(gt_xyz, gt_R)
+    P = _poses(est_xyz, est_R)
+    gt_rel = np.einsum("nij,njk->nik", _inv(G[i]), G[j])
+    est_rel = np.einsum("nij,njk->nik", _inv(P[i]), P[j])
+    E = np.einsum("nij,njk->nik", _inv(gt_rel), est_rel)
+    return np.linalg.norm(E[:, :3, 3], axis=1)
+
+
+def nees_interval(n: int, dof: int, confidence: float = NEES_CONFIDENCE) -> tuple[float, float]:
+    """Two-sided interval of the average NEES of ``n`` independent samples of a consistent
+    estimator with ``dof`` degrees of freedom (``n * avg ~ chi2(n * dof)``)."""
+    if n <= 0:
+        return (math.nan, math.nan)
+    a = (1.0 - confidence) / 2.0
+    return (float(chi2.ppf(a, n * dof) / n), float(chi2.ppf(1.0 - a, n * dof) / n))
+
+
+def position_nees(
+    err_world: np.ndarray, world_R_body: np.ndarray, pose_cov: np.ndarray, al: Alignment
+) -> np.ndarray:
+    """(N,) position NEES ``e^T P^-1 e``.
+
+    Args:
+        err_world: (N, 3) ``gt - aligned estimate`` in the truth's world [m].
+        world_R_body: (N, 3, 3) estimated orientations (estimate's world).
+        pose_cov: (N, 6, 6) body-frame Pose3 covariance ``[rot, trans]``.
+        al: alignment used (rotates and scales the covariance into the truth's world).
+    """
+    P_body = pose_cov[:, 3:6, 3:6]
+    A = np.einsum("ij,njk->nik", al.R, world_R_body)
+    P = al.s**2 * np.einsum("nij,njk,nlk->nil", A, P_body, A)
+    sol = np.linalg.solve(P, err_world[:, :, None])[:, :, 0]
+    return np.einsum("ni,ni->n", err_world, sol)
+
+
+def pose_nees(
+    est_xyz: np.ndarray,
+    est_R: np.ndarray,
+    gt_xyz: np.ndarray,
+    gt_R: np.ndarray,
+    pose_cov: np.ndarray,
+    scale: float = 1.0,
+) -> np.ndarray:
+    """(N,) pose NEES ``xi^T P^-1 xi`` with ``xi = est_pose.localCoordinates(gt_pose)`` (GTSAM
+    Pose3 tangent ``[rot, trans]``, the same chart as the covariance). Poses are the aligned
+    estimate and the truth in the truth's world; the translation block is scaled by ``scale**2``."""
+    import gtsam
+
+    D = np.diag([1.0, 1.0, 1.0, scale, scale, scale])
+    out = np.empty(est_xyz.shape[0])
+    for n in range(est_xyz.shape[0]):
+        est = gtsam.Pose3(gtsam.Rot3(est_R[n]), est_xyz[n])
+        gt = gtsam.Pose3(gtsam.Rot3(gt_R[n]), gt_xyz[n])
+        xi = est.localCoordinates(gt)
+        out[n] = xi @ np.linalg.solve(D @ pose_cov[n] @ D, xi)
+    return out
+
+
+def _rmse(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else math.nan
+
+
+def _scale_samples(estimate: Estimate, sessions: list[int]) -> dict[int, TimeSeries]:
+    """The scale-over-time series of each session present in ``estimate.series``.
+
+    Accepted layouts: ``series["slam_scale/<id>"]`` per session; or ``series["slam_scale"]`` (N,)
+    with ``series["slam_session"]`` (N,) giving the active session at each time; or
+    ``series["slam_scale"]`` (N,) alone when the estimate has a single session.
+    """
+    out: dict[int, TimeSeries] = {}
+    for key, ts in estimate.series.items():
+        if key.startswith("slam_scale/"):
+            out[int(key.split("/", 1)[1])] = ts
+    base = estimate.series.get("slam_scale")
+    if base is None:
+        return out
+    value = np.asarray(base.value, dtype=float)
+    if value.ndim != 1:
+        raise FlightDataError(
+            f"estimate[{estimate.method}].series['slam_scale']: expected (N,) values, got "
+            f"{value.shape}; use one series 'slam_scale/<session>' per session"
+        )
+    sess_ts = estimate.series.get("slam_session")
+    if sess_ts is not None:
+        sess = np.asarray(sess_ts.value).astype(int)
+        if sess.shape != value.shape:
+            raise FlightDataError(
+                f"estimate[{estimate.method}].series['slam_session']: expected shape "
+                f"{value.shape} like 'slam_scale', got {sess.shape}"
+            )
+        for sid in np.unique(sess):
+            m = sess == sid
+            out.setdefault(int(sid), TimeSeries(np.asarray(base.t)[m], value[m]))
+        return out
+    known = sorted(estimate.slam_scale) or sessions
+    if len(known) != 1:
+        raise FlightDataError(
+            f"estimate[{estimate.method}].series['slam_scale'] has no 'slam_session' series "
+            f"and the estimate has sessions {known}: cannot tell the session of each value"
+        )
+    out.setdefault(known[0], TimeSeries(np.asarray(base.t), value))
+    return out
+
+
+def scale_errors(
+    estimate: Estimate, truth_scale: dict[int, float]
+) -> tuple[dict[int, float], dict[int, float]]:
+    """Final and time-averaged absolute scale errors [%] per session in ``truth_scale``."""
+    final: dict[int, float] = {}
+    mean_abs: dict[int, float] = {}
+    for sid, s_true in truth_scale.items():
+        if not s_true > 0:
+            raise FlightDataError(f"truth_scale[{sid}] = {s_true}: a scale must be positive")
+        if sid in estimate.slam_scale:
+            final[int(sid)] = 100.0 * (estimate.slam_scale[sid] - s_true) / s_true
+        else:
+            logger.warning("estimate[%s] has no scale for SLAM session %s", estimate.method, sid)
+    for sid, ts in _scale_samples(estimate, sorted(truth_scale)).items():
+        if sid in truth_scale and np.asarray(ts.value).size:
+            s_true = truth_scale[sid]
+            mean_abs[sid] = float(np.mean(np.abs(np.asarray(ts.value) - s_true)) / s_true * 100.0)
+    return final, mean_abs
+
+
+# ----------------------------------------------------------------------------------------------
+# Entry points
+# ----------------------------------------------------------------------------------------------
+
+
+def evaluate(
+    estimate: Estimate,
+    truth: Trajectory,
+    alignment: str = "se3",
+    truth_scale: dict[int, float] | None = None,
+    delta_m: float = DEFAULT_RPE_DELTA_M,
+    max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+) -> Metrics:
+    """Score an estimate against ground truth.
+
+    Args:
+        estimate: the estimate (its trajectory in its own world frame).
+        truth: ground-truth body trajectory on the same clock.
+        alignment: ``"se3"``, ``"sim3"``, ``"4dof"`` or ``"none"`` (always reported).
+        truth_scale: true SLAM scale ``s`` (SLAM units per metre) per session, when known.
+        delta_m: RPE segment length [m].
+        max_gap_s: largest truth gap [s] interpolated across (see :func:`associate`).
+
+    Returns:
+        The :class:`Metrics`.
+    """
+    estimate.check()
+    est = estimate.trajectory
+    assoc = associate(est, truth, max_gap_s=max_gap_s)
+    idx = assoc.est_index
+    gt = assoc.gt
+    est_xyz = est.world_t_body[idx]
+    est_R = est.world_R_body()[idx]
+    al = align(est_xyz, gt.world_t_body, alignment)
+    a_xyz = al.apply_positions(est_xyz)
+    a_R = al.apply_rotations(est_R)
+    gt_R = gt.world_R_body()
+
+    m = Metrics(method=estimate.method, alignment=al.mode, align_scale=al.s, causal=estimate.causal)
+    m.n_est = len(est)
+    m.n_matched = assoc.n_matched
+    m.n_unmatched_before = assoc.n_before
+    m.n_unmatched_after = assoc.n_after
+    m.n_unmatched_gap = assoc.n_gap
+    m.duration_s = est.duration
+
+    err = gt.world_t_body - a_xyz
+    e = np.linalg.norm(err, axis=1)
+    m.ate_rmse_m = _rmse(e)
+    m.ate_mean_m = float(e.mean())
+    m.ate_median_m = float(np.median(e))
+    m.ate_max_m = float(e.max())
+
+    D = accumulated_distances(gt.world_t_body)
+    m.path_length_m = float(D[-1])
+    m.rpe_delta_m = float(delta_m)
+    pairs = rpe_pairs(gt.world_t_body, delta_m)
+    m.rpe_n_pairs = int(pairs.shape[0])
+    if pairs.shape[0]:
+        rpe = rpe_translation_errors(gt.world_t_body, gt_R, a_xyz, a_R, pairs)
+        d = D[pairs[:, 1]] - D[pairs[:, 0]]
+        m.rpe_rmse_m = _rmse(rpe)
+        m.rpe_pct = float(np.mean(100.0 * rpe / d))
+    else:
+        logger.warning(
+            "evaluate[%s]: no RPE pair over %.1f m (true path %.1f m)",
+            estimate.method,
+            delta_m,
+            m.path_length_m,
+        )
+
+    if truth_scale:
+        m.scale_final_err_pct, m.scale_mean_abs_err_pct = scale_errors(estimate, truth_scale)
+
+    if est.world_v_body is not None and gt.world_v_body is not None:
+        dv = gt.world_v_body - al.apply_velocities(est.world_v_body[idx])
+        m.vel_rmse_mps = _rmse(np.linalg.norm(dv, axis=1))
+        m.n_vel = int(dv.shape[0])
+
+    dyaw = wrap_angle(yaw_of(a_R) - yaw_of(gt_R))
+    m.yaw_rmse_deg = math.degrees(_rmse(dyaw))
+
+    if estimate.pose_cov is not None:
+        cov = estimate.pose_cov[idx]
+        m.nees_pos = float(np.mean(position_nees(err, est_R, cov, al)))
+        m.nees_pose = float(np.mean(pose_nees(a_xyz, a_R, gt.world_t_body, gt_R, cov, al.s)))
+        m.n_nees = int(idx.size)
+        m.nees_pos_interval = nees_interval(m.n_nees, 3)
+
+    if estimate.update_latency is not None and np.asarray(estimate.update_latency).size:
+        lat = np.asarray(estimate.update_latency, dtype=float)
+        m.latency_p50_s = float(np.percentile(lat, 50))
+        m.latency_p99_s = float(np.percentile(lat, 99))
+        m.latency_max_s = float(lat.max())
+    if estimate.runtime_s > 0:
+        m.runtime_s = float(estimate.runtime_s)
+        m.times_real_time = est.duration / estimate.runtime_s
+    return m
+
+
+def slam_scale_vs_truth(
+    slam: SlamSeries,
+    gt: Trajectory,
+    body_T_cam: np.ndarray,
+    max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+    min_samples: int = 10,
+) -> dict[int, float]:
+    """True SLAM scale per session from ground truth, by Sim(3) alignment.
+
+    For each session, the true camera positions ``world_t_cam = world_t_body + world_R_body
+    body_t_cam`` (truth interpolated at the SLAM times) are aligned to the SLAM camera positions
+    with Umeyama's Sim(3): ``slam_t_cam ~ s slam_R_world world_t_cam + slam_t_world`` (the SLAM
+    model of DESIGN.md section 4.2, noise on the SLAM side), so ``s`` is SLAM units per metre.
+
+    Args:
+        slam: SLAM camera poses.
+        gt: ground-truth body trajectory on the same clock [m].
+        body_T_cam: 4x4 camera pose in the body frame.
+        max_gap_s: largest truth gap [s] interpolated across.
+        min_samples: sessions with fewer matched samples are skipped (and logged).
+
+    Returns:
+        ``{session id: s}``.
+    """
+    slam.check("slam_scale_vs_truth.slam")
+    body_T_cam = np.asarray(body_T_cam, dtype=float)
+    out: dict[int, float] = {}
+    for sid in np.unique(slam.session):
+        m = slam.session == sid
+        t = slam.t[m]
+        fake = Trajectory(
+            t=t,
+            world_t_body=slam.slam_t_cam[m],
+            world_q_body_wxyz=slam.slam_q_cam_wxyz[m],
+        )
+        assoc = associate(fake, gt, max_gap_s=max_gap_s)
+        if assoc.n_matched < min_samples:
+            logger.warning(
+                "slam_scale_vs_truth: session %d has %d samples matched to truth (< %d): skipped",
+                sid,
+                assoc.n_matched,
+                min_samples,
+            )
+            continue
+        g = assoc.gt
+        world_t_cam = g.world_t_body + np.einsum("nij,j->ni", g.world_R_body(), body_T_cam[:3, 3])
+        _, _, s = umeyama(world_t_cam, slam.slam_t_cam[m][assoc.est_index], with_scale=True)
+        out[int(sid)] = s
+        logger.info(
+            "slam_scale_vs_truth: session %d: s = %.6g SLAM units per metre from %d samples "
+            "(%d unmatched)",
+            sid,
+            s,
+            assoc.n_matched,
+            assoc.n_unmatched,
+        )
+    return out

@@ -1,0 +1,192 @@
+"""Metrics against errors of known size injected into a synthetic truth."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz, rpy_to_matrix
+from fgnav.datasets.types import Trajectory
+
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.eval.metrics import Metrics, evaluate, format_table, nees_interval, rpe_pairs
+
+
+def _est(truth: Trajectory, **kw) -> Trajectory:
+    fields = dict(
+        t=truth.t,
+        world_t_body=truth.world_t_body,
+        world_q_body_wxyz=truth.world_q_body_wxyz,
+        world_v_body=truth.world_v_body,
+    )
+    fields.update(kw)
+    return Trajectory(**fields)
+
+
+def test_ate_of_known_offsets(truth):
+    rng = np.random.default_rng(1)
+    off = rng.normal(0.0, 0.2, size=(len(truth), 3))
+    est = Estimate("test", _est(truth, world_t_body=truth.world_t_body + off))
+    m = evaluate(est, truth, alignment="none")
+    e = np.linalg.norm(off, axis=1)
+    assert m.alignment == "none"
+    assert m.ate_rmse_m == pytest.approx(np.sqrt(np.mean(e**2)), rel=1e-12)
+    assert m.ate_mean_m == pytest.approx(e.mean(), rel=1e-12)
+    assert m.ate_max_m == pytest.approx(e.max(), rel=1e-12)
+    assert m.n_matched == m.n_est == len(truth)
+    # SE(3) alignment can only lower the ATE of zero-mean noise, and only a little.
+    m3 = evaluate(est, truth, alignment="se3")
+    assert m3.alignment == "se3"
+    assert 0.95 * m.ate_rmse_m < m3.ate_rmse_m <= m.ate_rmse_m
+
+
+def test_sim3_removes_scale_and_reports_it(truth):
+    est = Estimate("test", _est(truth, world_t_body=0.25 * truth.world_t_body, world_v_body=None))
+    m = evaluate(est, truth, alignment="sim3")
+    assert m.ate_rmse_m < 1e-9
+    assert m.align_scale == pytest.approx(4.0, rel=1e-12)
+    assert evaluate(est, truth, alignment="se3").ate_rmse_m > 1.0
+
+
+def test_rpe_of_scale_drift_on_straight_line():
+    """Straight line, positions stretched by 3 %: every segment's error is 3 % of its length."""
+    t = np.arange(0.0, 40.0, 0.05)
+    x = 0.5 * t + 0.02 * t**2  # accelerating along x
+    p = np.stack([x, np.zeros_like(x), np.ones_like(x)], axis=1)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (t.size, 1))
+    gt = Trajectory(t, p, q)
+    est = Estimate("drift", Trajectory(t, 1.03 * p, q))
+    m = evaluate(est, gt, alignment="none", delta_m=5.0)
+    assert m.rpe_pct == pytest.approx(3.0, rel=1e-9)
+    assert m.rpe_n_pairs > 0.8 * (len(t) - np.searchsorted(x, x[-1] - 5.0))
+    pairs = rpe_pairs(p, 5.0)
+    d = x[pairs[:, 1]] - x[pairs[:, 0]]
+    assert np.all(np.abs(d - 5.0) <= 0.5)
+
+
+def test_velocity_and_wrapped_yaw_errors(truth):
+    dyaw = np.deg2rad(2.0)
+    Rz = rpy_to_matrix(0.0, 0.0, dyaw)
+    R = np.einsum("ij,njk->nik", Rz, truth.world_R_body())
+    est = Estimate(
+        "test",
+        _est(
+            truth,
+            world_q_body_wxyz=matrix_to_quat_wxyz(R),
+            world_v_body=truth.world_v_body + [0.0, 0.1, 0.0],
+        ),
+    )
+    m = evaluate(est, truth, alignment="none")
+    # The truth's yaw crosses +-180 deg; an unwrapped difference would give ~358 deg there.
+    true_yaw = np.arctan2(truth.world_v_body[:, 1], truth.world_v_body[:, 0])
+    assert np.abs(np.diff(true_yaw)).max() > np.pi
+    assert m.yaw_rmse_deg == pytest.approx(2.0, rel=1e-9)
+    assert m.vel_rmse_mps == pytest.approx(0.1, rel=1e-9)
+    assert m.n_vel == len(truth)
+
+
+def _sample_pose_errors(truth: Trajectory, rng: np.random.Generator, inflate: float = 1.0):
+    """Estimate = truth * Exp(-xi), xi ~ N(0, P_n) with random P_n; returns (Estimate, P)."""
+    n = len(truth)
+    sig = np.array([0.01, 0.01, 0.02, 0.1, 0.2, 0.05])
+    P = np.empty((n, 6, 6))
+    xyz = np.empty((n, 3))
+    Rs = np.empty((n, 3, 3))
+    for i in range(n):
+        A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
+        C = np.diag(sig) @ (A @ A.T) @ np.diag(sig)
+        P[i] = C
+        xi = rng.multivariate_normal(np.zeros(6), C)
+        gt = gtsam.Pose3(gtsam.Rot3(truth.world_R_body()[i]), truth.world_t_body[i])
+        est = gt.compose(gtsam.Pose3.Expmap(-xi))
+        xyz[i] = est.translation()
+        Rs[i] = est.rotation().matrix()
+    tr = Trajectory(truth.t, xyz, matrix_to_quat_wxyz(Rs))
+    return Estimate("nees", tr, pose_cov=P * inflate)
+
+
+def test_nees_consistent_and_overconfident(truth):
+    rng = np.random.default_rng(7)
+    est = _sample_pose_errors(truth, rng)
+    m = evaluate(est, truth, alignment="none")
+    n = m.n_nees
+    assert n == len(truth)
+    lo3, hi3 = nees_interval(n, 3, 0.999)
+    lo6, hi6 = nees_interval(n, 6, 0.999)
+    assert lo3 < m.nees_pos < hi3
+    assert lo6 < m.nees_pose < hi6
+    assert m.nees_pos_interval[0] < 3.0 < m.nees_pos_interval[1]
+    # Alignment to a rotated copy of the world leaves NEES about the same.
+    R = rpy_to_matrix(0.2, 0.1, 2.0)
+    rot = Trajectory(
+        est.trajectory.t,
+        est.trajectory.world_t_body @ R.T,
+        matrix_to_quat_wxyz(np.einsum("ij,njk->nik", R, est.trajectory.world_R_body())),
+    )
+    ma = evaluate(Estimate("nees", rot, pose_cov=est.pose_cov), truth, alignment="se3")
+    assert ma.nees_pos == pytest.approx(m.nees_pos, rel=0.05)
+    # A covariance 4x too small (sigmas halved) is detected: NEES ~ 12 and ~ 24.
+    over = Estimate("over", est.trajectory, pose_cov=est.pose_cov / 4.0)
+    mo = evaluate(over, truth, alignment="none")
+    assert mo.nees_pos > hi3 and mo.nees_pos == pytest.approx(4 * m.nees_pos, rel=1e-6)
+    assert mo.nees_pose > hi6
+
+
+def test_scale_errors_per_session(truth):
+    t = truth.t
+    est = Estimate(
+        "scale",
+        _est(truth),
+        slam_scale={0: 0.21, 1: 0.45},
+        series={
+            "slam_scale": TimeSeries(t, np.where(t < t[300], 0.22, 0.45)),
+            "slam_session": TimeSeries(t, (t >= t[300]).astype(int)),
+        },
+    )
+    m = evaluate(est, truth, truth_scale={0: 0.2, 1: 0.5})
+    assert m.scale_final_err_pct[0] == pytest.approx(5.0)
+    assert m.scale_final_err_pct[1] == pytest.approx(-10.0)
+    assert m.scale_final_abs_err_pct == pytest.approx(10.0)
+    assert m.scale_mean_abs_err_pct[0] == pytest.approx(10.0)
+    assert m.scale_mean_abs_err_pct[1] == pytest.approx(10.0)
+    ambiguous = Estimate(
+        "scale",
+        _est(truth),
+        slam_scale={0: 0.2, 1: 0.5},
+        series={"slam_scale": TimeSeries(t, np.full(t.size, 0.2))},
+    )
+    with pytest.raises(FlightDataError, match="slam_session"):
+        evaluate(ambiguous, truth, truth_scale={0: 0.2, 1: 0.5})
+    with pytest.raises(FlightDataError, match="positive"):
+        evaluate(est, truth, truth_scale={0: 0.0})
+
+
+def test_timing_and_output_formats(truth):
+    lat = np.linspace(0.001, 0.010, 1000)
+    est = Estimate("online", _est(truth), update_latency=lat, runtime_s=6.0, causal=True)
+    m = evaluate(est, truth)
+    assert m.latency_p50_s == pytest.approx(np.median(lat))
+    assert m.latency_p99_s == pytest.approx(np.percentile(lat, 99))
+    assert m.latency_max_s == pytest.approx(0.010)
+    assert m.times_real_time == pytest.approx(truth.duration / 6.0)
+    assert math.isnan(m.nees_pos) and m.n_nees == 0
+    d = m.as_dict()
+    text = json.dumps(d, allow_nan=False)
+    assert json.loads(text)["alignment"] == "se3"
+    assert d["nees_pos"] is None and d["causal"] is True
+    table = format_table([m, m])
+    lines = table.splitlines()
+    assert len(lines) == 3 and len({len(s) for s in lines}) == 1
+    assert "online" in lines[1] and "se3" in lines[1]
+
+
+def test_partial_overlap_is_counted(truth):
+    later = Trajectory(truth.t + 10.0, truth.world_t_body, truth.world_q_body_wxyz)
+    m = evaluate(Estimate("late", later), truth, alignment="none")
+    assert m.n_unmatched_after == int(np.sum(later.t > truth.t[-1])) > 0
+    assert m.n_matched + m.n_unmatched_after == len(later)
+    assert isinstance(m, Metrics)
