@@ -1,0 +1,525 @@
+"""Attitude-and-height EKF of seed 002 (Paz & Nesmachnow), section III-B.
+
+State ``x = [q0, q1, q2, q3, h]``: the unit quaternion ``world_q_body_wxyz`` (Hamilton, ``[w, x, y,
+z]``, body FLU to world z-up) and the height ``h`` [m] of the body origin above the ground plane
+under the vehicle.
+
+Prediction (seed 002 eqs. 11-15): ``q_k = (I + 0.5 * Omega(omega) * dt) q_{k-1}`` with the gyro rate
+``omega`` in body [rad/s] and ``Omega`` of eq. 14; constant height ``h_k = h_{k-1}`` (``F_s = 1``).
+Process noise: gyro white noise mapped into the quaternion, ``Q_q = (dt^2 / 4) sigma_w^2 Xi Xi^T``
+with ``sigma_w^2 = N_g^2 / dt`` (``N_g`` the gyro noise density), and a height random walk.
+
+Updates (seed 002 eqs. 4-8), each "measurement -> residual and Jacobian -> gate -> update":
+
+* accelerometer, eq. 16: ``f = g * body_R_world * e3``: the specific force of a non-accelerating
+  vehicle is gravity's reaction, ``+g`` along world z up. Used only while ``| |f| - g |`` is below
+  ``accel_gate`` (the paper: valid in hover and at constant velocity).
+* yaw, eqs. 18-19: the vector ``[cos(psi), sin(psi)]``, never a raw angle difference.
+* tilted rangefinder, eqs. 20-21: ``r = z_sensor / cos(tilt)`` with
+  ``cos(tilt) = -(world_R_body d).z`` for the beam direction ``d`` in body (``body_T_range`` z
+  axis; body -z for a downward sensor) and ``z_sensor = h + (world_R_body body_t_range).z``.
+  With ``d = -e3`` and no lever arm this is the paper's ``s = p_z / R33``.
+
+After every step the quaternion is renormalised (the paper's linear quaternion model does not keep
+unit norm) and its sign fixed to ``q0 >= 0``.
+
+Typos resolved (documented so the equations can be checked against the paper):
+
+* Eq. 19 writes ``[cos, sin] = [1, gamma] / sqrt(1 + gamma^2)`` with ``gamma = tan(psi)``: that
+  loses the quadrant (it forces ``cos(psi) >= 0``). The correct model, used here, is
+  ``[a, b] / sqrt(a^2 + b^2)`` with ``a = q0^2 + q1^2 - q2^2 - q3^2``, ``b = 2 (q0 q3 + q1 q2)``
+  (the numerator and denominator of eq. 17), which equals ``[cos(psi), sin(psi)]`` everywhere.
+* The paper's gravity vector ``g^n = [0, 0, g]`` and ``R_n^b`` give eq. 16; in fgnav's z-up world
+  the accelerometer at rest reads ``+g`` along world z, so eq. 16 holds with
+  ``R_n^b = world_R_body^T``.
+
+Not modelled: gyro bias (the paper's state has none; yaw drifts without yaw updates), vehicle
+acceleration in the accelerometer update (gated instead), terrain slope (flat ground).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.types import AttitudeSeries, Flight
+
+log = logging.getLogger(__name__)
+
+#: Standard gravity [m/s^2] (CGPM 1901), as in GTSAM's ``MakeSharedU`` default.
+GRAVITY = 9.80665
+
+#: Default downward beam direction in body FLU (DESIGN.md section 4.4).
+BEAM_DOWN_BODY = np.array([0.0, 0.0, -1.0])
+
+
+@dataclass(frozen=True)
+class AttitudeEkfOptions:
+    """Noise and gating parameters of :class:`AttitudeHeightEkf`.
+
+    Attributes:
+        gyro_noise_density: gyro white noise [rad/s/sqrt(Hz)]; None -> the flight's
+            ``calib.imu_noise.gyro_noise_density`` (or 1.7e-4, the EuRoC ADIS16448 value, when
+            filtering without a flight).
+        gyro_noise_floor: extra gyro noise [rad/s/sqrt(Hz)] added to the density: covers the
+            unmodelled gyro bias so that the filter keeps trusting its updates.
+        accel_sigma: standard deviation of each axis of the gravity observation [m/s^2]; it covers
+            sensor noise and the unmodelled vehicle acceleration and drag.
+        accel_gate: the accelerometer update is skipped when ``| |f| - g |`` exceeds this [m/s^2].
+        yaw_sigma: standard deviation of each component of ``[cos, sin]`` of a yaw reading [-]
+            (about the yaw error in rad).
+        range_sigma: rangefinder noise [m].
+        range_gate_sigmas: a range update whose normalised innovation exceeds this many standard
+            deviations is rejected (obstacles under the vehicle).
+        max_tilt: no range update when the beam is tilted more than this from vertical [rad].
+        height_random_walk: process noise of the constant-height model [m/sqrt(s)].
+        gravity: gravity magnitude [m/s^2].
+        init_attitude_sigma: initial standard deviation of each quaternion component [-].
+        init_height_sigma: initial height standard deviation [m].
+    """
+
+    gyro_noise_density: float | None = None
+    gyro_noise_floor: float = 1.0e-3
+    accel_sigma: float = 0.5
+    accel_gate: float = 1.5
+    yaw_sigma: float = 0.05
+    range_sigma: float = 0.05
+    range_gate_sigmas: float = 5.0
+    max_tilt: float = np.deg2rad(45.0)
+    height_random_walk: float = 0.5
+    gravity: float = GRAVITY
+    init_attitude_sigma: float = 0.1
+    init_height_sigma: float = 1.0
+
+
+#: Fallback gyro noise density [rad/s/sqrt(Hz)] (EuRoC ADIS16448, Kalibr yaml).
+DEFAULT_GYRO_NOISE_DENSITY = 1.7e-4
+
+
+def omega_matrix(omega: np.ndarray) -> np.ndarray:
+    """Seed 002 eq. 14: the 4x4 matrix with ``q_dot = 0.5 * Omega(omega) q`` (body rates, wxyz)."""
+    wx, wy, wz = omega
+    return np.array(
+        [
+            [0.0, -wx, -wy, -wz],
+            [wx, 0.0, wz, -wy],
+            [wy, -wz, 0.0, wx],
+            [wz, wy, -wx, 0.0],
+        ]
+    )
+
+
+def xi_matrix(q_wxyz: np.ndarray) -> np.ndarray:
+    """4x3 ``Xi(q)`` with ``q (x) [0, v] = Xi(q) v``: maps a body rotation vector into ``dq``."""
+    q0, q1, q2, q3 = q_wxyz
+    return np.array([[-q1, -q2, -q3], [q0, -q3, q2], [q3, q0, -q1], [-q2, q1, q0]])
+
+
+def gravity_model(q_wxyz: np.ndarray, gravity: float = GRAVITY) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 002 eq. 16: accelerometer reading ``g * body_R_world e3`` [m/s^2] and its 3x4 Jacobian
+    with respect to ``q_wxyz`` (taken without normalisation)."""
+    q0, q1, q2, q3 = q_wxyz
+    h = gravity * np.array(
+        [
+            2.0 * (q1 * q3 - q0 * q2),
+            2.0 * (q2 * q3 + q0 * q1),
+            q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3,
+        ]
+    )
+    H = 2.0 * gravity * np.array([[-q2, q3, -q0, q1], [q1, q0, q3, q2], [q0, -q1, -q2, q3]])
+    return h, H
+
+
+def yaw_vector_model(q_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 002 eqs. 17-19 (quadrant-correct form): ``[cos(psi), sin(psi)]`` of ``world_R_body`` and
+    its 2x4 Jacobian with respect to ``q_wxyz``."""
+    q0, q1, q2, q3 = q_wxyz
+    a = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
+    b = 2.0 * (q0 * q3 + q1 * q2)
+    n2 = a * a + b * b
+    n = np.sqrt(n2)
+    if n < 1e-9:
+        raise FlightDataError("attitude EKF: yaw undefined (body x axis vertical)")
+    da = 2.0 * np.array([q0, q1, -q2, -q3])
+    db = 2.0 * np.array([q3, q2, q1, q0])
+    # d(a/n) = (b^2 da - a b db) / n^3, d(b/n) = (a^2 db - a b da) / n^3
+    H = np.vstack([(b * b * da - a * b * db), (a * a * db - a * b * da)]) / (n2 * n)
+    return np.array([a / n, b / n]), H
+
+
+def range_model(
+    x: np.ndarray, beam_body: np.ndarray, body_t_range: np.ndarray
+) -> tuple[float, float, np.ndarray]:
+    """Seed 002 eqs. 20-21 with a lever arm: slant range [m], cos(tilt) and the 1x5 Jacobian.
+
+    Args:
+        x: state ``[q0, q1, q2, q3, h]`` (``h`` body height above ground [m]).
+        beam_body: unit beam direction in body.
+        body_t_range: sensor position in body [m].
+    """
+    q = x[:4]
+    q0, q1, q2, q3 = q
+    # Third row of R(q) written without normalisation, consistent with the Jacobian below.
+    r2 = np.array(
+        [
+            2.0 * (q1 * q3 - q0 * q2),
+            2.0 * (q2 * q3 + q0 * q1),
+            q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3,
+        ]
+    )
+    cos_tilt = -float(r2 @ beam_body)
+    z_sensor = x[4] + float(r2 @ body_t_range)
+    r = z_sensor / cos_tilt
+    dR2 = _row2_jacobian(q)  # d(R[2] @ v)/dq = v^T dR2
+    d_cos = -(beam_body @ dR2)
+    d_z = body_t_range @ dR2
+    H = np.zeros(5)
+    H[:4] = d_z / cos_tilt - z_sensor * d_cos / cos_tilt**2
+    H[4] = 1.0 / cos_tilt
+    return r, cos_tilt, H
+
+
+def _row2_jacobian(q_wxyz: np.ndarray) -> np.ndarray:
+    """3x4 derivative of the third row of ``R(q)`` (world z of body axes) with respect to q."""
+    q0, q1, q2, q3 = q_wxyz
+    return 2.0 * np.array([[-q2, q3, -q0, q1], [q1, q0, q3, q2], [q0, -q1, -q2, q3]])
+
+
+@dataclass(frozen=True, eq=False)
+class AttitudeHeightResult:
+    """Time histories of :meth:`AttitudeHeightEkf.run`.
+
+    Attributes:
+        t: (N,) output times [s] (the IMU times).
+        world_q_body_wxyz: (N, 4) attitude ``world_R_body`` as ``[w, x, y, z]``.
+        height: (N,) body height above the ground plane [m] (NaN before the first range reading).
+        covariance: (N, 5, 5) state covariance of ``[q0, q1, q2, q3, h]``.
+        rotation_cov: (N, 3, 3) attitude covariance as a body-frame rotation vector
+            (``world_R_body * Exp(dtheta)``, GTSAM's Pose3 convention) [rad^2].
+        counts: numbers of updates applied and skipped, by kind.
+    """
+
+    t: np.ndarray
+    world_q_body_wxyz: np.ndarray
+    height: np.ndarray
+    covariance: np.ndarray
+    rotation_cov: np.ndarray
+    counts: dict[str, int]
+
+    def attitude_series(self) -> AttitudeSeries:
+        """The attitude as an :class:`AttitudeSeries` (e.g. for image rectification)."""
+        return AttitudeSeries(t=self.t.copy(), world_q_body_wxyz=self.world_q_body_wxyz.copy())
+
+    def attitude_at(self, t: np.ndarray) -> np.ndarray:
+        """Attitude ``[w, x, y, z]`` at times ``t`` [s] by normalised linear interpolation of the
+        quaternions (the output rate is the IMU rate, so the chord error is negligible)."""
+        return interpolate_quat_wxyz(self.t, self.world_q_body_wxyz, np.atleast_1d(t))
+
+    def height_at(self, t: np.ndarray) -> np.ndarray:
+        """Height [m] at times ``t`` [s] by linear interpolation."""
+        return np.interp(np.atleast_1d(t), self.t, self.height)
+
+
+def interpolate_quat_wxyz(t: np.ndarray, q_wxyz: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Normalised linear interpolation of unit quaternions (sign-aligned), clamped at the ends.
+
+    Args:
+        t: (N,) sample times [s], increasing.
+        q_wxyz: (N, 4) quaternions ``[w, x, y, z]``.
+        t_query: (M,) query times [s].
+
+    Returns:
+        (M, 4) unit quaternions.
+    """
+    q = np.array(q_wxyz, dtype=float)
+    flip = np.sum(q[1:] * q[:-1], axis=1) < 0
+    sign = np.concatenate([[1.0], np.cumprod(np.where(flip, -1.0, 1.0))])
+    q *= sign[:, None]
+    out = np.stack([np.interp(t_query, t, q[:, i]) for i in range(4)], axis=1)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+class AttitudeHeightEkf:
+    """The EKF of seed 002 sec. III-B: ``predict`` on each gyro sample, ``update_*`` per sensor.
+
+    Example::
+
+        ekf = AttitudeHeightEkf(AttitudeEkfOptions(), q0_wxyz, h0)
+        ekf.predict(omega, dt); ekf.update_accel(f); ekf.update_yaw(psi); ekf.update_range(r)
+        ekf.world_q_body_wxyz, ekf.height, ekf.P
+    """
+
+    def __init__(
+        self,
+        options: AttitudeEkfOptions,
+        q0_wxyz: np.ndarray,
+        h0: float = 0.0,
+        beam_body: np.ndarray = BEAM_DOWN_BODY,
+        body_t_range: np.ndarray | None = None,
+        gyro_noise_density: float | None = None,
+    ) -> None:
+        """Initial state.
+
+        Args:
+            options: noises and gates.
+            q0_wxyz: initial ``world_q_body_wxyz``.
+            h0: initial height above ground [m].
+            beam_body: rangefinder beam direction in body (unit).
+            body_t_range: rangefinder position in body [m] (zero by default).
+            gyro_noise_density: overrides ``options.gyro_noise_density`` [rad/s/sqrt(Hz)].
+        """
+        self.options = options
+        q = np.asarray(q0_wxyz, dtype=float)
+        self.x = np.concatenate([q / np.linalg.norm(q), [float(h0)]])
+        self.P = np.diag([options.init_attitude_sigma**2] * 4 + [options.init_height_sigma**2])
+        self.beam_body = np.asarray(beam_body, dtype=float) / np.linalg.norm(beam_body)
+        self.body_t_range = np.zeros(3) if body_t_range is None else np.asarray(body_t_range, float)
+        nd = gyro_noise_density or options.gyro_noise_density or DEFAULT_GYRO_NOISE_DENSITY
+        self._gyro_density = float(nd) + options.gyro_noise_floor
+        self.counts = {
+            "accel": 0,
+            "accel_gated": 0,
+            "yaw": 0,
+            "range": 0,
+            "range_out_of_limits": 0,
+            "range_tilt": 0,
+            "range_outlier": 0,
+        }
+
+    @property
+    def world_q_body_wxyz(self) -> np.ndarray:
+        """Current attitude ``[w, x, y, z]``."""
+        return self.x[:4].copy()
+
+    @property
+    def height(self) -> float:
+        """Current height of the body above ground [m]."""
+        return float(self.x[4])
+
+    def rotation_cov(self) -> np.ndarray:
+        """3x3 attitude covariance as a body rotation vector [rad^2]: ``4 Xi^T P_q Xi``."""
+        Xi = xi_matrix(self.x[:4])
+        return 4.0 * Xi.T @ self.P[:4, :4] @ Xi
+
+    # 1. prediction -------------------------------------------------------------------------------
+
+    def predict(self, omega: np.ndarray, dt: float) -> None:
+        """Propagate with body angular rate ``omega`` [rad/s] over ``dt`` [s] (seed 002 eqs. 11-15,
+        1-3)."""
+        if dt < 0:
+            raise ValueError(f"attitude EKF: negative time step {dt}")
+        if dt == 0:
+            return
+        F = np.eye(5)
+        F[:4, :4] += 0.5 * omega_matrix(np.asarray(omega, dtype=float)) * dt  # eq. 13, 15
+        Xi = xi_matrix(self.x[:4])
+        Q = np.zeros((5, 5))
+        Q[:4, :4] = 0.25 * dt * self._gyro_density**2 * (Xi @ Xi.T)
+        Q[4, 4] = self.options.height_random_walk**2 * dt
+        self.x = F @ self.x  # eq. 12 (eq. 1)
+        self.P = F @ self.P @ F.T + Q  # eq. 3
+        self._normalise()
+
+    # 2. updates ----------------------------------------------------------------------------------
+
+    def update_accel(self, body_accel: np.ndarray) -> bool:
+        """Gravity update from a specific force reading in body [m/s^2] (eq. 16). Returns False when
+        gated out (vehicle accelerating)."""
+        f = np.asarray(body_accel, dtype=float)
+        if abs(np.linalg.norm(f) - self.options.gravity) > self.options.accel_gate:
+            self.counts["accel_gated"] += 1
+            return False
+        h, Hq = gravity_model(self.x[:4], self.options.gravity)
+        H = np.hstack([Hq, np.zeros((3, 1))])
+        self._kalman(f - h, H, np.eye(3) * self.options.accel_sigma**2)
+        self.counts["accel"] += 1
+        return True
+
+    def update_yaw(self, yaw: float, sigma: float | None = None) -> None:
+        """Yaw update with the ``[cos, sin]`` vector (eqs. 18-19); ``yaw`` [rad] of world_R_body."""
+        s = self.options.yaw_sigma if sigma is None else sigma
+        h, Hq = yaw_vector_model(self.x[:4])
+        z = np.array([np.cos(yaw), np.sin(yaw)])
+        H = np.hstack([Hq, np.zeros((2, 1))])
+        self._kalman(z - h, H, np.eye(2) * s**2)
+        self.counts["yaw"] += 1
+
+    def update_range(self, measured_range: float) -> bool:
+        """Tilted rangefinder update (eqs. 20-21), ``measured_range`` [m] along the beam. Returns
+        False when gated (beam too tilted, or innovation beyond ``range_gate_sigmas``)."""
+        r_pred, cos_tilt, Hr = range_model(self.x, self.beam_body, self.body_t_range)
+        if cos_tilt < np.cos(self.options.max_tilt):
+            self.counts["range_tilt"] += 1
+            return False
+        H = Hr[None, :]
+        Rm = np.array([[self.options.range_sigma**2]])
+        y = np.array([measured_range - r_pred])
+        S = H @ self.P @ H.T + Rm
+        if y[0] ** 2 > self.options.range_gate_sigmas**2 * S[0, 0]:
+            self.counts["range_outlier"] += 1
+            return False
+        self._kalman(y, H, Rm)
+        self.counts["range"] += 1
+        return True
+
+    def reset_height(self, measured_range: float) -> None:
+        """Set the height from one range reading and the current attitude (initialisation)."""
+        R = quat_wxyz_to_matrix(self.x[:4])
+        cos_tilt = -float(R[2] @ self.beam_body)
+        self.x[4] = measured_range * cos_tilt - float(R[2] @ self.body_t_range)
+        self.P[4, :] = 0.0
+        self.P[:, 4] = 0.0
+        self.P[4, 4] = self.options.range_sigma**2
+
+    def _kalman(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> None:
+        # eqs. 6-8 (Joseph form for symmetry).
+        S = H @ self.P @ H.T + Rm
+        K = np.linalg.solve(S, H @ self.P).T
+        self.x = self.x + K @ y
+        IKH = np.eye(5) - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
+        self._normalise()
+
+    def _normalise(self) -> None:
+        n = np.linalg.norm(self.x[:4])
+        J = (np.eye(4) - np.outer(self.x[:4], self.x[:4]) / n**2) / n
+        self.x[:4] /= n
+        if self.x[0] < 0:
+            self.x[:4] = -self.x[:4]
+            J = -J
+        self.P[:4, :] = J @ self.P[:4, :]
+        self.P[:, :4] = self.P[:, :4] @ J.T
+
+
+def initial_attitude_from_accel(body_accel: np.ndarray, yaw: float = 0.0) -> np.ndarray:
+    """``world_q_body_wxyz`` with roll and pitch from a mean specific force reading in body
+    [m/s^2] (gravity reaction, z up) and the given yaw [rad]."""
+    from fgnav.datasets.geometry import matrix_to_quat_wxyz, rpy_to_matrix
+
+    f = np.asarray(body_accel, dtype=float)
+    roll = np.arctan2(f[1], f[2])
+    pitch = np.arctan2(-f[0], np.hypot(f[1], f[2]))
+    return matrix_to_quat_wxyz(rpy_to_matrix(roll, pitch, yaw))
+
+
+#: Seconds of IMU data averaged for the initial roll and pitch.
+INIT_ACCEL_WINDOW_S = 0.2
+
+
+def run_attitude_ekf(
+    flight: Flight,
+    options: AttitudeEkfOptions | None = None,
+    q0_wxyz: np.ndarray | None = None,
+    use_yaw: bool = True,
+    use_range: bool = True,
+) -> AttitudeHeightResult:
+    """Run the EKF over a flight: predict on every IMU sample, accelerometer update on every IMU
+    sample, yaw and range updates at their own times (prediction to the exact time first).
+
+    Args:
+        flight: needs ``imu``; uses ``yaw`` and ``range`` when present (and enabled); the range beam
+            and lever arm come from ``flight.calib.body_T_range`` (beam = its z axis), readings out
+            of ``[range_min, range_max]`` are skipped and counted.
+        options: EKF options (defaults when None).
+        q0_wxyz: initial attitude; default roll/pitch from the first ``INIT_ACCEL_WINDOW_S`` of
+            accelerometer data and yaw from the first yaw reading (0 without one).
+        use_yaw, use_range: switch the yaw / range updates off.
+
+    Returns:
+        :class:`AttitudeHeightResult` at the IMU times. Counts of applied/skipped updates are
+        logged and returned in ``counts``.
+    """
+    options = options or AttitudeEkfOptions()
+    imu = flight.imu
+    if imu is None:
+        raise FlightDataError(f"{flight.name}: the attitude EKF needs an IMU stream (flight.imu)")
+    yaw_s = flight.yaw if use_yaw else None
+    rng = flight.range if use_range else None
+    if q0_wxyz is None:
+        n0 = max(1, int(np.searchsorted(imu.t, imu.t[0] + INIT_ACCEL_WINDOW_S)))
+        psi0 = float(yaw_s.yaw[0]) if yaw_s is not None and len(yaw_s) else 0.0
+        q0_wxyz = initial_attitude_from_accel(imu.body_accel[:n0].mean(axis=0), psi0)
+    T = np.asarray(flight.calib.body_T_range, dtype=float)
+    beam_body = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    if rng is not None and beam_body[2] > 0:
+        raise FlightDataError(
+            f"{flight.name}.calib.body_T_range: the rangefinder beam (its z axis) points up in "
+            f"body ({beam_body.round(3).tolist()}); expected a downward sensor (beam near body -z)"
+        )
+    ekf = AttitudeHeightEkf(
+        options,
+        q0_wxyz,
+        0.0,
+        beam_body=beam_body,
+        body_t_range=T[:3, 3],
+        gyro_noise_density=options.gyro_noise_density or flight.calib.imu_noise.gyro_noise_density,
+    )
+
+    # Events: (time, kind, index); kind 0 = IMU, 1 = yaw, 2 = range. Sorted stably by time.
+    events = [(imu.t, np.zeros(len(imu), int))]
+    if yaw_s is not None:
+        events.append((yaw_s.t, np.ones(len(yaw_s), int)))
+    valid_range = None
+    if rng is not None:
+        lo, hi = flight.calib.range_min, flight.calib.range_max
+        valid_range = (rng.range >= lo) & (rng.range <= hi) & np.isfinite(rng.range)
+        ekf.counts["range_out_of_limits"] = int((~valid_range).sum())
+        events.append((rng.t, np.full(len(rng), 2, int)))
+    t_all = np.concatenate([e[0] for e in events])
+    k_all = np.concatenate([e[1] for e in events])
+    i_all = np.concatenate([np.arange(len(e[0])) for e in events])
+    order = np.lexsort((k_all, t_all))
+
+    n = len(imu)
+    q_out = np.empty((n, 4))
+    h_out = np.full(n, np.nan)
+    P_out = np.empty((n, 5, 5))
+    Rc_out = np.empty((n, 3, 3))
+    t_prev = float(imu.t[0])
+    omega_prev = imu.body_omega[0]
+    height_init = False
+    for j in order:
+        t, kind, i = float(t_all[j]), int(k_all[j]), int(i_all[j])
+        if t < imu.t[0]:
+            continue
+        ekf.predict(omega_prev, t - t_prev)
+        t_prev = t
+        if kind == 0:
+            omega_prev = imu.body_omega[i]
+            ekf.update_accel(imu.body_accel[i])
+            q_out[i] = ekf.world_q_body_wxyz
+            h_out[i] = ekf.height if height_init else np.nan
+            P_out[i] = ekf.P
+            Rc_out[i] = ekf.rotation_cov()
+        elif kind == 1:
+            ekf.update_yaw(float(yaw_s.yaw[i]))
+        elif valid_range[i]:
+            if not height_init:
+                ekf.reset_height(float(rng.range[i]))
+                height_init = True
+            else:
+                ekf.update_range(float(rng.range[i]))
+    log.info("attitude EKF on %s: %s", flight.name, ekf.counts)
+    return AttitudeHeightResult(
+        t=imu.t.copy(),
+        world_q_body_wxyz=q_out,
+        height=h_out,
+        covariance=P_out,
+        rotation_cov=Rc_out,
+        counts=dict(ekf.counts),
+    )
+
+
+def attitude_errors_rad(
+    world_q_body_wxyz: np.ndarray, truth_q_wxyz: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation angle error [rad] and yaw error [rad] between two aligned quaternion stacks."""
+    Ra = quat_wxyz_to_matrix(world_q_body_wxyz)
+    Rb = quat_wxyz_to_matrix(truth_q_wxyz)
+    Rd = np.einsum("nji,njk->nik", Rb, Ra)
+    angle = np.arccos(np.clip((np.trace(Rd, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    return angle, np.abs(wrap_angle(yaw_of(Ra) - yaw_of(Rb)))
