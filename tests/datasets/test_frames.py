@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from fgnav.datasets.frames import (
     ENU_R_NED,
     FLU_R_FRD,

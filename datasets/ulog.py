@@ -1,0 +1,480 @@
+"""PX4 ULog reader: a ``.ulg`` flight log -> :class:`~fgnav.datasets.types.Flight` in fgnav frames.
+
+What is read (topic -> field of the flight), all converted from PX4's NED world / FRD body into
+fgnav's z-up world / FLU body by :mod:`fgnav.datasets.frames`, time from PX4's microseconds since
+boot into float seconds on the same clock (``t = timestamp_us * 1e-6``):
+
+* ``sensor_combined`` -> ``flight.imu``. PX4 has already rotated the samples into the vehicle
+  body frame (``SENS_BOARD_ROT`` and the thermal/offset calibration are applied on board), so only
+  FRD -> FLU remains. The IMU time is the gyro time ``timestamp``; the accelerometer sample time is
+  ``timestamp + accelerometer_timestamp_relative``. When the relative offsets are not all zero the
+  accelerometer is linearly interpolated onto the gyro times (samples whose offset is PX4's
+  "invalid" marker are left out of the interpolation and counted).
+* ``vehicle_attitude`` -> ``flight.attitude`` (onboard EKF2 attitude, ``timestamp_sample`` when
+  logged).
+* ``vehicle_local_position`` -> ``flight.references["px4_ekf2"]``: onboard EKF2 position and
+  velocity, with the attitude interpolated (slerp) at its times. Rows outside the attitude's time
+  span are left out and counted. Validity flags are summarised in ``meta["px4_ekf2"]``.
+* ``distance_sensor`` (downward-facing instances only) -> ``flight.range`` plus
+  ``calib.body_T_range`` (from ``EKF2_RNG_POS_X/Y/Z`` and ``EKF2_RNG_PITCH``) and
+  ``calib.range_min/max`` (from the message). ``signal_quality`` 0..100 -> quality 0..1, -1 stays
+  "unknown". Readings outside ``[min_distance, max_distance]`` are kept (the range factor gates
+  them); non-finite ones are left out and counted.
+* ``vehicle_visual_odometry``, ``vehicle_mocap_odometry``, ``vehicle_odometry`` ->
+  ``flight.references["px4_<topic>"]`` (both the current ``position[3]``/``q[4]``/``velocity[3]``
+  layout and the older ``x y z``/``vx vy vz`` one).
+* ``vehicle_optical_flow`` / ``sensor_optical_flow`` / ``optical_flow``: fgnav has no flow stream
+  type; a summary (samples, rate, fields) goes to ``meta["px4_optical_flow"]``.
+* Parameters users need (``EKF2_MCOEF``, ``EKF2_BCOEF_X/Y``, ``EKF2_DRAG_*``, ``EKF2_RNG_*``,
+  ``EKF2_IMU_POS_*``, ``EKF2_OF_*``, ``SENS_*``) -> ``meta["px4_params"]``.
+
+Multi-instance topics: the instance is chosen by ``instance_policy`` (``"most_samples"``: the
+instance with the most samples, ties to the lowest id; ``"first"``: the lowest id). What was chosen
+and what else exists is in ``meta["px4_instances"]``; every topic and instance of the log, with
+sample counts, is in ``meta["px4_topics"]``. The accelerometer and gyro that ``sensor_combined``
+uses (``sensor_selection``) are named in ``meta["px4_imu_selection"]``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .errors import FlightFormatError
+from .frames import frd_to_flu, ned_q_frd_to_world_q_body, ned_to_enu
+from .geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from .types import AttitudeSeries, Calibration, Flight, ImuSeries, RangeSeries, Trajectory
+
+log = logging.getLogger(__name__)
+
+InstancePolicy = Literal["most_samples", "first"]
+
+#: PX4 microseconds -> seconds.
+US_TO_S = 1e-6
+#: ``sensor_combined.accelerometer_timestamp_relative`` value meaning "no accelerometer sample"
+#: (``sensor_combined_s::RELATIVE_TIMESTAMP_INVALID`` = INT32_MAX in PX4's msg/SensorCombined.msg).
+RELATIVE_TIMESTAMP_INVALID = 2147483647
+#: ``distance_sensor.orientation`` of a downward-facing sensor (MAV_SENSOR_ROTATION_PITCH_270).
+ROTATION_DOWNWARD_FACING = 25
+#: ``distance_sensor.signal_quality`` is 0..100 (percent), -1 unknown.
+SIGNAL_QUALITY_PERCENT = 100.0
+#: ``vehicle_odometry`` frame enums (PX4 msg/VehicleOdometry.msg since v1.14).
+POSE_FRAME_NED, POSE_FRAME_FRD = 1, 2
+VELOCITY_FRAME_NED, VELOCITY_FRAME_FRD, VELOCITY_FRAME_BODY_FRD = 1, 2, 3
+
+#: Parameter names (exact, or prefixes ending in ``_``) copied into ``meta["px4_params"]``.
+PARAMS_OF_INTEREST = (
+    "EKF2_MCOEF",
+    "EKF2_BCOEF_",
+    "EKF2_DRAG_",
+    "EKF2_RNG_",
+    "EKF2_IMU_POS_",
+    "EKF2_OF_",
+    "SENS_",
+)
+ODOMETRY_TOPICS = ("vehicle_visual_odometry", "vehicle_mocap_odometry", "vehicle_odometry")
+FLOW_TOPICS = ("vehicle_optical_flow", "sensor_optical_flow", "optical_flow")
+
+Topic = Mapping[str, np.ndarray]
+
+
+# ----------------------------------------------------------------------------------------------
+# Converters: one topic's columns (a dict of arrays, as pyulog gives them) -> fgnav series
+# ----------------------------------------------------------------------------------------------
+
+
+def _vec(d: Topic, names: list[str]) -> np.ndarray:
+    return np.column_stack([np.asarray(d[n], dtype=float) for n in names])
+
+
+def _sample_time(d: Topic) -> np.ndarray:
+    """``timestamp_sample`` when logged and non-zero, else ``timestamp`` [s]."""
+    ts = d.get("timestamp_sample")
+    if ts is not None and np.all(np.asarray(ts) > 0):
+        return np.asarray(ts, dtype=float) * US_TO_S
+    return np.asarray(d["timestamp"], dtype=float) * US_TO_S
+
+
+def _increasing(t: np.ndarray) -> np.ndarray:
+    """Boolean mask keeping samples whose time is strictly after every earlier kept sample."""
+    keep = np.ones(t.shape, dtype=bool)
+    if t.size:
+        keep[1:] = t[1:] > np.maximum.accumulate(t)[:-1]
+    return keep
+
+
+def imu_from_sensor_combined(d: Topic) -> tuple[ImuSeries, dict[str, Any]]:
+    """``sensor_combined`` columns -> IMU in FLU at the gyro times.
+
+    Args:
+        d: columns ``timestamp`` [us], ``gyro_rad[0..2]`` [rad/s, FRD],
+            ``accelerometer_m_s2[0..2]`` [m/s^2, FRD], ``accelerometer_timestamp_relative`` [us].
+
+    Returns:
+        The series and notes (how accelerometer time was handled, samples left out).
+    """
+    t = np.asarray(d["timestamp"], dtype=float) * US_TO_S
+    gyro = frd_to_flu(_vec(d, [f"gyro_rad[{i}]" for i in range(3)]))
+    accel = frd_to_flu(_vec(d, [f"accelerometer_m_s2[{i}]" for i in range(3)]))
+    notes: dict[str, Any] = {"imu_time": "sensor_combined.timestamp (gyro sample time)"}
+    rel = np.asarray(d.get("accelerometer_timestamp_relative", np.zeros(t.shape)), dtype=np.int64)
+    valid_rel = rel != RELATIVE_TIMESTAMP_INVALID
+    if np.any(rel[valid_rel] != 0) or not np.all(valid_rel):
+        t_acc = t[valid_rel] + rel[valid_rel] * US_TO_S
+        order = np.argsort(t_acc, kind="stable")
+        t_acc, acc = t_acc[order], accel[valid_rel][order]
+        accel = np.column_stack([np.interp(t, t_acc, acc[:, i]) for i in range(3)])
+        notes["accel_time"] = (
+            "interpolated onto gyro times from timestamp + accelerometer_timestamp_relative "
+            f"(|relative| max {np.abs(rel[valid_rel]).max() * US_TO_S * 1e3:.2f} ms)"
+        )
+        notes["accel_invalid_relative_timestamp"] = int(np.count_nonzero(~valid_rel))
+    else:
+        notes["accel_time"] = "same as gyro (accelerometer_timestamp_relative all zero)"
+    finite = np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1)
+    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    notes["imu_samples_skipped_nonfinite"] = int(np.count_nonzero(~finite))
+    notes["imu_samples_skipped_time_not_increasing"] = int(np.count_nonzero(finite & ~keep))
+    return ImuSeries(t=t[keep], body_omega=gyro[keep], body_accel=accel[keep]), notes
+
+
+def attitude_from_vehicle_attitude(d: Topic) -> tuple[AttitudeSeries, dict[str, Any]]:
+    """``vehicle_attitude`` columns (``q[0..3]`` = ``[w, x, y, z]`` of FRD -> NED) -> attitude of
+    FLU in the z-up world."""
+    t = _sample_time(d)
+    q = _vec(d, [f"q[{i}]" for i in range(4)])
+    finite = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    notes = {
+        "attitude_samples_skipped_invalid": int(np.count_nonzero(~finite)),
+        "attitude_samples_skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
+    }
+    return AttitudeSeries(t=t[keep], world_q_body_wxyz=ned_q_frd_to_world_q_body(q[keep])), notes
+
+
+def interpolate_attitude(att: AttitudeSeries, t: np.ndarray) -> np.ndarray:
+    """Slerp ``world_q_body_wxyz`` at times ``t`` (within ``att``'s span) -> (N, 4)."""
+    q_xyzw = np.column_stack([att.world_q_body_wxyz[:, 1:], att.world_q_body_wxyz[:, :1]])
+    if len(att) == 1:
+        return np.repeat(att.world_q_body_wxyz, len(t), axis=0)
+    R = Slerp(att.t, Rotation.from_quat(q_xyzw))(t)
+    return matrix_to_quat_wxyz(R.as_matrix())
+
+
+def trajectory_from_local_position(
+    d: Topic, att: AttitudeSeries
+) -> tuple[Trajectory | None, dict[str, Any]]:
+    """``vehicle_local_position`` (NED ``x y z`` [m], ``vx vy vz`` [m/s]) + attitude -> EKF2
+    reference trajectory in the z-up world. Rows outside the attitude time span or non-finite are
+    left out and counted."""
+    t = _sample_time(d)
+    p = ned_to_enu(_vec(d, ["x", "y", "z"]))
+    v = ned_to_enu(_vec(d, ["vx", "vy", "vz"]))
+    finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(v), axis=1)
+    inside = (t >= att.t[0]) & (t <= att.t[-1])
+    keep = finite & inside
+    keep &= _increasing(np.where(keep, t, -np.inf))
+    notes: dict[str, Any] = {
+        "samples": int(t.size),
+        "kept": int(np.count_nonzero(keep)),
+        "skipped_nonfinite": int(np.count_nonzero(~finite)),
+        "skipped_outside_attitude_span": int(np.count_nonzero(finite & ~inside)),
+        "attitude": "vehicle_attitude, slerp-interpolated at the position times",
+    }
+    for flag in ("xy_valid", "z_valid", "v_xy_valid", "v_z_valid"):
+        if flag in d:
+            notes[f"{flag}_fraction"] = float(np.mean(np.asarray(d[flag]) != 0))
+    if not np.any(keep):
+        return None, notes
+    q = interpolate_attitude(att, t[keep])
+    return Trajectory(
+        t=t[keep], world_t_body=p[keep], world_q_body_wxyz=q, world_v_body=v[keep]
+    ), notes
+
+
+def body_T_range_from_params(params: Mapping[str, float]) -> np.ndarray:
+    """``EKF2_RNG_POS_X/Y/Z`` (FRD [m]) and ``EKF2_RNG_PITCH`` [rad] -> 4x4 ``body_T_range`` (FLU).
+
+    The beam (sensor +z) of a downward sensor points along body -z; PX4 tilts it forward by the
+    pitch offset: beam = ``(sin p, 0, cos p)`` in FRD (``sensor_range_finder.cpp``,
+    ``cos_tilt = R(2,0) sin p + R(2,2) cos p``), i.e. ``(sin p, 0, -cos p)`` in FLU.
+    """
+    pitch = float(params.get("EKF2_RNG_PITCH", 0.0))
+    pos_frd = np.array([float(params.get(f"EKF2_RNG_POS_{a}", 0.0)) for a in "XYZ"])
+    c, s = np.cos(pitch), np.sin(pitch)
+    Ry_minus_pitch = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+    body_R_range = Ry_minus_pitch @ np.diag([1.0, -1.0, -1.0])
+    return make_pose(body_R_range, frd_to_flu(pos_frd))
+
+
+def range_from_distance_sensor(d: Topic) -> tuple[RangeSeries | None, float, float, dict[str, Any]]:
+    """``distance_sensor`` columns of one downward-facing instance -> range series.
+
+    Returns:
+        ``(series or None, range_min [m], range_max [m], notes)``.
+    """
+    t = _sample_time(d)
+    r = np.asarray(d["current_distance"], dtype=float)
+    q_raw = np.asarray(d.get("signal_quality", np.full(t.shape, -1)), dtype=float)
+    quality = np.where(q_raw < 0, -1.0, q_raw / SIGNAL_QUALITY_PERCENT)
+    finite = np.isfinite(r)
+    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    rmin = np.asarray(d.get("min_distance", [0.0]), dtype=float)
+    rmax = np.asarray(d.get("max_distance", [np.inf]), dtype=float)
+    range_min = float(np.nanmax(rmin)) if rmin.size else 0.0
+    range_max = float(np.nanmin(rmax)) if rmax.size else float("inf")
+    notes = {
+        "samples": int(t.size),
+        "skipped_nonfinite": int(np.count_nonzero(~finite)),
+        "skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
+        "outside_min_max_kept": int(np.count_nonzero(keep & ((r < range_min) | (r > range_max)))),
+    }
+    if not np.any(keep):
+        return None, range_min, range_max, notes
+    return RangeSeries(t=t[keep], range=r[keep], quality=quality[keep]), range_min, range_max, notes
+
+
+def trajectory_from_odometry(d: Topic) -> tuple[Trajectory | None, dict[str, Any]]:
+    """``vehicle_odometry``-like columns -> trajectory in a z-up world (NED or FRD world ->
+    z-up via ``ENU_R_NED``; velocity in body FRD is rotated into the world)."""
+    t = _sample_time(d)
+    if "position[0]" in d:
+        p_ned = _vec(d, [f"position[{i}]" for i in range(3)])
+        v_raw = _vec(d, [f"velocity[{i}]" for i in range(3)]) if "velocity[0]" in d else None
+        vel_frame = int(np.asarray(d.get("velocity_frame", [VELOCITY_FRAME_NED]))[0])
+        pose_frame = int(np.asarray(d.get("pose_frame", [POSE_FRAME_NED]))[0])
+    elif "x" in d:
+        p_ned = _vec(d, ["x", "y", "z"])
+        v_raw = _vec(d, ["vx", "vy", "vz"]) if "vx" in d else None
+        vel_frame, pose_frame = VELOCITY_FRAME_NED, POSE_FRAME_NED
+    else:
+        raise ValueError("odometry topic has neither position[0..2] nor x/y/z")
+    q = ned_q_frd_to_world_q_body(_vec(d, [f"q[{i}]" for i in range(4)]))
+    p = ned_to_enu(p_ned)
+    v = None
+    if v_raw is not None:
+        if vel_frame == VELOCITY_FRAME_BODY_FRD:
+            v = np.einsum("nij,nj->ni", quat_wxyz_to_matrix(q), frd_to_flu(v_raw))
+        else:
+            v = ned_to_enu(v_raw)
+    finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(q), axis=1)
+    if v is not None:
+        finite &= np.all(np.isfinite(v), axis=1)
+    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    notes = {
+        "samples": int(t.size),
+        "skipped_nonfinite": int(np.count_nonzero(~finite)),
+        "skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
+        "pose_frame": {POSE_FRAME_NED: "NED", POSE_FRAME_FRD: "FRD"}.get(
+            pose_frame, str(pose_frame)
+        ),
+    }
+    if not np.any(keep):
+        return None, notes
+    traj = Trajectory(
+        t=t[keep],
+        world_t_body=p[keep],
+        world_q_body_wxyz=q[keep],
+        world_v_body=None if v is None else v[keep],
+    )
+    return traj, notes
+
+
+def params_of_interest(params: Mapping[str, float]) -> dict[str, float]:
+    """The parameters named by :data:`PARAMS_OF_INTEREST` (sorted by name)."""
+    out = {}
+    for name in sorted(params):
+        if any(name == p or (p.endswith("_") and name.startswith(p)) for p in PARAMS_OF_INTEREST):
+            out[name] = params[name]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The reader
+# ----------------------------------------------------------------------------------------------
+
+
+def _choose(
+    instances: dict[int, Any], name: str, policy: InstancePolicy, meta: dict[str, Any]
+) -> Any | None:
+    if not instances:
+        return None
+    counts = {i: len(d.data["timestamp"]) for i, d in instances.items()}
+    if policy == "first":
+        chosen = min(counts)
+    elif policy == "most_samples":
+        chosen = max(sorted(counts), key=lambda i: counts[i])
+    else:
+        raise ValueError(f"instance_policy must be 'most_samples' or 'first', got {policy!r}")
+    meta["px4_instances"][name] = {"chosen": chosen, "policy": policy, "available": counts}
+    if len(counts) > 1:
+        log.info("%s: %d instances %s, using %d (%s)", name, len(counts), counts, chosen, policy)
+    return instances[chosen]
+
+
+def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples") -> Flight:
+    """Read a PX4 ULog into a :class:`Flight` in fgnav frames (see the module docstring).
+
+    Args:
+        path: ``.ulg`` file.
+        instance_policy: how one instance of a multi-instance topic is chosen
+            (``"most_samples"`` or ``"first"``).
+
+    Returns:
+        The flight, checked: ``imu`` (always), ``attitude``, ``range`` when present, references
+        ``px4_ekf2`` and ``px4_<odometry topic>``, ``meta`` with frames, parameters, instance
+        choices, and counts of everything left out.
+
+    Raises:
+        FlightFormatError: not a readable ULog, or no ``sensor_combined`` data.
+    """
+    from pyulog import ULog
+
+    path = Path(path)
+    if not path.is_file():
+        raise FlightFormatError(path, "no such file (expected a PX4 .ulg log)")
+    try:
+        ulog = ULog(str(path))
+    except Exception as exc:  # pyulog raises bare Exceptions on corrupt files
+        raise FlightFormatError(path, f"not a readable PX4 ULog ({exc})") from exc
+
+    by_topic: dict[str, dict[int, Any]] = {}
+    for d in ulog.data_list:
+        by_topic.setdefault(d.name, {})[d.multi_id] = d
+    meta: dict[str, Any] = {
+        "format": "px4-ulog",
+        "frames": "converted from PX4 NED world / FRD body to z-up world (x east, y north) / "
+        "FLU body by fgnav.datasets.frames",
+        "time": "seconds since PX4 boot (timestamp_us * 1e-6)",
+        "px4_version": ulog.get_version_info_str(),
+        "px4_hardware": ulog.msg_info_dict.get("ver_hw", ""),
+        "px4_topics": {
+            n: {i: len(d.data["timestamp"]) for i, d in sorted(inst.items())}
+            for n, inst in sorted(by_topic.items())
+        },
+        "px4_instances": {},
+        "px4_dropouts": {
+            "count": len(ulog.dropouts),
+            "total_ms": sum(x.duration for x in ulog.dropouts),
+        },
+        "px4_params": params_of_interest(ulog.initial_parameters),
+        "px4_changed_params": [
+            (t * US_TO_S, n, v)
+            for t, n, v in ulog.changed_parameters
+            if n in params_of_interest({n: v})
+        ],
+        "notes": [],
+    }
+    if ulog.file_corruption:
+        meta["notes"].append("pyulog reports file corruption: some messages were unreadable")
+
+    sc = _choose(by_topic.get("sensor_combined", {}), "sensor_combined", instance_policy, meta)
+    if sc is None:
+        raise FlightFormatError(path, "no sensor_combined topic: the log has no IMU data to read")
+    imu, notes = imu_from_sensor_combined(sc.data)
+    meta["imu"] = notes
+    if len(imu) == 0:
+        raise FlightFormatError(path, "sensor_combined has no finite samples")
+    sel = by_topic.get("sensor_selection", {}).get(0)
+    if sel is not None:
+        selection = {
+            "accel_device_id": int(sel.data["accel_device_id"][-1]),
+            "gyro_device_id": int(sel.data["gyro_device_id"][-1]),
+        }
+        for kind in ("accel", "gyro"):
+            for i, d in sorted(by_topic.get(f"sensor_{kind}", {}).items()):
+                if int(d.data["device_id"][0]) == selection[f"{kind}_device_id"]:
+                    selection[f"sensor_{kind}_instance"] = i
+        meta["px4_imu_selection"] = selection
+
+    attitude = None
+    va = _choose(by_topic.get("vehicle_attitude", {}), "vehicle_attitude", instance_policy, meta)
+    if va is not None:
+        attitude, meta["attitude"] = attitude_from_vehicle_attitude(va.data)
+        if len(attitude) == 0:
+            attitude = None
+
+    references: dict[str, Trajectory] = {}
+    lp = _choose(
+        by_topic.get("vehicle_local_position", {}), "vehicle_local_position", instance_policy, meta
+    )
+    if lp is not None and attitude is not None:
+        traj, meta["px4_ekf2"] = trajectory_from_local_position(lp.data, attitude)
+        if traj is not None:
+            references["px4_ekf2"] = traj
+    elif lp is not None:
+        meta["notes"].append("vehicle_local_position present but no attitude: px4_ekf2 not built")
+
+    for topic in ODOMETRY_TOPICS:
+        od = _choose(by_topic.get(topic, {}), topic, instance_policy, meta)
+        if od is None:
+            continue
+        try:
+            traj, meta[f"px4_{topic}"] = trajectory_from_odometry(od.data)
+        except (KeyError, ValueError) as exc:
+            meta["notes"].append(f"{topic}: unrecognised layout ({exc}); not read")
+            continue
+        if traj is not None:
+            references[f"px4_{topic}"] = traj
+
+    calib_kwargs: dict[str, Any] = {}
+    range_series = None
+    ds_all = by_topic.get("distance_sensor", {})
+    downward = {
+        i: d
+        for i, d in ds_all.items()
+        if np.any(np.asarray(d.data.get("orientation", [])) == ROTATION_DOWNWARD_FACING)
+    }
+    if ds_all and len(downward) < len(ds_all):
+        meta["notes"].append(
+            f"distance_sensor: instances {sorted(set(ds_all) - set(downward))} are not "
+            "downward-facing and were not read"
+        )
+    ds = _choose(downward, "distance_sensor", instance_policy, meta)
+    if ds is not None:
+        data = ds.data
+        if not np.all(np.asarray(data["orientation"]) == ROTATION_DOWNWARD_FACING):
+            mask = np.asarray(data["orientation"]) == ROTATION_DOWNWARD_FACING
+            meta["notes"].append(
+                f"distance_sensor: {int(np.count_nonzero(~mask))} samples with another orientation "
+                "left out"
+            )
+            data = {k: np.asarray(v)[mask] for k, v in data.items()}
+        range_series, rmin, rmax, meta["range"] = range_from_distance_sensor(data)
+        calib_kwargs.update(
+            range_min=rmin,
+            range_max=rmax,
+            body_T_range=body_T_range_from_params(ulog.initial_parameters),
+        )
+
+    flow = {}
+    for topic in FLOW_TOPICS:
+        inst = by_topic.get(topic, {})
+        if inst:
+            d = _choose(inst, topic, instance_policy, meta)
+            t = _sample_time(d.data)
+            flow[topic] = {
+                "samples": int(t.size),
+                "rate_hz": float(1.0 / np.median(np.diff(t))) if t.size > 1 else 0.0,
+                "fields": sorted(d.data),
+                "note": "not converted: fgnav has no optical-flow stream type",
+            }
+    if flow:
+        meta["px4_optical_flow"] = flow
+
+    flight = Flight(
+        name=path.stem,
+        source=str(path),
+        imu=imu,
+        attitude=attitude,
+        range=range_series,
+        references=references,
+        calib=Calibration(**calib_kwargs),
+        meta=meta,
+    )
+    return flight.check()

@@ -1,0 +1,215 @@
+"""PX4 ULog reader: topic converters on synthetic columns, and the two real logs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fgnav.datasets.errors import FlightFormatError
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.ulog import (
+    RELATIVE_TIMESTAMP_INVALID,
+    attitude_from_vehicle_attitude,
+    body_T_range_from_params,
+    imu_from_sensor_combined,
+    params_of_interest,
+    range_from_distance_sensor,
+    read_ulog,
+    trajectory_from_odometry,
+)
+
+G = 9.80665
+
+
+def _sensor_combined(n: int, rel_us: np.ndarray) -> dict[str, np.ndarray]:
+    t_us = 1_000_000 + 5000 * np.arange(n, dtype=np.uint64)
+    d = {"timestamp": t_us, "accelerometer_timestamp_relative": rel_us.astype(np.int32)}
+    for i, v in enumerate([0.1, 0.2, 0.3]):
+        d[f"gyro_rad[{i}]"] = np.full(n, v, dtype=np.float32)
+    # Accelerometer x ramps linearly in its own time so that interpolation is exact.
+    t_acc = (t_us.astype(float) + rel_us) * 1e-6
+    d["accelerometer_m_s2[0]"] = (2.0 * t_acc).astype(np.float64)
+    d["accelerometer_m_s2[1]"] = np.zeros(n)
+    d["accelerometer_m_s2[2]"] = np.full(n, -G)
+    return d
+
+
+def test_sensor_combined_frd_to_flu_and_accel_time():
+    n = 50
+    imu, notes = imu_from_sensor_combined(_sensor_combined(n, np.zeros(n)))
+    np.testing.assert_allclose(imu.t, 1.0 + 0.005 * np.arange(n))
+    np.testing.assert_allclose(imu.body_omega[0], [0.1, -0.2, -0.3], rtol=1e-6)
+    np.testing.assert_allclose(imu.body_accel[:, 2], G)  # FRD -G on z -> FLU +G
+    assert "same as gyro" in notes["accel_time"]
+
+    rel = np.full(n, 2000.0)  # accelerometer sampled 2 ms after the gyro
+    rel[10] = RELATIVE_TIMESTAMP_INVALID
+    imu, notes = imu_from_sensor_combined(_sensor_combined(n, rel))
+    # Interpolated onto gyro time: the ramp value at the gyro time (2 * t), inside the span.
+    inside = (imu.t >= imu.t[0] + 0.002) & (imu.t <= imu.t[-1] - 0.002)
+    np.testing.assert_allclose(imu.body_accel[inside, 0], 2.0 * imu.t[inside], atol=1e-9)
+    assert notes["accel_invalid_relative_timestamp"] == 1
+    assert "interpolated" in notes["accel_time"]
+
+
+def test_vehicle_attitude_px4_yaw_zero_is_fgnav_yaw_half_pi():
+    d = {
+        "timestamp": np.array([10, 20, 30], dtype=np.uint64),
+        "timestamp_sample": np.array([9, 19, 29], dtype=np.uint64),
+        "q[0]": np.ones(3),
+        "q[1]": np.zeros(3),
+        "q[2]": np.zeros(3),
+        "q[3]": np.zeros(3),
+    }
+    att, notes = attitude_from_vehicle_attitude(d)
+    np.testing.assert_allclose(att.t, [9e-6, 19e-6, 29e-6])
+    np.testing.assert_allclose(yaw_of(quat_wxyz_to_matrix(att.world_q_body_wxyz)), np.pi / 2)
+    assert notes["attitude_samples_skipped_invalid"] == 0
+
+
+def test_distance_sensor_quality_limits_and_mount():
+    d = {
+        "timestamp": np.array([1, 2, 3, 4], dtype=np.uint64) * 100_000,
+        "current_distance": np.array([1.0, np.nan, 0.05, 3.0], dtype=np.float32),
+        "min_distance": np.full(4, 0.1, dtype=np.float32),
+        "max_distance": np.full(4, 8.0, dtype=np.float32),
+        "signal_quality": np.array([100, 50, -1, 0], dtype=np.int8),
+        "orientation": np.full(4, 25, dtype=np.uint8),
+    }
+    rs, rmin, rmax, notes = range_from_distance_sensor(d)
+    np.testing.assert_allclose(rs.range, [1.0, 0.05, 3.0])
+    np.testing.assert_allclose(rs.quality, [1.0, -1.0, 0.0])
+    assert (rmin, rmax) == (pytest.approx(0.1), pytest.approx(8.0))
+    assert notes["skipped_nonfinite"] == 1 and notes["outside_min_max_kept"] == 1
+
+    # No pitch: beam straight down the FLU body; FRD offsets become FLU.
+    T = body_T_range_from_params(
+        {"EKF2_RNG_POS_X": 0.1, "EKF2_RNG_POS_Y": 0.2, "EKF2_RNG_POS_Z": 0.3}
+    )
+    np.testing.assert_allclose(T[:3, 2], [0, 0, -1], atol=1e-15)
+    np.testing.assert_allclose(T[:3, 3], [0.1, -0.2, -0.3])
+    # Positive pitch tilts the beam forward: (sin p, 0, -cos p) in FLU.
+    p = 0.3
+    T = body_T_range_from_params({"EKF2_RNG_PITCH": p})
+    np.testing.assert_allclose(T[:3, 2], [np.sin(p), 0.0, -np.cos(p)], atol=1e-15)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+
+
+def test_odometry_body_velocity_rotated_into_world():
+    yaw_ned = np.deg2rad(90.0)  # nose east
+    q = [np.cos(yaw_ned / 2), 0.0, 0.0, np.sin(yaw_ned / 2)]
+    d = {
+        "timestamp": np.array([100, 200], dtype=np.uint64),
+        "position[0]": np.array([1.0, 1.0]),
+        "position[1]": np.array([2.0, 2.0]),
+        "position[2]": np.array([-3.0, -3.0]),
+        "velocity[0]": np.array([1.0, 1.0]),  # 1 m/s forward in body FRD
+        "velocity[1]": np.zeros(2),
+        "velocity[2]": np.zeros(2),
+        "pose_frame": np.array([1, 1]),
+        "velocity_frame": np.array([3, 3]),
+        **{f"q[{i}]": np.full(2, q[i]) for i in range(4)},
+    }
+    traj, _ = trajectory_from_odometry(d)
+    np.testing.assert_allclose(traj.world_t_body[0], [2.0, 1.0, 3.0])
+    np.testing.assert_allclose(traj.world_v_body[0], [1.0, 0.0, 0.0], atol=1e-12)  # east
+
+
+def test_params_of_interest():
+    params = {"EKF2_MCOEF": 0.15, "EKF2_BCOEF_X": 25.0, "SENS_BOARD_ROT": 0, "MC_ROLL_P": 6.5}
+    assert params_of_interest(params) == {
+        "EKF2_BCOEF_X": 25.0,
+        "EKF2_MCOEF": 0.15,
+        "SENS_BOARD_ROT": 0,
+    }
+
+
+def test_not_a_ulog_is_a_clear_error(tmp_path):
+    bad = tmp_path / "flight.ulg"
+    bad.write_bytes(b"this is not a ulog file" * 10)
+    with pytest.raises(FlightFormatError, match="flight.ulg"):
+        read_ulog(bad)
+    with pytest.raises(FlightFormatError, match="no such file"):
+        read_ulog(tmp_path / "missing.ulg")
+
+
+def _accel_gravity_angle_deg(flight, window_s: float = 0.25) -> np.ndarray:
+    """Angle between the low-passed accelerometer and the attitude's world z axis in body."""
+    w = int(window_s * flight.imu.rate_hz)
+    kernel = np.ones(w) / w
+    acc = np.column_stack(
+        [np.convolve(flight.imu.body_accel[:, i], kernel, "valid") for i in range(3)]
+    )
+    t_acc = flight.imu.t[w // 2 : w // 2 + acc.shape[0]]
+    att = flight.attitude.between(t_acc[0], t_acc[-1])
+    acc_i = np.column_stack([np.interp(att.t, t_acc, acc[:, i]) for i in range(3)])
+    up_in_body = quat_wxyz_to_matrix(att.world_q_body_wxyz)[:, 2, :]
+    cos = np.sum(up_in_body * acc_i, axis=1) / np.linalg.norm(acc_i, axis=1)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+@pytest.mark.realdata
+def test_cubeorange_flight(real_data):
+    from pyulog import ULog
+
+    path = real_data / "px4_cubeorange_quad_flight" / "test.ulg"
+    f = read_ulog(path)
+    assert f.imu.rate_hz == pytest.approx(187.5, abs=1.0)
+    assert f.attitude.rate_hz == pytest.approx(20.8, abs=0.5)
+    # At rest on the ground before take-off (the first second): specific force (0, 0, +g) in FLU.
+    rest = f.imu.between(f.imu.t[0], f.imu.t[0] + 1.0)
+    np.testing.assert_allclose(rest.body_accel.mean(axis=0), [0.0, 0.0, G], atol=0.3)
+    # Attitude agrees with the accelerometer's tilt (hover: thrust along body z) within 2.5 deg.
+    assert np.median(_accel_gravity_angle_deg(f)) < 1.0
+    assert np.percentile(_accel_gravity_angle_deg(f), 99) < 2.5
+
+    ekf = f.references["px4_ekf2"]
+    assert ekf.rate_hz == pytest.approx(10.4, abs=0.3)
+    # Hover at about 10 m: height is positive up in fgnav's world.
+    assert 9.0 < ekf.world_t_body[:, 2].max() < 12.0
+    assert abs(ekf.world_t_body[0, 2]) < 1.0
+    # ENU from NED, checked against the raw log: x_enu = y_ned, y_enu = x_ned.
+    raw = ULog(str(path), ["vehicle_local_position"]).data_list[0].data
+    np.testing.assert_allclose(ekf.world_t_body[:, 0], raw["y"], rtol=1e-6)
+    np.testing.assert_allclose(ekf.world_t_body[:, 1], raw["x"], rtol=1e-6)
+    # EKF2's heading (NED yaw, clockwise from north) is pi/2 - fgnav yaw.
+    yaw = yaw_of(quat_wxyz_to_matrix(ekf.world_q_body_wxyz))
+    assert np.abs(wrap_angle(yaw - (np.pi / 2 - raw["heading"]))).max() < np.deg2rad(3.0)
+    # Velocity is the derivative of position (vertical, during the climb and descent).
+    vz_fd = np.gradient(ekf.world_t_body[:, 2], ekf.t)
+    assert np.median(np.abs(vz_fd - ekf.world_v_body[:, 2])) < 0.1
+
+    assert f.meta["px4_params"]["EKF2_MCOEF"] == pytest.approx(0.15)
+    assert "SENS_BOARD_ROT" in f.meta["px4_params"]
+    assert f.meta["px4_imu_selection"]["sensor_accel_instance"] == 2
+    assert f.meta["px4_topics"]["sensor_accel"] == {0: 33, 1: 33, 2: 33}
+    assert f.range is None
+
+
+@pytest.mark.realdata
+def test_handheld_optitrack_log(real_data):
+    f = read_ulog(real_data / "px4_fmuv5_quad_handheld_optitrack" / "log008.ulg")
+    assert f.imu.rate_hz == pytest.approx(200.0, abs=1.0)
+    assert f.attitude.rate_hz == pytest.approx(20.0, abs=0.5)
+    rest = f.imu.between(f.imu.t[0], f.imu.t[0] + 3.0)
+    np.testing.assert_allclose(rest.body_accel.mean(axis=0), [0.0, 0.0, G], atol=0.6)
+    # Carried by hand with tilts up to 48 deg: the attitude follows the accelerometer's tilt.
+    tilt = np.degrees(np.arccos(quat_wxyz_to_matrix(f.attitude.world_q_body_wxyz)[:, 2, 2]))
+    assert 40.0 < tilt.max() < 55.0
+    angle = _accel_gravity_angle_deg(f)
+    assert np.median(angle) < 2.0
+    ekf = f.references["px4_ekf2"]
+    meta = f.meta["px4_ekf2"]
+    assert meta["xy_valid_fraction"] == 0.0 and meta["z_valid_fraction"] == 1.0
+    assert meta["kept"] + meta["skipped_outside_attitude_span"] == meta["samples"] == 730
+    assert ekf.t[0] >= f.attitude.t[0]
+
+
+@pytest.mark.realdata
+def test_attitude_rotates_rest_accel_to_world_up(real_data):
+    # At rest the converted attitude maps the mean specific force onto world +z.
+    f = read_ulog(real_data / "px4_fmuv5_quad_handheld_optitrack" / "log008.ulg")
+    R = quat_wxyz_to_matrix(f.attitude.world_q_body_wxyz[:20])
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+    f_world = R @ f.imu.between(f.attitude.t[0], f.attitude.t[19]).body_accel.mean(axis=0)
+    up = f_world / np.linalg.norm(f_world, axis=1, keepdims=True)
+    np.testing.assert_allclose(up, np.tile([0.0, 0.0, 1.0], (20, 1)), atol=0.02)
