@@ -1,0 +1,149 @@
+"""Tilted downward rangefinder over flat ground: slant range from height, attitude and lever arm.
+
+Measurement model (seed 002 eqs. 20-21, with the lever arm and a ground-height variable as in the
+PX4 EKF2 range-finder fusion)::
+
+    d = world_R_body body_R_range e_z                 beam direction in world (sensor +z axis)
+    p = world_t_body + world_R_body body_t_range      sensor position in world [m]
+    cos_tilt = -d_z                                   1 when the beam points straight down
+    range = (p_z - ground) / cos_tilt + n             [m]
+
+The beam is the sensor's +z axis (``fgnav.datasets.types.Calibration.body_T_range``), so a
+rangefinder looking down a body FLU frame has ``body_R_range`` with ``body_R_range e_z = -e_z``
+(e.g. a rotation of pi about body x).
+
+Keys: ``X`` Pose3 ``world_T_body``; ``G`` ground height: a gtsam Vector of size 1 ``[ground]`` [m]
+(world z of the flat ground under the sensor; a Vector1, not a double, so that
+``PriorFactorVector`` / ``BetweenFactorVector`` and ``calculateEstimateVector`` serve it).
+
+Residual (1,): unwhitened ``h(x) - z`` [m]; zero when the measured range equals the slant distance
+from the sensor to the plane ``z = ground`` along the beam.
+
+Jacobians (right perturbation ``[omega, v]`` of the pose): with ``b = body_R_range e_z``,
+``l = body_t_range``, ``r`` the predicted range, ``c = cos_tilt``:
+``dr/domega = (-(R [l]x)_z - r (R [b]x)_z) / c``, ``dr/dv = R_z / c``, ``dr/dground = -1 / c``
+(``R = world_R_body``, ``_z`` its third row).
+
+Noise: sensor sigma [m] (grows with range for many sensors); use a robust kernel (Huber/Cauchy)
+against obstacles under the vehicle. Gate every reading with ``gate_range`` before making a
+factor: out of the sensor's interval, beam not pointing down, or tilt above a limit -> no factor.
+During optimisation ``cos_tilt`` is floored at ``MIN_COS_TILT`` so that a bad intermediate
+attitude cannot divide by zero (the Jacobian of the floored value is zero).
+
+Not modelled: sloped or rough terrain (ground is a flat horizontal plane per ``G`` variable), beam
+width, the sensor's time offset, multipath and readings from non-ground obstacles.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from fgnav.factors._jacobians import as_pose_matrix, check_noise_dim, pose_parts, skew
+
+ERROR_DIM = 1
+
+#: Floor on cos(tilt) inside the factor: cos(85 deg). Readings are gated far below this tilt; the
+#: floor only protects optimiser iterates from a division by ~0.
+MIN_COS_TILT = float(np.cos(np.deg2rad(85.0)))
+
+_E_Z = np.array([0.0, 0.0, 1.0])
+
+
+def tilted_range_error(
+    world_T_body: gtsam.Pose3,
+    ground: np.ndarray,
+    range_meas: float,
+    body_T_range: gtsam.Pose3 | np.ndarray,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Residual and Jacobians of the tilted-rangefinder model.
+
+    Args:
+        world_T_body: body pose in the world (z up).
+        ground: (1,) world z of the ground plane [m].
+        range_meas: measured distance along the beam [m].
+        body_T_range: rangefinder pose in the body frame (beam = sensor +z axis).
+
+    Returns:
+        ``(e (1,), [e_D_pose (1x6), e_D_ground (1x1)])`` [m].
+    """
+    world_R_body, world_t_body = pose_parts(world_T_body)
+    body_R_range, body_t_range = pose_parts(body_T_range)
+    b = body_R_range @ _E_Z
+    cos_tilt = -(world_R_body[2] @ b)
+    cos_D_omega = (world_R_body @ skew(b))[2]
+    if cos_tilt < MIN_COS_TILT:
+        cos_tilt = MIN_COS_TILT
+        cos_D_omega = np.zeros(3)
+    height = world_t_body[2] + world_R_body[2] @ body_t_range - float(np.asarray(ground).ravel()[0])
+    r = height / cos_tilt
+    e = np.array([r - range_meas])
+    e_D_pose = np.empty((1, 6))
+    e_D_pose[0, :3] = (-(world_R_body @ skew(body_t_range))[2] - r * cos_D_omega) / cos_tilt
+    e_D_pose[0, 3:] = world_R_body[2] / cos_tilt
+    return e, [e_D_pose, np.array([[-1.0 / cos_tilt]])]
+
+
+def make_range_factor(
+    pose_key: int,
+    ground_key: int,
+    range_meas: float,
+    body_T_range: gtsam.Pose3 | np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """Tilted-rangefinder factor on ``(X: Pose3, G: Vector1 ground height)`` (1-D, [m]).
+
+    Args:
+        range_meas: measured range [m], already accepted by ``gate_range``.
+        body_T_range: rangefinder pose in the body frame (Pose3 or 4x4; beam = sensor +z).
+        noise_model: 1-D noise [m] (robust kernels recommended).
+    """
+    z = float(range_meas)
+    if not np.isfinite(z):
+        raise ValueError(f"range_meas: non-finite value {range_meas}")
+    body_T_range = as_pose_matrix(body_T_range, "body_T_range")
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = tilted_range_error(
+            values.atPose3(pose_key), values.atVector(ground_key), z, body_T_range
+        )
+        if H is not None:
+            H[0], H[1] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_key, ground_key], error_fn)
+
+
+def gate_range(
+    range_meas: float,
+    world_R_body: np.ndarray,
+    body_T_range: gtsam.Pose3 | np.ndarray,
+    range_min: float,
+    range_max: float,
+    max_tilt_rad: float,
+) -> tuple[bool, str]:
+    """Decide whether a range reading may become a factor.
+
+    Args:
+        range_meas: measured range [m].
+        world_R_body: (3, 3) current attitude estimate.
+        body_T_range: rangefinder pose in the body frame (beam = sensor +z).
+        range_min, range_max: valid interval of the sensor [m] (inclusive).
+        max_tilt_rad: largest accepted angle between the beam and the world down axis [rad].
+
+    Returns:
+        ``(True, "ok")`` or ``(False, reason)`` with a short reason naming the failed test and the
+        values (``"non-finite"``, ``"out of range"``, ``"beam not pointing down"``, ``"tilt"``).
+    """
+    if not np.isfinite(range_meas):
+        return False, f"non-finite range {range_meas}"
+    if not range_min <= range_meas <= range_max:
+        return False, f"out of range: {range_meas:.3f} m not in [{range_min}, {range_max}] m"
+    body_R_range, _ = pose_parts(body_T_range)
+    cos_tilt = -float((np.asarray(world_R_body, dtype=float) @ body_R_range @ _E_Z)[2])
+    if cos_tilt <= 0.0:
+        return False, f"beam not pointing down (cos tilt {cos_tilt:.3f})"
+    tilt = float(np.arccos(min(cos_tilt, 1.0)))
+    if tilt > max_tilt_rad:
+        return False, f"tilt {np.rad2deg(tilt):.1f} deg above {np.rad2deg(max_tilt_rad):.1f} deg"
+    return True, "ok"
