@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -176,24 +177,31 @@ def format_table(metrics: list[Metrics]) -> str:
 
 
 def to_jsonable(x: Any) -> Any:
-    """Recursively convert numpy scalars/arrays, tuples and non-string keys for ``json.dump``;
-    non-finite floats become None."""
+    """Recursively convert a value for ``json.dump``: numpy scalars and arrays, tuples, dataclasses
+    (as dicts), paths, enums, non-string keys; non-finite floats become None; any other object
+    becomes its ``repr``."""
     if isinstance(x, dict):
         return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
+    if isinstance(x, list | tuple | set | frozenset):
         return [to_jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
         return to_jsonable(x.tolist())
     if isinstance(x, np.bool_ | bool):
         return bool(x)
-    if isinstance(x, np.integer):
+    if isinstance(x, np.integer | int):
         return int(x)
     if isinstance(x, np.floating | float):
         f = float(x)
         return f if math.isfinite(f) else None
+    if x is None or isinstance(x, str):
+        return x
+    if is_dataclass(x) and not isinstance(x, type):
+        return to_jsonable({f.name: getattr(x, f.name) for f in fields(x)})
+    if isinstance(x, Enum):
+        return to_jsonable(x.value)
     if hasattr(x, "__fspath__"):
         return str(x)
-    return x
+    return repr(x)
 
 
 # ----------------------------------------------------------------------------------------------
