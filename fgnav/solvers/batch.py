@@ -1,0 +1,323 @@
+"""Batch smoother: the whole flight's graph solved by Levenberg-Marquardt written in Python.
+
+GTSAM's C++ optimizers call Python ``CustomFactor`` callbacks at a cost that grows with the problem
+size (../shared/GTSAM-NOTES.md), so the loop lives here: ``graph.linearize(values)`` (callbacks
+from Python: a few us each), damping added as unit Jacobian factors ``sqrt(lambda) I`` on every
+variable, ``GaussianFactorGraph.optimize()`` (multifrontal Cholesky, COLAMD ordering) and
+``values.retract(delta)``. A step is accepted when the nonlinear error decreases; lambda then
+shrinks by ``lambda_factor``, else it grows and the step is retried.
+
+Covariances: ``gtsam.Marginals`` on the final linearization (a ``GaussianFactorGraph``, so no
+callbacks inside C++), for the slow variables and every ``cov_pose_stride``-th keyframe.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz
+from fgnav.datasets.types import Flight, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.keys import B, D, G, S, V, X, describe
+from fgnav.solvers.graph import GraphBuilder, GraphOptions
+
+log = logging.getLogger(__name__)
+
+
+class SolverError(FgnavError, RuntimeError):
+    """The solver could not produce an estimate (indeterminate system, divergence)."""
+
+
+@dataclass
+class LMOptions:
+    """Levenberg-Marquardt loop options.
+
+    Attributes:
+        max_iterations: most outer iterations (linearizations).
+        rel_tol: stop when the relative error decrease is below this.
+        abs_tol: stop when the error is below this.
+        lambda_init: damping tried after the first rejected Gauss-Newton step.
+        lambda_factor: multiplier of lambda on rejection (divisor on acceptance).
+        lambda_max: give up the iteration (converged as far as possible) above this.
+        lambda_min: below this the damping is dropped (pure Gauss-Newton).
+    """
+
+    max_iterations: int = 30
+    rel_tol: float = 1e-6
+    abs_tol: float = 1e-9
+    lambda_init: float = 1e-4
+    lambda_factor: float = 10.0
+    lambda_max: float = 1e8
+    lambda_min: float = 1e-8
+
+
+@dataclass
+class BatchOptions:
+    """Options of the batch smoother.
+
+    Attributes:
+        graph: graph builder options.
+        lm: Levenberg-Marquardt options.
+        covariance: ``"all"`` (slow variables and poses), ``"slow"`` or ``"none"``.
+        cov_pose_stride: marginal pose covariance every n-th keyframe (others NaN).
+    """
+
+    graph: GraphOptions = field(default_factory=GraphOptions)
+    lm: LMOptions = field(default_factory=LMOptions)
+    covariance: str = "all"
+    cov_pose_stride: int = 1
+
+
+@dataclass
+class LMResult:
+    """Result of :func:`levenberg_marquardt`."""
+
+    values: gtsam.Values
+    linear: gtsam.GaussianFactorGraph
+    errors: list[float]
+    iterations: int
+    converged: bool
+
+
+def _damping_graph(gfg: gtsam.GaussianFactorGraph, dims: dict[int, int], lam: float) -> gtsam.GaussianFactorGraph:
+    g = gtsam.GaussianFactorGraph()
+    g.push_back(gfg)
+    unit = {d: gtsam.noiseModel.Unit.Create(d) for d in set(dims.values())}
+    s = math.sqrt(lam)
+    for key, d in dims.items():
+        g.add(gtsam.JacobianFactor(key, s * np.eye(d), np.zeros(d), unit[d]))
+    return g
+
+
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, options: LMOptions | None = None
+) -> LMResult:
+    """Minimise ``graph.error`` from ``values`` with a Levenberg-Marquardt loop in Python.
+
+    Raises:
+        SolverError: the linear system is indeterminate even with damping.
+    """
+    o = options or LMOptions()
+    err = graph.error(values)
+    errors = [err]
+    lam = 0.0
+    dims: dict[int, int] | None = None
+    converged = False
+    it = 0
+    gfg = graph.linearize(values)
+    for it in range(1, o.max_iterations + 1):
+        accepted = False
+        while True:
+            try:
+                lin = gfg if lam == 0.0 else _damping_graph(gfg, dims, lam)
+                delta = lin.optimize()
+            except RuntimeError as e:
+                if dims is None:
+                    raise SolverError(f"batch: indeterminate linear system ({e}); some variable "
+                                      "is unconstrained (see the observability of the sensors "
+                                      "used)") from e
+                delta = None
+            if delta is not None:
+                if dims is None:
+                    dims = {k: int(delta.at(k).shape[0]) for k in values.keys()}
+                new_values = values.retract(delta)
+                new_err = graph.error(new_values)
+                if np.isfinite(new_err) and new_err <= err:
+                    accepted = True
+                    break
+            lam = o.lambda_init if lam == 0.0 else lam * o.lambda_factor
+            if lam > o.lambda_max:
+                break
+        if not accepted:
+            log.info("LM: no decreasing step at lambda %.1e: stop", lam)
+            converged = True
+            break
+        rel = (err - new_err) / max(err, 1e-300)
+        log.info("LM iteration %d: error %.6g -> %.6g (lambda %.1e)", it, err, new_err, lam)
+        values, err = new_values, new_err
+        errors.append(err)
+        lam = 0.0 if lam / o.lambda_factor < o.lambda_min else lam / o.lambda_factor
+        gfg = graph.linearize(values)
+        if rel < o.rel_tol or err < o.abs_tol:
+            converged = True
+            break
+    return LMResult(values, gfg, errors, it, converged)
+
+
+def solve_batch(
+    flight: Flight, options: BatchOptions | None = None, priors: Any = None, progress: bool = False
+) -> Estimate:
+    """Smooth a whole flight.
+
+    Args:
+        flight: the flight (ground truth, if any, is never used).
+        options: batch options.
+        priors: optional front-end priors (see :class:`GraphBuilder`).
+        progress: show a progress bar while building the graph.
+
+    Returns:
+        ``Estimate(method="batch")`` at the keyframe times, with covariances per
+        ``options.covariance``, SLAM scale per session, drag k and ground height.
+    """
+    o = options or BatchOptions()
+    t_start = time.perf_counter()
+    builder = GraphBuilder(flight, o.graph, priors)
+    guess = builder.initial_guess()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=builder.K, desc="graph", unit="kf")
+    graph, values = builder.build(guess, progress=(lambda k: bar.update(1)) if bar else None)
+    if bar:
+        bar.close()
+    t_built = time.perf_counter()
+    log.info("graph: %d factors, %d variables, %d keyframes (%.2f s)", graph.size(), values.size(),
+             builder.K, t_built - t_start)
+    res = levenberg_marquardt(graph, values, o.lm)
+    t_solved = time.perf_counter()
+    log.info("LM: %d iterations, error %.6g -> %.6g (%.2f s)", res.iterations, res.errors[0],
+             res.errors[-1], t_solved - t_built)
+    est = estimate_from_values(builder, res.values, method="batch")
+    marg = None
+    if o.covariance != "none":
+        try:
+            marg = gtsam.Marginals(res.linear, res.values)
+        except RuntimeError as e:
+            log.warning("marginal covariances unavailable: %s", e)
+    pose_cov = vel_cov = None
+    slow_sigma: dict[int, np.ndarray] = {}
+    if marg is not None:
+        slow_sigma = {k: np.sqrt(np.diag(marg.marginalCovariance(k))) for k in _slow_keys(res.values)}
+        if o.covariance == "all":
+            pose_cov = np.full((builder.K, 6, 6), np.nan)
+            vel_cov = np.full((builder.K, 3, 3), np.nan)
+            for k in range(0, builder.K, max(1, o.cov_pose_stride)):
+                pose_cov[k] = marg.marginalCovariance(X(k))
+                vel_cov[k] = marg.marginalCovariance(V(k))
+    t_cov = time.perf_counter()
+    est = _with_slow(builder, res.values, est, slow_sigma)
+    info = dict(est.info)
+    info.update({
+        "lm_iterations": res.iterations,
+        "lm_converged": res.converged,
+        "lm_errors": [float(e) for e in res.errors],
+        "n_factors": int(graph.size()),
+        "n_variables": int(values.size()),
+        "time_build_s": t_built - t_start,
+        "time_solve_s": t_solved - t_built,
+        "time_covariance_s": t_cov - t_solved,
+        "covariance": o.covariance,
+        "cov_pose_stride": o.cov_pose_stride,
+        "lm_options": asdict(o.lm),
+    })
+    return Estimate(
+        method="batch", trajectory=est.trajectory, pose_cov=pose_cov, vel_cov=vel_cov,
+        slam_scale=est.slam_scale, slam_scale_sigma=est.slam_scale_sigma, drag_k=est.drag_k,
+        drag_k_sigma=est.drag_k_sigma, ground_height=est.ground_height, series=est.series,
+        runtime_s=time.perf_counter() - t_start, causal=False, info=info,
+    ).check()
+
+
+def _slow_keys(values: gtsam.Values) -> list[int]:
+    return [k for k in values.keys() if chr(gtsam.Symbol(k).chr()) in "sdg"]
+
+
+def estimate_from_values(builder: GraphBuilder, values: gtsam.Values, method: str,
+                         keyframes: np.ndarray | None = None) -> Estimate:
+    """Trajectory (pose, velocity, biases) at the keyframes present in ``values``."""
+    ks = np.arange(builder.K) if keyframes is None else np.asarray(keyframes, int)
+    n = len(ks)
+    pos, R = np.zeros((n, 3)), np.zeros((n, 3, 3))
+    vel, bg, ba = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    for i, k in enumerate(ks):
+        p = values.atPose3(X(int(k)))
+        pos[i], R[i] = p.translation(), p.rotation().matrix()
+        vel[i] = values.atVector(V(int(k)))
+        b = values.atConstantBias(B(int(k)))
+        bg[i], ba[i] = b.gyroscope(), b.accelerometer()
+    traj = Trajectory(builder.t_kf[ks].copy(), pos, matrix_to_quat_wxyz(R), vel, bg, ba)
+    return Estimate(method=method, trajectory=traj, info=builder.report())
+
+
+def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
+               sigma: dict[int, np.ndarray]) -> Estimate:
+    """Fill SLAM scale, drag k and ground height (final values and series) from ``values``."""
+    from fgnav.factors.slam_scale import slam_alignment_parts
+
+    series: dict[str, TimeSeries] = dict(est.series)
+    scale, scale_sigma = {}, {}
+    t_kf = builder.t_kf
+    if builder.use_slam:
+        if builder.slam_model == "axis" and values.exists(S(0)):
+            k = values.atVector(S(0))
+            sg = sigma.get(S(0))
+            scale[0] = float(np.cbrt(np.prod(k)))
+            if sg is not None:
+                scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+            series["slam_axis_scale"] = TimeSeries(np.array([t_kf[0]]), k[None, :],
+                                                   None if sg is None else sg[None, :])
+        else:
+            ts, vs, ss, sess_ids = [], [], [], []
+            slam = builder.flight.slam
+            a = builder.slam_assoc
+            for (sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
+                if not values.exists(S(j)):
+                    continue
+                s, _, _ = slam_alignment_parts(values.atSimilarity3(S(j)))
+                sg = sigma.get(S(j))
+                # Tangent lambda is the log scale: sigma_s = s sigma_lambda.
+                s_sig = float(s * sg[6]) if sg is not None else np.nan
+                rows = np.flatnonzero([(int(slam.session[a.meas_index[r]]), int(builder.slam_chain[r])) == (sess, seg)
+                                       for r in range(len(a.meas_index))])
+                t_mid = float(np.mean(t_kf[a.keyframe[rows]])) if len(rows) else float(t_kf[0])
+                ts.append(t_mid)
+                vs.append(s)
+                ss.append(s_sig)
+                sess_ids.append(sess)
+                scale[sess] = float(s)
+                if sg is not None:
+                    scale_sigma[sess] = s_sig
+            if ts:
+                series["slam_scale"] = TimeSeries(np.asarray(ts), np.asarray(vs), np.asarray(ss))
+                series["slam_session"] = TimeSeries(np.asarray(ts), np.asarray(sess_ids, float))
+    drag_k = drag_sig = None
+    if builder.use_drag:
+        segs = np.unique(builder.drag_segment)
+        vals = np.array([values.atVector(D(int(j))) for j in segs])
+        sg = [sigma.get(D(int(j))) for j in segs]
+        drag_k = vals[-1]
+        drag_sig = sg[-1]
+        t_seg = np.array([t_kf[builder.drag_segment == j][0] for j in segs])
+        series["drag_k"] = TimeSeries(t_seg, vals, None if any(x is None for x in sg) else np.array(sg))
+    ground = None
+    if builder.use_range:
+        segs = np.unique(builder.ground_segment)
+        segs = [j for j in segs if values.exists(G(int(j)))]
+        if segs:
+            vals = np.array([values.atVector(G(int(j)))[0] for j in segs])
+            sg = [sigma.get(G(int(j))) for j in segs]
+            ground = float(vals[-1])
+            t_seg = np.array([t_kf[builder.ground_segment == j][0] for j in segs])
+            series["ground_height"] = TimeSeries(
+                t_seg, vals, None if any(x is None for x in sg) else np.array([x[0] for x in sg])
+            )
+    return Estimate(
+        method=est.method, trajectory=est.trajectory, slam_scale=scale,
+        slam_scale_sigma=scale_sigma, drag_k=drag_k, drag_k_sigma=drag_sig,
+        ground_height=ground, series=series, info=est.info,
+    )
+
+
+__all__ = [
+    "BatchOptions", "LMOptions", "LMResult", "SolverError", "levenberg_marquardt", "solve_batch",
+    "estimate_from_values", "describe",
+]

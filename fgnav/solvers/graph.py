@@ -1,0 +1,917 @@
+"""Graph builder: turns a :class:`~fgnav.datasets.types.Flight` into GTSAM factors on keyframes.
+
+Variables (``fgnav.keys``, ../shared/DESIGN.md section 3): per keyframe k ``X(k)`` Pose3
+``world_T_body``, ``V(k)`` ``world_v_body`` [m/s], ``B(k)`` IMU bias; slow variables with random
+walks between segments: ``S(j)`` SLAM alignment (``Similarity3`` ``slam_T_world``, a new chain per
+SLAM session, or a per-axis scale Vector3 for seed 000's model), ``D(j)`` drag coefficient
+(Vector1 ``k`` or Vector2 ``kx, ky``) [1/s], ``G(j)`` ground height (Vector1) [m].
+
+The builder emits the graph per keyframe so that the same code feeds the batch solver (everything
+at once) and the fixed-lag smoother (streamed in arrival order):
+
+- :meth:`GraphBuilder.keyframe_chunk` gives, for keyframe k, the IMU factor from k-1, the new
+  state values, the creation of slow variables whose segment starts at k (random-walk factor from
+  the previous segment), the gauge/front-end priors, and the key timestamps.
+- :meth:`GraphBuilder.measurement_factors` gives the factors of the measurements associated with
+  keyframe k, each with its arrival time (a SLAM pose arrives at ``t + latency``).
+
+Keyframes: fixed rate (``keyframe_hz``) anchored at the SLAM frame times so that SLAM positions need
+no time shift; rangefinder and yaw readings are interpolated linearly to the keyframe time from the
+two samples around it; the drag factor uses the mean accelerometer over the keyframe interval.
+Everything not used is counted in :attr:`GraphBuilder.skipped` (and reported in ``Estimate.info``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FgnavError, FlightDataError
+from fgnav.datasets.geometry import wrap_angle
+from fgnav.datasets.types import Flight, ImuSeries
+from fgnav.keys import B, D, G, S, V, X
+from fgnav.solvers.measurements import (
+    SlamAlignmentInit,
+    associate,
+    attitude_track,
+    init_slam_alignment,
+    mean_in_windows,
+    omega_from_attitude,
+    second_difference_pairs,
+    world_specific_accel,
+)
+
+log = logging.getLogger(__name__)
+
+#: Standard gravity [m/s^2] (the simulator and GTSAM's MakeSharedU default use this value).
+STANDARD_GRAVITY = 9.81
+#: Drag coefficient used when no closed-form initial value is possible [1/s]; seed 000's
+#: simulation uses kx = 0.3, ky = 0.2 and the simulator's default is (0.38, 0.42).
+DEFAULT_DRAG_K = 0.3
+#: Integration noise of the preintegration (GTSAM examples use 1e-8) [m^2/s^2... per s].
+PREINTEGRATION_INTEGRATION_COV = 1e-8
+#: Initial-bias covariance used by GTSAM's CombinedImuFactor examples (biasAccOmegaInt).
+BIAS_ACC_OMEGA_INIT_COV = 1e-5
+
+
+class ObservabilityError(FgnavError, ValueError):
+    """The chosen sensor subset leaves part of the state unobservable."""
+
+
+@dataclass
+class GraphOptions:
+    """Options of the graph builder (sensor switches, noise, robust kernels, gating, priors).
+
+    Noise values are one standard deviation. A TOML ``[graph]`` table fills it by name.
+
+    Attributes:
+        keyframe_hz: nominal keyframe rate [Hz] (keyframes also sit on SLAM frame times).
+        gravity: magnitude of gravity [m/s^2].
+        use_gyro: integrate the gyro; False replaces it by rates differentiated from the attitude
+            stream (seed 000's sensor set: accelerometer + attitude + SLAM).
+        use_slam, use_drag, use_range, use_yaw, use_homography: measurement switches.
+        use_frontend_priors: add the front-end priors given to the builder.
+        slam_model: ``"sim3"`` (``Similarity3`` alignment per session) or ``"axis"`` (seed 000's
+            per-axis scale, SLAM axes = world axes); ``"auto"`` picks ``"axis"`` when the flight's
+            metadata says the SLAM stream is per-axis.
+        slam_sigma_m: SLAM position noise [m] (converted to SLAM units with the initial scale).
+        slam_rotation: also use the SLAM orientation (fixes the yaw of the SLAM frame).
+        slam_rot_sigma: SLAM orientation noise [rad].
+        slam_segment_s: length of a SLAM-alignment segment [s] (random walk between segments:
+            monocular scale drifts).
+        slam_scale_rw: relative scale random walk [1/sqrt(s)].
+        slam_rot_rw: rotation random walk of the SLAM frame [rad/sqrt(s)].
+        slam_trans_rw_m: origin random walk of the SLAM frame [m/sqrt(s)].
+        drag_per_axis: estimate ``kx, ky`` instead of one ``k``.
+        drag_model_sigma: drag-model error floor of the mean accelerometer [m/s^2].
+        drag_k_init: initial drag k [1/s] (None: closed form from the initial velocities).
+        drag_prior_sigma: prior on the first drag variable [1/s].
+        drag_segment_s: drag segment length [s] (None: one variable for the flight).
+        drag_rw: drag random walk [1/s/sqrt(s)].
+        range_sigma: rangefinder noise [m]; range_max_tilt_deg: gate on the beam tilt [deg].
+        ground_segment_s: ground-height segment length [s]; ground_rw: terrain walk [m/sqrt(s)].
+        ground_prior_sigma: prior on the first ground height around its initial value [m].
+        yaw_sigma: yaw noise [rad].
+        robust: ``"huber"``, ``"cauchy"`` or ``"none"`` (range, SLAM, yaw, homography).
+        robust_k: kernel width in whitened units (Huber 1.345: 95 % efficiency).
+        interp_max_gap_s: largest gap between the two samples a range/yaw reading is interpolated
+            from [s].
+        slam_tolerance_s: largest time between a SLAM pose and its keyframe [s].
+        prior_position_sigma [m], prior_yaw_sigma [rad], prior_rollpitch_sigma [rad],
+        prior_velocity_sigma [m/s], prior_accel_bias_sigma [m/s^2], prior_gyro_bias_sigma
+            [rad/s]: gauge and first-state priors.
+        initial_yaw: yaw of the first pose when neither attitude nor yaw streams exist [rad].
+    """
+
+    keyframe_hz: float = 20.0
+    gravity: float = STANDARD_GRAVITY
+    use_gyro: bool = True
+    use_slam: bool = True
+    use_drag: bool = True
+    use_range: bool = True
+    use_yaw: bool = True
+    use_homography: bool = False
+    use_frontend_priors: bool = True
+    slam_model: str = "auto"
+    slam_sigma_m: float = 0.01
+    slam_rotation: bool = False
+    slam_rot_sigma: float = 0.005
+    slam_segment_s: float = 5.0
+    slam_scale_rw: float = 1e-3
+    slam_rot_rw: float = 2e-4
+    slam_trans_rw_m: float = 2e-3
+    drag_per_axis: bool = True
+    drag_model_sigma: float = 0.05
+    drag_k_init: float | None = None
+    drag_prior_sigma: float = 1.0
+    drag_segment_s: float | None = None
+    drag_rw: float = 1e-3
+    range_sigma: float = 0.02
+    range_max_tilt_deg: float = 35.0
+    ground_segment_s: float = 5.0
+    ground_rw: float = 0.01
+    ground_prior_sigma: float = 1.0
+    yaw_sigma: float = 0.03
+    robust: str = "huber"
+    robust_k: float = 1.345
+    interp_max_gap_s: float = 0.15
+    slam_tolerance_s: float = 0.005
+    prior_position_sigma: float = 1e-3
+    prior_yaw_sigma: float = 1e-3
+    prior_rollpitch_sigma: float = 0.05
+    prior_velocity_sigma: float = 1.0
+    prior_accel_bias_sigma: float = 0.1
+    prior_gyro_bias_sigma: float = 0.01
+    initial_yaw: float = 0.0
+
+    def check(self) -> GraphOptions:
+        if self.robust not in ("huber", "cauchy", "none"):
+            raise FlightDataError(f"GraphOptions.robust={self.robust!r}: expected huber, cauchy or none")
+        if self.slam_model not in ("auto", "sim3", "axis"):
+            raise FlightDataError(f"GraphOptions.slam_model={self.slam_model!r}: expected auto, sim3 or axis")
+        if not self.keyframe_hz > 0:
+            raise FlightDataError(f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0")
+        return self
+
+
+@dataclass
+class InitialGuess:
+    """Initial values of the per-keyframe states and of the slow variables."""
+
+    world_R_body: np.ndarray
+    world_t_body: np.ndarray
+    world_v_body: np.ndarray
+    slam: dict[int, SlamAlignmentInit] = field(default_factory=dict)
+    axis_scale: np.ndarray | None = None
+    drag_k: np.ndarray | None = None
+    ground_height: float | None = None
+
+
+@dataclass
+class KeyframeChunk:
+    """What keyframe k adds to the graph (see module docstring)."""
+
+    index: int
+    t: float
+    factors: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    timestamps: dict[int, float]
+
+
+@dataclass
+class MeasurementFactor:
+    """One measurement factor attached to keyframe ``keyframe``, available at ``t_arrival``."""
+
+    t_arrival: float
+    keyframe: int
+    kind: str
+    factor: gtsam.NonlinearFactor
+    keys: tuple[int, ...]
+
+
+def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
+
+
+class GraphBuilder:
+    """Factor graph of one flight, built keyframe by keyframe.
+
+    Args:
+        flight: the flight (``check()`` is called).
+        options: builder options.
+        priors: optional front-end priors (``fgnav.frontends.priors.FrontendPriors``) with
+            ``velocity`` and ``slam_scale`` attributes, used when ``use_frontend_priors``.
+    """
+
+    def __init__(self, flight: Flight, options: GraphOptions | None = None, priors: Any = None):
+        self.flight = flight.check()
+        self.options = (options or GraphOptions()).check()
+        self.priors = priors if self.options.use_frontend_priors else None
+        self.skipped: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+        o = self.options
+        if flight.imu is None:
+            raise ObservabilityError(
+                f"{flight.name}: no IMU stream; the graph needs the IMU between keyframes"
+            )
+        self.slam_model = self._choose_slam_model()
+        check_observability(flight, o, self.slam_model)
+        self.imu = self._imu_used()
+        slam_t = flight.slam.t if (o.use_slam and flight.slam is not None) else None
+        t0, t1 = float(self.imu.t[0]), float(self.imu.t[-1])
+        if slam_t is not None and o.slam_model != "axis":
+            # Start at the first SLAM frame: before it nothing but the IMU constrains the state.
+            t0 = max(t0, float(slam_t[0]))
+        from fgnav.solvers.measurements import keyframe_times
+
+        self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, slam_t)
+        self.K = len(self.t_kf)
+        self.pim_params = self._pim_params()
+        self.R_imu = attitude_track(self.imu, flight.attitude, self.imu.t, self._initial_yaw())
+        self.R_kf = _interp_rotations(self.imu.t, self.R_imu, self.t_kf)
+        self._prepare_slam()
+        self._prepare_range()
+        self._prepare_yaw()
+        self._prepare_drag()
+        self.ground_segment = self._segments(o.ground_segment_s) if self.use_range else None
+        self.drag_segment = self._segments(o.drag_segment_s) if self.use_drag else None
+
+    # ------------------------------------------------------------------------------------------
+    # Setup
+    # ------------------------------------------------------------------------------------------
+
+    def _choose_slam_model(self) -> str:
+        o = self.options
+        if o.slam_model != "auto":
+            return o.slam_model
+        truth = self.flight.meta.get("truth", {}) if isinstance(self.flight.meta, dict) else {}
+        axis = truth.get("slam_axis_scale") if isinstance(truth, dict) else None
+        return "axis" if axis not in (None, (), []) else "sim3"
+
+    def _skip(self, reason: str, n: int = 1) -> None:
+        if n:
+            self.skipped[reason] = self.skipped.get(reason, 0) + int(n)
+
+    def _count(self, kind: str, n: int = 1) -> None:
+        self.counts[kind] = self.counts.get(kind, 0) + int(n)
+
+    def _initial_yaw(self) -> float:
+        f = self.flight
+        if f.yaw is not None and self.options.use_yaw:
+            return float(f.yaw.yaw[0])
+        return self.options.initial_yaw
+
+    def _imu_used(self) -> ImuSeries:
+        f = self.flight
+        if self.options.use_gyro:
+            return f.imu
+        if f.attitude is None:
+            raise ObservabilityError(
+                f"{f.name}: use_gyro=false needs an attitude stream to replace the gyro"
+            )
+        return ImuSeries(f.imu.t, omega_from_attitude(f.attitude, f.imu.t), f.imu.body_accel)
+
+    def _pim_params(self) -> gtsam.PreintegrationCombinedParams:
+        n = self.flight.calib.imu_noise
+        p = gtsam.PreintegrationCombinedParams.MakeSharedU(self.options.gravity)
+        gyro_nd = n.gyro_noise_density
+        if not self.options.use_gyro:
+            # Rates differentiated from the attitude stream are much noisier than a gyro.
+            gyro_nd = max(gyro_nd, 1e-2)
+        p.setGyroscopeCovariance(gyro_nd**2 * np.eye(3))
+        p.setAccelerometerCovariance(n.accel_noise_density**2 * np.eye(3))
+        p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
+        p.setBiasOmegaCovariance(n.gyro_random_walk**2 * np.eye(3))
+        p.setBiasAccCovariance(n.accel_random_walk**2 * np.eye(3))
+        return p
+
+    def _segments(self, seg_s: float | None) -> np.ndarray:
+        if seg_s is None or seg_s <= 0:
+            return np.zeros(self.K, dtype=int)
+        return np.floor((self.t_kf - self.t_kf[0]) / seg_s + 1e-9).astype(int)
+
+    @property
+    def use_slam(self) -> bool:
+        return self.options.use_slam and self.flight.slam is not None
+
+    @property
+    def use_range(self) -> bool:
+        return self.options.use_range and self.flight.range is not None
+
+    @property
+    def use_yaw(self) -> bool:
+        return self.options.use_yaw and self.flight.yaw is not None
+
+    @property
+    def use_drag(self) -> bool:
+        return self.options.use_drag
+
+    def _prepare_slam(self) -> None:
+        self.slam_assoc = None
+        self.slam_sessions: list[int] = []
+        self.slam_chain: np.ndarray | None = None
+        if not self.use_slam:
+            return
+        slam = self.flight.slam
+        a = associate(slam.t, self.t_kf, self.options.slam_tolerance_s, one_per_keyframe=True)
+        for k, v in a.skipped.items():
+            self._skip(f"slam:{k}", v)
+        self.slam_assoc = a
+        self.slam_sessions = [int(s) for s in dict.fromkeys(slam.session.tolist())]
+        # SLAM alignment variable of each association: session chain and segment within it.
+        seg_s = self.options.slam_segment_s
+        chain = np.zeros(len(a.meas_index), dtype=int)
+        if self.slam_model == "sim3":
+            sess = slam.session[a.meas_index]
+            for s in self.slam_sessions:
+                m = sess == s
+                if not m.any():
+                    continue
+                t_first = slam.t[a.meas_index[m][0]]
+                seg = np.floor((slam.t[a.meas_index[m]] - t_first) / seg_s + 1e-9).astype(int)
+                chain[m] = seg
+        self.slam_chain = chain
+        self.slam_latency = (
+            slam.latency if slam.latency is not None else np.zeros(len(slam))
+        )
+        # Variable index per (session, segment): contiguous integers in order of appearance.
+        self.slam_var: dict[tuple[int, int], int] = {}
+        for i, c in zip(a.meas_index, chain, strict=True):
+            key = (int(slam.session[i]), int(c)) if self.slam_model == "sim3" else (0, 0)
+            if key not in self.slam_var:
+                self.slam_var[key] = len(self.slam_var)
+
+    def _interp_stream(self, t: np.ndarray, x: np.ndarray, name: str) -> tuple[np.ndarray, ...]:
+        """Linear interpolation of a scalar stream to the keyframe times from the two samples
+        around each keyframe (gap <= interp_max_gap_s). Returns (keyframes, values, arrival, i0)."""
+        j = np.searchsorted(t, self.t_kf, side="left")
+        ok = (j > 0) & (j < len(t))
+        exact = (j < len(t)) & (np.abs(t[np.minimum(j, len(t) - 1)] - self.t_kf) < 1e-9)
+        jj = np.clip(j, 1, len(t) - 1)
+        gap = t[jj] - t[jj - 1]
+        ok &= gap <= self.options.interp_max_gap_s
+        ok |= exact
+        kf = np.flatnonzero(ok)
+        jj = jj[kf]
+        ex = exact[kf]
+        i0 = np.where(ex, np.minimum(j[kf], len(t) - 1), jj - 1)
+        i1 = np.where(ex, i0, jj)
+        w = np.where(ex, 0.0, (self.t_kf[kf] - t[i0]) / np.maximum(t[i1] - t[i0], 1e-12))
+        vals = (1 - w) * x[i0] + w * x[i1]
+        n_no = self.K - len(kf)
+        if n_no:
+            self._skip(f"{name}:keyframes-without-bracketing-samples", n_no)
+        return kf, vals, t[i1], i0, i1
+
+    def _prepare_range(self) -> None:
+        self.range_kf = np.array([], dtype=int)
+        if not self.use_range:
+            return
+        from fgnav.factors.tilted_range import gate_range
+
+        f = self.flight
+        rng = f.range
+        kf, vals, arr, i0, i1 = self._interp_stream(rng.t, rng.range, "range")
+        body_T_range = np.asarray(f.calib.body_T_range, dtype=float)
+        keep = []
+        max_tilt = math.radians(self.options.range_max_tilt_deg)
+        for n, k in enumerate(kf):
+            ok = True
+            for i in (i0[n], i1[n]):
+                good, reason = gate_range(
+                    float(rng.range[i]), self.R_kf[k], body_T_range, f.calib.range_min,
+                    f.calib.range_max, max_tilt,
+                )
+                if not good:
+                    self._skip(f"range:gated:{_reason_tag(reason)}")
+                    ok = False
+                    break
+            keep.append(ok)
+        keep = np.asarray(keep, dtype=bool)
+        self.range_kf, self.range_val, self.range_arrival = kf[keep], vals[keep], arr[keep]
+        self._count("range-samples", len(rng))
+
+    def _prepare_yaw(self) -> None:
+        self.yaw_kf = np.array([], dtype=int)
+        if not self.use_yaw:
+            return
+        y = self.flight.yaw
+        kf, vals, arr, _, _ = self._interp_stream(y.t, np.unwrap(y.yaw), "yaw")
+        self.yaw_kf, self.yaw_val, self.yaw_arrival = kf, wrap_angle(vals), arr
+        self._count("yaw-samples", len(y))
+
+    def _prepare_drag(self) -> None:
+        if not self.use_drag:
+            return
+        period = np.diff(self.t_kf)
+        half = 0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]]) if self.K > 1 else np.array([0.5 / self.options.keyframe_hz])
+        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel[:, :2], self.t_kf, half)
+        self.drag_mean = means
+        self.drag_count = counts
+        self.drag_arrival = self.t_kf + half
+        n_none = int((counts == 0).sum())
+        self._skip("drag:keyframes-without-imu-samples", n_none)
+
+    # ------------------------------------------------------------------------------------------
+    # Noise models
+    # ------------------------------------------------------------------------------------------
+
+    def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+        o = self.options
+        if o.robust == "huber":
+            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base)
+        if o.robust == "cauchy":
+            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base)
+        return base
+
+    def imu_accel_sigma(self) -> float:
+        """Discrete-time standard deviation of one accelerometer sample [m/s^2]."""
+        rate = self.imu.rate_hz
+        return self.flight.calib.imu_noise.accel_noise_density * math.sqrt(rate)
+
+    # ------------------------------------------------------------------------------------------
+    # Initial values
+    # ------------------------------------------------------------------------------------------
+
+    def initial_guess(self, t_limit: float | None = None) -> InitialGuess:
+        """Initial states at the keyframes (non-causal: uses the whole flight).
+
+        Rotations from the attitude track; positions from the SLAM stream through the closed-form
+        alignment of each session (IMU prediction where no SLAM pose exists); velocities from
+        central differences of the positions; biases zero; drag k and ground height closed form.
+        """
+        o = self.options
+        K = self.K
+        pos = np.full((K, 3), np.nan)
+        guess = InitialGuess(self.R_kf.copy(), pos, np.zeros((K, 3)))
+        f = self.flight
+        body_t_cam = np.asarray(f.calib.body_T_cam, float)[:3, 3]
+        if self.use_slam and self.slam_model == "sim3":
+            a = self.slam_assoc
+            slam = f.slam
+            offset = np.zeros(3)
+            for s in self.slam_sessions:
+                m = slam.session[a.meas_index] == s
+                if not m.any():
+                    continue
+                init = self.init_session(s, t_limit)
+                rows = a.meas_index[m]
+                kfs = a.keyframe[m]
+                world_t_cam = (init.slam_R_world.T @ (slam.slam_t_cam[rows] - init.slam_t_world).T).T / init.scale
+                p = world_t_cam - np.einsum("nij,j->ni", self.R_kf[kfs], body_t_cam)
+                if np.isfinite(pos).any():
+                    # Later session: continue from the previous position (IMU-predicted below).
+                    prev = _fill_positions(pos[: kfs[0]], self.t_kf[: kfs[0]])
+                    offset = prev[-1] - p[0] if len(prev) else p[0] * 0
+                else:
+                    offset = -p[0] if kfs[0] == 0 else -p[0]
+                init.slam_t_world = init.slam_t_world - init.scale * init.slam_R_world @ offset
+                pos[kfs] = p + offset
+                guess.slam[s] = init
+        elif self.use_slam and self.slam_model == "axis":
+            kscale = self.init_axis_scale(t_limit)
+            guess.axis_scale = kscale
+            a = self.slam_assoc
+            y = f.slam.slam_t_cam[a.meas_index]
+            pos[a.keyframe] = y / kscale - np.einsum("nij,j->ni", self.R_kf[a.keyframe], body_t_cam)
+        if not np.isfinite(pos).any():
+            pos[0] = 0.0
+        pos = _fill_positions(pos, self.t_kf)
+        guess.world_t_body = pos
+        if K > 2:
+            guess.world_v_body = np.gradient(pos, self.t_kf, axis=0)
+        if self.use_drag:
+            guess.drag_k = self.init_drag_k(guess)
+        if self.use_range and len(self.range_kf):
+            guess.ground_height = self.init_ground(guess)
+        return guess
+
+    def init_session(self, session: int, t_limit: float | None = None) -> SlamAlignmentInit:
+        """Closed-form alignment of one SLAM session from data up to ``t_limit`` (None: all)."""
+        slam = self.flight.slam
+        m = slam.session == session
+        if t_limit is not None:
+            m &= slam.t <= t_limit
+        sl = slam.select(m)
+        im = (self.imu.t >= sl.t[0] - 1.0) & (self.imu.t <= sl.t[-1] + 1.0)
+        prior_scale = self._prior_scale(session)
+        init = init_slam_alignment(
+            sl, self.imu.select(im), self.R_imu[im], np.asarray(self.flight.calib.body_T_cam, float),
+            self.options.gravity,
+        )
+        if prior_scale is not None:
+            init.scale = prior_scale
+        log.info(
+            "SLAM session %d: initial scale %.4g SLAM units/m from %d acceleration pairs "
+            "(excitation %.3f m)", session, init.scale, init.n_pairs, init.excitation,
+        )
+        return init
+
+    def _prior_scale(self, session: int) -> float | None:
+        p = self.priors
+        if p is None:
+            return None
+        scales = getattr(p, "slam_scale", None) or {}
+        v = scales.get(session) if isinstance(scales, dict) else None
+        return None if v is None else float(np.atleast_1d(v)[0])
+
+    def init_axis_scale(self, t_limit: float | None = None) -> np.ndarray:
+        """Per-axis SLAM scale ``[kx, ky, kz]`` by least squares of second differences."""
+        slam = self.flight.slam
+        m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
+        world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
+        sd2, wd2 = second_difference_pairs(slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1)
+        den = (wd2**2).sum(axis=0)
+        k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), 1.0)
+        if np.any(~np.isfinite(k)) or np.any(k <= 0):
+            raise FlightDataError(
+                f"per-axis SLAM scale initialisation gave {k}: too little motion on some axis"
+            )
+        log.info("per-axis SLAM scale init %s", np.round(k, 4))
+        return k
+
+    def init_drag_k(self, guess: InitialGuess) -> np.ndarray:
+        """Closed-form drag from ``f_xy = -k u_xy`` with the initial body velocities."""
+        n = 2 if self.options.drag_per_axis else 1
+        if self.options.drag_k_init is not None:
+            return np.full(n, float(self.options.drag_k_init))
+        u = np.einsum("nji,nj->ni", guess.world_R_body, guess.world_v_body)[:, :2]
+        f = self.drag_mean
+        ok = np.all(np.isfinite(f), axis=1)
+        if n == 1:
+            den = float((u[ok] ** 2).sum())
+            k = np.array([-(f[ok] * u[ok]).sum() / den]) if den > 0 else np.array([np.nan])
+        else:
+            den = (u[ok] ** 2).sum(axis=0)
+            k = np.where(den > 0, -(f[ok] * u[ok]).sum(axis=0) / np.where(den > 0, den, 1), np.nan)
+        k = np.where(np.isfinite(k) & (k > 0), k, DEFAULT_DRAG_K)
+        return k
+
+    def init_ground(self, guess: InitialGuess) -> float:
+        """Ground height from the first gated range reading and the initial pose."""
+        k = int(self.range_kf[0])
+        T = np.asarray(self.flight.calib.body_T_range, float)
+        R = guess.world_R_body[k]
+        z_sensor = guess.world_t_body[k, 2] + (R @ T[:3, 3])[2]
+        beam = R @ T[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        return float(z_sensor + self.range_val[0] * beam[2])
+
+    # ------------------------------------------------------------------------------------------
+    # Factors
+    # ------------------------------------------------------------------------------------------
+
+    def preintegrate(self, k: int, bias: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
+        """Preintegrated IMU from keyframe k-1 to k (zero-order hold on each sample)."""
+        pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
+        ta, tb = self.t_kf[k - 1], self.t_kf[k]
+        t = self.imu.t
+        i = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
+        w, a = self.imu.body_omega, self.imu.body_accel
+        while i < len(t) and t[i] < tb:
+            s0 = max(t[i], ta)
+            s1 = min(t[i + 1], tb) if i + 1 < len(t) else tb
+            if s1 > s0:
+                pim.integrateMeasurement(a[i], w[i], s1 - s0)
+            i += 1
+        return pim
+
+    def slam_key(self, assoc_row: int) -> int:
+        slam = self.flight.slam
+        i = self.slam_assoc.meas_index[assoc_row]
+        if self.slam_model == "axis":
+            return S(0)
+        return S(self.slam_var[(int(slam.session[i]), int(self.slam_chain[assoc_row]))])
+
+    def first_prior_factors(self, guess_R: np.ndarray, guess_t: np.ndarray, guess_v: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        """Gauge and first-state priors on keyframe 0."""
+        o = self.options
+        g = gtsam.NonlinearFactorGraph()
+        yaw_sigma = o.prior_yaw_sigma
+        pos_sigma = o.prior_position_sigma
+        if self.use_yaw or (self.use_slam and self.slam_model == "axis"):
+            yaw_sigma = max(yaw_sigma, 1.0)
+        if self.use_slam and self.slam_model == "axis":
+            pos_sigma = max(pos_sigma, 10.0)
+        sig = np.array([o.prior_rollpitch_sigma, o.prior_rollpitch_sigma, yaw_sigma, pos_sigma, pos_sigma, pos_sigma])
+        # The Pose3 prior is in body axes; near level flight body z is the yaw axis.
+        g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(gtsam.Rot3(guess_R), guess_t), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        v_sigma = o.prior_velocity_sigma
+        v0 = guess_v
+        pv = self._prior_velocity(0)
+        if pv is not None:
+            v0, v_sigma = pv
+        g.add(gtsam.PriorFactorVector(V(0), np.asarray(v0, float), _isotropic(3, v_sigma)))
+        g.add(gtsam.PriorFactorConstantBias(
+            B(0), gtsam.imuBias.ConstantBias(),
+            gtsam.noiseModel.Diagonal.Sigmas(np.r_[[o.prior_accel_bias_sigma] * 3, [o.prior_gyro_bias_sigma] * 3]),
+        ))
+        return g
+
+    def _prior_velocity(self, k: int) -> tuple[np.ndarray, float] | None:
+        p = self.priors
+        if p is None or getattr(p, "velocity", None) is None:
+            return None
+        vel = p.velocity
+        t = np.asarray(vel.t)
+        i = int(np.argmin(np.abs(t - self.t_kf[k])))
+        if abs(t[i] - self.t_kf[k]) > 0.5 / self.options.keyframe_hz:
+            return None
+        sigma = float(np.max(vel.sigma[i])) if getattr(vel, "sigma", None) is not None else self.options.prior_velocity_sigma
+        return np.asarray(vel.value[i], float), sigma
+
+    def keyframe_chunk(
+        self,
+        k: int,
+        pose: gtsam.Pose3,
+        velocity: np.ndarray,
+        bias: gtsam.imuBias.ConstantBias,
+        slow_values: dict[int, Any],
+        pim: gtsam.PreintegratedCombinedMeasurements | None = None,
+        with_first_priors: bool = True,
+    ) -> KeyframeChunk:
+        """Factors and values that keyframe k adds.
+
+        Args:
+            k: keyframe index.
+            pose, velocity, bias: initial values of ``X(k)``, ``V(k)``, ``B(k)``.
+            slow_values: initial values of the slow variables first used at keyframe k (keys from
+                :meth:`new_slow_keys`).
+            pim: preintegration from k-1 (computed with a zero bias when None).
+            with_first_priors: add the gauge priors at k == 0.
+        """
+        t = float(self.t_kf[k])
+        g = gtsam.NonlinearFactorGraph()
+        vals = gtsam.Values()
+        vals.insert(X(k), pose)
+        vals.insert(V(k), np.asarray(velocity, float))
+        vals.insert(B(k), bias)
+        stamps = {X(k): t, V(k): t, B(k): t}
+        if k == 0:
+            if with_first_priors:
+                g.push_back(self.first_prior_factors(pose.rotation().matrix(), pose.translation(), velocity))
+        else:
+            if pim is None:
+                pim = self.preintegrate(k, gtsam.imuBias.ConstantBias())
+            g.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
+            pv = self._prior_velocity(k)
+            if pv is not None:
+                g.add(gtsam.PriorFactorVector(V(k), pv[0], _isotropic(3, pv[1])))
+                self._count("frontend-velocity-prior")
+        for key, value in slow_values.items():
+            vals.insert(key, value)
+            stamps[key] = t
+            g.push_back(self._slow_factors(key, value, k))
+        return KeyframeChunk(k, t, g, vals, stamps)
+
+    def new_slow_keys(self, k: int) -> list[int]:
+        """Slow variables whose first use is at keyframe k (SLAM alignment, drag, ground)."""
+        out = []
+        if self.use_drag and (k == 0 or self.drag_segment[k] != self.drag_segment[k - 1]):
+            out.append(D(int(self.drag_segment[k])))
+        if self.use_range and (k == 0 or self.ground_segment[k] != self.ground_segment[k - 1]):
+            out.append(G(int(self.ground_segment[k])))
+        return out
+
+    def slam_keys_at(self, k: int) -> list[int]:
+        """SLAM alignment keys used by the SLAM measurements of keyframe k."""
+        if not self.use_slam:
+            return []
+        rows = np.flatnonzero(self.slam_assoc.keyframe == k)
+        return [self.slam_key(int(r)) for r in rows]
+
+    def slow_chain_previous(self, key: int) -> int | None:
+        """The previous variable of a slow key's random-walk chain, or None at a chain start."""
+        sym = gtsam.Symbol(key)
+        c, j = chr(sym.chr()), int(sym.index())
+        if j == 0:
+            return None
+        if c == "s":
+            if self.slam_model == "axis":
+                return None
+            inv = {v: kk for kk, v in self.slam_var.items()}
+            sess, seg = inv[j]
+            return None if seg == 0 else S(self.slam_var[(sess, seg - 1)])
+        return gtsam.symbol(c, j - 1)
+
+    def _slow_factors(self, key: int, value: Any, k: int) -> gtsam.NonlinearFactorGraph:
+        """Prior (chain start) or random-walk factor (later segment) of a new slow variable."""
+        o = self.options
+        g = gtsam.NonlinearFactorGraph()
+        c = chr(gtsam.Symbol(key).chr())
+        prev = self.slow_chain_previous(key)
+        if c == "d":
+            dim = 2 if o.drag_per_axis else 1
+            if prev is None:
+                g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(dim, o.drag_prior_sigma)))
+            else:
+                sig = o.drag_rw * math.sqrt(o.drag_segment_s or 1.0)
+                g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(dim), _isotropic(dim, sig)))
+        elif c == "g":
+            if prev is None:
+                g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(1, o.ground_prior_sigma)))
+            else:
+                sig = o.ground_rw * math.sqrt(o.ground_segment_s)
+                g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(1), _isotropic(1, sig)))
+        elif c == "s" and self.slam_model == "axis":
+            g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(3, 1.0 * float(np.max(value)))))
+        elif c == "s":
+            if prev is None:
+                # Weak prior: the closed-form initial value, 0.3 rad, 10 m, 50 % in scale.
+                sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, 0.5])
+                g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            else:
+                dt = math.sqrt(o.slam_segment_s)
+                # Similarity3 tangent [omega, u, lambda]; u is the GTSAM translation t / s... in
+                # world-scaled units (t = slam_t_world / s) [m].
+                sig = np.array([o.slam_rot_rw * dt] * 3 + [o.slam_trans_rw_m * dt] * 3 + [o.slam_scale_rw * dt])
+                g.add(gtsam.BetweenFactorSimilarity3(prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        return g
+
+    def measurement_factors(self, k: int, slam_init_scale: dict[int, float] | None = None) -> list[MeasurementFactor]:
+        """Factors of the measurements associated with keyframe k, with arrival times.
+
+        Args:
+            k: keyframe index.
+            slam_init_scale: initial scale per SLAM variable key (converts the SLAM noise in
+                metres into SLAM units).
+        """
+        o = self.options
+        f = self.flight
+        out: list[MeasurementFactor] = []
+        if self.use_drag and self.drag_count[k] > 0:
+            from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
+
+            noise = mean_accel_noise(self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma)
+            dk = D(int(self.drag_segment[k]))
+            fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
+            out.append(MeasurementFactor(float(self.drag_arrival[k]), k, "drag", fac, (X(k), V(k), B(k), dk)))
+        if self.use_slam:
+            from fgnav.factors.slam_scale import make_slam_axis_scale_factor, make_slam_position_factor
+
+            slam = f.slam
+            for r in np.flatnonzero(self.slam_assoc.keyframe == k):
+                i = int(self.slam_assoc.meas_index[r])
+                sk = self.slam_key(int(r))
+                arrival = float(slam.t[i] + self.slam_latency[i])
+                if self.slam_model == "axis":
+                    scale = float(np.max(slam_init_scale.get(sk, 1.0))) if slam_init_scale else 1.0
+                    noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
+                    fac = make_slam_axis_scale_factor(
+                        X(k), sk, slam.slam_t_cam[i], noise, np.asarray(f.calib.body_T_cam, float)[:3, 3]
+                    )
+                else:
+                    scale = slam_init_scale.get(sk, 1.0) if slam_init_scale else 1.0
+                    noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
+                    fac = make_slam_position_factor(X(k), sk, slam.slam_t_cam[i], np.asarray(f.calib.body_T_cam, float), noise)
+                out.append(MeasurementFactor(arrival, k, "slam", fac, (X(k), sk)))
+                if o.slam_rotation and self.slam_model == "sim3":
+                    from fgnav.factors.slam_scale import make_slam_rotation_factor
+                    from fgnav.datasets.geometry import quat_wxyz_to_matrix
+
+                    noise = self._robust(_isotropic(3, o.slam_rot_sigma))
+                    fac = make_slam_rotation_factor(X(k), sk, quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i]), np.asarray(f.calib.body_T_cam, float), noise)
+                    out.append(MeasurementFactor(arrival, k, "slam-rotation", fac, (X(k), sk)))
+        if self.use_range:
+            from fgnav.factors.tilted_range import make_range_factor
+
+            for n in np.flatnonzero(self.range_kf == k):
+                gk = G(int(self.ground_segment[k]))
+                noise = self._robust(_isotropic(1, o.range_sigma))
+                fac = make_range_factor(X(k), gk, float(self.range_val[n]), np.asarray(f.calib.body_T_range, float), noise)
+                out.append(MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk)))
+        if self.use_yaw:
+            from fgnav.factors.yaw import make_yaw_factor
+
+            for n in np.flatnonzero(self.yaw_kf == k):
+                noise = self._robust(_isotropic(1, o.yaw_sigma))
+                fac = make_yaw_factor(X(k), float(self.yaw_val[n]), noise)
+                out.append(MeasurementFactor(float(self.yaw_arrival[n]), k, "yaw", fac, (X(k),)))
+        return out
+
+    # ------------------------------------------------------------------------------------------
+    # Whole graph (batch)
+    # ------------------------------------------------------------------------------------------
+
+    def slow_initial_values(self, guess: InitialGuess) -> dict[int, Any]:
+        """Initial value of every slow variable of the flight."""
+        from fgnav.factors.slam_scale import make_slam_T_world
+
+        out: dict[int, Any] = {}
+        if self.use_drag:
+            for j in np.unique(self.drag_segment):
+                out[D(int(j))] = np.asarray(guess.drag_k, float)
+        if self.use_range:
+            z = guess.ground_height if guess.ground_height is not None else 0.0
+            for j in np.unique(self.ground_segment):
+                out[G(int(j))] = np.array([z])
+        if self.use_slam:
+            if self.slam_model == "axis":
+                out[S(0)] = np.asarray(guess.axis_scale, float)
+            else:
+                for (sess, _seg), j in self.slam_var.items():
+                    init = guess.slam[sess]
+                    out[S(j)] = make_slam_T_world(init.scale, init.slam_R_world, init.slam_t_world)
+        return out
+
+    def slam_noise_scales(self, slow: dict[int, Any]) -> dict[int, float]:
+        out = {}
+        for key, v in slow.items():
+            if chr(gtsam.Symbol(key).chr()) == "s":
+                out[key] = float(np.max(v)) if isinstance(v, np.ndarray) else float(v.scale())
+        return out
+
+    def build(self, guess: InitialGuess | None = None, progress: Callable[[int], None] | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The whole flight's graph and initial values (batch)."""
+        guess = guess or self.initial_guess()
+        slow = self.slow_initial_values(guess)
+        scales = self.slam_noise_scales(slow)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        created: set[int] = set()
+        zero = gtsam.imuBias.ConstantBias()
+        for k in range(self.K):
+            keys = [kk for kk in self.new_slow_keys(k) + self.slam_keys_at(k) if kk not in created]
+            keys = list(dict.fromkeys(keys))
+            created.update(keys)
+            pose = gtsam.Pose3(gtsam.Rot3(guess.world_R_body[k]), guess.world_t_body[k])
+            chunk = self.keyframe_chunk(k, pose, guess.world_v_body[k], zero, {kk: slow[kk] for kk in keys})
+            graph.push_back(chunk.factors)
+            values.insert(chunk.values)
+            for m in self.measurement_factors(k, scales):
+                graph.add(m.factor)
+                self._count(m.kind)
+            if progress is not None:
+                progress(k)
+        return graph, values
+
+    def report(self) -> dict[str, Any]:
+        """Counts of used and skipped measurements and the options (for ``Estimate.info``)."""
+        return {
+            "keyframes": int(self.K),
+            "slam_model": self.slam_model if self.use_slam else None,
+            "factors": dict(self.counts),
+            "skipped": dict(self.skipped),
+            "options": asdict(self.options),
+        }
+
+
+def _reason_tag(reason: str) -> str:
+    """Short tag of a gate reason (its text before the first digit or colon)."""
+    head = reason.split(":")[0]
+    for i, ch in enumerate(head):
+        if ch.isdigit():
+            head = head[:i]
+            break
+    return "-".join(head.split()) or "other"
+
+
+def _interp_rotations(t_src: np.ndarray, R: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    from fgnav.solvers.measurements import slerp_rotations
+
+    return slerp_rotations(t_src, R, t_query)
+
+
+def _fill_positions(pos: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Fill NaN rows by linear interpolation in time (held at the ends)."""
+    out = pos.copy()
+    ok = np.all(np.isfinite(pos), axis=1)
+    if not ok.any():
+        return np.zeros_like(pos)
+    for a in range(3):
+        out[:, a] = np.interp(t, t[ok], pos[ok, a])
+    return out
+
+
+def check_observability(flight: Flight, options: GraphOptions, slam_model: str) -> None:
+    """Raise :class:`ObservabilityError` naming what the chosen sensor subset cannot observe."""
+    o = options
+    has_slam = o.use_slam and flight.slam is not None
+    has_range = o.use_range and flight.range is not None
+    has_homography = o.use_homography and flight.images is not None
+    if o.use_slam and flight.slam is None:
+        log.warning("%s: use_slam is on but the flight has no SLAM stream", flight.name)
+    if o.use_range and flight.range is None:
+        log.info("%s: no rangefinder stream; range factors off", flight.name)
+    if not (has_slam or has_homography or o.use_drag):
+        raise ObservabilityError(
+            f"{flight.name}: horizontal velocity and position are unobservable with this sensor "
+            "set (IMU only); enable slam, homography or drag"
+        )
+    if has_homography and not has_range:
+        raise ObservabilityError(
+            f"{flight.name}: homography motion without a rangefinder has no metric height: the "
+            "translation scale is unobservable; enable range"
+        )
+    if has_slam and slam_model == "axis" and not o.use_drag and flight.imu is None:
+        raise ObservabilityError(
+            f"{flight.name}: per-axis SLAM scale is unobservable without the accelerometer or drag"
+        )
+    if o.use_yaw and flight.yaw is None and not has_slam:
+        log.warning("%s: no yaw stream and no SLAM: world yaw is held by the first-pose prior only",
+                    flight.name)

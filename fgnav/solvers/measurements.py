@@ -1,0 +1,333 @@
+"""Measurement preparation for the graph builder: keyframe times, association of measurements to
+keyframes, an initial attitude track and the closed-form initial SLAM alignment.
+
+No GTSAM here: numpy in, numpy out. Frames follow ../shared/DESIGN.md section 2 (world z up,
+body FLU, SI units, time in seconds).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix, so3_exp, so3_log
+from fgnav.datasets.types import AttitudeSeries, ImuSeries, SlamSeries
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------------------------
+# Keyframes and association
+# ----------------------------------------------------------------------------------------------
+
+
+def keyframe_times(
+    t_start: float,
+    t_end: float,
+    rate_hz: float,
+    anchor_t: np.ndarray | None = None,
+) -> np.ndarray:
+    """Keyframe times: the anchor measurement times (camera frames) decimated to ``rate_hz``, with
+    fixed-rate keyframes filling every gap longer than 1.5 periods.
+
+    Args:
+        t_start, t_end: time window [s]; keyframes lie in ``[t_start, t_end]``.
+        rate_hz: nominal keyframe rate [Hz].
+        anchor_t: optional sorted measurement times [s] that should carry keyframes (camera/SLAM
+            frames), so that their measurements need no time shift.
+
+    Returns:
+        (K,) strictly increasing times [s].
+    """
+    if rate_hz <= 0:
+        raise FlightDataError(f"keyframe rate must be positive, got {rate_hz} Hz")
+    if t_end <= t_start:
+        raise FlightDataError(f"empty keyframe window [{t_start}, {t_end}] s")
+    period = 1.0 / rate_hz
+    # Anchors closer than this fraction of a period to the previous keyframe are skipped; the
+    # margin absorbs the jitter of logged time stamps (a 20 Hz stream at a 20 Hz keyframe rate).
+    min_gap = 0.75 * period
+    anchors = np.array([]) if anchor_t is None else np.asarray(anchor_t, dtype=float)
+    anchors = anchors[(anchors >= t_start) & (anchors <= t_end)]
+    out: list[float] = [t_start]
+    for ta in [*anchors, t_end]:
+        # Fill the gap before this anchor with fixed-rate keyframes.
+        while ta - out[-1] > 1.5 * period:
+            out.append(out[-1] + period)
+        if ta - out[-1] >= min_gap:
+            out.append(float(ta))
+    if out[-1] < t_end - 1e-9 and t_end - out[-1] >= min_gap:
+        out.append(t_end)
+    return np.asarray(out)
+
+
+@dataclass
+class Association:
+    """Which measurement goes to which keyframe.
+
+    Attributes:
+        meas_index: (M,) indices into the measurement stream of the kept measurements.
+        keyframe: (M,) keyframe index of each kept measurement.
+        dt: (M,) measurement time minus keyframe time [s].
+        skipped: reason -> count of measurements not used.
+    """
+
+    meas_index: np.ndarray
+    keyframe: np.ndarray
+    dt: np.ndarray
+    skipped: dict[str, int] = field(default_factory=dict)
+
+
+def associate(
+    t_meas: np.ndarray, t_kf: np.ndarray, tolerance: float, one_per_keyframe: bool = True
+) -> Association:
+    """Associate measurements to their nearest keyframe within ``tolerance`` seconds.
+
+    Measurements farther than ``tolerance`` from every keyframe are counted as
+    ``"no-keyframe-within-tolerance"``; with ``one_per_keyframe`` only the nearest measurement of
+    each keyframe is kept and the others are counted as ``"decimated"``.
+    """
+    t_meas = np.asarray(t_meas, dtype=float)
+    if t_meas.size == 0:
+        e = np.array([], dtype=int)
+        return Association(e, e, np.array([]), {})
+    j = np.clip(np.searchsorted(t_kf, t_meas), 1, len(t_kf) - 1) if len(t_kf) > 1 else None
+    if j is None:
+        nearest = np.zeros(t_meas.shape, dtype=int)
+    else:
+        left = t_kf[j - 1]
+        right = t_kf[j]
+        nearest = np.where(np.abs(t_meas - left) <= np.abs(t_meas - right), j - 1, j)
+    dt = t_meas - t_kf[nearest]
+    ok = np.abs(dt) <= tolerance
+    skipped = {}
+    n_far = int((~ok).sum())
+    if n_far:
+        skipped["no-keyframe-within-tolerance"] = n_far
+    idx = np.flatnonzero(ok)
+    kf = nearest[idx]
+    if one_per_keyframe and idx.size:
+        order = np.lexsort((np.abs(dt[idx]), kf))
+        idx, kf = idx[order], kf[order]
+        first = np.ones(idx.size, dtype=bool)
+        first[1:] = kf[1:] != kf[:-1]
+        n_dec = int((~first).sum())
+        if n_dec:
+            skipped["decimated"] = n_dec
+        idx, kf = idx[first], kf[first]
+        order = np.argsort(kf)
+        idx, kf = idx[order], kf[order]
+    return Association(idx, kf, t_meas[idx] - t_kf[kf], skipped)
+
+
+def mean_in_windows(
+    t: np.ndarray, x: np.ndarray, centers: np.ndarray, half_width: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of samples ``x`` with ``|t - center| <= half_width`` for each center.
+
+    Returns:
+        (means (K, D), counts (K,)); rows with no sample are NaN.
+    """
+    hw = np.broadcast_to(np.asarray(half_width, dtype=float), centers.shape)
+    lo = np.searchsorted(t, centers - hw, side="left")
+    hi = np.searchsorted(t, centers + hw, side="right")
+    csum = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    counts = hi - lo
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = (csum[hi] - csum[lo]) / counts[:, None]
+    return means, counts
+
+
+# ----------------------------------------------------------------------------------------------
+# Attitude
+# ----------------------------------------------------------------------------------------------
+
+
+def slerp_rotations(t_src: np.ndarray, world_R_body: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Interpolate rotations (N, 3, 3) given at ``t_src`` to ``t_query`` (held at the ends)."""
+    t_query = np.clip(t_query, t_src[0], t_src[-1])
+    j = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
+    out = np.empty((len(t_query), 3, 3))
+    if len(t_src) == 1:
+        out[:] = world_R_body[0]
+        return out
+    for n, (jj, tq) in enumerate(zip(j, t_query, strict=True)):
+        a = (tq - t_src[jj]) / (t_src[jj + 1] - t_src[jj])
+        Ri = world_R_body[jj]
+        out[n] = Ri @ so3_exp(a * so3_log(Ri.T @ world_R_body[jj + 1]))
+    return out
+
+
+def level_rotation_from_accel(body_accel: np.ndarray, yaw: float = 0.0) -> np.ndarray:
+    """``world_R_body`` whose roll/pitch put the mean specific force ``body_accel`` (3,) along world
+    +z (quasi-static vehicle), with the given yaw [rad]."""
+    f = np.asarray(body_accel, dtype=float)
+    roll = float(np.arctan2(f[1], f[2]))
+    pitch = float(np.arctan2(-f[0], np.hypot(f[1], f[2])))
+    return rpy_to_matrix(roll, pitch, yaw)
+
+
+def integrate_gyro(
+    imu: ImuSeries, world_R_body0: np.ndarray, t_query: np.ndarray, gyro_bias: np.ndarray
+) -> np.ndarray:
+    """Dead-reckon ``world_R_body`` from the gyro, starting at ``imu.t[0]``; sampled at t_query."""
+    R = np.empty((len(imu), 3, 3))
+    R[0] = world_R_body0
+    dts = np.diff(imu.t)
+    for i, dt in enumerate(dts):
+        R[i + 1] = R[i] @ so3_exp((imu.body_omega[i] - gyro_bias) * dt)
+    return slerp_rotations(imu.t, R, t_query)
+
+
+def attitude_track(
+    imu: ImuSeries,
+    attitude: AttitudeSeries | None,
+    t_query: np.ndarray,
+    initial_yaw: float = 0.0,
+    level_window_s: float = 0.5,
+) -> np.ndarray:
+    """Initial ``world_R_body`` (K, 3, 3) at ``t_query``: the attitude stream when present, else the
+    gyro integrated from an accelerometer-levelled start (mean over ``level_window_s``) with
+    ``initial_yaw``."""
+    if attitude is not None:
+        return slerp_rotations(attitude.t, quat_wxyz_to_matrix(attitude.world_q_body_wxyz), t_query)
+    m = imu.t <= imu.t[0] + level_window_s
+    R0 = level_rotation_from_accel(imu.body_accel[m].mean(axis=0), initial_yaw)
+    return integrate_gyro(imu, R0, t_query, np.zeros(3))
+
+
+def omega_from_attitude(attitude: AttitudeSeries, t_query: np.ndarray) -> np.ndarray:
+    """Body angular rate (N, 3) [rad/s] differentiated from the attitude stream (used when the gyro
+    is switched off: seed 000's sensor set is accelerometer + attitude)."""
+    R = quat_wxyz_to_matrix(attitude.world_q_body_wxyz)
+    w = np.array([so3_log(R[i].T @ R[i + 1]) for i in range(len(R) - 1)])
+    w /= np.diff(attitude.t)[:, None]
+    tm = 0.5 * (attitude.t[1:] + attitude.t[:-1])
+    return np.column_stack([np.interp(t_query, tm, w[:, a]) for a in range(3)])
+
+
+# ----------------------------------------------------------------------------------------------
+# Initial SLAM alignment (closed form)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SlamAlignmentInit:
+    """Initial ``slam_T_world`` of one session: ``slam_t = scale * slam_R_world @ world_t + t``.
+
+    Attributes:
+        scale: SLAM units per metre.
+        slam_R_world: (3, 3) rotation.
+        slam_t_world: (3,) translation [SLAM units].
+        n_pairs: number of acceleration pairs used for the scale.
+        excitation: RMS of the metric second differences used [m] (small = scale poorly
+            observable from the IMU).
+    """
+
+    scale: float
+    slam_R_world: np.ndarray
+    slam_t_world: np.ndarray
+    n_pairs: int
+    excitation: float
+
+
+def rotation_mean(Rs: np.ndarray) -> np.ndarray:
+    """Chordal mean of rotations (N, 3, 3)."""
+    U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def world_specific_accel(imu: ImuSeries, world_R_body: np.ndarray, gravity: float) -> np.ndarray:
+    """Kinematic acceleration in world (N, 3) [m/s^2]: ``world_R_body f + (0, 0, -g)``."""
+    a = np.einsum("nij,nj->ni", world_R_body, imu.body_accel)
+    a[:, 2] -= gravity
+    return a
+
+
+def second_difference_pairs(
+    t_slam: np.ndarray,
+    slam_t: np.ndarray,
+    imu_t: np.ndarray,
+    world_a: np.ndarray,
+    h: float,
+    step: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matched second differences ``p(t+h) - 2 p(t) + p(t-h)`` of SLAM positions and of the metric
+    trajectory implied by the IMU (world acceleration convolved with the triangle kernel of
+    half-width h, which is the exact second difference of a twice-integrated signal).
+
+    Returns:
+        (slam_d2 (P, 3) [SLAM units], world_d2 (P, 3) [m]) at centres every ``step`` seconds.
+    """
+    t_lo = max(t_slam[0], imu_t[0]) + h
+    t_hi = min(t_slam[-1], imu_t[-1]) - h
+    if t_hi <= t_lo:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    centers = np.arange(t_lo, t_hi, step)
+    slam_d2 = np.empty((len(centers), 3))
+    for a in range(3):
+        pa = np.interp(centers[:, None] + np.array([-h, 0.0, h]), t_slam, slam_t[:, a])
+        slam_d2[:, a] = pa[:, 0] - 2.0 * pa[:, 1] + pa[:, 2]
+    # Triangle-kernel integral of the acceleration on a fine uniform grid.
+    dt = float(np.median(np.diff(imu_t)))
+    offs = np.arange(-h, h + 0.5 * dt, dt)
+    w = (h - np.abs(offs)) * dt
+    world_d2 = np.empty((len(centers), 3))
+    for a in range(3):
+        aa = np.interp(centers[:, None] + offs[None, :], imu_t, world_a[:, a])
+        world_d2[:, a] = aa @ w
+    return slam_d2, world_d2
+
+
+def init_slam_alignment(
+    slam: SlamSeries,
+    imu: ImuSeries,
+    world_R_body_imu: np.ndarray,
+    body_T_cam: np.ndarray,
+    gravity: float,
+    h: float = 0.5,
+    step: float = 0.1,
+) -> SlamAlignmentInit:
+    """Closed-form ``slam_T_world`` of one SLAM session.
+
+    1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``.
+    2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
+       second differences from the accelerometer (:func:`second_difference_pairs`).
+    3. ``slam_t_world`` from the first SLAM position with the world origin at the first camera.
+
+    Args:
+        slam: the session's SLAM poses.
+        imu: IMU samples covering the session.
+        world_R_body_imu: (N, 3, 3) attitude at the IMU times.
+        body_T_cam: 4x4 camera extrinsics.
+        gravity: g [m/s^2].
+        h: half-width of the second differences [s].
+        step: spacing of the second-difference centres [s].
+    """
+    world_R_body_slam = slerp_rotations(imu.t, world_R_body_imu, slam.t)
+    slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+    body_R_cam = body_T_cam[:3, :3]
+    slam_R_world = rotation_mean(slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1)))
+    world_a = world_specific_accel(imu, world_R_body_imu, gravity)
+    slam_d2, world_d2 = second_difference_pairs(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
+    rotated = world_d2 @ slam_R_world.T
+    den = float((rotated**2).sum())
+    if len(slam_d2) < 3 or den <= 0.0:
+        raise FlightDataError(
+            "SLAM scale initialisation: fewer than 3 acceleration pairs (session shorter than "
+            f"{2 * h + 3 * step:.1f} s); give an initial scale (front-end priors) or a longer session"
+        )
+    scale = float((slam_d2 * rotated).sum() / den)
+    if not np.isfinite(scale) or scale <= 0:
+        raise FlightDataError(
+            f"SLAM scale initialisation gave {scale}: the SLAM motion does not match the IMU "
+            "(wrong body_T_cam, time offset or SLAM frame?)"
+        )
+    excitation = float(np.sqrt((world_d2**2).sum(axis=1).mean()))
+    world_t_cam0 = np.zeros(3)
+    slam_t_world = slam.slam_t_cam[0] - scale * slam_R_world @ world_t_cam0
+    return SlamAlignmentInit(scale, slam_R_world, slam_t_world, len(slam_d2), excitation)
