@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 NS_PER_S = 10**9
 
 _PLAIN_INT = re.compile(r"^[+-]?\d+(\.0*)?$")
+_SCIENTIFIC = re.compile(r"^([+-]?)(\d+)\.?(\d*)[eE]([+-]?\d+)$")
 _UNIT = re.compile(r"\s*\[[^\]]*\]\s*$")
 
 
@@ -152,18 +153,18 @@ def check_widths(raw: RawTable, widths: tuple[int, ...], what: str) -> None:
 def to_values(raw: RawTable, columns: range | list[int]) -> np.ndarray:
     """(N, len(columns)) float array of the given columns, with errors naming line and column."""
     cols = list(columns)
-    out = np.empty((len(raw.rows), len(cols)))
+    try:
+        out = np.array([[float(row[j]) for j in cols] for row in raw.rows], dtype=float)
+    except ValueError:
+        out = None
+    if out is not None:
+        bad = np.flatnonzero(~np.all(np.isfinite(out), axis=1))
+        if not bad.size:
+            return out.reshape(len(raw.rows), len(cols))
     for k in range(len(raw.rows)):
-        row = raw.rows[k]
-        try:
-            out[k] = [float(row[j]) for j in cols]
-        except ValueError:
-            for j in cols:
-                parse_float(raw, k, j)
-        if not np.all(np.isfinite(out[k])):
-            for j in cols:
-                parse_float(raw, k, j)
-    return out
+        for j in cols:
+            parse_float(raw, k, j)
+    raise AssertionError("unreachable: a bad value was not found")
 
 
 @dataclass
@@ -194,22 +195,30 @@ def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
         if _PLAIN_INT.match(tok):
             ns.append(int(tok.split(".")[0]))
             continue
-        try:
-            d = Decimal(tok)
-        except InvalidOperation:
-            raise FlightFormatError(
-                raw.path,
-                f"{column_name(raw.header, j)}: expected a time stamp in ns, found {tok!r}",
-                line=raw.lines[k],
-            ) from None
-        if not d.is_finite():
-            raise FlightFormatError(
-                raw.path,
-                f"{column_name(raw.header, j)}: non-finite time stamp {tok!r}",
-                line=raw.lines[k],
-            )
-        exponent = int(d.normalize().as_tuple().exponent) if d != 0 else 0
-        resolution = 10**exponent if exponent > 0 else 1
+        m = _SCIENTIFIC.match(tok)
+        if m:
+            sign, whole, frac, exp = m.groups()
+            digits = int(whole + frac) * (-1 if sign == "-" else 1)
+            exponent = int(exp) - len(frac)
+            d = Decimal(digits).scaleb(exponent)
+            resolution = 10 ** (exponent + len(frac) - len(frac.rstrip("0")))
+        else:
+            try:
+                d = Decimal(tok)
+            except InvalidOperation:
+                raise FlightFormatError(
+                    raw.path,
+                    f"{column_name(raw.header, j)}: expected a time stamp in ns, found {tok!r}",
+                    line=raw.lines[k],
+                ) from None
+            if not d.is_finite():
+                raise FlightFormatError(
+                    raw.path,
+                    f"{column_name(raw.header, j)}: non-finite time stamp {tok!r}",
+                    line=raw.lines[k],
+                )
+            exponent = int(d.normalize().as_tuple().exponent) if d != 0 else 0
+            resolution = 10**exponent
         if resolution > worst:
             worst, example = resolution, (raw.lines[k], tok)
         ns.append(int(d.to_integral_value()))
@@ -230,7 +239,8 @@ def check_increasing(raw: RawTable, t: np.ndarray, lines: list[int] | None = Non
         i = int(bad[0])
         raise FlightFormatError(
             raw.path,
-            f"time must be strictly increasing: t={t[i + 1]!r} s does not follow t={t[i]!r} s "
+            f"time must be strictly increasing: t={float(t[i + 1])!r} s does not follow "
+            f"t={float(t[i])!r} s "
             f"(line {lines[i]}); {bad.size} such line(s)",
             line=lines[i + 1],
         )

@@ -1,0 +1,352 @@
+"""EuRoC MAV / ASL csv files and ``mav0`` folders.
+
+Files (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016):
+
+- ``imu0/data.csv``: ``#timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]``, 200 Hz.
+- ``state_groundtruth_estimate0/data.csv``: ``#timestamp, p_RS_R_x..z [m], q_RS_w..z [],
+  v_RS_R_x..z [m s^-1], b_w_RS_S_x..z [rad s^-1], b_a_RS_S_x..z [m s^-2]`` (17 columns).
+- 8-column pose files ``#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z`` such as the 20 Hz ``*_GT.txt``
+  files of ORB-SLAM3's evaluation, which hold the pose of cam0 (not of the IMU) at frame times.
+- ``cam0/data.csv`` (``#timestamp [ns],filename``) with images in ``cam0/data/``, and each
+  sensor's ``sensor.yaml`` (``T_BS``, intrinsics, IMU noise densities).
+
+Time is integer nanoseconds in the files and float seconds here. Quaternions are ``[w, x, y, z]``
+in the files as in fgnav.
+
+Frames: the dataset's body frame is its IMU frame ``S`` (ADIS16448 of the VI-sensor); fgnav uses
+it as ``body`` unchanged. It is **not FLU**: from cam0's ``T_BS`` (cam0 x ~ +y_imu, cam0 y ~
+-x_imu, cam0 z ~ +z_imu) the IMU axes are about x up, y right, z forward along cam0's optical axis;
+the sensor head pitches down about 20 deg, so at rest the accelerometer reads about
+(+9.2, 0, -3.3) m/s^2. The world frame of the ground truth (Leica total station / Vicon) is z up,
+gravity ``(0, 0, -g)``, as fgnav's. Estimators take ``calib.body_T_cam`` and the IMU readings as
+they are; nothing is rotated here.
+
+Bad input policy (decision for the spreadsheet-damaged ``euroc_MH_01_easy/imu0/data.csv``): the
+file is **loaded, with warnings**, because nothing in it is ambiguous:
+
+- Time stamps written in scientific notation (``1.40363657975856E+018``) are read exactly as
+  decimals (no float64 rounding) and rounded to the ns; a warning states the coarsest resolution
+  found (10 us there) and an example line. Time must still be strictly increasing.
+- A block of lines at the **end** of the file that are not data rows (``,,,,,,``,
+  ``1403636763.853,,,,,,``, ``Step: 0.005 = 1/200,,,,,,``) is skipped; a warning counts them and
+  names their line numbers, and the same text goes to the reader ``notes`` (and so to
+  ``flight.meta["reader_notes"]``, shown by ``fgnav info``).
+- Anything malformed **before** the last data row (a missing value, text, NaN, a wrong column
+  count, time going backwards) is an error naming file, line and column: such a file has lost
+  data in the middle, which no reader should paper over.
+- Lines repeating the previous line exactly are skipped and reported (as in :mod:`.tum`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from . import _tables
+from .errors import FlightDataError, FlightFormatError
+from .geometry import invert_pose
+from .types import (
+    Calibration,
+    CameraIntrinsics,
+    Flight,
+    ImageSeries,
+    ImuNoise,
+    ImuSeries,
+    Trajectory,
+)
+
+log = logging.getLogger(__name__)
+
+IMU_COLUMNS = ("timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
+POSE_COLUMNS = 8
+STATE_COLUMNS = 17
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared csv handling
+# ----------------------------------------------------------------------------------------------
+
+
+def _is_data_row(row: list[str], width: int) -> bool:
+    if len(row) != width:
+        return False
+    try:
+        return all(math.isfinite(float(tok)) for tok in row)
+    except ValueError:
+        return False
+
+
+def _describe_ns(ns: int) -> str:
+    for unit, scale in (("s", 10**9), ("ms", 10**6), ("us", 10**3)):
+        if ns >= scale:
+            return f"{ns / scale:g} {unit}"
+    return f"{ns} ns"
+
+
+def _note(notes: list[str] | None, msg: str) -> None:
+    log.warning(msg)
+    if notes is not None:
+        notes.append(msg)
+
+
+def _read_csv(
+    path: str | Path, widths: tuple[int, ...], what: str, notes: list[str] | None
+) -> tuple[_tables.RawTable, int]:
+    """Read an EuRoC csv, skip (and report) a trailing block of non-data lines; return the table
+    and its column count."""
+    raw = _tables.read_raw(path, sep=",", header="comment")
+    if raw.header is None:
+        raise FlightFormatError(
+            raw.path, f"missing the EuRoC header line ('#timestamp [ns],...' for {what})", line=1
+        )
+    width = len(raw.header)
+    if width not in widths:
+        raise FlightFormatError(
+            raw.path,
+            f"header has {width} columns, expected "
+            + " or ".join(str(w) for w in widths)
+            + f" ({what}): {raw.header_raw}",
+            line=1,
+        )
+    end = len(raw.rows)
+    while end > 0 and not _is_data_row(raw.rows[end - 1], width):
+        end -= 1
+    if end < len(raw.rows):
+        junk = raw.lines[end:]
+        sample = ", ".join(repr(",".join(r))[:40] for r in raw.rows[end : end + 3])
+        _note(
+            notes,
+            f"{raw.path}: skipped {len(junk)} trailing non-data line(s) after the last data row "
+            f"(lines {junk[0]}-{junk[-1]}: {sample}{' ...' if len(junk) > 3 else ''})",
+        )
+        raw.rows, raw.lines = raw.rows[:end], raw.lines[:end]
+    if not raw.rows:
+        raise FlightFormatError(raw.path, "no data lines")
+    _tables.check_widths(raw, (width,), what)
+    return raw, width
+
+
+def _times(raw: _tables.RawTable, notes: list[str] | None) -> np.ndarray:
+    parsed = _tables.parse_ns(raw, 0)
+    if parsed.resolution_ns > 1 and parsed.example is not None:
+        line, tok = parsed.example
+        _note(
+            notes,
+            f"{raw.path}: time stamps are not plain integer ns (line {line}: {tok!r}, e.g. from a "
+            f"spreadsheet); read exactly, but their resolution is only "
+            f"{_describe_ns(parsed.resolution_ns)}",
+        )
+    return _tables.ns_to_seconds(parsed.ns)
+
+
+def _series_rows(
+    raw: _tables.RawTable, notes: list[str] | None, what: str
+) -> tuple[np.ndarray, np.ndarray]:
+    values = _tables.to_values(raw, range(len(raw.header or raw.rows[0])))
+    t = _times(raw, notes)
+    t, values, lines = _tables.drop_repeated_rows(raw, t, values, notes, what)
+    _tables.check_increasing(raw, t, lines)
+    return t, values
+
+
+# ----------------------------------------------------------------------------------------------
+# Readers
+# ----------------------------------------------------------------------------------------------
+
+
+def read_euroc_imu(path: str | Path, *, notes: list[str] | None = None) -> ImuSeries:
+    """Read an EuRoC ``imu0/data.csv``.
+
+    Args:
+        path: the csv.
+        notes: list to which reader notes (skipped lines, time resolution) are appended.
+
+    Returns:
+        ImuSeries in EuRoC's IMU frame (used as body; see the module docstring): ``body_omega``
+        [rad/s], ``body_accel`` (specific force) [m/s^2], ``t`` [s].
+
+    Raises:
+        FlightFormatError: naming file, line and column (see the module docstring's policy).
+    """
+    raw, _ = _read_csv(path, (len(IMU_COLUMNS),), "timestamp, w_RS_S_x..z, a_RS_S_x..z", notes)
+    for j, expected in enumerate(IMU_COLUMNS[1:], start=1):
+        if not raw.header[j].startswith(expected):
+            raise FlightFormatError(
+                raw.path,
+                f"header column {j + 1} is {raw.header_raw[j]!r}, expected {expected!r} "
+                f"(EuRoC IMU: {', '.join(IMU_COLUMNS)})",
+                line=1,
+            )
+    t, v = _series_rows(raw, notes, "IMU")
+    return ImuSeries(t=t, body_omega=v[:, 1:4].copy(), body_accel=v[:, 4:7].copy()).check(
+        str(raw.path)
+    )
+
+
+def read_euroc_groundtruth(path: str | Path, *, notes: list[str] | None = None) -> Trajectory:
+    """Read an EuRoC ground-truth csv; the kind is detected from the header's column count.
+
+    - 17 columns (``state_groundtruth_estimate0/data.csv``): IMU-frame pose, ``world_v_body``
+      [m/s], ``gyro_bias`` [rad/s] and ``accel_bias`` [m/s^2].
+    - 8 columns (``#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z``): pose only, of whichever frame the
+      file describes (the 20 Hz ``*_GT.txt`` files hold cam0 poses; a note says so).
+
+    Returns:
+        Trajectory in the ground truth's world frame (z up), ``t`` [s].
+    """
+    raw, width = _read_csv(
+        path, (POSE_COLUMNS, STATE_COLUMNS), "EuRoC pose or state ground truth", notes
+    )
+    t, v = _series_rows(raw, notes, "ground-truth")
+    kwargs: dict[str, Any] = {}
+    if width == STATE_COLUMNS:
+        kwargs = dict(world_v_body=v[:, 8:11], gyro_bias=v[:, 11:14], accel_bias=v[:, 14:17])
+    else:
+        msg = (
+            f"{raw.path}: 8-column EuRoC pose file, pose only (no velocity or biases); 20 Hz "
+            f"'*_GT.txt' files of this kind hold cam0 poses, not IMU poses"
+        )
+        log.info(msg)
+        if notes is not None:
+            notes.append(msg)
+    return Trajectory(
+        t=t, world_t_body=v[:, 1:4].copy(), world_q_body_wxyz=v[:, 4:8].copy(), **kwargs
+    ).check(str(raw.path))
+
+
+def read_euroc_images(
+    path: str | Path, camera: CameraIntrinsics | None, *, notes: list[str] | None = None
+) -> ImageSeries:
+    """Read ``cam0/data.csv`` (``#timestamp [ns],filename``); images live in ``data/`` beside it.
+
+    Raises:
+        FlightFormatError: a listed image file is missing (naming the line), or a bad time stamp.
+    """
+    raw = _tables.read_raw(path, sep=",", header="comment")
+    if raw.header is None or len(raw.header) != 2:
+        raise FlightFormatError(raw.path, "expected the header '#timestamp [ns],filename'", line=1)
+    _tables.check_widths(raw, (2,), "timestamp, filename")
+    t = _times(raw, notes)
+    _tables.check_increasing(raw, t)
+    folder = Path(path).parent / "data"
+    paths = []
+    for k, row in enumerate(raw.rows):
+        p = (folder / row[1]).resolve()
+        if not p.is_file():
+            raise FlightFormatError(raw.path, f"image file {p} not found", line=raw.lines[k])
+        paths.append(p)
+    return ImageSeries(t=t, paths=tuple(paths), camera=camera)
+
+
+def _read_sensor_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+        d = yaml.safe_load("\n".join(ln for ln in text.splitlines() if not ln.startswith("%")))
+    except yaml.YAMLError as e:
+        raise FlightFormatError(path, f"not valid YAML: {e}") from e
+    if not isinstance(d, dict):
+        raise FlightFormatError(path, "expected a YAML mapping")
+    return d
+
+
+def _T_BS(d: dict[str, Any], path: Path) -> np.ndarray:
+    try:
+        T = np.asarray(d["T_BS"]["data"], dtype=float).reshape(4, 4)
+    except (KeyError, TypeError, ValueError) as e:
+        raise FlightFormatError(path, f"T_BS: expected a 4x4 'data' list ({e})") from e
+    return T
+
+
+def _imu_noise(d: dict[str, Any], path: Path) -> ImuNoise:
+    keys = {
+        "gyro_noise_density": "gyroscope_noise_density",
+        "accel_noise_density": "accelerometer_noise_density",
+        "gyro_random_walk": "gyroscope_random_walk",
+        "accel_random_walk": "accelerometer_random_walk",
+    }
+    missing = [v for v in keys.values() if v not in d]
+    if missing:
+        raise FlightFormatError(path, f"missing IMU noise key(s) {missing}")
+    return ImuNoise(**{k: float(d[v]) for k, v in keys.items()})
+
+
+def _camera(d: dict[str, Any], path: Path) -> CameraIntrinsics:
+    try:
+        fx, fy, cx, cy = (float(x) for x in d["intrinsics"])
+        width, height = (int(x) for x in d["resolution"])
+        dist = tuple(float(x) for x in d.get("distortion_coefficients", ()))
+    except (KeyError, TypeError, ValueError) as e:
+        raise FlightFormatError(
+            path, f"expected 'intrinsics: [fu, fv, cu, cv]' and 'resolution: [w, h]' ({e})"
+        ) from e
+    model = d.get("distortion_model", "radial-tangential")
+    if model != "radial-tangential":
+        raise FlightFormatError(
+            path, f"distortion_model {model!r} is not supported (expected 'radial-tangential')"
+        )
+    return CameraIntrinsics(fx, fy, cx, cy, width, height, dist)
+
+
+def read_euroc_folder(mav0_dir: str | Path) -> Flight:
+    """Read an EuRoC/ASL ``mav0`` folder (or the sequence folder holding ``mav0``).
+
+    Reads ``imu0`` (required), ``state_groundtruth_estimate0`` and ``cam0`` when present, with
+    their ``sensor.yaml`` files (IMU noise, ``body_T_cam = inv(T_BS_imu0) * T_BS_cam0`` so that the
+    body stays the IMU frame, camera intrinsics). Reader notes go to ``meta["reader_notes"]``.
+    """
+    root = Path(mav0_dir)
+    if not root.is_dir():
+        raise FlightFormatError(root, "folder not found")
+    if (root / "mav0").is_dir():
+        root = root / "mav0"
+    imu_csv = root / "imu0" / "data.csv"
+    if not imu_csv.is_file():
+        raise FlightFormatError(root, "not an EuRoC mav0 folder (imu0/data.csv not found)")
+    notes: list[str] = []
+    sources: dict[str, str] = {"imu": str(imu_csv)}
+    imu = read_euroc_imu(imu_csv, notes=notes)
+    calib_kwargs: dict[str, Any] = {}
+    imu_yaml = root / "imu0" / "sensor.yaml"
+    B_T_imu = np.eye(4)
+    if imu_yaml.is_file():
+        d = _read_sensor_yaml(imu_yaml)
+        calib_kwargs["imu_noise"] = _imu_noise(d, imu_yaml)
+        B_T_imu = _T_BS(d, imu_yaml)
+    gt = None
+    gt_csv = root / "state_groundtruth_estimate0" / "data.csv"
+    if gt_csv.is_file():
+        gt = read_euroc_groundtruth(gt_csv, notes=notes)
+        sources["ground_truth"] = str(gt_csv)
+    images = None
+    cam_csv = root / "cam0" / "data.csv"
+    if cam_csv.is_file():
+        cam_yaml = root / "cam0" / "sensor.yaml"
+        camera = None
+        if cam_yaml.is_file():
+            d = _read_sensor_yaml(cam_yaml)
+            camera = _camera(d, cam_yaml)
+            calib_kwargs["camera"] = camera
+            calib_kwargs["body_T_cam"] = invert_pose(B_T_imu) @ _T_BS(d, cam_yaml)
+        else:
+            raise FlightFormatError(cam_yaml, "file not found (cam0 intrinsics are needed)")
+        images = read_euroc_images(cam_csv, camera, notes=notes)
+        sources["images"] = str(cam_csv)
+    name = root.parent.name if root.name == "mav0" else root.name
+    flight = Flight(
+        name=name,
+        source=str(root),
+        imu=imu,
+        images=images,
+        ground_truth=gt,
+        calib=Calibration(**calib_kwargs),
+        meta={"format": "euroc", "sources": sources, "reader_notes": notes},
+    )
+    try:
+        return flight.check()
+    except FlightDataError as e:
+        raise FlightFormatError(root, str(e)) from e
