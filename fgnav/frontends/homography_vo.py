@@ -1,0 +1,985 @@
+"""Homography visual odometry of a downward camera over flat ground (seed 002, Algorithms 1-2).
+
+Pipeline per pair of frames (i, j) (seed 002 sec. II-B2, II-B3, III-C):
+
+1. Optional **orthogonal rectification** (sec. III-C): each image is warped by the rotation-only
+   homography ``W = K_v virt_R_cam K^-1`` so that it looks taken by a *virtual* camera at the same
+   centre, optical axis straight down (world -z), with the camera's yaw and zero roll/pitch. The
+   attitude comes from an AHRS/EKF (seed 002's ``[q, h]`` EKF). With ``normalize_scale`` the virtual
+   focal length is ``f * h / h_ref`` so one pixel covers the same ground distance at every height
+   (the paper's "uniform height" scale adjustment). Areas outside the original image stay black and
+   are masked out.
+2. Shi-Tomasi corners on frame i (``cv2.goodFeaturesToTrack``), pyramidal Lucas-Kanade into frame j
+   (``cv2.calcOpticalFlowPyrLK``) with a forward-backward consistency check.
+3. RANSAC homography (``cv2.findHomography``, or pycolmap's LO-RANSAC
+   ``estimate_homography_matrix``), convention ``p_j ~ H p_i`` in pixels.
+4. Decomposition of the calibrated homography ``G = K_j^-1 H K_i = R + (t/d) n^T`` into
+   ``(R, t/d) = cam_j_T_cam_i`` and the plane normal ``n`` in cam i (pointing from the camera to the
+   ground, ``n^T X_i = d``). ``cv2.decomposeHomographyMat`` returns up to 4 solutions; the one whose
+   normal is closest to the ground normal predicted from the attitude (world -z seen from cam i) is
+   kept. (A naive "normal along +z" choice picks the sign-flipped solution, see GTSAM-NOTES "Vision
+   pieces".) pycolmap's ``pose_from_homography_matrix`` (cheirality) is a switchable alternative.
+5. Metric translation ``t = (t/d) * d_i`` with ``d_i`` the camera height above the ground at frame
+   i (rangefinder or EKF height plus the camera lever arm).
+
+Dead reckoning (Algorithm 1, eqs. 9-10): ``world_R_cam_j = world_R_cam_i R^T`` and
+``world_t_cam_j = world_t_cam_i - world_R_cam_j t``. With rectification the roll and pitch of every
+frame come from the attitude and only the yaw is integrated from vision (the virtual cameras are
+level by construction); without it the full rotation is composed, as in the paper's "traditional"
+odometry.
+
+Frames: world z up; body FLU; camera x right, y down, z along the optical axis
+(``Calibration.body_T_cam``). Units: metres, radians, seconds, pixels.
+
+Outputs per pair (:class:`HomographyMeasurement`): the homography in the ORIGINAL (undistorted)
+image coordinates of frames i -> j for the graph's homography factor, the decomposition, the yaw
+increment, inlier and tracked counts and the times. Pairs that fail (too few corners, tracks or
+inliers, no attitude/height at the image time, no valid decomposition) are kept, flagged with the
+reason, counted in :attr:`VOResult.counts` and logged.
+
+Not modelled: non-planar scenes, sloped ground (the ground normal is world z), rolling shutter,
+motion blur, exposure changes.
+
+Reference: Paz & Nesmachnow, "Doble acoplamiento entre sensores inerciales y odometria visual"
+(../shared/seeds/002_*.txt), Algorithms 1-2, sec. III-C, Figs. 5-10.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.types import (
+    AttitudeSeries,
+    CameraIntrinsics,
+    Flight,
+    ImageSeries,
+    Trajectory,
+    YawSeries,
+)
+from fgnav.estimate import Estimate, TimeSeries
+
+logger = logging.getLogger(__name__)
+
+#: Ground normal in the world frame, pointing from a camera above the ground down to it.
+WORLD_DOWN = np.array([0.0, 0.0, -1.0])
+
+#: Reasons a pair can be rejected (keys of :attr:`VOResult.counts`).
+REJECT_REASONS = (
+    "no_attitude",
+    "no_height",
+    "few_corners",
+    "few_tracked",
+    "few_inliers",
+    "no_homography",
+    "no_decomposition",
+)
+
+
+@dataclass(frozen=True)
+class HomographyVOOptions:
+    """Options of :class:`HomographyVO`.
+
+    Attributes:
+        rectify: warp each image to a level, straight-down virtual camera using the attitude
+            (seed 002 sec. III-C) before tracking.
+        normalize_scale: with ``rectify``, also scale each rectified image by ``h / h_ref`` (virtual
+            focal length ``f h / h_ref``) so a pixel covers the same ground distance at every
+            height (``h_ref``: camera height at the first frame).
+        max_corners: Shi-Tomasi corners per frame (GTSAM-NOTES "Vision pieces": 200).
+        corner_quality: ``qualityLevel`` of ``cv2.goodFeaturesToTrack`` (OpenCV's example 0.01).
+        min_corner_distance_px: minimum distance between corners [px].
+        corner_block_size_px: Shi-Tomasi gradient window [px].
+        lk_window_px: Lucas-Kanade window side [px] (OpenCV's default 21).
+        lk_pyramid_levels: LK pyramid levels above the base image (OpenCV's lk_track.py: 3).
+        fb_max_error_px: forward-backward LK round-trip error above which a track is dropped [px].
+        estimator: ``"opencv"`` (``cv2.findHomography`` RANSAC) or ``"pycolmap"`` (LO-RANSAC).
+        decomposition: ``"opencv"`` (4 solutions, chosen by the predicted ground normal) or
+            ``"pycolmap"`` (``pose_from_homography_matrix``, cheirality).
+        ransac_threshold_px: RANSAC inlier threshold on the transfer error [px].
+        ransac_confidence: RANSAC confidence.
+        ransac_seed: seed of pycolmap's RANSAC (OpenCV's RANSAC is deterministic).
+        min_corners: fewer Shi-Tomasi corners than this rejects the pair (``few_corners``).
+        min_tracked: fewer forward-backward-consistent tracks rejects it (``few_tracked``).
+        min_inliers: fewer RANSAC inliers rejects it (``few_inliers``).
+        mask_margin_px: corners closer than this to the border of the valid (non-black) area of a
+            rectified image are not used [px]; keep it above half the LK window so no tracking
+            window sees the black fill.
+        rectify_interpolation: OpenCV interpolation flag of the rectifying warp.
+        max_reference_failures: after this many consecutive rejected pairs against the same
+            reference frame, the reference moves to the newest frame and the motion across the gap
+            is unknown (counted in ``counts["gaps"]``, position held).
+        tilt_source: where the dead-reckoned roll/pitch come from: ``"attitude"`` (attitude series;
+            vision integrates yaw only), ``"vo"`` (compose the full rotation, seed 002 Alg. 1), or
+            ``"auto"`` (``"attitude"`` when rectifying, else ``"vo"``).
+        max_interp_gap_s: largest gap of the attitude/height series across which they are
+            interpolated to an image time [s].
+    """
+
+    rectify: bool = True
+    normalize_scale: bool = False
+    max_corners: int = 200
+    corner_quality: float = 0.01
+    min_corner_distance_px: float = 7.0
+    corner_block_size_px: int = 7
+    lk_window_px: int = 21
+    lk_pyramid_levels: int = 3
+    fb_max_error_px: float = 0.5
+    estimator: Literal["opencv", "pycolmap"] = "opencv"
+    decomposition: Literal["opencv", "pycolmap"] = "opencv"
+    ransac_threshold_px: float = 1.5
+    ransac_confidence: float = 0.999
+    ransac_seed: int = 0
+    min_corners: int = 20
+    min_tracked: int = 15
+    min_inliers: int = 12
+    mask_margin_px: int = 14
+    rectify_interpolation: int = cv2.INTER_LINEAR
+    max_reference_failures: int = 3
+    tilt_source: Literal["auto", "attitude", "vo"] = "auto"
+    max_interp_gap_s: float = 0.25
+
+    def check(self) -> HomographyVOOptions:
+        """Raise ``ValueError`` on an inconsistent option."""
+        if self.estimator not in ("opencv", "pycolmap"):
+            raise ValueError(f"estimator: expected 'opencv' or 'pycolmap', got {self.estimator!r}")
+        if self.decomposition not in ("opencv", "pycolmap"):
+            raise ValueError(
+                f"decomposition: expected 'opencv' or 'pycolmap', got {self.decomposition!r}"
+            )
+        if self.tilt_source not in ("auto", "attitude", "vo"):
+            raise ValueError(f"tilt_source: expected auto/attitude/vo, got {self.tilt_source!r}")
+        if self.normalize_scale and not self.rectify:
+            raise ValueError("normalize_scale needs rectify=True")
+        if min(self.min_corners, self.min_tracked, self.min_inliers) < 4:
+            raise ValueError("a homography needs at least 4 points: min_* must be >= 4")
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class HomographyMeasurement:
+    """One frame pair (i -> j) of the downward camera.
+
+    Attributes:
+        index_i, index_j: image indices in the flight's ImageSeries.
+        t_i, t_j: image times [s].
+        valid: False when the pair was rejected; then ``reason`` says why and the geometric fields
+            are NaN.
+        reason: ``""`` or one of :data:`REJECT_REASONS`.
+        H: (3, 3) homography in the original (undistorted) pixel coordinates, ``p_j ~ H p_i``,
+            normalised to ``H[2, 2] = 1``.
+        cam_j_R_cam_i: (3, 3) rotation of the decomposition.
+        cam_j_t_cam_i_over_d: (3,) translation of ``cam_j_T_cam_i`` divided by the distance ``d``
+            of camera i to the ground plane [1].
+        cam_i_normal: (3,) unit ground normal in cam i, pointing from the camera to the ground.
+        camera_height_i: camera height above the ground at frame i used for the metric scale [m].
+        cam_j_t_cam_i: (3,) metric translation ``(t/d) * camera_height_i`` [m].
+        yaw_increment: body yaw change from i to j [rad] (world z axis).
+        num_corners: Shi-Tomasi corners found in frame i.
+        num_tracked: tracks that passed the forward-backward check and stayed in the valid area.
+        num_inliers: RANSAC inliers of the homography.
+    """
+
+    index_i: int
+    index_j: int
+    t_i: float
+    t_j: float
+    valid: bool
+    reason: str = ""
+    H: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    cam_j_R_cam_i: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    cam_j_t_cam_i_over_d: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    cam_i_normal: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    camera_height_i: float = float("nan")
+    cam_j_t_cam_i: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    yaw_increment: float = float("nan")
+    num_corners: int = 0
+    num_tracked: int = 0
+    num_inliers: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class VOResult:
+    """Output of :func:`run`.
+
+    Attributes:
+        measurements: one :class:`HomographyMeasurement` per attempted pair, valid or not.
+        estimate: dead-reckoned body trajectory at the frames that got a pose
+            (``method="homography-vo"``, ``causal=True``).
+        yaw: integrated yaw of the body at the same frames, for the graph's yaw factor.
+        counts: ``frames``, ``posed_frames``, ``pairs``, ``valid_pairs``, ``gaps`` and one count per
+            rejection reason.
+    """
+
+    measurements: list[HomographyMeasurement]
+    estimate: Estimate
+    yaw: YawSeries
+    counts: dict[str, int]
+
+    @property
+    def valid(self) -> list[HomographyMeasurement]:
+        """The valid pair measurements."""
+        return [m for m in self.measurements if m.valid]
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry helpers (pure functions)
+# ----------------------------------------------------------------------------------------------
+
+
+def level_camera_rotation(body_R_cam: np.ndarray) -> np.ndarray:
+    """Rotation ``body_R_virt`` of a virtual camera looking straight down (body -z) whose image x
+    axis is the horizontal projection of the real camera's x axis.
+
+    For a camera mounted exactly downward this is ``body_R_cam`` itself.
+
+    Args:
+        body_R_cam: (3, 3) camera orientation in the body frame (camera z = optical axis).
+
+    Returns:
+        (3, 3) ``body_R_virt``.
+    """
+    z = np.array([0.0, 0.0, -1.0])
+    x = np.asarray(body_R_cam, dtype=float)[:, 0].copy()
+    x[2] = 0.0
+    if np.linalg.norm(x) < 1e-6:
+        x = np.asarray(body_R_cam, dtype=float)[:, 1].copy()
+        x[2] = 0.0
+        x = np.cross(x, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z])
+
+
+def remove_yaw(world_R_body: np.ndarray) -> np.ndarray:
+    """``Rz(-yaw) world_R_body``: the roll/pitch part of an attitude (ZYX yaw removed)."""
+    psi = float(yaw_of(world_R_body))
+    c, s = np.cos(psi), np.sin(psi)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ world_R_body
+
+
+def rot_z(psi: float) -> np.ndarray:
+    """Rotation about z by ``psi`` [rad]."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def scaled_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
+    """Camera matrix with focal lengths multiplied by ``scale`` (principal point kept)."""
+    Kv = np.array(K, dtype=float)
+    Kv[0, 0] *= scale
+    Kv[1, 1] *= scale
+    return Kv
+
+
+def rectifying_homography(
+    K: np.ndarray,
+    world_R_body: np.ndarray,
+    body_R_cam: np.ndarray,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation-only homography to the level, straight-down virtual camera (seed 002 III-C).
+
+    The virtual camera has the real camera's centre, orientation
+    ``world_R_virt = Rz(yaw(world_R_body)) body_R_virt`` (see :func:`level_camera_rotation`), and
+    intrinsics ``K`` with focal lengths times ``scale``.
+
+    Args:
+        K: (3, 3) real camera matrix [px].
+        world_R_body: (3, 3) body attitude.
+        body_R_cam: (3, 3) camera mounting.
+        scale: focal-length factor of the virtual camera (``h / h_ref`` for scale normalisation).
+
+    Returns:
+        ``(W, virt_R_cam, K_virt)``: ``W`` (3, 3) maps original pixels to rectified pixels
+        (``p_v ~ W p``); ``virt_R_cam`` (3, 3); ``K_virt`` (3, 3).
+    """
+    body_R_virt = level_camera_rotation(body_R_cam)
+    world_R_virt = rot_z(float(yaw_of(world_R_body))) @ body_R_virt
+    world_R_cam = world_R_body @ body_R_cam
+    virt_R_cam = world_R_virt.T @ world_R_cam
+    Kv = scaled_intrinsics(K, scale)
+    W = Kv @ virt_R_cam @ np.linalg.inv(K)
+    return W / W[2, 2], virt_R_cam, Kv
+
+
+def transfer_error_px(H_a: np.ndarray, H_b: np.ndarray, width: int, height: int) -> float:
+    """Largest distance [px] between the images of the four image corners under two homographies."""
+    corners = np.array(
+        [[0, 0, 1], [width - 1, 0, 1], [width - 1, height - 1, 1], [0, height - 1, 1]], dtype=float
+    ).T
+    a = H_a @ corners
+    b = H_b @ corners
+    return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
+
+
+def yaw_increment(
+    world_R_body_i: np.ndarray, body_R_cam: np.ndarray, cam_j_R_cam_i: np.ndarray
+) -> float:
+    """Body yaw change [rad] from frame i to j given the camera rotation ``cam_j_R_cam_i``.
+
+    ``world_R_body_j = world_R_body_i body_R_cam cam_j_R_cam_i^T cam_R_body``; the result is
+    ``yaw(world_R_body_j) - yaw(world_R_body_i)``, which depends on the roll and pitch of
+    ``world_R_body_i`` but not on its yaw.
+    """
+    tilt_i = remove_yaw(world_R_body_i)
+    world_R_body_j = tilt_i @ body_R_cam @ cam_j_R_cam_i.T @ body_R_cam.T
+    return float(wrap_angle(yaw_of(world_R_body_j)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Image steps
+# ----------------------------------------------------------------------------------------------
+
+
+def track_features(
+    img_i: np.ndarray,
+    img_j: np.ndarray,
+    options: HomographyVOOptions,
+    mask_i: np.ndarray | None = None,
+    mask_j: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Shi-Tomasi corners in ``img_i`` tracked into ``img_j`` by pyramidal Lucas-Kanade.
+
+    A track is kept when LK converges both ways, the round trip j -> i lands within
+    ``fb_max_error_px`` of the corner, and the tracked point lies in ``mask_j`` (when given).
+
+    Args:
+        img_i, img_j: grey uint8 images of the same size.
+        options: VO options.
+        mask_i, mask_j: optional uint8 masks (non-zero = valid pixels).
+
+    Returns:
+        ``(pts_i, pts_j, num_corners)``: (M, 2) float32 pixel positions of the kept tracks and the
+        number of corners found in ``img_i``.
+    """
+    corners = cv2.goodFeaturesToTrack(
+        img_i,
+        maxCorners=options.max_corners,
+        qualityLevel=options.corner_quality,
+        minDistance=options.min_corner_distance_px,
+        mask=mask_i,
+        blockSize=options.corner_block_size_px,
+    )
+    if corners is None:
+        empty = np.zeros((0, 2), np.float32)
+        return empty, empty, 0
+    p_i = corners.reshape(-1, 1, 2).astype(np.float32)
+    lk = dict(
+        winSize=(options.lk_window_px, options.lk_window_px),
+        maxLevel=options.lk_pyramid_levels,
+        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+    )
+    p_j, st_f, _ = cv2.calcOpticalFlowPyrLK(img_i, img_j, p_i, None, **lk)
+    p_back, st_b, _ = cv2.calcOpticalFlowPyrLK(img_j, img_i, p_j, None, **lk)
+    fb = np.linalg.norm((p_back - p_i).reshape(-1, 2), axis=1)
+    keep = (st_f.ravel() == 1) & (st_b.ravel() == 1) & (fb < options.fb_max_error_px)
+    pj = p_j.reshape(-1, 2)
+    h, w = img_j.shape[:2]
+    inside = (pj[:, 0] >= 0) & (pj[:, 0] <= w - 1) & (pj[:, 1] >= 0) & (pj[:, 1] <= h - 1)
+    keep &= inside
+    if mask_j is not None:
+        ij = np.round(pj[keep]).astype(int)
+        ok = mask_j[ij[:, 1], ij[:, 0]] > 0
+        idx = np.flatnonzero(keep)
+        keep[idx[~ok]] = False
+    return p_i.reshape(-1, 2)[keep], pj[keep], int(p_i.shape[0])
+
+
+def estimate_homography(
+    pts_i: np.ndarray, pts_j: np.ndarray, options: HomographyVOOptions
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """RANSAC homography ``p_j ~ H p_i`` [px] and the inlier mask, or ``(None, mask)``."""
+    n = len(pts_i)
+    if n < 4:
+        return None, np.zeros(n, bool)
+    if options.estimator == "pycolmap":
+        import pycolmap
+
+        ransac = pycolmap.RANSACOptions()
+        ransac.max_error = options.ransac_threshold_px
+        ransac.confidence = options.ransac_confidence
+        ransac.random_seed = options.ransac_seed
+        res = pycolmap.estimate_homography_matrix(
+            np.asarray(pts_i, np.float64), np.asarray(pts_j, np.float64), ransac
+        )
+        if res is None:
+            return None, np.zeros(n, bool)
+        H = np.asarray(res["H"], float)
+        mask = np.asarray(res["inlier_mask"], bool).ravel()
+    else:
+        H, m = cv2.findHomography(
+            pts_i,
+            pts_j,
+            cv2.RANSAC,
+            options.ransac_threshold_px,
+            confidence=options.ransac_confidence,
+        )
+        if H is None:
+            return None, np.zeros(n, bool)
+        mask = m.ravel().astype(bool)
+    if not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
+        return None, np.zeros(n, bool)
+    return H / H[2, 2], mask
+
+
+def decompose_homography(
+    G: np.ndarray,
+    predicted_normal: np.ndarray,
+    options: HomographyVOOptions,
+    rays_i: np.ndarray | None = None,
+    rays_j: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Decompose a calibrated homography ``G ~ R + (t/d) n^T`` (``K = I``).
+
+    Args:
+        G: (3, 3) calibrated homography ``K_j^-1 H K_i`` (any scale).
+        predicted_normal: (3,) expected ground normal in cam i (camera to ground).
+        options: VO options (``decomposition`` switch).
+        rays_i, rays_j: (M, 3) inlier bearing vectors in cam i and cam j (needed by pycolmap).
+
+    Returns:
+        ``(cam_j_R_cam_i, t_over_d, n)`` or None when no solution has a normal within 90 degrees
+        of the prediction.
+    """
+    if options.decomposition == "pycolmap":
+        import pycolmap
+
+        res = pycolmap.pose_from_homography_matrix(G, np.eye(3), np.eye(3), rays_i, rays_j)
+        pose = res["cam2_from_cam1"]
+        R = np.asarray(pose.rotation.matrix(), float)
+        t = np.asarray(pose.translation, float)
+        # COLMAP writes H = R - t n^T / d (normal pointing away from the plane): flip n only.
+        n = -np.asarray(res["normal"], float)
+        n /= np.linalg.norm(n)
+        if np.dot(n, predicted_normal) <= 0:
+            return None
+        return R, t, n
+    num, Rs, ts, ns = cv2.decomposeHomographyMat(G, np.eye(3))
+    best = None
+    best_cos = 0.0
+    for R, t, n in zip(Rs, ts, ns, strict=True):
+        n = n.ravel()
+        c = float(np.dot(n, predicted_normal) / np.linalg.norm(n))
+        if c > best_cos:
+            best_cos = c
+            best = (np.asarray(R, float), t.ravel().astype(float), n / np.linalg.norm(n))
+    return best
+
+
+# ----------------------------------------------------------------------------------------------
+# Input interpolation
+# ----------------------------------------------------------------------------------------------
+
+
+def _interp_valid(t_series: np.ndarray, t_query: np.ndarray, max_gap: float) -> np.ndarray:
+    """True where ``t_query`` lies inside ``t_series`` (or within ``max_gap`` of an end) and the
+    enclosing gap is at most ``max_gap``."""
+    idx = np.searchsorted(t_series, t_query)
+    lo = np.clip(idx - 1, 0, len(t_series) - 1)
+    hi = np.clip(idx, 0, len(t_series) - 1)
+    gap = np.maximum(np.abs(t_query - t_series[lo]), 0) + np.abs(t_series[hi] - t_query)
+    near_end = np.minimum(np.abs(t_query - t_series[0]), np.abs(t_query - t_series[-1])) <= max_gap
+    inside = (t_query >= t_series[0]) & (t_query <= t_series[-1])
+    return (inside & (gap <= max_gap)) | (~inside & near_end)
+
+
+def interpolate_attitude(
+    attitude: AttitudeSeries, t: np.ndarray, max_gap_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``world_R_body`` (N, 3, 3) at times ``t`` by slerp, and a validity mask (N,)."""
+    ok = _interp_valid(attitude.t, t, max_gap_s)
+    out = np.tile(np.eye(3), (len(t), 1, 1))
+    if len(attitude) == 1:
+        out[:] = quat_wxyz_to_matrix(attitude.world_q_body_wxyz[0])
+        return out, ok
+    q = attitude.world_q_body_wxyz
+    rot = Rotation.from_quat(np.column_stack([q[:, 1:4], q[:, 0]]))
+    slerp = Slerp(attitude.t, rot)
+    tq = np.clip(t, attitude.t[0], attitude.t[-1])
+    out[:] = slerp(tq).as_matrix()
+    return out, ok
+
+
+def height_from_range(flight: Flight, attitude: AttitudeSeries, max_gap_s: float) -> TimeSeries:
+    """Body height above the ground [m] from the tilted rangefinder (seed 002 eq. 21).
+
+    ``h_body = range * cos(tilt) - (world_R_body body_t_range)_z`` with the beam along the
+    sensor's +z axis and ``cos(tilt) = -(world_R_body body_R_range e_z)_z``. Readings outside
+    ``[calib.range_min, calib.range_max]``, without attitude, or with the beam pointing above the
+    horizon are skipped and counted (logged).
+    """
+    rng = flight.range
+    if rng is None:
+        raise FlightDataError(
+            f"{flight.name}: homography VO needs a height (argument `height`) or a range stream"
+        )
+    world_R_body, ok = interpolate_attitude(attitude, rng.t, max_gap_s)
+    body_T_range = np.asarray(flight.calib.body_T_range, float)
+    beam = world_R_body @ body_T_range[:3, 2]
+    cos_tilt = -beam[:, 2]
+    lever_z = (world_R_body @ body_T_range[:3, 3])[:, 2]
+    in_range = (rng.range >= flight.calib.range_min) & (rng.range <= flight.calib.range_max)
+    keep = ok & in_range & (cos_tilt > 0)
+    skipped = int((~keep).sum())
+    if skipped:
+        logger.warning(
+            "%s: %d of %d range readings not usable for the VO height (out of [%.2f, %.2f] m, "
+            "no attitude, or beam above the horizon)",
+            flight.name,
+            skipped,
+            len(rng),
+            flight.calib.range_min,
+            flight.calib.range_max,
+        )
+    if not keep.any():
+        raise FlightDataError(f"{flight.name}.range: no reading usable as a height")
+    h = rng.range * cos_tilt - lever_z
+    return TimeSeries(t=rng.t[keep], value=h[keep])
+
+
+# ----------------------------------------------------------------------------------------------
+# The odometer
+# ----------------------------------------------------------------------------------------------
+
+
+class HomographyVO:
+    """Homography visual odometry over a flight's downward-camera images.
+
+    Args:
+        options: :class:`HomographyVOOptions` (defaults when None).
+    """
+
+    def __init__(self, options: HomographyVOOptions | None = None) -> None:
+        self.options = (options or HomographyVOOptions()).check()
+
+    # -- one pair --------------------------------------------------------------------------------
+
+    def _prepare(
+        self,
+        img: np.ndarray,
+        K: np.ndarray,
+        world_R_body: np.ndarray | None,
+        body_R_cam: np.ndarray,
+        scale: float,
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
+        """Rectified image, its valid mask, ``W`` (original -> rectified px), ``virt_R_cam`` and
+        ``K_virt``; identity warp when not rectifying."""
+        if not self.options.rectify:
+            return img, None, np.eye(3), np.eye(3), np.asarray(K, float)
+        W, virt_R_cam, Kv = rectifying_homography(K, world_R_body, body_R_cam, scale)
+        h, w = img.shape[:2]
+        warped = cv2.warpPerspective(img, W, (w, h), flags=self.options.rectify_interpolation)
+        mask = cv2.warpPerspective(
+            np.full((h, w), 255, np.uint8), W, (w, h), flags=cv2.INTER_NEAREST
+        )
+        m = self.options.mask_margin_px
+        if m > 0:
+            mask = cv2.erode(mask, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
+        return warped, mask, W, virt_R_cam, Kv
+
+    def measure_pair(
+        self,
+        img_i: np.ndarray,
+        img_j: np.ndarray,
+        K: np.ndarray,
+        body_R_cam: np.ndarray,
+        world_R_body_i: np.ndarray | None,
+        world_R_body_j: np.ndarray | None,
+        camera_height_i: float,
+        camera_height_j: float | None = None,
+        height_ref: float | None = None,
+        index: tuple[int, int] = (0, 1),
+        times: tuple[float, float] = (0.0, 1.0),
+    ) -> HomographyMeasurement:
+        """Measure the motion between two undistorted grey images of the downward camera.
+
+        Args:
+            img_i, img_j: (H, W) uint8 grey images, i earlier.
+            K: (3, 3) camera matrix [px].
+            body_R_cam: (3, 3) camera mounting.
+            world_R_body_i, world_R_body_j: body attitudes (needed to rectify and to predict the
+                ground normal; None -> the camera is assumed level, no rectification possible).
+            camera_height_i: camera height above the ground at i [m] (metric scale).
+            camera_height_j: camera height at j [m] (scale normalisation only).
+            height_ref: reference height of the scale normalisation [m] (default
+                ``camera_height_i``).
+            index, times: image indices and times copied into the result.
+
+        Returns:
+            The pair's :class:`HomographyMeasurement` (``valid=False`` with a reason on failure).
+        """
+        o = self.options
+        K = np.asarray(K, float)
+        base = dict(index_i=index[0], index_j=index[1], t_i=times[0], t_j=times[1])
+        if o.rectify and (world_R_body_i is None or world_R_body_j is None):
+            return HomographyMeasurement(valid=False, reason="no_attitude", **base)
+        href = camera_height_i if height_ref is None else height_ref
+        s_i = camera_height_i / href if o.normalize_scale else 1.0
+        s_j = (camera_height_j or camera_height_i) / href if o.normalize_scale else 1.0
+        ri, mi, Wi, vRc_i, Kv_i = self._prepare(img_i, K, world_R_body_i, body_R_cam, s_i)
+        rj, mj, Wj, vRc_j, Kv_j = self._prepare(img_j, K, world_R_body_j, body_R_cam, s_j)
+        return self._measure_prepared(
+            (ri, mi, Wi, vRc_i, Kv_i),
+            (rj, mj, Wj, vRc_j, Kv_j),
+            K,
+            body_R_cam,
+            world_R_body_i,
+            camera_height_i,
+            base,
+        )
+
+    def _measure_prepared(self, prep_i, prep_j, K, body_R_cam, world_R_body_i, cam_h_i, base):
+        o = self.options
+        ri, mi, Wi, vRc_i, Kv_i = prep_i
+        rj, mj, Wj, vRc_j, Kv_j = prep_j
+        # 1. Track corners of i into j (in rectified images when rectifying).
+        p_i, p_j, n_corners = track_features(ri, rj, o, mi, mj)
+        counts = dict(num_corners=n_corners, num_tracked=len(p_i))
+        if n_corners < o.min_corners:
+            return HomographyMeasurement(valid=False, reason="few_corners", **base, **counts)
+        if len(p_i) < o.min_tracked:
+            return HomographyMeasurement(valid=False, reason="few_tracked", **base, **counts)
+        # 2. RANSAC homography in the tracking images.
+        Hv, inl = estimate_homography(p_i, p_j, o)
+        if Hv is None:
+            return HomographyMeasurement(valid=False, reason="no_homography", **base, **counts)
+        counts["num_inliers"] = int(inl.sum())
+        if inl.sum() < o.min_inliers:
+            return HomographyMeasurement(valid=False, reason="few_inliers", **base, **counts)
+        # 3. Back to original pixels: p_j ~ Wj^-1 Hv Wi p_i.
+        H = np.linalg.solve(Wj, Hv @ Wi)
+        H /= H[2, 2]
+        # 4. Decompose in the virtual (or real) cameras: G = Kv_j^-1 Hv Kv_i = R_v + t_v n_v^T.
+        G = np.linalg.solve(Kv_j, Hv @ Kv_i)
+        world_R_cam_i_tilt = (
+            remove_yaw(world_R_body_i) @ body_R_cam
+            if world_R_body_i is not None
+            else level_camera_rotation(body_R_cam)
+        )
+        n_pred_cam = world_R_cam_i_tilt.T @ WORLD_DOWN
+        n_pred_virt = vRc_i @ n_pred_cam
+        rays_i = rays_j = None
+        if o.decomposition == "pycolmap":
+            rays_i = _rays(p_i[inl], Kv_i)
+            rays_j = _rays(p_j[inl], Kv_j)
+        dec = decompose_homography(G, n_pred_virt, o, rays_i, rays_j)
+        if dec is None:
+            return HomographyMeasurement(valid=False, reason="no_decomposition", **base, **counts)
+        R_v, t_v, n_v = dec
+        # virt frames share the camera centres: cam_j_R_cam_i = cam_j_R_virt_j R_v virt_i_R_cam_i.
+        R = vRc_j.T @ R_v @ vRc_i
+        t_over_d = vRc_j.T @ t_v
+        n = vRc_i.T @ n_v
+        dpsi = yaw_increment(
+            world_R_body_i if world_R_body_i is not None else np.eye(3), body_R_cam, R
+        )
+        return HomographyMeasurement(
+            valid=True,
+            H=H,
+            cam_j_R_cam_i=R,
+            cam_j_t_cam_i_over_d=t_over_d,
+            cam_i_normal=n,
+            camera_height_i=float(cam_h_i),
+            cam_j_t_cam_i=t_over_d * cam_h_i,
+            yaw_increment=dpsi,
+            **base,
+            **counts,
+        )
+
+    # -- a flight --------------------------------------------------------------------------------
+
+    def run(
+        self,
+        flight: Flight,
+        attitude: AttitudeSeries | None = None,
+        height: TimeSeries | None = None,
+        initial_world_T_body: np.ndarray | None = None,
+    ) -> VOResult:
+        """Homography VO over all images of ``flight``.
+
+        Args:
+            flight: a flight with ``images`` (downward camera) and ``calib.body_T_cam``.
+            attitude: body attitude (e.g. seed 002's EKF); default ``flight.attitude``. Needed to
+                rectify and for ``tilt_source="attitude"``.
+            height: body height above the ground [m] (``TimeSeries`` with (N,) values, e.g. the
+                EKF's ``h``); default: from ``flight.range`` tilted by the attitude.
+            initial_world_T_body: (4, 4) pose of the first posed frame; default: attitude at that
+                frame (identity without attitude) at ``(0, 0, height)``.
+
+        Returns:
+            :class:`VOResult`.
+
+        Raises:
+            FlightDataError: no images, no camera intrinsics, no attitude when rectifying, or no
+                height source.
+        """
+        t_start = time.perf_counter()
+        o = self.options
+        images = _require_images(flight)
+        cam = images.camera if images.camera is not None else flight.calib.camera
+        attitude = attitude if attitude is not None else flight.attitude
+        tilt_source = (
+            o.tilt_source if o.tilt_source != "auto" else ("attitude" if o.rectify else "vo")
+        )
+        if attitude is None and (o.rectify or tilt_source == "attitude"):
+            raise FlightDataError(
+                f"{flight.name}: homography VO with rectify={o.rectify}, tilt_source="
+                f"{tilt_source!r} needs an attitude series (argument or flight.attitude)"
+            )
+        if attitude is not None:
+            attitude.check(f"{flight.name}.vo_attitude")
+        if height is None:
+            if attitude is None:
+                raise FlightDataError(
+                    f"{flight.name}: homography VO needs a height series or attitude + range"
+                )
+            height = height_from_range(flight, attitude, o.max_interp_gap_s)
+        h_t = np.asarray(height.t, float)
+        h_v = np.asarray(height.value, float).reshape(-1)
+        if h_t.shape != h_v.shape or h_t.size == 0 or not np.all(np.isfinite(h_v)):
+            raise FlightDataError(
+                f"{flight.name}: VO height series: expected finite (N,) values at (N,) times, "
+                f"got t {h_t.shape}, value {h_v.shape}"
+            )
+
+        n = len(images)
+        K = cam.K
+        body_T_cam = np.asarray(flight.calib.body_T_cam, float)
+        body_R_cam, body_t_cam = body_T_cam[:3, :3], body_T_cam[:3, 3]
+        undistort = _undistorter(cam)
+
+        # Attitude and height at image times (flagged where unavailable).
+        if attitude is not None:
+            world_R_body_all, att_ok = interpolate_attitude(attitude, images.t, o.max_interp_gap_s)
+        else:
+            world_R_body_all, att_ok = None, np.ones(n, bool)
+        h_ok = _interp_valid(h_t, images.t, o.max_interp_gap_s)
+        body_h = np.interp(images.t, h_t, h_v)
+        lever_z = (
+            np.einsum("nij,j->ni", world_R_body_all, body_t_cam)[:, 2]
+            if world_R_body_all is not None
+            else np.full(n, body_t_cam[2])
+        )
+        cam_h = body_h + lever_z
+        h_ok &= cam_h > 0
+
+        measurements: list[HomographyMeasurement] = []
+        posed_idx: list[int] = []
+        world_R_body_list: list[np.ndarray] = []
+        world_t_body_list: list[np.ndarray] = []
+        yaw_list: list[float] = []
+        counts: Counter[str] = Counter()
+
+        def att(k: int) -> np.ndarray | None:
+            return None if world_R_body_all is None else world_R_body_all[k]
+
+        height_ref = None
+        ref = None  # index of the reference frame
+        ref_prep = None
+        failures = 0
+        world_R_cam = world_t_cam = None
+        psi = 0.0
+        for k in range(n):
+            if not (att_ok[k] and h_ok[k]):
+                reason = "no_attitude" if not att_ok[k] else "no_height"
+                counts[reason] += 1
+                if ref is not None:
+                    measurements.append(
+                        HomographyMeasurement(
+                            index_i=ref,
+                            index_j=k,
+                            t_i=float(images.t[ref]),
+                            t_j=float(images.t[k]),
+                            valid=False,
+                            reason=reason,
+                        )
+                    )
+                    counts["pairs"] += 1
+                continue
+            if height_ref is None:
+                height_ref = float(cam_h[k])
+            scale = cam_h[k] / height_ref if o.normalize_scale else 1.0
+            prep = self._prepare(undistort(images.load(k)), K, att(k), body_R_cam, scale)
+            if ref is None:
+                # First usable frame: initial pose.
+                ref, ref_prep = k, prep
+                world_T_body0 = _initial_pose(initial_world_T_body, att(k), body_h[k])
+                world_R_body = world_T_body0[:3, :3]
+                world_R_cam = world_R_body @ body_R_cam
+                world_t_cam = world_T_body0[:3, 3] + world_R_body @ body_t_cam
+                psi = float(yaw_of(world_R_body))
+                self._append_pose(
+                    posed_idx,
+                    world_R_body_list,
+                    world_t_body_list,
+                    yaw_list,
+                    k,
+                    world_R_body,
+                    world_t_cam - world_R_body @ body_t_cam,
+                    psi,
+                )
+                continue
+            base = dict(index_i=ref, index_j=k, t_i=float(images.t[ref]), t_j=float(images.t[k]))
+            m = self._measure_prepared(ref_prep, prep, K, body_R_cam, att(ref), cam_h[ref], base)
+            measurements.append(m)
+            counts["pairs"] += 1
+            if not m.valid:
+                counts[m.reason] += 1
+                failures += 1
+                if failures >= o.max_reference_failures:
+                    counts["gaps"] += 1
+                    logger.warning(
+                        "%s: VO lost track from frame %d to %d (%s); reference moves to %d, "
+                        "position held across the gap",
+                        flight.name,
+                        ref,
+                        k,
+                        m.reason,
+                        k,
+                    )
+                    ref, ref_prep, failures = k, prep, 0
+                    if tilt_source == "attitude":
+                        world_R_body = rot_z(psi) @ remove_yaw(att(k))
+                        world_R_cam = world_R_body @ body_R_cam
+                continue
+            counts["valid_pairs"] += 1
+            failures = 0
+            # Dead reckoning (seed 002 Alg. 1, eqs. 9-10).
+            psi = psi + m.yaw_increment
+            if tilt_source == "attitude":
+                world_R_body = rot_z(psi) @ remove_yaw(att(k))
+                world_R_cam = world_R_body @ body_R_cam
+            else:
+                world_R_cam = world_R_cam @ m.cam_j_R_cam_i.T
+                world_R_body = world_R_cam @ body_R_cam.T
+                psi = float(yaw_of(world_R_body))
+            world_t_cam = world_t_cam - world_R_cam @ m.cam_j_t_cam_i
+            self._append_pose(
+                posed_idx,
+                world_R_body_list,
+                world_t_body_list,
+                yaw_list,
+                k,
+                world_R_body,
+                world_t_cam - world_R_body @ body_t_cam,
+                psi,
+            )
+            ref, ref_prep = k, prep
+
+        if not posed_idx:
+            raise FlightDataError(
+                f"{flight.name}: homography VO posed no frame of {n} (no attitude/height at any "
+                f"image time: {dict(counts)})"
+            )
+        counts["frames"] = n
+        counts["posed_frames"] = len(posed_idx)
+        for key in ("pairs", "valid_pairs", "gaps", *REJECT_REASONS):
+            counts.setdefault(key, 0)
+        rejected = {r: counts[r] for r in REJECT_REASONS if counts[r]}
+        if rejected:
+            logger.warning(
+                "%s: homography VO rejected %d of %d pairs (%s); %d of %d frames posed",
+                flight.name,
+                counts["pairs"] - counts["valid_pairs"],
+                counts["pairs"],
+                rejected,
+                counts["posed_frames"],
+                n,
+            )
+        t = images.t[posed_idx]
+        traj = Trajectory(
+            t=t,
+            world_t_body=np.array(world_t_body_list),
+            world_q_body_wxyz=matrix_to_quat_wxyz(np.array(world_R_body_list)),
+        )
+        yaw = YawSeries(t=t, yaw=wrap_angle(np.array(yaw_list)))
+        valid = [m for m in measurements if m.valid]
+        series = {
+            "vo_yaw": TimeSeries(t=t, value=yaw.yaw),
+            "vo_inliers": TimeSeries(
+                t=np.array([m.t_j for m in valid]),
+                value=np.array([m.num_inliers for m in valid], float),
+            ),
+        }
+        estimate = Estimate(
+            method="homography-vo",
+            trajectory=traj,
+            series=series,
+            runtime_s=time.perf_counter() - t_start,
+            causal=True,
+            info={"counts": dict(counts), "options": asdict(o), "tilt_source": tilt_source},
+        )
+        return VOResult(measurements=measurements, estimate=estimate, yaw=yaw, counts=dict(counts))
+
+    @staticmethod
+    def _append_pose(idx, Rs, ts, yaws, k, world_R_body, world_t_body, psi):
+        idx.append(k)
+        Rs.append(world_R_body)
+        ts.append(world_t_body)
+        yaws.append(psi)
+
+
+def run(
+    flight: Flight,
+    attitude: AttitudeSeries | None = None,
+    height: TimeSeries | None = None,
+    options: HomographyVOOptions | None = None,
+    initial_world_T_body: np.ndarray | None = None,
+) -> VOResult:
+    """Homography VO over a flight: ``HomographyVO(options).run(flight, attitude, height, ...)``."""
+    return HomographyVO(options).run(flight, attitude, height, initial_world_T_body)
+
+
+# ----------------------------------------------------------------------------------------------
+# Small private helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _rays(pts: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(M, 2) pixels -> (M, 3) unit bearing vectors."""
+    h = np.column_stack([pts, np.ones(len(pts))]) @ np.linalg.inv(K).T
+    return h / np.linalg.norm(h, axis=1, keepdims=True)
+
+
+def _require_images(flight: Flight) -> ImageSeries:
+    if flight.images is None:
+        raise FlightDataError(f"{flight.name}: homography VO needs an images stream")
+    images = flight.images
+    if images.camera is None and flight.calib.camera is None:
+        raise FlightDataError(f"{flight.name}.images.camera: intrinsics missing")
+    images.check(f"{flight.name}.images")
+    return images
+
+
+def _undistorter(cam: CameraIntrinsics):
+    """Function undistorting a grey image to the pinhole ``cam.K`` (identity without
+    distortion)."""
+    if not cam.distortion or not np.any(np.asarray(cam.distortion)):
+        return lambda img: img
+    K = cam.K
+    map1, map2 = cv2.initUndistortRectifyMap(
+        K, np.asarray(cam.distortion, float), None, K, (cam.width, cam.height), cv2.CV_16SC2
+    )
+    return lambda img: cv2.remap(img, map1, map2, cv2.INTER_LINEAR)
+
+
+def _initial_pose(
+    initial_world_T_body: np.ndarray | None, world_R_body: np.ndarray | None, body_h: float
+) -> np.ndarray:
+    if initial_world_T_body is not None:
+        return np.asarray(initial_world_T_body, float)
+    T = np.eye(4)
+    if world_R_body is not None:
+        T[:3, :3] = world_R_body
+    T[2, 3] = body_h
+    return T
