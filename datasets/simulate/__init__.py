@@ -1,1 +1,13 @@
-"""Flight simulator: ground truth for every sensor (see issue 3)."""
+"""Flight simulator: ground truth for every sensor (see issue 3).
+
+``simulate(scenario, seed, options) -> Flight`` flies a rigid-body multirotor with linear rotor drag
+along one of ``SCENARIOS`` and synthesises IMU, AHRS attitude, yaw, tilted rangefinder, monocular
+SLAM (unknown scale, latency, resets) and downward-camera images of a noise carpet;
+``simulate_to_folder`` writes the flight in fgnav's native folder format.
+"""
+
+from .options import SimOptions, SimulationError
+from .scenarios import SCENARIOS
+from .simulator import simulate, simulate_to_folder
+
+__all__ = ["SCENARIOS", "SimOptions", "SimulationError", "simulate", "simulate_to_folder"]

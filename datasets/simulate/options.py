@@ -1,0 +1,188 @@
+"""Options of the flight simulator (one dataclass, TOML-friendly: scalars and tuples)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.types import ImuNoise
+
+_IMU_DEFAULTS = ImuNoise()
+
+#: Default camera lever arm in body [m] (a few cm forward and below the IMU).
+DEFAULT_BODY_T_CAM = (0.05, 0.0, -0.04)
+#: Default rangefinder lever arm in body [m].
+DEFAULT_BODY_T_RANGE = (0.03, 0.02, -0.05)
+
+
+class SimulationError(FgnavError, ValueError):
+    """Invalid simulator options or scenario name."""
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Everything the simulator can vary. ``None`` means "the scenario's default".
+
+    Rates are in Hz and must divide ``imu_rate_hz`` (every stream is sampled on the IMU grid).
+    A rate of 0 turns a stream off. Noise levels are one standard deviation.
+
+    Attributes:
+        duration: flight length [s] (None: the scenario's).
+        imu_rate_hz: IMU and ground-truth rate [Hz].
+        substeps: integration sub-steps per IMU sample.
+        noise_free: zero every noise, bias, outlier and dropout (truth-only signals).
+        gyro_noise_density, accel_noise_density, gyro_random_walk, accel_random_walk: IMU noise
+            densities (Kalibr/EuRoC convention, defaults of :class:`ImuNoise`); white noise is
+            discretised as ``density / sqrt(dt)`` and the bias walk as ``walk * sqrt(dt)``.
+        gyro_bias0_std [rad/s], accel_bias0_std [m/s^2]: spread of the initial biases.
+        attitude_rate_hz, attitude_noise_rad: AHRS attitude stream (rotation-vector noise).
+        yaw_rate_hz, yaw_noise_rad: magnetometer-like yaw stream.
+        range_rate_hz, range_noise_m, range_min, range_max: downward rangefinder; readings outside
+            ``[range_min, range_max]`` are not delivered (counted in ``meta``).
+        range_dropout_prob: probability that a reading is missing.
+        range_outlier_prob: probability of an obstacle spike (reading shortened to a uniform
+            fraction ``range_outlier_fraction`` of the true range); times kept in the truth.
+        body_t_range: rangefinder lever arm in body [m]; its beam is along body -z.
+        ground_height: height of the flat ground in world [m].
+        terrain_steps: raised boxes ``(x0, y0, x1, y1, height)`` [m] the rangefinder sees (the
+            camera renders the flat ground only).
+        slam_rate_hz: monocular SLAM rate (poses at image times when it equals the image rate).
+        slam_noise_m: position noise before scaling [m]; slam_rot_noise_rad: orientation noise.
+        slam_scale: SLAM units per metre of the first session (None: log-uniform in
+            ``slam_scale_range``, seeded); later sessions always draw a new one.
+        slam_axis_scale: per-axis scale ``(kx, ky, kz)`` of seed 000 (None: the scenario's; an
+            empty tuple forces the similarity model).
+        slam_scale_drift_per_s: relative scale drift per second within a session.
+        slam_latency_s, slam_latency_jitter_s: delivery delay of SLAM poses [s].
+        slam_resets: times of map resets [s]: tracking is lost for ``slam_reset_gap_s``, then a
+            new session starts with a new similarity and scale.
+        slam_dropouts: tracking losses ``(t0, t1)`` [s] without a new session.
+        images: render downward camera images.
+        image_rate_hz, image_width, image_height, camera_hfov_deg: camera (pinhole, no
+            distortion; default 320x240 and 64 degrees like seed 004's downward camera).
+        body_t_cam: camera lever arm in body [m] (None: the scenario's or the default).
+        image_noise_std: pixel noise [grey levels]; motion_blur_s: exposure time [s] (0: none);
+            brightness_amplitude: relative sinusoidal gain change, period brightness_period_s;
+            featureless_patches: number of uniform white patches on the carpet (seed 003's white
+            walls); texture_resolution_m: carpet texel size [m].
+        drag_k: rotor drag ``(kx, ky)`` [1/s].
+        wind: mean wind in world [m/s] (None: the scenario's); gust_std [m/s] (None: the
+            scenario's) and gust_tau_s [s]: Ornstein-Uhlenbeck gusts on the horizontal axes.
+    """
+
+    duration: float | None = None
+    imu_rate_hz: float = 200.0
+    substeps: int = 2
+    noise_free: bool = False
+    gyro_noise_density: float = _IMU_DEFAULTS.gyro_noise_density
+    accel_noise_density: float = _IMU_DEFAULTS.accel_noise_density
+    gyro_random_walk: float = _IMU_DEFAULTS.gyro_random_walk
+    accel_random_walk: float = _IMU_DEFAULTS.accel_random_walk
+    gyro_bias0_std: float = 0.003
+    accel_bias0_std: float = 0.05
+    attitude_rate_hz: float = 100.0
+    attitude_noise_rad: float = 0.005
+    yaw_rate_hz: float = 10.0
+    yaw_noise_rad: float = 0.02
+    range_rate_hz: float = 25.0
+    range_noise_m: float = 0.01
+    range_min: float = 0.1
+    range_max: float = 8.0
+    range_dropout_prob: float = 0.02
+    range_outlier_prob: float = 0.01
+    range_outlier_fraction: tuple[float, float] = (0.2, 0.8)
+    body_t_range: tuple[float, float, float] = DEFAULT_BODY_T_RANGE
+    ground_height: float = 0.0
+    terrain_steps: tuple[tuple[float, float, float, float, float], ...] = ()
+    slam_rate_hz: float = 20.0
+    slam_noise_m: float = 0.01
+    slam_rot_noise_rad: float = 0.003
+    slam_scale: float | None = None
+    slam_scale_range: tuple[float, float] = (0.5, 2.0)
+    slam_axis_scale: tuple[float, ...] | None = None
+    slam_scale_drift_per_s: float = 5e-4
+    slam_latency_s: float = 0.1
+    slam_latency_jitter_s: float = 0.01
+    slam_resets: tuple[float, ...] = ()
+    slam_reset_gap_s: float = 1.0
+    slam_dropouts: tuple[tuple[float, float], ...] = ()
+    images: bool = True
+    image_rate_hz: float = 20.0
+    image_width: int = 320
+    image_height: int = 240
+    camera_hfov_deg: float = 64.0
+    body_t_cam: tuple[float, float, float] | None = None
+    image_noise_std: float = 2.0
+    motion_blur_s: float = 0.0
+    brightness_amplitude: float = 0.0
+    brightness_period_s: float = 10.0
+    featureless_patches: int = 0
+    texture_resolution_m: float = 0.01
+    drag_k: tuple[float, float] = (0.38, 0.42)
+    wind: tuple[float, float, float] | None = None
+    gust_std: float | None = None
+    gust_tau_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        # TOML gives lists; store tuples so the options stay hashable and comparable.
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, list):
+                v = tuple(tuple(x) if isinstance(x, list) else x for x in v)
+                object.__setattr__(self, f.name, v)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`SimulationError` naming the first invalid field."""
+
+        def bad(name: str, expected: str) -> SimulationError:
+            return SimulationError(
+                f"SimOptions.{name}={getattr(self, name)!r}: expected {expected}"
+            )
+
+        if self.duration is not None and not self.duration > 0:
+            raise bad("duration", "a positive number of seconds")
+        if not self.imu_rate_hz > 0:
+            raise bad("imu_rate_hz", "a positive rate")
+        if int(self.substeps) != self.substeps or self.substeps < 1:
+            raise bad("substeps", "an integer >= 1")
+        for name in ("attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz",
+                     "image_rate_hz"):
+            rate = getattr(self, name)
+            if rate < 0 or rate > self.imu_rate_hz:
+                raise bad(name, f"0 (off) or a rate up to imu_rate_hz={self.imu_rate_hz}")
+            if rate > 0:
+                ratio = self.imu_rate_hz / rate
+                if abs(ratio - round(ratio)) > 1e-9:
+                    raise bad(name, f"a rate dividing imu_rate_hz={self.imu_rate_hz}")
+        for name in ("range_dropout_prob", "range_outlier_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise bad(name, "a probability in [0, 1]")
+        if not 0 <= self.range_min < self.range_max:
+            raise bad("range_min", f"0 <= range_min < range_max={self.range_max}")
+        if len(self.drag_k) != 2 or min(self.drag_k) < 0:
+            raise bad("drag_k", "two non-negative coefficients (kx, ky) [1/s]")
+        if self.slam_axis_scale not in (None, ()) and (
+            len(self.slam_axis_scale) != 3 or min(self.slam_axis_scale) <= 0
+        ):
+            raise bad("slam_axis_scale", "None, () or three positive scales (kx, ky, kz)")
+        if self.slam_scale is not None and not self.slam_scale > 0:
+            raise bad("slam_scale", "a positive scale (SLAM units per metre)")
+        for t0, t1 in self.slam_dropouts:
+            if not t1 > t0:
+                raise bad("slam_dropouts", "intervals (t0, t1) with t1 > t0")
+        for step in self.terrain_steps:
+            if len(step) != 5 or not (step[2] > step[0] and step[3] > step[1]):
+                raise bad("terrain_steps", "boxes (x0, y0, x1, y1, height) with x1 > x0, y1 > y0")
+        if self.image_width < 16 or self.image_height < 16:
+            raise bad("image_width", "an image of at least 16 x 16 pixels")
+        if not 0 < self.camera_hfov_deg < 170:
+            raise bad("camera_hfov_deg", "a horizontal field of view in (0, 170) degrees")
+        if not self.texture_resolution_m > 0:
+            raise bad("texture_resolution_m", "a positive texel size [m]")
+        if self.motion_blur_s < 0:
+            raise bad("motion_blur_s", "a non-negative exposure time [s]")
+        if not math.isfinite(self.ground_height):
+            raise bad("ground_height", "a finite height [m]")

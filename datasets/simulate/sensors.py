@@ -1,0 +1,340 @@
+"""Sensor models of the simulator: IMU, AHRS attitude, yaw, tilted rangefinder, monocular SLAM.
+
+Every function takes the true vehicle states (on the IMU grid), the options and its own seeded
+generator, and returns the stream plus the truth it used. All streams share the IMU clock.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from fgnav.datasets.geometry import matrix_to_quat_wxyz, so3_exp, wrap_angle, yaw_of
+from fgnav.datasets.types import AttitudeSeries, ImuSeries, RangeSeries, SlamSeries, YawSeries
+
+from .options import SimOptions, SimulationError
+from .vehicle import VehicleLog
+
+log = logging.getLogger(__name__)
+
+
+def decimation(opts: SimOptions, rate_hz: float) -> int:
+    """Number of IMU samples between two samples of a stream at ``rate_hz``."""
+    return int(round(opts.imu_rate_hz / rate_hz))
+
+
+def _exp_stack(phi: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors -> (N, 3, 3) rotations."""
+    return np.stack([so3_exp(p) for p in phi]) if len(phi) else np.zeros((0, 3, 3))
+
+
+# ---------------------------------------------------------------------------------------------
+# IMU
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ImuTruth:
+    """Biases of the simulated IMU at every sample: gyro [rad/s], accel [m/s^2], (N, 3)."""
+
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+
+def _random_walk(rng, n: int, x0_std: float, step_std: float) -> np.ndarray:
+    x0 = rng.normal(0.0, x0_std, 3) if x0_std > 0 else np.zeros(3)
+    steps = rng.normal(0.0, step_std, (n, 3)) if step_std > 0 else np.zeros((n, 3))
+    steps[0] = 0.0
+    return x0 + np.cumsum(steps, axis=0)
+
+
+def simulate_imu(
+    vehicle: VehicleLog, opts: SimOptions, rng: np.random.Generator
+) -> tuple[ImuSeries, ImuTruth]:
+    """Gyro and accelerometer in body: ``true + bias + white noise``.
+
+    White noise is ``density / sqrt(dt)`` per sample; the bias is a random walk with step
+    ``random_walk * sqrt(dt)`` from an initial bias of spread ``*_bias0_std``.
+    """
+    n = len(vehicle.t)
+    dt = 1.0 / opts.imu_rate_hz
+    if opts.noise_free:
+        zeros = np.zeros((n, 3))
+        imu = ImuSeries(vehicle.t.copy(), vehicle.body_omega.copy(),
+                        vehicle.body_specific_force.copy())
+        return imu, ImuTruth(zeros, zeros.copy())
+    gyro_bias = _random_walk(rng, n, opts.gyro_bias0_std, opts.gyro_random_walk * math.sqrt(dt))
+    accel_bias = _random_walk(
+        rng, n, opts.accel_bias0_std, opts.accel_random_walk * math.sqrt(dt)
+    )
+    gyro = vehicle.body_omega + gyro_bias + rng.normal(
+        0.0, opts.gyro_noise_density / math.sqrt(dt), (n, 3)
+    )
+    accel = vehicle.body_specific_force + accel_bias + rng.normal(
+        0.0, opts.accel_noise_density / math.sqrt(dt), (n, 3)
+    )
+    return ImuSeries(vehicle.t.copy(), gyro, accel), ImuTruth(gyro_bias, accel_bias)
+
+
+# ---------------------------------------------------------------------------------------------
+# Attitude and yaw
+# ---------------------------------------------------------------------------------------------
+
+
+def simulate_attitude(
+    vehicle: VehicleLog, opts: SimOptions, rng: np.random.Generator
+) -> AttitudeSeries | None:
+    """AHRS attitude ``world_R_body Exp(n)``, ``n ~ N(0, attitude_noise_rad^2 I)``."""
+    if opts.attitude_rate_hz <= 0:
+        return None
+    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.attitude_rate_hz))
+    R = vehicle.world_R_body[idx]
+    sigma = 0.0 if opts.noise_free else opts.attitude_noise_rad
+    if sigma > 0:
+        R = R @ _exp_stack(rng.normal(0.0, sigma, (len(idx), 3)))
+    return AttitudeSeries(vehicle.t[idx].copy(), matrix_to_quat_wxyz(R))
+
+
+def simulate_yaw(
+    vehicle: VehicleLog, opts: SimOptions, rng: np.random.Generator
+) -> YawSeries | None:
+    """Magnetometer-like yaw ``wrap(yaw_of(world_R_body) + n)``."""
+    if opts.yaw_rate_hz <= 0:
+        return None
+    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.yaw_rate_hz))
+    yaw = yaw_of(vehicle.world_R_body[idx])
+    sigma = 0.0 if opts.noise_free else opts.yaw_noise_rad
+    if sigma > 0:
+        yaw = yaw + rng.normal(0.0, sigma, len(idx))
+    return YawSeries(vehicle.t[idx].copy(), wrap_angle(yaw))
+
+
+# ---------------------------------------------------------------------------------------------
+# Rangefinder
+# ---------------------------------------------------------------------------------------------
+
+
+def beam_range(
+    world_t_sensor: np.ndarray,
+    world_d_beam: np.ndarray,
+    ground_height: float,
+    terrain_steps: tuple[tuple[float, float, float, float, float], ...] = (),
+) -> np.ndarray:
+    """Distance [m] along unit beams ``world_d_beam`` (N, 3) from ``world_t_sensor`` (N, 3) to the
+    ground plane ``z = ground_height`` or the top of a raised box ``(x0, y0, x1, y1, height)``
+    (top at ``ground_height + height``); ``inf`` when the beam does not point down."""
+    down = -world_d_beam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(down > 0, (world_t_sensor[:, 2] - ground_height) / down, np.inf)
+        for x0, y0, x1, y1, height in terrain_steps:
+            rb = np.where(down > 0, (world_t_sensor[:, 2] - ground_height - height) / down, np.inf)
+            hit = world_t_sensor[:, :2] + rb[:, None] * world_d_beam[:, :2]
+            inside = (
+                (rb > 0) & (hit[:, 0] >= x0) & (hit[:, 0] <= x1)
+                & (hit[:, 1] >= y0) & (hit[:, 1] <= y1)
+            )
+            r = np.where(inside & (rb < r), rb, r)
+    return np.where(r > 0, r, np.inf)
+
+
+def simulate_range(
+    vehicle: VehicleLog, body_T_range: np.ndarray, opts: SimOptions, rng: np.random.Generator
+) -> tuple[RangeSeries | None, dict[str, Any]]:
+    """Downward rangefinder along the sensor's +z axis, with lever arm.
+
+    True reading: distance along the beam to the ground (``height_of_sensor / cos(tilt)`` on flat
+    ground). Then: Gaussian noise, dropouts (missing readings), obstacle spikes (reading times a
+    uniform fraction), and readings outside ``[range_min, range_max]`` are not delivered.
+
+    Returns:
+        The series (None when off or empty) and the truth: ``range_outlier_t`` (times of the
+        injected spikes that were delivered) and counts of what was not delivered.
+    """
+    truth: dict[str, Any] = {"range_outlier_t": [], "range_dropouts": 0, "range_out_of_limits": 0}
+    if opts.range_rate_hz <= 0:
+        return None, truth
+    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.range_rate_hz))
+    R = vehicle.world_R_body[idx]
+    origin = vehicle.world_t_body[idx] + R @ body_T_range[:3, 3]
+    beam = R @ body_T_range[:3, 2]
+    true_r = beam_range(origin, beam, opts.ground_height, opts.terrain_steps)
+    n = len(idx)
+    r = true_r.copy()
+    outlier = np.zeros(n, bool)
+    keep = np.ones(n, bool)
+    if not opts.noise_free:
+        r = r + rng.normal(0.0, opts.range_noise_m, n)
+        outlier = rng.random(n) < opts.range_outlier_prob
+        lo, hi = opts.range_outlier_fraction
+        r = np.where(outlier, true_r * rng.uniform(lo, hi, n), r)
+        dropped = rng.random(n) < opts.range_dropout_prob
+        keep &= ~dropped
+        truth["range_dropouts"] = int(dropped.sum())
+    in_limits = np.isfinite(r) & (r >= opts.range_min) & (r <= opts.range_max)
+    truth["range_out_of_limits"] = int((keep & ~in_limits).sum())
+    keep &= in_limits
+    truth["range_outlier_t"] = [float(x) for x in vehicle.t[idx][keep & outlier]]
+    if not keep.any():
+        log.warning("rangefinder: no reading within [%g, %g] m", opts.range_min, opts.range_max)
+        return None, truth
+    return RangeSeries(vehicle.t[idx][keep].copy(), r[keep]), truth
+
+
+# ---------------------------------------------------------------------------------------------
+# Monocular SLAM
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SlamSession:
+    """Truth of one SLAM session (map): ``slam_t_cam = s(t) slam_R_world world_t_cam +
+    slam_t_world`` with ``s(t) = scale (1 + scale_drift_per_s (t - t_start))``; per-axis model:
+    ``slam_t_cam = (1 + drift (t - t_start)) diag(axis_scale) world_t_cam`` (identity rotation,
+    zero translation)."""
+
+    scale: float
+    slam_R_world: np.ndarray
+    slam_t_world: np.ndarray
+    scale_drift_per_s: float
+    t_start: float
+    axis_scale: tuple[float, float, float] | None = None
+    t_end: float = field(default=float("nan"))
+
+    def to_json(self) -> dict[str, Any]:
+        out = {
+            "model": "per_axis" if self.axis_scale else "similarity",
+            "scale": float(self.scale),
+            "slam_R_world": self.slam_R_world.tolist(),
+            "slam_t_world": self.slam_t_world.tolist(),
+            "scale_drift_per_s": float(self.scale_drift_per_s),
+            "t_start": float(self.t_start),
+            "t_end": float(self.t_end),
+        }
+        if self.axis_scale:
+            out["axis_scale"] = [float(k) for k in self.axis_scale]
+        return out
+
+
+def slam_session_masks(t: np.ndarray, opts: SimOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Session id per sample (-1: no output: reset gap or dropout) and the dropout mask."""
+    session = np.zeros(len(t), int)
+    for j, r in enumerate(sorted(opts.slam_resets)):
+        session[t >= r] = j + 1
+        session[(t >= r) & (t < r + opts.slam_reset_gap_s)] = -1
+    dropout = np.zeros(len(t), bool)
+    for t0, t1 in opts.slam_dropouts:
+        dropout |= (t >= t0) & (t < t1)
+    session[dropout] = -1
+    return session, dropout
+
+
+def simulate_slam(
+    t: np.ndarray,
+    world_T_cam: np.ndarray,
+    opts: SimOptions,
+    axis_scale: tuple[float, float, float] | None,
+    rng: np.random.Generator,
+) -> tuple[SlamSeries | None, dict[str, dict[str, Any]]]:
+    """Monocular SLAM camera poses at image times ``t`` from true ``world_T_cam`` (N, 4, 4).
+
+    Each session's SLAM frame is the camera frame at its first pose (the pose of the first frame is
+    the identity up to noise), with a new scale drawn log-uniformly in ``slam_scale_range``
+    (session 0 uses ``slam_scale`` when given). With ``axis_scale`` the seed-000 model is used
+    instead. Latency: ``slam_latency_s + |N(0, jitter^2)|``.
+
+    Returns:
+        The series (None when no pose is delivered) and ``{str(session): truth}``.
+    """
+    session, _ = slam_session_masks(t, opts)
+    noise_free = opts.noise_free
+    sessions: dict[str, dict[str, Any]] = {}
+    slam_t = np.zeros((len(t), 3))
+    slam_R = np.zeros((len(t), 3, 3))
+    lo, hi = opts.slam_scale_range
+    for sid in sorted(set(session[session >= 0].tolist())):
+        idx = np.flatnonzero(session == sid)
+        i0 = idx[0]
+        if sid == 0 and opts.slam_scale is not None:
+            scale = float(opts.slam_scale)
+        else:
+            scale = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+        if axis_scale:
+            truth = SlamSession(
+                scale=float(np.prod(axis_scale)) ** (1.0 / 3.0),
+                slam_R_world=np.eye(3),
+                slam_t_world=np.zeros(3),
+                scale_drift_per_s=opts.slam_scale_drift_per_s,
+                t_start=float(t[i0]),
+                axis_scale=tuple(float(k) for k in axis_scale),
+            )
+        else:
+            slam_R_world = world_T_cam[i0, :3, :3].T
+            truth = SlamSession(
+                scale=scale,
+                slam_R_world=slam_R_world,
+                slam_t_world=-scale * slam_R_world @ world_T_cam[i0, :3, 3],
+                scale_drift_per_s=opts.slam_scale_drift_per_s,
+                t_start=float(t[i0]),
+            )
+        truth.t_end = float(t[idx[-1]])
+        sessions[str(sid)] = truth.to_json()
+        world_t_cam = world_T_cam[idx, :3, 3]
+        world_R_cam = world_T_cam[idx, :3, :3]
+        if not noise_free and opts.slam_noise_m > 0:
+            world_t_cam = world_t_cam + rng.normal(0.0, opts.slam_noise_m, world_t_cam.shape)
+        if not noise_free and opts.slam_rot_noise_rad > 0:
+            world_R_cam = world_R_cam @ _exp_stack(
+                rng.normal(0.0, opts.slam_rot_noise_rad, (len(idx), 3))
+            )
+        drift = 1.0 + truth.scale_drift_per_s * (t[idx] - truth.t_start)
+        if axis_scale:
+            slam_t[idx] = drift[:, None] * world_t_cam * np.asarray(axis_scale)
+        else:
+            slam_t[idx] = (
+                (truth.scale * drift)[:, None] * (world_t_cam @ truth.slam_R_world.T)
+                + truth.slam_t_world
+            )
+        slam_R[idx] = truth.slam_R_world @ world_R_cam
+    keep = session >= 0
+    if not keep.any():
+        return None, sessions
+    n = int(keep.sum())
+    jitter = 0.0 if noise_free else opts.slam_latency_jitter_s
+    latency = opts.slam_latency_s + (np.abs(rng.normal(0.0, jitter, n)) if jitter > 0 else 0.0)
+    series = SlamSeries(
+        t=t[keep].copy(),
+        slam_t_cam=slam_t[keep],
+        slam_q_cam_wxyz=matrix_to_quat_wxyz(slam_R[keep]),
+        session=session[keep].astype(np.int64),
+        latency=np.broadcast_to(latency, (n,)).astype(float),
+    )
+    return series, sessions
+
+
+# ---------------------------------------------------------------------------------------------
+# Wind
+# ---------------------------------------------------------------------------------------------
+
+
+def simulate_wind(
+    n: int, dt: float, mean: np.ndarray, gust_std: float, tau_s: float, rng: np.random.Generator
+) -> np.ndarray:
+    """(n, 3) wind in world [m/s]: ``mean`` plus Ornstein-Uhlenbeck gusts on x and y with
+    stationary standard deviation ``gust_std`` and correlation time ``tau_s``."""
+    wind = np.tile(np.asarray(mean, float), (n, 1))
+    if gust_std <= 0 or n == 0:
+        return wind
+    if tau_s <= 0:
+        raise SimulationError(f"SimOptions.gust_tau_s={tau_s!r}: expected a positive time [s]")
+    a = math.exp(-dt / tau_s)
+    b = gust_std * math.sqrt(1.0 - a * a)
+    noise = rng.normal(0.0, 1.0, (n, 2))
+    gust = np.empty((n, 2))
+    gust[0] = gust_std * noise[0]
+    for i in range(1, n):
+        gust[i] = a * gust[i - 1] + b * noise[i]
+    wind[:, :2] += gust
+    return wind
