@@ -330,7 +330,7 @@ def _rmse(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if x.size else math.nan
 
 
-def _scale_samples(estimate: Estimate, sessions: list[int]) -> dict[int, TimeSeries]:
+def scale_series(estimate: Estimate, sessions: list[int] | None = None) -> dict[int, TimeSeries]:
     """The scale-over-time series of each session present in ``estimate.series``.
 
     Accepted layouts: ``series["slam_scale/<id>"]`` per session; or ``series["slam_scale"]`` (N,)
@@ -360,15 +360,16 @@ def _scale_samples(estimate: Estimate, sessions: list[int]) -> dict[int, TimeSer
             )
         for sid in np.unique(sess):
             m = sess == sid
-            out.setdefault(int(sid), TimeSeries(np.asarray(base.t)[m], value[m]))
+            sigma = None if base.sigma is None else np.asarray(base.sigma)[m]
+            out.setdefault(int(sid), TimeSeries(np.asarray(base.t)[m], value[m], sigma))
         return out
-    known = sorted(estimate.slam_scale) or sessions
+    known = sorted(estimate.slam_scale) or list(sessions or [])
     if len(known) != 1:
         raise FlightDataError(
             f"estimate[{estimate.method}].series['slam_scale'] has no 'slam_session' series "
             f"and the estimate has sessions {known}: cannot tell the session of each value"
         )
-    out.setdefault(known[0], TimeSeries(np.asarray(base.t), value))
+    out.setdefault(known[0], TimeSeries(np.asarray(base.t), value, base.sigma))
     return out
 
 
@@ -385,7 +386,7 @@ def scale_errors(
             final[int(sid)] = 100.0 * (estimate.slam_scale[sid] - s_true) / s_true
         else:
             logger.warning("estimate[%s] has no scale for SLAM session %s", estimate.method, sid)
-    for sid, ts in _scale_samples(estimate, sorted(truth_scale)).items():
+    for sid, ts in scale_series(estimate, sorted(truth_scale)).items():
         if sid in truth_scale and np.asarray(ts.value).size:
             s_true = truth_scale[sid]
             mean_abs[sid] = float(np.mean(np.abs(np.asarray(ts.value) - s_true)) / s_true * 100.0)
