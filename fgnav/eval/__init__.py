@@ -1,1 +1,20 @@
-"""Evaluation: trajectory alignment, metrics (ATE, RPE, scale, velocity, yaw, NEES), reports."""
+"""Evaluation: trajectory alignment, metrics (ATE, RPE, scale, velocity, yaw, NEES), reports.
+
+``align`` and ``metrics`` are numpy-only; ``plots`` imports matplotlib (import it explicitly).
+"""
+
+from fgnav.eval.align import Alignment, Association, align, associate
+from fgnav.eval.metrics import Metrics, evaluate, format_table, slam_scale_vs_truth
+from fgnav.eval.outputs import write_estimate
+
+__all__ = [
+    "Alignment",
+    "Association",
+    "Metrics",
+    "align",
+    "associate",
+    "evaluate",
+    "format_table",
+    "slam_scale_vs_truth",
+    "write_estimate",
+]
