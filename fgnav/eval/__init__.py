@@ -1,6 +1,6 @@
 """Evaluation: trajectory alignment, metrics (ATE, RPE, scale, velocity, yaw, NEES), reports.
 
-``align`` and ``metrics`` are numpy-only; ``plots`` imports matplotlib (import it explicitly).
+``plots`` imports matplotlib and is not imported here (import ``fgnav.eval.plots`` explicitly).
 """
 
 from fgnav.eval.align import Alignment, Association, align, associate
