@@ -16,9 +16,10 @@ ground-relative velocity, the wind is unknown to it) gives the desired force dir
 attitude loop makes the body z axis follow it with the reference yaw (first-order attitude
 kinematics with a first-order lag on the body rate). Tilt is therefore what moves the vehicle.
 
-Integration: fixed sub-steps with the control held over each sub-step (zero-order hold); the
-rotation is propagated exactly for the constant body rate (``R exp(omega dt)``) and the
-translation with the midpoint (RK2) rule.
+Integration: the controller runs at the output (IMU) rate and its body rate and thrust are held
+over each sample interval (zero-order hold), so the rotation is propagated exactly
+(``R exp(omega dt)``: preintegrating the noise-free gyro reproduces the true attitude) and the
+translation, whose drag varies continuously, with RK4 on ``substeps`` sub-steps.
 """
 
 from __future__ import annotations
@@ -60,9 +61,9 @@ class VehicleLog:
         world_t_body: (N, 3) position [m].
         world_v_body: (N, 3) velocity [m/s].
         world_R_body: (N, 3, 3) attitude.
-        body_omega: (N, 3) body rate held over the next sub-step [rad/s].
-        body_specific_force: (N, 3) true specific force [m/s^2] (thrust and drag of the next
-            sub-step, evaluated at the sample's state).
+        body_omega: (N, 3) body rate, constant until the next sample [rad/s].
+        body_specific_force: (N, 3) true specific force at the sample [m/s^2] (thrust held until
+            the next sample, drag of the sample's state).
         world_v_wind: (N, 3) wind velocity [m/s].
     """
 
@@ -131,6 +132,15 @@ def drag_body(
     return np.array([-drag_k[0] * body_v_air[0], -drag_k[1] * body_v_air[1], 0.0])
 
 
+_G_WORLD = np.array([0.0, 0.0, -GRAVITY])
+
+
+def _world_accel(world_R_body, world_v_body, thrust_body, world_v_wind, drag_k) -> np.ndarray:
+    """World acceleration [m/s^2] for held thrust (body, per unit mass) with rotor drag."""
+    f_body = thrust_body + drag_body(world_R_body, world_v_body, world_v_wind, drag_k)
+    return world_R_body @ f_body + _G_WORLD
+
+
 def desired_rotation(world_f: np.ndarray, yaw: float) -> np.ndarray:
     """Rotation whose z axis is along force ``world_f`` and whose heading is ``yaw`` [rad]."""
     z = world_f / math.sqrt(float(world_f @ world_f))
@@ -190,35 +200,37 @@ def simulate_vehicle(
 
     for i in range(n):
         w_air = wind[i]
-        for s in range(substeps):
-            # 1. Position loop: desired force per unit mass (drag compensated without wind).
-            a_des = ref_a[i] + gains.kp * (ref_p[i] - p) + gains.kd * (ref_v[i] - v)
-            f_des = a_des - g_world - R @ drag_body(R, v, no_wind, k)
-            horiz = math.hypot(f_des[0], f_des[1])
-            if f_des[2] <= 0.0 or horiz > tan_max * f_des[2]:
-                fz = max(f_des[2], 0.2 * GRAVITY)
-                scale = min(1.0, tan_max * fz / max(horiz, 1e-12))
-                f_des = np.array([f_des[0] * scale, f_des[1] * scale, fz])
-            thrust = float(f_des @ R[:, 2])
-            # 2. Attitude loop: body rate towards the desired attitude, with yaw-rate feed-forward.
-            R_des = desired_rotation(f_des, float(ref_yaw[i]))
-            omega_cmd = gains.k_att * _log(R.T @ R_des) + R.T @ np.array(
-                [0.0, 0.0, ref_yaw_rate[i]]
-            )
-            omega = omega + (omega_cmd - omega) * min(1.0, h / gains.tau_rate)
-            f_body = np.array([0.0, 0.0, thrust]) + drag_body(R, v, w_air, k)
-            if s == 0:
-                out_p[i], out_v[i], out_R[i] = p, v, R
-                out_w[i], out_f[i] = omega, f_body
-            # 3. Integrate over the sub-step: exact rotation, midpoint translation.
-            a0 = R @ f_body + g_world
-            R_mid = R @ _exp(omega * (0.5 * h))
-            v_mid = v + 0.5 * h * a0
-            f_mid = np.array([0.0, 0.0, thrust]) + drag_body(R_mid, v_mid, w_air, k)
-            a_mid = R_mid @ f_mid + g_world
-            p = p + h * v + 0.5 * h * h * a_mid
-            v = v + h * a_mid
-            R = R @ _exp(omega * h)
+        # 1. Position loop: desired force per unit mass (drag compensated without wind).
+        a_des = ref_a[i] + gains.kp * (ref_p[i] - p) + gains.kd * (ref_v[i] - v)
+        f_des = a_des - g_world - R @ drag_body(R, v, no_wind, k)
+        horiz = math.hypot(f_des[0], f_des[1])
+        if f_des[2] <= 0.0 or horiz > tan_max * f_des[2]:
+            fz = max(f_des[2], 0.2 * GRAVITY)
+            scale = min(1.0, tan_max * fz / max(horiz, 1e-12))
+            f_des = np.array([f_des[0] * scale, f_des[1] * scale, fz])
+        thrust_body = np.array([0.0, 0.0, float(f_des @ R[:, 2])])
+        # 2. Attitude loop: body rate towards the desired attitude, with yaw-rate feed-forward.
+        R_des = desired_rotation(f_des, float(ref_yaw[i]))
+        omega_cmd = gains.k_att * _log(R.T @ R_des) + R.T @ np.array([0.0, 0.0, ref_yaw_rate[i]])
+        omega = omega + (omega_cmd - omega) * min(1.0, dt_out / gains.tau_rate)
+        out_p[i], out_v[i], out_R[i] = p, v, R
+        out_w[i] = omega
+        out_f[i] = thrust_body + drag_body(R, v, w_air, k)
+        # 3. Integrate over the sample interval: body rate and thrust held (exact rotation
+        #    R(s) = R exp(omega s)), translation with RK4 on sub-steps of length h.
+        R_half = _exp(omega * (0.5 * h))
+        R_a = R
+        for _ in range(substeps):
+            R_b = R_a @ R_half
+            R_c = R_b @ R_half
+            a1 = _world_accel(R_a, v, thrust_body, w_air, k)
+            a2 = _world_accel(R_b, v + 0.5 * h * a1, thrust_body, w_air, k)
+            a3 = _world_accel(R_b, v + 0.5 * h * a2, thrust_body, w_air, k)
+            a4 = _world_accel(R_c, v + h * a3, thrust_body, w_air, k)
+            p = p + h * v + (h * h / 6.0) * (a1 + a2 + a3)
+            v = v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            R_a = R_c
+        R = R @ _exp(omega * dt_out)
         # Re-orthonormalise once per output sample to keep round-off from accumulating.
         u, _, vt = np.linalg.svd(R)
         R = u @ vt
