@@ -30,7 +30,7 @@ file is **loaded, with warnings**, because nothing in it is ambiguous:
 - A block of lines at the **end** of the file that are not data rows (``,,,,,,``,
   ``1403636763.853,,,,,,``, ``Step: 0.005 = 1/200,,,,,,``) is skipped; a warning counts them and
   names their line numbers, and the same text goes to the reader ``notes`` (and so to
-  ``flight.meta["reader_notes"]``, shown by ``fgnav info``).
+  ``flight.meta["notes"]``, shown by ``fgnav info``).
 - Anything malformed **before** the last data row (a missing value, text, NaN, a wrong column
   count, time going backwards) is an error naming file, line and column: such a file has lost
   data in the middle, which no reader should paper over.
@@ -297,7 +297,7 @@ def read_euroc_folder(mav0_dir: str | Path) -> Flight:
 
     Reads ``imu0`` (required), ``state_groundtruth_estimate0`` and ``cam0`` when present, with
     their ``sensor.yaml`` files (IMU noise, ``body_T_cam = inv(T_BS_imu0) * T_BS_cam0`` so that the
-    body stays the IMU frame, camera intrinsics). Reader notes go to ``meta["reader_notes"]``.
+    body stays the IMU frame, camera intrinsics). Reader notes go to ``meta["notes"]``.
     """
     root = Path(mav0_dir)
     if not root.is_dir():
@@ -344,7 +344,7 @@ def read_euroc_folder(mav0_dir: str | Path) -> Flight:
         images=images,
         ground_truth=gt,
         calib=Calibration(**calib_kwargs),
-        meta={"format": "euroc", "sources": sources, "reader_notes": notes},
+        meta={"format": "euroc", "sources": sources, "notes": notes},
     )
     try:
         return flight.check()

@@ -164,7 +164,7 @@ def test_synthetic_mav0_folder(tmp_path):
     np.testing.assert_allclose(invert_pose(flight.calib.body_T_cam)[:3, :3],
                                flight.calib.body_T_cam[:3, :3].T)
     assert flight.images.load(1).shape == (8, 8)
-    assert flight.meta["reader_notes"] == []
+    assert flight.meta["notes"] == []
     (mav0 / "cam0/data" / names[1]).unlink()
     with pytest.raises(FlightFormatError, match=r"cam0/data\.csv:3: image file .* not found"):
         read_euroc_folder(mav0)

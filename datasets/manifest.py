@@ -1,0 +1,212 @@
+"""Flight manifests: one TOML file assembling a flight from separate files of different formats.
+
+Example (``datasets/manifests/euroc_mh01_orbslam3.toml``)::
+
+    name = "MH_01_easy + ORB-SLAM3 mono"
+    root = "../../../shared/data/real/euroc_MH_01_easy"   # relative to this file
+
+    [imu]
+    format = "euroc"
+    path = "imu0/data.cleaned.csv"
+
+    [slam]
+    format = "tum_slam"
+    path = "orbslam3_mono_runA/f_dataset-MH01_mono.txt"
+
+    [ground_truth]
+    format = "tum"
+    path = "groundtruth/MH_01_easy.txt"
+
+    [calib]
+    format = "orbslam3_yaml"
+    path = "calib/EuRoC.yaml"
+
+    [references.rpg_vio_mono]
+    format = "tum"
+    path = "rpg_vio_mono/stamped_traj_estimate.txt"
+
+Top-level keys: ``name`` (required), ``root`` (folder the ``path`` values are relative to; itself
+relative to the manifest's folder; default: the manifest's folder), ``source`` (free text), and
+the tables in :data:`TABLE_FORMATS` plus ``[references.<name>]`` (trajectories recorded beside the
+flight, e.g. another estimator's output; they become baseline rows) and ``[meta]`` (free metadata
+copied into ``flight.meta["manifest_meta"]``).
+
+Keys of a stream table: ``format`` and ``path`` (required), ``time_offset_s`` (added to the
+stream's times to put it on the flight's clock; recorded in ``calib.time_offsets``), and per
+format: ``session`` (``tum_slam``: map id of its poses) and ``time_unit`` (``tum``, ``tum_slam``:
+``"auto"``, ``"s"``, ``"ns"``). Unknown keys, tables and formats are errors naming the manifest,
+table and key and listing the valid ones; a missing file is an error naming the resolved path.
+Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from .calib_yaml import read_orbslam3_yaml
+from .errors import FlightFormatError
+from .euroc import read_euroc_groundtruth, read_euroc_images, read_euroc_imu
+from .native import read_calib_yaml, read_stream_csv
+from .tum import TIME_UNITS, read_tum, read_tum_slam
+from .types import Calibration, Flight
+
+log = logging.getLogger(__name__)
+
+TABLE_FORMATS: dict[str, tuple[str, ...]] = {
+    "imu": ("euroc", "native_csv"),
+    "attitude": ("native_csv",),
+    "range": ("native_csv",),
+    "yaw": ("native_csv",),
+    "slam": ("tum_slam", "native_csv"),
+    "images": ("euroc",),
+    "ground_truth": ("tum", "euroc", "native_csv"),
+    "calib": ("orbslam3_yaml", "native"),
+}
+"""Stream tables and the formats each accepts (``[references.<name>]`` takes those of
+``ground_truth``)."""
+
+TOP_LEVEL_KEYS = ("name", "root", "source", "references", "meta", *TABLE_FORMATS)
+
+_COMMON_KEYS = ("format", "path", "time_offset_s")
+_FORMAT_KEYS: dict[str, tuple[str, ...]] = {
+    "tum": ("time_unit",),
+    "tum_slam": ("time_unit", "session"),
+}
+
+
+def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]) -> str:
+    if not isinstance(spec, dict):
+        raise FlightFormatError(manifest, f"[{table}] must be a table with format and path")
+    fmt = spec.get("format")
+    if fmt not in formats:
+        raise FlightFormatError(
+            manifest,
+            f"[{table}] format = {fmt!r} is not supported; valid: {', '.join(formats)}",
+        )
+    if table == "calib":
+        valid = ("format", "path")
+    else:
+        valid = _COMMON_KEYS + _FORMAT_KEYS.get(fmt, ())
+    unknown = [k for k in spec if k not in valid]
+    if unknown:
+        raise FlightFormatError(
+            manifest,
+            f"[{table}] unknown key(s) {unknown} for format {fmt!r}; valid: {', '.join(valid)}",
+        )
+    if "path" not in spec or not isinstance(spec["path"], str):
+        raise FlightFormatError(manifest, f"[{table}] path: required (a file path string)")
+    if "time_unit" in spec and spec["time_unit"] not in TIME_UNITS:
+        raise FlightFormatError(
+            manifest, f"[{table}] time_unit = {spec['time_unit']!r}; valid: {', '.join(TIME_UNITS)}"
+        )
+    if "time_offset_s" in spec and not isinstance(spec["time_offset_s"], int | float):
+        raise FlightFormatError(manifest, f"[{table}] time_offset_s: expected a number of seconds")
+    if "session" in spec and not isinstance(spec["session"], int):
+        raise FlightFormatError(manifest, f"[{table}] session: expected an integer map id")
+    return fmt
+
+
+def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
+    p = (root / rel).resolve()
+    if not p.exists():
+        raise FlightFormatError(manifest, f"[{table}] path: {p} not found")
+    return p
+
+
+def _read_stream(
+    kind: str, fmt: str, path: Path, spec: dict[str, Any], calib: Calibration, notes: list[str]
+) -> Any:
+    time_unit = spec.get("time_unit", "auto")
+    if fmt == "native_csv":
+        return read_stream_csv(path, "trajectory" if kind == "references" else kind)
+    if fmt == "euroc":
+        if kind == "imu":
+            return read_euroc_imu(path, notes=notes)
+        if kind == "images":
+            return read_euroc_images(path, calib.camera, notes=notes)
+        return read_euroc_groundtruth(path, notes=notes)
+    if fmt == "tum":
+        return read_tum(path, time_unit=time_unit, notes=notes)
+    if fmt == "tum_slam":
+        return read_tum_slam(path, spec.get("session", 0), time_unit=time_unit, notes=notes)
+    raise AssertionError(f"format {fmt!r} passed the checks but has no reader")
+
+
+def read_manifest(path: str | Path) -> Flight:
+    """Assemble a flight from the files a TOML manifest names (schema: module docstring).
+
+    Raises:
+        FlightFormatError: a bad manifest (naming manifest, table and key), a missing file (naming
+            the resolved path) or a bad data file (naming that file and line).
+        FlightDataError: the assembled flight fails ``flight.check()``.
+    """
+    manifest = Path(path).resolve()
+    if not manifest.is_file():
+        raise FlightFormatError(manifest, "manifest file not found")
+    try:
+        doc = tomllib.loads(manifest.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise FlightFormatError(manifest, f"not valid TOML: {e}") from e
+    unknown = [k for k in doc if k not in TOP_LEVEL_KEYS]
+    if unknown:
+        raise FlightFormatError(
+            manifest, f"unknown key(s)/table(s) {unknown}; valid: {', '.join(TOP_LEVEL_KEYS)}"
+        )
+    if not isinstance(doc.get("name"), str):
+        raise FlightFormatError(manifest, "name: required (a string)")
+    root = (manifest.parent / doc.get("root", ".")).resolve()
+    if not root.is_dir():
+        raise FlightFormatError(manifest, f"root: folder {root} not found")
+
+    notes: list[str] = []
+    sources: dict[str, dict[str, str]] = {}
+    calib = Calibration()
+    if "calib" in doc:
+        fmt = _check_table(manifest, "calib", doc["calib"], TABLE_FORMATS["calib"])
+        p = _resolve(manifest, root, "calib", doc["calib"]["path"])
+        calib = read_orbslam3_yaml(p, notes=notes) if fmt == "orbslam3_yaml" else read_calib_yaml(p)
+        sources["calib"] = {"format": fmt, "path": str(p)}
+
+    offsets: dict[str, float] = dict(calib.time_offsets)
+    streams: dict[str, Any] = {}
+    jobs: list[tuple[str, str, dict[str, Any], tuple[str, ...]]] = [
+        (t, t, doc[t], TABLE_FORMATS[t]) for t in TABLE_FORMATS if t != "calib" and t in doc
+    ]
+    refs = doc.get("references", {})
+    if not isinstance(refs, dict):
+        raise FlightFormatError(manifest, "[references] must hold tables [references.<name>]")
+    jobs += [(f"references.{n}", "references", s, TABLE_FORMATS["ground_truth"])
+             for n, s in refs.items()]
+    references = {}
+    for table, kind, spec, formats in jobs:
+        fmt = _check_table(manifest, table, spec, formats)
+        p = _resolve(manifest, root, table, spec["path"])
+        series = _read_stream(kind, fmt, p, spec, calib, notes)
+        offset = float(spec.get("time_offset_s", 0.0))
+        if offset:
+            series = dataclasses.replace(series, t=series.t + offset)
+            offsets[table] = offset
+        sources[table] = {"format": fmt, "path": str(p)}
+        if kind == "references":
+            references[table.split(".", 1)[1]] = series
+        else:
+            streams[kind] = series
+    calib = dataclasses.replace(calib, time_offsets=offsets)
+    meta: dict[str, Any] = {"format": "manifest", "manifest": str(manifest), "sources": sources,
+                            "notes": notes}
+    if "meta" in doc:
+        meta["manifest_meta"] = doc["meta"]
+    flight = Flight(
+        name=doc["name"],
+        source=doc.get("source", str(manifest)),
+        references=references,
+        calib=calib,
+        meta=meta,
+        **streams,
+    )
+    log.info("read manifest %s: %s", manifest, ", ".join(flight.streams()))
+    return flight.check()

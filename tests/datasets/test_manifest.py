@@ -1,0 +1,134 @@
+"""Flight manifests: the shipped MH_01 manifest on real data, and bad manifests named precisely."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fgnav.datasets import Flight, FlightFormatError, ImuSeries, SlamSeries, Trajectory
+from fgnav.datasets.manifest import read_manifest
+from fgnav.datasets.native import write_flight, write_stream_csv
+from fgnav.datasets.tum import write_tum
+from testutil import PROJECT_ROOT
+
+MH01_MANIFEST = PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml"
+
+
+@pytest.fixture(scope="module")
+def mh01(real_data) -> Flight:
+    return read_manifest(MH01_MANIFEST)
+
+
+def test_mh01_manifest_streams(mh01):
+    assert mh01.imu is not None and mh01.slam is not None and mh01.ground_truth is not None
+    assert mh01.imu.rate_hz == pytest.approx(200.0, abs=1.0)
+    assert mh01.imu.duration == pytest.approx(184.1, abs=0.1)
+    assert len(mh01.imu) == 36820
+    # 3,679 SLAM lines, of which 10 repeat their predecessor exactly (skipped and noted).
+    assert len(mh01.slam) == 3669
+    assert mh01.slam.rate_hz == pytest.approx(20.0, abs=0.1)
+    assert mh01.ground_truth.rate_hz == pytest.approx(200.0, abs=1.0)
+    assert len(mh01.ground_truth) == 36382
+    assert set(mh01.references) == {"rpg_vio_mono"}
+    assert mh01.calib.camera.fx == 458.654
+    assert mh01.calib.imu_noise.accel_random_walk == 3.0e-3
+    assert mh01.calib.body_T_cam[1, 3] == -0.064676986768
+    t0, t1 = mh01.time_window()
+    assert t0 == mh01.slam.t[0] and t1 == mh01.slam.t[-1]
+    assert t1 - t0 == pytest.approx(183.85, abs=0.01)
+    assert any("skipped 10 SLAM pose line(s)" in n for n in mh01.meta["notes"])
+    assert mh01.meta["sources"]["slam"]["format"] == "tum_slam"
+
+
+def _small_flight_files(tmp_path):
+    rng = np.random.default_rng(11)
+    n = 30
+    t = 100.0 + np.arange(n) * 0.005
+    write_stream_csv(
+        ImuSeries(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3))), tmp_path / "d/imu.csv",
+        "imu",
+    )
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    write_tum(tmp_path / "d/gt.txt", Trajectory(t, rng.normal(size=(n, 3)), q))
+    write_tum(tmp_path / "d/slam.txt", Trajectory(t[::5], rng.normal(size=(n // 5, 3)), q[::5]))
+    return t
+
+
+GOOD = """
+name = "small"
+root = "d"
+[imu]
+format = "native_csv"
+path = "imu.csv"
+[slam]
+format = "tum_slam"
+path = "slam.txt"
+session = 3
+time_offset_s = 0.5
+[ground_truth]
+format = "tum"
+path = "gt.txt"
+[references.other]
+format = "tum"
+path = "gt.txt"
+[meta]
+operator = "unit test"
+"""
+
+
+def test_small_manifest_options(tmp_path):
+    t = _small_flight_files(tmp_path)
+    (tmp_path / "m.toml").write_text(GOOD)
+    f = read_manifest(tmp_path / "m.toml")
+    np.testing.assert_array_equal(f.imu.t, t)
+    np.testing.assert_array_equal(f.slam.t, t[::5] + 0.5)
+    assert set(f.slam.session.tolist()) == {3}
+    assert f.calib.time_offsets == {"slam": 0.5}
+    assert isinstance(f.slam, SlamSeries) and set(f.references) == {"other"}
+    assert f.meta["manifest_meta"] == {"operator": "unit test"}
+
+
+def test_native_calib_in_manifest(tmp_path):
+    _small_flight_files(tmp_path)
+    imu = ImuSeries(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))
+    write_flight(Flight(name="c", imu=imu), tmp_path / "nat")
+    (tmp_path / "m.toml").write_text(
+        GOOD + '[calib]\nformat = "native"\npath = "../nat/calib.yaml"\n'
+    )
+    f = read_manifest(tmp_path / "m.toml")
+    np.testing.assert_array_equal(f.calib.body_T_cam, np.eye(4))
+    assert f.calib.range_max == float("inf")
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda s: s.replace('format = "tum_slam"', 'format = "bag"'),
+         r"m\.toml: \[slam\] format = 'bag' is not supported; valid: tum_slam, native_csv"),
+        (lambda s: s.replace("session = 3", "sesion = 3"),
+         r"\[slam\] unknown key\(s\) \['sesion'\] for format 'tum_slam'; valid: format, path, "
+         r"time_offset_s, time_unit, session"),
+        (lambda s: s + "[gps]\nformat = 'tum'\npath = 'gt.txt'\n",
+         r"unknown key\(s\)/table\(s\) \['gps'\]; valid: name, root"),
+        (lambda s: s.replace('path = "gt.txt"', 'path = "nothere.txt"', 1),
+         r"m\.toml: \[ground_truth\] path: .*d/nothere\.txt not found"),
+        (lambda s: s.replace('root = "d"', 'root = "nowhere"'), r"root: folder .*nowhere not"),
+        (lambda s: s.replace('name = "small"', ""), r"name: required"),
+        (lambda s: s.replace("session = 3", "session = [3"), r"m\.toml: not valid TOML"),
+    ],
+    ids=["format", "key", "table", "missing-file", "root", "name", "toml"],
+)
+def test_bad_manifests_named(tmp_path, edit, match):
+    _small_flight_files(tmp_path)
+    (tmp_path / "m.toml").write_text(edit(GOOD))
+    with pytest.raises(FlightFormatError, match=match):
+        read_manifest(tmp_path / "m.toml")
+
+
+def test_bad_data_file_named_through_manifest(tmp_path):
+    _small_flight_files(tmp_path)
+    lines = (tmp_path / "d/gt.txt").read_text().splitlines()
+    lines[3] = lines[3] + " 7"
+    (tmp_path / "d/gt.txt").write_text("\n".join(lines) + "\n")
+    (tmp_path / "m.toml").write_text(GOOD)
+    with pytest.raises(FlightFormatError, match=r"gt\.txt:4: expected 8 columns"):
+        read_manifest(tmp_path / "m.toml")
