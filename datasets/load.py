@@ -1,0 +1,92 @@
+"""One entry point that reads a flight from any supported input, chosen by what the path is.
+
+============================================  ==================================================
+Path                                          Reader
+============================================  ==================================================
+folder with ``meta.json``                     :func:`fgnav.datasets.native.read_flight`
+``*.toml`` file                               :func:`fgnav.datasets.manifest.read_manifest`
+EuRoC ``mav0`` folder (or its parent)         :func:`fgnav.datasets.euroc.read_euroc_folder`
+``*.ulg`` file                                ``fgnav.datasets.ulog.read_ulog``
+``*.bag`` file, or folder with                ``fgnav.datasets.rosbag.read_bag`` (``topics``
+``metadata.yaml`` (ROS 2 bag)                 maps fgnav stream names to topic names)
+============================================  ==================================================
+
+The ULog and ROS readers are imported only when such a file is read (their dependencies are
+heavier). Anything else is an error naming the path and listing these formats.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from .errors import FlightFormatError
+from .types import Flight
+
+SUPPORTED = (
+    "fgnav flight folder (with meta.json)",
+    "flight manifest (*.toml)",
+    "EuRoC/ASL mav0 folder",
+    "PX4 ULog (*.ulg)",
+    "ROS 1 bag (*.bag)",
+    "ROS 2 bag folder (with metadata.yaml)",
+)
+
+
+def _lazy(module: str, function: str, path: Path):
+    try:
+        mod = importlib.import_module(f"fgnav.datasets.{module}")
+    except ModuleNotFoundError as e:
+        if e.name == f"fgnav.datasets.{module}":
+            raise FlightFormatError(
+                path, f"reading this format needs fgnav.datasets.{module}, which this install lacks"
+            ) from e
+        raise
+    return getattr(mod, function)
+
+
+def _is_euroc(p: Path) -> bool:
+    return (p / "imu0" / "data.csv").is_file() or (p / "mav0" / "imu0" / "data.csv").is_file()
+
+
+def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Flight:
+    """Read a flight from any supported input (see the module docstring).
+
+    Args:
+        path: file or folder.
+        topics: for ROS bags only: fgnav stream name -> topic, e.g. ``{"imu": "/mavros/imu/data"}``.
+
+    Raises:
+        FlightFormatError: the path is missing, its format is not recognised (the message lists the
+            supported ones), ``topics`` was given for a format without topics, or the reader's own
+            errors.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FlightFormatError(p, "no such file or folder")
+    suffix = p.suffix.lower()
+    is_bag = (p.is_file() and suffix == ".bag") or (p.is_dir() and (p / "metadata.yaml").is_file())
+    if topics and not is_bag:
+        raise FlightFormatError(p, "--topics applies to ROS bags only")
+    if p.is_dir():
+        if (p / "meta.json").is_file():
+            from .native import read_flight
+
+            return read_flight(p)
+        if is_bag:
+            return _lazy("rosbag", "read_bag", p)(p, topics=topics)
+        if _is_euroc(p):
+            from .euroc import read_euroc_folder
+
+            return read_euroc_folder(p)
+    elif suffix == ".toml":
+        from .manifest import read_manifest
+
+        return read_manifest(p)
+    elif suffix == ".ulg":
+        return _lazy("ulog", "read_ulog", p)(p)
+    elif is_bag:
+        return _lazy("rosbag", "read_bag", p)(p, topics=topics)
+    raise FlightFormatError(
+        p, "not a recognised flight input; supported: " + "; ".join(SUPPORTED)
+    )
