@@ -1,0 +1,40 @@
+"""``fgnav info FLIGHT``: streams, rates, durations, gaps and time overlap of a flight."""
+
+from __future__ import annotations
+
+import argparse
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.load import SUPPORTED, load_flight
+from fgnav.info import flight_info
+
+HELP = "streams, rates, durations, gaps and time overlap of a flight"
+
+
+def parse_topics(pairs: list[str] | None) -> dict[str, str] | None:
+    """``["imu=/mavros/imu/data", ...]`` -> ``{"imu": "/mavros/imu/data"}`` (None when empty)."""
+    if not pairs:
+        return None
+    topics: dict[str, str] = {}
+    for pair in pairs:
+        name, sep, topic = pair.partition("=")
+        if not sep or not name or not topic:
+            raise FgnavError(f"--topics: expected name=topic, got {pair!r}")
+        topics[name] = topic
+    return topics
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("flight", help="flight input: " + "; ".join(SUPPORTED))
+    parser.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="NAME=TOPIC",
+        help="ROS bags: fgnav stream name -> topic, e.g. imu=/mavros/imu/data",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    flight = load_flight(args.flight, topics=parse_topics(args.topics))
+    print(flight_info(flight).format())
+    return 0
