@@ -20,7 +20,7 @@ import numpy as np
 
 def skew(v: np.ndarray) -> np.ndarray:
     """3-vector -> 3x3 skew-symmetric matrix ``[v]x`` with ``skew(a) @ b == cross(a, b)``."""
-    x, y, z = v
+    x, y, z = np.asarray(v, dtype=float).tolist()
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from fgnav.factors._jacobians import as_vector, check_noise_dim, pose_parts, skew
+from fgnav.factors._jacobians import as_vector, check_noise_dim
 
 ERROR_DIM = 2
 
@@ -58,22 +58,30 @@ def accel_drag_error(
         ``(e, [e_D_pose (2x6), e_D_vel (2x3), e_D_bias (2x6), e_D_drag (2xn_k)])`` with
         ``e = h(x) - z`` [m/s^2].
     """
-    world_R_body, _ = pose_parts(world_T_body)
+    world_R_body = world_T_body.rotation().matrix()
     k = np.atleast_1d(np.asarray(drag_k, dtype=float))
-    if k.shape not in ((1,), (2,)):
+    if k.shape == (1,):
+        kx = ky = float(k[0])
+    elif k.shape == (2,):
+        kx, ky = k.tolist()
+    else:
         raise ValueError(f"drag_k: expected 1 or 2 values, got shape {np.shape(drag_k)}")
-    u = world_R_body.T @ np.asarray(world_v_body, dtype=float)
-    k_xy = np.broadcast_to(k, (2,))
-    b_xy = np.asarray(bias.accelerometer(), dtype=float)[:2]
-    e = -k_xy * u[:2] + b_xy - np.asarray(mean_body_accel_xy, dtype=float)
+    u0, u1, u2 = (world_R_body.T @ np.asarray(world_v_body, dtype=float)).tolist()
+    b = bias.accelerometer()
+    z = mean_body_accel_xy
+    e = np.array([-kx * u0 + b[0] - z[0], -ky * u1 + b[1] - z[1]])
 
+    # -K [u]x rows x, y (rotation columns); translation columns are zero.
     e_D_pose = np.zeros((2, 6))
-    e_D_pose[:, :3] = -k_xy[:, None] * skew(u)[:2]
-    e_D_vel = -k_xy[:, None] * world_R_body.T[:2]
+    e_D_pose[0, 1] = kx * u2
+    e_D_pose[0, 2] = -kx * u1
+    e_D_pose[1, 0] = -ky * u2
+    e_D_pose[1, 2] = ky * u0
+    e_D_vel = world_R_body.T[:2] * np.array([[-kx], [-ky]])
     e_D_bias = np.zeros((2, 6))
     e_D_bias[0, 0] = 1.0
     e_D_bias[1, 1] = 1.0
-    e_D_drag = -u[:2, None] if k.size == 1 else -np.diag(u[:2])
+    e_D_drag = np.array([[-u0], [-u1]]) if k.size == 1 else np.array([[-u0, 0.0], [0.0, -u1]])
     return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag]
 
 

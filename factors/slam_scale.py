@@ -77,7 +77,9 @@ def _world_t_cam(world_T_body, body_t_cam: np.ndarray) -> tuple[np.ndarray, np.n
     """Camera position in world and its Jacobian (3x6) w.r.t. the pose's local coordinates."""
     world_R_body, world_t_body = pose_parts(world_T_body)
     p = world_t_body + world_R_body @ body_t_cam
-    p_D_pose = np.hstack([-world_R_body @ skew(body_t_cam), world_R_body])
+    p_D_pose = np.empty((3, 6))
+    p_D_pose[:, :3] = -world_R_body @ skew(body_t_cam)
+    p_D_pose[:, 3:] = world_R_body
     return p, p_D_pose
 
 
@@ -104,7 +106,10 @@ def slam_position_error(
     sR = s * R
     y = s * (R @ p + t)
     e = y - np.asarray(slam_t_cam_meas, dtype=float)
-    e_D_sim = np.hstack([-sR @ skew(p), sR, (sR @ p)[:, None]])
+    e_D_sim = np.empty((3, 7))
+    e_D_sim[:, :3] = -sR @ skew(p)
+    e_D_sim[:, 3:6] = sR
+    e_D_sim[:, 6] = sR @ p
     return e, [sR @ p_D_pose, e_D_sim]
 
 
@@ -155,7 +160,9 @@ def slam_relative_error(
     d = p_j - p_i
     y = sR @ d
     e = y - (np.asarray(slam_t_cam_j, dtype=float) - np.asarray(slam_t_cam_i, dtype=float))
-    e_D_sim = np.hstack([-sR @ skew(d), np.zeros((3, 3)), y[:, None]])
+    e_D_sim = np.zeros((3, 7))
+    e_D_sim[:, :3] = -sR @ skew(d)
+    e_D_sim[:, 6] = y
     return e, [-sR @ p_i_D_pose, sR @ p_j_D_pose, e_D_sim]
 
 
