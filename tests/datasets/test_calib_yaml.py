@@ -8,6 +8,7 @@ from fgnav.datasets import FlightFormatError
 from fgnav.datasets.calib_yaml import read_orbslam3_yaml
 
 
+@pytest.mark.realdata
 def test_real_euroc_yaml(real_data):
     notes: list[str] = []
     calib = read_orbslam3_yaml(real_data / "euroc_MH_01_easy/calib/EuRoC.yaml", notes=notes)

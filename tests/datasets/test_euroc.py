@@ -14,6 +14,7 @@ from fgnav.datasets.geometry import invert_pose
 MH01 = "euroc_MH_01_easy"
 
 
+@pytest.mark.realdata
 def test_real_imu_clean(real_data):
     imu = read_euroc_imu(real_data / MH01 / "imu0/data.cleaned.csv")
     assert len(imu) == 36820
@@ -27,6 +28,7 @@ def test_real_imu_clean(real_data):
     assert mean_f[0] > 8.0 and mean_f[2] < -1.5
 
 
+@pytest.mark.realdata
 def test_real_spreadsheet_imu_loads_with_warnings(real_data, caplog):
     notes: list[str] = []
     with caplog.at_level(logging.WARNING, logger="fgnav.datasets.euroc"):
@@ -43,6 +45,7 @@ def test_real_spreadsheet_imu_loads_with_warnings(real_data, caplog):
     assert [r.levelname for r in caplog.records] == ["WARNING", "WARNING"]
 
 
+@pytest.mark.realdata
 def test_real_full_state_groundtruth(real_data):
     gt = read_euroc_groundtruth(real_data / "euroc_V1_02_medium/groundtruth/V102_groundtruth.csv")
     assert len(gt) == 16702
@@ -58,6 +61,7 @@ def test_real_full_state_groundtruth(real_data):
     assert np.linalg.norm(gt.world_v_body, axis=1).max() == pytest.approx(2.2, abs=0.15)
 
 
+@pytest.mark.realdata
 def test_real_cam0_pose_groundtruth(real_data):
     notes: list[str] = []
     gt = read_euroc_groundtruth(real_data / MH01 / "groundtruth/MH01_GT.txt", notes=notes)

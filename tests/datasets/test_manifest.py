@@ -18,6 +18,7 @@ def mh01(real_data) -> Flight:
     return read_manifest(MH01_MANIFEST)
 
 
+@pytest.mark.realdata
 def test_mh01_manifest_streams(mh01):
     assert mh01.imu is not None and mh01.slam is not None and mh01.ground_truth is not None
     assert mh01.imu.rate_hz == pytest.approx(200.0, abs=1.0)

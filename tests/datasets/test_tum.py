@@ -37,6 +37,7 @@ def test_nanoseconds_detected_and_exact(tmp_path):
     assert read_tum(p, time_unit="s").t[0] == pytest.approx(1.403636579913555712e18)
 
 
+@pytest.mark.realdata
 def test_real_groundtruth_seconds(real_data):
     notes: list[str] = []
     gt = read_tum(real_data / "euroc_MH_01_easy/groundtruth/MH_01_easy.txt", notes=notes)
@@ -51,6 +52,7 @@ def test_real_groundtruth_seconds(real_data):
     assert "seconds" in notes[0]
 
 
+@pytest.mark.realdata
 def test_real_orbslam3_ns_with_repeated_lines(real_data):
     notes: list[str] = []
     path = real_data / "euroc_MH_01_easy/orbslam3_mono_runA/f_dataset-MH01_mono.txt"
@@ -65,6 +67,7 @@ def test_real_orbslam3_ns_with_repeated_lines(real_data):
     np.testing.assert_allclose(slam.slam_t_cam[0], [0.000093245, 0.011393300, 0.004320038])
 
 
+@pytest.mark.realdata
 def test_real_rpg_scientific_seconds(real_data):
     est = read_tum(real_data / "euroc_MH_01_easy/rpg_vio_mono/stamped_traj_estimate.txt")
     assert est.t[0] == pytest.approx(1403636579.763555527)
