@@ -17,6 +17,10 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+#: Largest deviation of ``R^T R`` from identity accepted for a calibration rotation (about what
+#: four printed decimals give); closer rotations are re-orthonormalised.
+ROTATION_TOLERANCE = 1e-3
+
 
 def skew(v: np.ndarray) -> np.ndarray:
     """3-vector -> 3x3 skew-symmetric matrix ``[v]x`` with ``skew(a) @ b == cross(a, b)``."""
@@ -75,12 +79,20 @@ def check_noise_dim(noise_model: gtsam.noiseModel.Base, dim: int) -> None:
 
 
 def as_pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray, name: str) -> np.ndarray:
-    """A ``Pose3`` or 4x4 rigid pose as a 4x4 float matrix; ``ValueError`` naming ``name`` if it is
-    not a finite rigid transform."""
-    m = a_T_b.matrix() if isinstance(a_T_b, gtsam.Pose3) else np.asarray(a_T_b, dtype=float)
+    """A ``Pose3`` or 4x4 rigid pose as a 4x4 float matrix with an exactly orthonormal rotation.
+
+    Calibration files often print rotations with few digits, so a rotation block within
+    ``ROTATION_TOLERANCE`` of orthonormal is projected onto the nearest rotation (SVD); anything
+    further raises ``ValueError`` naming ``name``.
+    """
+    m = a_T_b.matrix() if isinstance(a_T_b, gtsam.Pose3) else np.array(a_T_b, dtype=float)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise ValueError(f"{name}: expected a Pose3 or a finite 4x4 pose, got shape {m.shape}")
     R = m[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError(f"{name}: rotation block is not a rotation matrix")
-    return m.copy()
+    if np.max(np.abs(R.T @ R - np.eye(3))) > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        raise ValueError(f"{name}: rotation block is not a rotation matrix:\n{R}")
+    U, _, Vt = np.linalg.svd(R)
+    out = np.eye(4)
+    out[:3, :3] = U @ Vt
+    out[:3, 3] = m[:3, 3]
+    return out

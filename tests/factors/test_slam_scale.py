@@ -215,3 +215,12 @@ def test_per_axis_scale_recovered() -> None:
     values.insert(S(0), np.ones(3))
     result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
     np.testing.assert_allclose(result.atVector(S(0)), k_true, atol=2e-3)
+
+
+def test_rounded_calibration_rotation_is_accepted_and_orthonormalised() -> None:
+    from fgnav.factors._jacobians import as_pose_matrix
+
+    m = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, 0.2, 0.1), np.array([0.1, 0.0, 0.0])).matrix().round(4)
+    fixed = as_pose_matrix(m, "body_T_cam")
+    np.testing.assert_allclose(fixed[:3, :3].T @ fixed[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(fixed, m, atol=1e-4)
