@@ -132,7 +132,29 @@ class SimOptions:
             if isinstance(v, list):
                 v = tuple(tuple(x) if isinstance(x, list) else x for x in v)
                 object.__setattr__(self, f.name, v)
+        self._check_types()
         self.validate()
+
+    def _check_types(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            default = f.default
+            if isinstance(default, bool):
+                ok = isinstance(v, bool)
+                expected = "true or false"
+            elif isinstance(default, int | float):
+                ok = isinstance(v, int | float) and not isinstance(v, bool)
+                expected = "a number"
+            elif isinstance(default, tuple):
+                ok = isinstance(v, tuple)
+                expected = "a list"
+            elif default is None and v is not None:
+                ok = isinstance(v, int | float | tuple) and not isinstance(v, bool)
+                expected = "a number or a list"
+            else:
+                continue
+            if not ok:
+                raise SimulationError(f"SimOptions.{f.name}={v!r}: expected {expected}")
 
     def validate(self) -> None:
         """Raise :class:`SimulationError` naming the first invalid field."""
