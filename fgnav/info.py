@@ -125,7 +125,7 @@ class FlightInfo:
             )
         out += ["", "calibration"] + [f"  {line}" for line in self.calibration]
         if self.notes:
-            out += ["", "reader notes"] + [f"  - {n}" for n in self.notes]
+            out += ["", "notes (flight.meta)"] + [f"  - {n}" for n in self.notes]
         return "\n".join(out)
 
 
