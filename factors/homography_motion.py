@@ -171,6 +171,7 @@ def homography_error(
     K: np.ndarray,
     body_T_cam: np.ndarray,
     corners_i: np.ndarray,
+    K_inv: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """Corner-transfer residual of the homography model.
 
@@ -181,6 +182,7 @@ def homography_error(
         K: (3, 3) camera matrix [px].
         body_T_cam: 4x4 camera pose in the body frame.
         corners_i: (4, 3) homogeneous corner pixels of image i (``image_corners``).
+        K_inv: inverse of ``K`` if already computed (saves an inversion per call).
 
     Returns:
         ``(e (8,) [px], [e_D_pose_i (8x6), e_D_pose_j (8x6), e_D_ground (8x1)])``, ``e`` ordered
@@ -188,7 +190,7 @@ def homography_error(
     """
     geo = _TwoViewGeometry(world_T_body_i, world_T_body_j, float(np.ravel(ground)[0]), body_T_cam)
     H_e, dH_e = geo.euclidean_homography()
-    rays = corners_i @ np.linalg.inv(K).T  # (4, 3) K^-1 c_k
+    rays = corners_i @ (np.linalg.inv(K) if K_inv is None else K_inv).T  # (4, 3) K^-1 c_k
     q = (rays @ H_e.T) @ K.T  # (4, 3) K H_e K^-1 c_k
     dq = np.einsum("mab,kb->mka", dH_e, rays) @ K.T  # (13, 4, 3)
     w = q[:, 2]
@@ -231,6 +233,7 @@ def make_homography_factor(
         raise ValueError(f"H_meas: expected a finite 3x3 matrix, got shape {H_meas.shape}")
     K = _check_K(K)
     body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
+    K_inv = np.linalg.inv(K)
     corners_i = image_corners(image_size)
     measured = transfer_corners(H_meas, corners_i)
     check_noise_dim(noise_model, ERROR_DIM)
@@ -244,6 +247,7 @@ def make_homography_factor(
             K,
             body_T_cam,
             corners_i,
+            K_inv,
         )
         if H is not None:
             H[0], H[1], H[2] = jacobians
