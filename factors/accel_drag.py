@@ -21,10 +21,16 @@ Jacobians (GTSAM local coordinates, see ``fgnav.factors._jacobians``): with ``u`
 ``e_D_pose = -K [skew(u), 0]_xy`` (2x6), ``e_D_vel = -K (world_R_body^T)_xy`` (2x3),
 ``e_D_bias = [I2 0 | 0]`` (2x6), ``e_D_drag = -u_xy`` (2x1) or ``-diag(u_xy)`` (2x2).
 
+Optional wind (``wind_key``): with a horizontal wind ``world_v_wind = [wx, wy, 0]`` [m/s] (a gtsam
+Vector of size 2, key ``W``), the drag acts on the air-relative velocity:
+``u = world_R_body^T (world_v_body - world_v_wind)``; ``e_D_wind = -e_D_vel[:, :2]`` (2x2). Wind
+and drag are separable only while the heading or the ground velocity changes (a constant wind at
+one heading looks like an accelerometer bias).
+
 Noise: the mean of ``n`` samples of discrete-time standard deviation ``sigma`` has standard
 deviation ``sigma / sqrt(n)``; ``mean_accel_noise`` adds a floor for model error in quadrature.
 
-Not modelled: wind (the air-relative velocity is taken as the ground velocity), quadratic drag,
+Not modelled: vertical wind, gusts faster than the wind variable's random walk, quadratic drag,
 the change of velocity within the averaging interval (the state at the keyframe stands for the
 interval mean), vibration aliasing and rotor-speed dependence of ``k``.
 """
@@ -44,6 +50,7 @@ def accel_drag_error(
     bias: gtsam.imuBias.ConstantBias,
     drag_k: np.ndarray,
     mean_body_accel_xy: np.ndarray,
+    world_v_wind_xy: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """Residual and Jacobians of the rotor-drag model.
 
@@ -53,10 +60,11 @@ def accel_drag_error(
         bias: IMU bias; its accelerometer x, y enter the model [m/s^2].
         drag_k: (1,) ``[k]`` or (2,) ``[kx, ky]`` drag coefficient [1/s].
         mean_body_accel_xy: (2,) mean measured specific force along body x, y [m/s^2].
+        world_v_wind_xy: optional (2,) horizontal wind velocity in world axes [m/s].
 
     Returns:
         ``(e, [e_D_pose (2x6), e_D_vel (2x3), e_D_bias (2x6), e_D_drag (2xn_k)])`` with
-        ``e = h(x) - z`` [m/s^2].
+        ``e = h(x) - z`` [m/s^2]; with wind a fifth Jacobian ``e_D_wind`` (2x2) follows.
     """
     world_R_body = world_T_body.rotation().matrix()
     k = np.atleast_1d(np.asarray(drag_k, dtype=float))
@@ -66,7 +74,10 @@ def accel_drag_error(
         kx, ky = k.tolist()
     else:
         raise ValueError(f"drag_k: expected 1 or 2 values, got shape {np.shape(drag_k)}")
-    u0, u1, u2 = (world_R_body.T @ np.asarray(world_v_body, dtype=float)).tolist()
+    v_air = np.array(world_v_body, dtype=float)
+    if world_v_wind_xy is not None:
+        v_air[:2] -= world_v_wind_xy
+    u0, u1, u2 = (world_R_body.T @ v_air).tolist()
     b = bias.accelerometer()
     z = mean_body_accel_xy
     e = np.array([-kx * u0 + b[0] - z[0], -ky * u1 + b[1] - z[1]])
@@ -82,7 +93,9 @@ def accel_drag_error(
     e_D_bias[0, 0] = 1.0
     e_D_bias[1, 1] = 1.0
     e_D_drag = np.array([[-u0], [-u1]]) if k.size == 1 else np.array([[-u0, 0.0], [0.0, -u1]])
-    return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag]
+    if world_v_wind_xy is None:
+        return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag]
+    return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag, -e_D_vel[:, :2]]
 
 
 def make_accel_drag_factor(
@@ -92,14 +105,17 @@ def make_accel_drag_factor(
     drag_key: int,
     mean_body_accel_xy: np.ndarray,
     noise_model: gtsam.noiseModel.Base,
+    wind_key: int | None = None,
 ) -> gtsam.CustomFactor:
-    """``CustomFactor`` on ``(X, V, B, D)`` for one keyframe interval (see module docstring).
+    """``CustomFactor`` on ``(X, V, B, D)`` or ``(X, V, B, D, W)`` for one keyframe interval (see
+    the module docstring).
 
     Args:
         pose_key, vel_key, bias_key, drag_key: keys of ``world_T_body`` (Pose3), ``world_v_body``
             (Vector3), the IMU bias (ConstantBias) and the drag coefficient (Vector1 or Vector2).
         mean_body_accel_xy: (2,) mean body-x, body-y accelerometer reading [m/s^2].
         noise_model: 2-D noise model (e.g. ``mean_accel_noise``; may be robust).
+        wind_key: optional key of the horizontal wind ``world_v_wind_xy`` (Vector2) [m/s].
     """
     z = as_vector(mean_body_accel_xy, 2, "mean_body_accel_xy")
     check_noise_dim(noise_model, ERROR_DIM)
@@ -111,13 +127,17 @@ def make_accel_drag_factor(
             values.atConstantBias(bias_key),
             values.atVector(drag_key),
             z,
+            None if wind_key is None else values.atVector(wind_key),
         )
         if H is not None:
             for i, J in enumerate(jacobians):
                 H[i] = J
         return e
 
-    return gtsam.CustomFactor(noise_model, [pose_key, vel_key, bias_key, drag_key], error_fn)
+    keys = [pose_key, vel_key, bias_key, drag_key]
+    if wind_key is not None:
+        keys.append(wind_key)
+    return gtsam.CustomFactor(noise_model, keys, error_fn)
 
 
 def mean_accel_noise(

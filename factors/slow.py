@@ -5,6 +5,8 @@ Slow variables (``../shared/DESIGN.md`` section 3), one per segment ``j``:
 - ``D(j)`` drag coefficient ``k = mu / m`` [1/s]: a gtsam Vector of size 1 ``[k]`` or 2 ``[kx, ky]``
   (``fgnav.factors.accel_drag``).
 - ``G(j)`` ground height [m]: a gtsam Vector of size 1 (``fgnav.factors.tilted_range``).
+- ``W(j)`` horizontal wind ``world_v_wind_xy`` [m/s]: a gtsam Vector of size 2 (optional,
+  ``fgnav.factors.accel_drag``).
 - ``S(j)`` SLAM alignment ``slam_T_world``: a ``gtsam.Similarity3`` mapping ``p -> s (R p + t)``
   with ``slam_t_world = s t`` (``fgnav.factors.slam_scale``), a new one at every SLAM map reset.
 
@@ -104,6 +106,28 @@ def drag_random_walk(
     n = 2 if per_axis else 1
     return gtsam.BetweenFactorVector(
         key_a, key_b, np.zeros(n), _isotropic(n, random_walk_sigma(sigma_per_sqrt_s, dt))
+    )
+
+
+def wind_prior(key: int, wind0_xy: Sequence[float], sigma: float) -> gtsam.PriorFactorVector:
+    """Prior on a horizontal wind variable (Vector2 ``world_v_wind_xy``), sigma [m/s] per axis."""
+    mean = np.asarray(wind0_xy, dtype=float).ravel()
+    if mean.shape != (2,) or not np.all(np.isfinite(mean)):
+        raise ValueError(f"wind0_xy: expected 2 finite values, got {wind0_xy}")
+    return gtsam.PriorFactorVector(key, mean, _isotropic(2, sigma))
+
+
+def wind_random_walk(
+    key_a: int, key_b: int, sigma_per_sqrt_s: float, dt: float
+) -> gtsam.BetweenFactorVector:
+    """Random walk ``w_b - w_a ~ N(0, (sigma_per_sqrt_s^2 dt) I2)`` between wind variables.
+
+    Args:
+        sigma_per_sqrt_s: wind drift density [m/s/sqrt(s)].
+        dt: time between the two segments' centres [s].
+    """
+    return gtsam.BetweenFactorVector(
+        key_a, key_b, np.zeros(2), _isotropic(2, random_walk_sigma(sigma_per_sqrt_s, dt))
     )
 
 

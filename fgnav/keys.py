@@ -2,7 +2,7 @@
 
 Per keyframe k: ``X(k)`` Pose3 ``world_T_body``, ``V(k)`` velocity ``world_v_body`` (3-vector),
 ``B(k)`` ``imuBias.ConstantBias``. Slow variables, one per segment j: ``S(j)`` SLAM alignment,
-``D(j)`` drag coefficient, ``G(j)`` ground height.
+``D(j)`` drag coefficient, ``G(j)`` ground height, ``W(j)`` horizontal wind (optional).
 """
 
 from __future__ import annotations
@@ -38,6 +38,11 @@ def D(j: int) -> int:
 def G(j: int) -> int:
     """Ground height under the rangefinder [m] of terrain segment j."""
     return gtsam.symbol("g", j)
+
+
+def W(j: int) -> int:
+    """Horizontal wind ``world_v_wind_xy`` [m/s] (Vector2) of segment j (optional, drag factor)."""
+    return gtsam.symbol("w", j)
 
 
 def describe(key: int) -> str:

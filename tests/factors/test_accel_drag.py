@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from fgnav.factors.accel_drag import accel_drag_error, make_accel_drag_factor, mean_accel_noise
 
-from fgnav.keys import B, D, V, X
+from fgnav.keys import B, D, V, W, X
 
 from .numdiff import assert_jacobians_close, random_pose, unit_noise
 
@@ -121,3 +121,52 @@ def test_drag_recovered_from_hover_and_move_segment(k_true: np.ndarray) -> None:
     np.testing.assert_allclose(k_est, k_true, atol=5e-3)
     sigma_k = np.sqrt(np.diag(gtsam.Marginals(graph, result).marginalCovariance(D(0))))
     assert np.all(sigma_k < 5e-3)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_wind_jacobians_match_central_differences(seed: int) -> None:
+    rng = np.random.default_rng(150 + seed)
+    pose, vel, bias, k = _random_state(rng, 2)
+    values = _values(pose, vel, bias, k)
+    values.insert(W(0), rng.normal(0.0, 3.0, 2))
+    factor = make_accel_drag_factor(
+        X(0), V(0), B(0), D(0), rng.normal(0, 1, 2), unit_noise(2), W(0)
+    )
+    assert_jacobians_close(factor, values, [6, 3, 6, 2, 2])
+
+
+def test_wind_is_subtracted_from_the_ground_velocity() -> None:
+    rng = np.random.default_rng(151)
+    pose, vel, bias, k = _random_state(rng, 1)
+    wind = np.array([1.5, -0.5])
+    air = vel - np.array([*wind, 0.0])
+    e, J = accel_drag_error(pose, vel, bias, k, _model(pose, air, bias, k), wind)
+    np.testing.assert_allclose(e, 0.0, atol=1e-12)
+    assert len(J) == 5 and J[4].shape == (2, 2)
+
+
+def test_drag_and_wind_recovered_while_turning() -> None:
+    """Constant wind, changing heading and speed: k and the wind separate."""
+    rng = np.random.default_rng(43)
+    k_true, wind_true, sigma = np.array([0.3]), np.array([2.0, -1.0]), 0.01
+    bias = gtsam.imuBias.ConstantBias()
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    pin = gtsam.noiseModel.Isotropic.Sigma
+    for i in range(60):
+        t = 0.1 * i
+        pose = gtsam.Pose3(gtsam.Rot3.Ypr(0.5 * t, 0.03, -0.02), np.zeros(3))
+        vel = np.array([2.0 * np.cos(0.7 * t), 1.5 * np.sin(0.4 * t), 0.0])
+        air = vel - np.array([*wind_true, 0.0])
+        z = _model(pose, air, bias, k_true) + rng.normal(0.0, sigma, 2)
+        graph.add(make_accel_drag_factor(X(i), V(i), B(0), D(0), z, pin(2, sigma), W(0)))
+        graph.add(gtsam.PriorFactorPose3(X(i), pose, pin(6, 1e-6)))
+        graph.add(gtsam.PriorFactorVector(V(i), vel, pin(3, 1e-6)))
+        values.insert(X(i), pose)
+        values.insert(V(i), vel)
+    graph.add(gtsam.PriorFactorConstantBias(B(0), bias, pin(6, 1e-6)))
+    values.insert(B(0), bias)
+    values.insert(D(0), np.array([0.5]))
+    values.insert(W(0), np.zeros(2))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    assert result.atVector(D(0))[0] == pytest.approx(k_true[0], abs=3e-3)
+    np.testing.assert_allclose(result.atVector(W(0)), wind_true, atol=0.03)

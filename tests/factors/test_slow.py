@@ -19,9 +19,11 @@ from fgnav.factors.slow import (
     slam_alignment_initial,
     slam_alignment_prior,
     slam_alignment_random_walk,
+    wind_prior,
+    wind_random_walk,
 )
 
-from fgnav.keys import B, D, G, S, V, X
+from fgnav.keys import B, D, G, S, V, W, X
 
 
 def _whitened_norm(factor, values) -> float:
@@ -55,6 +57,16 @@ def test_random_walk_sigma_scales_with_sqrt_elapsed() -> None:
     assert _whitened_norm(ground_random_walk(G(0), G(1), 0.1), values) == pytest.approx(3.0)
     with pytest.raises(ValueError):
         random_walk_sigma(0.01, 0.0)
+
+
+def test_wind_prior_and_random_walk() -> None:
+    values = gtsam.Values()
+    values.insert(W(0), np.array([1.0, 0.0]))
+    values.insert(W(1), np.array([1.0, 0.4]))
+    assert _whitened_norm(wind_prior(W(0), [0.0, 0.0], 0.5), values) == pytest.approx(2.0)
+    assert _whitened_norm(wind_random_walk(W(0), W(1), 0.1, 4.0), values) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="wind0_xy"):
+        wind_prior(W(0), [0.0], 0.5)
 
 
 def test_slam_alignment_prior_sigmas_are_in_slam_units() -> None:
