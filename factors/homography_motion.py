@@ -1,13 +1,15 @@
 """Downward-camera homography motion factors: two views of the ground plane ``z = ground``.
 
-Measurement model (seed 002 sec. II-B3 and Algorithm 2; Hartley & Zisserman eq. 13.2). Cameras
-``a = world_T_cam_i`` and ``b = world_T_cam_j`` with ``world_T_cam = world_T_body body_T_cam``
-(camera x right, y down, z forward). With ``(R, t) = cam_j_T_cam_i`` (points map as
-``X_j = R X_i + t``), the unit plane normal ``n = -cam_i_R_world e_z`` in cam i (world down: it
-points from the camera towards the ground) and the height of camera i above the plane
-``d = world_t_cam_i,z - ground`` [m], every ground point satisfies ``n^T X_i = d`` and::
+Measurement model (seed 002 sec. II-B3 and Algorithm 2; Hartley & Zisserman, "Multiple View
+Geometry", ch. 13, plane-induced homography). Cameras ``world_T_cam_i`` and ``world_T_cam_j`` with
+``world_T_cam = world_T_body body_T_cam`` (camera x right, y down, z forward). With
+``(R, t) = cam_j_T_cam_i`` (points map as ``X_j = R X_i + t``), the unit plane normal
+``n = -cam_i_R_world e_z`` in cam i (world down: it points from the camera towards the ground)
+and the height of camera i above the plane ``d = world_t_cam_i,z - ground`` [m], every ground
+point satisfies ``n^T X_i = d`` and::
 
-    X_j = (R + t n^T / d) X_i = b_R_world^T (I - (a_t - b_t) e_z^T / d) a_R_world X_i
+    X_j = (R + t n^T / d) X_i
+        = world_R_cam_j^T (I - (world_t_cam_i - world_t_cam_j) e_z^T / d) world_R_cam_i X_i
     H_ji = K (R + t n^T / d) K^-1          pixels of image i -> pixels of image j (up to scale)
 
 ``make_homography_factor`` (keys ``X_i, X_j, G``; 8-D, [px]): residual = transfer error of the four
