@@ -1,15 +1,11 @@
 """One entry point that reads a flight from any supported input, chosen by what the path is.
 
-============================================  ==================================================
-Path                                          Reader
-============================================  ==================================================
-folder with ``meta.json``                     :func:`fgnav.datasets.native.read_flight`
-``*.toml`` file                               :func:`fgnav.datasets.manifest.read_manifest`
-EuRoC ``mav0`` folder (or its parent)         :func:`fgnav.datasets.euroc.read_euroc_folder`
-``*.ulg`` file                                ``fgnav.datasets.ulog.read_ulog``
-``*.bag`` file, or folder with                ``fgnav.datasets.rosbag.read_bag`` (``topics``
-``metadata.yaml`` (ROS 2 bag)                 maps fgnav stream names to topic names)
-============================================  ==================================================
+- folder with ``meta.json``: :func:`fgnav.datasets.native.read_flight`;
+- ``*.toml`` file: :func:`fgnav.datasets.manifest.read_manifest`;
+- EuRoC ``mav0`` folder (or its parent): :func:`fgnav.datasets.euroc.read_euroc_folder`;
+- ``*.ulg`` file: ``fgnav.datasets.ulog.read_ulog``;
+- ``*.bag`` file, ROS 2 bag folder (has ``metadata.yaml``) or its ``*.db3``/``*.mcap`` file:
+  ``fgnav.datasets.rosbag.read_bag`` (``topics`` maps fgnav stream names to topic names).
 
 The ULog and ROS readers are imported only when such a file is read (their dependencies are
 heavier). Anything else is an error naming the path and listing these formats.
@@ -29,11 +25,15 @@ SUPPORTED = (
     "EuRoC/ASL mav0 folder",
     "PX4 ULog (*.ulg)",
     "ROS 1 bag (*.bag)",
-    "ROS 2 bag folder (with metadata.yaml)",
+    "ROS 2 bag folder (with metadata.yaml) or its *.db3/*.mcap file",
 )
 
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 
-def _lazy(module: str, function: str, path: Path):
+
+def lazy_reader(module: str, function: str, path: Path):
+    """``fgnav.datasets.<module>.<function>``, imported now; a missing module is an error naming
+    ``path``."""
     try:
         mod = importlib.import_module(f"fgnav.datasets.{module}")
     except ModuleNotFoundError as e:
@@ -65,7 +65,9 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
     if not p.exists():
         raise FlightFormatError(p, "no such file or folder")
     suffix = p.suffix.lower()
-    is_bag = (p.is_file() and suffix == ".bag") or (p.is_dir() and (p / "metadata.yaml").is_file())
+    is_bag = (p.is_file() and suffix in BAG_SUFFIXES) or (
+        p.is_dir() and (p / "metadata.yaml").is_file()
+    )
     if topics and not is_bag:
         raise FlightFormatError(p, "--topics applies to ROS bags only")
     if p.is_dir():
@@ -74,7 +76,7 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
 
             return read_flight(p)
         if is_bag:
-            return _lazy("rosbag", "read_bag", p)(p, topics=topics)
+            return lazy_reader("rosbag", "read_bag", p)(p, topics=topics)
         if _is_euroc(p):
             from .euroc import read_euroc_folder
 
@@ -84,9 +86,9 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
 
         return read_manifest(p)
     elif suffix == ".ulg":
-        return _lazy("ulog", "read_ulog", p)(p)
+        return lazy_reader("ulog", "read_ulog", p)(p)
     elif is_bag:
-        return _lazy("rosbag", "read_bag", p)(p, topics=topics)
+        return lazy_reader("rosbag", "read_bag", p)(p, topics=topics)
     raise FlightFormatError(
         p, "not a recognised flight input; supported: " + "; ".join(SUPPORTED)
     )

@@ -33,9 +33,14 @@ copied into ``flight.meta["manifest_meta"]``).
 
 Keys of a stream table: ``format`` and ``path`` (required), ``time_offset_s`` (added to the
 stream's times to put it on the flight's clock; recorded in ``calib.time_offsets``), and per
-format: ``session`` (``tum_slam``: map id of its poses) and ``time_unit`` (``tum``, ``tum_slam``:
-``"auto"``, ``"s"``, ``"ns"``). Unknown keys, tables and formats are errors naming the manifest,
-table and key and listing the valid ones; a missing file is an error naming the resolved path.
+format: ``session`` (``tum_slam``: map id of its poses), ``time_unit`` (``tum``, ``tum_slam``:
+``"auto"``, ``"s"``, ``"ns"``), ``stream`` (``ulog``: which stream of the log's flight to take,
+default the table's name, ``ref:<name>`` for ``[references.<name>]``, e.g. ``"ref:px4_ekf2"``) and
+``topic`` (``rosbag``, required: the topic of this stream). A log read by several tables is read
+once (ULog) or once per topic (bags); ``[calib] format = "ulog"`` takes the log's calibration
+(rangefinder pose and limits from PX4 parameters). Unknown keys, tables and formats are errors
+naming the manifest, table and key and listing the valid ones; a missing file is an error naming
+the resolved path.
 Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
 """
 
@@ -50,6 +55,7 @@ from typing import Any
 from .calib_yaml import read_orbslam3_yaml
 from .errors import FlightFormatError
 from .euroc import read_euroc_groundtruth, read_euroc_images, read_euroc_imu
+from .load import lazy_reader
 from .native import read_calib_yaml, read_stream_csv
 from .tum import TIME_UNITS, read_tum, read_tum_slam
 from .types import Calibration, Flight
@@ -57,14 +63,14 @@ from .types import Calibration, Flight
 log = logging.getLogger(__name__)
 
 TABLE_FORMATS: dict[str, tuple[str, ...]] = {
-    "imu": ("euroc", "native_csv"),
-    "attitude": ("native_csv",),
-    "range": ("native_csv",),
-    "yaw": ("native_csv",),
-    "slam": ("tum_slam", "native_csv"),
-    "images": ("euroc",),
-    "ground_truth": ("tum", "euroc", "native_csv"),
-    "calib": ("orbslam3_yaml", "native"),
+    "imu": ("euroc", "native_csv", "ulog", "rosbag"),
+    "attitude": ("native_csv", "ulog", "rosbag"),
+    "range": ("native_csv", "ulog", "rosbag"),
+    "yaw": ("native_csv", "ulog"),
+    "slam": ("tum_slam", "native_csv", "rosbag"),
+    "images": ("euroc", "rosbag"),
+    "ground_truth": ("tum", "euroc", "native_csv", "ulog", "rosbag"),
+    "calib": ("orbslam3_yaml", "native", "ulog"),
 }
 """Stream tables and the formats each accepts (``[references.<name>]`` takes those of
 ``ground_truth``)."""
@@ -75,6 +81,8 @@ _COMMON_KEYS = ("format", "path", "time_offset_s")
 _FORMAT_KEYS: dict[str, tuple[str, ...]] = {
     "tum": ("time_unit",),
     "tum_slam": ("time_unit", "session"),
+    "ulog": ("stream",),
+    "rosbag": ("topic",),
 }
 
 
@@ -89,6 +97,8 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
         )
     if table == "calib":
         valid = ("format", "path")
+        if fmt == "ulog":
+            valid += ("stream",)
     else:
         valid = _COMMON_KEYS + _FORMAT_KEYS.get(fmt, ())
     unknown = [k for k in spec if k not in valid]
@@ -107,6 +117,11 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
         raise FlightFormatError(manifest, f"[{table}] time_offset_s: expected a number of seconds")
     if "session" in spec and not isinstance(spec["session"], int):
         raise FlightFormatError(manifest, f"[{table}] session: expected an integer map id")
+    for key in ("stream", "topic"):
+        if key in spec and not isinstance(spec[key], str):
+            raise FlightFormatError(manifest, f"[{table}] {key}: expected a string")
+    if fmt == "rosbag" and "topic" not in spec:
+        raise FlightFormatError(manifest, f"[{table}] topic: required for format 'rosbag'")
     return fmt
 
 
@@ -115,6 +130,43 @@ def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
     if not p.exists():
         raise FlightFormatError(manifest, f"[{table}] path: {p} not found")
     return p
+
+
+class _LogCache:
+    """Whole-log readers (ULog, ROS bags) return a Flight; each is read once per manifest and the
+    table's stream taken from it. Their notes are added once, prefixed with the table."""
+
+    def __init__(self, manifest: Path) -> None:
+        self.manifest = manifest
+        self.flights: dict[tuple[str, str, str], Flight] = {}
+
+    def get(self, fmt: str, path: Path, table: str, stream: str, topic: str | None,
+            notes: list[str]) -> Flight:
+        key = (fmt, str(path), topic or "")
+        if key not in self.flights:
+            if fmt == "ulog":
+                flight = lazy_reader("ulog", "read_ulog", path)(path)
+            else:
+                flight = lazy_reader("rosbag", "read_bag", path)(path, topics={stream: topic})
+            self.flights[key] = flight
+            log_notes = flight.meta.get("notes")
+            if isinstance(log_notes, list | tuple):
+                notes += [f"[{table}] {n}" for n in log_notes]
+            elif isinstance(log_notes, dict):
+                notes += [f"[{table}] {k}: {v}" for k, v in log_notes.items()]
+        return self.flights[key]
+
+    def stream(self, fmt: str, path: Path, table: str, stream: str, topic: str | None,
+               notes: list[str]) -> Any:
+        flight = self.get(fmt, path, table, stream, topic, notes)
+        streams = flight.streams()
+        if stream not in streams:
+            raise FlightFormatError(
+                self.manifest,
+                f"[{table}] {path} has no stream {stream!r}; it has: "
+                + (", ".join(streams) or "none"),
+            )
+        return streams[stream]
 
 
 def _read_stream(
@@ -164,11 +216,17 @@ def read_manifest(path: str | Path) -> Flight:
 
     notes: list[str] = []
     sources: dict[str, dict[str, str]] = {}
+    logs = _LogCache(manifest)
     calib = Calibration()
     if "calib" in doc:
         fmt = _check_table(manifest, "calib", doc["calib"], TABLE_FORMATS["calib"])
         p = _resolve(manifest, root, "calib", doc["calib"]["path"])
-        calib = read_orbslam3_yaml(p, notes=notes) if fmt == "orbslam3_yaml" else read_calib_yaml(p)
+        if fmt == "orbslam3_yaml":
+            calib = read_orbslam3_yaml(p, notes=notes)
+        elif fmt == "ulog":
+            calib = logs.get(fmt, p, "calib", "calib", None, notes).calib
+        else:
+            calib = read_calib_yaml(p)
         sources["calib"] = {"format": fmt, "path": str(p)}
 
     offsets: dict[str, float] = dict(calib.time_offsets)
@@ -185,7 +243,12 @@ def read_manifest(path: str | Path) -> Flight:
     for table, kind, spec, formats in jobs:
         fmt = _check_table(manifest, table, spec, formats)
         p = _resolve(manifest, root, table, spec["path"])
-        series = _read_stream(kind, fmt, p, spec, calib, notes)
+        if fmt in ("ulog", "rosbag"):
+            default = f"ref:{table.split('.', 1)[1]}" if kind == "references" else kind
+            series = logs.stream(fmt, p, table, spec.get("stream", default), spec.get("topic"),
+                                 notes)
+        else:
+            series = _read_stream(kind, fmt, p, spec, calib, notes)
         offset = float(spec.get("time_offset_s", 0.0))
         if offset:
             series = dataclasses.replace(series, t=series.t + offset)

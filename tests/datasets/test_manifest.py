@@ -133,3 +133,73 @@ def test_bad_data_file_named_through_manifest(tmp_path):
     (tmp_path / "m.toml").write_text(GOOD)
     with pytest.raises(FlightFormatError, match=r"gt\.txt:4: expected 8 columns"):
         read_manifest(tmp_path / "m.toml")
+
+
+def test_log_formats_read_once_and_pick_streams(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from fgnav.datasets import Calibration
+
+    calls: list = []
+    t = np.arange(10) * 0.01
+    q = np.tile([1.0, 0, 0, 0], (10, 1))
+    log_flight = Flight(
+        name="log",
+        imu=ImuSeries(t, np.zeros((10, 3)), np.zeros((10, 3))),
+        references={"px4_ekf2": Trajectory(t, np.zeros((10, 3)), q)},
+        calib=Calibration(range_max=12.0),
+        meta={"notes": ["log note"]},
+    )
+
+    def read_ulog(path):
+        calls.append(("ulog", path))
+        return log_flight
+
+    def read_bag(path, topics=None):
+        calls.append(("bag", path, topics))
+        return Flight(name="bag", slam=SlamSeries(t, np.zeros((10, 3)), q,
+                                                  np.zeros(10, dtype=np.int64)))
+
+    for name, fn in (("ulog", read_ulog), ("rosbag", read_bag)):
+        mod = types.ModuleType(f"fgnav.datasets.{name}")
+        setattr(mod, fn.__name__, fn)
+        monkeypatch.setitem(sys.modules, f"fgnav.datasets.{name}", mod)
+    (tmp_path / "a.ulg").write_bytes(b"")
+    (tmp_path / "b.bag").write_bytes(b"")
+    (tmp_path / "m.toml").write_text(
+        'name = "logs"\n'
+        '[calib]\nformat = "ulog"\npath = "a.ulg"\n'
+        '[imu]\nformat = "ulog"\npath = "a.ulg"\n'
+        '[references.px4_ekf2]\nformat = "ulog"\npath = "a.ulg"\n'
+        '[slam]\nformat = "rosbag"\npath = "b.bag"\ntopic = "/orb/pose"\n'
+    )
+    f = read_manifest(tmp_path / "m.toml")
+    bag_call = ("bag", tmp_path / "b.bag", {"slam": "/orb/pose"})
+    assert calls == [("ulog", tmp_path / "a.ulg"), bag_call]
+    assert f.calib.range_max == 12.0 and len(f.imu) == 10 and len(f.slam) == 10
+    assert set(f.references) == {"px4_ekf2"}
+    assert f.meta["notes"] == ["[calib] log note"]
+    (tmp_path / "m.toml").write_text(
+        'name = "logs"\n[yaw]\nformat = "ulog"\npath = "a.ulg"\n'
+    )
+    with pytest.raises(FlightFormatError, match=r"\[yaw\] .*a\.ulg has no stream 'yaw'; it has: "
+                                                 r"imu, ref:px4_ekf2"):
+        read_manifest(tmp_path / "m.toml")
+    (tmp_path / "m.toml").write_text('name = "x"\n[slam]\nformat = "rosbag"\npath = "b.bag"\n')
+    with pytest.raises(FlightFormatError, match=r"\[slam\] topic: required for format 'rosbag'"):
+        read_manifest(tmp_path / "m.toml")
+
+
+@pytest.mark.realdata
+def test_real_ulog_in_manifest(real_data, tmp_path):
+    (tmp_path / "m.toml").write_text(
+        f'name = "px4"\nroot = "{real_data / "px4_cubeorange_quad_flight"}"\n'
+        '[imu]\nformat = "ulog"\npath = "test.ulg"\n'
+        '[references.px4_ekf2]\nformat = "ulog"\npath = "test.ulg"\n'
+    )
+    f = read_manifest(tmp_path / "m.toml")
+    # Data README: sensor_combined 187 Hz, vehicle_local_position 10 Hz, 33 s.
+    assert f.imu.rate_hz == pytest.approx(187.0, abs=2.0)
+    assert f.references["px4_ekf2"].rate_hz == pytest.approx(10.0, abs=1.0)
+    assert f.imu.duration == pytest.approx(33.0, abs=1.0)
