@@ -107,14 +107,17 @@ def _render_images(
     frames = np.empty((len(times), Hh, W), np.uint8)
     noise_std = 0.0 if opts.noise_free else opts.image_noise_std
     for k in tqdm(range(len(times)), desc="rendering", unit="frame", disable=not progress):
-        img = np.mean([carpet.render(P, K, W, Hh) for P in poses[k]], axis=0)
+        img = carpet.render(poses[k][0], K, W, Hh)
+        for P in poses[k][1:]:
+            img += carpet.render(P, K, W, Hh)
+        img /= len(poses[k])
         if opts.brightness_amplitude:
             img = img * (
                 1.0 + opts.brightness_amplitude
                 * math.sin(2.0 * math.pi * times[k] / opts.brightness_period_s)
             )
         if noise_std > 0:
-            img = img + rng_images.normal(0.0, noise_std, img.shape)
+            img = img + noise_std * rng_images.standard_normal(img.shape, dtype=np.float32)
         frames[k] = to_uint8(img)
     return ImageSeries(t=times.copy(), frames=frames, camera=camera)
 
