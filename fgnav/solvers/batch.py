@@ -109,7 +109,9 @@ def levenberg_marquardt(
     err = graph.error(values)
     errors = [err]
     lam = 0.0
-    dims: dict[int, int] | None = None
+    zero = values.zeroVectors()
+    dims = {k: int(zero.at(k).shape[0]) for k in values.keys()}
+    n_fail = 0
     converged = False
     it = 0
     gfg = graph.linearize(values)
@@ -120,14 +122,16 @@ def levenberg_marquardt(
                 lin = gfg if lam == 0.0 else _damping_graph(gfg, dims, lam)
                 delta = lin.optimize()
             except RuntimeError as e:
-                if dims is None:
-                    raise SolverError(f"batch: indeterminate linear system ({e}); some variable "
-                                      "is unconstrained (see the observability of the sensors "
-                                      "used)") from e
+                # Indeterminate (or badly conditioned) without damping: retry damped.
+                n_fail += 1
+                if lam >= o.lambda_max / o.lambda_factor:
+                    raise SolverError(
+                        "batch: indeterminate linear system even with damping "
+                        f"({str(e).strip().splitlines()[0]}); some variable is unconstrained "
+                        "(see the observability of the sensors used)"
+                    ) from e
                 delta = None
             if delta is not None:
-                if dims is None:
-                    dims = {k: int(delta.at(k).shape[0]) for k in values.keys()}
                 new_values = values.retract(delta)
                 new_err = graph.error(new_values)
                 if np.isfinite(new_err) and new_err <= err:
@@ -149,6 +153,8 @@ def levenberg_marquardt(
         if rel < o.rel_tol or err < o.abs_tol:
             converged = True
             break
+    if n_fail:
+        log.info("LM: %d linear solves needed damping (indeterminate without it)", n_fail)
     return LMResult(values, gfg, errors, it, converged)
 
 

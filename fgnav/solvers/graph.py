@@ -54,6 +54,8 @@ STANDARD_GRAVITY = 9.81
 #: Drag coefficient used when no closed-form initial value is possible [1/s]; seed 000's
 #: simulation uses kx = 0.3, ky = 0.2 and the simulator's default is (0.38, 0.42).
 DEFAULT_DRAG_K = 0.3
+#: Relative sigma of the weak prior on a SLAM session's initial scale (closed-form fit).
+WEAK_SCALE_PRIOR_REL = 0.5
 #: Integration noise of the preintegration (GTSAM examples use 1e-8) [m^2/s^2... per s].
 PREINTEGRATION_INTEGRATION_COV = 1e-8
 #: Initial-bias covariance used by GTSAM's CombinedImuFactor examples (biasAccOmegaInt).
@@ -129,7 +131,7 @@ class GraphOptions:
     drag_per_axis: bool = True
     drag_model_sigma: float = 0.05
     drag_k_init: float | None = None
-    drag_prior_sigma: float = 1.0
+    drag_prior_sigma: float = 0.2
     drag_segment_s: float | None = None
     drag_rw: float = 1e-3
     range_sigma: float = 0.02
@@ -527,6 +529,9 @@ class GraphBuilder:
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
         sd2, wd2 = second_difference_pairs(slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1)
+        if len(sd2) < 3:
+            raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
+        sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
         den = (wd2**2).sum(axis=0)
         k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), 1.0)
         if np.any(~np.isfinite(k)) or np.any(k <= 0):
@@ -566,10 +571,13 @@ class GraphBuilder:
     # Factors
     # ------------------------------------------------------------------------------------------
 
-    def preintegrate(self, k: int, bias: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
-        """Preintegrated IMU from keyframe k-1 to k (zero-order hold on each sample)."""
+    def preintegrate(
+        self, k: int, bias: gtsam.imuBias.ConstantBias, k_from: int | None = None
+    ) -> gtsam.PreintegratedCombinedMeasurements:
+        """Preintegrated IMU from keyframe ``k_from`` (default k-1) to k (zero-order hold on each
+        sample), with the bias estimate ``bias``."""
         pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
-        ta, tb = self.t_kf[k - 1], self.t_kf[k]
+        ta, tb = self.t_kf[k - 1 if k_from is None else k_from], self.t_kf[k]
         t = self.imu.t
         i = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
         w, a = self.imu.body_omega, self.imu.body_accel
@@ -666,7 +674,7 @@ class GraphBuilder:
         for key, value in slow_values.items():
             vals.insert(key, value)
             stamps[key] = t
-            g.push_back(self._slow_factors(key, value, k))
+            g.push_back(self.slow_factors(key, value, chain_start=self.slow_chain_previous(key) is None))
         return KeyframeChunk(k, t, g, vals, stamps)
 
     def new_slow_keys(self, k: int) -> list[int]:
@@ -699,12 +707,22 @@ class GraphBuilder:
             return None if seg == 0 else S(self.slam_var[(sess, seg - 1)])
         return gtsam.symbol(c, j - 1)
 
-    def _slow_factors(self, key: int, value: Any, k: int) -> gtsam.NonlinearFactorGraph:
-        """Prior (chain start) or random-walk factor (later segment) of a new slow variable."""
+    def slow_factors(
+        self, key: int, value: Any, chain_start: bool, scale_sigma_rel: float | None = None
+    ) -> gtsam.NonlinearFactorGraph:
+        """Prior (``chain_start``: around ``value``) or random-walk factor from the previous
+        segment of a new slow variable.
+
+        Args:
+            key: the new slow variable.
+            value: its initial value.
+            chain_start: True for a prior, False for a random walk from the previous segment.
+            scale_sigma_rel: relative sigma of a SLAM scale prior (default: weak, 50 %).
+        """
         o = self.options
         g = gtsam.NonlinearFactorGraph()
         c = chr(gtsam.Symbol(key).chr())
-        prev = self.slow_chain_previous(key)
+        prev = None if chain_start else self.slow_chain_previous(key)
         if c == "d":
             dim = 2 if o.drag_per_axis else 1
             if prev is None:
@@ -719,11 +737,13 @@ class GraphBuilder:
                 sig = o.ground_rw * math.sqrt(o.ground_segment_s)
                 g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(1), _isotropic(1, sig)))
         elif c == "s" and self.slam_model == "axis":
-            g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(3, 1.0 * float(np.max(value)))))
+            rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
+            g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(3, rel * float(np.max(value)))))
         elif c == "s":
             if prev is None:
                 # Weak prior: the closed-form initial value, 0.3 rad, 10 m, 50 % in scale.
-                sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, 0.5])
+                rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
+                sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
                 g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
             else:
                 dt = math.sqrt(o.slam_segment_s)
@@ -733,25 +753,66 @@ class GraphBuilder:
                 g.add(gtsam.BetweenFactorSimilarity3(prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(sig)))
         return g
 
-    def measurement_factors(self, k: int, slam_init_scale: dict[int, float] | None = None) -> list[MeasurementFactor]:
+    def rebuild_prior(self, key: int, value: Any, sigma_rel: float) -> gtsam.NonlinearFactorGraph:
+        """Prior on a slow variable when a smoother is rebuilt: ``sigma_rel`` of its magnitude
+        (drag, scale), or the ground prior sigma for the ground height."""
+        g = gtsam.NonlinearFactorGraph()
+        c = chr(gtsam.Symbol(key).chr())
+        if c == "s" and self.slam_model == "sim3":
+            sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, sigma_rel])
+            g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            return g
+        v = np.asarray(value, float)
+        if c == "g":
+            sig = np.full(v.shape, self.options.range_sigma * 5.0)
+        else:
+            sig = np.maximum(np.abs(v) * sigma_rel, 1e-3)
+        g.add(gtsam.PriorFactorVector(key, v, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        return g
+
+    def drag_start_value(self) -> np.ndarray:
+        """Drag k of a new chain when nothing better is known [1/s]."""
+        n = 2 if self.options.drag_per_axis else 1
+        k0 = self.options.drag_k_init if self.options.drag_k_init is not None else DEFAULT_DRAG_K
+        return np.full(n, float(k0))
+
+    def ground_start_value(self, world_T_body: gtsam.Pose3 | None, t: float) -> float:
+        """Ground height from the last raw range reading at or before ``t`` and a pose (causal)."""
+        rng = self.flight.range
+        if rng is None or world_T_body is None:
+            return 0.0
+        i = int(np.searchsorted(rng.t, t, side="right")) - 1
+        if i < 0:
+            return 0.0
+        T = np.asarray(self.flight.calib.body_T_range, float)
+        R = world_T_body.rotation().matrix()
+        z_sensor = world_T_body.translation()[2] + (R @ T[:3, 3])[2]
+        beam = R @ T[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        return float(z_sensor + rng.range[i] * beam[2])
+
+    def measurement_factors(
+        self, k: int, slam_init_scale: dict[int, float] | None = None, kinds: tuple[str, ...] | None = None
+    ) -> list[MeasurementFactor]:
         """Factors of the measurements associated with keyframe k, with arrival times.
 
         Args:
             k: keyframe index.
             slam_init_scale: initial scale per SLAM variable key (converts the SLAM noise in
                 metres into SLAM units).
+            kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"yaw"``); None: all.
         """
         o = self.options
         f = self.flight
         out: list[MeasurementFactor] = []
-        if self.use_drag and self.drag_count[k] > 0:
+        want = (lambda kind: True) if kinds is None else (lambda kind: kind in kinds)
+        if self.use_drag and self.drag_count[k] > 0 and want("drag"):
             from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 
             noise = mean_accel_noise(self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma)
             dk = D(int(self.drag_segment[k]))
             fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
             out.append(MeasurementFactor(float(self.drag_arrival[k]), k, "drag", fac, (X(k), V(k), B(k), dk)))
-        if self.use_slam:
+        if self.use_slam and want("slam"):
             from fgnav.factors.slam_scale import make_slam_axis_scale_factor, make_slam_position_factor
 
             slam = f.slam
@@ -777,7 +838,7 @@ class GraphBuilder:
                     noise = self._robust(_isotropic(3, o.slam_rot_sigma))
                     fac = make_slam_rotation_factor(X(k), sk, quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i]), np.asarray(f.calib.body_T_cam, float), noise)
                     out.append(MeasurementFactor(arrival, k, "slam-rotation", fac, (X(k), sk)))
-        if self.use_range:
+        if self.use_range and want("range"):
             from fgnav.factors.tilted_range import make_range_factor
 
             for n in np.flatnonzero(self.range_kf == k):
@@ -785,7 +846,7 @@ class GraphBuilder:
                 noise = self._robust(_isotropic(1, o.range_sigma))
                 fac = make_range_factor(X(k), gk, float(self.range_val[n]), np.asarray(f.calib.body_T_range, float), noise)
                 out.append(MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk)))
-        if self.use_yaw:
+        if self.use_yaw and want("yaw"):
             from fgnav.factors.yaw import make_yaw_factor
 
             for n in np.flatnonzero(self.yaw_kf == k):

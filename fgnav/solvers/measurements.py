@@ -296,7 +296,8 @@ def init_slam_alignment(
 
     1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``.
     2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
-       second differences from the accelerometer (:func:`second_difference_pairs`).
+       second differences from the accelerometer (:func:`second_difference_pairs`), both centred
+       (an accelerometer bias is a constant offset of the metric ones).
     3. ``slam_t_world`` from the first SLAM position with the world origin at the first camera.
 
     Args:
@@ -314,6 +315,10 @@ def init_slam_alignment(
     slam_R_world = rotation_mean(slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1)))
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
     slam_d2, world_d2 = second_difference_pairs(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
+    # An accelerometer bias adds a near-constant offset (b h^2) to the metric second differences
+    # that the SLAM ones do not have: fit the scale to the centred pairs.
+    slam_d2 = slam_d2 - slam_d2.mean(axis=0) if len(slam_d2) else slam_d2
+    world_d2 = world_d2 - world_d2.mean(axis=0) if len(world_d2) else world_d2
     rotated = world_d2 @ slam_R_world.T
     den = float((rotated**2).sum())
     if len(slam_d2) < 3 or den <= 0.0:

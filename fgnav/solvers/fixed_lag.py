@@ -1,0 +1,594 @@
+"""Online fixed-lag smoother: the graph builder's output streamed through
+``gtsam.IncrementalFixedLagSmoother`` in the order the measurements arrive.
+
+Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` is in):
+
+1. Preintegrate the IMU from k-1 with the latest bias estimate and predict ``X(k), V(k)`` from the
+   latest state (causal initial values).
+2. Take the builder's keyframe chunk (IMU factor, new slow variables of segments starting at k).
+3. Attach every measurement factor that arrived up to ``t_k`` (SLAM poses arrive at
+   ``t + latency``): to its own keyframe when that keyframe is still inside the window (minus one
+   keyframe period of margin), else count it as ``dropped-too-late``. A SLAM session's alignment is
+   created once ``slam_init_window_s`` of its poses have arrived (closed-form fit on those data
+   only); earlier poses are counted as ``slam:before-scale-init``.
+4. Update the smoother with timestamps of the new keys and of the slow keys used (refreshed so a
+   slow variable stays in the window while it is measured).
+5. Read the newest state: the causal trajectory.
+
+Failures: a ``RuntimeError`` from the smoother (``Indeterminate linear system`` ...) leaves it
+unusable (../shared/GTSAM-NOTES.md). The runner then rebuilds a fresh smoother from the last good
+newest state and slow variables with priors, re-adds the keyframe without its measurements, counts
+the failure and goes on; it never crashes on a solver failure.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+import tracemalloc
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz
+from fgnav.datasets.types import Flight, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.keys import B, S, V, X
+from fgnav.solvers.graph import GraphBuilder, GraphOptions, MeasurementFactor
+
+log = logging.getLogger(__name__)
+
+#: Seconds between attempts to initialise a SLAM session's alignment (each attempt is a
+#: closed-form fit over the session so far; retrying every frame would spike the latency).
+SLAM_INIT_RETRY_S = 0.5
+
+
+@dataclass
+class FixedLagOptions:
+    """Options of the online fixed-lag smoother.
+
+    Attributes:
+        graph: graph builder options.
+        lag_s: smoother lag [s].
+        relinearize_threshold: ISAM2 relinearization threshold (tangent-space norm).
+        relinearize_skip: ISAM2 relinearizes at most every this many updates.
+        factorization: ``"QR"`` or ``"CHOLESKY"`` (QR survives the first bias better).
+        slam_init_window_s: seconds of a SLAM session's poses used for its closed-form alignment
+            before its factors enter the graph.
+        slam_init_scale_sigma_rel: relative sigma of the prior on the initial SLAM scale.
+        slam_init_min_excitation_m: a session's alignment is initialised once the RMS metric
+            second difference of its motion (0.5 s half-width) reaches this [m]: below it the
+            closed-form scale is dominated by noise (hover; see ``init_slam_alignment``).
+        rebuild_rot_sigma [rad], rebuild_pos_sigma [m], rebuild_vel_sigma [m/s],
+        rebuild_accel_bias_sigma [m/s^2], rebuild_gyro_bias_sigma [rad/s]: priors of a rebuilt
+            smoother on the last good state.
+        rebuild_slow_sigma_rel: relative sigma of the priors on slow variables after a rebuild.
+        track_memory: record Python heap peak (tracemalloc; slows the run).
+    """
+
+    graph: GraphOptions = field(default_factory=GraphOptions)
+    lag_s: float = 2.0
+    relinearize_threshold: float = 0.5
+    relinearize_skip: int = 10
+    factorization: str = "QR"
+    slam_init_window_s: float = 3.0
+    slam_init_scale_sigma_rel: float = 0.2
+    slam_init_min_excitation_m: float = 0.01
+    rebuild_rot_sigma: float = 0.01
+    rebuild_pos_sigma: float = 0.05
+    rebuild_vel_sigma: float = 0.1
+    rebuild_accel_bias_sigma: float = 0.05
+    rebuild_gyro_bias_sigma: float = 0.005
+    rebuild_slow_sigma_rel: float = 0.05
+    track_memory: bool = False
+
+
+def _isam2_params(o: FixedLagOptions) -> gtsam.ISAM2Params:
+    p = gtsam.ISAM2Params()
+    p.setRelinearizeThreshold(o.relinearize_threshold)
+    p.relinearizeSkip = int(o.relinearize_skip)
+    p.setFactorization(o.factorization.upper())
+    p.findUnusedFactorSlots = True
+    return p
+
+
+class FixedLagRunner:
+    """Streams one flight through an ``IncrementalFixedLagSmoother`` (see module docstring).
+
+    Args:
+        flight: the flight (ground truth never used).
+        options: smoother options.
+        priors: optional front-end priors (see :class:`GraphBuilder`).
+    """
+
+    def __init__(self, flight: Flight, options: FixedLagOptions | None = None, priors: Any = None):
+        self.options = options or FixedLagOptions()
+        self.builder = GraphBuilder(flight, self.options.graph, priors)
+        b = self.builder
+        self.period = 1.0 / self.options.graph.keyframe_hz
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.options.lag_s, _isam2_params(self.options))
+        self.k_next = 0
+        self.t_latest = -math.inf
+        self.key_stamp: dict[int, float] = {}
+        self.keyframes_in: set[int] = set()
+        self.pending: list[MeasurementFactor] = []
+        self.queued: list[MeasurementFactor] = []
+        self.dropped: dict[str, int] = {}
+        self.used: dict[str, int] = {}
+        self.n_failures = 0
+        self.failure_messages: list[str] = []
+        self.slam_scale_init: dict[int, float] = {}
+        self.session_ready: dict[int, bool] = {}
+        self.last_good: dict[int, Any] = {}
+        self.newest_k = -1
+        # Causal outputs.
+        self.out_t: list[float] = []
+        self.out_pose: list[gtsam.Pose3] = []
+        self.out_vel: list[np.ndarray] = []
+        self.out_bias: list[gtsam.imuBias.ConstantBias] = []
+        self.latency: list[float] = []
+        self.slow_track: dict[str, list[tuple[float, np.ndarray]]] = {}
+        self._all_meas = self._measurement_stream()
+        self._meas_i = 0
+        self._deferred: list[tuple[float, int, str, int]] = []
+        self._sess_last_t: dict[int, float] = {}
+        self._next_init_try: dict[int, float] = {}
+        self.newest_good_k = 0
+        self.queued_graph = gtsam.NonlinearFactorGraph()
+        self.queued_values = gtsam.Values()
+        self.queued_stamps: dict[int, float] = {}
+
+    # ------------------------------------------------------------------------------------------
+    # Measurement stream
+    # ------------------------------------------------------------------------------------------
+
+    def _measurement_stream(self) -> list[tuple[float, int]]:
+        """(arrival time, keyframe) of every keyframe's measurement group, sorted by arrival.
+
+        Factors are built lazily per keyframe (see :meth:`_factors_of`) so that SLAM noise uses
+        the causal initial scale.
+        """
+        b = self.builder
+        rows: list[tuple[float, int, str, int]] = []
+        if b.use_slam:
+            slam = b.flight.slam
+            for r, (i, k) in enumerate(zip(b.slam_assoc.meas_index, b.slam_assoc.keyframe, strict=True)):
+                rows.append((float(slam.t[i] + b.slam_latency[i]), int(k), "slam", r))
+        if b.use_range:
+            for n, k in enumerate(b.range_kf):
+                rows.append((float(b.range_arrival[n]), int(k), "range", n))
+        if b.use_yaw:
+            for n, k in enumerate(b.yaw_kf):
+                rows.append((float(b.yaw_arrival[n]), int(k), "yaw", n))
+        if b.use_drag:
+            for k in np.flatnonzero(b.drag_count > 0):
+                rows.append((float(b.drag_arrival[k]), int(k), "drag", int(k)))
+        rows.sort(key=lambda r: (r[0], r[1]))
+        return rows
+
+    def _make_factors(self, kind: str, k: int, row: int) -> list[MeasurementFactor]:
+        """The factors of one measurement (empty when it cannot be used yet or any more)."""
+        b = self.builder
+        if kind == "slam":
+            sk = b.slam_key(row)
+            if not self._ensure_slam_key(sk, row):
+                return []
+            return b.measurement_factors(k, {sk: self.slam_scale_init.get(sk, 1.0)}, kinds=("slam",))
+        return b.measurement_factors(k, kinds=(kind,))
+
+    # ------------------------------------------------------------------------------------------
+    # Slow variables
+    # ------------------------------------------------------------------------------------------
+
+    def _alive(self, key: int) -> bool:
+        t = self.key_stamp.get(key)
+        return t is not None and t >= self.t_latest - self.options.lag_s + self.period
+
+    def _current_value(self, key: int) -> Any:
+        c = chr(gtsam.Symbol(key).chr())
+        if c == "s" and self.builder.slam_model == "sim3":
+            return self.smoother.calculateEstimateSimilarity3(key)
+        return self.smoother.calculateEstimateVector(key)
+
+    def _ensure_slam_key(self, sk: int, row: int) -> bool:
+        """Create SLAM alignment ``sk`` if needed; False when the measurement must be skipped."""
+        b = self.builder
+        if sk in self.key_stamp:
+            if self._alive(sk):
+                return True
+            self._drop("slam:alignment-marginalized")
+            return False
+        slam = b.flight.slam
+        i = int(b.slam_assoc.meas_index[row])
+        session = int(slam.session[i])
+        prev = b.slow_chain_previous(sk)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if prev is not None and self._alive(prev):
+            value = self._current_value(prev)
+            graph.push_back(b.slow_factors(sk, value, chain_start=False))
+            self.slam_scale_init[sk] = self.slam_scale_init.get(prev, 1.0)
+        else:
+            first_t = float(slam.t[slam.session == session][0])
+            if (self.t_latest < first_t + self.options.slam_init_window_s
+                    or self.t_latest < self._next_init_try.get(session, -math.inf)):
+                self._drop("slam:before-scale-init")
+                return False
+            self._next_init_try[session] = self.t_latest + SLAM_INIT_RETRY_S
+            value, scale = self._init_slam_value(session, sk, i)
+            if value is None:
+                self._drop("slam:before-scale-init")
+                return False
+            self.slam_scale_init[sk] = scale
+            graph.push_back(b.slow_factors(sk, value, chain_start=True,
+                                           scale_sigma_rel=self.options.slam_init_scale_sigma_rel))
+        values.insert(sk, value)
+        self.queued_graph.push_back(graph)
+        self.queued_values.insert(values)
+        self.queued_stamps[sk] = self.t_latest
+        self.key_stamp[sk] = self.t_latest
+        return True
+
+    def _init_slam_value(self, session: int, sk: int, meas_i: int) -> tuple[Any, float]:
+        """Causal closed-form SLAM alignment from the data arrived so far."""
+        b = self.builder
+        from fgnav.factors.slam_scale import make_slam_T_world
+
+        try:
+            if b.slam_model == "axis":
+                k = b.init_axis_scale(self.t_latest)
+                return np.asarray(k, float), float(np.max(k))
+            init = b.init_session(session, t_limit=self.t_latest)
+        except FlightDataError as e:
+            log.debug("SLAM session %d: not initialised at t=%.2f: %s", session, self.t_latest, e)
+            return None, 0.0
+        if init.excitation < self.options.slam_init_min_excitation_m:
+            return None, 0.0
+        log.info("SLAM session %d initialised at t=%.2f: scale %.4g (excitation %.3f m)", session,
+                 self.t_latest, init.scale, init.excitation)
+        # Place the SLAM origin so that the newest keyframe's SLAM position matches the smoother.
+        slam = b.flight.slam
+        kn = self.newest_k
+        pose = self.last_good[X(kn)]
+        body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
+        world_t_cam = pose.translation() + pose.rotation().matrix() @ body_T_cam[:3, 3]
+        # Use the SLAM pose closest to the newest keyframe time.
+        sess_rows = np.flatnonzero((slam.session == session) & (slam.t <= self.t_latest))
+        j = sess_rows[np.argmin(np.abs(slam.t[sess_rows] - b.t_kf[kn]))]
+        slam_t_world = slam.slam_t_cam[j] - init.scale * init.slam_R_world @ world_t_cam
+        return make_slam_T_world(init.scale, init.slam_R_world, slam_t_world), init.scale
+
+    # ------------------------------------------------------------------------------------------
+    # Updates
+    # ------------------------------------------------------------------------------------------
+
+    def _drop(self, reason: str, n: int = 1) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + n
+
+    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+               stamps: dict[int, float]) -> bool:
+        """One smoother update; on failure rebuild from the last good estimate (returns False)."""
+        try:
+            self.smoother.update(graph, values, stamps)
+            return True
+        except RuntimeError as e:
+            self.n_failures += 1
+            msg = " ".join(str(e).split())[:200]
+            self.failure_messages.append(msg)
+            log.warning("fixed-lag: smoother update failed at t=%.3f (%s); rebuilding from the last "
+                        "good estimate", self.t_latest, msg)
+            self._rebuild()
+            return False
+
+    def _rebuild(self) -> None:
+        """Fresh smoother with priors on the last good newest state and the live slow variables."""
+        o = self.options
+        self.smoother = gtsam.IncrementalFixedLagSmoother(o.lag_s, _isam2_params(o))
+        kg = self.newest_good_k
+        g = gtsam.NonlinearFactorGraph()
+        v = gtsam.Values()
+        stamps: dict[int, float] = {}
+        t = float(self.builder.t_kf[kg])
+        pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
+        g.add(gtsam.PriorFactorPose3(X(kg), self.last_good[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)))
+        g.add(gtsam.PriorFactorVector(V(kg), self.last_good[V(kg)], gtsam.noiseModel.Isotropic.Sigma(3, o.rebuild_vel_sigma)))
+        g.add(gtsam.PriorFactorConstantBias(B(kg), self.last_good[B(kg)], gtsam.noiseModel.Diagonal.Sigmas(
+            np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3])))
+        for key in (X(kg), V(kg), B(kg)):
+            v.insert(key, self.last_good[key])
+            stamps[key] = t
+        live_slow = [k for k in self.last_good if chr(gtsam.Symbol(k).chr()) in "sdg" and self._alive(k)]
+        for key in live_slow:
+            val = self.last_good[key]
+            g.push_back(self.builder.rebuild_prior(key, val, o.rebuild_slow_sigma_rel))
+            v.insert(key, val)
+            stamps[key] = self.t_latest
+        self.keyframes_in = {kg}
+        self.key_stamp = {k: s for k, s in self.key_stamp.items() if k in stamps}
+        self.key_stamp.update(stamps)
+        self.smoother.update(g, v, stamps)
+
+    def step(self) -> bool:
+        """Process the next keyframe; False when the flight is over."""
+        b = self.builder
+        k = self.k_next
+        if k >= b.K:
+            return False
+        wall0 = time.perf_counter()
+        t_k = float(b.t_kf[k])
+        self.t_latest = t_k
+        self.queued_graph = gtsam.NonlinearFactorGraph()
+        self.queued_values = gtsam.Values()
+        self.queued_stamps = {}
+        # 1-2. Predicted state and keyframe chunk.
+        if k == 0:
+            R0 = b.R_kf[0]
+            pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
+            pv = b._prior_velocity(0)
+            vel = pv[0] if pv is not None else np.zeros(3)
+            bias = gtsam.imuBias.ConstantBias()
+            pim = None
+            kp = -1
+        else:
+            kp = self.newest_good_k
+            bias = self.last_good[B(kp)]
+            pim = b.preintegrate(k, bias, k_from=kp)
+            nav = pim.predict(gtsam.NavState(self.last_good[X(kp)], self.last_good[V(kp)]), bias)
+            pose, vel = nav.pose(), nav.velocity()
+        chunk = b.keyframe_chunk(k, pose, vel, bias, {}, pim if k > 0 and kp == k - 1 else None)
+        if k > 0 and kp != k - 1:
+            # The previous keyframe was lost in a rebuild: the IMU factor starts at the newest.
+            chunk.factors = gtsam.NonlinearFactorGraph()
+            chunk.factors.add(gtsam.CombinedImuFactor(X(kp), V(kp), X(k), V(k), B(kp), B(k), pim))
+        for key in b.new_slow_keys(k):
+            prev = b.slow_chain_previous(key)
+            if prev is not None and prev in self.last_good and self._alive(prev):
+                value, start = self.last_good[prev], False
+            else:
+                value, start = self._slow_start_value(key), True
+            chunk.values.insert(key, value)
+            chunk.timestamps[key] = t_k
+            chunk.factors.push_back(b.slow_factors(key, value, chain_start=start))
+        self.queued_graph.push_back(chunk.factors)
+        self.queued_values.insert(chunk.values)
+        self.queued_stamps.update(chunk.timestamps)
+        for key, ts in chunk.timestamps.items():
+            self.key_stamp[key] = ts
+        self.keyframes_in.add(k)
+        # 3. Measurements arrived up to t_k.
+        self._collect_arrived(t_k)
+        measurement_graph = gtsam.NonlinearFactorGraph()
+        still_pending = []
+        for m in self.pending:
+            if m.keyframe > k:
+                still_pending.append(m)
+                continue
+            if m.keyframe not in self.keyframes_in or b.t_kf[m.keyframe] < t_k - self.options.lag_s + self.period:
+                self._drop(f"{m.kind}:dropped-too-late")
+                continue
+            if not all(self._alive(key) or key in self.queued_stamps for key in m.keys):
+                self._drop(f"{m.kind}:variable-marginalized")
+                continue
+            measurement_graph.add(m.factor)
+            self.used[m.kind] = self.used.get(m.kind, 0) + 1
+            for key in m.keys:
+                if chr(gtsam.Symbol(key).chr()) in "sdg":
+                    self.queued_stamps[key] = t_k
+                    self.key_stamp[key] = t_k
+        self.pending = still_pending
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(self.queued_graph)
+        graph.push_back(measurement_graph)
+        # 4. Update (rebuild on failure, then re-add the keyframe without its measurements).
+        ok = self.update(graph, self.queued_values, self.queued_stamps)
+        if not ok:
+            self._readd_keyframe_after_rebuild(k, pose, vel, bias)
+        # 5. Newest state.
+        self.newest_k = k
+        self._read_newest(k)
+        self.k_next = k + 1
+        self.latency.append(time.perf_counter() - wall0)
+        return True
+
+    def _readd_keyframe_after_rebuild(self, k, pose, vel, bias) -> None:
+        b = self.builder
+        kg = self.newest_good_k
+        if kg == k:
+            return
+        pim = b.preintegrate(k, self.last_good[B(kg)], k_from=kg)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.CombinedImuFactor(X(kg), V(kg), X(k), V(k), B(kg), B(k), pim))
+        v = gtsam.Values()
+        nav = pim.predict(gtsam.NavState(self.last_good[X(kg)], self.last_good[V(kg)]), self.last_good[B(kg)])
+        v.insert(X(k), nav.pose())
+        v.insert(V(k), nav.velocity())
+        v.insert(B(k), self.last_good[B(kg)])
+        t = float(b.t_kf[k])
+        stamps = {X(k): t, V(k): t, B(k): t}
+        self.key_stamp.update(stamps)
+        self.keyframes_in.add(k)
+        if not self.update(g, v, stamps):
+            log.warning("fixed-lag: keyframe %d could not be re-added after a rebuild", k)
+
+    def _slow_start_value(self, key: int) -> np.ndarray:
+        b = self.builder
+        c = chr(gtsam.Symbol(key).chr())
+        if c == "d":
+            return b.drag_start_value()
+        if c == "g":
+            prev = b.slow_chain_previous(key)
+            if prev is not None and prev in self.last_good:
+                return self.last_good[prev]
+            return np.array([b.ground_start_value(self.last_good.get(X(self.newest_k)) if self.newest_k >= 0 else None, self.t_latest)])
+        raise KeyError(key)
+
+    def _collect_arrived(self, t_now: float) -> None:
+        rows = self._all_meas
+        while self._meas_i < len(rows) and rows[self._meas_i][0] <= t_now:
+            arrival, k, kind, row = rows[self._meas_i]
+            self._meas_i += 1
+            if k > self.k_next:
+                # Its keyframe is not created yet: keep the raw row until then.
+                self._deferred.append((arrival, k, kind, row))
+                continue
+            self.pending.extend(self._make_factors(kind, k, row))
+        keep = []
+        for arrival, k, kind, row in self._deferred:
+            if k <= self.k_next:
+                self.pending.extend(self._make_factors(kind, k, row))
+            else:
+                keep.append((arrival, k, kind, row))
+        self._deferred = keep
+
+    def _read_newest(self, k: int) -> None:
+        s = self.smoother
+        try:
+            pose = s.calculateEstimatePose3(X(k))
+            vel = s.calculateEstimateVector(V(k))
+            bias = s.calculateEstimateConstantBias(B(k))
+        except RuntimeError as e:
+            self.n_failures += 1
+            self.failure_messages.append(" ".join(str(e).split())[:200])
+            self._rebuild()
+            pose = self.last_good[X(self.newest_good_k)]
+            vel = self.last_good[V(self.newest_good_k)]
+            bias = self.last_good[B(self.newest_good_k)]
+            self.out_t.append(float(self.builder.t_kf[k]))
+            self.out_pose.append(pose)
+            self.out_vel.append(vel)
+            self.out_bias.append(bias)
+            return
+        self.last_good = {key: val for key, val in self.last_good.items() if chr(gtsam.Symbol(key).chr()) in "sdg"}
+        self.last_good[X(k)], self.last_good[V(k)], self.last_good[B(k)] = pose, vel, bias
+        self.newest_good_k = k
+        t = float(self.builder.t_kf[k])
+        for key in list(self.key_stamp):
+            c = chr(gtsam.Symbol(key).chr())
+            if c in "sdg" and self._alive(key):
+                try:
+                    self.last_good[key] = self._current_value(key)
+                except RuntimeError:
+                    continue
+                self._track(key, t)
+        self.out_t.append(t)
+        self.out_pose.append(pose)
+        self.out_vel.append(vel)
+        self.out_bias.append(bias)
+
+    def _track(self, key: int, t: float) -> None:
+        sym = gtsam.Symbol(key)
+        c = chr(sym.chr())
+        val = self.last_good[key]
+        if c == "s" and self.builder.slam_model == "sim3":
+            val = np.array([val.scale()])
+        name = {"s": "slam", "d": "drag_k", "g": "ground_height"}[c] + f"#{sym.index()}"
+        self.slow_track.setdefault(name, []).append((t, np.atleast_1d(np.asarray(val, float))))
+
+    def run(self, progress: bool = False) -> Estimate:
+        """Process the whole flight; the causal estimate (newest state after each update)."""
+        b = self.builder
+        self._deferred = []
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=b.K, desc="fixed-lag", unit="kf")
+        if self.options.track_memory:
+            tracemalloc.start()
+        t0 = time.perf_counter()
+        while self.step():
+            if bar:
+                bar.update(1)
+        runtime = time.perf_counter() - t0
+        peak = None
+        if self.options.track_memory:
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+        if bar:
+            bar.close()
+        return self._estimate(runtime, peak)
+
+    def _estimate(self, runtime: float, peak_bytes: int | None) -> Estimate:
+        b = self.builder
+        n = len(self.out_t)
+        pos = np.array([p.translation() for p in self.out_pose]).reshape(n, 3)
+        R = np.array([p.rotation().matrix() for p in self.out_pose]).reshape(n, 3, 3)
+        traj = Trajectory(
+            np.asarray(self.out_t), pos, matrix_to_quat_wxyz(R), np.asarray(self.out_vel).reshape(n, 3),
+            np.array([x.gyroscope() for x in self.out_bias]).reshape(n, 3),
+            np.array([x.accelerometer() for x in self.out_bias]).reshape(n, 3),
+        )
+        series: dict[str, TimeSeries] = {}
+        slam_scale: dict[int, float] = {}
+        drag_k = ground = None
+        # Slow variables: concatenate the chains by kind (causal value after each update).
+        by_kind: dict[str, list[tuple[float, np.ndarray]]] = {}
+        for name, rows in self.slow_track.items():
+            by_kind.setdefault(name.split("#")[0], []).extend(rows)
+        for kind, rows in by_kind.items():
+            rows.sort(key=lambda r: r[0])
+            t = np.array([r[0] for r in rows])
+            val = np.array([r[1] for r in rows])
+            if kind == "slam":
+                series["slam_scale" if b.slam_model == "sim3" else "slam_axis_scale"] = TimeSeries(
+                    t, val[:, 0] if b.slam_model == "sim3" else val)
+            else:
+                series[kind] = TimeSeries(t, val[:, 0] if val.shape[1] == 1 else val)
+        if b.use_slam:
+            inv = {j: key for key, j in getattr(b, "slam_var", {}).items()}
+            for name, rows in self.slow_track.items():
+                if not name.startswith("slam#"):
+                    continue
+                j = int(name.split("#")[1])
+                v = rows[-1][1]
+                if b.slam_model == "axis":
+                    slam_scale[0] = float(np.cbrt(np.prod(v)))
+                else:
+                    sess = inv[j][0]
+                    if sess not in slam_scale or rows[-1][0] >= self._last_t_of(sess):
+                        slam_scale[sess] = float(v[0])
+                        self._sess_last_t[sess] = rows[-1][0]
+        if "drag_k" in by_kind:
+            drag_k = np.asarray(sorted(by_kind["drag_k"], key=lambda r: r[0])[-1][1])
+        if "ground_height" in by_kind:
+            ground = float(sorted(by_kind["ground_height"], key=lambda r: r[0])[-1][1][0])
+        lat = np.asarray(self.latency)
+        info = b.report()
+        info.update({
+            "lag_s": self.options.lag_s,
+            "used": dict(self.used),
+            "dropped": dict(self.dropped),
+            "solver_failures": self.n_failures,
+            "solver_failure_messages": self.failure_messages[:10],
+            "updates": n,
+            "latency_p50_s": float(np.percentile(lat, 50)) if n else None,
+            "latency_p99_s": float(np.percentile(lat, 99)) if n else None,
+            "latency_max_s": float(lat.max()) if n else None,
+            "times_real_time": float((b.t_kf[-1] - b.t_kf[0]) / runtime) if runtime > 0 else None,
+            "python_heap_peak_bytes": peak_bytes,
+            "options": asdict(self.options),
+        })
+        return Estimate(
+            method="fixed-lag", trajectory=traj, slam_scale=slam_scale, drag_k=drag_k,
+            ground_height=ground, series=series, update_latency=lat, runtime_s=runtime,
+            causal=True, info=info,
+        ).check()
+
+    def _last_t_of(self, sess: int) -> float:
+        return self._sess_last_t.get(sess, -math.inf)
+
+
+def run_fixed_lag(flight: Flight, options: FixedLagOptions | None = None, priors: Any = None,
+                  progress: bool = False) -> Estimate:
+    """Run the online fixed-lag smoother over a flight (see module docstring).
+
+    Returns:
+        ``Estimate(method="fixed-lag", causal=True)``: the newest state after each update, with
+        ``update_latency`` and the counts of used/dropped measurements and solver failures in
+        ``info``.
+    """
+    return FixedLagRunner(flight, options, priors).run(progress)
