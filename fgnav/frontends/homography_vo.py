@@ -101,10 +101,17 @@ class HomographyVOOptions:
         corner_block_size_px: Shi-Tomasi gradient window [px].
         lk_window_px: Lucas-Kanade window side [px] (OpenCV's default 21).
         lk_pyramid_levels: LK pyramid levels above the base image (OpenCV's lk_track.py: 3).
+        lk_max_iterations, lk_epsilon_px: LK stopping criteria per pyramid level (iterations,
+            update size [px]). OpenCV's 0.01 px stops early enough to bias small displacements
+            low (about -1 % of the translation on the simulated two-turns flight).
         fb_max_error_px: forward-backward LK round-trip error above which a track is dropped [px].
         estimator: ``"opencv"`` (``cv2.findHomography`` RANSAC) or ``"pycolmap"`` (LO-RANSAC).
-        decomposition: ``"opencv"`` (4 solutions, chosen by the predicted ground normal) or
-            ``"pycolmap"`` (``pose_from_homography_matrix``, cheirality).
+        decomposition: ``"opencv"`` (4 solutions, chosen by the predicted ground normal),
+            ``"pycolmap"`` (``pose_from_homography_matrix``, cheirality), or ``"attitude"``: roll,
+            pitch and ground normal from the attitude, only the yaw increment and ``t/d`` from the
+            homography (:func:`decompose_level_homography`); this removes the
+            rotation-translation ambiguity of a free decomposition, which on the simulated
+            two-turns flight absorbs 1-2 % of the translation into a spurious tilt.
         ransac_threshold_px: RANSAC inlier threshold on the transfer error [px].
         ransac_confidence: RANSAC confidence.
         ransac_seed: seed of pycolmap's RANSAC (OpenCV's RANSAC is deterministic).
@@ -133,9 +140,11 @@ class HomographyVOOptions:
     corner_block_size_px: int = 7
     lk_window_px: int = 21
     lk_pyramid_levels: int = 3
+    lk_max_iterations: int = 30
+    lk_epsilon_px: float = 0.01
     fb_max_error_px: float = 0.5
     estimator: Literal["opencv", "pycolmap"] = "opencv"
-    decomposition: Literal["opencv", "pycolmap"] = "opencv"
+    decomposition: Literal["opencv", "pycolmap", "attitude"] = "opencv"
     ransac_threshold_px: float = 1.5
     ransac_confidence: float = 0.999
     ransac_seed: int = 0
@@ -152,9 +161,10 @@ class HomographyVOOptions:
         """Raise ``ValueError`` on an inconsistent option."""
         if self.estimator not in ("opencv", "pycolmap"):
             raise ValueError(f"estimator: expected 'opencv' or 'pycolmap', got {self.estimator!r}")
-        if self.decomposition not in ("opencv", "pycolmap"):
+        if self.decomposition not in ("opencv", "pycolmap", "attitude"):
             raise ValueError(
-                f"decomposition: expected 'opencv' or 'pycolmap', got {self.decomposition!r}"
+                f"decomposition: expected 'opencv', 'pycolmap' or 'attitude', got "
+                f"{self.decomposition!r}"
             )
         if self.tilt_source not in ("auto", "attitude", "vo"):
             raise ValueError(f"tilt_source: expected auto/attitude/vo, got {self.tilt_source!r}")
@@ -377,7 +387,11 @@ def track_features(
     lk = dict(
         winSize=(options.lk_window_px, options.lk_window_px),
         maxLevel=options.lk_pyramid_levels,
-        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        criteria=(
+            cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
+            options.lk_max_iterations,
+            options.lk_epsilon_px,
+        ),
     )
     p_j, st_f, _ = cv2.calcOpticalFlowPyrLK(img_i, img_j, p_i, None, **lk)
     p_back, st_b, _ = cv2.calcOpticalFlowPyrLK(img_j, img_i, p_j, None, **lk)
@@ -469,11 +483,44 @@ def decompose_homography(
     best_cos = 0.0
     for R, t, n in zip(Rs, ts, ns, strict=True):
         n = n.ravel()
-        c = float(np.dot(n, predicted_normal) / np.linalg.norm(n))
+        norm = float(np.linalg.norm(n))
+        if not np.isfinite(norm) or norm == 0.0:
+            continue
+        c = float(np.dot(n, predicted_normal) / norm)
         if c > best_cos:
             best_cos = c
-            best = (np.asarray(R, float), t.ravel().astype(float), n / np.linalg.norm(n))
+            best = (np.asarray(R, float), t.ravel().astype(float), n / norm)
+    if best is None and num > 0:
+        # Pure rotation (no translation): the normal is undefined and OpenCV returns NaN normals;
+        # R is still determined, t/d = 0 and the normal is the predicted one.
+        t = np.asarray(ts[0], float).ravel()
+        if np.all(np.isfinite(Rs[0])) and (not np.all(np.isfinite(t)) or np.linalg.norm(t) < 1e-9):
+            n = np.asarray(predicted_normal, float)
+            return np.asarray(Rs[0], float), np.zeros(3), n / np.linalg.norm(n)
     return best
+
+
+def decompose_level_homography(G_level: np.ndarray) -> tuple[float, np.ndarray]:
+    """Decompose a calibrated homography between two level, straight-down cameras.
+
+    With both cameras level (optical axis = world down, e.g. the rectified virtual cameras) the
+    ground normal is ``e3`` in both and ``G_level ~ Rz(psi) + (t/d) e3^T`` (seed 002 sec. III-C: the
+    rectified images differ by a planar rotation, translation and scale). The yaw is the best 2-D
+    rotation of the upper-left block (orthogonal Procrustes), the scale ``lambda`` its size, and
+    ``t/d = G[:, 2] / lambda - e3``.
+
+    Args:
+        G_level: (3, 3) ``level_j_R_cam_j K^-1 H K level_i_R_cam_i^T`` (any non-zero scale).
+
+    Returns:
+        ``(psi, t_over_d)``: rotation angle about the level camera's z axis [rad] (positive from
+        x to y) and (3,) ``t/d`` in the level camera j.
+    """
+    A = np.asarray(G_level, float)[:2, :2]
+    psi = float(np.arctan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1]))
+    lam = 0.5 * ((A[0, 0] + A[1, 1]) * np.cos(psi) + (A[1, 0] - A[0, 1]) * np.sin(psi))
+    t = np.asarray(G_level, float)[:, 2] / lam - np.array([0.0, 0.0, 1.0])
+    return psi, t
 
 
 # ----------------------------------------------------------------------------------------------
@@ -571,11 +618,15 @@ class HomographyVO:
         world_R_body: np.ndarray | None,
         body_R_cam: np.ndarray,
         scale: float,
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
-        """Rectified image, its valid mask, ``W`` (original -> rectified px), ``virt_R_cam`` and
-        ``K_virt``; identity warp when not rectifying."""
+    ) -> tuple:
+        """Rectified image, its valid mask, ``W`` (original -> rectified px), ``virt_R_cam``,
+        ``K_virt`` (identity warp when not rectifying) and ``level_R_cam``, the rotation to the
+        level virtual camera from the attitude (None without attitude)."""
+        level_R_cam = None
+        if world_R_body is not None:
+            level_R_cam = rectifying_homography(K, world_R_body, body_R_cam)[1]
         if not self.options.rectify:
-            return img, None, np.eye(3), np.eye(3), np.asarray(K, float)
+            return img, None, np.eye(3), np.eye(3), np.asarray(K, float), level_R_cam
         W, virt_R_cam, Kv = rectifying_homography(K, world_R_body, body_R_cam, scale)
         h, w = img.shape[:2]
         warped = cv2.warpPerspective(img, W, (w, h), flags=self.options.rectify_interpolation)
@@ -585,7 +636,7 @@ class HomographyVO:
         m = self.options.mask_margin_px
         if m > 0:
             mask = cv2.erode(mask, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
-        return warped, mask, W, virt_R_cam, Kv
+        return warped, mask, W, virt_R_cam, Kv, level_R_cam
 
     def measure_pair(
         self,
@@ -626,11 +677,9 @@ class HomographyVO:
         href = camera_height_i if height_ref is None else height_ref
         s_i = camera_height_i / href if o.normalize_scale else 1.0
         s_j = (camera_height_j or camera_height_i) / href if o.normalize_scale else 1.0
-        ri, mi, Wi, vRc_i, Kv_i = self._prepare(img_i, K, world_R_body_i, body_R_cam, s_i)
-        rj, mj, Wj, vRc_j, Kv_j = self._prepare(img_j, K, world_R_body_j, body_R_cam, s_j)
         return self._measure_prepared(
-            (ri, mi, Wi, vRc_i, Kv_i),
-            (rj, mj, Wj, vRc_j, Kv_j),
+            self._prepare(img_i, K, world_R_body_i, body_R_cam, s_i),
+            self._prepare(img_j, K, world_R_body_j, body_R_cam, s_j),
             K,
             body_R_cam,
             world_R_body_i,
@@ -640,8 +689,8 @@ class HomographyVO:
 
     def _measure_prepared(self, prep_i, prep_j, K, body_R_cam, world_R_body_i, cam_h_i, base):
         o = self.options
-        ri, mi, Wi, vRc_i, Kv_i = prep_i
-        rj, mj, Wj, vRc_j, Kv_j = prep_j
+        ri, mi, Wi, vRc_i, Kv_i, L_i = prep_i
+        rj, mj, Wj, vRc_j, Kv_j, L_j = prep_j
         # 1. Track corners of i into j (in rectified images when rectifying).
         p_i, p_j, n_corners = track_features(ri, rj, o, mi, mj)
         counts = dict(num_corners=n_corners, num_tracked=len(p_i))
@@ -659,7 +708,18 @@ class HomographyVO:
         # 3. Back to original pixels: p_j ~ Wj^-1 Hv Wi p_i.
         H = np.linalg.solve(Wj, Hv @ Wi)
         H /= H[2, 2]
-        # 4. Decompose in the virtual (or real) cameras: G = Kv_j^-1 Hv Kv_i = R_v + t_v n_v^T.
+        # 4. Decompose.
+        if o.decomposition == "attitude":
+            if L_i is None or L_j is None:
+                return HomographyMeasurement(valid=False, reason="no_attitude", **base, **counts)
+            # Level virtual cameras from the attitude: G_level = Rz(psi) + (t/d) e3^T.
+            G_cal = np.linalg.solve(K, H @ K)
+            psi, t_level = decompose_level_homography(L_j @ G_cal @ L_i.T)
+            R = L_j.T @ rot_z(psi) @ L_i
+            t_over_d = L_j.T @ t_level
+            n = L_i.T @ np.array([0.0, 0.0, 1.0])
+            return self._valid(H, R, t_over_d, n, cam_h_i, world_R_body_i, body_R_cam, base, counts)
+        # Decompose in the virtual (or real) cameras: G = Kv_j^-1 Hv Kv_i = R_v + t_v n_v^T.
         G = np.linalg.solve(Kv_j, Hv @ Kv_i)
         world_R_cam_i_tilt = (
             remove_yaw(world_R_body_i) @ body_R_cam
@@ -680,6 +740,10 @@ class HomographyVO:
         R = vRc_j.T @ R_v @ vRc_i
         t_over_d = vRc_j.T @ t_v
         n = vRc_i.T @ n_v
+        return self._valid(H, R, t_over_d, n, cam_h_i, world_R_body_i, body_R_cam, base, counts)
+
+    @staticmethod
+    def _valid(H, R, t_over_d, n, cam_h_i, world_R_body_i, body_R_cam, base, counts):
         dpsi = yaw_increment(
             world_R_body_i if world_R_body_i is not None else np.eye(3), body_R_cam, R
         )
@@ -811,7 +875,7 @@ class HomographyVO:
             scale = cam_h[k] / height_ref if o.normalize_scale else 1.0
             prep = self._prepare(undistort(images.load(k)), K, att(k), body_R_cam, scale)
             if ref is None:
-                # First usable frame: initial pose.
+                # First usable frame: the initial pose.
                 ref, ref_prep = k, prep
                 world_T_body0 = _initial_pose(initial_world_T_body, att(k), body_h[k])
                 world_R_body = world_T_body0[:3, :3]

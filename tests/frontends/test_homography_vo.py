@@ -24,8 +24,10 @@ from fgnav.estimate import TimeSeries
 from fgnav.frontends.homography_vo import (
     HomographyVO,
     HomographyVOOptions,
+    decompose_level_homography,
     estimate_homography,
     rectifying_homography,
+    rot_z,
     run,
     track_features,
     transfer_error_px,
@@ -127,11 +129,14 @@ def test_measured_homography_transfers_corners_within_one_pixel(texture):
 
 
 @pytest.mark.parametrize("rectify", [False, True])
-@pytest.mark.parametrize("backend", ["opencv", "pycolmap"])
-def test_decomposition_picks_true_motion(texture, rectify, backend):
+@pytest.mark.parametrize(
+    ("estimator", "decomposition"),
+    [("opencv", "opencv"), ("pycolmap", "pycolmap"), ("opencv", "attitude")],
+)
+def test_decomposition_picks_true_motion(texture, rectify, estimator, decomposition):
     rng = np.random.default_rng(5)
     vo = HomographyVO(
-        HomographyVOOptions(rectify=rectify, estimator=backend, decomposition=backend)
+        HomographyVOOptions(rectify=rectify, estimator=estimator, decomposition=decomposition)
     )
     for _ in range(4):
         Ti = body_pose(
@@ -196,6 +201,39 @@ def test_rectification_with_true_attitude_gives_planar_translation_and_yaw(textu
     rigid[:2, :2] = rpy_to_matrix(0.0, 0.0, true_dpsi)[:2, :2]
     rigid[:2, 2] = Hv[:2, 2] + Hv[:2, :2] @ [CAM.cx, CAM.cy] - rigid[:2, :2] @ [CAM.cx, CAM.cy]
     assert transfer_error_px(Hv, rigid, CAM.width, CAM.height) < 1.0
+
+
+@pytest.mark.parametrize("decomposition", ["opencv", "attitude"])
+def test_pure_rotation_gives_zero_translation(texture, decomposition):
+    """Hovering and turning in place: OpenCV returns zero normals; t/d must come out ~0."""
+    Ti = body_pose(0.2, 0.1, 3.0, 0.03, -0.02, 0.3)
+    Tj = body_pose(0.2, 0.1, 3.0, 0.03, -0.02, 0.35)
+    vo = HomographyVO(HomographyVOOptions(decomposition=decomposition))
+    cam_j_T_cam_i, _, d = true_relative(Ti, Tj)
+    m = vo.measure_pair(
+        render(texture, Ti @ BODY_T_CAM),
+        render(texture, Tj @ BODY_T_CAM),
+        CAM.K,
+        BODY_R_CAM,
+        Ti[:3, :3],
+        Tj[:3, :3],
+        d,
+    )
+    assert m.valid, m.reason
+    # The lever arm makes the camera move 2.5 mm; allow 1 mm of error on top.
+    assert np.linalg.norm(m.cam_j_t_cam_i - cam_j_T_cam_i[:3, 3]) < 1e-3
+    assert abs(np.degrees(m.yaw_increment - 0.05)) < 0.1
+
+
+def test_level_decomposition_inverts_its_model():
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        psi = rng.uniform(-np.pi, np.pi)
+        t = rng.normal(0, 0.1, 3)
+        G = 1.7 * (rot_z(psi) + np.outer(t, [0.0, 0.0, 1.0]))
+        psi_hat, t_hat = decompose_level_homography(G)
+        assert abs(psi_hat - psi) < 1e-12
+        np.testing.assert_allclose(t_hat, t, atol=1e-12)
 
 
 def test_yaw_increment_ignores_initial_yaw():
