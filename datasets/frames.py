@@ -93,8 +93,19 @@ def _project_to_rotation(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def _project_to_yaw(M: np.ndarray) -> np.ndarray:
+    """Rotation about z maximising ``trace(Rz^T M)``."""
+    yaw = np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def align_rotation_sequences(
-    a_R_x: np.ndarray, b_R_y: np.ndarray, iterations: int = 50, tol: float = 1e-12
+    a_R_x: np.ndarray,
+    b_R_y: np.ndarray,
+    iterations: int = 100,
+    tol: float = 1e-12,
+    world_yaw_only: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fixed frame rotations that best align two attitude sources of one rigid motion.
 
@@ -105,13 +116,16 @@ def align_rotation_sequences(
 
     Both are found by alternating orthogonal Procrustes steps minimising the Frobenius residual
     (equivalently the chordal distance) summed over samples. Needs rotation about at least two
-    axes to be unique.
+    axes to be unique; when the motion keeps one heading (a straight flight), a world tilt and a
+    body tilt trade off, and ``world_yaw_only=True`` (both worlds z up, so ``a_R_b`` is a rotation
+    about z) removes that ambiguity.
 
     Args:
         a_R_x: (N, 3, 3) attitude from source A.
         b_R_y: (N, 3, 3) attitude from source B at the same times.
         iterations: maximum alternations.
         tol: stop when the cost changes less than this.
+        world_yaw_only: restrict ``a_R_b`` to a rotation about z.
 
     Returns:
         ``(a_R_b, y_R_x, residual_angle)``: the two fixed rotations and the (N,) residual angle
@@ -124,7 +138,8 @@ def align_rotation_sequences(
     last = np.inf
     for _ in range(iterations):
         # a_R_b = argmax tr(a_R_b^T sum A (B y_R_x)^T)
-        a_R_b = _project_to_rotation(np.einsum("nij,nkj->ik", A, B @ y_R_x))
+        M = np.einsum("nij,nkj->ik", A, B @ y_R_x)
+        a_R_b = _project_to_yaw(M) if world_yaw_only else _project_to_rotation(M)
         # y_R_x = argmax tr(y_R_x^T sum (a_R_b B)^T A)
         y_R_x = _project_to_rotation(np.einsum("nji,njk->ik", a_R_b @ B, A))
         cost = float(np.sum((A - a_R_b @ B @ y_R_x) ** 2))
