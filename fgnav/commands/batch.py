@@ -1,0 +1,94 @@
+"""``fgnav batch``: smooth a whole flight with the batch solver and write the estimate.
+
+Thin layer over :func:`fgnav.solvers.batch.solve_batch`. Options come from the ``[graph]``,
+``[lm]`` and ``[batch]`` tables of ``--config`` (fields of
+:class:`~fgnav.solvers.graph.GraphOptions`, :class:`~fgnav.solvers.batch.LMOptions` and
+``covariance`` / ``cov_pose_stride`` of :class:`~fgnav.solvers.batch.BatchOptions`). When the
+flight has ground truth, the estimate is scored (SE(3) alignment, printed) and the metrics go into
+``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import Any
+
+from fgnav.config import load_config, options_from
+from fgnav.datasets.types import Flight
+from fgnav.estimate import Estimate
+from fgnav.solvers.batch import BatchOptions, LMOptions, solve_batch
+from fgnav.solvers.graph import GraphOptions
+
+HELP = "smooth a whole flight (batch solver)"
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
+    parser.add_argument("--out", required=True, help="output folder (estimate.tum, states.csv, "
+                        "summary.json)")
+    parser.add_argument("--config", default=None,
+                        help="TOML file with [graph], [lm] and [batch] tables")
+    parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
+    parser.add_argument("--covariance", choices=("all", "slow", "none"), default=None,
+                        help="marginal covariances to compute (default all)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def graph_options(args: argparse.Namespace) -> GraphOptions:
+    """``GraphOptions`` from the ``[graph]`` table and the flags."""
+    src = str(args.config or "flags")
+    return options_from(GraphOptions, load_config(args.config, "graph"), source=src,
+                        keyframe_hz=args.keyframe_hz)
+
+
+def truth_scales(flight: Flight) -> dict[int, float] | None:
+    """True SLAM scale per session from a simulated flight's metadata (None when unknown)."""
+    truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
+    sessions = truth.get("slam_sessions") if isinstance(truth, dict) else None
+    if not sessions:
+        return None
+    return {int(k): float(v["scale"]) for k, v in sessions.items() if "scale" in v}
+
+
+def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, Any]) -> None:
+    """Evaluate against the flight's ground truth when present, print a summary, write files."""
+    from fgnav.eval.metrics import evaluate
+    from fgnav.eval.outputs import write_estimate
+
+    metrics = None
+    if flight.ground_truth is not None:
+        metrics = evaluate(est, flight.ground_truth, alignment="se3",
+                           truth_scale=truth_scales(flight))
+        print(f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE (SE(3) alignment), "
+              f"velocity RMSE {metrics.vel_rmse_mps:.4f} m/s, yaw RMSE "
+              f"{metrics.yaw_rmse_deg:.3f} deg, RPE {metrics.rpe_pct:.3f} %")
+    for sid, s in sorted(est.slam_scale.items()):
+        sig = est.slam_scale_sigma.get(sid)
+        sig_txt = f" +/- {sig:.2g}" if sig is not None else ""
+        print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre")
+    if est.drag_k is not None:
+        print(f"drag k: {est.drag_k} 1/s")
+    paths = write_estimate(est, out, metrics=metrics, extra=extra)
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgnav.datasets.load import load_flight
+
+    flight = load_flight(args.flight)
+    src = str(args.config or "flags")
+    batch_table = load_config(args.config, "batch")
+    opts = options_from(
+        BatchOptions, batch_table, source=src, graph=graph_options(args),
+        lm=options_from(LMOptions, load_config(args.config, "lm"), source=src),
+        covariance=args.covariance,
+    )
+    est = solve_batch(flight, opts, progress=not args.no_progress)
+    print(f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
+          f"{est.runtime_s:.2f} s")
+    score_and_write(flight, est, Path(args.out), {"flight": flight.name, "command": "batch"})
+    return 0
