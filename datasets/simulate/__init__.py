@@ -8,6 +8,13 @@ SLAM (unknown scale, latency, resets) and downward-camera images of a noise carp
 
 from .options import SimOptions, SimulationError
 from .scenarios import SCENARIOS
-from .simulator import simulate, simulate_to_folder
+from .simulator import simulate, simulate_to_folder, world_T_cam_at
 
-__all__ = ["SCENARIOS", "SimOptions", "SimulationError", "simulate", "simulate_to_folder"]
+__all__ = [
+    "SCENARIOS",
+    "SimOptions",
+    "SimulationError",
+    "simulate",
+    "simulate_to_folder",
+    "world_T_cam_at",
+]

@@ -243,7 +243,8 @@ def simulate_slam(
     Each session's SLAM frame is the camera frame at its first pose (the pose of the first frame is
     the identity up to noise), with a new scale drawn log-uniformly in ``slam_scale_range``
     (session 0 uses ``slam_scale`` when given). With ``axis_scale`` the seed-000 model is used
-    instead. Latency: ``slam_latency_s + |N(0, jitter^2)|``.
+    instead (every session keeps the same per-axis scale, identity rotation, zero offset).
+    Latency: ``slam_latency_s + |N(0, jitter^2)|``.
 
     Returns:
         The series (None when no pose is delivered) and ``{str(session): truth}``.

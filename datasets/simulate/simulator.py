@@ -237,10 +237,12 @@ def simulate(
         "wind": wind[::wind_step].tolist(),
         "gravity": 9.81,
     }
+    n_slam_grid = len(t[:: decimation(opts, opts.slam_rate_hz)]) if opts.slam_rate_hz > 0 else 0
     notes = {
         "range_dropouts": range_truth["range_dropouts"],
         "range_out_of_limits": range_truth["range_out_of_limits"],
         "slam_sessions": len(sessions),
+        "slam_lost": n_slam_grid - (len(slam) if slam is not None else 0),
     }
     if range_truth["range_out_of_limits"]:
         log.info("rangefinder: %d readings outside [%g, %g] m not delivered",
@@ -265,7 +267,35 @@ def simulate(
             "notes": notes,
         },
     )
-    return flight.check()
+    flight.check()
+    log.info(
+        "simulated %s seed %d: %.1f s, %s; range: %d dropouts, %d out of limits; SLAM: %d "
+        "session(s), %d poses lost",
+        scenario, seed, duration, ", ".join(f"{k} {len(v)}" for k, v in flight.streams().items()),
+        notes["range_dropouts"], notes["range_out_of_limits"], notes["slam_sessions"],
+        notes["slam_lost"],
+    )
+    return flight
+
+
+def world_T_cam_at(flight: Flight, t: np.ndarray) -> np.ndarray:
+    """True camera poses ``world_T_cam = world_T_body body_T_cam`` (N, 4, 4) of a simulated
+    flight at times ``t`` [s] on its ground-truth grid (image, SLAM and range times are).
+
+    Raises:
+        SimulationError: a time is not a ground-truth sample time.
+    """
+    gt = flight.ground_truth
+    t = np.atleast_1d(np.asarray(t, float))
+    idx = np.clip(np.searchsorted(gt.t, t - 1e-9), 0, len(gt) - 1)
+    bad = np.flatnonzero(np.abs(gt.t[idx] - t) > 1e-9)
+    if bad.size:
+        raise SimulationError(f"time {t[bad[0]]!r} is not a ground-truth sample time")
+    world_T_body = np.zeros((len(t), 4, 4))
+    world_T_body[:, :3, :3] = gt.world_R_body()[idx]
+    world_T_body[:, :3, 3] = gt.world_t_body[idx]
+    world_T_body[:, 3, 3] = 1.0
+    return world_T_body @ flight.calib.body_T_cam
 
 
 def simulate_to_folder(

@@ -254,6 +254,7 @@ def test_slam_maps_back_to_ground_truth_through_the_stored_similarity():
     gt = f.ground_truth
     sessions = f.meta["truth"]["slam_sessions"]
     assert sorted(sessions) == ["0", "1"] and f.meta["notes"]["slam_sessions"] == 2
+    assert f.meta["notes"]["slam_lost"] == 30 + 20  # 1.5 s reset gap + 1 s dropout at 20 Hz
     assert sessions["0"]["scale"] != sessions["1"]["scale"]
     # Tracking lost during the reset gap and the dropout.
     assert not np.any((f.slam.t >= 8.0) & (f.slam.t < 9.5))

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 from fgnav.datasets.geometry import invert_pose, make_pose, rpy_to_matrix
-from fgnav.datasets.simulate import SimOptions, SimulationError, simulate
+from fgnav.datasets.simulate import SimOptions, SimulationError, simulate, world_T_cam_at
 from fgnav.datasets.simulate.render import (
     PATCH_GREY,
     Carpet,
@@ -23,13 +23,6 @@ from fgnav.datasets.simulate.simulator import BODY_R_CAM
 def turning_flight():
     """10 s of two-turns (the turn starts at 3 s): images at 20 Hz with pixel noise."""
     return simulate("two-turns", seed=11, options=SimOptions(duration=10.0))
-
-
-def _world_T_cam(flight, t):
-    gt = flight.ground_truth
-    i = int(np.flatnonzero(np.isclose(gt.t, t))[0])
-    world_T_body = make_pose(gt.world_R_body()[i], gt.world_t_body[i])
-    return world_T_body @ flight.calib.body_T_cam
 
 
 def _corners(w, h):
@@ -57,10 +50,9 @@ def test_rendered_pair_registers_to_the_true_homography(turning_flight, gap):
     cam = f.images.camera
     i = int(np.flatnonzero(np.isclose(f.images.t, 9.0))[0])
     j = i + gap
-    H_true = inter_frame_homography(
-        _world_T_cam(f, f.images.t[i]), _world_T_cam(f, f.images.t[j]), cam.K,
-        f.meta["truth"]["ground_height"],
-    )
+    world_T_cam = world_T_cam_at(f, f.images.t[[i, j]])
+    H_true = inter_frame_homography(world_T_cam[0], world_T_cam[1], cam.K,
+                                    f.meta["truth"]["ground_height"])
     H_meas, n_inliers = _register(f.images.frames[i], f.images.frames[j])
     corners = _corners(cam.width, cam.height)
     err = np.linalg.norm(_transfer(H_meas, corners) - _transfer(H_true, corners), axis=1)
@@ -145,3 +137,8 @@ def test_inter_frame_homography_rejects_a_camera_below_the_ground():
     below = make_pose(BODY_R_CAM, np.array([0.0, 0.0, -1.0]))
     with pytest.raises(SimulationError, match="not above the ground"):
         inter_frame_homography(below, below, K, 0.0)
+
+
+def test_world_T_cam_at_rejects_times_off_the_grid(turning_flight):
+    with pytest.raises(SimulationError, match="not a ground-truth sample time"):
+        world_T_cam_at(turning_flight, [0.0123])
