@@ -43,7 +43,7 @@ from .sensors import (
     simulate_wind,
     simulate_yaw,
 )
-from .vehicle import VehicleLog, VehicleParams, simulate_vehicle
+from .vehicle import GRAVITY, VehicleLog, VehicleParams, simulate_vehicle
 
 log = logging.getLogger(__name__)
 
@@ -235,7 +235,7 @@ def simulate(
         "gust_std": float(gust_std),
         "wind_t": t[::wind_step].tolist(),
         "wind": wind[::wind_step].tolist(),
-        "gravity": 9.81,
+        "gravity": GRAVITY,
     }
     n_slam_grid = len(t[:: decimation(opts, opts.slam_rate_hz)]) if opts.slam_rate_hz > 0 else 0
     notes = {

@@ -31,6 +31,9 @@ import numpy as np
 
 #: Gravity [m/s^2] (GTSAM's ``PreintegrationParams.MakeSharedU`` default).
 GRAVITY = 9.81
+#: Lowest commanded vertical force when the position loop asks for less (fraction of g): the
+#: vehicle never free-falls or flips to follow a reference.
+MIN_VERTICAL_FORCE_FRACTION = 0.2
 
 
 @dataclass(frozen=True)
@@ -205,7 +208,7 @@ def simulate_vehicle(
         f_des = a_des - g_world - R @ drag_body(R, v, no_wind, k)
         horiz = math.hypot(f_des[0], f_des[1])
         if f_des[2] <= 0.0 or horiz > tan_max * f_des[2]:
-            fz = max(f_des[2], 0.2 * GRAVITY)
+            fz = max(f_des[2], MIN_VERTICAL_FORCE_FRACTION * GRAVITY)
             scale = min(1.0, tan_max * fz / max(horiz, 1e-12))
             f_des = np.array([f_des[0] * scale, f_des[1] * scale, fz])
         thrust_body = np.array([0.0, 0.0, float(f_des @ R[:, 2])])

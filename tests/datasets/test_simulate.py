@@ -116,6 +116,22 @@ def test_gyro_noise_has_configured_density(two_turns):
     np.testing.assert_allclose(noise.std(axis=0), sigma_d, rtol=0.05)
 
 
+def test_attitude_and_yaw_streams_have_configured_noise(two_turns):
+    f = two_turns
+    gt = f.ground_truth
+    opts = f.meta["truth"]["options"]
+    idx = _at(gt.t, f.attitude.t)
+    R_meas = quat_wxyz_to_matrix(f.attitude.world_q_body_wxyz)
+    R_true = gt.world_R_body()[idx]
+    err = np.array([so3_log(a.T @ b) for a, b in zip(R_true, R_meas, strict=True)])
+    np.testing.assert_allclose(err.std(axis=0), opts["attitude_noise_rad"], rtol=0.1)
+    assert abs(f.attitude.rate_hz - 100.0) < 1e-6
+    idx = _at(gt.t, f.yaw.t)
+    yaw_err = wrap_angle(f.yaw.yaw - yaw_of(gt.world_R_body()[idx]))
+    np.testing.assert_allclose(yaw_err.std(), opts["yaw_noise_rad"], rtol=0.15)
+    assert abs(yaw_err.mean()) < 5 * opts["yaw_noise_rad"] / math.sqrt(len(yaw_err))
+
+
 # ---------------------------------------------------------------------------------------------
 # Scenarios
 # ---------------------------------------------------------------------------------------------
