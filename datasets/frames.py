@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_exp
 
 #: Rotation taking NED vectors to ENU (symmetric: also ``NED_R_ENU``).
 ENU_R_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -93,6 +93,18 @@ def _project_to_rotation(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def _small_rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) of a stack of rotations with angles well below pi (residuals)."""
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arccos(cos)
+    w = 0.5 * np.stack(
+        [R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1
+    )
+    sin = np.sin(angle)
+    scale = np.where(sin > 1e-9, angle / np.where(sin > 1e-9, sin, 1.0), 1.0)
+    return w * scale[:, None]
+
+
 def _project_to_yaw(M: np.ndarray) -> np.ndarray:
     """Rotation about z maximising ``trace(Rz^T M)``."""
     yaw = np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
@@ -115,7 +127,8 @@ def align_rotation_sequences(
         a_R_x(t) ~= a_R_b @ b_R_y(t) @ y_R_x
 
     Both are found by alternating orthogonal Procrustes steps minimising the Frobenius residual
-    (equivalently the chordal distance) summed over samples. Needs rotation about at least two
+    (equivalently the chordal distance) summed over samples, then polished by Gauss-Newton on
+    the geodesic residuals. Needs rotation about at least two
     axes to be unique; when the motion keeps one heading (a straight flight), a world tilt and a
     body tilt trade off, and ``world_yaw_only=True`` (both worlds z up, so ``a_R_b`` is a rotation
     about z) removes that ambiguity.
@@ -146,6 +159,20 @@ def align_rotation_sequences(
         if abs(last - cost) < tol:
             break
         last = cost
+    # Gauss-Newton polish: alternation crawls along weakly determined directions (e.g. world yaw
+    # vs body yaw on a single-heading motion). Residual r_n = log(A_n^T a_R_b B_n y_R_x); right
+    # perturbations give dr/d(theta_y) = I and dr/d(theta_a) = (B_n y_R_x)^T (first order).
+    a_cols = np.array([[0.0], [0.0], [1.0]]) if world_yaw_only else np.eye(3)
+    for _ in range(iterations):
+        E = np.swapaxes(A, -1, -2) @ a_R_b @ B @ y_R_x
+        r = _small_rotation_log(E)
+        J_a = np.swapaxes(B @ y_R_x, -1, -2) @ a_cols
+        J = np.concatenate([J_a, np.broadcast_to(np.eye(3), (len(E), 3, 3))], axis=2)
+        step = np.linalg.lstsq(J.reshape(-1, J.shape[2]), -r.reshape(-1), rcond=None)[0]
+        a_R_b = a_R_b @ so3_exp(a_cols @ step[: a_cols.shape[1]])
+        y_R_x = y_R_x @ so3_exp(step[a_cols.shape[1] :])
+        if np.linalg.norm(step) < 1e-12:
+            break
     E = np.swapaxes(A, -1, -2) @ (a_R_b @ B @ y_R_x)
     cos = np.clip((np.trace(E, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     return a_R_b, y_R_x, np.arccos(cos)

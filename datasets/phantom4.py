@@ -217,7 +217,9 @@ def estimate_body_R_imu(
     ``gt_world_R_body(t) = gt_world_R_imu_world @ imu_world_R_imu(t) @ imu_R_body``
     (:func:`~fgnav.datasets.frames.align_rotation_sequences`). Both worlds are z up, so
     ``gt_world_R_imu_world`` is restricted to a rotation about z: on a straight flight with one
-    heading a world tilt and a mount tilt would otherwise trade off.
+    heading a world tilt and a mount tilt would otherwise trade off. The mount's yaw still trades
+    off with the heading offset on such a flight (weakly determined: a few degrees); its tilt is
+    well determined.
 
     ``flight`` must have been read without ``body_R_imu``.
     """

@@ -205,7 +205,8 @@ def main() -> int:
         f"{np.array2string(np.degrees(so3_log(mount.body_R_imu)), precision=2)}; "
         f"Xsens-to-DJI world yaw {np.degrees(so3_log(mount.gt_world_R_imu_world))[2]:+.1f} deg; "
         "attitude residual RMS "
-        f"{mount.residual_rms_deg:.2f} deg over {mount.samples} samples"
+        f"{mount.residual_rms_deg:.2f} deg over {mount.samples} samples (the mount's yaw is weakly "
+        "determined on one heading; its effect on f_x is second order)"
     )
     raw = read_phantom4(args.folder, args.imu) if args.imu != "IMU_1.csv" else raw_ref
     flight = with_body_axes(raw, mount.body_R_imu)

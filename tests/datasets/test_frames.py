@@ -95,3 +95,19 @@ def test_align_rotation_sequences_recovers_fixed_rotations():
     np.testing.assert_allclose(est_a_R_b, a_R_b, atol=2e-3)
     np.testing.assert_allclose(est_y_R_x, y_R_x, atol=2e-3)
     assert np.sqrt(np.mean(resid**2)) < 0.006
+
+
+def test_align_world_yaw_only_on_single_heading_motion():
+    # One heading, small tilts only: a world tilt and a body tilt trade off unless the world
+    # rotation is restricted to yaw (both worlds z up).
+    rng = np.random.default_rng(5)
+    a_R_b = so3_exp([0.0, 0.0, -0.2])
+    y_R_x = so3_exp([0.01, -0.015, 0.02])
+    b_R_y = np.stack(
+        [rpy_to_matrix(*rng.normal(scale=[0.03, 0.1, 0.01]) + [0.0, 0.0, 1.2]) for _ in range(300)]
+    )
+    a_R_x = a_R_b @ b_R_y @ y_R_x
+    est_a_R_b, est_y_R_x, resid = align_rotation_sequences(a_R_x, b_R_y, world_yaw_only=True)
+    np.testing.assert_allclose(est_a_R_b, a_R_b, atol=1e-6)
+    np.testing.assert_allclose(est_y_R_x, y_R_x, atol=1e-6)
+    assert resid.max() < 1e-6

@@ -92,8 +92,12 @@ def test_averaged_imu_yaw_jumps_are_reported(folder):
 def test_mount_and_clock(folder):
     f = read_phantom4(folder, "IMU_1.csv")
     mount = estimate_body_R_imu(f)
-    # The Xsens is mounted square to the airframe: within 2 deg, residual within 1.5 deg RMS.
-    assert np.degrees(np.linalg.norm(so3_log(mount.body_R_imu))) < 2.0
+    # The Xsens is mounted square to the airframe: its z axis within 1.5 deg of the body's, and
+    # the attitude residual within 1.5 deg RMS. The mount's yaw is weakly determined on a
+    # single-heading flight (it trades off with the world heading offset): only bounded loosely.
+    z_tilt = np.degrees(np.arccos(np.clip(mount.body_R_imu[2, 2], -1.0, 1.0)))
+    assert z_tilt < 1.5
+    assert np.degrees(np.linalg.norm(so3_log(mount.body_R_imu))) < 5.0
     assert mount.residual_rms_deg < 1.5
     # Both worlds are z up: only a heading difference (magnetic vs DJI compass).
     assert abs(mount.gt_world_R_imu_world[2, 2] - 1.0) < 1e-9

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -245,6 +246,7 @@ def test_auto_mapping_by_type(tmp_path):
     assert "slam" in mapping["reasons"]["ref:vicon/odom"]
     assert f.slam is None and f.ground_truth is None
     np.testing.assert_allclose(f.attitude.world_q_body_wxyz, d["q_imu_wxyz"], atol=1e-15)
+    json.dumps(f.meta)  # metadata stays serialisable
 
 
 def test_list_bag_topics(tmp_path):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightFormatError
@@ -183,6 +185,9 @@ def test_cubeorange_flight(real_data):
     assert f.meta["px4_imu_selection"]["sensor_accel_instance"] == 2
     assert f.meta["px4_topics"]["sensor_accel"] == {0: 33, 1: 33, 2: 33}
     assert f.range is None
+    json.dumps(f.meta)  # metadata stays serialisable (native flight folders store it as JSON)
+    with pytest.raises(ValueError, match="instance_policy"):
+        read_ulog(path, instance_policy="largest")
 
 
 @pytest.mark.realdata
