@@ -170,7 +170,9 @@ def simulate(
     )
 
     # 2. Calibration.
-    body_t_cam = opts.body_t_cam or sc.body_t_cam or DEFAULT_BODY_T_CAM
+    body_t_cam = next(
+        x for x in (opts.body_t_cam, sc.body_t_cam, DEFAULT_BODY_T_CAM) if x is not None
+    )
     body_T_cam = make_pose(BODY_R_CAM, np.asarray(body_t_cam, float))
     body_T_range = make_pose(BODY_R_RANGE, np.asarray(opts.body_t_range, float))
     fx, fy, cx, cy = pinhole_from_fov(opts.image_width, opts.image_height, opts.camera_hfov_deg)
