@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FlightDataError, FlightFormatError
-from .frames import MM_TO_M, yup_q_to_zup_q, yup_to_zup
-from .geometry import quat_wxyz_to_matrix
-from .types import Trajectory
+from .frames import MM_TO_M, align_rotation_sequences, tilt_angle, yup_q_to_zup_q, yup_to_zup
+from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from .types import Flight, Trajectory
+from .ulog import interpolate_attitude
 
 log = logging.getLogger(__name__)
 
@@ -309,4 +310,105 @@ def read_motive_csv(path: str | Path, rigid_body: str | None = None) -> MotiveTa
         frame_rate_hz=rate,
         skipped_rows=skipped,
         header=header,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# A flight log against a motion-capture take of the same motion
+# ----------------------------------------------------------------------------------------------
+
+#: Moving average applied to angular-rate magnitudes before correlating [s]: differentiated mocap
+#: orientations are noisy at 180 Hz.
+RATE_SMOOTH_S = 0.05
+#: Every n-th mocap frame used when fitting the fixed rotations (speed; 180 Hz is oversampled for
+#: handheld motion).
+ALIGN_STRIDE = 5
+
+
+@dataclass(frozen=True, eq=False)
+class MocapAlignment:
+    """Clock offset and fixed rotations between a flight's attitude and a mocap rigid body.
+
+    Attributes:
+        offset_s: ``t_flight = t_mocap + offset_s`` (mean of the two signals' estimates) [s].
+        tilt: offset from tilt-angle correlation (flight ``attitude`` vs mocap).
+        rate: offset from angular-rate-magnitude correlation (flight gyro vs mocap).
+        world_R_mocap: rotation from the mocap world (z up) into the flight's attitude world.
+        rb_R_body: rotation from the vehicle body (FLU) into the rigid body's axes.
+        attitude_rms_deg: RMS attitude residual after the fit [deg].
+        tilt_rms_deg: RMS tilt difference after the fit [deg].
+    """
+
+    offset_s: float
+    tilt: OffsetResult
+    rate: OffsetResult
+    world_R_mocap: np.ndarray
+    rb_R_body: np.ndarray
+    attitude_rms_deg: float
+    tilt_rms_deg: float
+
+    def ground_truth(self, mocap: Trajectory) -> Trajectory:
+        """The mocap trajectory on the flight's clock with the vehicle body's axes
+        (``mocap_R_body = mocap_R_rb @ rb_R_body``), in the mocap world. Positions stay those of
+        the rigid body's origin (the lever arm to the IMU is not known)."""
+        R = mocap.world_R_body() @ self.rb_R_body
+        return Trajectory(
+            t=mocap.t + self.offset_s,
+            world_t_body=mocap.world_t_body,
+            world_q_body_wxyz=matrix_to_quat_wxyz(R),
+        )
+
+
+def align_mocap(flight: Flight, mocap: Trajectory, max_offset_s: float = 10.0) -> MocapAlignment:
+    """Find the clock offset and fixed rotations between a flight and a mocap take.
+
+    The offset is searched within ``max_offset_s`` of the difference of the two start times, by
+    two independent signals: tilt angle (flight ``attitude`` vs mocap orientation) and
+    angular-rate magnitude (flight gyro vs differentiated mocap orientation). Then the fixed
+    world and body rotations are fitted
+    (:func:`~fgnav.datasets.frames.align_rotation_sequences`) at the mean offset.
+
+    Args:
+        flight: a :class:`~fgnav.datasets.types.Flight` with ``imu`` and ``attitude``.
+        mocap: rigid-body trajectory (e.g. ``read_motive_csv(...).trajectory``).
+        max_offset_s: search half-width [s].
+    """
+    if flight.attitude is None or flight.imu is None:
+        raise FlightDataError(f"{flight.name}: align_mocap needs the flight's imu and attitude")
+    guess = float(flight.attitude.t[0] - mocap.t[0])
+    tilt = estimate_time_offset(
+        flight.attitude.t,
+        tilt_angle(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)),
+        mocap.t,
+        tilt_angle(mocap.world_R_body()),
+        max_offset_s,
+        initial_offset_s=guess,
+    )
+    t_mid, rate = body_rate_magnitude(mocap.t, mocap.world_q_body_wxyz)
+    rate_res = estimate_time_offset(
+        flight.imu.t,
+        np.linalg.norm(flight.imu.body_omega, axis=1),
+        t_mid,
+        rate,
+        max_offset_s,
+        initial_offset_s=guess,
+        smooth_s=RATE_SMOOTH_S,
+    )
+    offset = 0.5 * (tilt.offset_s + rate_res.offset_s)
+    t = mocap.t + offset
+    sel = np.flatnonzero((t > flight.attitude.t[0]) & (t < flight.attitude.t[-1]))[::ALIGN_STRIDE]
+    if sel.size < 10:
+        raise FlightDataError(f"{flight.name}: the mocap take hardly overlaps the flight")
+    R_flight = quat_wxyz_to_matrix(interpolate_attitude(flight.attitude, t[sel]))
+    R_mocap = mocap.world_R_body()[sel]
+    world_R_mocap, rb_R_body, resid = align_rotation_sequences(R_flight, R_mocap)
+    tilt_diff = tilt_angle(R_flight) - tilt_angle(world_R_mocap @ R_mocap @ rb_R_body)
+    return MocapAlignment(
+        offset_s=offset,
+        tilt=tilt,
+        rate=rate_res,
+        world_R_mocap=world_R_mocap,
+        rb_R_body=rb_R_body,
+        attitude_rms_deg=float(np.degrees(np.sqrt(np.mean(resid**2)))),
+        tilt_rms_deg=float(np.degrees(np.sqrt(np.mean(tilt_diff**2)))),
     )

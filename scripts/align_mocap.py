@@ -19,16 +19,14 @@ from pathlib import Path
 
 import numpy as np
 from fgnav.datasets.frames import align_rotation_sequences, tilt_angle
-from fgnav.datasets.geometry import quat_wxyz_to_matrix
-from fgnav.datasets.time_offset import body_rate_magnitude, estimate_time_offset, read_motive_csv
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, so3_log
+from fgnav.datasets.time_offset import align_mocap, read_motive_csv
 from fgnav.datasets.ulog import interpolate_attitude, read_ulog
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 HANDHELD = DATA / "px4_fmuv5_quad_handheld_optitrack"
 #: Search window for the offset [s] around the difference of the two recordings' start times.
 MAX_OFFSET_S = 10.0
-#: Moving average applied to the angular-rate magnitudes (mocap differentiation noise) [s].
-RATE_SMOOTH_S = 0.05
 
 
 def attitude_residual_deg(flight, mocap, offset_s: float, stride: int = 5) -> tuple[float, float]:
@@ -59,38 +57,24 @@ def main() -> int:
         f"mocap: rigid body {take.rigid_body!r} of {list(take.rigid_bodies)}, "
         f"{len(mocap)} frames at {take.frame_rate_hz:.0f} Hz, {take.skipped_rows} untracked frames"
     )
-    guess = flight.attitude.t[0] - mocap.t[0]
-    tilt = estimate_time_offset(
-        flight.attitude.t,
-        tilt_angle(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)),
-        mocap.t,
-        tilt_angle(mocap.world_R_body()),
-        MAX_OFFSET_S,
-        initial_offset_s=guess,
-    )
-    t_mid, rate = body_rate_magnitude(mocap.t, mocap.world_q_body_wxyz)
-    rate_res = estimate_time_offset(
-        flight.imu.t,
-        np.linalg.norm(flight.imu.body_omega, axis=1),
-        t_mid,
-        rate,
-        MAX_OFFSET_S,
-        initial_offset_s=guess,
-        smooth_s=RATE_SMOOTH_S,
-    )
+    al = align_mocap(flight, mocap, MAX_OFFSET_S)
     print("offset convention: t_ulog = t_mocap + offset (ULog time = seconds since PX4 boot)")
-    print(f"tilt angle     : offset {tilt.offset_s:.4f} s  (correlation {tilt.correlation:.4f})")
     print(
-        f"angular rate   : offset {rate_res.offset_s:.4f} s  "
-        f"(correlation {rate_res.correlation:.4f})"
+        f"tilt angle     : offset {al.tilt.offset_s:.4f} s  (correlation {al.tilt.correlation:.4f})"
     )
-    print(f"difference     : {1e3 * abs(tilt.offset_s - rate_res.offset_s):.1f} ms")
-    offset = 0.5 * (tilt.offset_s + rate_res.offset_s)
     print(
-        f"mocap t=0 is {offset - flight.attitude.t[0]:.3f} s after the first vehicle_attitude "
-        f"sample and {offset - flight.imu.t[0]:.3f} s after the first IMU sample"
+        f"angular rate   : offset {al.rate.offset_s:.4f} s  (correlation {al.rate.correlation:.4f})"
     )
-    for label, off in (("with offset", offset), ("offset - 0.5 s", offset - 0.5)):
+    print(f"difference     : {1e3 * abs(al.tilt.offset_s - al.rate.offset_s):.1f} ms")
+    print(
+        f"mocap t=0 is {al.offset_s - flight.attitude.t[0]:.3f} s after the first vehicle_attitude "
+        f"sample and {al.offset_s - flight.imu.t[0]:.3f} s after the first IMU sample"
+    )
+    print(
+        f"rigid body -> vehicle body rotation (rotation vector, deg): "
+        f"{np.array2string(np.degrees(so3_log(al.rb_R_body.T)), precision=1)}"
+    )
+    for label, off in (("with offset", al.offset_s), ("offset - 0.5 s", al.offset_s - 0.5)):
         rms, tilt_rms = attitude_residual_deg(flight, mocap, off)
         print(
             f"attitude after fixed-rotation fit, {label:14s}: "

@@ -291,3 +291,28 @@ def test_images_without_camera_info(tmp_path):
     assert any("images" in n and "left out" in n for n in f.meta["notes"])
     with pytest.raises(FlightFormatError, match="no CameraInfo"):
         read_bag(path, {"images": "/cam/image_raw"})
+
+
+def test_decode_raw_image_encodings(tmp_path):
+    from types import SimpleNamespace
+
+    from fgnav.datasets.rosbag import IMAGE, _decode_image
+
+    rng = np.random.default_rng(6)
+    rgb = rng.integers(0, 256, size=(4, 5, 3), dtype=np.uint8)
+    step = 5 * 3 + 2  # rows padded by 2 bytes
+    buf = np.zeros((4, step), np.uint8)
+    buf[:, :15] = rgb.reshape(4, 15)
+    msg = SimpleNamespace(height=4, width=5, encoding="rgb8", step=step, data=buf.ravel())
+    bgr = _decode_image(msg, IMAGE, "/cam", 0, tmp_path)
+    np.testing.assert_array_equal(bgr, rgb[:, :, ::-1])
+    msg16 = SimpleNamespace(
+        height=4, width=5, encoding="mono16", step=10, data=np.zeros(40, np.uint8)
+    )
+    with pytest.raises(FlightFormatError, match="encoding 'mono16'"):
+        _decode_image(msg16, IMAGE, "/cam", 3, tmp_path)
+    short = SimpleNamespace(
+        height=4, width=5, encoding="mono8", step=5, data=np.zeros(12, np.uint8)
+    )
+    with pytest.raises(FlightFormatError, match="message 2: 12 bytes"):
+        _decode_image(short, IMAGE, "/cam", 2, tmp_path)

@@ -8,6 +8,7 @@ from fgnav.datasets.errors import FlightDataError, FlightFormatError
 from fgnav.datasets.frames import align_rotation_sequences, tilt_angle
 from fgnav.datasets.geometry import quat_wxyz_to_matrix
 from fgnav.datasets.time_offset import (
+    align_mocap,
     body_rate_magnitude,
     estimate_time_offset,
     read_motive_csv,
@@ -132,29 +133,13 @@ def test_motive_take_real(handheld):
 def test_handheld_ulog_vs_optitrack_offset(handheld):
     flight, take = handheld
     mocap = take.trajectory
-    guess = flight.attitude.t[0] - mocap.t[0]
-    tilt = estimate_time_offset(
-        flight.attitude.t,
-        tilt_angle(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)),
-        mocap.t,
-        tilt_angle(mocap.world_R_body()),
-        max_offset_s=3.0,
-        initial_offset_s=guess,
-    )
-    t_mid, rate = body_rate_magnitude(mocap.t, mocap.world_q_body_wxyz)
-    gyro = estimate_time_offset(
-        flight.imu.t,
-        np.linalg.norm(flight.imu.body_omega, axis=1),
-        t_mid,
-        rate,
-        max_offset_s=3.0,
-        initial_offset_s=guess,
-        smooth_s=0.05,
-    )
+    al = align_mocap(flight, mocap, max_offset_s=3.0)
+    tilt, gyro = al.tilt, al.rate
     assert tilt.correlation > 0.9 and gyro.correlation > 0.98
     assert abs(tilt.offset_s - gyro.offset_s) < TOLERANCE_S
     assert tilt.offset_s == pytest.approx(REFERENCE_OFFSET_S, abs=TOLERANCE_S)
     assert gyro.offset_s == pytest.approx(REFERENCE_OFFSET_S, abs=TOLERANCE_S)
+    assert al.offset_s - flight.attitude.t[0] == pytest.approx(0.8, abs=0.05)  # data README
 
     # Applying the offset makes the attitudes agree (after fixed world/body rotations): tilt within
     # a degree RMS; half a second off, they do not.
@@ -167,6 +152,18 @@ def test_handheld_ulog_vs_optitrack_offset(handheld):
         d = tilt_angle(R_px4) - tilt_angle(a_R_b @ R_mocap @ y_R_x)
         return float(np.degrees(np.sqrt(np.mean(d**2))))
 
-    aligned = tilt_rms_deg(gyro.offset_s)
-    assert aligned < 1.0
-    assert tilt_rms_deg(gyro.offset_s - 0.5) > 5.0 * aligned
+    assert al.tilt_rms_deg < 1.0
+    assert tilt_rms_deg(al.offset_s - 0.5) > 5.0 * al.tilt_rms_deg
+    # The mocap ground truth on the flight clock, in the vehicle's body axes: its attitude matches
+    # the flight's up to the fixed world rotation.
+    gt = al.ground_truth(mocap)
+    assert gt.t[0] == pytest.approx(mocap.t[0] + al.offset_s)
+    sel = slice(1000, 8000, 100)
+    R_flight = quat_wxyz_to_matrix(interpolate_attitude(flight.attitude, gt.t[sel]))
+    R_gt = al.world_R_mocap @ gt.world_R_body()[sel]
+    angle = np.degrees(
+        np.arccos(
+            np.clip((np.trace(R_flight.transpose(0, 2, 1) @ R_gt, axis1=1, axis2=2) - 1) / 2, -1, 1)
+        )
+    )
+    assert np.sqrt(np.mean(angle**2)) < 2.0 * al.attitude_rms_deg

@@ -134,6 +134,118 @@ def test_not_a_ulog_is_a_clear_error(tmp_path):
         read_ulog(tmp_path / "missing.ulg")
 
 
+def _add_topic(ulog, name: str, multi_id: int, fields: list[tuple[str, int, str]], cols) -> None:
+    """Add a topic instance (format + data) to a loaded pyulog ULog before ``write_ulog``."""
+    from pyulog import ULog
+
+    # Replace any format of that name the log already defines (PX4 logs carry unused formats).
+    fmt = object.__new__(ULog.MessageFormat)
+    fmt.name, fmt.fields = name, fields
+    ulog._message_formats[name] = fmt
+    flat = []
+    for type_str, size, field in fields:
+        names = [f"{field}[{i}]" for i in range(size)] if size else [field]
+        flat += [ULog._FieldData(n, type_str) for n in names]
+    d = object.__new__(ULog.Data)
+    d.multi_id, d.name, d.field_data, d.timestamp_idx, d.data = multi_id, name, flat, 0, cols
+    d.msg_id = 1000 + len(ulog._data_list)
+    ulog._data_list.append(d)
+
+
+DISTANCE_FIELDS = [
+    ("uint64_t", 0, "timestamp"),
+    ("float", 0, "current_distance"),
+    ("float", 0, "min_distance"),
+    ("float", 0, "max_distance"),
+    ("int8_t", 0, "signal_quality"),
+    ("uint8_t", 0, "orientation"),
+]
+ODOMETRY_FIELDS = [
+    ("uint64_t", 0, "timestamp"),
+    ("uint64_t", 0, "timestamp_sample"),
+    ("uint8_t", 0, "pose_frame"),
+    ("float", 3, "position"),
+    ("float", 4, "q"),
+    ("uint8_t", 0, "velocity_frame"),
+    ("float", 3, "velocity"),
+]
+FLOW_FIELDS = [
+    ("uint64_t", 0, "timestamp"),
+    ("float", 2, "pixel_flow"),
+    ("float", 0, "distance_m"),
+    ("uint8_t", 0, "quality"),
+]
+
+
+@pytest.mark.realdata
+def test_synthetic_topics_in_a_written_ulog(real_data, tmp_path):
+    """Rangefinder, visual odometry and flow topics added to a real log, written with pyulog,
+    read back end to end (no public log has them)."""
+    from pyulog import ULog
+
+    src = real_data / "px4_cubeorange_quad_flight" / "test.ulg"
+    ulog = ULog(str(src), ["sensor_combined", "vehicle_attitude"])
+    t0 = int(ulog.data_list[0].data["timestamp"][0])
+    n = 50
+    ts = (t0 + 20_000 * np.arange(n)).astype(np.uint64)
+    rng_m = np.linspace(1.0, 3.0, n).astype(np.float32)
+    rng_m[7] = np.nan
+    down = {
+        "timestamp": ts,
+        "current_distance": rng_m,
+        "min_distance": np.full(n, 0.1, np.float32),
+        "max_distance": np.full(n, 8.0, np.float32),
+        "signal_quality": np.full(n, 80, np.int8),
+        "orientation": np.full(n, 25, np.uint8),
+    }
+    forward = {k: v[:10].copy() for k, v in down.items()}
+    forward["orientation"][:] = 0
+    _add_topic(ulog, "distance_sensor", 0, DISTANCE_FIELDS, forward)
+    _add_topic(ulog, "distance_sensor", 1, DISTANCE_FIELDS, down)
+    odo = {
+        "timestamp": ts,
+        "timestamp_sample": ts - np.uint64(1000),
+        "pose_frame": np.full(n, 1, np.uint8),
+        "velocity_frame": np.full(n, 1, np.uint8),
+        **{f"position[{i}]": np.full(n, v, np.float32) for i, v in enumerate([1.0, 2.0, -3.0])},
+        **{f"q[{i}]": np.full(n, v, np.float32) for i, v in enumerate([1.0, 0.0, 0.0, 0.0])},
+        **{f"velocity[{i}]": np.full(n, v, np.float32) for i, v in enumerate([0.5, 0.0, 0.0])},
+    }
+    _add_topic(ulog, "vehicle_visual_odometry", 0, ODOMETRY_FIELDS, odo)
+    flow = {
+        "timestamp": ts,
+        "pixel_flow[0]": np.zeros(n, np.float32),
+        "pixel_flow[1]": np.zeros(n, np.float32),
+        "distance_m": np.ones(n, np.float32),
+        "quality": np.full(n, 200, np.uint8),
+    }
+    _add_topic(ulog, "vehicle_optical_flow", 0, FLOW_FIELDS, flow)
+    ulog._initial_parameters.update({"EKF2_RNG_PITCH": 0.2, "EKF2_RNG_POS_Z": 0.05})
+    out = tmp_path / "synthetic.ulg"
+    ulog.write_ulog(str(out))
+
+    f = read_ulog(out)
+    # Only the downward instance is read; the NaN reading is left out and counted.
+    assert f.meta["px4_instances"]["distance_sensor"]["chosen"] == 1
+    assert any("not downward-facing" in note for note in f.meta["notes"])
+    assert len(f.range) == n - 1 and f.meta["range"]["skipped_nonfinite"] == 1
+    np.testing.assert_allclose(f.range.t, np.delete(ts, 7) * 1e-6)
+    np.testing.assert_allclose(f.range.range, np.delete(rng_m, 7))
+    np.testing.assert_allclose(f.range.quality, 0.8)
+    assert (f.calib.range_min, f.calib.range_max) == (pytest.approx(0.1), pytest.approx(8.0))
+    np.testing.assert_allclose(
+        f.calib.body_T_range[:3, 2], [np.sin(0.2), 0.0, -np.cos(0.2)], atol=1e-7
+    )
+    np.testing.assert_allclose(f.calib.body_T_range[:3, 3], [0.0, 0.0, -0.05], atol=1e-7)
+    # Visual odometry: NED -> z-up, time from timestamp_sample.
+    vo = f.references["px4_vehicle_visual_odometry"]
+    np.testing.assert_allclose(vo.t, (ts - 1000) * 1e-6)
+    np.testing.assert_allclose(vo.world_t_body[0], [2.0, 1.0, 3.0])
+    np.testing.assert_allclose(vo.world_v_body[0], [0.0, 0.5, 0.0], atol=1e-7)  # north -> +y
+    # Flow is summarised, not converted.
+    assert f.meta["px4_optical_flow"]["vehicle_optical_flow"]["samples"] == n
+
+
 def _accel_gravity_angle_deg(flight, window_s: float = 0.25) -> np.ndarray:
     """Angle between the low-passed accelerometer and the attitude's world z axis in body."""
     w = int(window_s * flight.imu.rate_hz)
