@@ -316,3 +316,27 @@ def test_decode_raw_image_encodings(tmp_path):
     )
     with pytest.raises(FlightFormatError, match="message 2: 12 bytes"):
         _decode_image(short, IMAGE, "/cam", 2, tmp_path)
+
+
+def test_header_stamps_sorted_repeats_and_zero_counted(tmp_path):
+    from rosbags.rosbag1 import Writer
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    d = _data(7)
+    imu_msgs = [m for m in _messages(ts, d, ros1=True, compressed=False) if m[0] == "/imu/data"][:5]
+    # Stamps out of order, one repeated, one unset (0): receive order 0..4.
+    stamps = [T0_NS + 30_000_000, T0_NS + 10_000_000, T0_NS + 20_000_000, T0_NS + 20_000_000, 0]
+    receive = [T0_NS + 40_000_000 + i * 1_000_000 for i in range(5)]
+    path = tmp_path / "order.bag"
+    with Writer(path) as w:
+        conn = w.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=ts)
+        for (_, mt, _, msg), st, rc in zip(imu_msgs, stamps, receive, strict=True):
+            msg.header.stamp = _stamp(ts, st)
+            w.write(conn, rc, ts.serialize_ros1(msg, mt))
+    f = read_bag(path, {"imu": "/imu/data"})
+    counts = f.meta["bag_streams"]["imu"]
+    assert counts["messages"] == 5 and counts["repeated_stamp_skipped"] == 1
+    assert counts["zero_stamp_receive_time_used"] == 1 and counts["out_of_order"] >= 1
+    expected_ns = [T0_NS + 10_000_000, T0_NS + 20_000_000, T0_NS + 30_000_000, receive[4]]
+    np.testing.assert_allclose(f.imu.t, [(n // 10**9) + (n % 10**9) * 1e-9 for n in expected_ns])
+    np.testing.assert_array_equal(f.imu.body_omega[0], d["gyro"][1])  # sorted with its message
