@@ -12,6 +12,11 @@ clock-b times to express them on clock a.
 :func:`read_motive_csv` reads a Motive "CSV export" (metadata line, then Type/Name/ID/kind/axis
 header rows, then one row per frame) into a :class:`MotiveTake` whose trajectory is in fgnav's
 z-up world (see :mod:`fgnav.datasets.frames`).
+
+:func:`align_mocap` puts a mocap take on a flight log's clock: offset from tilt and from
+angular-rate magnitude (two independent signals), then the fixed world and body rotations; its
+result gives the mocap ground truth in the vehicle's body axes on the flight's clock
+(``scripts/align_mocap.py`` prints it for the handheld PX4 + OptiTrack set).
 """
 
 from __future__ import annotations
