@@ -17,10 +17,11 @@ from fgnav.datasets.phantom4 import (
 )
 from fgnav.datasets.time_offset import estimate_time_offset
 
-#: Physically plausible rotor-drag coefficients k = mu/m of multirotors [1/s], independent of
-#: this flight: PX4 bounds EKF2_MCOEF to [0, 1] 1/s with default 0.15; published identifications
-#: of small quadrotors lie in about 0.1-0.7 1/s (e.g. Leishman, Macdonald, Beard, McLain 2014,
-#: IEEE Control Systems 34(1)). A fit outside [0.1, 1.0] means a sign, frame or unit error.
+#: Plausible rotor-drag coefficients k = mu/m of multirotors [1/s], set independently of this
+#: flight: PX4 bounds its propeller momentum drag EKF2_MCOEF to [0, 1] 1/s, default 0.15
+#: (src/modules/ekf2/params_drag.yaml); seed 000 simulates kx = 0.3, ky = 0.2 1/s. Below 0.1 the
+#: drag would be invisible in a 3 m/s flight (< 0.3 m/s^2, under the 0.1 s-mean noise); above 1.0
+#: is outside PX4's range. A fit outside the band means a sign, frame, unit or clock error.
 PLAUSIBLE_K = (0.1, 1.0)
 
 
