@@ -154,6 +154,9 @@ def attitude_from_vehicle_attitude(d: Topic) -> tuple[AttitudeSeries, dict[str, 
         "attitude_samples_skipped_invalid": int(np.count_nonzero(~finite)),
         "attitude_samples_skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
     }
+    if "quat_reset_counter" in d:
+        # EKF2 heading/attitude resets (jumps kept as logged).
+        notes["quat_resets"] = int(np.count_nonzero(np.diff(np.asarray(d["quat_reset_counter"]))))
     return AttitudeSeries(t=t[keep], world_q_body_wxyz=ned_q_frd_to_world_q_body(q[keep])), notes
 
 
@@ -189,6 +192,12 @@ def trajectory_from_local_position(
     for flag in ("xy_valid", "z_valid", "v_xy_valid", "v_z_valid"):
         if flag in d:
             notes[f"{flag}_fraction"] = float(np.mean(np.asarray(d[flag]) != 0))
+    for counter in ("xy_reset_counter", "z_reset_counter", "vxy_reset_counter", "vz_reset_counter"):
+        if counter in d:
+            # EKF2 state resets: the logged estimate jumps there (kept as logged).
+            notes[counter.replace("_counter", "s")] = int(
+                np.count_nonzero(np.diff(np.asarray(d[counter])))
+            )
     if not np.any(keep):
         return None, notes
     q = interpolate_attitude(att, t[keep])
