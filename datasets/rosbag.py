@@ -25,8 +25,13 @@ are fgnav's conventions, so values are copied as they are (quaternions reordered
 z]``). Assumed and recorded in ``meta``: the IMU's ``frame_id`` is the body frame; a pose or
 odometry topic gives the pose of its ``child_frame_id`` (or of the camera for ``slam``) in its
 ``header.frame_id``; odometry twist is in the child (body) frame (nav_msgs/Odometry definition) and
-is rotated into the world. Transforms between frames (``/tf``) are not read: ``body_T_cam`` and
-``body_T_range`` stay identity unless given in a calibration; ``meta["notes"]`` says so.
+is rotated into the world. Extrinsics come from ``/tf_static`` (``tf2_msgs/TFMessage``) when the
+bag has it: the body frame is the IMU's ``frame_id``; ``body_T_cam`` is the transform to the
+images' ``frame_id`` (taken as an optical frame, x right, y down, z forward, REP-103's
+``*_optical`` convention = fgnav's camera frame); ``body_T_range`` is the transform to the Range
+``frame_id`` turned so that its +z is the beam (ROS ranges measure along the sensor's +x). Chains
+of static transforms are followed in both directions. Dynamic ``/tf`` is not read. What could not
+be resolved stays identity and ``meta["notes"]`` says so.
 
 Time: the message's ``header.stamp`` (sensor time), never the bag's receive time, as float
 seconds. Messages whose stamp is zero (header not filled) use the receive time; they are counted
@@ -48,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from .errors import FlightFormatError
-from .geometry import quat_wxyz_to_matrix
+from .geometry import invert_pose, make_pose, quat_wxyz_to_matrix
 from .types import (
     AttitudeSeries,
     Calibration,
@@ -90,6 +95,12 @@ NO_ORIENTATION = -1.0
 #: ``sensor_msgs/Image`` encodings read (8-bit only) -> channels.
 IMAGE_ENCODINGS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4}
 NS_TO_S = 1e-9
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPIC = "/tf_static"
+#: Rotation from fgnav's range frame (beam along +z) into a ROS range frame (beam along +x):
+#: its columns are fgnav's x, y, z axes in the ROS frame (z -> x, x -> y, y -> z; a proper
+#: rotation).
+ROSRANGE_R_RANGE = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 def _open_reader(path: Path):
@@ -265,6 +276,23 @@ def _decode_image(msg: Any, msgtype: str, topic: str, i: int, path: Path) -> np.
     return np.ascontiguousarray(img)
 
 
+def _extrinsic(static, body_frame, sensor_frame, stream: str, meta) -> np.ndarray | None:
+    """``body_T_sensor`` from static transforms, or None with a note saying why."""
+    what = "body_T_range" if stream == "range" else "body_T_cam"
+    if not body_frame or not sensor_frame:
+        reason = "no IMU frame_id (body frame)" if not body_frame else "no sensor frame_id"
+    elif not static:
+        reason = "the bag has no /tf_static"
+    else:
+        T = lookup_static_transform(static, body_frame, sensor_frame)
+        if T is not None:
+            meta.setdefault("extrinsics", {})[what] = f"/tf_static {body_frame} -> {sensor_frame}"
+            return T
+        reason = f"no /tf_static chain from {body_frame!r} to {sensor_frame!r}"
+    meta["notes"].append(f"{stream}: {what} is identity ({reason}); set it in a calibration")
+    return None
+
+
 def _camera_from_info(msg: Any) -> CameraIntrinsics:
     # ROS 2 names the fields k and d, ROS 1 K and D.
     K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, dtype=float)
@@ -278,6 +306,44 @@ def _camera_from_info(msg: Any) -> CameraIntrinsics:
         height=int(msg.height),
         distortion=tuple(float(x) for x in D),
     )
+
+
+def _static_transforms(msgs: list[Any]) -> dict[tuple[str, str], np.ndarray]:
+    """``(parent, child) -> parent_T_child`` (4x4) from ``TFMessage``s (last one wins)."""
+    out = {}
+    for m in msgs:
+        for tr in m.transforms:
+            R = quat_wxyz_to_matrix(_wxyz(tr.transform.rotation))
+            out[(tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))] = make_pose(
+                R, _xyz(tr.transform.translation)
+            )
+    return out
+
+
+def lookup_static_transform(
+    transforms: Mapping[tuple[str, str], np.ndarray], target: str, source: str
+) -> np.ndarray | None:
+    """``target_T_source`` (4x4) through a chain of static transforms, or None.
+
+    Args:
+        transforms: ``(parent, child) -> parent_T_child``.
+        target, source: frame ids (leading ``/`` ignored).
+    """
+    target, source = target.lstrip("/"), source.lstrip("/")
+    edges: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for (parent, child), T in transforms.items():
+        edges.setdefault(parent, []).append((child, T))
+        edges.setdefault(child, []).append((parent, invert_pose(T)))
+    # Breadth-first from the target: found[f] = target_T_f.
+    found = {target: np.eye(4)}
+    queue = [target]
+    while queue:
+        frame = queue.pop(0)
+        for nxt, T in edges.get(frame, []):
+            if nxt not in found:
+                found[nxt] = found[frame] @ T
+                queue.append(nxt)
+    return found.get(source)
 
 
 def read_bag(
@@ -352,15 +418,26 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
         raise ValueError(f"image_stride must be >= 1, got {image_stride}")
 
     wanted = set(mapping.values())
+    tf_topic = TF_STATIC_TOPIC if types.get(TF_STATIC_TOPIC) == TF_MESSAGE else None
+    if tf_topic:
+        wanted.add(tf_topic)
     accs = {topic: _Acc([], []) for topic in wanted}
     conns = [c for c in reader.connections if c.topic in wanted]
     for conn, receive_ns, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
         acc = accs[conn.topic]
+        if conn.topic == tf_topic:  # TFMessage has no header of its own
+            acc.msgs.append(msg)
+            continue
         acc.t.append(_stamp(msg, receive_ns, acc))
         acc.msgs.append(msg)
 
     counts: dict[str, Any] = {}
+    static: dict[tuple[str, str], np.ndarray] = {}
+    if tf_topic:
+        static = _static_transforms(accs[tf_topic].msgs)
+        meta["tf_static"] = sorted(f"{p} -> {c}" for p, c in static)
+    body_frame = None
     streams: dict[str, Any] = {}
     references: dict[str, Trajectory] = {}
     calib_kwargs: dict[str, Any] = {}
@@ -377,6 +454,7 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
             ),
         )
         counts["imu"]["frame_id"] = msgs[0].header.frame_id if msgs else ""
+        body_frame = counts["imu"]["frame_id"] or None
         has_orientation = bool(msgs) and all(
             m.orientation_covariance[0] != NO_ORIENTATION for m in msgs
         )
@@ -413,9 +491,9 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
             streams["range"] = RangeSeries(
                 t=t[finite], range=r[finite], quality=np.full(int(finite.sum()), -1.0)
             )
-        meta["notes"].append(
-            "range: body_T_range is identity (tf not read); set it in a calibration"
-        )
+        T = _extrinsic(static, body_frame, counts["range"].get("frame_id"), "range", meta)
+        if T is not None:
+            calib_kwargs["body_T_range"] = T @ make_pose(ROSRANGE_R_RANGE, np.zeros(3))
 
     if "camera_info" in mapping and camera is None:
         _, msgs = _ordered(accs[mapping["camera_info"]], "camera_info", counts)
@@ -444,9 +522,16 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
                 )
             streams["images"] = ImageSeries(t=t, frames=np.stack(frames), camera=camera)
             calib_kwargs["camera"] = camera
-            meta["notes"].append(
-                "images: body_T_cam is identity (tf not read); set it in a calibration"
-            )
+            cam_frame = msgs[0].header.frame_id if msgs else ""
+            counts["images"]["frame_id"] = cam_frame
+            T = _extrinsic(static, body_frame, cam_frame, "images", meta)
+            if T is not None:
+                calib_kwargs["body_T_cam"] = T
+                if "optical" not in cam_frame:
+                    meta["notes"].append(
+                        f"images: frame {cam_frame!r} is taken as an optical frame (x right, "
+                        "y down, z forward); check body_T_cam if it is a FLU camera link"
+                    )
 
     for stream in [s for s in mapping if s in ("slam", "ground_truth") or s.startswith("ref:")]:
         topic = mapping[stream]

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightFormatError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz
 from fgnav.datasets.rosbag import list_bag_topics, read_bag
 from rosbags.typesys import Stores, get_typestore
 
@@ -340,3 +341,67 @@ def test_header_stamps_sorted_repeats_and_zero_counted(tmp_path):
     expected_ns = [T0_NS + 10_000_000, T0_NS + 20_000_000, T0_NS + 30_000_000, receive[4]]
     np.testing.assert_allclose(f.imu.t, [(n // 10**9) + (n % 10**9) * 1e-9 for n in expected_ns])
     np.testing.assert_array_equal(f.imu.body_omega[0], d["gyro"][1])  # sorted with its message
+
+
+def test_extrinsics_from_tf_static(tmp_path):
+    from fgnav.datasets.geometry import make_pose, rpy_to_matrix
+    from fgnav.datasets.rosbag import lookup_static_transform
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    d = _data(8)
+    msgs = _messages(ts, d, ros1=False, compressed=True)
+    for _, _, _, msg in msgs:  # the camera frame is an optical frame
+        if msg.header.frame_id == "cam":
+            msg.header.frame_id = "cam_optical"
+    base_T_imu = make_pose(rpy_to_matrix(0.0, 0.0, np.pi / 2), [0.1, 0.0, 0.0])
+    base_T_cam = make_pose(rpy_to_matrix(-np.pi / 2, 0.0, -np.pi / 2), [0.2, 0.0, -0.05])
+    imu_T_range = make_pose(rpy_to_matrix(0.0, np.pi / 2, 0.0), [0.0, 0.0, -0.03])  # x down
+
+    def tf(parent, child, T):
+        q = matrix_to_quat_wxyz(T[:3, :3])
+        return ts.types["geometry_msgs/msg/TransformStamped"](
+            header=_header(ts, T0_NS, parent, False),
+            child_frame_id=child,
+            transform=ts.types["geometry_msgs/msg/Transform"](
+                translation=ts.types["geometry_msgs/msg/Vector3"](*T[:3, 3]),
+                rotation=ts.types["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0]),
+            ),
+        )
+
+    tf_msg = ts.types["tf2_msgs/msg/TFMessage"](
+        transforms=[
+            tf("base_link", "imu_link", base_T_imu),
+            tf("base_link", "cam_optical", base_T_cam),
+            tf("imu_link", "range", imu_T_range),
+        ]
+    )
+    path = tmp_path / "tf_bag"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conns = {}
+        tf_conn = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
+        w.write(tf_conn, T0_NS, ts.serialize_cdr(tf_msg, "tf2_msgs/msg/TFMessage"))
+        for topic, mt, ns, msg in msgs:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, mt, typestore=ts)
+            w.write(conns[topic], ns, ts.serialize_cdr(msg, mt))
+
+    f = read_bag(path)
+    expected_cam = np.linalg.inv(base_T_imu) @ base_T_cam
+    np.testing.assert_allclose(f.calib.body_T_cam, expected_cam, atol=1e-12)
+    # fgnav's range beam (+z) is the ROS range frame's +x: body -z here (pointing down).
+    np.testing.assert_allclose(f.calib.body_T_range[:3, 2], [0.0, 0.0, -1.0], atol=1e-12)
+    np.testing.assert_allclose(f.calib.body_T_range[:3, 3], [0.0, 0.0, -0.03], atol=1e-12)
+    assert np.linalg.det(f.calib.body_T_range[:3, :3]) == pytest.approx(1.0)
+    assert f.meta["extrinsics"]["body_T_cam"] == "/tf_static imu_link -> cam_optical"
+    assert not any("identity" in n for n in f.meta["notes"])
+    transforms = {("a", "b"): base_T_imu}
+    assert lookup_static_transform(transforms, "a", "c") is None
+    np.testing.assert_allclose(
+        lookup_static_transform(transforms, "b", "a"), np.linalg.inv(base_T_imu)
+    )
+
+    # Without /tf_static the extrinsics stay identity, and the notes say so.
+    g = read_bag(write_ros2(tmp_path / "no_tf", d, storage="sqlite3"))
+    assert np.array_equal(g.calib.body_T_cam, np.eye(4))
+    assert any("body_T_range is identity (the bag has no /tf_static)" in n for n in g.meta["notes"])
