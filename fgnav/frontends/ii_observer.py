@@ -527,6 +527,7 @@ def run_ii_observer(
     world_q_body_wxyz: np.ndarray | None = None,
     world_vz: np.ndarray | None = None,
     vertical: VerticalFilterOptions | None = None,
+    align_slam_axes: bool = False,
 ) -> IIObserverResult:
     """Run the observer over a flight, in time order (causal).
 
@@ -541,6 +542,13 @@ def run_ii_observer(
         world_vz: (N,) world vertical velocity at the IMU times [m/s]; default:
             :func:`vertical_velocity_from_range`.
         vertical: options of the vertical filter.
+        align_slam_axes: False: the paper's model, SLAM axes are world axes (``y2`` = SLAM x, y).
+            True: each session's SLAM positions are first rotated into world axes with
+            ``world_R_slam = world_R_body body_R_cam slam_R_cam^T`` at the session's first sample
+            (causal), which makes a similarity SLAM (rotated frame, one scale) fit eq. 4 with
+            ``kx = ky = s``. A constant SLAM offset does not affect the scale estimate (only
+            ``y2_dot`` enters the error dynamics) but shifts the output positions by
+            ``offset / xi``; the camera lever arm is not compensated.
     """
     options = options or IIObserverOptions()
     imu, slam = flight.imu, flight.slam
@@ -592,6 +600,8 @@ def run_ii_observer(
     j = 0
     current = None
     acc, gyr = imu.body_accel, imu.body_omega
+    body_R_cam = np.asarray(flight.calib.body_T_cam, dtype=float)[:3, :3]
+    world_R_slam = np.eye(3)
     for i in range(n):
         t = float(imu.t[i])
         if i == 0:
@@ -620,7 +630,17 @@ def run_ii_observer(
                     counts["scale_resets"] += 1
                 obs.reset_scale()
                 current = sid
-            obs.update_slam(slam.slam_t_cam[j - 1, :2])
+                if align_slam_axes:
+                    if i == 0:
+                        w_R_b = R_all[0]
+                    else:
+                        b = (ts - imu.t[i - 1]) / (t - imu.t[i - 1])
+                        w_R_b = (1 - b) * R_all[i - 1] + b * R_all[i]
+                    m = w_R_b @ body_R_cam @ quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j - 1]).T
+                    U, _, Vt = np.linalg.svd(m)
+                    world_R_slam = U @ Vt
+            p = slam.slam_t_cam[j - 1]
+            obs.update_slam((world_R_slam @ p)[:2] if align_slam_axes else p[:2])
             counts["slam_used"] += 1
         obs.propagate(t, acc[i], gyr[i], R_all[i], world_vz[i])
         eta[i] = obs.eta

@@ -165,3 +165,29 @@ def test_simulated_circle_noise_free_converges_velocity_first():
     late = res.t > 8.0
     assert v_err[late].max() < 2e-3
     assert k_err[late].max() < 0.01
+
+
+def test_align_slam_axes_handles_a_rotated_offset_slam_frame():
+    """A similarity SLAM (rotated frame, offset, one scale) fits eq. 4 once its positions are
+    rotated into world axes with the attitude and the SLAM orientation."""
+    from dataclasses import replace
+
+    from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix
+
+    flight, body_v, world_v, p = paper_flight(duration=25.0)
+    s_true = 0.6
+    slam_R_world = rpy_to_matrix(0.4, -0.2, 2.0)
+    k = np.searchsorted(flight.imu.t, flight.slam.t)
+    world_R_body = quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz[k])
+    slam = replace(
+        flight.slam,
+        slam_t_cam=s_true * p[k] @ slam_R_world.T + [3.0, -1.0, 0.5],
+        slam_q_cam_wxyz=matrix_to_quat_wxyz(slam_R_world @ world_R_body),  # camera = body
+    )
+    rotated = replace(flight, slam=slam)
+    opts = IIObserverOptions(kinematics="full")
+    aligned = run_ii_observer(rotated, opts, world_vz=world_v[:, 2], align_slam_axes=True)
+    late = aligned.t > 15.0
+    assert np.abs(aligned.xi[late] / s_true - 1).max() < 0.01
+    raw = run_ii_observer(rotated, opts, world_vz=world_v[:, 2])
+    assert np.abs(raw.xi[late] / s_true - 1).max() > 0.2
