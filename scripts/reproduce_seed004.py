@@ -62,7 +62,9 @@ def run_one(scenario: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
         )
     else:
         obs = run_ii_observer(
-            flight, IIObserverOptions(drag_k=tuple(truth_drag(flight))), world_q_body_wxyz=q_imu
+            flight,
+            IIObserverOptions(kinematics="full", drag_k=tuple(truth_drag(flight))),
+            world_q_body_wxyz=q_imu,
         )
         pairs = scale_pairs_from_flight(
             flight,

@@ -302,6 +302,13 @@ class AttitudeHeightEkf:
             "range_outlier": 0,
         }
 
+    @staticmethod
+    def run(
+        flight: Flight, options: AttitudeEkfOptions | None = None, **kwargs
+    ) -> AttitudeHeightResult:
+        """Run over a whole flight: :func:`run_attitude_ekf` (keyword arguments passed on)."""
+        return run_attitude_ekf(flight, options, **kwargs)
+
     @property
     def world_q_body_wxyz(self) -> np.ndarray:
         """Current attitude ``[w, x, y, z]``."""

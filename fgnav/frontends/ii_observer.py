@@ -172,6 +172,11 @@ class IIObserver:
         self.t_last_slam: float | None = None
         self.capped_steps = 0
 
+    @staticmethod
+    def run(flight: Flight, options: IIObserverOptions | None = None, **kwargs) -> IIObserverResult:
+        """Run over a whole flight: :func:`run_ii_observer` (keyword arguments passed on)."""
+        return run_ii_observer(flight, options, **kwargs)
+
     # -- the paper's quantities -------------------------------------------------------------------
 
     def _parts(self, s, u):
