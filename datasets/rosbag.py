@@ -31,7 +31,8 @@ images' ``frame_id`` (taken as an optical frame, x right, y down, z forward, REP
 ``*_optical`` convention = fgnav's camera frame); ``body_T_range`` is the transform to the Range
 ``frame_id`` turned so that its +z is the beam (ROS ranges measure along the sensor's +x). Chains
 of static transforms are followed in both directions. Dynamic ``/tf`` is not read. What could not
-be resolved stays identity and ``meta["notes"]`` says so.
+be resolved keeps :class:`Calibration`'s default (camera at the body origin with identity
+rotation, rangefinder pointing down) and ``meta["notes"]`` says so.
 
 Time: the message's ``header.stamp`` (sensor time), never the bag's receive time, as float
 seconds. Messages whose stamp is zero (header not filled) use the receive time; they are counted
@@ -289,7 +290,9 @@ def _extrinsic(static, body_frame, sensor_frame, stream: str, meta) -> np.ndarra
             meta.setdefault("extrinsics", {})[what] = f"/tf_static {body_frame} -> {sensor_frame}"
             return T
         reason = f"no /tf_static chain from {body_frame!r} to {sensor_frame!r}"
-    meta["notes"].append(f"{stream}: {what} is identity ({reason}); set it in a calibration")
+    meta["notes"].append(
+        f"{stream}: {what} left at the Calibration default ({reason}); set it in a calibration"
+    )
     return None
 
 

@@ -11,6 +11,7 @@ import pytest
 from fgnav.datasets.errors import FlightFormatError
 from fgnav.datasets.geometry import matrix_to_quat_wxyz
 from fgnav.datasets.rosbag import list_bag_topics, read_bag
+from fgnav.datasets.types import Calibration
 from rosbags.typesys import Stores, get_typestore
 
 T0_NS = 1_700_000_000_123_000_000
@@ -394,14 +395,18 @@ def test_extrinsics_from_tf_static(tmp_path):
     np.testing.assert_allclose(f.calib.body_T_range[:3, 3], [0.0, 0.0, -0.03], atol=1e-12)
     assert np.linalg.det(f.calib.body_T_range[:3, :3]) == pytest.approx(1.0)
     assert f.meta["extrinsics"]["body_T_cam"] == "/tf_static imu_link -> cam_optical"
-    assert not any("identity" in n for n in f.meta["notes"])
+    assert not any("Calibration default" in n for n in f.meta["notes"])
     transforms = {("a", "b"): base_T_imu}
     assert lookup_static_transform(transforms, "a", "c") is None
     np.testing.assert_allclose(
         lookup_static_transform(transforms, "b", "a"), np.linalg.inv(base_T_imu)
     )
 
-    # Without /tf_static the extrinsics stay identity, and the notes say so.
+    # Without /tf_static the extrinsics keep the Calibration defaults, and the notes say so.
     g = read_bag(write_ros2(tmp_path / "no_tf", d, storage="sqlite3"))
-    assert np.array_equal(g.calib.body_T_cam, np.eye(4))
-    assert any("body_T_range is identity (the bag has no /tf_static)" in n for n in g.meta["notes"])
+    assert np.array_equal(g.calib.body_T_cam, Calibration().body_T_cam)
+    assert np.array_equal(g.calib.body_T_range, Calibration().body_T_range)
+    assert any(
+        "body_T_range left at the Calibration default (the bag has no /tf_static)" in n
+        for n in g.meta["notes"]
+    )
