@@ -28,21 +28,28 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
-    parser.add_argument("--out", required=True, help="output folder (estimate.tum, states.csv, "
-                        "summary.json)")
-    parser.add_argument("--config", default=None,
-                        help="TOML file with [graph], [lm] and [batch] tables")
+    parser.add_argument(
+        "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
+    )
+    parser.add_argument(
+        "--config", default=None, help="TOML file with [graph], [lm] and [batch] tables"
+    )
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
-    parser.add_argument("--covariance", choices=("all", "slow", "none"), default=None,
-                        help="marginal covariances to compute (default all)")
+    parser.add_argument(
+        "--covariance",
+        choices=("all", "slow", "none"),
+        default=None,
+        help="marginal covariances to compute (default all)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def graph_options(args: argparse.Namespace) -> GraphOptions:
     """``GraphOptions`` from the ``[graph]`` table and the flags."""
     src = str(args.config or "flags")
-    return options_from(GraphOptions, load_config(args.config, "graph"), source=src,
-                        keyframe_hz=args.keyframe_hz)
+    return options_from(
+        GraphOptions, load_config(args.config, "graph"), source=src, keyframe_hz=args.keyframe_hz
+    )
 
 
 def truth_scales(flight: Flight) -> dict[int, float] | None:
@@ -61,11 +68,14 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
 
     metrics = None
     if flight.ground_truth is not None:
-        metrics = evaluate(est, flight.ground_truth, alignment="se3",
-                           truth_scale=truth_scales(flight))
-        print(f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE (SE(3) alignment), "
-              f"velocity RMSE {metrics.vel_rmse_mps:.4f} m/s, yaw RMSE "
-              f"{metrics.yaw_rmse_deg:.3f} deg, RPE {metrics.rpe_pct:.3f} %")
+        metrics = evaluate(
+            est, flight.ground_truth, alignment="se3", truth_scale=truth_scales(flight)
+        )
+        print(
+            f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE (SE(3) alignment), "
+            f"velocity RMSE {metrics.vel_rmse_mps:.4f} m/s, yaw RMSE "
+            f"{metrics.yaw_rmse_deg:.3f} deg, RPE {metrics.rpe_pct:.3f} %"
+        )
     for sid, s in sorted(est.slam_scale.items()):
         sig = est.slam_scale_sigma.get(sid)
         sig_txt = f" +/- {sig:.2g}" if sig is not None else ""
@@ -83,12 +93,17 @@ def run(args: argparse.Namespace) -> int:
     src = str(args.config or "flags")
     batch_table = load_config(args.config, "batch")
     opts = options_from(
-        BatchOptions, batch_table, source=src, graph=graph_options(args),
+        BatchOptions,
+        batch_table,
+        source=src,
+        graph=graph_options(args),
         lm=options_from(LMOptions, load_config(args.config, "lm"), source=src),
         covariance=args.covariance,
     )
     est = solve_batch(flight, opts, progress=not args.no_progress)
-    print(f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
-          f"{est.runtime_s:.2f} s")
+    print(
+        f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
+        f"{est.runtime_s:.2f} s"
+    )
     score_and_write(flight, est, Path(args.out), {"flight": flight.name, "command": "batch"})
     return 0

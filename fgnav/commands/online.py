@@ -23,8 +23,9 @@ HELP = "run the online fixed-lag smoother over a flight"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
-    parser.add_argument("--out", required=True, help="output folder (estimate.tum, states.csv, "
-                        "summary.json)")
+    parser.add_argument(
+        "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
+    )
     parser.add_argument("--lag", type=float, default=None, help="smoother lag [s] (default 2)")
     parser.add_argument("--config", default=None, help="TOML file with [graph] and [online] tables")
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
@@ -35,15 +36,21 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
     flight = load_flight(args.flight)
-    opts = options_from(FixedLagOptions, load_config(args.config, "online"),
-                        source=str(args.config or "flags"), graph=graph_options(args),
-                        lag_s=args.lag)
+    opts = options_from(
+        FixedLagOptions,
+        load_config(args.config, "online"),
+        source=str(args.config or "flags"),
+        graph=graph_options(args),
+        lag_s=args.lag,
+    )
     est = run_fixed_lag(flight, opts, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info
-    print(f"online: {len(lat)} updates, latency p50 {np.percentile(lat, 50) * 1e3:.2f} ms, "
-          f"p99 {np.percentile(lat, 99) * 1e3:.2f} ms, max {lat.max() * 1e3:.2f} ms, "
-          f"{info['times_real_time']:.1f}x real time, {info['solver_failures']} solver failures")
+    print(
+        f"online: {len(lat)} updates, latency p50 {np.percentile(lat, 50) * 1e3:.2f} ms, "
+        f"p99 {np.percentile(lat, 99) * 1e3:.2f} ms, max {lat.max() * 1e3:.2f} ms, "
+        f"{info['times_real_time']:.1f}x real time, {info['solver_failures']} solver failures"
+    )
     if info["dropped"]:
         print(f"dropped measurements: {info['dropped']}")
     score_and_write(flight, est, Path(args.out), {"flight": flight.name, "command": "online"})

@@ -87,7 +87,9 @@ class LMResult:
     converged: bool
 
 
-def _damping_graph(gfg: gtsam.GaussianFactorGraph, dims: dict[int, int], lam: float) -> gtsam.GaussianFactorGraph:
+def _damping_graph(
+    gfg: gtsam.GaussianFactorGraph, dims: dict[int, int], lam: float
+) -> gtsam.GaussianFactorGraph:
     g = gtsam.GaussianFactorGraph()
     g.push_back(gfg)
     unit = {d: gtsam.noiseModel.Unit.Create(d) for d in set(dims.values())}
@@ -186,12 +188,22 @@ def solve_batch(
     if bar:
         bar.close()
     t_built = time.perf_counter()
-    log.info("graph: %d factors, %d variables, %d keyframes (%.2f s)", graph.size(), values.size(),
-             builder.K, t_built - t_start)
+    log.info(
+        "graph: %d factors, %d variables, %d keyframes (%.2f s)",
+        graph.size(),
+        values.size(),
+        builder.K,
+        t_built - t_start,
+    )
     res = levenberg_marquardt(graph, values, o.lm)
     t_solved = time.perf_counter()
-    log.info("LM: %d iterations, error %.6g -> %.6g (%.2f s)", res.iterations, res.errors[0],
-             res.errors[-1], t_solved - t_built)
+    log.info(
+        "LM: %d iterations, error %.6g -> %.6g (%.2f s)",
+        res.iterations,
+        res.errors[0],
+        res.errors[-1],
+        t_solved - t_built,
+    )
     est = estimate_from_values(builder, res.values, method="batch")
     marg = None
     if o.covariance != "none":
@@ -202,7 +214,9 @@ def solve_batch(
     pose_cov = vel_cov = None
     slow_sigma: dict[int, np.ndarray] = {}
     if marg is not None:
-        slow_sigma = {k: np.sqrt(np.diag(marg.marginalCovariance(k))) for k in _slow_keys(res.values)}
+        slow_sigma = {
+            k: np.sqrt(np.diag(marg.marginalCovariance(k))) for k in _slow_keys(res.values)
+        }
         if o.covariance == "all":
             pose_cov = np.full((builder.K, 6, 6), np.nan)
             vel_cov = np.full((builder.K, 3, 3), np.nan)
@@ -212,24 +226,35 @@ def solve_batch(
     t_cov = time.perf_counter()
     est = _with_slow(builder, res.values, est, slow_sigma)
     info = dict(est.info)
-    info.update({
-        "lm_iterations": res.iterations,
-        "lm_converged": res.converged,
-        "lm_errors": [float(e) for e in res.errors],
-        "n_factors": int(graph.size()),
-        "n_variables": int(values.size()),
-        "time_build_s": t_built - t_start,
-        "time_solve_s": t_solved - t_built,
-        "time_covariance_s": t_cov - t_solved,
-        "covariance": o.covariance,
-        "cov_pose_stride": o.cov_pose_stride,
-        "lm_options": asdict(o.lm),
-    })
+    info.update(
+        {
+            "lm_iterations": res.iterations,
+            "lm_converged": res.converged,
+            "lm_errors": [float(e) for e in res.errors],
+            "n_factors": int(graph.size()),
+            "n_variables": int(values.size()),
+            "time_build_s": t_built - t_start,
+            "time_solve_s": t_solved - t_built,
+            "time_covariance_s": t_cov - t_solved,
+            "covariance": o.covariance,
+            "cov_pose_stride": o.cov_pose_stride,
+            "lm_options": asdict(o.lm),
+        }
+    )
     return Estimate(
-        method="batch", trajectory=est.trajectory, pose_cov=pose_cov, vel_cov=vel_cov,
-        slam_scale=est.slam_scale, slam_scale_sigma=est.slam_scale_sigma, drag_k=est.drag_k,
-        drag_k_sigma=est.drag_k_sigma, ground_height=est.ground_height, series=est.series,
-        runtime_s=time.perf_counter() - t_start, causal=False, info=info,
+        method="batch",
+        trajectory=est.trajectory,
+        pose_cov=pose_cov,
+        vel_cov=vel_cov,
+        slam_scale=est.slam_scale,
+        slam_scale_sigma=est.slam_scale_sigma,
+        drag_k=est.drag_k,
+        drag_k_sigma=est.drag_k_sigma,
+        ground_height=est.ground_height,
+        series=est.series,
+        runtime_s=time.perf_counter() - t_start,
+        causal=False,
+        info=info,
     ).check()
 
 
@@ -237,8 +262,9 @@ def _slow_keys(values: gtsam.Values) -> list[int]:
     return [k for k in values.keys() if chr(gtsam.Symbol(k).chr()) in "sdg"]
 
 
-def estimate_from_values(builder: GraphBuilder, values: gtsam.Values, method: str,
-                         keyframes: np.ndarray | None = None) -> Estimate:
+def estimate_from_values(
+    builder: GraphBuilder, values: gtsam.Values, method: str, keyframes: np.ndarray | None = None
+) -> Estimate:
     """Trajectory (pose, velocity, biases) at the keyframes present in ``values``."""
     ks = np.arange(builder.K) if keyframes is None else np.asarray(keyframes, int)
     n = len(ks)
@@ -254,8 +280,9 @@ def estimate_from_values(builder: GraphBuilder, values: gtsam.Values, method: st
     return Estimate(method=method, trajectory=traj, info=builder.report())
 
 
-def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
-               sigma: dict[int, np.ndarray]) -> Estimate:
+def _with_slow(
+    builder: GraphBuilder, values: gtsam.Values, est: Estimate, sigma: dict[int, np.ndarray]
+) -> Estimate:
     """Fill SLAM scale, drag k and ground height (final values and series) from ``values``."""
     from fgnav.factors.slam_scale import slam_alignment_parts
 
@@ -269,8 +296,9 @@ def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
             scale[0] = float(np.cbrt(np.prod(k)))
             if sg is not None:
                 scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
-            series["slam_axis_scale"] = TimeSeries(np.array([t_kf[0]]), k[None, :],
-                                                   None if sg is None else sg[None, :])
+            series["slam_axis_scale"] = TimeSeries(
+                np.array([t_kf[0]]), k[None, :], None if sg is None else sg[None, :]
+            )
         else:
             ts, vs, ss, sess_ids = [], [], [], []
             slam = builder.flight.slam
@@ -282,8 +310,13 @@ def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
                 sg = sigma.get(S(j))
                 # Tangent lambda is the log scale: sigma_s = s sigma_lambda.
                 s_sig = float(s * sg[6]) if sg is not None else np.nan
-                rows = np.flatnonzero([(int(slam.session[a.meas_index[r]]), int(builder.slam_chain[r])) == (sess, seg)
-                                       for r in range(len(a.meas_index))])
+                rows = np.flatnonzero(
+                    [
+                        (int(slam.session[a.meas_index[r]]), int(builder.slam_chain[r]))
+                        == (sess, seg)
+                        for r in range(len(a.meas_index))
+                    ]
+                )
                 t_mid = float(np.mean(t_kf[a.keyframe[rows]])) if len(rows) else float(t_kf[0])
                 ts.append(t_mid)
                 vs.append(s)
@@ -303,7 +336,9 @@ def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
         drag_k = vals[-1]
         drag_sig = sg[-1]
         t_seg = np.array([t_kf[builder.drag_segment == j][0] for j in segs])
-        series["drag_k"] = TimeSeries(t_seg, vals, None if any(x is None for x in sg) else np.array(sg))
+        series["drag_k"] = TimeSeries(
+            t_seg, vals, None if any(x is None for x in sg) else np.array(sg)
+        )
     ground = None
     if builder.use_range:
         segs = np.unique(builder.ground_segment)
@@ -317,13 +352,25 @@ def _with_slow(builder: GraphBuilder, values: gtsam.Values, est: Estimate,
                 t_seg, vals, None if any(x is None for x in sg) else np.array([x[0] for x in sg])
             )
     return Estimate(
-        method=est.method, trajectory=est.trajectory, slam_scale=scale,
-        slam_scale_sigma=scale_sigma, drag_k=drag_k, drag_k_sigma=drag_sig,
-        ground_height=ground, series=series, info=est.info,
+        method=est.method,
+        trajectory=est.trajectory,
+        slam_scale=scale,
+        slam_scale_sigma=scale_sigma,
+        drag_k=drag_k,
+        drag_k_sigma=drag_sig,
+        ground_height=ground,
+        series=series,
+        info=est.info,
     )
 
 
 __all__ = [
-    "BatchOptions", "LMOptions", "LMResult", "SolverError", "levenberg_marquardt", "solve_batch",
-    "estimate_from_values", "describe",
+    "BatchOptions",
+    "LMOptions",
+    "LMResult",
+    "SolverError",
+    "levenberg_marquardt",
+    "solve_batch",
+    "estimate_from_values",
+    "describe",
 ]

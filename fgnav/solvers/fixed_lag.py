@@ -37,7 +37,7 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import matrix_to_quat_wxyz
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.keys import B, S, V, X
+from fgnav.keys import B, V, X
 from fgnav.solvers.graph import GraphBuilder, GraphOptions, MeasurementFactor
 
 log = logging.getLogger(__name__)
@@ -108,9 +108,10 @@ class FixedLagRunner:
     def __init__(self, flight: Flight, options: FixedLagOptions | None = None, priors: Any = None):
         self.options = options or FixedLagOptions()
         self.builder = GraphBuilder(flight, self.options.graph, priors)
-        b = self.builder
         self.period = 1.0 / self.options.graph.keyframe_hz
-        self.smoother = gtsam.IncrementalFixedLagSmoother(self.options.lag_s, _isam2_params(self.options))
+        self.smoother = gtsam.IncrementalFixedLagSmoother(
+            self.options.lag_s, _isam2_params(self.options)
+        )
         self.k_next = 0
         self.t_latest = -math.inf
         self.key_stamp: dict[int, float] = {}
@@ -156,7 +157,9 @@ class FixedLagRunner:
         rows: list[tuple[float, int, str, int]] = []
         if b.use_slam:
             slam = b.flight.slam
-            for r, (i, k) in enumerate(zip(b.slam_assoc.meas_index, b.slam_assoc.keyframe, strict=True)):
+            for r, (i, k) in enumerate(
+                zip(b.slam_assoc.meas_index, b.slam_assoc.keyframe, strict=True)
+            ):
                 rows.append((float(slam.t[i] + b.slam_latency[i]), int(k), "slam", r))
         if b.use_range:
             for n, k in enumerate(b.range_kf):
@@ -177,7 +180,9 @@ class FixedLagRunner:
             sk = b.slam_key(row)
             if not self._ensure_slam_key(sk, row):
                 return []
-            return b.measurement_factors(k, {sk: self.slam_scale_init.get(sk, 1.0)}, kinds=("slam",))
+            return b.measurement_factors(
+                k, {sk: self.slam_scale_init.get(sk, 1.0)}, kinds=("slam",)
+            )
         return b.measurement_factors(k, kinds=(kind,))
 
     # ------------------------------------------------------------------------------------------
@@ -214,8 +219,10 @@ class FixedLagRunner:
             self.slam_scale_init[sk] = self.slam_scale_init.get(prev, 1.0)
         else:
             first_t = float(slam.t[slam.session == session][0])
-            if (self.t_latest < first_t + self.options.slam_init_window_s
-                    or self.t_latest < self._next_init_try.get(session, -math.inf)):
+            if (
+                self.t_latest < first_t + self.options.slam_init_window_s
+                or self.t_latest < self._next_init_try.get(session, -math.inf)
+            ):
                 self._drop("slam:before-scale-init")
                 return False
             self._next_init_try[session] = self.t_latest + SLAM_INIT_RETRY_S
@@ -224,8 +231,14 @@ class FixedLagRunner:
                 self._drop("slam:before-scale-init")
                 return False
             self.slam_scale_init[sk] = scale
-            graph.push_back(b.slow_factors(sk, value, chain_start=True,
-                                           scale_sigma_rel=self.options.slam_init_scale_sigma_rel))
+            graph.push_back(
+                b.slow_factors(
+                    sk,
+                    value,
+                    chain_start=True,
+                    scale_sigma_rel=self.options.slam_init_scale_sigma_rel,
+                )
+            )
         values.insert(sk, value)
         self.queued_graph.push_back(graph)
         self.queued_values.insert(values)
@@ -248,8 +261,13 @@ class FixedLagRunner:
             return None, 0.0
         if init.excitation < self.options.slam_init_min_excitation_m:
             return None, 0.0
-        log.info("SLAM session %d initialised at t=%.2f: scale %.4g (excitation %.3f m)", session,
-                 self.t_latest, init.scale, init.excitation)
+        log.info(
+            "SLAM session %d initialised at t=%.2f: scale %.4g (excitation %.3f m)",
+            session,
+            self.t_latest,
+            init.scale,
+            init.excitation,
+        )
         # Place the SLAM origin so that the newest keyframe's SLAM position matches the smoother.
         slam = b.flight.slam
         kn = self.newest_k
@@ -269,8 +287,9 @@ class FixedLagRunner:
     def _drop(self, reason: str, n: int = 1) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + n
 
-    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               stamps: dict[int, float]) -> bool:
+    def update(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float]
+    ) -> bool:
         """One smoother update; on failure rebuild from the last good estimate (returns False)."""
         try:
             self.smoother.update(graph, values, stamps)
@@ -279,8 +298,12 @@ class FixedLagRunner:
             self.n_failures += 1
             msg = " ".join(str(e).split())[:200]
             self.failure_messages.append(msg)
-            log.warning("fixed-lag: smoother update failed at t=%.3f (%s); rebuilding from the last "
-                        "good estimate", self.t_latest, msg)
+            log.warning(
+                "fixed-lag: smoother update failed at t=%.3f (%s); rebuilding from the last "
+                "good estimate",
+                self.t_latest,
+                msg,
+            )
             self._rebuild()
             return False
 
@@ -294,14 +317,33 @@ class FixedLagRunner:
         stamps: dict[int, float] = {}
         t = float(self.builder.t_kf[kg])
         pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
-        g.add(gtsam.PriorFactorPose3(X(kg), self.last_good[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)))
-        g.add(gtsam.PriorFactorVector(V(kg), self.last_good[V(kg)], gtsam.noiseModel.Isotropic.Sigma(3, o.rebuild_vel_sigma)))
-        g.add(gtsam.PriorFactorConstantBias(B(kg), self.last_good[B(kg)], gtsam.noiseModel.Diagonal.Sigmas(
-            np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3])))
+        g.add(
+            gtsam.PriorFactorPose3(
+                X(kg), self.last_good[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)
+            )
+        )
+        g.add(
+            gtsam.PriorFactorVector(
+                V(kg),
+                self.last_good[V(kg)],
+                gtsam.noiseModel.Isotropic.Sigma(3, o.rebuild_vel_sigma),
+            )
+        )
+        g.add(
+            gtsam.PriorFactorConstantBias(
+                B(kg),
+                self.last_good[B(kg)],
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3]
+                ),
+            )
+        )
         for key in (X(kg), V(kg), B(kg)):
             v.insert(key, self.last_good[key])
             stamps[key] = t
-        live_slow = [k for k in self.last_good if chr(gtsam.Symbol(k).chr()) in "sdg" and self._alive(k)]
+        live_slow = [
+            k for k in self.last_good if chr(gtsam.Symbol(k).chr()) in "sdg" and self._alive(k)
+        ]
         for key in live_slow:
             val = self.last_good[key]
             g.push_back(self.builder.rebuild_prior(key, val, o.rebuild_slow_sigma_rel))
@@ -367,7 +409,10 @@ class FixedLagRunner:
             if m.keyframe > k:
                 still_pending.append(m)
                 continue
-            if m.keyframe not in self.keyframes_in or b.t_kf[m.keyframe] < t_k - self.options.lag_s + self.period:
+            if (
+                m.keyframe not in self.keyframes_in
+                or b.t_kf[m.keyframe] < t_k - self.options.lag_s + self.period
+            ):
                 self._drop(f"{m.kind}:dropped-too-late")
                 continue
             if not all(self._alive(key) or key in self.queued_stamps for key in m.keys):
@@ -403,7 +448,9 @@ class FixedLagRunner:
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.CombinedImuFactor(X(kg), V(kg), X(k), V(k), B(kg), B(k), pim))
         v = gtsam.Values()
-        nav = pim.predict(gtsam.NavState(self.last_good[X(kg)], self.last_good[V(kg)]), self.last_good[B(kg)])
+        nav = pim.predict(
+            gtsam.NavState(self.last_good[X(kg)], self.last_good[V(kg)]), self.last_good[B(kg)]
+        )
         v.insert(X(k), nav.pose())
         v.insert(V(k), nav.velocity())
         v.insert(B(k), self.last_good[B(kg)])
@@ -423,7 +470,14 @@ class FixedLagRunner:
             prev = b.slow_chain_previous(key)
             if prev is not None and prev in self.last_good:
                 return self.last_good[prev]
-            return np.array([b.ground_start_value(self.last_good.get(X(self.newest_k)) if self.newest_k >= 0 else None, self.t_latest)])
+            return np.array(
+                [
+                    b.ground_start_value(
+                        self.last_good.get(X(self.newest_k)) if self.newest_k >= 0 else None,
+                        self.t_latest,
+                    )
+                ]
+            )
         raise KeyError(key)
 
     def _collect_arrived(self, t_now: float) -> None:
@@ -462,7 +516,9 @@ class FixedLagRunner:
             self.out_vel.append(vel)
             self.out_bias.append(bias)
             return
-        self.last_good = {key: val for key, val in self.last_good.items() if chr(gtsam.Symbol(key).chr()) in "sdg"}
+        self.last_good = {
+            key: val for key, val in self.last_good.items() if chr(gtsam.Symbol(key).chr()) in "sdg"
+        }
         self.last_good[X(k)], self.last_good[V(k)], self.last_good[B(k)] = pose, vel, bias
         self.newest_good_k = k
         t = float(self.builder.t_kf[k])
@@ -491,7 +547,6 @@ class FixedLagRunner:
     def run(self, progress: bool = False) -> Estimate:
         """Process the whole flight; the causal estimate (newest state after each update)."""
         b = self.builder
-        self._deferred = []
         bar = None
         if progress:
             from tqdm import tqdm
@@ -504,21 +559,38 @@ class FixedLagRunner:
             if bar:
                 bar.update(1)
         runtime = time.perf_counter() - t0
+        self.finish()
         peak = None
         if self.options.track_memory:
             peak = tracemalloc.get_traced_memory()[1]
             tracemalloc.stop()
         if bar:
             bar.close()
-        return self._estimate(runtime, peak)
+        return self.result(runtime, peak)
 
-    def _estimate(self, runtime: float, peak_bytes: int | None) -> Estimate:
+    def finish(self) -> None:
+        """Count the measurements that arrive after the last keyframe (never processed)."""
+        for _, _, kind, _ in self._all_meas[self._meas_i :]:
+            self._drop(f"{kind}:arrived-after-last-keyframe")
+        self._meas_i = len(self._all_meas)
+        for _, _, kind, _ in self._deferred:
+            self._drop(f"{kind}:arrived-after-last-keyframe")
+        self._deferred = []
+        for m in self.pending:
+            self._drop(f"{m.kind}:arrived-after-last-keyframe")
+        self.pending = []
+
+    def result(self, runtime: float, peak_bytes: int | None = None) -> Estimate:
+        """The causal estimate so far (``runtime``: wall time of the run [s])."""
         b = self.builder
         n = len(self.out_t)
         pos = np.array([p.translation() for p in self.out_pose]).reshape(n, 3)
         R = np.array([p.rotation().matrix() for p in self.out_pose]).reshape(n, 3, 3)
         traj = Trajectory(
-            np.asarray(self.out_t), pos, matrix_to_quat_wxyz(R), np.asarray(self.out_vel).reshape(n, 3),
+            np.asarray(self.out_t),
+            pos,
+            matrix_to_quat_wxyz(R),
+            np.asarray(self.out_vel).reshape(n, 3),
             np.array([x.gyroscope() for x in self.out_bias]).reshape(n, 3),
             np.array([x.accelerometer() for x in self.out_bias]).reshape(n, 3),
         )
@@ -535,7 +607,8 @@ class FixedLagRunner:
             val = np.array([r[1] for r in rows])
             if kind == "slam":
                 series["slam_scale" if b.slam_model == "sim3" else "slam_axis_scale"] = TimeSeries(
-                    t, val[:, 0] if b.slam_model == "sim3" else val)
+                    t, val[:, 0] if b.slam_model == "sim3" else val
+                )
             else:
                 series[kind] = TimeSeries(t, val[:, 0] if val.shape[1] == 1 else val)
         if b.use_slam:
@@ -558,32 +631,47 @@ class FixedLagRunner:
             ground = float(sorted(by_kind["ground_height"], key=lambda r: r[0])[-1][1][0])
         lat = np.asarray(self.latency)
         info = b.report()
-        info.update({
-            "lag_s": self.options.lag_s,
-            "used": dict(self.used),
-            "dropped": dict(self.dropped),
-            "solver_failures": self.n_failures,
-            "solver_failure_messages": self.failure_messages[:10],
-            "updates": n,
-            "latency_p50_s": float(np.percentile(lat, 50)) if n else None,
-            "latency_p99_s": float(np.percentile(lat, 99)) if n else None,
-            "latency_max_s": float(lat.max()) if n else None,
-            "times_real_time": float((b.t_kf[-1] - b.t_kf[0]) / runtime) if runtime > 0 else None,
-            "python_heap_peak_bytes": peak_bytes,
-            "options": asdict(self.options),
-        })
+        info.update(
+            {
+                "lag_s": self.options.lag_s,
+                "used": dict(self.used),
+                "dropped": dict(self.dropped),
+                "solver_failures": self.n_failures,
+                "solver_failure_messages": self.failure_messages[:10],
+                "updates": n,
+                "latency_p50_s": float(np.percentile(lat, 50)) if n else None,
+                "latency_p99_s": float(np.percentile(lat, 99)) if n else None,
+                "latency_max_s": float(lat.max()) if n else None,
+                "times_real_time": float((b.t_kf[-1] - b.t_kf[0]) / runtime)
+                if runtime > 0
+                else None,
+                "python_heap_peak_bytes": peak_bytes,
+                "options": asdict(self.options),
+            }
+        )
         return Estimate(
-            method="fixed-lag", trajectory=traj, slam_scale=slam_scale, drag_k=drag_k,
-            ground_height=ground, series=series, update_latency=lat, runtime_s=runtime,
-            causal=True, info=info,
+            method="fixed-lag",
+            trajectory=traj,
+            slam_scale=slam_scale,
+            drag_k=drag_k,
+            ground_height=ground,
+            series=series,
+            update_latency=lat,
+            runtime_s=runtime,
+            causal=True,
+            info=info,
         ).check()
 
     def _last_t_of(self, sess: int) -> float:
         return self._sess_last_t.get(sess, -math.inf)
 
 
-def run_fixed_lag(flight: Flight, options: FixedLagOptions | None = None, priors: Any = None,
-                  progress: bool = False) -> Estimate:
+def run_fixed_lag(
+    flight: Flight,
+    options: FixedLagOptions | None = None,
+    priors: Any = None,
+    progress: bool = False,
+) -> Estimate:
     """Run the online fixed-lag smoother over a flight (see module docstring).
 
     Returns:

@@ -154,9 +154,13 @@ class GraphOptions:
 
     def check(self) -> GraphOptions:
         if self.robust not in ("huber", "cauchy", "none"):
-            raise FlightDataError(f"GraphOptions.robust={self.robust!r}: expected huber, cauchy or none")
+            raise FlightDataError(
+                f"GraphOptions.robust={self.robust!r}: expected huber, cauchy or none"
+            )
         if self.slam_model not in ("auto", "sim3", "axis"):
-            raise FlightDataError(f"GraphOptions.slam_model={self.slam_model!r}: expected auto, sim3 or axis")
+            raise FlightDataError(
+                f"GraphOptions.slam_model={self.slam_model!r}: expected auto, sim3 or axis"
+            )
         if not self.keyframe_hz > 0:
             raise FlightDataError(f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0")
         return self
@@ -339,9 +343,7 @@ class GraphBuilder:
                 seg = np.floor((slam.t[a.meas_index[m]] - t_first) / seg_s + 1e-9).astype(int)
                 chain[m] = seg
         self.slam_chain = chain
-        self.slam_latency = (
-            slam.latency if slam.latency is not None else np.zeros(len(slam))
-        )
+        self.slam_latency = slam.latency if slam.latency is not None else np.zeros(len(slam))
         # Variable index per (session, segment): contiguous integers in order of appearance.
         self.slam_var: dict[tuple[int, int], int] = {}
         for i, c in zip(a.meas_index, chain, strict=True):
@@ -387,8 +389,12 @@ class GraphBuilder:
             ok = True
             for i in (i0[n], i1[n]):
                 good, reason = gate_range(
-                    float(rng.range[i]), self.R_kf[k], body_T_range, f.calib.range_min,
-                    f.calib.range_max, max_tilt,
+                    float(rng.range[i]),
+                    self.R_kf[k],
+                    body_T_range,
+                    f.calib.range_min,
+                    f.calib.range_max,
+                    max_tilt,
                 )
                 if not good:
                     self._skip(f"range:gated:{_reason_tag(reason)}")
@@ -412,7 +418,11 @@ class GraphBuilder:
         if not self.use_drag:
             return
         period = np.diff(self.t_kf)
-        half = 0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]]) if self.K > 1 else np.array([0.5 / self.options.keyframe_hz])
+        half = (
+            0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]])
+            if self.K > 1
+            else np.array([0.5 / self.options.keyframe_hz])
+        )
         means, counts = mean_in_windows(self.imu.t, self.imu.body_accel[:, :2], self.t_kf, half)
         self.drag_mean = means
         self.drag_count = counts
@@ -427,9 +437,13 @@ class GraphBuilder:
     def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
         o = self.options
         if o.robust == "huber":
-            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base)
+            return gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base
+            )
         if o.robust == "cauchy":
-            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base)
+            return gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base
+            )
         return base
 
     def imu_accel_sigma(self) -> float:
@@ -448,7 +462,6 @@ class GraphBuilder:
         alignment of each session (IMU prediction where no SLAM pose exists); velocities from
         central differences of the positions; biases zero; drag k and ground height closed form.
         """
-        o = self.options
         K = self.K
         pos = np.full((K, 3), np.nan)
         guess = InitialGuess(self.R_kf.copy(), pos, np.zeros((K, 3)))
@@ -457,7 +470,6 @@ class GraphBuilder:
         if self.use_slam and self.slam_model == "sim3":
             a = self.slam_assoc
             slam = f.slam
-            offset = np.zeros(3)
             for s in self.slam_sessions:
                 m = slam.session[a.meas_index] == s
                 if not m.any():
@@ -465,14 +477,17 @@ class GraphBuilder:
                 init = self.init_session(s, t_limit)
                 rows = a.meas_index[m]
                 kfs = a.keyframe[m]
-                world_t_cam = (init.slam_R_world.T @ (slam.slam_t_cam[rows] - init.slam_t_world).T).T / init.scale
+                world_t_cam = (
+                    init.slam_R_world.T @ (slam.slam_t_cam[rows] - init.slam_t_world).T
+                ).T / init.scale
                 p = world_t_cam - np.einsum("nij,j->ni", self.R_kf[kfs], body_t_cam)
                 if np.isfinite(pos).any():
-                    # Later session: continue from the previous position (IMU-predicted below).
+                    # Later session: start at the last position of the previous one.
                     prev = _fill_positions(pos[: kfs[0]], self.t_kf[: kfs[0]])
-                    offset = prev[-1] - p[0] if len(prev) else p[0] * 0
+                    offset = prev[-1] - p[0] if len(prev) else -p[0]
                 else:
-                    offset = -p[0] if kfs[0] == 0 else -p[0]
+                    # First session: the world origin at the first body position.
+                    offset = -p[0]
                 init.slam_t_world = init.slam_t_world - init.scale * init.slam_R_world @ offset
                 pos[kfs] = p + offset
                 guess.slam[s] = init
@@ -504,14 +519,21 @@ class GraphBuilder:
         im = (self.imu.t >= sl.t[0] - 1.0) & (self.imu.t <= sl.t[-1] + 1.0)
         prior_scale = self._prior_scale(session)
         init = init_slam_alignment(
-            sl, self.imu.select(im), self.R_imu[im], np.asarray(self.flight.calib.body_T_cam, float),
+            sl,
+            self.imu.select(im),
+            self.R_imu[im],
+            np.asarray(self.flight.calib.body_T_cam, float),
             self.options.gravity,
         )
         if prior_scale is not None:
             init.scale = prior_scale
         log.info(
             "SLAM session %d: initial scale %.4g SLAM units/m from %d acceleration pairs "
-            "(excitation %.3f m)", session, init.scale, init.n_pairs, init.excitation,
+            "(excitation %.3f m)",
+            session,
+            init.scale,
+            init.n_pairs,
+            init.excitation,
         )
         return init
 
@@ -528,7 +550,9 @@ class GraphBuilder:
         slam = self.flight.slam
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
-        sd2, wd2 = second_difference_pairs(slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1)
+        sd2, wd2 = second_difference_pairs(
+            slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1
+        )
         if len(sd2) < 3:
             raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
         sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
@@ -596,7 +620,9 @@ class GraphBuilder:
             return S(0)
         return S(self.slam_var[(int(slam.session[i]), int(self.slam_chain[assoc_row]))])
 
-    def first_prior_factors(self, guess_R: np.ndarray, guess_t: np.ndarray, guess_v: np.ndarray) -> gtsam.NonlinearFactorGraph:
+    def first_prior_factors(
+        self, guess_R: np.ndarray, guess_t: np.ndarray, guess_v: np.ndarray
+    ) -> gtsam.NonlinearFactorGraph:
         """Gauge and first-state priors on keyframe 0."""
         o = self.options
         g = gtsam.NonlinearFactorGraph()
@@ -606,19 +632,39 @@ class GraphBuilder:
             yaw_sigma = max(yaw_sigma, 1.0)
         if self.use_slam and self.slam_model == "axis":
             pos_sigma = max(pos_sigma, 10.0)
-        sig = np.array([o.prior_rollpitch_sigma, o.prior_rollpitch_sigma, yaw_sigma, pos_sigma, pos_sigma, pos_sigma])
+        sig = np.array(
+            [
+                o.prior_rollpitch_sigma,
+                o.prior_rollpitch_sigma,
+                yaw_sigma,
+                pos_sigma,
+                pos_sigma,
+                pos_sigma,
+            ]
+        )
         # The Pose3 prior is in body axes; near level flight body z is the yaw axis.
-        g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(gtsam.Rot3(guess_R), guess_t), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        g.add(
+            gtsam.PriorFactorPose3(
+                X(0),
+                gtsam.Pose3(gtsam.Rot3(guess_R), guess_t),
+                gtsam.noiseModel.Diagonal.Sigmas(sig),
+            )
+        )
         v_sigma = o.prior_velocity_sigma
         v0 = guess_v
         pv = self._prior_velocity(0)
         if pv is not None:
             v0, v_sigma = pv
         g.add(gtsam.PriorFactorVector(V(0), np.asarray(v0, float), _isotropic(3, v_sigma)))
-        g.add(gtsam.PriorFactorConstantBias(
-            B(0), gtsam.imuBias.ConstantBias(),
-            gtsam.noiseModel.Diagonal.Sigmas(np.r_[[o.prior_accel_bias_sigma] * 3, [o.prior_gyro_bias_sigma] * 3]),
-        ))
+        g.add(
+            gtsam.PriorFactorConstantBias(
+                B(0),
+                gtsam.imuBias.ConstantBias(),
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[[o.prior_accel_bias_sigma] * 3, [o.prior_gyro_bias_sigma] * 3]
+                ),
+            )
+        )
         return g
 
     def _prior_velocity(self, k: int) -> tuple[np.ndarray, float] | None:
@@ -630,7 +676,11 @@ class GraphBuilder:
         i = int(np.argmin(np.abs(t - self.t_kf[k])))
         if abs(t[i] - self.t_kf[k]) > 0.5 / self.options.keyframe_hz:
             return None
-        sigma = float(np.max(vel.sigma[i])) if getattr(vel, "sigma", None) is not None else self.options.prior_velocity_sigma
+        sigma = (
+            float(np.max(vel.sigma[i]))
+            if getattr(vel, "sigma", None) is not None
+            else self.options.prior_velocity_sigma
+        )
         return np.asarray(vel.value[i], float), sigma
 
     def keyframe_chunk(
@@ -662,7 +712,9 @@ class GraphBuilder:
         stamps = {X(k): t, V(k): t, B(k): t}
         if k == 0:
             if with_first_priors:
-                g.push_back(self.first_prior_factors(pose.rotation().matrix(), pose.translation(), velocity))
+                g.push_back(
+                    self.first_prior_factors(pose.rotation().matrix(), pose.translation(), velocity)
+                )
         else:
             if pim is None:
                 pim = self.preintegrate(k, gtsam.imuBias.ConstantBias())
@@ -674,7 +726,9 @@ class GraphBuilder:
         for key, value in slow_values.items():
             vals.insert(key, value)
             stamps[key] = t
-            g.push_back(self.slow_factors(key, value, chain_start=self.slow_chain_previous(key) is None))
+            g.push_back(
+                self.slow_factors(key, value, chain_start=self.slow_chain_previous(key) is None)
+            )
         return KeyframeChunk(k, t, g, vals, stamps)
 
     def new_slow_keys(self, k: int) -> list[int]:
@@ -726,31 +780,51 @@ class GraphBuilder:
         if c == "d":
             dim = 2 if o.drag_per_axis else 1
             if prev is None:
-                g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(dim, o.drag_prior_sigma)))
+                g.add(
+                    gtsam.PriorFactorVector(
+                        key, np.asarray(value, float), _isotropic(dim, o.drag_prior_sigma)
+                    )
+                )
             else:
                 sig = o.drag_rw * math.sqrt(o.drag_segment_s or 1.0)
                 g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(dim), _isotropic(dim, sig)))
         elif c == "g":
             if prev is None:
-                g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(1, o.ground_prior_sigma)))
+                g.add(
+                    gtsam.PriorFactorVector(
+                        key, np.asarray(value, float), _isotropic(1, o.ground_prior_sigma)
+                    )
+                )
             else:
                 sig = o.ground_rw * math.sqrt(o.ground_segment_s)
                 g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(1), _isotropic(1, sig)))
         elif c == "s" and self.slam_model == "axis":
             rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
-            g.add(gtsam.PriorFactorVector(key, np.asarray(value, float), _isotropic(3, rel * float(np.max(value)))))
+            g.add(
+                gtsam.PriorFactorVector(
+                    key, np.asarray(value, float), _isotropic(3, rel * float(np.max(value)))
+                )
+            )
         elif c == "s":
             if prev is None:
                 # Weak prior: the closed-form initial value, 0.3 rad, 10 m, 50 % in scale.
                 rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
                 sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
-                g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+                g.add(
+                    gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig))
+                )
             else:
                 dt = math.sqrt(o.slam_segment_s)
                 # Similarity3 tangent [omega, u, lambda]; u is the GTSAM translation t / s... in
                 # world-scaled units (t = slam_t_world / s) [m].
-                sig = np.array([o.slam_rot_rw * dt] * 3 + [o.slam_trans_rw_m * dt] * 3 + [o.slam_scale_rw * dt])
-                g.add(gtsam.BetweenFactorSimilarity3(prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+                sig = np.array(
+                    [o.slam_rot_rw * dt] * 3 + [o.slam_trans_rw_m * dt] * 3 + [o.slam_scale_rw * dt]
+                )
+                g.add(
+                    gtsam.BetweenFactorSimilarity3(
+                        prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(sig)
+                    )
+                )
         return g
 
     def rebuild_prior(self, key: int, value: Any, sigma_rel: float) -> gtsam.NonlinearFactorGraph:
@@ -791,7 +865,10 @@ class GraphBuilder:
         return float(z_sensor + rng.range[i] * beam[2])
 
     def measurement_factors(
-        self, k: int, slam_init_scale: dict[int, float] | None = None, kinds: tuple[str, ...] | None = None
+        self,
+        k: int,
+        slam_init_scale: dict[int, float] | None = None,
+        kinds: tuple[str, ...] | None = None,
     ) -> list[MeasurementFactor]:
         """Factors of the measurements associated with keyframe k, with arrival times.
 
@@ -808,12 +885,21 @@ class GraphBuilder:
         if self.use_drag and self.drag_count[k] > 0 and want("drag"):
             from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 
-            noise = mean_accel_noise(self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma)
+            noise = mean_accel_noise(
+                self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma
+            )
             dk = D(int(self.drag_segment[k]))
             fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
-            out.append(MeasurementFactor(float(self.drag_arrival[k]), k, "drag", fac, (X(k), V(k), B(k), dk)))
+            out.append(
+                MeasurementFactor(
+                    float(self.drag_arrival[k]), k, "drag", fac, (X(k), V(k), B(k), dk)
+                )
+            )
         if self.use_slam and want("slam"):
-            from fgnav.factors.slam_scale import make_slam_axis_scale_factor, make_slam_position_factor
+            from fgnav.factors.slam_scale import (
+                make_slam_axis_scale_factor,
+                make_slam_position_factor,
+            )
 
             slam = f.slam
             for r in np.flatnonzero(self.slam_assoc.keyframe == k):
@@ -824,19 +910,31 @@ class GraphBuilder:
                     scale = float(np.max(slam_init_scale.get(sk, 1.0))) if slam_init_scale else 1.0
                     noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
                     fac = make_slam_axis_scale_factor(
-                        X(k), sk, slam.slam_t_cam[i], noise, np.asarray(f.calib.body_T_cam, float)[:3, 3]
+                        X(k),
+                        sk,
+                        slam.slam_t_cam[i],
+                        noise,
+                        np.asarray(f.calib.body_T_cam, float)[:3, 3],
                     )
                 else:
                     scale = slam_init_scale.get(sk, 1.0) if slam_init_scale else 1.0
                     noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
-                    fac = make_slam_position_factor(X(k), sk, slam.slam_t_cam[i], np.asarray(f.calib.body_T_cam, float), noise)
+                    fac = make_slam_position_factor(
+                        X(k), sk, slam.slam_t_cam[i], np.asarray(f.calib.body_T_cam, float), noise
+                    )
                 out.append(MeasurementFactor(arrival, k, "slam", fac, (X(k), sk)))
                 if o.slam_rotation and self.slam_model == "sim3":
-                    from fgnav.factors.slam_scale import make_slam_rotation_factor
                     from fgnav.datasets.geometry import quat_wxyz_to_matrix
+                    from fgnav.factors.slam_scale import make_slam_rotation_factor
 
                     noise = self._robust(_isotropic(3, o.slam_rot_sigma))
-                    fac = make_slam_rotation_factor(X(k), sk, quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i]), np.asarray(f.calib.body_T_cam, float), noise)
+                    fac = make_slam_rotation_factor(
+                        X(k),
+                        sk,
+                        quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i]),
+                        np.asarray(f.calib.body_T_cam, float),
+                        noise,
+                    )
                     out.append(MeasurementFactor(arrival, k, "slam-rotation", fac, (X(k), sk)))
         if self.use_range and want("range"):
             from fgnav.factors.tilted_range import make_range_factor
@@ -844,8 +942,16 @@ class GraphBuilder:
             for n in np.flatnonzero(self.range_kf == k):
                 gk = G(int(self.ground_segment[k]))
                 noise = self._robust(_isotropic(1, o.range_sigma))
-                fac = make_range_factor(X(k), gk, float(self.range_val[n]), np.asarray(f.calib.body_T_range, float), noise)
-                out.append(MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk)))
+                fac = make_range_factor(
+                    X(k),
+                    gk,
+                    float(self.range_val[n]),
+                    np.asarray(f.calib.body_T_range, float),
+                    noise,
+                )
+                out.append(
+                    MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk))
+                )
         if self.use_yaw and want("yaw"):
             from fgnav.factors.yaw import make_yaw_factor
 
@@ -887,7 +993,9 @@ class GraphBuilder:
                 out[key] = float(np.max(v)) if isinstance(v, np.ndarray) else float(v.scale())
         return out
 
-    def build(self, guess: InitialGuess | None = None, progress: Callable[[int], None] | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    def build(
+        self, guess: InitialGuess | None = None, progress: Callable[[int], None] | None = None
+    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """The whole flight's graph and initial values (batch)."""
         guess = guess or self.initial_guess()
         slow = self.slow_initial_values(guess)
@@ -901,7 +1009,9 @@ class GraphBuilder:
             keys = list(dict.fromkeys(keys))
             created.update(keys)
             pose = gtsam.Pose3(gtsam.Rot3(guess.world_R_body[k]), guess.world_t_body[k])
-            chunk = self.keyframe_chunk(k, pose, guess.world_v_body[k], zero, {kk: slow[kk] for kk in keys})
+            chunk = self.keyframe_chunk(
+                k, pose, guess.world_v_body[k], zero, {kk: slow[kk] for kk in keys}
+            )
             graph.push_back(chunk.factors)
             values.insert(chunk.values)
             for m in self.measurement_factors(k, scales):
@@ -974,5 +1084,7 @@ def check_observability(flight: Flight, options: GraphOptions, slam_model: str) 
             f"{flight.name}: per-axis SLAM scale is unobservable without the accelerometer or drag"
         )
     if o.use_yaw and flight.yaw is None and not has_slam:
-        log.warning("%s: no yaw stream and no SLAM: world yaw is held by the first-pose prior only",
-                    flight.name)
+        log.warning(
+            "%s: no yaw stream and no SLAM: world yaw is held by the first-pose prior only",
+            flight.name,
+        )

@@ -312,7 +312,9 @@ def init_slam_alignment(
     world_R_body_slam = slerp_rotations(imu.t, world_R_body_imu, slam.t)
     slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
     body_R_cam = body_T_cam[:3, :3]
-    slam_R_world = rotation_mean(slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1)))
+    slam_R_world = rotation_mean(
+        slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1))
+    )
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
     slam_d2, world_d2 = second_difference_pairs(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
     # An accelerometer bias adds a near-constant offset (b h^2) to the metric second differences
@@ -324,7 +326,8 @@ def init_slam_alignment(
     if len(slam_d2) < 3 or den <= 0.0:
         raise FlightDataError(
             "SLAM scale initialisation: fewer than 3 acceleration pairs (session shorter than "
-            f"{2 * h + 3 * step:.1f} s); give an initial scale (front-end priors) or a longer session"
+            f"{2 * h + 3 * step:.1f} s); give an initial scale (front-end priors) or a longer "
+            "session"
         )
     scale = float((slam_d2 * rotated).sum() / den)
     if not np.isfinite(scale) or scale <= 0:

@@ -1,0 +1,61 @@
+"""Smoke tests of ``fgnav batch`` and ``fgnav online`` (in-process, short simulated flight)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from fgnav.datasets.simulate.options import SimOptions
+from fgnav.datasets.simulate.simulator import simulate_to_folder
+
+from fgnav.cli import main
+
+
+@pytest.fixture(scope="module")
+def flight_folder(tmp_path_factory):
+    out = tmp_path_factory.mktemp("flight") / "two_turns"
+    simulate_to_folder("two-turns", out, seed=3, options=SimOptions(duration=8.0, images=False))
+    return out
+
+
+def test_batch_command_writes_outputs(flight_folder, tmp_path, capsys):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('[graph]\nkeyframe_hz = 10.0\n[batch]\ncovariance = "slow"\n')
+    out = tmp_path / "batch"
+    assert (
+        main(
+            ["batch", str(flight_folder), "--out", str(out), "--config", str(cfg), "--no-progress"]
+        )
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "ATE" in text and "SE(3) alignment" in text
+    for name in ("estimate.tum", "states.csv", "summary.json"):
+        assert (out / name).is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "batch"
+    assert summary["metrics"]["ate_rmse_m"] < 0.05
+    assert summary["info"]["options"]["keyframe_hz"] == 10.0
+
+
+def test_online_command_prints_latency(flight_folder, tmp_path, capsys):
+    out = tmp_path / "online"
+    assert (
+        main(["online", str(flight_folder), "--out", str(out), "--lag", "1.5", "--no-progress"])
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "p50" in text and "p99" in text and "real time" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "fixed-lag" and summary["causal"] is True
+    assert summary["info"]["lag_s"] == 1.5
+
+
+def test_bad_config_is_one_line_error(flight_folder, tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[graph]\nkeyframe_hzz = 10.0\n")
+    assert (
+        main(["batch", str(flight_folder), "--out", str(tmp_path / "x"), "--config", str(cfg)]) == 1
+    )
+    err = capsys.readouterr().err
+    assert "keyframe_hzz" in err and len(err.strip().splitlines()) == 1
