@@ -1,0 +1,924 @@
+"""Seed 004's EKF baseline (Logachev & Minin; the method of Engel, Sturm & Cremers' tum_ardrone).
+
+State (10, world z up, SI units; the seed keeps degrees, we keep radians)::
+
+    x = [x, y, z, vx, vy, vz, roll, pitch, yaw, yaw_rate]
+
+``world_R_body = Rz(yaw) Ry(pitch) Rx(roll)`` (ZYX), body FLU.
+
+Prediction (seed eqs. 6-8; Engel et al. 2012, eq. 5): the horizontal acceleration is the
+horizontal projection of the thrust minus a linear drag. Without the control inputs of the seed
+(eqs. 9-12), the thrust is taken to balance gravity (``T/m = g / (R e3)_z``), so::
+
+    d(v_xy)/dt = g (R e3)_xy / (R e3)_z - Rz(yaw) diag(kx, ky) Rz(yaw)^T v_xy
+    d(v_z)/dt = 0,  d(roll)/dt = d(pitch)/dt = 0,  d(yaw)/dt = yaw_rate,  d(yaw_rate)/dt = 0
+
+each with white process noise (the seed predicts roll, pitch, yaw rate and vertical speed from the
+control commands; here they are random walks corrected at the sensors' rates). ``kx, ky`` [1/s] are
+calibrated constants (the seed's c1..c8 are found by test flights).
+
+Observations (seed eqs. 2-5), each Mahalanobis-gated:
+
+- roll, pitch from the attitude stream (the AR.Drone's accelerometer-based angles);
+- yaw rate from the gyroscope, ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (the seed
+  differentiates yaw), and absolute yaw from the yaw stream (magnetometer-like) when present;
+- vertical speed from differentiated height: consecutive tilt-corrected rangefinder heights
+  ``(h_k - h_{k-1}) / dt`` (seed eq. 3);
+- SLAM camera pose, scaled: ``h_P(x) = (x + R t_bc, roll, pitch, yaw)`` (seed eqs. 4-5, with the
+  camera lever arm ``t_bc``), where the SLAM position is mapped into the world by
+  ``world_t_cam = a_world + (1/s) world_R_slam (slam_t_cam - a_slam)``.
+
+SLAM scale (seed: "maximum-likelihood scale", Engel et al. 2012 sec. IV-B): pairs of SLAM
+displacements ``x_i`` (rotated into world, SLAM units) and metric displacements ``y_i`` [m] over
+``scale_pair_interval_s`` are collected; ``y_i`` integrates the drag-model velocity driven by the
+measured attitude only (open loop, independent of SLAM: the seed's "velocity from the onboard IMU")
+horizontally and differences rangefinder heights vertically. ``s`` comes from the closed-form
+estimator of :mod:`fgnav.frontends.scale_ml`. The map's origin ``(a_slam, a_world)`` is the first
+SLAM pose of the session and the filter's camera position then; as in tum_ardrone, a change of
+scale re-pivots the map at the current SLAM pose so that the position measurement does not jump
+(option ``scale_repivot``).
+``world_R_slam`` is set when a session starts, from the SLAM camera orientation and the filter's
+attitude (the seed rotates the PTAM map by the accelerometer's gravity direction).
+
+Delay compensation (seed fig. 2): every processed measurement is kept for ``history_s`` with the
+filter state before it; a late SLAM pose (image time ``t``, arriving ``t + latency``) rolls the
+filter back to ``t``, is applied there, and the later measurements are replayed. Outputs are
+causal: the state the filter had at each attitude sample, before later corrections.
+
+Not modelled: control inputs, quadratic drag, wind, IMU biases, SLAM scale drift within a session
+beyond re-estimation.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    rpy_to_matrix,
+    wrap_angle,
+)
+from fgnav.datasets.types import Flight, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions
+
+log = logging.getLogger(__name__)
+
+GRAVITY = 9.81
+"""Gravity magnitude [m/s^2] (the simulator uses the same constant)."""
+
+# State layout.
+IP, IV, IR, IPI, IY, IYR = 0, 3, 6, 7, 8, 9
+N_STATE = 10
+
+DEFAULT_DRAG_K = (0.4, 0.4)
+"""Rotor-drag coefficients ``k = mu/m`` [1/s] when not calibrated: the order reported for small
+multirotors (seed 000's simulation uses 0.3 and 0.2; fgnav's simulator 0.38 and 0.42)."""
+
+
+@dataclass
+class Ekf004Options:
+    """Options of :class:`Ekf004`.
+
+    Attributes:
+        drag_k: linear drag ``(kx, ky)`` [1/s] along body x, y.
+        gravity: [m/s^2].
+        accel_noise_xy: process noise of the horizontal acceleration model [m/s^2/sqrt(Hz)].
+        accel_noise_z: process noise of the vertical acceleration [m/s^2/sqrt(Hz)].
+        angle_walk: random walk of roll and pitch [rad/s/sqrt(Hz)] (no control input).
+        yaw_accel_noise: random walk of the yaw rate [rad/s^2/sqrt(Hz)].
+        position_noise: position process noise [m/sqrt(s)].
+        attitude_sigma: roll/pitch measurement noise [rad].
+        yaw_sigma: yaw measurement noise [rad].
+        yaw_rate_sigma: gyro-derived yaw-rate noise [rad/s] after decimation.
+        gyro_decimation: gyro samples averaged per yaw-rate measurement.
+        range_sigma: rangefinder noise [m] (vertical speed noise is ``sqrt(2) range_sigma / dt``).
+        range_max_dt_s: longest interval between two range readings that are differentiated [s].
+        range_max_tilt_rad: readings at larger tilt are not used.
+        range_outlier_m: a height more than this from the median of the last readings is an
+            obstacle or a spike and is skipped (counted).
+        slam_position_sigma: SLAM camera position noise after scaling [m].
+        slam_angle_sigma: SLAM roll/pitch/yaw noise [rad].
+        use_slam_angles: also fuse the SLAM orientation (seed eq. 4 observes all six).
+        use_yaw: fuse the yaw stream when present.
+        scale_pair_interval_s: length of each scale sample (the seed takes one per second).
+        scale_components: displacement components of the scale pairs: ``"xyz"``,
+            ``"vertical"`` (rangefinder only: unaffected by wind, needs vertical motion; the seed's
+            first test) or ``"horizontal"`` (drag-model velocity only).
+        scale_min_pairs: accepted pairs needed before SLAM positions are fused.
+        scale_repivot: on a scale change, re-pivot the map at the current SLAM pose so that the
+            position measurement does not jump (tum_ardrone); when False the map keeps its origin
+            at the session's first pose and every position uses the latest scale.
+        scale: options of the ML scale estimator (displacement noises, minimum motion, gate).
+        align_poses: SLAM poses averaged to estimate ``world_R_slam`` at a session start.
+        delay_compensation: roll back and replay for late SLAM poses (seed fig. 2); when False,
+            a SLAM pose is applied when it arrives as if it were taken then (the naive filter).
+        history_s: measurement history kept for delay compensation [s] (seed: delays to 0.5 s).
+        gate_probability: chi-square gate probability of every update.
+        max_predict_dt_s: longest single prediction step [s].
+        initial_position_sigma: [m]; initial_velocity_sigma: [m/s]; initial_angle_sigma [rad];
+        initial_yaw_rate_sigma [rad/s].
+    """
+
+    drag_k: tuple[float, float] = DEFAULT_DRAG_K
+    gravity: float = GRAVITY
+    accel_noise_xy: float = 0.5
+    accel_noise_z: float = 1.0
+    angle_walk: float = 0.5
+    yaw_accel_noise: float = 1.0
+    position_noise: float = 0.01
+    attitude_sigma: float = 0.01
+    yaw_sigma: float = 0.05
+    yaw_rate_sigma: float = 0.02
+    gyro_decimation: int = 4
+    range_sigma: float = 0.02
+    range_max_dt_s: float = 0.2
+    range_max_tilt_rad: float = 0.5
+    range_outlier_m: float = 0.2
+    slam_position_sigma: float = 0.05
+    slam_angle_sigma: float = 0.02
+    use_slam_angles: bool = True
+    use_yaw: bool = True
+    scale_pair_interval_s: float = 1.0
+    scale_components: str = "xyz"
+    scale_min_pairs: int = 5
+    scale_repivot: bool = True
+    scale: MLScaleOptions = field(default_factory=MLScaleOptions)
+    align_poses: int = 10
+    delay_compensation: bool = True
+    history_s: float = 1.0
+    gate_probability: float = 0.999
+    max_predict_dt_s: float = 0.01
+    initial_position_sigma: float = 0.01
+    initial_velocity_sigma: float = 0.5
+    initial_angle_sigma: float = 0.05
+    initial_yaw_rate_sigma: float = 0.2
+
+    def validate(self) -> None:
+        """Raise :class:`FlightDataError` naming the first invalid option."""
+        positive = (
+            "gravity accel_noise_xy accel_noise_z angle_walk yaw_accel_noise position_noise "
+            "attitude_sigma yaw_sigma yaw_rate_sigma range_sigma range_max_dt_s "
+            "slam_position_sigma slam_angle_sigma scale_pair_interval_s max_predict_dt_s "
+            "initial_position_sigma initial_velocity_sigma initial_angle_sigma "
+            "initial_yaw_rate_sigma"
+        ).split()
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise FlightDataError(f"Ekf004Options.{name}={getattr(self, name)!r}: must be > 0")
+        if len(self.drag_k) != 2 or min(self.drag_k) < 0:
+            raise FlightDataError(f"Ekf004Options.drag_k={self.drag_k!r}: expected (kx, ky) >= 0")
+        if self.scale_components not in ("xyz", "vertical", "horizontal"):
+            raise FlightDataError(
+                f"Ekf004Options.scale_components={self.scale_components!r}: expected 'xyz', "
+                "'vertical' or 'horizontal'"
+            )
+        if not 0 < self.gate_probability < 1:
+            raise FlightDataError("Ekf004Options.gate_probability: expected a value in (0, 1)")
+        for name in ("gyro_decimation", "scale_min_pairs", "align_poses"):
+            if int(getattr(self, name)) < 1:
+                raise FlightDataError(f"Ekf004Options.{name}: expected an integer >= 1")
+
+
+# ----------------------------------------------------------------------------------------------
+# Model functions
+# ----------------------------------------------------------------------------------------------
+
+
+def _wrap(a: float) -> float:
+    """Scalar angle wrapped to (-pi, pi] (``wrap_angle`` for floats, without numpy overhead)."""
+    w = math.fmod(a + math.pi, 2.0 * math.pi)
+    if w <= 0.0:
+        w += 2.0 * math.pi
+    return w - math.pi
+
+
+def rpy_of(world_R_body: np.ndarray) -> np.ndarray:
+    """ZYX (roll, pitch, yaw) [rad] of (..., 3, 3) rotation matrices."""
+    R = np.asarray(world_R_body, dtype=float)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def euler_rate_matrix(roll: float, pitch: float) -> np.ndarray:
+    """``W`` with ``body_omega = W d(roll, pitch, yaw)/dt`` (ZYX); also maps a small Euler-angle
+    error to the body rotation vector of GTSAM's right perturbation."""
+    sr, cr = math.sin(roll), math.cos(roll)
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    return np.array([[1.0, 0.0, -sp], [0.0, cr, sr * cp], [0.0, -sr, cr * cp]])
+
+
+def horizontal_accel(
+    x: np.ndarray, drag_k: tuple[float, float], g: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 004's horizontal acceleration ``a_xy(x)`` [m/s^2] and its (2, 10) Jacobian.
+
+    ``a_xy = g (R e3)_xy / (R e3)_z - Rz(yaw) diag(kx, ky) Rz(yaw)^T v_xy``; with ``A = tan(pitch)``
+    and ``B = tan(roll) / cos(pitch)``, ``g (R e3)_xy / (R e3)_z = g [cy A + sy B, sy A - cy B]``.
+    """
+    roll, pitch, yaw = float(x[IR]), float(x[IPI]), float(x[IY])
+    vx, vy = float(x[IV]), float(x[IV + 1])
+    kx, ky = drag_k
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr = math.cos(roll)
+    tr = math.tan(roll)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    A = sp / cp
+    B = tr / cp
+    # K = Rz diag(kx, ky) Rz^T and its derivative in yaw.
+    k11 = kx * cy * cy + ky * sy * sy
+    k22 = kx * sy * sy + ky * cy * cy
+    k12 = (kx - ky) * cy * sy
+    dk11 = 2.0 * (ky - kx) * cy * sy
+    dk12 = (kx - ky) * (cy * cy - sy * sy)
+    a = np.array(
+        [
+            g * (cy * A + sy * B) - (k11 * vx + k12 * vy),
+            g * (sy * A - cy * B) - (k12 * vx + k22 * vy),
+        ]
+    )
+    J = np.zeros((2, N_STATE))
+    J[0, IV], J[0, IV + 1], J[1, IV], J[1, IV + 1] = -k11, -k12, -k12, -k22
+    dA_dp = 1.0 / cp**2
+    dB_dr = 1.0 / (cr**2 * cp)
+    dB_dp = tr * sp / cp**2
+    J[0, IR], J[1, IR] = g * sy * dB_dr, -g * cy * dB_dr
+    J[0, IPI] = g * (cy * dA_dp + sy * dB_dp)
+    J[1, IPI] = g * (sy * dA_dp - cy * dB_dp)
+    J[0, IY] = g * (-sy * A + cy * B) - (dk11 * vx + dk12 * vy)
+    J[1, IY] = g * (cy * A + sy * B) - (dk12 * vx - dk11 * vy)
+    return a, J
+
+
+def drag_model_velocity(
+    t: np.ndarray, world_R_body: np.ndarray, drag_k: tuple[float, float], g: float
+) -> np.ndarray:
+    """(N, 2) horizontal velocity [m/s] of the drag model driven by measured attitude only.
+
+    Integrates ``dv/dt = a_xy(attitude, v)`` from rest (semi-implicit Euler: the drag term is
+    implicit, stable at any step). The drag makes the initial value forgotten with time constant
+    ``1/k``, so this metric velocity needs neither SLAM nor an initial velocity.
+    """
+    rpy = rpy_of(world_R_body)
+    kx, ky = drag_k
+    out = np.zeros((t.size, 2))
+    x = np.zeros(N_STATE)
+    vx = vy = 0.0
+    for i in range(1, t.size):
+        dt = float(t[i] - t[i - 1])
+        x[IR : IY + 1] = rpy[i - 1]
+        thrust, _ = horizontal_accel(x, drag_k, g)
+        cy, sy = math.cos(rpy[i - 1, 2]), math.sin(rpy[i - 1, 2])
+        # Drag along body-yaw axes is diagonal: solve (I + dt K) v = v + dt a in those axes.
+        bx = cy * (vx + dt * thrust[0]) + sy * (vy + dt * thrust[1])
+        by = -sy * (vx + dt * thrust[0]) + cy * (vy + dt * thrust[1])
+        bx /= 1.0 + dt * kx
+        by /= 1.0 + dt * ky
+        vx, vy = cy * bx - sy * by, sy * bx + cy * by
+        out[i] = (vx, vy)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Filter
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Ekf004Counts:
+    """What the filter did with each measurement kind (reported in ``Estimate.info``)."""
+
+    used: dict[str, int] = field(default_factory=dict)
+    gated: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
+    replayed: int = 0
+    late_beyond_history: int = 0
+    active: bool = True
+    """False while replaying (a replayed measurement is counted once, when it first arrives)."""
+
+    def add(self, table: str, kind: str, n: int = 1) -> None:
+        if not self.active:
+            return
+        d = getattr(self, table)
+        d[kind] = d.get(kind, 0) + n
+
+
+class Ekf004:
+    """The EKF core: ``predict`` to a time, then ``update_*`` with one measurement.
+
+    Args:
+        options: filter options.
+        body_t_cam: camera lever arm in body [m].
+    """
+
+    def __init__(self, options: Ekf004Options | None = None, body_t_cam=(0.0, 0.0, 0.0)) -> None:
+        self.opt = options or Ekf004Options()
+        self.opt.validate()
+        self.body_t_cam = np.asarray(body_t_cam, dtype=float)
+        self.t = 0.0
+        self.x = np.zeros(N_STATE)
+        self.P = np.eye(N_STATE)
+        self.counts = Ekf004Counts()
+        self._gates: dict[int, float] = {}
+        o = self.opt
+        self._F = np.eye(N_STATE)
+        self._diag = np.arange(N_STATE)
+        q = np.zeros(N_STATE)
+        q[IP : IP + 3] = o.position_noise**2
+        q[IV : IV + 2] = o.accel_noise_xy**2
+        q[IV + 2] = o.accel_noise_z**2
+        q[IR] = q[IPI] = o.angle_walk**2
+        q[IYR] = o.yaw_accel_noise**2
+        self._q = q
+
+    # -- state -----------------------------------------------------------------------------------
+
+    def initialize(self, t: float, x0: np.ndarray, P0: np.ndarray) -> None:
+        """Set time [s], state and covariance."""
+        self.t = float(t)
+        self.x = np.asarray(x0, dtype=float).copy()
+        self.P = np.asarray(P0, dtype=float).copy()
+
+    def snapshot(self) -> tuple[float, np.ndarray, np.ndarray]:
+        return self.t, self.x.copy(), self.P.copy()
+
+    def restore(self, snap: tuple[float, np.ndarray, np.ndarray]) -> None:
+        self.t, x, P = snap
+        self.x, self.P = x.copy(), P.copy()
+
+    def world_R_body(self) -> np.ndarray:
+        return rpy_to_matrix(self.x[IR], self.x[IPI], self.x[IY])
+
+    # -- prediction ------------------------------------------------------------------------------
+
+    def _predict_step(self, dt: float) -> None:
+        o = self.opt
+        x = self.x
+        a_xy, Ja = horizontal_accel(x, o.drag_k, o.gravity)
+        F = self._F
+        F[IV : IV + 2, :] = dt * Ja
+        F[IV, IV] += 1.0
+        F[IV + 1, IV + 1] += 1.0
+        for k in range(3):
+            F[IP + k, IV + k] = dt
+        F[IY, IYR] = dt
+        xn = x.copy()
+        xn[IP : IP + 3] += dt * x[IV : IV + 3]
+        xn[IV : IV + 2] += dt * a_xy
+        xn[IY] = _wrap(x[IY] + dt * x[IYR])
+        self.x = xn
+        self.P = F @ self.P @ F.T
+        self.P[self._diag, self._diag] += self._q * dt
+
+    def predict(self, t: float) -> None:
+        """Propagate the state to time ``t`` [s] (no-op if ``t`` is not later)."""
+        dt_total = t - self.t
+        if dt_total <= 0.0:
+            return
+        n = max(1, int(math.ceil(dt_total / self.opt.max_predict_dt_s)))
+        for _ in range(n):
+            self._predict_step(dt_total / n)
+        self.t = float(t)
+
+    # -- update ----------------------------------------------------------------------------------
+
+    def _gate(self, dim: int) -> float:
+        if dim not in self._gates:
+            self._gates[dim] = float(chi2.ppf(self.opt.gate_probability, dim))
+        return self._gates[dim]
+
+    def update(self, kind: str, r: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> bool:
+        """Gated EKF update with residual ``r = z - h(x)``, Jacobian ``H`` and noise ``Rm``.
+
+        Returns:
+            True when applied, False when rejected by the chi-square gate (counted).
+        """
+        PHt = self.P @ H.T
+        S = H @ PHt + Rm
+        S_inv = np.linalg.inv(S)
+        d2 = float(r @ S_inv @ r)
+        if d2 > self._gate(r.size):
+            self.counts.add("gated", kind)
+            return False
+        K = PHt @ S_inv
+        self.x = self.x + K @ r
+        self.x[IY] = _wrap(self.x[IY])
+        P = self.P - K @ PHt.T
+        self.P = 0.5 * (P + P.T)
+        self.counts.add("used", kind)
+        return True
+
+    def update_state_components(
+        self, kind: str, idx: list[int], r: np.ndarray, var: np.ndarray
+    ) -> bool:
+        """:meth:`update` for a measurement of state components ``x[idx]`` (selection ``H``) with
+        independent noise variances ``var``; the same result with fewer operations."""
+        if len(idx) == 1:
+            j = idx[0]
+            s = float(self.P[j, j] + var[0])
+            rj = float(r[0])
+            if rj * rj / s > self._gate(1):
+                self.counts.add("gated", kind)
+                return False
+            col = self.P[:, j].copy()
+            self.x = self.x + col * (rj / s)
+            self.x[IY] = _wrap(self.x[IY])
+            self.P = self.P - np.outer(col, col) / s
+            self.counts.add("used", kind)
+            return True
+        PHt = self.P[:, idx]
+        S = PHt[idx, :] + np.diag(var)
+        S_inv = np.linalg.inv(S)
+        if float(r @ S_inv @ r) > self._gate(r.size):
+            self.counts.add("gated", kind)
+            return False
+        K = PHt @ S_inv
+        self.x = self.x + K @ r
+        self.x[IY] = _wrap(self.x[IY])
+        P = self.P - K @ PHt.T
+        self.P = 0.5 * (P + P.T)
+        self.counts.add("used", kind)
+        return True
+
+    def update_attitude(self, roll: float, pitch: float) -> bool:
+        """Roll and pitch [rad] from the attitude stream."""
+        r = np.array([_wrap(roll - self.x[IR]), _wrap(pitch - self.x[IPI])])
+        var = np.full(2, self.opt.attitude_sigma**2)
+        return self.update_state_components("attitude", [IR, IPI], r, var)
+
+    def update_yaw(self, yaw: float) -> bool:
+        """Absolute yaw [rad] (wrapped residual)."""
+        r = np.array([_wrap(yaw - self.x[IY])])
+        return self.update_state_components("yaw", [IY], r, np.array([self.opt.yaw_sigma**2]))
+
+    def update_body_rates(self, body_omega: np.ndarray) -> bool:
+        """Yaw rate ``(q sin(roll) + r cos(roll)) / cos(pitch)`` from a gyro reading [rad/s]."""
+        roll, pitch = self.x[IR], self.x[IPI]
+        rate = (body_omega[1] * math.sin(roll) + body_omega[2] * math.cos(roll)) / math.cos(pitch)
+        r = np.array([rate - self.x[IYR]])
+        var = np.array([self.opt.yaw_rate_sigma**2])
+        return self.update_state_components("yaw_rate", [IYR], r, var)
+
+    def update_vertical_speed(self, vz: float, sigma: float) -> bool:
+        """Vertical speed [m/s] from differentiated height (seed eq. 3)."""
+        r = np.array([vz - self.x[IV + 2]])
+        return self.update_state_components("vertical_speed", [IV + 2], r, np.array([sigma**2]))
+
+    def camera_position(self, x: np.ndarray | None = None) -> np.ndarray:
+        """``world_t_cam = p + world_R_body body_t_cam`` [m]."""
+        x = self.x if x is None else x
+        return x[IP : IP + 3] + rpy_to_matrix(x[IR], x[IPI], x[IY]) @ self.body_t_cam
+
+    def update_slam_pose(self, world_t_cam: np.ndarray, rpy: np.ndarray | None) -> bool:
+        """Scaled SLAM camera position in world [m] and, optionally, body roll/pitch/yaw [rad]
+        (seed eq. 4)."""
+        n = 3 if rpy is None else 6
+        H = np.zeros((n, N_STATE))
+        H[:3, IP : IP + 3] = np.eye(3)
+        eps = 1e-6
+        base = self.camera_position()
+        for j in (IR, IPI, IY):
+            xp = self.x.copy()
+            xp[j] += eps
+            H[:3, j] = (self.camera_position(xp) - base) / eps
+        r = np.empty(n)
+        r[:3] = world_t_cam - base
+        sig = np.full(n, self.opt.slam_position_sigma)
+        if rpy is not None:
+            H[3, IR] = H[4, IPI] = H[5, IY] = 1.0
+            r[3:] = wrap_angle(np.asarray(rpy) - self.x[IR : IY + 1])
+            sig[3:] = self.opt.slam_angle_sigma
+        return self.update("slam", r, H, np.diag(sig**2))
+
+    # -- outputs ---------------------------------------------------------------------------------
+
+    def pose_cov(self) -> np.ndarray:
+        """6x6 covariance in GTSAM's Pose3 tangent ``[rot (body), trans (body)]``."""
+        W = euler_rate_matrix(self.x[IR], self.x[IPI])
+        R = self.world_R_body()
+        J = np.zeros((6, N_STATE))
+        J[:3, IR : IY + 1] = W
+        J[3:, IP : IP + 3] = R.T
+        C = J @ self.P @ J.T
+        return 0.5 * (C + C.T)
+
+
+# ----------------------------------------------------------------------------------------------
+# SLAM session bookkeeping (scale pairs, alignment, anchor)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Session:
+    sid: int
+    rotations: list[np.ndarray] = field(default_factory=list)
+    world_R_slam: np.ndarray | None = None
+    estimator: MLScaleEstimator | None = None
+    pair_start: tuple[float, np.ndarray] | None = None
+    scale: float | None = None
+    scale_sigma: float | None = None
+    anchor_slam: np.ndarray | None = None
+    anchor_world: np.ndarray | None = None
+
+
+def _mean_rotation(Rs: list[np.ndarray]) -> np.ndarray:
+    """Chordal L2 mean of rotations (SVD projection of the arithmetic mean)."""
+    U, _, Vt = np.linalg.svd(np.mean(Rs, axis=0))
+    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
+    return U @ D @ Vt
+
+
+class _MetricOdometry:
+    """Metric camera displacements between two times, independent of SLAM: horizontal from the
+    drag-model velocity driven by measured attitude, vertical from rangefinder heights."""
+
+    def __init__(self, flight: Flight, opt: Ekf004Options, body_t_cam: np.ndarray, counts):
+        att = flight.attitude
+        self.t = att.t
+        self.R = quat_wxyz_to_matrix(att.world_q_body_wxyz)
+        v = drag_model_velocity(att.t, self.R, opt.drag_k, opt.gravity)
+        steps = 0.5 * (v[1:] + v[:-1]) * np.diff(att.t)[:, None]
+        self.xy = np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+        self.body_t_cam = body_t_cam
+        self.h_t, self.h = np.zeros(0), np.zeros(0)
+        if flight.range is not None:
+            self.h_t, self.h = range_heights(flight, opt, counts)
+
+    def camera_displacement(self, t0: float, t1: float) -> np.ndarray | None:
+        """World displacement [m] of the camera from ``t0`` to ``t1`` (z NaN without heights)."""
+        if t0 < self.t[0] or t1 > self.t[-1]:
+            return None
+        dxy = np.array(
+            [
+                np.interp(t1, self.t, self.xy[:, k]) - np.interp(t0, self.t, self.xy[:, k])
+                for k in range(2)
+            ]
+        )
+        if self.h.size >= 2 and self.h_t[0] <= t0 and t1 <= self.h_t[-1]:
+            dz = float(np.interp(t1, self.h_t, self.h) - np.interp(t0, self.h_t, self.h))
+        else:
+            dz = math.nan
+        i0 = min(int(np.searchsorted(self.t, t0)), self.t.size - 1)
+        i1 = min(int(np.searchsorted(self.t, t1)), self.t.size - 1)
+        lever = (self.R[i1] - self.R[i0]) @ self.body_t_cam
+        return np.array([dxy[0], dxy[1], dz]) + lever
+
+
+def range_heights(
+    flight: Flight, opt: Ekf004Options, counts: Ekf004Counts
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tilt-corrected body heights [m] above the ground from the rangefinder, obstacle spikes
+    removed (counted as skipped ``range``).
+
+    The beam is the sensor's +z axis: ``h_sensor = -range (world_R_body body_R_range e3)_z``;
+    the body height subtracts the lever arm ``(world_R_body body_t_range)_z``.
+    """
+    rng = flight.range
+    att = flight.attitude
+    R = quat_wxyz_to_matrix(att.world_q_body_wxyz)
+    idx = np.clip(np.searchsorted(att.t, rng.t), 0, att.t.size - 1)
+    Rb = R[idx]
+    body_T_range = np.asarray(flight.calib.body_T_range, dtype=float)
+    beam = np.einsum("nij,j->ni", Rb, body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0]))
+    lever_z = np.einsum("nij,j->ni", Rb, body_T_range[:3, 3])[:, 2]
+    cos_tilt = -beam[:, 2]
+    ok = (cos_tilt > math.cos(opt.range_max_tilt_rad)) & np.isfinite(rng.range)
+    ok &= (rng.range >= flight.calib.range_min) & (rng.range <= flight.calib.range_max)
+    h = rng.range * cos_tilt - lever_z
+    keep = np.zeros(h.size, dtype=bool)
+    window: list[float] = []
+    for i in np.flatnonzero(ok):
+        if len(window) >= 3 and abs(h[i] - float(np.median(window))) > opt.range_outlier_m:
+            continue
+        keep[i] = True
+        window = (window + [float(h[i])])[-5:]
+    n_skip = int(h.size - keep.sum())
+    if n_skip:
+        counts.add("skipped", "range", n_skip)
+        log.info("ekf004: %d of %d range readings skipped (tilt, limits or spikes)", n_skip, h.size)
+    return rng.t[keep], h[keep]
+
+
+@dataclass
+class _Entry:
+    """One processed measurement in the history: the state before it, and its payload."""
+
+    t: float
+    seq: int
+    kind: str
+    index: int
+    snap: tuple[float, np.ndarray, np.ndarray] | None = None
+    payload: Any = None
+
+
+class Ekf004Runner:
+    """Feeds a flight's measurements to :class:`Ekf004` in arrival order with delay compensation.
+
+    ``Ekf004Runner(flight, options).run()`` returns the :class:`Estimate`; afterwards ``ekf`` holds
+    the filter after the last measurement (all late ones applied), ``sessions`` the SLAM sessions.
+    """
+
+    def __init__(self, flight: Flight, opt: Ekf004Options) -> None:
+        if flight.attitude is None:
+            raise FlightDataError(f"{flight.name}: ekf004 needs an attitude stream (roll, pitch)")
+        self.flight = flight
+        self.opt = opt
+        body_T_cam = np.asarray(flight.calib.body_T_cam, dtype=float)
+        self.body_R_cam = body_T_cam[:3, :3]
+        self.ekf = Ekf004(opt, body_T_cam[:3, 3])
+        self.counts = self.ekf.counts
+        self.odo = _MetricOdometry(flight, opt, body_T_cam[:3, 3], self.counts)
+        self.att_rpy = rpy_of(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz))
+        self.sessions: dict[int, _Session] = {}
+        self.history: list[_Entry] = []
+        self.out_t: list[float] = []
+        self.out_x: list[np.ndarray] = []
+        self.out_pose_cov: list[np.ndarray] = []
+        self.out_vel_cov: list[np.ndarray] = []
+        self.scale_t: list[float] = []
+        self.scale_v: list[float] = []
+        self.scale_sid: list[int] = []
+        self._gyro = self._decimated_gyro()
+        self._vz = self._vertical_speeds()
+
+    # -- measurement preparation -----------------------------------------------------------------
+
+    def _decimated_gyro(self) -> tuple[np.ndarray, np.ndarray]:
+        imu = self.flight.imu
+        if imu is None:
+            return np.zeros(0), np.zeros((0, 3))
+        n = self.opt.gyro_decimation
+        m = len(imu) // n
+        if len(imu) % n:
+            self.counts.add("skipped", "gyro", len(imu) % n)
+        t = imu.t[: m * n].reshape(m, n).mean(axis=1)
+        w = imu.body_omega[: m * n].reshape(m, n, 3).mean(axis=1)
+        return t, w
+
+    def _vertical_speeds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ht, h = self.odo.h_t, self.odo.h
+        if h.size < 2:
+            return np.zeros(0), np.zeros(0), np.zeros(0)
+        dt = np.diff(ht)
+        ok = dt <= self.opt.range_max_dt_s
+        if (~ok).sum():
+            self.counts.add("skipped", "vertical_speed", int((~ok).sum()))
+        vz = np.diff(h)[ok] / dt[ok]
+        sigma = math.sqrt(2.0) * self.opt.range_sigma / dt[ok]
+        return ht[1:][ok], vz, sigma
+
+    def _events(self) -> list[tuple[float, float, int, str, int]]:
+        f = self.flight
+        ev: list[tuple[float, float, int, str, int]] = []
+        ev += [(t, t, 0, "attitude", i) for i, t in enumerate(f.attitude.t)]
+        ev += [(t, t, 1, "gyro", i) for i, t in enumerate(self._gyro[0])]
+        if f.yaw is not None and self.opt.use_yaw:
+            ev += [(t, t, 2, "yaw", i) for i, t in enumerate(f.yaw.t)]
+        ev += [(t, t, 3, "vertical_speed", i) for i, t in enumerate(self._vz[0])]
+        if f.slam is not None:
+            lat = f.slam.latency if f.slam.latency is not None else np.zeros(len(f.slam))
+            for i, t in enumerate(f.slam.t):
+                arrival = t + max(0.0, float(lat[i]))
+                t_meas = t if self.opt.delay_compensation else arrival
+                ev.append((arrival, t_meas, 4, "slam", i))
+        ev.sort()
+        return ev
+
+    # -- initialisation --------------------------------------------------------------------------
+
+    def initialize(self) -> None:
+        o, f = self.opt, self.flight
+        x0 = np.zeros(N_STATE)
+        x0[IR : IY + 1] = self.att_rpy[0]
+        if f.yaw is not None and o.use_yaw:
+            x0[IY] = f.yaw.yaw[0]
+        if self.odo.h.size:
+            x0[IP + 2] = self.odo.h[0]
+        sig = np.array(
+            [o.initial_position_sigma] * 3
+            + [o.initial_velocity_sigma] * 3
+            + [o.initial_angle_sigma] * 3
+            + [o.initial_yaw_rate_sigma]
+        )
+        self.ekf.initialize(float(f.attitude.t[0]), x0, np.diag(sig**2))
+
+    # -- processing ------------------------------------------------------------------------------
+
+    def _apply(self, e: _Entry, first_pass: bool) -> None:
+        ekf, f = self.ekf, self.flight
+        self.counts.active = first_pass
+        ekf.predict(e.t)
+        i = e.index
+        if e.kind == "attitude":
+            ekf.update_attitude(self.att_rpy[i, 0], self.att_rpy[i, 1])
+            if first_pass:
+                self.out_t.append(e.t)
+                self.out_x.append(ekf.x.copy())
+                self.out_pose_cov.append(ekf.pose_cov())
+                self.out_vel_cov.append(ekf.P[IV : IV + 3, IV : IV + 3].copy())
+        elif e.kind == "gyro":
+            ekf.update_body_rates(self._gyro[1][i])
+        elif e.kind == "yaw":
+            ekf.update_yaw(f.yaw.yaw[i])
+        elif e.kind == "vertical_speed":
+            ekf.update_vertical_speed(self._vz[1][i], self._vz[2][i])
+        elif e.kind == "slam":
+            if first_pass:
+                e.payload = self._slam_measurement(i)
+            if e.payload is not None:
+                ekf.update_slam_pose(*e.payload)
+
+    def _slam_measurement(self, i: int) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """First pass of SLAM pose ``i``: session bookkeeping, then the world measurement."""
+        o, slam, ekf = self.opt, self.flight.slam, self.ekf
+        t = float(slam.t[i])
+        sid = int(slam.session[i])
+        sess = self.sessions.get(sid)
+        if sess is None:
+            sess = self.sessions[sid] = _Session(sid, estimator=MLScaleEstimator(o.scale))
+            log.info("ekf004: SLAM session %d starts at t=%.3f s", sid, t)
+        p_sc = slam.slam_t_cam[i]
+        if sess.anchor_slam is None:
+            # The map's origin: the filter's camera position at the session's first pose.
+            sess.anchor_slam = p_sc.copy()
+            sess.anchor_world = ekf.camera_position()
+        slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i])
+        if len(sess.rotations) < o.align_poses:
+            world_R_cam = ekf.world_R_body() @ self.body_R_cam
+            sess.rotations.append(world_R_cam @ slam_R_cam.T)
+            sess.world_R_slam = _mean_rotation(sess.rotations)
+        world_R_slam = sess.world_R_slam
+        self._scale_pair(sess, t, p_sc)
+        if sess.scale is None:
+            self.counts.add("skipped", "slam_before_scale")
+            return None
+        world_t_cam = sess.anchor_world + world_R_slam @ (p_sc - sess.anchor_slam) / sess.scale
+        rpy = None
+        if o.use_slam_angles and len(sess.rotations) >= o.align_poses:
+            rpy = rpy_of(world_R_slam @ slam_R_cam @ self.body_R_cam.T)
+        return world_t_cam, rpy
+
+    def _scale_pair(self, sess: _Session, t: float, p_sc: np.ndarray) -> None:
+        o = self.opt
+        if sess.pair_start is None:
+            sess.pair_start = (t, p_sc)
+            return
+        t0, p0 = sess.pair_start
+        if t - t0 < o.scale_pair_interval_s:
+            return
+        sess.pair_start = (t, p_sc)
+        y = self.odo.camera_displacement(t0, t)
+        if y is None:
+            self.counts.add("skipped", "scale_pair")
+            return
+        x = sess.world_R_slam @ (p_sc - p0)
+        comp = o.scale_components
+        if comp == "vertical" or (comp == "xyz" and np.isfinite(y[2])):
+            keep = [2] if comp == "vertical" else [0, 1, 2]
+        else:
+            keep = [0, 1]
+        x, y = x[keep], y[keep]
+        if not np.all(np.isfinite(y)):
+            self.counts.add("skipped", "scale_pair_no_height")
+            return
+        if not sess.estimator.add_pair(x, y, t):
+            self.counts.add("skipped", "scale_pair")
+            return
+        if sess.estimator.n_pairs < o.scale_min_pairs:
+            return
+        s_new, s_sigma = sess.estimator.scale, sess.estimator.sigma
+        if not (math.isfinite(s_new) and s_new > 0):
+            self.counts.add("skipped", "scale_estimate")
+            return
+        if sess.scale is not None and o.scale_repivot:
+            sess.anchor_world = (
+                sess.anchor_world + sess.world_R_slam @ (p_sc - sess.anchor_slam) / sess.scale
+            )
+            sess.anchor_slam = p_sc.copy()
+        sess.scale, sess.scale_sigma = s_new, s_sigma
+        self.scale_t.append(t)
+        self.scale_v.append(s_new)
+        self.scale_sid.append(sess.sid)
+
+    def run(self) -> Estimate:
+        wall0 = time.perf_counter()
+        self.initialize()
+        latencies: list[float] = []
+        for seq, (_, t_meas, _, kind, i) in enumerate(self._events()):
+            w0 = time.perf_counter()
+            self._arrive(_Entry(float(t_meas), seq, kind, i))
+            latencies.append(time.perf_counter() - w0)
+        return self._estimate(np.asarray(latencies), time.perf_counter() - wall0)
+
+    def _arrive(self, e: _Entry) -> None:
+        hist = self.history
+        if e.t >= self.ekf.t:
+            e.snap = self.ekf.snapshot()
+            self._apply(e, first_pass=True)
+            hist.append(e)
+        else:
+            k = bisect.bisect_right([h.t for h in hist], e.t)
+            if k == 0:
+                self.counts.late_beyond_history += 1
+                self.counts.add("skipped", f"{e.kind}_too_late")
+                return
+            if k < len(hist):
+                self.ekf.restore(hist[k].snap)
+            e.snap = self.ekf.snapshot()
+            self._apply(e, first_pass=True)
+            hist.insert(k, e)
+            for h in hist[k + 1 :]:
+                h.snap = self.ekf.snapshot()
+                self._apply(h, first_pass=False)
+            self.counts.active = True
+            self.counts.replayed += len(hist) - k - 1
+        cutoff = self.ekf.t - self.opt.history_s
+        n_old = 0
+        while n_old < len(hist) - 1 and hist[n_old].t < cutoff:
+            n_old += 1
+        if n_old:
+            del hist[:n_old]
+
+    # -- result ----------------------------------------------------------------------------------
+
+    def _estimate(self, latencies: np.ndarray, runtime_s: float) -> Estimate:
+        X = np.asarray(self.out_x)
+        R = np.stack([rpy_to_matrix(*x[IR : IY + 1]) for x in X])
+        traj = Trajectory(
+            t=np.asarray(self.out_t),
+            world_t_body=X[:, IP : IP + 3],
+            world_q_body_wxyz=matrix_to_quat_wxyz(R),
+            world_v_body=X[:, IV : IV + 3],
+        )
+        series: dict[str, TimeSeries] = {
+            "yaw_rate": TimeSeries(traj.t, X[:, IYR]),
+        }
+        if self.scale_t:
+            series["slam_scale"] = TimeSeries(np.asarray(self.scale_t), np.asarray(self.scale_v))
+            series["slam_session"] = TimeSeries(
+                np.asarray(self.scale_t), np.asarray(self.scale_sid, dtype=int)
+            )
+        scale = {sid: s.scale for sid, s in self.sessions.items() if s.scale is not None}
+        scale_sigma = {
+            sid: s.scale_sigma
+            for sid, s in self.sessions.items()
+            if s.scale is not None and s.scale_sigma is not None
+        }
+        for sid, s in self.sessions.items():
+            if s.scale is None:
+                log.warning("ekf004: SLAM session %d never got a scale (too little motion)", sid)
+        info = {
+            "options": self.opt,
+            "counts": self.counts,
+            "drag_k_fixed_per_s": list(self.opt.drag_k),
+            "scale_pairs": {sid: s.estimator.counts for sid, s in self.sessions.items()},
+        }
+        log.info(
+            "ekf004: %d outputs, used %s, gated %s, skipped %s, %d replays",
+            len(traj),
+            self.counts.used,
+            self.counts.gated,
+            self.counts.skipped,
+            self.counts.replayed,
+        )
+        return Estimate(
+            method="ekf004",
+            trajectory=traj,
+            pose_cov=np.asarray(self.out_pose_cov),
+            vel_cov=np.asarray(self.out_vel_cov),
+            slam_scale=scale,
+            slam_scale_sigma=scale_sigma,
+            series=series,
+            update_latency=latencies,
+            runtime_s=runtime_s,
+            causal=True,
+            info=info,
+        ).check()
+
+
+def run_ekf004(flight: Flight, options: Ekf004Options | None = None) -> Estimate:
+    """Run seed 004's EKF over a flight (attitude required; IMU gyro, yaw, range, SLAM optional).
+
+    Args:
+        flight: the flight (its ground truth is not used).
+        options: filter options.
+
+    Returns:
+        ``Estimate(method="ekf004", causal=True)`` with pose and velocity covariances, the SLAM
+        scale per session and its history (``series["slam_scale"]``, ``series["slam_session"]``).
+    """
+    opt = options or Ekf004Options()
+    opt.validate()
+    return Ekf004Runner(flight, opt).run()
