@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -27,6 +28,7 @@ from fgnav.baselines.ekf004 import (
     run_ekf004,
 )
 from fgnav.eval.metrics import evaluate
+from fgnav.eval.outputs import write_estimate
 
 
 def _truth_scale(flight) -> dict[int, float]:
@@ -154,7 +156,7 @@ def rectangle_estimate(rectangle):
 
 
 @pytest.mark.slow
-def test_rectangle_accuracy(rectangle, rectangle_estimate):
+def test_rectangle_accuracy(rectangle, rectangle_estimate, tmp_path):
     """Measured (seed 0): ATE 6.5 cm without alignment, 2.9 cm after SE(3); scale error 0.8 %
     (the simulator's scale also drifts 0.05 %/s, 2 % over the flight); velocity RMSE 7 cm/s;
     yaw RMSE 0.9 deg. Bounds have about 2x margin."""
@@ -182,6 +184,11 @@ def test_rectangle_accuracy(rectangle, rectangle_estimate):
     # The scale history ends near the truth.
     s_hist = est.series["slam_scale"].value
     assert abs(s_hist[-1] / truth_scale[0] - 1.0) < 0.025
+    # The estimate and its diagnostics are written as files (options and counts in JSON).
+    paths = write_estimate(est, tmp_path, metrics=m)
+    summary = json.loads(paths["summary"].read_text())
+    assert summary["info"]["options"]["scale"]["sigma_slam"] > 0
+    assert summary["info"]["counts"]["used"]["slam"] == counts.used["slam"]
 
 
 def _short_flight(latency_s: float, duration: float):
