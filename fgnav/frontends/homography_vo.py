@@ -128,6 +128,8 @@ class HomographyVOOptions:
         tilt_source: where the dead-reckoned roll/pitch come from: ``"attitude"`` (attitude series;
             vision integrates yaw only), ``"vo"`` (compose the full rotation, seed 002 Alg. 1), or
             ``"auto"`` (``"attitude"`` when rectifying, else ``"vo"``).
+        range_median_window: running-median length [readings] of the rangefinder height used
+            when no height series is given (isolated obstacle spikes).
         max_interp_gap_s: largest gap of the attitude/height series across which they are
             interpolated to an image time [s].
     """
@@ -155,6 +157,7 @@ class HomographyVOOptions:
     rectify_interpolation: int = cv2.INTER_LINEAR
     max_reference_failures: int = 3
     tilt_source: Literal["auto", "attitude", "vo"] = "auto"
+    range_median_window: int = 5
     max_interp_gap_s: float = 0.25
 
     def check(self) -> HomographyVOOptions:
@@ -491,13 +494,43 @@ def decompose_homography(
             best_cos = c
             best = (np.asarray(R, float), t.ravel().astype(float), n / norm)
     if best is None and num > 0:
-        # Pure rotation (no translation): the normal is undefined and OpenCV returns NaN normals;
-        # R is still determined, t/d = 0 and the normal is the predicted one.
-        t = np.asarray(ts[0], float).ravel()
-        if np.all(np.isfinite(Rs[0])) and (not np.all(np.isfinite(t)) or np.linalg.norm(t) < 1e-9):
-            n = np.asarray(predicted_normal, float)
-            return np.asarray(Rs[0], float), np.zeros(3), n / np.linalg.norm(n)
+        # OpenCV treats a homography whose singular values are nearly equal as a pure rotation and
+        # returns zero normals and t = 0, which drops small translations (a few mm at 3 m).
+        # Decompose with the predicted normal instead.
+        return decompose_known_normal(G, predicted_normal)
     return best
+
+
+def decompose_known_normal(
+    G: np.ndarray, normal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decompose ``G ~ R + (t/d) n^T`` when the plane normal ``n`` (in cam i) is known.
+
+    For any ``v`` orthogonal to ``n``, ``G v = lambda R v``: two such vectors give ``lambda`` and
+    ``R`` (orthogonal Procrustes), then ``t/d = G n / lambda - R n``. Well conditioned for any
+    translation, including none (where the free decomposition's normal is undefined).
+
+    Args:
+        G: (3, 3) calibrated homography (any non-zero scale).
+        normal: (3,) plane normal in cam i (camera to plane).
+
+    Returns:
+        ``(cam_j_R_cam_i, t_over_d, n)`` with ``n`` the unit normal.
+    """
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    v1 = np.cross(n, helper)
+    v1 /= np.linalg.norm(v1)
+    v2 = np.cross(n, v1)
+    a, b = G @ v1, G @ v2
+    lam = 0.5 * (np.linalg.norm(a) + np.linalg.norm(b))
+    if np.linalg.det(G) < 0:
+        lam = -lam
+    A = np.column_stack([a / lam, b / lam, np.cross(a, b) / lam**2])
+    B = np.column_stack([v1, v2, np.cross(v1, v2)])
+    U, _, Vt = np.linalg.svd(A @ B.T)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return R, G @ n / lam - R @ n, n
 
 
 def decompose_level_homography(G_level: np.ndarray) -> tuple[float, np.ndarray]:
@@ -557,13 +590,16 @@ def interpolate_attitude(
     return out, ok
 
 
-def height_from_range(flight: Flight, attitude: AttitudeSeries, max_gap_s: float) -> TimeSeries:
+def height_from_range(
+    flight: Flight, attitude: AttitudeSeries, max_gap_s: float, median_window: int = 5
+) -> TimeSeries:
     """Body height above the ground [m] from the tilted rangefinder (seed 002 eq. 21).
 
     ``h_body = range * cos(tilt) - (world_R_body body_t_range)_z`` with the beam along the
     sensor's +z axis and ``cos(tilt) = -(world_R_body body_R_range e_z)_z``. Readings outside
     ``[calib.range_min, calib.range_max]``, without attitude, or with the beam pointing above the
-    horizon are skipped and counted (logged).
+    horizon are skipped and counted (logged). A running median over ``median_window`` readings
+    (odd; 1 for none) removes isolated obstacle spikes (a box or a person under the vehicle).
     """
     rng = flight.range
     if rng is None:
@@ -590,8 +626,12 @@ def height_from_range(flight: Flight, attitude: AttitudeSeries, max_gap_s: float
         )
     if not keep.any():
         raise FlightDataError(f"{flight.name}.range: no reading usable as a height")
-    h = rng.range * cos_tilt - lever_z
-    return TimeSeries(t=rng.t[keep], value=h[keep])
+    h = (rng.range * cos_tilt - lever_z)[keep]
+    if median_window > 1 and h.size >= median_window:
+        from scipy.ndimage import median_filter
+
+        h = median_filter(h, size=median_window, mode="nearest")
+    return TimeSeries(t=rng.t[keep], value=h)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -807,7 +847,7 @@ class HomographyVO:
                 raise FlightDataError(
                     f"{flight.name}: homography VO needs a height series or attitude + range"
                 )
-            height = height_from_range(flight, attitude, o.max_interp_gap_s)
+            height = height_from_range(flight, attitude, o.max_interp_gap_s, o.range_median_window)
         h_t = np.asarray(height.t, float)
         h_v = np.asarray(height.value, float).reshape(-1)
         if h_t.shape != h_v.shape or h_t.size == 0 or not np.all(np.isfinite(h_v)):
