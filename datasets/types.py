@@ -357,6 +357,10 @@ class Trajectory(_Series):
 # ----------------------------------------------------------------------------------------------
 
 
+DOWNWARD_RANGE = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Default ``body_T_range``: no lever arm, sensor +z (the beam) along body -z."""
+
+
 @dataclass(frozen=True)
 class ImuNoise:
     """Continuous-time IMU noise densities (Kalibr/EuRoC convention).
@@ -381,7 +385,8 @@ class Calibration:
     Attributes:
         body_T_cam: 4x4 pose of the camera in the body frame (camera: x right, y down, z forward
             along the optical axis).
-        body_T_range: 4x4 pose of the rangefinder; its beam is the sensor's +z axis.
+        body_T_range: 4x4 pose of the rangefinder; its beam is the sensor's +z axis. The default
+            (``DOWNWARD_RANGE``: a rotation of pi about body x) points the beam along body -z.
         camera: camera intrinsics, or None.
         imu_noise: IMU noise densities.
         range_min, range_max: valid rangefinder interval [m].
@@ -389,7 +394,7 @@ class Calibration:
     """
 
     body_T_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
-    body_T_range: np.ndarray = field(default_factory=lambda: np.eye(4))
+    body_T_range: np.ndarray = field(default_factory=lambda: DOWNWARD_RANGE.copy())
     camera: CameraIntrinsics | None = None
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     range_min: float = 0.0

@@ -1,0 +1,702 @@
+"""MSF-style error-state EKF with the visual scale and the SLAM-frame drift in the state.
+
+The strongest filter anchor fgnav is compared against (Weiss & Siegwart 2011, "Real-time metric
+state estimation for modular vision-inertial systems"; ethzasl_msf's pose sensor). It fuses:
+
+* IMU propagation (strapdown, gravity ``(0, 0, -g)`` in world z up, body FLU);
+* monocular-SLAM camera poses of unknown scale, with the model of DESIGN.md section 4.2::
+
+      slam_t_cam = s * slam_R_world * (world_t_body + world_R_body * body_t_cam) + slam_t_world
+      slam_R_cam = slam_R_world * world_R_body * body_R_cam          (optional, on by default)
+
+  where ``s`` (SLAM units per metre), ``slam_R_world`` and ``slam_t_world`` are filter states (the
+  MSF ``lambda``, ``q_wv``, ``p_wv``); a SLAM map reset (new session id) re-initialises them;
+* optionally a downward rangefinder ``r = (z_sensor - ground) / cos(tilt)`` (ground height fixed
+  at the first valid reading, so terrain steps bias it; the smoother estimates ground instead).
+
+Error state (22): ``[dp(3) world, dv(3) world, dtheta(3) body (right perturbation),
+dbg(3), dba(3), ds(1), dphi_sw(3) (right perturbation of slam_R_world), dt_sw(3)]``.
+
+Measurements are Mahalanobis-gated (chi-square). Delayed measurements (SLAM poses arriving
+``latency`` seconds after their image time) are handled MSF-style with a state buffer: the filter
+restores the buffered state at the image time, applies the update and re-propagates the IMU to
+the present. The reported trajectory is causal: each output sample is what the filter knew at that
+time, before any later correction.
+
+Not modelled: rotor drag (MSF has none), IMU-camera time offset and extrinsic calibration states,
+SLAM scale drift beyond a random walk.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    skew,
+    so3_exp,
+    so3_log,
+)
+from fgnav.datasets.types import Flight, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+
+log = logging.getLogger(__name__)
+
+GRAVITY = 9.81
+"""Gravity magnitude [m/s^2] used for propagation (the simulator uses the same constant)."""
+
+# Error-state layout.
+IP, IV, ITH, IBG, IBA, IS, IPHI, ITSW = 0, 3, 6, 9, 12, 15, 16, 19
+N_ERR = 22
+
+MIN_SCALE_REL_SIGMA = 0.02
+"""Floor of the initial relative scale uncertainty (the closed-form fit neglects biases)."""
+
+RESET_SCALE_REL_SIGMA = 0.5
+"""Relative scale uncertainty after a SLAM map reset when no closed-form fit was possible."""
+
+REINIT_GIVE_UP_S = 20.0
+"""After a map reset, how long to wait for the closed-form scale before keeping the old one."""
+
+# Chi-square quantiles (probability 0.999) for the gates, by measurement dimension.
+CHI2_999 = {1: 10.83, 3: 16.27, 6: 22.46}
+
+
+@dataclass
+class MsfOptions:
+    """Options of :class:`MsfEkf`.
+
+    Attributes:
+        slam_position_sigma_m: SLAM position noise [m]; the filter uses ``s * sigma`` in SLAM
+            units (a monocular SLAM's noise is geometric, so it scales with the map).
+        slam_rotation_sigma: SLAM orientation noise [rad].
+        use_slam_rotation: also fuse the SLAM camera orientation (MSF pose sensor).
+        use_range: fuse the rangefinder when the flight has one.
+        range_sigma: rangefinder noise [m].
+        range_max_tilt_rad: no range update above this tilt.
+        initial_scale: initial ``s`` (SLAM units per metre); None: estimated from the first
+            seconds of SLAM and IMU (see :func:`initial_scale_guess`).
+        initial_scale_rel_sigma: initial relative standard deviation of ``s``; None: twice the
+            standard error of the closed-form initialisation, at least 2 % (with
+            ``initial_scale`` given and this None: 30 %).
+        initial_velocity_sigma: initial velocity standard deviation [m/s].
+        initial_bias_sigma_gyro, initial_bias_sigma_accel: initial bias standard deviations.
+        scale_walk: random walk of ``s`` [1/s relative per sqrt(s)].
+        alignment_walk_rot, alignment_walk_pos: random walk of the SLAM alignment
+            [rad/sqrt(s)], [SLAM units/sqrt(s)].
+        gate: apply Mahalanobis gating.
+        output_rate_hz: rate of the reported causal trajectory.
+        buffer_s: how far back delayed measurements may reach [s]; older ones are counted and
+            skipped.
+    """
+
+    slam_position_sigma_m: float = 0.015
+    slam_rotation_sigma: float = 0.01
+    use_slam_rotation: bool = True
+    use_range: bool = True
+    range_sigma: float = 0.03
+    range_max_tilt_rad: float = np.deg2rad(35.0)
+    initial_scale: float | None = None
+    initial_scale_rel_sigma: float | None = None
+    initial_velocity_sigma: float = 0.5
+    initial_bias_sigma_gyro: float = 0.01
+    initial_bias_sigma_accel: float = 0.2
+    scale_walk: float = 1e-3
+    alignment_walk_rot: float = 1e-4
+    alignment_walk_pos: float = 1e-3
+    gate: bool = True
+    output_rate_hz: float = 20.0
+    buffer_s: float = 1.0
+
+
+@dataclass
+class _State:
+    p: np.ndarray
+    v: np.ndarray
+    R: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+    s: float
+    R_sw: np.ndarray
+    t_sw: np.ndarray
+    P: np.ndarray
+
+    def copy(self) -> _State:
+        return _State(
+            self.p.copy(), self.v.copy(), self.R.copy(), self.bg.copy(), self.ba.copy(),
+            float(self.s), self.R_sw.copy(), self.t_sw.copy(), self.P.copy(),
+        )
+
+
+@dataclass
+class MsfCounts:
+    """What the filter did with its measurements (reported, never silent)."""
+
+    slam_updates: int = 0
+    slam_rejected_gate: int = 0
+    too_old: int = 0
+    replayed: int = 0
+    range_updates: int = 0
+    range_rejected_gate: int = 0
+    range_rejected_tilt: int = 0
+    session_resets: int = 0
+    slam_waiting_reinit: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+SCALE_INIT_WINDOWS_S = (4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
+"""Windows tried, in order, by :func:`initial_scale_guess` until the scale is determined."""
+
+
+def initial_scale_guess(flight: Flight, max_rel_std: float = 0.05) -> float:
+    """Closed-form initial ``s`` (SLAM units per metre); see :func:`initial_state_guess`."""
+    return initial_state_guess(flight, max_rel_std)[0]
+
+
+def initial_state_guess(
+    flight: Flight, max_rel_std: float = 0.05
+) -> tuple[float, np.ndarray, float]:
+    """Closed-form initial ``s`` (SLAM units per metre) from the start of the flight.
+
+    With ``slam_R_world`` fixed by the first SLAM orientation and the initial attitude, and the
+    IMU double-integrated with zero initial velocity (``D(t)``; attitude from the attitude
+    stream or integrated gyro), the SLAM positions follow the linear model::
+
+        slam_t_cam(t) = s * slam_R_world * (D(t) + world_R_body(t) * body_t_cam)
+                        + u * t + c + w * t^2 / 2
+
+    with unknowns ``s``, ``u = s slam_R_world v0``, ``c`` and ``w`` (the accelerometer bias seen
+    through a nearly constant attitude). Solved by least squares over growing windows
+    (``SCALE_INIT_WINDOWS_S``) until the standard error of ``s`` is below ``max_rel_std`` of
+    ``s``. Returns ``(s, world_v_body0, rel_std)``: the initial velocity follows from ``u``,
+    ``rel_std`` is the relative standard error of ``s``. Raises
+    :class:`FlightDataError` when no window determines it.
+    """
+    slam, imu = flight.slam, flight.imu
+    if slam is None or imu is None:
+        raise FlightDataError(f"{flight.name}: MSF needs IMU and SLAM streams")
+    t0 = max(slam.t[0], imu.t[0])
+    last = None
+    for window_s in SCALE_INIT_WINDOWS_S:
+        j = np.flatnonzero((slam.t >= t0) & (slam.t <= t0 + window_s))
+        if len(j) == 0:
+            break
+        j = j[slam.session[j] == slam.session[j[0]]]
+        k = np.flatnonzero((imu.t >= t0) & (imu.t <= slam.t[j[-1]]))
+        if len(j) < 10 or len(k) < 20:
+            continue
+        s, rel_std, v0 = _scale_lsq(flight, j, k, t0)
+        last = (window_s, s, rel_std)
+        if np.isfinite(s) and s > 0 and rel_std < max_rel_std:
+            log.info("initial SLAM scale %.4f (+-%.1f %%) from the first %.0f s",
+                     s, 100 * rel_std, window_s)
+            return s, v0, rel_std
+        if slam.t[j[-1]] < t0 + window_s - 1.0:
+            break
+    raise FlightDataError(
+        f"{flight.name}: the start of the flight does not determine the SLAM scale "
+        f"(last try: {last}); pass MsfOptions.initial_scale"
+    )
+
+
+def _scale_lsq(
+    flight: Flight, j: np.ndarray, k: np.ndarray, t0: float
+) -> tuple[float, float, np.ndarray]:
+    slam, imu = flight.slam, flight.imu
+    if flight.attitude is not None:
+        att = flight.attitude
+        idx = np.clip(np.searchsorted(att.t, imu.t[k]), 0, len(att) - 1)
+        Rs = quat_wxyz_to_matrix(att.world_q_body_wxyz[idx])
+    else:
+        R = _tilt_from_accel(imu.body_accel[k[:20]].mean(axis=0))
+        Rs = np.empty((len(k), 3, 3))
+        for m, i in enumerate(k):
+            Rs[m] = R
+            if i + 1 < len(imu):
+                R = R @ so3_exp(imu.body_omega[i] * (imu.t[i + 1] - imu.t[i]))
+    a_w = np.einsum("nij,nj->ni", Rs, imu.body_accel[k]) - np.array([0.0, 0.0, GRAVITY])
+    dt = np.diff(imu.t[k], append=imu.t[k][-1])[:, None]
+    v = np.cumsum(a_w * dt, axis=0) - a_w * dt  # velocity at the start of each step
+    step = v * dt + 0.5 * a_w * dt**2
+    D = np.cumsum(step, axis=0) - step  # displacement at the start of each step
+    slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j])
+    R_bc = flight.calib.body_T_cam[:3, :3]
+    b_tc = flight.calib.body_T_cam[:3, 3]
+    R_sw = slam_R[0] @ (Rs[0] @ R_bc).T
+    ts = slam.t[j] - t0
+    m = np.clip(np.searchsorted(imu.t[k], slam.t[j]), 0, len(k) - 1)
+    pc = D[m] + np.einsum("nij,j->ni", Rs[m], b_tc)
+    A = np.zeros((3 * len(j), 10))
+    A[:, 0] = (pc @ R_sw.T).ravel()
+    for ax in range(3):
+        A[ax::3, 1 + ax] = ts
+        A[ax::3, 4 + ax] = 1.0
+        A[ax::3, 7 + ax] = 0.5 * ts**2
+    b = slam.slam_t_cam[j].ravel()
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    res = b - A @ sol
+    dof = max(len(b) - A.shape[1], 1)
+    cov = (res @ res / dof) * np.linalg.pinv(A.T @ A)
+    s = float(sol[0])
+    if s == 0:
+        return s, np.inf, np.zeros(3)
+    v0 = R_sw.T @ sol[1:4] / s
+    return s, float(np.sqrt(max(cov[0, 0], 0.0)) / abs(s)), v0
+
+
+class MsfEkf:
+    """Error-state EKF, MSF style. See the module docstring for the model.
+
+    Use :meth:`run` on a flight; or drive it yourself with :meth:`initialize`,
+    :meth:`propagate` and the ``update_*`` methods.
+    """
+
+    def __init__(self, options: MsfOptions | None = None) -> None:
+        self.opt = options or MsfOptions()
+        self.x: _State | None = None
+        self.counts = MsfCounts()
+        self._body_T_cam = np.eye(4)
+        self._body_T_range = np.eye(4)
+        self._ground = None
+        self._noise = None
+        self._scale_rel_sigma = 0.3
+
+    # ------------------------------------------------------------------------------------------
+    # Set-up
+    # ------------------------------------------------------------------------------------------
+
+    def initialize(
+        self,
+        world_R_body: np.ndarray,
+        slam_t_cam: np.ndarray,
+        slam_R_cam: np.ndarray,
+        scale: float,
+        body_T_cam: np.ndarray,
+        imu_noise,
+        world_v_body: np.ndarray | None = None,
+    ) -> None:
+        """Start at world origin with attitude ``world_R_body``; the SLAM alignment follows from
+        the first SLAM pose and ``scale``."""
+        o = self.opt
+        self._body_T_cam = np.asarray(body_T_cam, float)
+        self._noise = imu_noise
+        R_bc = self._body_T_cam[:3, :3]
+        b_tc = self._body_T_cam[:3, 3]
+        p = np.zeros(3)
+        R_sw = slam_R_cam @ (world_R_body @ R_bc).T
+        t_sw = slam_t_cam - scale * R_sw @ (p + world_R_body @ b_tc)
+        P = np.zeros((N_ERR, N_ERR))
+        P[IP:IP + 3, IP:IP + 3] = np.eye(3) * 1e-6
+        P[IV:IV + 3, IV:IV + 3] = np.eye(3) * o.initial_velocity_sigma**2
+        P[ITH:ITH + 3, ITH:ITH + 3] = np.diag([0.02**2, 0.02**2, 1e-6])
+        P[IBG:IBG + 3, IBG:IBG + 3] = np.eye(3) * o.initial_bias_sigma_gyro**2
+        P[IBA:IBA + 3, IBA:IBA + 3] = np.eye(3) * o.initial_bias_sigma_accel**2
+        self._reset_alignment_cov(P, scale)
+        v = np.zeros(3) if world_v_body is None else np.asarray(world_v_body, float)
+        self.x = _State(p, v, world_R_body.copy(), np.zeros(3), np.zeros(3),
+                        float(scale), R_sw, t_sw, P)
+
+    def _reset_alignment_cov(self, P: np.ndarray, scale: float) -> None:
+        o = self.opt
+        P[IS:, :] = 0.0
+        P[:, IS:] = 0.0
+        P[IS, IS] = (self._scale_rel_sigma * scale) ** 2
+        P[IPHI:IPHI + 3, IPHI:IPHI + 3] = np.eye(3) * 0.05**2
+        P[ITSW:ITSW + 3, ITSW:ITSW + 3] = np.eye(3) * (0.1 * scale) ** 2
+
+    def reset_session(
+        self,
+        slam_t_cam: np.ndarray,
+        slam_R_cam: np.ndarray,
+        scale: float | None = None,
+        scale_rel_sigma: float = RESET_SCALE_REL_SIGMA,
+    ) -> None:
+        """A SLAM map reset: new frame and scale. Keep the vehicle state and re-anchor the
+        alignment on this pose, with ``scale`` (or the old ``s`` when None) as the new map's
+        initial scale."""
+        x = self.x
+        R_bc = self._body_T_cam[:3, :3]
+        b_tc = self._body_T_cam[:3, 3]
+        if scale is not None:
+            x.s = float(scale)
+        x.R_sw = slam_R_cam @ (x.R @ R_bc).T
+        x.t_sw = slam_t_cam - x.s * x.R_sw @ (x.p + x.R @ b_tc)
+        self._scale_rel_sigma = scale_rel_sigma
+        self._reset_alignment_cov(x.P, x.s)
+        self.counts.session_resets += 1
+
+    # ------------------------------------------------------------------------------------------
+    # Propagation
+    # ------------------------------------------------------------------------------------------
+
+    def propagate(self, omega: np.ndarray, f: np.ndarray, dt: float) -> None:
+        """Strapdown step with body rate ``omega`` [rad/s] and specific force ``f`` [m/s^2]."""
+        if dt <= 0:
+            return
+        x = self.x
+        o = self.opt
+        n = self._noise
+        w = omega - x.bg
+        a_b = f - x.ba
+        a_w = x.R @ a_b + np.array([0.0, 0.0, -GRAVITY])
+        x.p = x.p + x.v * dt + 0.5 * a_w * dt * dt
+        x.v = x.v + a_w * dt
+        dR = so3_exp(w * dt)
+        Phi = np.eye(N_ERR)
+        Phi[IP:IP + 3, IV:IV + 3] = np.eye(3) * dt
+        Phi[IV:IV + 3, ITH:ITH + 3] = -x.R @ skew(a_b) * dt
+        Phi[IV:IV + 3, IBA:IBA + 3] = -x.R * dt
+        Phi[ITH:ITH + 3, ITH:ITH + 3] = dR.T
+        Phi[ITH:ITH + 3, IBG:IBG + 3] = -np.eye(3) * dt
+        x.R = x.R @ dR
+        q = np.zeros(N_ERR)
+        q[IV:IV + 3] = n.accel_noise_density**2 * dt
+        q[ITH:ITH + 3] = n.gyro_noise_density**2 * dt
+        q[IBG:IBG + 3] = n.gyro_random_walk**2 * dt
+        q[IBA:IBA + 3] = n.accel_random_walk**2 * dt
+        q[IS] = (o.scale_walk * x.s) ** 2 * dt
+        q[IPHI:IPHI + 3] = o.alignment_walk_rot**2 * dt
+        q[ITSW:ITSW + 3] = o.alignment_walk_pos**2 * dt
+        P = Phi @ x.P @ Phi.T
+        P[np.diag_indices(N_ERR)] += q
+        x.P = 0.5 * (P + P.T)
+
+    # ------------------------------------------------------------------------------------------
+    # Updates
+    # ------------------------------------------------------------------------------------------
+
+    def _correct(self, H: np.ndarray, r: np.ndarray, Rm: np.ndarray, dim: int) -> bool:
+        """EKF correction with residual ``r = z - h(x)``; False when gated out."""
+        x = self.x
+        S = H @ x.P @ H.T + Rm
+        if self.opt.gate:
+            d2 = float(r @ np.linalg.solve(S, r))
+            if d2 > CHI2_999[dim]:
+                return False
+        K = np.linalg.solve(S, H @ x.P).T
+        dx = K @ r
+        IKH = np.eye(N_ERR) - K @ H
+        x.P = IKH @ x.P @ IKH.T + K @ Rm @ K.T
+        x.p = x.p + dx[IP:IP + 3]
+        x.v = x.v + dx[IV:IV + 3]
+        x.R = x.R @ so3_exp(dx[ITH:ITH + 3])
+        x.bg = x.bg + dx[IBG:IBG + 3]
+        x.ba = x.ba + dx[IBA:IBA + 3]
+        x.s = float(x.s + dx[IS])
+        x.R_sw = x.R_sw @ so3_exp(dx[IPHI:IPHI + 3])
+        x.t_sw = x.t_sw + dx[ITSW:ITSW + 3]
+        return True
+
+    def update_slam(self, slam_t_cam: np.ndarray, slam_R_cam: np.ndarray | None) -> bool:
+        """Fuse one SLAM camera pose (position, and orientation if enabled and given)."""
+        x = self.x
+        o = self.opt
+        R_bc = self._body_T_cam[:3, :3]
+        b_tc = self._body_T_cam[:3, 3]
+        world_t_cam = x.p + x.R @ b_tc
+        h = x.s * x.R_sw @ world_t_cam + x.t_sw
+        Hp = np.zeros((3, N_ERR))
+        Hp[:, IP:IP + 3] = x.s * x.R_sw
+        Hp[:, ITH:ITH + 3] = -x.s * x.R_sw @ x.R @ skew(b_tc)
+        Hp[:, IS] = x.R_sw @ world_t_cam
+        Hp[:, IPHI:IPHI + 3] = -x.s * x.R_sw @ skew(world_t_cam)
+        Hp[:, ITSW:ITSW + 3] = np.eye(3)
+        rp = slam_t_cam - h
+        if o.use_slam_rotation and slam_R_cam is not None:
+            h_R = x.R_sw @ x.R @ R_bc
+            rr = so3_log(h_R.T @ slam_R_cam)
+            Hr = np.zeros((3, N_ERR))
+            Hr[:, ITH:ITH + 3] = R_bc.T
+            Hr[:, IPHI:IPHI + 3] = R_bc.T @ x.R.T
+            H = np.vstack([Hp, Hr])
+            r = np.concatenate([rp, rr])
+            Rm = np.diag([(x.s * o.slam_position_sigma_m) ** 2] * 3
+                         + [o.slam_rotation_sigma**2] * 3)
+            ok = self._correct(H, r, Rm, 6)
+        else:
+            ok = self._correct(Hp, rp, np.eye(3) * (x.s * o.slam_position_sigma_m) ** 2, 3)
+        if ok:
+            self.counts.slam_updates += 1
+        else:
+            self.counts.slam_rejected_gate += 1
+        return ok
+
+    def update_range(self, r_meas: float) -> bool:
+        """Fuse one tilted-rangefinder reading against the fixed ground height."""
+        x = self.x
+        o = self.opt
+        R_br = self._body_T_range[:3, :3]
+        b_tr = self._body_T_range[:3, 3]
+        d_body = R_br[:, 2]
+        c = -(x.R @ d_body)[2]
+        if c < np.cos(o.range_max_tilt_rad):
+            self.counts.range_rejected_tilt += 1
+            return False
+        num = x.p[2] + (x.R @ b_tr)[2] - self._ground
+        h = num / c
+        dnum = np.zeros(N_ERR)
+        dnum[IP + 2] = 1.0
+        dnum[ITH:ITH + 3] = (-x.R @ skew(b_tr))[2]
+        dc = np.zeros(N_ERR)
+        dc[ITH:ITH + 3] = (x.R @ skew(d_body))[2]
+        H = ((dnum * c - num * dc) / c**2)[None, :]
+        ok = self._correct(H, np.array([r_meas - h]), np.array([[o.range_sigma**2]]), 1)
+        if ok:
+            self.counts.range_updates += 1
+        else:
+            self.counts.range_rejected_gate += 1
+        return ok
+
+    # ------------------------------------------------------------------------------------------
+    # Whole flight
+    # ------------------------------------------------------------------------------------------
+
+    def run(self, flight: Flight) -> Estimate:
+        """Run over a flight in arrival order and return the causal estimate."""
+        o = self.opt
+        imu, slam = flight.imu, flight.slam
+        if imu is None or slam is None:
+            missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
+            raise FlightDataError(f"{flight.name}: MSF-EKF needs IMU and SLAM; missing {missing}")
+        calib = flight.calib
+        self._body_T_range = np.asarray(calib.body_T_range, float)
+        use_range = o.use_range and flight.range is not None
+        wall0 = time.perf_counter()
+
+        # Initial attitude: the attitude stream if present, else accelerometer tilt with yaw 0.
+        t_start = max(imu.t[0], slam.t[0])
+        if flight.attitude is not None:
+            i0 = min(np.searchsorted(flight.attitude.t, t_start), len(flight.attitude) - 1)
+            R0 = quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz[i0])
+        else:
+            k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
+            R0 = _tilt_from_accel(imu.body_accel[k].mean(axis=0))
+        if o.initial_scale is not None:
+            scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
+        else:
+            scale0, v0, rel0 = initial_state_guess(flight)
+        self._scale_rel_sigma = (
+            o.initial_scale_rel_sigma
+            if o.initial_scale_rel_sigma is not None
+            else max(2.0 * rel0, MIN_SCALE_REL_SIGMA)
+        )
+        j0 = int(np.searchsorted(slam.t, t_start))
+        slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+        self.initialize(R0, slam.slam_t_cam[j0], slam_R[j0], scale0, calib.body_T_cam,
+                        calib.imu_noise, world_v_body=v0)
+        session = int(slam.session[j0])
+        self.counts.extra["initial_scale"] = scale0
+
+        # Events in arrival order: SLAM at t + latency; range at its time.
+        latency = slam.latency if slam.latency is not None else np.zeros(len(slam))
+        events: list[tuple[float, float, str, int]] = [
+            (float(slam.t[j] + latency[j]), float(slam.t[j]), "slam", j)
+            for j in range(j0 + 1, len(slam))
+        ]
+        if use_range:
+            rng = flight.range
+            valid = (rng.range >= calib.range_min) & (rng.range <= calib.range_max)
+            self.counts.extra["range_out_of_limits"] = int((~valid).sum())
+            events += [(float(rng.t[j]), float(rng.t[j]), "range", j)
+                       for j in np.flatnonzero(valid) if rng.t[j] >= t_start]
+        events.sort()
+
+        i_start = int(np.searchsorted(imu.t, t_start))
+        t_imu = imu.t
+        snaps: list[tuple[int, _State]] = []  # (imu index after which the snapshot holds)
+        snap_times: list[float] = []
+        applied: list[tuple[float, object]] = []  # (time, update) fused within the buffer
+        out_dt = 1.0 / o.output_rate_hz
+        next_out = t_imu[i_start]
+        out_t, out_x, lat = [], [], []
+        scale_hist_t, scale_hist, scale_sig = [], [], []
+        ev = 0
+        pending: tuple[int, float] | None = None  # (new session, its first image time)
+        cur_t = t_imu[i_start]
+        for i in range(i_start, len(imu) - 1):
+            # Deliver every measurement that has arrived by the time of IMU sample i.
+            while ev < len(events) and events[ev][0] <= t_imu[i]:
+                _, t_meas, kind, j = events[ev]
+                ev += 1
+                w0 = time.perf_counter()
+                if kind == "slam" and int(slam.session[j]) != session:
+                    # New map: wait until the data since the reset fixes its scale.
+                    if pending is None or pending[0] != int(slam.session[j]):
+                        pending = (int(slam.session[j]), t_meas)
+                    guess = self._reinit_guess(flight, pending[1], t_meas, t_imu[i])
+                    if guess is None:
+                        self.counts.slam_waiting_reinit += 1
+                        continue
+                    session = pending[0]
+                    pending = None
+                    self.reset_session(slam.slam_t_cam[j], slam_R[j], *guess)
+                    # No replay across a reset: buffered states belong to the old map.
+                    snaps.clear()
+                    snap_times.clear()
+                    applied.clear()
+                    continue
+                self._apply_at(t_meas, cur_t, i, imu, snaps, snap_times, applied,
+                               lambda k=kind, jj=j: self._measure(k, jj, slam, slam_R, flight))
+                lat.append(time.perf_counter() - w0)
+                if kind == "slam":
+                    scale_hist_t.append(t_imu[i])
+                    scale_hist.append(self.x.s)
+                    scale_sig.append(np.sqrt(self.x.P[IS, IS]))
+            dt = t_imu[i + 1] - t_imu[i]
+            self.propagate(imu.body_omega[i], imu.body_accel[i], dt)
+            cur_t = t_imu[i + 1]
+            snaps.append((i + 1, self.x.copy()))
+            snap_times.append(cur_t)
+            while snap_times and snap_times[0] < cur_t - o.buffer_s:
+                snaps.pop(0)
+                snap_times.pop(0)
+            while applied and applied[0][0] < cur_t - o.buffer_s:
+                applied.pop(0)
+            if cur_t >= next_out:
+                out_t.append(cur_t)
+                out_x.append(self.x.copy())
+                next_out += out_dt
+        self.counts.extra["events_after_imu_end"] = len(events) - ev
+        return self._estimate(flight, out_t, out_x, lat, scale_hist_t, scale_hist, scale_sig,
+                              session, time.perf_counter() - wall0)
+
+    def _reinit_guess(
+        self, flight: Flight, t_first: float, t_meas: float, t_now: float
+    ) -> tuple[float, float] | None:
+        """Closed-form scale of a new SLAM map from the data received since its first pose
+        (causal: SLAM up to ``t_meas``, IMU up to ``t_now``); None while undetermined. After
+        ``REINIT_GIVE_UP_S`` the old scale is kept with a large uncertainty."""
+        if t_meas - t_first < SCALE_INIT_WINDOWS_S[0]:
+            return None
+        if t_meas - t_first > REINIT_GIVE_UP_S:
+            self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
+            return self.x.s, RESET_SCALE_REL_SIGMA
+        sub = dataclasses.replace(
+            flight,
+            imu=flight.imu.between(t_first, t_now),
+            slam=flight.slam.between(t_first, t_meas),
+            attitude=flight.attitude.between(t_first, t_now) if flight.attitude else None,
+        )
+        try:
+            s, _, rel = initial_state_guess(sub)
+        except FlightDataError:
+            return None
+        return s, max(2.0 * rel, MIN_SCALE_REL_SIGMA)
+
+    def _measure(self, kind: str, j: int, slam, slam_R, flight: Flight) -> None:
+        if kind == "slam":
+            self.update_slam(slam.slam_t_cam[j], slam_R[j])
+        else:
+            if self._ground is None:
+                self._init_ground(float(flight.range.range[j]))
+            self.update_range(float(flight.range.range[j]))
+
+    def _init_ground(self, r: float) -> None:
+        x = self.x
+        R_br = self._body_T_range[:3, :3]
+        c = -(x.R @ R_br[:, 2])[2]
+        self._ground = x.p[2] + (x.R @ self._body_T_range[:3, 3])[2] - r * c
+
+    def _apply_at(self, t_meas, cur_t, i, imu, snaps, snap_times, applied, apply) -> None:
+        """Apply a measurement taken at ``t_meas``. If it is in the past, restore the buffered
+        state there, apply it, then re-propagate the IMU to ``cur_t`` (IMU index ``i``),
+        re-applying in time order the measurements already fused after ``t_meas``."""
+        if t_meas >= cur_t - 1e-9 or not snaps:
+            apply()
+            applied.append((t_meas, apply))
+            return
+        k = bisect.bisect_right(snap_times, t_meas) - 1
+        if k < 0:
+            self.counts.too_old += 1
+            return
+        self.counts.replayed += 1
+        idx, st = snaps[k]
+        self.x = st.copy()
+        t_imu = imu.t
+        # Measurements after t_meas, already fused, to re-apply on the way back to cur_t.
+        later = sorted((a for a in applied if a[0] > t_meas), key=lambda a: a[0])
+        applied[:] = [a for a in applied if a[0] <= t_meas]
+        queue = [(t_meas, apply, True)] + [(tq, fn, False) for tq, fn in later]
+        snaps[k + 1:] = []
+        snap_times[k + 1:] = []
+        t_now = t_imu[idx]
+        for m in range(idx, i):
+            t_next = t_imu[m + 1]
+            while queue and queue[0][0] < t_next:
+                tq, fn, first = queue.pop(0)
+                self.propagate(imu.body_omega[m], imu.body_accel[m], tq - t_now)
+                t_now = max(t_now, tq)
+                self._apply_counted(fn, first)
+                applied.append((tq, fn))
+            self.propagate(imu.body_omega[m], imu.body_accel[m], t_next - t_now)
+            t_now = t_next
+            snaps.append((m + 1, self.x.copy()))
+            snap_times.append(t_next)
+        for tq, fn, first in queue:  # measured at or after cur_t: apply now
+            self._apply_counted(fn, first)
+            applied.append((tq, fn))
+
+    def _apply_counted(self, fn, first: bool) -> None:
+        """Run an update; a re-application during replay does not count it again."""
+        saved = dataclasses.replace(self.counts, extra=self.counts.extra)
+        fn()
+        if not first:
+            extra = self.counts.extra
+            self.counts = saved
+            self.counts.extra = extra
+
+    def _estimate(self, flight, out_t, out_x, lat, sh_t, sh, ss, session, wall) -> Estimate:
+        n = len(out_t)
+        R = np.array([x.R for x in out_x])
+        pose_cov = np.empty((n, 6, 6))
+        for k, x in enumerate(out_x):
+            # [dtheta(body), dp(world)] -> GTSAM Pose3 tangent [rot, trans(body)].
+            J = np.zeros((6, N_ERR))
+            J[0:3, ITH:ITH + 3] = np.eye(3)
+            J[3:6, IP:IP + 3] = x.R.T
+            pose_cov[k] = J @ x.P @ J.T
+        traj = Trajectory(
+            t=np.asarray(out_t),
+            world_t_body=np.array([x.p for x in out_x]),
+            world_q_body_wxyz=matrix_to_quat_wxyz(R),
+            world_v_body=np.array([x.v for x in out_x]),
+            gyro_bias=np.array([x.bg for x in out_x]),
+            accel_bias=np.array([x.ba for x in out_x]),
+        )
+        x = self.x
+        return Estimate(
+            method="msf-ekf",
+            trajectory=traj,
+            pose_cov=pose_cov,
+            vel_cov=np.array([x.P[IV:IV + 3, IV:IV + 3] for x in out_x]),
+            slam_scale={session: x.s},
+            slam_scale_sigma={session: float(np.sqrt(x.P[IS, IS]))},
+            series={"slam_scale": TimeSeries(np.asarray(sh_t), np.asarray(sh), np.asarray(ss))},
+            update_latency=np.asarray(lat),
+            runtime_s=wall,
+            causal=True,
+            info={"options": self.opt.__dict__.copy(), "counts": self.counts.__dict__.copy()},
+        )
+
+
+def _tilt_from_accel(f: np.ndarray) -> np.ndarray:
+    """world_R_body with yaw 0 whose body z aligns with the measured specific force."""
+    z = f / np.linalg.norm(f)
+    roll = np.arctan2(z[1], z[2])
+    pitch = np.arctan2(-z[0], np.hypot(z[1], z[2]))
+    from fgnav.datasets.geometry import rpy_to_matrix
+
+    return rpy_to_matrix(roll, pitch, 0.0)
+
+
+def run_msf(flight: Flight, options: MsfOptions | None = None) -> Estimate:
+    """Run the MSF-style EKF over a flight (library entry point)."""
+    return MsfEkf(options).run(flight)
