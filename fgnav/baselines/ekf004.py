@@ -749,6 +749,9 @@ class Ekf004Runner:
         o, slam, ekf = self.opt, self.flight.slam, self.ekf
         t = float(slam.t[i])
         sid = int(slam.session[i])
+        if sid < 0:
+            self.counts.add("skipped", "slam_tracking_lost")
+            return None
         sess = self.sessions.get(sid)
         if sess is None:
             sess = self.sessions[sid] = _Session(sid, estimator=MLScaleEstimator(o.scale))
