@@ -305,7 +305,6 @@ class MsfEkf:
                         float(scale), R_sw, t_sw, P)
 
     def _reset_alignment_cov(self, P: np.ndarray, scale: float) -> None:
-        o = self.opt
         P[IS:, :] = 0.0
         P[:, IS:] = 0.0
         P[IS, IS] = (self._scale_rel_sigma * scale) ** 2

@@ -69,7 +69,8 @@ def test_two_turns_hover_start():
     collapse the scale there (the classic MSF failure with a loose scale prior)."""
     fl = simulate("two-turns", seed=1, options=SimOptions(images=False))
     est = run_msf(fl)
-    assert est.slam_scale[0] == pytest.approx(_truth_scale_at(fl, 0, est.trajectory.t[-1]), rel=0.03)
+    s_true = _truth_scale_at(fl, 0, est.trajectory.t[-1])
+    assert est.slam_scale[0] == pytest.approx(s_true, rel=0.03)
     assert _ate_se3(est, fl.ground_truth) < 0.06
 
 
