@@ -372,7 +372,7 @@ class FixedLagRunner:
             pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
             pv = b._prior_velocity(0)
             vel = pv[0] if pv is not None else np.zeros(3)
-            bias = gtsam.imuBias.ConstantBias()
+            bias = b.initial_bias()
             pim = None
             kp = -1
         else:

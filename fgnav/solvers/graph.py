@@ -39,7 +39,9 @@ from fgnav.keys import B, D, G, S, V, X
 from fgnav.solvers.measurements import (
     SlamAlignmentInit,
     associate,
+    attitude_from_slam,
     attitude_track,
+    gyro_bias_from_slam,
     init_slam_alignment,
     mean_in_windows,
     omega_from_attitude,
@@ -109,6 +111,8 @@ class GraphOptions:
         prior_velocity_sigma [m/s], prior_accel_bias_sigma [m/s^2], prior_gyro_bias_sigma
             [rad/s]: gauge and first-state priors.
         initial_yaw: yaw of the first pose when neither attitude nor yaw streams exist [rad].
+        gyro_bias_from_slam: initialise the gyro bias (and centre its prior) from SLAM orientation
+            increments (see ``measurements.gyro_bias_from_slam``; uses the whole flight).
     """
 
     keyframe_hz: float = 20.0
@@ -151,6 +155,7 @@ class GraphOptions:
     prior_accel_bias_sigma: float = 0.1
     prior_gyro_bias_sigma: float = 0.01
     initial_yaw: float = 0.0
+    gyro_bias_from_slam: bool = True
 
     def check(self) -> GraphOptions:
         if self.robust not in ("huber", "cauchy", "none"):
@@ -239,7 +244,19 @@ class GraphBuilder:
         self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, slam_t)
         self.K = len(self.t_kf)
         self.pim_params = self._pim_params()
-        self.R_imu = attitude_track(self.imu, flight.attitude, self.imu.t, self._initial_yaw())
+        body_T_cam = np.asarray(flight.calib.body_T_cam, float)
+        self.gyro_bias0 = np.zeros(3)
+        if self.use_slam and o.gyro_bias_from_slam:
+            self.gyro_bias0 = gyro_bias_from_slam(self.imu, flight.slam, body_T_cam)
+            log.info(
+                "initial gyro bias from SLAM orientations: %s rad/s", np.round(self.gyro_bias0, 4)
+            )
+        if flight.attitude is None and self.use_slam and self.slam_model == "sim3":
+            self.R_imu = attitude_from_slam(
+                self.imu, flight.slam, body_T_cam, self.imu.t, self._initial_yaw()
+            )
+        else:
+            self.R_imu = attitude_track(self.imu, flight.attitude, self.imu.t, self._initial_yaw())
         self.R_kf = _interp_rotations(self.imu.t, self.R_imu, self.t_kf)
         self._prepare_slam()
         self._prepare_range()
@@ -659,13 +676,18 @@ class GraphBuilder:
         g.add(
             gtsam.PriorFactorConstantBias(
                 B(0),
-                gtsam.imuBias.ConstantBias(),
+                self.initial_bias(),
                 gtsam.noiseModel.Diagonal.Sigmas(
                     np.r_[[o.prior_accel_bias_sigma] * 3, [o.prior_gyro_bias_sigma] * 3]
                 ),
             )
         )
         return g
+
+    def initial_bias(self) -> gtsam.imuBias.ConstantBias:
+        """Initial IMU bias (and mean of its first prior): zero accelerometer bias, gyro bias from
+        the SLAM orientations when ``gyro_bias_from_slam`` (else zero)."""
+        return gtsam.imuBias.ConstantBias(np.zeros(3), self.gyro_bias0)
 
     def _prior_velocity(self, k: int) -> tuple[np.ndarray, float] | None:
         p = self.priors
@@ -1003,14 +1025,14 @@ class GraphBuilder:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         created: set[int] = set()
-        zero = gtsam.imuBias.ConstantBias()
+        bias0 = self.initial_bias()
         for k in range(self.K):
             keys = [kk for kk in self.new_slow_keys(k) + self.slam_keys_at(k) if kk not in created]
             keys = list(dict.fromkeys(keys))
             created.update(keys)
             pose = gtsam.Pose3(gtsam.Rot3(guess.world_R_body[k]), guess.world_t_body[k])
             chunk = self.keyframe_chunk(
-                k, pose, guess.world_v_body[k], zero, {kk: slow[kk] for kk in keys}
+                k, pose, guess.world_v_body[k], bias0, {kk: slow[kk] for kk in keys}
             )
             graph.push_back(chunk.factors)
             values.insert(chunk.values)

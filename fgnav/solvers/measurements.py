@@ -199,6 +199,73 @@ def attitude_track(
     return integrate_gyro(imu, R0, t_query, np.zeros(3))
 
 
+def attitude_from_slam(
+    imu: ImuSeries,
+    slam: SlamSeries,
+    body_T_cam: np.ndarray,
+    t_query: np.ndarray,
+    initial_yaw: float = 0.0,
+) -> np.ndarray:
+    """``world_R_body`` (K, 3, 3) at ``t_query`` from the SLAM camera orientations of the first
+    session, gravity-aligned with the accelerometer.
+
+    The mean over the session of ``slam_R_body f`` (specific force rotated into the SLAM frame)
+    is ``slam_R_world (0, 0, g)`` plus the mean kinematic acceleration, which is near zero over a
+    flight that starts and ends slowly: its direction is the SLAM frame's "up". The yaw is chosen so
+    that the first query's yaw is ``initial_yaw``. Used when the flight has no attitude stream
+    (a gyro integrated over minutes drifts with its bias: EuRoC's ADIS16448 about 0.08 rad/s).
+    """
+    from fgnav.datasets.geometry import yaw_of
+
+    m = slam.session == slam.session[0]
+    t_s = slam.t[m]
+    body_R_cam = body_T_cam[:3, :3]
+    slam_R_body = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[m]) @ body_R_cam.T
+    f = np.column_stack([np.interp(t_s, imu.t, imu.body_accel[:, a]) for a in range(3)])
+    up = np.einsum("nij,nj->i", slam_R_body, f)
+    up /= np.linalg.norm(up)
+    # Rotation taking the SLAM "up" to world +z (Rodrigues between two unit vectors).
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    sin_a, cos_a = np.linalg.norm(axis), float(up @ z)
+    world_R_slam = np.eye(3) if sin_a < 1e-12 else so3_exp(axis / sin_a * np.arctan2(sin_a, cos_a))
+    R = slerp_rotations(t_s, world_R_slam @ slam_R_body, t_query)
+    dyaw = initial_yaw - float(yaw_of(R[0]))
+    return rpy_to_matrix(0.0, 0.0, dyaw) @ R
+
+
+def gyro_bias_from_slam(
+    imu: ImuSeries, slam: SlamSeries, body_T_cam: np.ndarray, window_s: float = 1.0
+) -> np.ndarray:
+    """Gyroscope bias [rad/s] (3,) from SLAM orientation increments (median over windows).
+
+    Over a window, the gyro integrated without bias gives ``dR_gyro``; SLAM gives the true body
+    increment ``dR = body_R_cam dR_cam body_R_cam^T``; to first order
+    ``dR_gyro^T dR = Exp(-b dt)``.
+    """
+    body_R_cam = body_T_cam[:3, :3]
+    R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+    est = []
+    i = 0
+    n = len(slam)
+    while i < n - 1:
+        j = int(np.searchsorted(slam.t, slam.t[i] + window_s))
+        if j >= n:
+            break
+        if slam.session[j] == slam.session[i] and slam.t[i] >= imu.t[0] and slam.t[j] <= imu.t[-1]:
+            dR = body_R_cam @ R_cam[i].T @ R_cam[j] @ body_R_cam.T
+            k0 = int(np.searchsorted(imu.t, slam.t[i], side="right")) - 1
+            k1 = int(np.searchsorted(imu.t, slam.t[j], side="right")) - 1
+            G = np.eye(3)
+            for k in range(k0, k1):
+                G = G @ so3_exp(imu.body_omega[k] * (imu.t[k + 1] - imu.t[k]))
+            est.append(-so3_log(G.T @ dR) / (imu.t[k1] - imu.t[k0]))
+        i = j
+    if not est:
+        return np.zeros(3)
+    return np.median(np.asarray(est), axis=0)
+
+
 def omega_from_attitude(attitude: AttitudeSeries, t_query: np.ndarray) -> np.ndarray:
     """Body angular rate (N, 3) [rad/s] differentiated from the attitude stream (used when the gyro
     is switched off: seed 000's sensor set is accelerometer + attitude)."""
