@@ -18,7 +18,13 @@ Pipeline per pair of frames (i, j) (seed 002 sec. II-B2, II-B3, III-C):
    ground, ``n^T X_i = d``). ``cv2.decomposeHomographyMat`` returns up to 4 solutions; the one whose
    normal is closest to the ground normal predicted from the attitude (world -z seen from cam i) is
    kept. (A naive "normal along +z" choice picks the sign-flipped solution, see GTSAM-NOTES "Vision
-   pieces".) pycolmap's ``pose_from_homography_matrix`` (cheirality) is a switchable alternative.
+   pieces".) When OpenCV declares the motion a pure rotation (zero normals: translations of a few
+   mm at 3 m), :func:`decompose_known_normal` takes over with the predicted normal, so slow motion
+   is not zeroed. pycolmap's ``pose_from_homography_matrix`` (cheirality) is a switchable
+   alternative, and ``decomposition="attitude"`` (:func:`decompose_level_homography`) takes roll,
+   pitch and the normal from the attitude and only yaw and ``t/d`` from the image: best with an
+   accurate attitude (true attitude: 2.5 cm after 13.8 m of two-turns), worse with a noisy one
+   (the change of the attitude's tilt error between frames becomes translation).
 5. Metric translation ``t = (t/d) * d_i`` with ``d_i`` the camera height above the ground at frame
    i (rangefinder or EKF height plus the camera lever arm).
 
@@ -123,8 +129,9 @@ class HomographyVOOptions:
             window sees the black fill.
         rectify_interpolation: OpenCV interpolation flag of the rectifying warp.
         max_reference_failures: after this many consecutive rejected pairs against the same
-            reference frame, the reference moves to the newest frame and the motion across the gap
-            is unknown (counted in ``counts["gaps"]``, position held).
+            reference frame (at once when the reference itself has too few corners), the
+            reference moves to the newest frame and the motion across the gap is unknown (counted
+            in ``counts["gaps"]``; the new reference is not posed, the position is held).
         tilt_source: where the dead-reckoned roll/pitch come from: ``"attitude"`` (attitude series;
             vision integrates yaw only), ``"vo"`` (compose the full rotation, seed 002 Alg. 1), or
             ``"auto"`` (``"attitude"`` when rectifying, else ``"vo"``).
@@ -940,7 +947,8 @@ class HomographyVO:
             if not m.valid:
                 counts[m.reason] += 1
                 failures += 1
-                if failures >= o.max_reference_failures:
+                # A reference without corners can never match: move on at once.
+                if failures >= o.max_reference_failures or m.reason == "few_corners":
                     counts["gaps"] += 1
                     logger.warning(
                         "%s: VO lost track from frame %d to %d (%s); reference moves to %d, "

@@ -360,3 +360,30 @@ def test_vo_on_simulated_two_turns_start():
     assert err.max() < SIM_MAX_ERROR_M
     yaw_err = np.degrees(np.abs(res.yaw.yaw - yaw_of(gt.world_R_body()[k])))
     assert yaw_err.max() < 1.0
+
+
+def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
+    flight, height = rendered_flight(texture, n=14, blank=(5, 6, 7))
+    truth = flight.ground_truth
+    T0 = make_pose(truth.world_R_body()[0], truth.world_t_body[0])
+    res = run(
+        flight,
+        height=height,
+        initial_world_T_body=T0,
+        options=HomographyVOOptions(max_reference_failures=3),
+    )
+    pairs = [(m.index_i, m.index_j, m.valid, m.reason) for m in res.measurements]
+    # 4->5, 4->6, 4->7 fail on tracking (blank j): gap, the reference moves to 7; blank 7 has no
+    # corners: gap at once, the reference moves to 8; 8->9 onwards are valid.
+    assert pairs[4:9] == [
+        (4, 5, False, "few_tracked"),
+        (4, 6, False, "few_tracked"),
+        (4, 7, False, "few_tracked"),
+        (7, 8, False, "few_corners"),
+        (8, 9, True, ""),
+    ]
+    assert res.counts["gaps"] == 2
+    assert res.counts["pairs"] == len(res.measurements) == 13
+    assert res.counts["valid_pairs"] == 9
+    posed = np.searchsorted(flight.images.t, res.estimate.trajectory.t)
+    assert posed.tolist() == [0, 1, 2, 3, 4, 9, 10, 11, 12, 13]
