@@ -207,6 +207,8 @@ class HomographyMeasurement:
         num_corners: Shi-Tomasi corners found in frame i.
         num_tracked: tracks that passed the forward-backward check and stayed in the valid area.
         num_inliers: RANSAC inliers of the homography.
+        inlier_rms_px: RMS transfer error ``|p_j - H p_i|`` of the inliers in original pixels (a
+            basis for the homography factor's corner noise).
     """
 
     index_i: int
@@ -225,6 +227,7 @@ class HomographyMeasurement:
     num_corners: int = 0
     num_tracked: int = 0
     num_inliers: int = 0
+    inlier_rms_px: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -752,9 +755,12 @@ class HomographyVO:
         counts["num_inliers"] = int(inl.sum())
         if inl.sum() < o.min_inliers:
             return HomographyMeasurement(valid=False, reason="few_inliers", **base, **counts)
-        # 3. Back to original pixels: p_j ~ Wj^-1 Hv Wi p_i.
+        # 3. Back to original pixels: p_j ~ Wj^-1 Hv Wi p_i; inlier residual in original pixels.
         H = np.linalg.solve(Wj, Hv @ Wi)
         H /= H[2, 2]
+        counts["inlier_rms_px"] = _transfer_rms(
+            H, _warp_points(np.linalg.inv(Wi), p_i[inl]), _warp_points(np.linalg.inv(Wj), p_j[inl])
+        )
         # 4. Decompose.
         if o.decomposition == "attitude":
             if L_i is None or L_j is None:
@@ -1055,6 +1061,18 @@ def run(
 # ----------------------------------------------------------------------------------------------
 # Small private helpers
 # ----------------------------------------------------------------------------------------------
+
+
+def _warp_points(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(M, 2) pixels mapped by a homography."""
+    h = np.column_stack([pts, np.ones(len(pts))]) @ H.T
+    return h[:, :2] / h[:, 2:3]
+
+
+def _transfer_rms(H: np.ndarray, pts_i: np.ndarray, pts_j: np.ndarray) -> float:
+    """RMS of ``|pts_j - H pts_i|`` [px]."""
+    d = _warp_points(H, pts_i) - pts_j
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
 def _rays(pts: np.ndarray, K: np.ndarray) -> np.ndarray:
