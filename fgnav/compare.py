@@ -1,0 +1,428 @@
+"""Run the smoothers and the filter baselines on one flight and score them against ground truth.
+
+:func:`compare` runs every method of :mod:`fgnav.methods` the flight allows (or the ones asked
+for), one after the other. A method that raises is recorded with its error and the others still
+run; a method the flight cannot feed is listed with the stream it misses. When the flight has
+ground truth, each estimate is scored with :func:`fgnav.eval.metrics.evaluate` after the
+alignment its method states (SE(3) for metric estimates). The true SLAM scale per session comes
+from the simulator's metadata (``meta["truth"]["slam_sessions"]``: the scale drifts linearly,
+``scale * (1 + scale_drift_per_s * (t - t_start))``, and its value at the session's end time is
+used, the time of an estimate's final scale) or, for real flights, from a Sim(3) fit of the SLAM
+camera positions to the truth (:func:`fgnav.eval.metrics.slam_scale_vs_truth`).
+
+:meth:`CompareResult.write` writes ``compare.json`` (all metrics, skipped methods with reasons,
+failures with errors, flight info, timings), ``<method>/`` with ``estimate.tum``, ``states.csv``
+and ``summary.json`` per method, the figures (PNG) and ``report.md`` made from the same dict as
+``compare.json`` (:mod:`fgnav.report`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import time
+import traceback
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.types import Flight
+from fgnav.estimate import Estimate
+from fgnav.eval.metrics import DEFAULT_RPE_DELTA_M, Metrics, evaluate, to_jsonable
+from fgnav.methods import METHODS, Method, available_methods, get_method
+
+log = logging.getLogger(__name__)
+
+#: Metric keys copied from :meth:`Metrics.as_dict` into each table row of ``compare.json``.
+ROW_METRICS = (
+    "ate_rmse_m",
+    "rpe_pct",
+    "scale_final_abs_err_pct",
+    "vel_rmse_mps",
+    "yaw_rmse_deg",
+    "nees_pos",
+    "times_real_time",
+)
+
+
+@dataclass
+class MethodRun:
+    """The outcome of one method.
+
+    Attributes:
+        method: the registry entry.
+        estimate: its estimate (None when it failed).
+        metrics: scores against truth (None without truth, or when scoring failed).
+        error: ``"<ExceptionType>: message"`` when the method failed.
+        traceback: the formatted traceback of a failure.
+        evaluation_error: why a finished estimate could not be scored.
+        wall_s: wall time of the run and its scoring [s].
+        reused: True when the estimate was given to :func:`compare` instead of computed there.
+    """
+
+    method: Method
+    estimate: Estimate | None = None
+    metrics: Metrics | None = None
+    error: str | None = None
+    traceback: str | None = None
+    evaluation_error: str | None = None
+    wall_s: float = 0.0
+    reused: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.estimate is not None
+
+    def row(self) -> dict[str, Any]:
+        """The table row (JSON-ready; values at full precision)."""
+        m = self.method
+        row: dict[str, Any] = {
+            "method": m.name,
+            "status": "ok" if self.ok else "failed",
+            "causal": self.estimate.causal if self.ok else m.causal,
+            "alignment": self.metrics.alignment if self.metrics else None,
+        }
+        d = self.metrics.as_dict() if self.metrics else {}
+        for key in ROW_METRICS:
+            row[key] = d.get(key)
+        lat = None if not self.ok else self.estimate.update_latency
+        lat = None if lat is None else np.asarray(lat, dtype=float)
+        has_lat = lat is not None and lat.size > 0
+        row["latency_p50_ms"] = float(1e3 * np.percentile(lat, 50)) if has_lat else None
+        if self.ok and row["times_real_time"] is None and self.estimate.runtime_s > 0:
+            row["times_real_time"] = self.estimate.trajectory.duration / self.estimate.runtime_s
+        return to_jsonable(row)
+
+
+@dataclass
+class CompareResult:
+    """Everything :func:`compare` found (see :meth:`to_dict` for the JSON layout).
+
+    Attributes:
+        flight: the flight compared.
+        runs: outcome per method that was attempted, in table order.
+        skipped: ``{method: reason}`` for the methods the flight (or this installation) cannot run.
+        truth_scale: true SLAM scale per session (SLAM units per metre) used for scale errors.
+        truth_scale_source: where it came from, or why it is unknown.
+        timings: wall time per stage [s] (``"<method>"`` and ``"total"``).
+        config: the config tables used.
+    """
+
+    flight: Flight
+    runs: dict[str, MethodRun] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    truth_scale: dict[int, float] | None = None
+    truth_scale_source: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+    rpe_delta_m: float = DEFAULT_RPE_DELTA_M
+
+    @property
+    def estimates(self) -> list[Estimate]:
+        """The estimates of the methods that ran, in table order."""
+        return [r.estimate for r in self.runs.values() if r.estimate is not None]
+
+    @property
+    def failed(self) -> dict[str, str]:
+        """``{method: error}`` of the methods that raised."""
+        return {n: r.error or "" for n, r in self.runs.items() if not r.ok}
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The table rows (one per attempted method)."""
+        return [r.row() for r in self.runs.values()]
+
+    def table(self) -> str:
+        """The fixed-width text table (see :data:`fgnav.report.COLUMNS`)."""
+        from fgnav.report import format_table
+
+        return format_table(self.rows())
+
+    def truth_drag_k(self) -> list[float] | None:
+        truth = self.flight.meta.get("truth") if isinstance(self.flight.meta, dict) else None
+        k = truth.get("drag_k") if isinstance(truth, dict) else None
+        return [float(x) for x in k] if k is not None else None
+
+    def to_dict(
+        self, outputs: Mapping[str, str] | None = None, figures: Mapping[str, str] | None = None
+    ) -> dict[str, Any]:
+        """The content of ``compare.json``.
+
+        Args:
+            outputs: output folder of each method (relative to the report), when written.
+            figures: figure files by key (relative paths), when drawn.
+        """
+        from fgnav.eval.outputs import summary_dict
+
+        methods: dict[str, Any] = {}
+        for name, r in self.runs.items():
+            entry: dict[str, Any] = {
+                "status": "ok" if r.ok else "failed",
+                "description": r.method.description,
+                "requires": list(r.method.requires),
+                "optional_used": [s for s in r.method.optional if s in self.flight.streams()],
+                "wall_s": r.wall_s,
+                "reused": r.reused,
+                "output": (outputs or {}).get(name),
+            }
+            if r.ok:
+                entry["estimate"] = summary_dict(r.estimate)
+                entry["estimate"]["runtime_s"] = r.estimate.runtime_s
+                entry["metrics"] = r.metrics.as_dict() if r.metrics else None
+                entry["evaluation_error"] = r.evaluation_error
+            else:
+                entry["error"] = r.error
+                entry["traceback"] = r.traceback
+            methods[name] = entry
+        data = {
+            "flight": flight_info(self.flight),
+            "truth": {
+                "ground_truth": self.flight.ground_truth is not None,
+                "slam_scale": self.truth_scale,
+                "slam_scale_source": self.truth_scale_source,
+                "slam_scale_units": "SLAM units per metre",
+                "drag_k": self.truth_drag_k(),
+            },
+            "rpe_delta_m": self.rpe_delta_m,
+            "table": self.rows(),
+            "methods": methods,
+            "skipped": dict(self.skipped),
+            "timings": dict(self.timings),
+            "config": self.config,
+            "figures": dict(figures or {}),
+        }
+        return to_jsonable(data)
+
+    def write(self, out_dir: str | Path, figures: bool = True) -> dict[str, Path]:
+        """Write ``compare.json``, ``report.md``, the figures and ``<method>/`` outputs.
+
+        Args:
+            out_dir: output folder (created).
+            figures: draw the PNG figures.
+
+        Returns:
+            Paths by name: ``"json"``, ``"report"``, ``"<method>"`` (folders), ``"fig:<key>"``.
+        """
+        from fgnav.eval.outputs import write_estimate
+        from fgnav.report import write_report
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths: dict[str, Path] = {}
+        outputs: dict[str, str] = {}
+        for name, r in self.runs.items():
+            if not r.ok:
+                continue
+            sub = out / method_dirname(name)
+            write_estimate(
+                r.estimate,
+                sub,
+                metrics=r.metrics,
+                extra={"flight": self.flight.name, "command": "compare"},
+            )
+            paths[name] = sub
+            outputs[name] = sub.name + "/"
+        figs, fig_errors = ({}, {}) if not figures else self._draw_figures(out)
+        for key, p in figs.items():
+            paths[f"fig:{key}"] = p
+        data = self.to_dict(outputs, {k: p.name for k, p in figs.items()})
+        data["figure_errors"] = fig_errors
+        paths["json"] = out / "compare.json"
+        paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+        paths["report"] = write_report(data, out / "report.md")
+        log.info("wrote %s and %s", paths["json"], paths["report"])
+        return paths
+
+    def _draw_figures(self, out: Path) -> tuple[dict[str, Path], dict[str, str]]:
+        from fgnav.eval import plots
+
+        ests = self.estimates
+        truth = self.flight.ground_truth
+        figs: dict[str, Path] = {}
+        errors: dict[str, str] = {}
+        if not ests:
+            return figs, {"all": "no method produced an estimate"}
+        # Trajectories that cannot be matched to truth are drawn unaligned by nobody: leave them
+        # out of the truth-based figures and say so.
+        scored = [e for e in ests if truth is None or self.runs[e.method].metrics is not None]
+        dropped = [e.method for e in ests if e not in scored]
+        jobs = {
+            "top_view": lambda p: plots.plot_top_view(scored, truth, p),
+            "errors": lambda p: plots.plot_errors_over_time(scored, truth, p),
+            "scale": lambda p: plots.plot_scale(ests, p, self.truth_scale),
+            "drag": lambda p: plots.plot_drag(ests, p, self.truth_drag_k()),
+            "latency": lambda p: plots.plot_latency(ests, p),
+        }
+        if truth is None:
+            jobs.pop("errors")
+            errors["errors"] = "the flight has no ground truth"
+        if not any(scale_series_present(e) for e in ests):
+            jobs.pop("scale")
+            errors["scale"] = "no method estimates a SLAM scale over time"
+        if not any("drag_k" in e.series for e in ests):
+            jobs.pop("drag")
+            errors["drag"] = "no method estimates the drag coefficient over time"
+        for key, job in jobs.items():
+            try:
+                figs[key] = job(out / f"{key}.png")
+            except Exception as e:  # a figure must not stop the report
+                log.warning("figure %s failed: %s", key, e)
+                errors[key] = f"{type(e).__name__}: {e}"
+        if dropped:
+            errors["not_in_truth_figures"] = (
+                f"{', '.join(dropped)}: could not be matched to the truth (see per-method notes)"
+            )
+        return figs, errors
+
+
+def has_scale(est: Estimate) -> bool:
+    """True when the estimate reports a SLAM scale (final value or series)."""
+    return bool(est.slam_scale) or scale_series_present(est)
+
+
+def scale_series_present(est: Estimate) -> bool:
+    """True when the estimate has a SLAM-scale time series for :func:`plots.plot_scale`."""
+    return any(k == "slam_scale" or k.startswith("slam_scale/") for k in est.series)
+
+
+def method_dirname(name: str) -> str:
+    """Folder name of a method's outputs (``ref:x`` -> ``ref_x``)."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+
+
+def flight_info(flight: Flight) -> dict[str, Any]:
+    """Name, source, duration, streams (samples, rate) and simulator identity of a flight."""
+    streams = {
+        name: {"n": len(s), "rate_hz": s.rate_hz, "t0": float(s.t[0]), "t1": float(s.t[-1])}
+        for name, s in flight.streams().items()
+    }
+    try:
+        t0, t1 = flight.time_window()
+        duration = t1 - t0
+    except FgnavError:
+        duration = math.nan
+    meta = flight.meta if isinstance(flight.meta, dict) else {}
+    return to_jsonable(
+        {
+            "name": flight.name,
+            "source": flight.source,
+            "duration_s": duration,
+            "streams": streams,
+            "synthetic": bool(meta.get("synthetic", False)),
+            "scenario": meta.get("scenario"),
+            "seed": meta.get("seed"),
+        }
+    )
+
+
+def truth_slam_scales(flight: Flight) -> tuple[dict[int, float] | None, str]:
+    """True SLAM scale per session and where it comes from.
+
+    Simulated flights: ``scale * (1 + scale_drift_per_s * (t_end - t_start))`` of each session in
+    ``meta["truth"]["slam_sessions"]`` (the scale at the session's last pose). Real flights with
+    SLAM and ground truth: :func:`slam_scale_vs_truth`. Otherwise None and the reason.
+    """
+    truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
+    sessions = truth.get("slam_sessions") if isinstance(truth, dict) else None
+    if sessions:
+        out = {}
+        for sid, v in sessions.items():
+            drift = float(v.get("scale_drift_per_s", 0.0))
+            t_start = float(v.get("t_start", 0.0))
+            t_end = float(v.get("t_end", t_start))
+            out[int(sid)] = float(v["scale"]) * (1.0 + drift * (t_end - t_start))
+        return out, "simulator truth, value at the session's end time (linear scale drift)"
+    if flight.slam is None:
+        return None, "the flight has no SLAM stream"
+    if flight.ground_truth is None:
+        return None, "the flight has no ground truth"
+    from fgnav.eval.metrics import slam_scale_vs_truth
+
+    try:
+        out = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)
+    except FgnavError as e:
+        return None, f"Sim(3) fit of SLAM to ground truth failed: {e}"
+    if not out:
+        return None, "no SLAM session overlaps the ground truth enough for a Sim(3) fit"
+    return out, "Sim(3) fit of the SLAM camera positions to the ground truth (whole session)"
+
+
+def compare(
+    flight: Flight,
+    methods: list[str] | None = None,
+    config: Mapping[str, Any] | None = None,
+    progress: bool = True,
+    estimates: Mapping[str, Estimate] | None = None,
+    registry: Mapping[str, Method] | None = None,
+) -> CompareResult:
+    """Run methods on a flight and score them.
+
+    Args:
+        flight: the flight (checked).
+        methods: method names (None: every method the flight allows, see
+            :func:`fgnav.methods.available_methods`). Names the flight cannot feed are skipped
+            with the reason; unknown names raise.
+        config: config tables by name (``[graph]``, ``[msf-ekf]`` ..., see :mod:`fgnav.methods`).
+        progress: progress bars of the methods that have them.
+        estimates: estimates already computed for some methods (scored, not re-run).
+        registry: the methods to choose from (default :data:`fgnav.methods.METHODS`).
+
+    Returns:
+        The :class:`CompareResult`.
+
+    Raises:
+        FgnavError: an unknown method name.
+    """
+    flight.check()
+    cfg = dict(config or {})
+    reg = METHODS if registry is None else registry
+    t_all = time.perf_counter()
+    runnable, skipped = available_methods(flight, methods, reg)
+    for name, reason in skipped.items():
+        log.info("%s: skipped: %s", name, reason)
+    res = CompareResult(flight=flight, skipped=skipped, config=cfg)
+    res.truth_scale, res.truth_scale_source = truth_slam_scales(flight)
+    given = dict(estimates or {})
+    for name in runnable:
+        method = get_method(name, flight, reg)
+        run = MethodRun(method=method)
+        t0 = time.perf_counter()
+        if name in given:
+            run.estimate, run.reused = given[name].check(), True
+        else:
+            log.info("%s: running (%s)", name, method.description)
+            try:
+                run.estimate = method.run(flight, cfg, progress)
+            except Exception as e:  # one method's failure must not stop the comparison
+                run.error = f"{type(e).__name__}: {e}"
+                run.traceback = traceback.format_exc()
+                log.warning("%s failed: %s", name, run.error)
+        if run.ok and flight.ground_truth is not None:
+            try:
+                run.metrics = evaluate(
+                    run.estimate,
+                    flight.ground_truth,
+                    alignment=method.alignment,
+                    truth_scale=res.truth_scale if has_scale(run.estimate) else None,
+                    delta_m=res.rpe_delta_m,
+                )
+            except Exception as e:  # scoring problems are reported per method
+                run.evaluation_error = f"{type(e).__name__}: {e}"
+                log.warning("%s: not scored: %s", name, run.evaluation_error)
+        run.wall_s = time.perf_counter() - t0
+        res.timings[name] = run.wall_s
+        res.runs[name] = run
+        if run.ok:
+            log.info(
+                "%s: done in %.2f s%s",
+                name,
+                run.wall_s,
+                f", ATE {run.metrics.ate_rmse_m:.4f} m" if run.metrics else "",
+            )
+    res.timings["total"] = time.perf_counter() - t_all
+    return res

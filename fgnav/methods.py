@@ -1,0 +1,412 @@
+"""The registry of estimation methods ``fgnav compare`` can run on a flight.
+
+Every method takes a :class:`~fgnav.datasets.types.Flight` and a config mapping (the tables of a
+TOML ``--config`` file) and returns an :class:`~fgnav.estimate.Estimate`. A :class:`Method` states
+the streams it needs (``requires``), the ones it uses when present (``optional``), whether its
+output is causal, and where its implementation lives (``"module:function"``). Implementations are
+imported only when a method runs, so a missing or broken module makes that one method unavailable
+or failed, with the reason, and never stops the others.
+
+Stream names are those of :data:`fgnav.datasets.types.STREAMS` (``imu``, ``attitude``, ``range``,
+``yaw``, ``slam``, ``images``); a reference trajectory recorded in a log is ``ref:<name>``
+(``ref:px4_ekf2``: the onboard EKF2 estimate of a PX4 ULog).
+
+Config tables read by each method (fields of its options dataclass, unknown keys are errors):
+
+==============  =================================================================
+method          tables
+==============  =================================================================
+batch           ``[graph]``, ``[lm]``, ``[batch]`` (as ``fgnav batch``)
+fixed-lag       ``[graph]``, ``[online]`` (as ``fgnav online``)
+msf-ekf         ``[msf-ekf]`` (:class:`~fgnav.baselines.msf_ekf.MsfOptions`)
+ekf004          ``[ekf004]`` (:class:`~fgnav.baselines.ekf004.Ekf004Options`)
+ukf003          ``[ukf003]``
+ii-observer     ``[ii-observer]``
+ekf-vo002       ``[ekf-vo002]``
+px4-ekf2        none (the log's own estimate; nothing is run)
+==============  =================================================================
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.types import STREAMS, Flight, Trajectory
+from fgnav.estimate import Estimate
+
+log = logging.getLogger(__name__)
+
+#: Human names of the streams, used in the reasons a method cannot run.
+STREAM_NAMES: dict[str, str] = {
+    **{s: s for s in STREAMS},
+    "ref:px4_ekf2": "the onboard EKF2 estimate of a PX4 log (reference 'px4_ekf2')",
+}
+
+#: Prefix of method names that replay a reference trajectory recorded in the flight.
+REFERENCE_PREFIX = "ref:"
+
+
+class MethodUnavailableError(FgnavError, RuntimeError):
+    """A method's implementation cannot be imported, or the flight lacks a stream it needs."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """One estimation method of the comparison.
+
+    Attributes:
+        name: registry name (``"batch"``, ``"msf-ekf"`` ...).
+        description: one line: what it is and where it comes from.
+        requires: streams that must all be present (``"imu"``, ``"slam"``, ``"ref:px4_ekf2"``).
+        optional: streams used when present.
+        causal: True when each output state only uses measurements up to its time.
+        implementation: module holding the implementation, imported only when the method runs.
+        entry: adapter ``entry(flight, config, progress) -> Estimate`` (reads the method's config
+            tables and calls the implementation).
+        alignment: trajectory alignment used to score it against truth (``"se3"`` for metric
+            estimates, DESIGN.md section 9).
+    """
+
+    name: str
+    description: str
+    requires: tuple[str, ...]
+    optional: tuple[str, ...]
+    causal: bool
+    implementation: str
+    entry: Callable[[Flight, Mapping[str, Any], bool], Estimate]
+    alignment: str = "se3"
+
+    def missing(self, flight: Flight) -> list[str]:
+        """The required streams the flight does not have (``[]`` when it can run)."""
+        present = set(flight.streams())
+        return [s for s in self.requires if s not in present]
+
+    def implementation_problem(self) -> str | None:
+        """Why the implementation module cannot be found (None when it exists)."""
+        try:
+            found = importlib.util.find_spec(self.implementation) is not None
+        except ModuleNotFoundError:
+            found = False
+        if found:
+            return None
+        return f"implementation {self.implementation} is not available in this version"
+
+    def run(
+        self, flight: Flight, config: Mapping[str, Any] | None = None, progress: bool = False
+    ) -> Estimate:
+        """Run the method on ``flight`` and return its checked estimate, named after the method.
+
+        Raises:
+            MethodUnavailableError: a required stream is missing or the implementation is absent.
+        """
+        missing = self.missing(flight)
+        if missing:
+            raise MethodUnavailableError(f"{self.name}: {missing_reason(missing)}")
+        problem = self.implementation_problem()
+        if problem:
+            raise MethodUnavailableError(f"{self.name}: {problem}")
+        est = self.entry(flight, dict(config or {}), progress)
+        if est.method != self.name:
+            est = _renamed(est, self.name)
+        return est.check()
+
+
+def _renamed(est: Estimate, name: str) -> Estimate:
+    import dataclasses
+
+    return dataclasses.replace(est, method=name)
+
+
+def _join(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def missing_reason(missing: list[str]) -> str:
+    """``"needs images; the flight has none"`` for the missing streams."""
+    names = [STREAM_NAMES.get(s, s) for s in missing]
+    if len(names) == 1:
+        return f"needs {names[0]}; the flight has none"
+    tail = "neither" if len(names) == 2 else "none of them"
+    return f"needs {_join(names)}; the flight has {tail}"
+
+
+# ----------------------------------------------------------------------------------------------
+# Entry points (thin adapters: config tables -> options dataclass -> library call)
+# ----------------------------------------------------------------------------------------------
+
+
+def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) -> Any:
+    from fgnav.config import options_from
+
+    table = config.get(section, {})
+    if not isinstance(table, Mapping):
+        raise MethodUnavailableError(f"config [{section}] must be a table")
+    return options_from(cls, dict(table), source=f"config [{section}]", **overrides)
+
+
+def _graph_options(config: Mapping[str, Any]):
+    from fgnav.solvers.graph import GraphOptions
+
+    return _options(GraphOptions, config, "graph")
+
+
+def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` tables."""
+    from fgnav.solvers.batch import BatchOptions, LMOptions, solve_batch
+
+    opts = _options(
+        BatchOptions,
+        config,
+        "batch",
+        graph=_graph_options(config),
+        lm=_options(LMOptions, config, "lm"),
+    )
+    return solve_batch(flight, opts, progress=progress)
+
+
+def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The online fixed-lag smoother (``fgnav online``) with ``[graph]`` and ``[online]``."""
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.fixed_lag import run_fixed_lag as _run
+
+    opts = _options(FixedLagOptions, config, "online", graph=_graph_options(config))
+    return _run(flight, opts, progress=progress)
+
+
+def run_msf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The MSF-style error-state EKF with ``[msf-ekf]``."""
+    from fgnav.baselines.msf_ekf import MsfOptions, run_msf
+
+    return run_msf(flight, _options(MsfOptions, config, "msf-ekf"))
+
+
+def run_ekf004(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 004's EKF with ``[ekf004]``."""
+    from fgnav.baselines.ekf004 import Ekf004Options
+    from fgnav.baselines.ekf004 import run_ekf004 as _run
+
+    return _run(flight, _options(Ekf004Options, config, "ekf004"))
+
+
+def run_ukf003(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 003's UKF with ``[ukf003]``."""
+    mod = importlib.import_module("fgnav.baselines.ukf003")
+    return _run_options_function(mod, "run_ukf003", "Ukf003Options", flight, config, "ukf003")
+
+
+def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 000's I&I observer alone with ``[ii-observer]``."""
+    mod = importlib.import_module("fgnav.baselines.seed000")
+    return _run_options_function(
+        mod, "run_seed000", "Seed000Options", flight, config, "ii-observer"
+    )
+
+
+def run_ekf_vo002(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 002's attitude-height EKF + homography VO dead reckoning with ``[ekf-vo002]``."""
+    mod = importlib.import_module("fgnav.baselines.seed002")
+    return _run_options_function(mod, "run_seed002", "Seed002Options", flight, config, "ekf-vo002")
+
+
+def _run_options_function(
+    mod: Any, func: str, options_cls: str, flight: Flight, config: Mapping[str, Any], section: str
+) -> Estimate:
+    fn = getattr(mod, func, None)
+    if fn is None:
+        raise MethodUnavailableError(f"{mod.__name__} has no function {func!r}")
+    cls = getattr(mod, options_cls, None)
+    if cls is None:
+        if config.get(section):
+            raise MethodUnavailableError(
+                f"config [{section}] given but {mod.__name__} has no {options_cls}"
+            )
+        return fn(flight)
+    return fn(flight, _options(cls, config, section))
+
+
+def reference_estimate(flight: Flight, ref: str, method: str) -> Estimate:
+    """A trajectory recorded in the flight (``flight.references[ref]``) as an :class:`Estimate`.
+
+    Nothing is run: ``runtime_s`` is 0 and there is no update latency. The onboard estimate of a
+    PX4 log (``px4_ekf2``) is causal (EKF2 output as flown); other references are taken as
+    non-causal (their origin is unknown).
+    """
+    traj: Trajectory = flight.references[ref]
+    info: dict[str, Any] = {"reference": ref, "source": flight.source}
+    meta = flight.meta.get(ref) if isinstance(flight.meta, dict) else None
+    if meta is not None:
+        info["meta"] = meta
+    return Estimate(
+        method=method, trajectory=traj, causal=ref == "px4_ekf2", runtime_s=0.0, info=info
+    ).check()
+
+
+#: Signature of a method's entry point: ``entry(flight, config, progress) -> Estimate``.
+Entry = Callable[[Flight, Mapping[str, Any], bool], Estimate]
+
+
+def _reference_entry(ref: str, method: str) -> Entry:
+    def entry(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+        return reference_estimate(flight, ref, method)
+
+    entry.__doc__ = f"Replay ``flight.references[{ref!r}]`` as the estimate of {method!r}."
+    return entry
+
+
+def reference_method(ref: str) -> Method:
+    """The replay method of ``flight.references[ref]``: ``px4-ekf2`` for ``px4_ekf2``, else
+    ``ref:<ref>`` (e.g. another system's estimate given in a manifest)."""
+    if ref == "px4_ekf2":
+        return METHODS["px4-ekf2"]
+    name = f"{REFERENCE_PREFIX}{ref}"
+    return Method(
+        name,
+        f"trajectory {ref!r} recorded with the flight (nothing is run)",
+        (name,),
+        (),
+        False,
+        __name__,
+        _reference_entry(ref, name),
+    )
+
+
+#: Every method, in the order of the comparison table.
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method(
+            "batch",
+            "factor-graph smoother over the whole flight (Levenberg-Marquardt)",
+            ("imu", "slam"),
+            ("attitude", "range", "yaw"),
+            False,
+            "fgnav.solvers.batch",
+            run_batch,
+        ),
+        Method(
+            "fixed-lag",
+            "online iSAM2 fixed-lag smoother, newest state after each update",
+            ("imu", "slam"),
+            ("attitude", "range", "yaw"),
+            True,
+            "fgnav.solvers.fixed_lag",
+            run_fixed_lag,
+        ),
+        Method(
+            "msf-ekf",
+            "MSF-style error-state EKF with scale and SLAM-frame drift in the state",
+            ("imu", "slam"),
+            ("attitude", "range"),
+            True,
+            "fgnav.baselines.msf_ekf",
+            run_msf_ekf,
+        ),
+        Method(
+            "ekf004",
+            "seed 004 EKF: drag-model prediction, ML scale, delay compensation",
+            ("attitude", "slam"),
+            ("imu", "yaw", "range"),
+            True,
+            "fgnav.baselines.ekf004",
+            run_ekf004,
+        ),
+        Method(
+            "ukf003",
+            "seed 003 UKF with state augmentation for relative measurements",
+            ("imu", "slam"),
+            ("attitude", "range", "yaw"),
+            True,
+            "fgnav.baselines.ukf003",
+            run_ukf003,
+        ),
+        Method(
+            "ii-observer",
+            "seed 000 Immersion-and-Invariance velocity and per-axis scale observer",
+            ("imu", "slam", "attitude", "range"),
+            (),
+            True,
+            "fgnav.baselines.seed000",
+            run_ii_observer,
+        ),
+        Method(
+            "ekf-vo002",
+            "seed 002 attitude-height EKF + homography visual odometry (dead reckoning)",
+            ("imu", "range", "images"),
+            ("yaw",),
+            True,
+            "fgnav.baselines.seed002",
+            run_ekf_vo002,
+        ),
+        Method(
+            "px4-ekf2",
+            "onboard PX4 EKF2 estimate recorded in the log (nothing is run)",
+            ("ref:px4_ekf2",),
+            (),
+            True,
+            __name__,
+            _reference_entry("px4_ekf2", "px4-ekf2"),
+        ),
+    )
+}
+
+
+def reference_methods(flight: Flight) -> dict[str, Method]:
+    """A ``ref:<name>`` replay method for each of the flight's references other than
+    ``px4_ekf2`` (which is the registered ``px4-ekf2``)."""
+    return {m.name: m for m in map(reference_method, flight.references) if m.name not in METHODS}
+
+
+def get_method(
+    name: str, flight: Flight | None = None, registry: Mapping[str, Method] | None = None
+) -> Method:
+    """The method ``name`` from ``registry`` (default :data:`METHODS`), or a ``ref:<name>``
+    replay of one of the flight's references.
+
+    Raises:
+        MethodUnavailableError: unknown name (the message lists the valid ones).
+    """
+    reg = METHODS if registry is None else registry
+    if name in reg:
+        return reg[name]
+    refs = reference_methods(flight) if flight is not None else {}
+    if name in refs:
+        return refs[name]
+    raise MethodUnavailableError(f"unknown method {name!r}; valid: {', '.join([*reg, *refs])}")
+
+
+def available_methods(
+    flight: Flight,
+    methods: list[str] | None = None,
+    registry: Mapping[str, Method] | None = None,
+) -> tuple[list[str], dict[str, str]]:
+    """Which methods can run on ``flight``.
+
+    Args:
+        flight: the flight.
+        methods: names to consider (None: every method of the registry plus a ``ref:<name>`` row
+            for each of the flight's references other than ``px4_ekf2``).
+        registry: the methods (default :data:`METHODS`).
+
+    Returns:
+        ``(runnable, skipped)``: runnable names in the given order, and ``{name: reason}`` for
+        the others, e.g. ``{"ekf-vo002": "needs images; the flight has none"}``.
+    """
+    reg = METHODS if registry is None else registry
+    names = list(methods) if methods is not None else [*reg, *reference_methods(flight)]
+    runnable: list[str] = []
+    skipped: dict[str, str] = {}
+    for name in names:
+        m = get_method(name, flight, reg)
+        missing = m.missing(flight)
+        problem = missing_reason(missing) if missing else m.implementation_problem()
+        if problem:
+            skipped[name] = problem
+        else:
+            runnable.append(name)
+    return runnable, skipped
