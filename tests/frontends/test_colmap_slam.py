@@ -10,7 +10,13 @@ from fgnav.datasets.geometry import quat_wxyz_to_matrix
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import ImageSeries
 
-from fgnav.frontends.colmap_slam import ColmapSlamOptions, reconstruct, slam_from_flight
+from fgnav.frontends.colmap_slam import (
+    IMAGE_NAME,
+    ColmapSlamOptions,
+    _to_slam_series,
+    reconstruct,
+    slam_from_flight,
+)
 
 #: Frames reconstructed: every 4th 20 Hz image of the first 4 s of the circle flight (5 Hz),
 #: about 0.2 m apart at 1.5 m height, 70-80 % overlap.
@@ -85,3 +91,33 @@ def test_unregistered_frames_are_reported(flight):
     assert res.num_registered == len(res.slam) == 12 - len(res.unregistered)
     assert sum(res.model_sizes.values()) == res.num_registered
     assert not np.isin(images.t[[5, 6]], res.slam.t).any()
+
+
+def _stub_model(indices, scale):
+    """A stand-in for a pycolmap Reconstruction: camera k at slam position (k * scale, 0, 0)."""
+    from types import SimpleNamespace
+
+    images = {}
+    for k in indices:
+        rotation = SimpleNamespace(matrix=lambda: np.eye(3))
+        pose = SimpleNamespace(rotation=rotation, translation=np.array([-k * scale, 0.0, 0.0]))
+        images[k] = SimpleNamespace(
+            name=IMAGE_NAME.format(k), has_pose=True, cam_from_world=lambda p=pose: p
+        )
+    n = len(images)
+    return SimpleNamespace(images=images, num_reg_images=lambda: n)
+
+
+def test_models_become_time_ordered_sessions_without_duplicates():
+    """Model 0 (the mapper's first) covers late frames, model 1 early ones, and they overlap on
+    frames 4-5: sessions are numbered by time, each frame appears once (in the larger model)."""
+    models = {0: _stub_model(range(4, 12), 2.0), 1: _stub_model(range(0, 6), 0.5)}
+    t = np.arange(14) * 0.1
+    slam, sizes, registered = _to_slam_series(models, t, 14)
+    np.testing.assert_array_equal(registered, np.arange(14) < 12)
+    np.testing.assert_array_equal(slam.t, t[:12])
+    np.testing.assert_array_equal(slam.session, [0] * 4 + [1] * 8)
+    assert sizes == {0: 4, 1: 8}
+    np.testing.assert_allclose(
+        slam.slam_t_cam[:, 0], [0, 0.5, 1, 1.5] + [8, 10, 12, 14, 16, 18, 20, 22]
+    )
