@@ -68,6 +68,8 @@ class FixedLagOptions:
             smoother on the last good state.
         rebuild_slow_sigma_rel: relative sigma of the priors on slow variables after a rebuild.
         track_memory: record Python heap peak (tracemalloc; slows the run).
+        slow_read_every: read the slow variables (SLAM alignment, drag, ground) from the smoother
+            every this many updates (and at the last); the newest state is read at every update.
     """
 
     graph: GraphOptions = field(default_factory=GraphOptions)
@@ -85,6 +87,7 @@ class FixedLagOptions:
     rebuild_gyro_bias_sigma: float = 0.005
     rebuild_slow_sigma_rel: float = 0.05
     track_memory: bool = False
+    slow_read_every: int = 5
 
 
 def _isam2_params(o: FixedLagOptions) -> gtsam.ISAM2Params:
@@ -522,9 +525,10 @@ class FixedLagRunner:
         self.last_good[X(k)], self.last_good[V(k)], self.last_good[B(k)] = pose, vel, bias
         self.newest_good_k = k
         t = float(self.builder.t_kf[k])
+        read_slow = k % self.options.slow_read_every == 0 or k == self.builder.K - 1
         for key in list(self.key_stamp):
             c = chr(gtsam.Symbol(key).chr())
-            if c in "sdg" and self._alive(key):
+            if c in "sdg" and self._alive(key) and (read_slow or key not in self.last_good):
                 try:
                     self.last_good[key] = self._current_value(key)
                 except RuntimeError:

@@ -231,6 +231,8 @@ class GraphBuilder:
             raise ObservabilityError(
                 f"{flight.name}: no IMU stream; the graph needs the IMU between keyframes"
             )
+        self._row_index: dict[str, dict[int, list[int]]] = {}
+        self._accel_sigma: float | None = None
         self.slam_model = self._choose_slam_model()
         check_observability(flight, o, self.slam_model)
         self.imu = self._imu_used()
@@ -465,8 +467,10 @@ class GraphBuilder:
 
     def imu_accel_sigma(self) -> float:
         """Discrete-time standard deviation of one accelerometer sample [m/s^2]."""
-        rate = self.imu.rate_hz
-        return self.flight.calib.imu_noise.accel_noise_density * math.sqrt(rate)
+        if self._accel_sigma is None:
+            rate = self.imu.rate_hz
+            self._accel_sigma = self.flight.calib.imu_noise.accel_noise_density * math.sqrt(rate)
+        return self._accel_sigma
 
     # ------------------------------------------------------------------------------------------
     # Initial values
@@ -762,11 +766,21 @@ class GraphBuilder:
             out.append(G(int(self.ground_segment[k])))
         return out
 
+    def _rows_at(self, name: str, keyframe_of_row: np.ndarray, k: int) -> list[int]:
+        """Rows of a stream's association whose keyframe is k (index built once per stream)."""
+        index = self._row_index.get(name)
+        if index is None:
+            index = {}
+            for r, kk in enumerate(np.asarray(keyframe_of_row, int).tolist()):
+                index.setdefault(kk, []).append(r)
+            self._row_index[name] = index
+        return index.get(k, [])
+
     def slam_keys_at(self, k: int) -> list[int]:
         """SLAM alignment keys used by the SLAM measurements of keyframe k."""
         if not self.use_slam:
             return []
-        rows = np.flatnonzero(self.slam_assoc.keyframe == k)
+        rows = self._rows_at("slam", self.slam_assoc.keyframe, k)
         return [self.slam_key(int(r)) for r in rows]
 
     def slow_chain_previous(self, key: int) -> int | None:
@@ -924,7 +938,7 @@ class GraphBuilder:
             )
 
             slam = f.slam
-            for r in np.flatnonzero(self.slam_assoc.keyframe == k):
+            for r in self._rows_at("slam", self.slam_assoc.keyframe, k):
                 i = int(self.slam_assoc.meas_index[r])
                 sk = self.slam_key(int(r))
                 arrival = float(slam.t[i] + self.slam_latency[i])
@@ -961,7 +975,7 @@ class GraphBuilder:
         if self.use_range and want("range"):
             from fgnav.factors.tilted_range import make_range_factor
 
-            for n in np.flatnonzero(self.range_kf == k):
+            for n in self._rows_at("range", self.range_kf, k):
                 gk = G(int(self.ground_segment[k]))
                 noise = self._robust(_isotropic(1, o.range_sigma))
                 fac = make_range_factor(
@@ -977,7 +991,7 @@ class GraphBuilder:
         if self.use_yaw and want("yaw"):
             from fgnav.factors.yaw import make_yaw_factor
 
-            for n in np.flatnonzero(self.yaw_kf == k):
+            for n in self._rows_at("yaw", self.yaw_kf, k):
                 noise = self._robust(_isotropic(1, o.yaw_sigma))
                 fac = make_yaw_factor(X(k), float(self.yaw_val[n]), noise)
                 out.append(MeasurementFactor(float(self.yaw_arrival[n]), k, "yaw", fac, (X(k),)))

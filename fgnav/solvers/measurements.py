@@ -146,19 +146,40 @@ def mean_in_windows(
 # ----------------------------------------------------------------------------------------------
 
 
+def _so3_exp_batch(phi: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) -> rotation matrices (N, 3, 3) (Rodrigues, vectorised)."""
+    angle = np.linalg.norm(phi, axis=1)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    K = np.zeros((len(phi), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def _so3_log_batch(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) -> rotation vectors (N, 3); angles below pi - 1e-6 (the
+    relative rotations between neighbouring samples interpolated here are small)."""
+    cos_angle = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arccos(cos_angle)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    small = angle < 1e-8
+    f = np.where(small, 0.5, angle / (2.0 * np.sin(np.where(small, 1.0, angle))))
+    return f[:, None] * w
+
+
 def slerp_rotations(t_src: np.ndarray, world_R_body: np.ndarray, t_query: np.ndarray) -> np.ndarray:
     """Interpolate rotations (N, 3, 3) given at ``t_src`` to ``t_query`` (held at the ends)."""
-    t_query = np.clip(t_query, t_src[0], t_src[-1])
-    j = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
-    out = np.empty((len(t_query), 3, 3))
+    t_query = np.clip(np.asarray(t_query, dtype=float), t_src[0], t_src[-1])
     if len(t_src) == 1:
-        out[:] = world_R_body[0]
-        return out
-    for n, (jj, tq) in enumerate(zip(j, t_query, strict=True)):
-        a = (tq - t_src[jj]) / (t_src[jj + 1] - t_src[jj])
-        Ri = world_R_body[jj]
-        out[n] = Ri @ so3_exp(a * so3_log(Ri.T @ world_R_body[jj + 1]))
-    return out
+        return np.broadcast_to(world_R_body[0], (len(t_query), 3, 3)).copy()
+    j = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
+    a = (t_query - t_src[j]) / (t_src[j + 1] - t_src[j])
+    Ri = world_R_body[j]
+    rel = _so3_log_batch(np.transpose(Ri, (0, 2, 1)) @ world_R_body[j + 1])
+    return Ri @ _so3_exp_batch(a[:, None] * rel)
 
 
 def level_rotation_from_accel(body_accel: np.ndarray, yaw: float = 0.0) -> np.ndarray:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import pytest
-
 from fgnav.datasets.load import load_flight
+from testutil import PROJECT_ROOT
+
 from fgnav.eval.metrics import evaluate, slam_scale_vs_truth
 from fgnav.solvers.batch import BatchOptions, solve_batch
 from fgnav.solvers.graph import GraphOptions
-from testutil import PROJECT_ROOT
 
 MANIFEST = PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml"
 
