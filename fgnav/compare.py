@@ -33,7 +33,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
-from fgnav.estimate import Estimate
+from fgnav.estimate import Estimate, TimeSeries
 from fgnav.eval.metrics import DEFAULT_RPE_DELTA_M, Metrics, evaluate, to_jsonable
 from fgnav.methods import METHODS, Method, available_methods, get_method
 
@@ -255,7 +255,9 @@ class CompareResult:
             "top_view": lambda p: plots.plot_top_view(scored, truth, p),
             "errors": lambda p: plots.plot_errors_over_time(scored, truth, p),
             "scale": lambda p: plots.plot_scale(ests, p, self.truth_scale),
-            "drag": lambda p: plots.plot_drag(ests, p, self.truth_drag_k()),
+            "drag": lambda p: plots.plot_drag(
+                [held_to_end(e, "drag_k") for e in ests], p, self.truth_drag_k()
+            ),
             "latency": lambda p: plots.plot_latency(ests, p),
         }
         if truth is None:
@@ -278,6 +280,29 @@ class CompareResult:
                 f"{', '.join(dropped)}: could not be matched to the truth (see per-method notes)"
             )
         return figs, errors
+
+
+def held_to_end(est: Estimate, key: str) -> Estimate:
+    """The estimate with ``series[key]`` extended by its last value at the trajectory's end.
+
+    Smoothers report a piecewise-constant variable (drag k per segment) once, at the start of its
+    segment; a single segment would plot as one point. The value holds until the next sample, so
+    repeating the last one at the end time draws the steps it stands for.
+    """
+    import dataclasses
+
+    ts = est.series.get(key)
+    t_end = float(est.trajectory.t[-1])
+    if ts is None or not len(ts.t) or float(ts.t[-1]) >= t_end:
+        return est
+    value = np.asarray(ts.value)
+    sigma = None if ts.sigma is None else np.asarray(ts.sigma)
+    ext = TimeSeries(
+        np.append(np.asarray(ts.t, dtype=float), t_end),
+        np.concatenate([value, value[-1:]]),
+        None if sigma is None else np.concatenate([sigma, sigma[-1:]]),
+    )
+    return dataclasses.replace(est, series={**est.series, key: ext})
 
 
 def has_scale(est: Estimate) -> bool:

@@ -172,7 +172,8 @@ def plot_drag(
             _plot_series(ax, ts, est.method, t0)
     if truth_k is not None:
         for j, k in enumerate(np.atleast_1d(np.asarray(truth_k, dtype=float))):
-            ax.axhline(k, color="k", ls="--", lw=1, label=f"truth k[{j}]")
+            ls = ("--", ":", "-.")[j % 3]
+            ax.axhline(k, color="k", ls=ls, lw=1, label=f"truth k[{j}] = {k:g}")
     ax.set_xlabel(f"time [s] (t0 = {t0:.3f})")
     ax.set_ylabel("drag k [1/s]")
     ax.grid(True, alpha=0.3)

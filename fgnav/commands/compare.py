@@ -1,0 +1,69 @@
+"""``fgnav compare``: run the smoothers and the filter baselines on a flight and compare them.
+
+Thin layer over :func:`fgnav.compare.compare`. ``--config`` is a TOML file whose tables configure
+the methods (``[graph]``, ``[lm]``, ``[batch]``, ``[online]``, ``[msf-ekf]``, ``[ekf004]`` ...,
+see :mod:`fgnav.methods`). Prints the comparison table, the methods skipped (with the stream each
+misses) or failed (with the error), and where ``report.md`` and ``compare.json`` are.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fgnav.compare import CompareResult, compare
+from fgnav.config import load_config
+from fgnav.methods import METHODS
+
+HELP = "run the smoothers and the filter baselines on a flight and compare them"
+
+
+def parse_methods(text: str | None) -> list[str] | None:
+    """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows)."""
+    if text is None:
+        return None
+    return [m.strip() for m in text.split(",") if m.strip()]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
+    parser.add_argument("--out", required=True, help="output folder (report.md, compare.json)")
+    parser.add_argument(
+        "--methods",
+        default=None,
+        help="comma-separated methods (default: all the flight allows; known: "
+        + ", ".join(METHODS)
+        + ")",
+    )
+    parser.add_argument("--config", default=None, help="TOML file with per-method tables")
+    parser.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
+    """Print the table, skipped and failed methods, and the files written."""
+    print(result.table())
+    for name, reason in result.skipped.items():
+        print(f"skipped {name}: {reason}")
+    for name, error in result.failed.items():
+        print(f"FAILED {name}: {error}")
+    if result.flight.ground_truth is None:
+        print("no ground truth in this flight: accuracy columns are empty")
+    print(f"report: {paths['report']}")
+    print(f"metrics: {paths['json']}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgnav.datasets.load import load_flight
+
+    flight = load_flight(args.flight)
+    result = compare(
+        flight,
+        methods=parse_methods(args.methods),
+        config=load_config(args.config),
+        progress=not args.no_progress,
+    )
+    out = Path(args.out)
+    paths = result.write(out, figures=not args.no_figures)
+    print_result(result, out, paths)
+    return 0
