@@ -90,3 +90,22 @@ def test_batch_without_slam_uses_drag_for_velocity(two_turns_12s):
     # hover), no position source: dead reckoning stays within decimetres over 12 s.
     assert m.vel_rmse_mps < 0.1
     assert m.ate_rmse_m < 0.3
+
+
+def test_batch_slam_map_reset_gives_two_scales():
+    from fgnav.datasets.simulate.options import SimOptions
+    from fgnav.datasets.simulate.simulator import simulate
+
+    f = simulate(
+        "two-turns", seed=4, options=SimOptions(duration=20.0, images=False, slam_resets=(10.0,))
+    )
+    est = solve_batch(f, BatchOptions(covariance="slow"))
+    m = evaluate(est, f.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.015
+    assert sorted(est.slam_scale) == [0, 1]
+    for sid in (0, 1):
+        truth = f.meta["truth"]["slam_sessions"][str(sid)]
+        s_true = _truth_scale_at(f, sid, truth["t_end"])
+        err = abs(est.slam_scale[sid] - s_true)
+        # Session 0 is mostly hover (weak scale information): its sigma says so.
+        assert err < 3 * est.slam_scale_sigma[sid] and err / s_true < 0.02
