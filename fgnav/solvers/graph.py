@@ -558,6 +558,23 @@ class GraphBuilder:
         )
         return init
 
+    def prior_scale_sigma_rel(self, key: int) -> float | None:
+        """Relative sigma of a front-end SLAM scale prior for SLAM-alignment key ``key`` (None:
+        no front-end scale for its session, or not a SLAM key)."""
+        p = self.priors
+        if p is None or chr(gtsam.Symbol(key).chr()) != "s" or self.slam_model != "sim3":
+            return None
+        inv = {j: sess_seg for sess_seg, j in self.slam_var.items()}
+        sess_seg = inv.get(int(gtsam.Symbol(key).index()))
+        if sess_seg is None:
+            return None
+        s = self._prior_scale(sess_seg[0])
+        sig = (getattr(p, "slam_scale_sigma", None) or {}).get(sess_seg[0])
+        if s is None or sig is None or not s > 0:
+            return None
+        self._count("frontend-scale-prior")
+        return float(sig) / s
+
     def _prior_scale(self, session: int) -> float | None:
         p = self.priors
         if p is None:
@@ -753,7 +770,12 @@ class GraphBuilder:
             vals.insert(key, value)
             stamps[key] = t
             g.push_back(
-                self.slow_factors(key, value, chain_start=self.slow_chain_previous(key) is None)
+                self.slow_factors(
+                    key,
+                    value,
+                    chain_start=self.slow_chain_previous(key) is None,
+                    scale_sigma_rel=self.prior_scale_sigma_rel(key),
+                )
             )
         return KeyframeChunk(k, t, g, vals, stamps)
 

@@ -109,3 +109,33 @@ def test_batch_slam_map_reset_gives_two_scales():
         err = abs(est.slam_scale[sid] - s_true)
         # Session 0 is mostly hover (weak scale information): its sigma says so.
         assert err < 3 * est.slam_scale_sigma[sid] and err / s_true < 0.02
+
+
+def test_frontend_priors_are_used(two_turns_12s):
+    from fgnav.estimate import TimeSeries
+    from fgnav.frontends.priors import FrontendPriors
+
+    f = two_turns_12s
+    s_true = _truth_scale_at(f, 0, 6.0)
+    gt = f.ground_truth
+    vel = TimeSeries(gt.t[::20], gt.world_v_body[::20], np.full((len(gt.t[::20]), 3), 0.05))
+    # A tight but 5 % wrong scale prior must pull the estimate: proof that it is applied.
+    priors = FrontendPriors(
+        velocity=vel, slam_scale={0: 1.05 * s_true}, slam_scale_sigma={0: 1e-4 * s_true}
+    )
+    opts = BatchOptions(
+        graph=GraphOptions(keyframe_hz=10.0, slam_segment_s=100.0), covariance="none"
+    )
+    est = solve_batch(f, opts, priors=priors)
+    assert abs(est.slam_scale[0] / (1.05 * s_true) - 1) < 0.002
+    assert est.info["factors"]["frontend-velocity-prior"] > 50
+    assert est.info["factors"]["frontend-scale-prior"] == 1
+    off = solve_batch(
+        f,
+        BatchOptions(
+            graph=GraphOptions(keyframe_hz=10.0, slam_segment_s=100.0, use_frontend_priors=False),
+            covariance="none",
+        ),
+        priors=priors,
+    )
+    assert abs(off.slam_scale[0] / s_true - 1) < 0.02
