@@ -98,13 +98,6 @@ def profile_nll(s: float, A: float, B: float, C: float, sigma_x: float, sigma_y:
     return float((A - 2.0 * s * C + s * s * B) / (2.0 * (sigma_x**2 + s * s * sigma_y**2)))
 
 
-@dataclass
-class _Pair:
-    t: float
-    x: np.ndarray
-    y: np.ndarray
-
-
 class MLScaleEstimator:
     """Online closed-form ML scale of one SLAM session.
 
