@@ -141,6 +141,8 @@ class FixedLagRunner:
         self._deferred: list[tuple[float, int, str, int]] = []
         self._sess_last_t: dict[int, float] = {}
         self._next_init_try: dict[int, float] = {}
+        self.created_slow: set[int] = set()
+        self.ever_created: set[int] = set()
         self.newest_good_k = 0
         self.queued_graph = gtsam.NonlinearFactorGraph()
         self.queued_values = gtsam.Values()
@@ -205,7 +207,7 @@ class FixedLagRunner:
     def _ensure_slam_key(self, sk: int, row: int) -> bool:
         """Create SLAM alignment ``sk`` if needed; False when the measurement must be skipped."""
         b = self.builder
-        if sk in self.key_stamp:
+        if sk in self.ever_created:
             if self._alive(sk):
                 return True
             self._drop("slam:alignment-marginalized")
@@ -247,6 +249,8 @@ class FixedLagRunner:
         self.queued_values.insert(values)
         self.queued_stamps[sk] = self.t_latest
         self.key_stamp[sk] = self.t_latest
+        self.created_slow.add(sk)
+        self.ever_created.add(sk)
         return True
 
     def _init_slam_value(self, session: int, sk: int, meas_i: int) -> tuple[Any, float]:
@@ -403,6 +407,8 @@ class FixedLagRunner:
         self.queued_stamps.update(chunk.timestamps)
         for key, ts in chunk.timestamps.items():
             self.key_stamp[key] = ts
+            if chr(gtsam.Symbol(key).chr()) in "sdg":
+                self.created_slow.add(key)
         self.keyframes_in.add(k)
         # 3. Measurements arrived up to t_k.
         self._collect_arrived(t_k)
@@ -525,10 +531,14 @@ class FixedLagRunner:
         self.last_good[X(k)], self.last_good[V(k)], self.last_good[B(k)] = pose, vel, bias
         self.newest_good_k = k
         t = float(self.builder.t_kf[k])
+        if k % self.options.slow_read_every == 0:
+            # Forget the stamps of marginalised keys (bounded memory and per-update work).
+            horizon = self.t_latest - self.options.lag_s - 2.0 * self.period
+            self.key_stamp = {key: ts for key, ts in self.key_stamp.items() if ts >= horizon}
+            self.created_slow = {key for key in self.created_slow if key in self.key_stamp}
         read_slow = k % self.options.slow_read_every == 0 or k == self.builder.K - 1
-        for key in list(self.key_stamp):
-            c = chr(gtsam.Symbol(key).chr())
-            if c in "sdg" and self._alive(key) and (read_slow or key not in self.last_good):
+        for key in self.created_slow:
+            if self._alive(key) and (read_slow or key not in self.last_good):
                 try:
                     self.last_good[key] = self._current_value(key)
                 except RuntimeError:

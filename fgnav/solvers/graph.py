@@ -235,6 +235,11 @@ class GraphBuilder:
         self._accel_sigma: float | None = None
         self.slam_model = self._choose_slam_model()
         check_observability(flight, o, self.slam_model)
+        if o.use_homography:
+            raise FgnavError(
+                "GraphOptions.use_homography: homography-motion factors are not built by this "
+                "version of the graph builder; set use_homography = false"
+            )
         self.imu = self._imu_used()
         slam_t = flight.slam.t if (o.use_slam and flight.slam is not None) else None
         t0, t1 = float(self.imu.t[0]), float(self.imu.t[-1])
