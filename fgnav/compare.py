@@ -59,7 +59,7 @@ class MethodRun:
         method: the registry entry.
         estimate: its estimate (None when it failed).
         metrics: scores against truth (None without truth, or when scoring failed).
-        error: ``"<ExceptionType>: message"`` when the method failed.
+        error: ``"<ExceptionType>: message"`` (on one line) when the method failed.
         traceback: the formatted traceback of a failure.
         evaluation_error: why a finished estimate could not be scored.
         wall_s: wall time of the run and its scoring [s].
@@ -263,6 +263,9 @@ class CompareResult:
         if truth is None:
             jobs.pop("errors")
             errors["errors"] = "the flight has no ground truth"
+        if not any(e.update_latency is not None and len(e.update_latency) for e in ests):
+            jobs.pop("latency")
+            errors["latency"] = "no method records its update latency"
         if not any(scale_series_present(e) for e in ests):
             jobs.pop("scale")
             errors["scale"] = "no method estimates a SLAM scale over time"
@@ -313,6 +316,11 @@ def has_scale(est: Estimate) -> bool:
 def scale_series_present(est: Estimate) -> bool:
     """True when the estimate has a SLAM-scale time series for :func:`plots.plot_scale`."""
     return any(k == "slam_scale" or k.startswith("slam_scale/") for k in est.series)
+
+
+def one_line(text: str) -> str:
+    """``text`` with every run of whitespace (newlines included) made one space."""
+    return " ".join(text.split())
 
 
 def method_dirname(name: str) -> str:
@@ -424,7 +432,7 @@ def compare(
             try:
                 run.estimate = method.run(flight, cfg, progress)
             except Exception as e:  # one method's failure must not stop the comparison
-                run.error = f"{type(e).__name__}: {e}"
+                run.error = f"{type(e).__name__}: {one_line(str(e))}"
                 run.traceback = traceback.format_exc()
                 log.warning("%s failed: %s", name, run.error)
         if run.ok and flight.ground_truth is not None:
@@ -437,7 +445,7 @@ def compare(
                     delta_m=res.rpe_delta_m,
                 )
             except Exception as e:  # scoring problems are reported per method
-                run.evaluation_error = f"{type(e).__name__}: {e}"
+                run.evaluation_error = f"{type(e).__name__}: {one_line(str(e))}"
                 log.warning("%s: not scored: %s", name, run.evaluation_error)
         run.wall_s = time.perf_counter() - t0
         res.timings[name] = run.wall_s

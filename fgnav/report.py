@@ -164,6 +164,8 @@ def render_report(data: Mapping[str, Any]) -> str:
         lines += ["## Figures", ""]
         for key, rel in figures.items():
             caption = FIGURE_CAPTIONS.get(key, key)
+            if key == "top_view" and not truth["ground_truth"]:
+                caption = "Top view of every trajectory (no ground truth: not aligned)"
             lines += [f"### {caption}", "", f"![{caption}]({rel})", ""]
     fig_errors = data.get("figure_errors") or {}
     for key, err in fig_errors.items():
