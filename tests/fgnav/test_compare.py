@@ -228,3 +228,20 @@ def test_cli_compare(flight, tmp_path, capsys):
     rc = main(["compare", str(folder), "--out", str(out), "--methods", "nope"])
     assert rc == 1
     assert "unknown method 'nope'" in capsys.readouterr().err
+
+
+def test_piecewise_constant_series_held_to_end(flight):
+    from fgnav.compare import held_to_end
+    from fgnav.estimate import Estimate, TimeSeries
+
+    traj = flight.ground_truth
+    est = Estimate(
+        "x",
+        traj,
+        series={"drag_k": TimeSeries(np.array([0.0]), np.array([[0.38, 0.41]]), np.ones((1, 2)))},
+    )
+    ts = held_to_end(est, "drag_k").series["drag_k"]
+    np.testing.assert_array_equal(ts.t, [0.0, traj.t[-1]])
+    np.testing.assert_array_equal(ts.value, [[0.38, 0.41], [0.38, 0.41]])
+    assert ts.sigma.shape == (2, 2)
+    assert held_to_end(est, "slam_scale") is est
