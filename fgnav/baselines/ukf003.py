@@ -1,0 +1,955 @@
+"""Seed 003 baseline: UKF with state augmentation for relative measurements (Shen's thesis ch. 5;
+Shen, Mulgaonkar, Michael & Kumar, "Multi-sensor fusion for robust autonomous flight in indoor and
+outdoor environments with a rotorcraft MAV", ICRA 2014, sec. III-IV).
+
+Main state (seed 003 sec. 5.1, eq. 5.1), 17 entries::
+
+    x = [world_p_body (3), Phi = (yaw, pitch, roll) (3), body_v (3), b_a (3), b_g (3), z_b (1),
+         s (1)]
+
+``world_p_body`` [m] in world (z up); ``Phi`` the ZYX Euler angles of ``world_R_body =
+Rz(yaw) Ry(pitch) Rx(roll)`` [rad]; ``body_v`` the velocity in body (FLU) [m/s]; ``b_a``
+[m/s^2] and ``b_g`` [rad/s] the IMU biases in body; ``z_b`` the altimeter bias in world [m] (here
+the height of the ground under the rangefinder, which plays the role of Shen's pressure-altimeter
+bias); ``s`` the monocular-SLAM scale [SLAM units per metre] (not in Shen's state: his relative
+sensors are metric; see "SLAM scale" below).
+
+Propagation (eq. 5.1, IMU-driven; one unscented transform per ``ut_interval_s`` = 10 ms, inside
+which each sigma point is integrated IMU sample by IMU sample): with
+``w = omega - b_g``, ``a = f - b_a`` (body), gravity ``(0, 0, -g)``::
+
+    world_v = R body_v;   a_w = R a + g_w
+    p+ = p + world_v dt + a_w dt^2 / 2;   R+ = R Exp(w dt);   body_v+ = R+^T (world_v + a_w dt)
+
+biases, ``z_b`` and ``s`` are random walks. Process noise is additive: gyro noise mapped to Euler
+rates (``E(Phi) sigma_g^2 dt E^T``), accelerometer noise on ``body_v``, the random walks.
+
+Measurements (Shen: "absolute" and "relative", any rate):
+
+* absolute, rangefinder (tilted, lever arm ``body_T_range``): ``r = (p_z + (R body_t_range)_z -
+  z_b) / cos(tilt)``, ``cos(tilt) = -(R beam)_z`` (DESIGN.md 4.4; seed 002 eq. 21);
+* absolute, yaw stream: ``yaw`` (residual wrapped to (-pi, pi]);
+* absolute, attitude stream (off by default, ``use_attitude``): roll and pitch;
+* relative, SLAM displacement between the keyframe pose i and a later pose j of one map, in
+  camera i::
+
+      z_t = slam_R_cam_i^T (slam_t_cam_j - slam_t_cam_i)
+          = s body_R_cam^T (R_i^T (p_j + R_j body_t_cam - p_i) - body_t_cam)   [SLAM units]
+      z_R = Log(slam_R_cam_i^T slam_R_cam_j) = Log(body_R_cam^T R_i^T R_j body_R_cam)
+
+  Both are independent of the SLAM frame's rotation and origin (only the scale ``s`` enters).
+
+State augmentation (stochastic cloning, Shen sec. III-A following Roumeliotis & Burdick 2002):
+at the capture time of every image that has a SLAM pose the pose part ``[p, Phi]`` of the main
+state is appended to the state (``x_aug = [x, B x]``, ``P_aug = M P M^T`` with ``M = [I; B]``).
+A relative measurement relates two clones (i: the keyframe, j: this image) and is fused when the
+SLAM pose *arrives* (``t_j + latency``), so SLAM latency is handled exactly: the clone holds the
+state at the image time. Afterwards clone j is marginalised (its rows and columns removed),
+unless it is at least ``keyframe_interval_s`` after the keyframe: then the keyframe is
+marginalised and j becomes the keyframe (Shen's augmented state is the relative sensor's
+keyframe). Measuring against a keyframe instead of the previous pose keeps the SLAM noise from
+accumulating per pose (measured on two-turns, rectangle and figure8, seed 1: ATE 0.14, 0.07,
+0.08 m with consecutive poses vs 0.08, 0.07, 0.07 m with 2 s keyframes).
+
+Semi-definite covariance (Shen sec. III-B): right after cloning, ``P_aug`` is singular (the clone
+equals part of the main state), so its Cholesky factor does not exist and sigma points cannot be
+drawn from it. As in Shen's formulation, sigma points are never drawn from the augmented
+covariance: propagation draws them from the main block ``P_xx`` only (the clones are static) and
+carries the cross-covariances with the statistical linearisation ``F = P_{x+ x} P_xx^-1``
+(``P_{x+ c} = F P_{x c}``); each update draws sigma points from the marginal of the variables its
+measurement involves (positive definite: the clones of a relative measurement are at different
+times, with process noise between them) and extends the gain to the whole augmented state by
+Gaussian conditioning, ``P_{a z} = P_{a I} P_II^-1 P_{I z}``. The update is the usual
+``K = P_{a z} S^-1``, ``P -= K S K^T``, Mahalanobis-gated (chi-square 0.999).
+
+SLAM scale: Shen's relative sensors are metric; a monocular SLAM is not. The scale ``s`` is a
+state (random walk, following a slowly drifting map scale); its initial value and that of the
+velocity come from the same closed-form least-squares fit over the first seconds of IMU and SLAM
+as the MSF baseline (:func:`fgnav.baselines.msf_ekf.initial_state_guess`), so the first output
+sample uses data from the first 4-8 s (the only non-causal step; ``Ukf003Options.initial_scale``
+skips it). The measurement multiplies two uncertain quantities (``s`` and the predicted
+displacement): without motion this errors-in-variables model pulls ``s`` towards 0 (on the
+hover that starts two-turns, seed 1, with a 30 % initial sigma, ``s`` fell to zero within 4 s),
+so ``s`` is corrected only by displacements whose signal-to-noise ratio exceeds
+``scale_min_snr``; below it ``s`` is a Schmidt "consider" parameter (its uncertainty enters the
+innovation covariance, its gain is zero).
+A SLAM map reset (new session id) waits for the same closed-form fit on the new map's
+data since its first pose, then restarts ``s`` and the clone chain. Tracking-lost samples
+(negative session) and poses arriving out of order are skipped and counted.
+
+Not modelled: rotor drag, the correlation between relative measurements sharing the keyframe's
+SLAM noise (each is treated as independent, so the covariance is optimistic: NEES of position
+about 3-4 on the simulated flights), IMU-camera time offset, Euler-angle singularity at
+pitch +-90 deg (never reached by a multirotor in these flights), terrain steps beyond the ``z_b``
+random walk.
+
+Reference: ../shared/seeds/003_*.txt (Shen's thesis ch. 5: state ``[p, Phi, p_dot^b, a_b^b,
+omega_b^b, z_b^w]`` and eq. 5.1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_solve
+
+from fgnav.baselines.msf_ekf import initial_state_guess
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_log
+from fgnav.datasets.types import Flight, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+
+log = logging.getLogger(__name__)
+
+GRAVITY = 9.81
+"""Gravity magnitude [m/s^2] used for propagation (the simulator uses the same constant)."""
+
+# Main-state layout.
+IP, IPHI, IV, IBA, IBG, IZB, IS = 0, 3, 6, 9, 12, 15, 16
+N_MAIN = 17
+N_CLONE = 6
+"""A clone holds ``[world_p_body (3), Phi (3)]``; its yaw is at offset 3."""
+
+CHI2_999 = {1: 10.83, 2: 13.82, 3: 16.27, 6: 22.46}
+"""Chi-square quantiles (probability 0.999) for the gates, by measurement dimension."""
+
+MIN_SCALE_REL_SIGMA = 0.02
+"""Floor of the initial relative scale uncertainty (the closed-form fit neglects biases)."""
+
+REINIT_GIVE_UP_S = 20.0
+"""After a map reset, how long to wait for the closed-form scale before keeping the old one."""
+
+RESET_SCALE_REL_SIGMA = 0.5
+"""Relative scale uncertainty when the old scale is kept after a reset (no fit possible)."""
+
+REINIT_MIN_S = 4.0
+"""Seconds of a new map's data before its closed-form scale is tried (the fit's first window)."""
+
+
+@dataclass
+class Ukf003Options:
+    """Options of :class:`Ukf003`.
+
+    Attributes:
+        slam_position_sigma_m: SLAM position noise per pose [m]; a displacement of two poses gets
+            ``sqrt(2) * s * sigma`` in SLAM units.
+        slam_rotation_sigma: SLAM orientation noise per pose [rad].
+        use_slam_rotation: also fuse the relative rotation ``z_R``.
+        use_range, range_sigma [m], range_max_tilt_rad: rangefinder (absolute).
+        use_yaw, yaw_sigma [rad]: yaw stream (absolute).
+        use_attitude, attitude_sigma [rad], attitude_min_interval_s: roll and pitch of the
+            attitude stream (absolute), at most one update per interval.
+        initial_scale: initial ``s``; None: closed-form fit (module docstring).
+        initial_scale_rel_sigma: initial relative sigma of ``s``; None: twice the fit's standard
+            error, at least ``MIN_SCALE_REL_SIGMA`` (30 % with ``initial_scale`` given).
+        initial_velocity_sigma [m/s], initial_attitude_sigma [rad] (roll and pitch; yaw gets the
+            yaw stream's sigma or this), initial_bias_sigma_gyro [rad/s],
+            initial_bias_sigma_accel [m/s^2], initial_altimeter_bias_sigma [m].
+        scale_walk: random walk of ``s`` [relative / sqrt(s)].
+        altimeter_bias_walk: random walk of ``z_b`` [m / sqrt(s)].
+        ut_alpha, ut_beta, ut_kappa: scaled unscented transform parameters (Julier 2002; Wan & van
+            der Merwe 2000); alpha = 1, kappa = 0 puts the sigma points at ``sqrt(n)`` sigma.
+        gate: Mahalanobis gating of every update.
+        output_rate_hz: rate of the reported causal trajectory (Shen: 100 Hz fused output).
+        keyframe_interval_s: SLAM poses are measured relative to the keyframe (the clone in the
+            state) until one is at least this much later [s]; that one becomes the new keyframe
+            (Shen et al. 2014 sec. III-A: the augmented state is the keyframe's; it is replaced
+            when the relative sensor changes keyframe). 0: every pose relative to the previous.
+        scale_min_snr: a relative measurement corrects the scale only when the keyframe
+            displacement is at least this many noise standard deviations (the
+            errors-in-variables bias of the scale is about ``1 / snr^2``); below it the scale is
+            a "consider" parameter of the update (module docstring).
+        ut_interval_s: longest span of IMU samples integrated (strapdown, sample by sample)
+            inside one unscented propagation [s]; a measurement always ends a span. Shen's
+            filter outputs at 100 Hz, hence 0.01 s.
+    """
+
+    slam_position_sigma_m: float = 0.015
+    slam_rotation_sigma: float = 0.01
+    use_slam_rotation: bool = True
+    use_range: bool = True
+    range_sigma: float = 0.03
+    range_max_tilt_rad: float = float(np.deg2rad(35.0))
+    use_yaw: bool = True
+    yaw_sigma: float = 0.03
+    use_attitude: bool = False
+    attitude_sigma: float = 0.01
+    attitude_min_interval_s: float = 0.05
+    initial_scale: float | None = None
+    initial_scale_rel_sigma: float | None = None
+    initial_velocity_sigma: float = 0.5
+    initial_attitude_sigma: float = 0.02
+    initial_bias_sigma_gyro: float = 0.01
+    initial_bias_sigma_accel: float = 0.2
+    initial_altimeter_bias_sigma: float = 0.01
+    scale_walk: float = 1e-3
+    altimeter_bias_walk: float = 0.005
+    ut_alpha: float = 1.0
+    ut_beta: float = 2.0
+    ut_kappa: float = 0.0
+    gate: bool = True
+    output_rate_hz: float = 100.0
+    ut_interval_s: float = 0.01
+    keyframe_interval_s: float = 2.0
+    scale_min_snr: float = 10.0
+
+
+@dataclass
+class Ukf003Counts:
+    """What the filter did with its measurements (reported in ``Estimate.info``)."""
+
+    slam_updates: int = 0
+    slam_rejected_gate: int = 0
+    slam_lost: int = 0
+    slam_out_of_order: int = 0
+    slam_first_of_map: int = 0
+    slam_waiting_reinit: int = 0
+    slam_no_clone: int = 0
+    session_resets: int = 0
+    keyframes: int = 0
+    slam_scale_considered: int = 0
+    range_updates: int = 0
+    range_rejected_gate: int = 0
+    range_rejected_tilt: int = 0
+    range_out_of_limits: int = 0
+    yaw_updates: int = 0
+    yaw_rejected_gate: int = 0
+    attitude_updates: int = 0
+    attitude_rejected_gate: int = 0
+    cholesky_jitter: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+def _wrap(a):
+    """Wrap angle(s) to [-pi, pi) (cheaper than ``wrap_angle``; the half-open end is irrelevant
+    for residuals)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# ----------------------------------------------------------------------------------------------
+# Vectorised rotation helpers (rows are sigma points)
+# ----------------------------------------------------------------------------------------------
+
+
+def euler_to_matrix(phi: np.ndarray) -> np.ndarray:
+    """(M, 3) ``(yaw, pitch, roll)`` -> (M, 3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cy, sy = np.cos(phi[:, 0]), np.sin(phi[:, 0])
+    cp, sp = np.cos(phi[:, 1]), np.sin(phi[:, 1])
+    cr, sr = np.cos(phi[:, 2]), np.sin(phi[:, 2])
+    R = np.empty((len(phi), 3, 3))
+    R[:, 0, 0] = cy * cp
+    R[:, 0, 1] = cy * sp * sr - sy * cr
+    R[:, 0, 2] = cy * sp * cr + sy * sr
+    R[:, 1, 0] = sy * cp
+    R[:, 1, 1] = sy * sp * sr + cy * cr
+    R[:, 1, 2] = sy * sp * cr - cy * sr
+    R[:, 2, 0] = -sp
+    R[:, 2, 1] = cp * sr
+    R[:, 2, 2] = cp * cr
+    return R
+
+
+def matrix_to_euler(R: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) rotations -> (M, 3) ``(yaw, pitch, roll)`` (ZYX)."""
+    yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+    pitch = -np.arcsin(np.clip(R[:, 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[:, 2, 1], R[:, 2, 2])
+    return np.stack([yaw, pitch, roll], axis=1)
+
+
+def _exp_rows(w: np.ndarray) -> np.ndarray:
+    """(M, 3) rotation vectors -> (M, 3, 3) rotations (Rodrigues, series near zero)."""
+    a = np.linalg.norm(w, axis=1)
+    small = a < 1e-8
+    a_safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 1.0 - a**2 / 6.0, np.sin(a_safe) / a_safe)
+    c2 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    return np.eye(3) + c1[:, None, None] * K + c2[:, None, None] * (K @ K)
+
+
+def _log_rows(R: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) rotations (small angles, < pi/2) -> (M, 3) rotation vectors."""
+    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    a = np.arccos(c)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
+    f = np.where(a < 1e-8, 0.5, a / (2.0 * np.sin(np.where(a < 1e-8, 1.0, a))))
+    return f[:, None] * w
+
+
+def euler_rate_matrix(phi: np.ndarray) -> np.ndarray:
+    """3x3 ``E`` with ``(yaw, pitch, roll)_dot = E body_omega`` (ZYX)."""
+    _, p, r = phi
+    cp, tp, cr, sr = np.cos(p), np.tan(p), np.cos(r), np.sin(r)
+    return np.array([[0.0, sr / cp, cr / cp], [0.0, cr, -sr], [1.0, sr * tp, cr * tp]])
+
+
+def body_rotation_jacobian(phi: np.ndarray) -> np.ndarray:
+    """3x3 ``J`` with ``R(phi + dphi) ~ R(phi) Exp(J dphi)`` (inverse of ``E``)."""
+    _, p, r = phi
+    cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    return np.array([[-sp, 0.0, 1.0], [sr * cp, cr, 0.0], [cr * cp, -sr, 0.0]])
+
+
+# ----------------------------------------------------------------------------------------------
+# The filter
+# ----------------------------------------------------------------------------------------------
+
+
+class Ukf003:
+    """UKF with stochastic cloning (see the module docstring for model and references).
+
+    Use :meth:`run` on a flight, or drive it with :meth:`initialize`, :meth:`predict`,
+    :meth:`clone`, :meth:`update_relative_slam`, :meth:`update_range`, :meth:`update_yaw` and
+    :meth:`update_attitude`.
+    """
+
+    def __init__(self, options: Ukf003Options | None = None) -> None:
+        self.opt = options or Ukf003Options()
+        self.counts = Ukf003Counts()
+        self.x = np.zeros(N_MAIN)
+        self.P = np.eye(N_MAIN)
+        self.clones: list[float] = []  # clone times, in state order after the main block
+        self._noise = None
+        self._body_T_cam = np.eye(4)
+        self._body_T_range = np.eye(4)
+        self._ut: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
+        self._ut_params = (self.opt.ut_alpha, self.opt.ut_beta, self.opt.ut_kappa)
+
+    @property
+    def scale(self) -> float:
+        """SLAM scale ``s`` [SLAM units per metre]."""
+        return float(self.x[IS])
+
+    @property
+    def scale_sigma(self) -> float:
+        """Standard deviation of ``s``."""
+        return float(np.sqrt(self.P[IS, IS]))
+
+    # -- unscented transform ---------------------------------------------------------------------
+
+    def _weights(self, n: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """``(c, Wm, Wc)`` for dimension n: sigma points ``x +- c L_i``."""
+        if n not in self._ut:
+            a, b, k = self._ut_params
+            lam = a * a * (n + k) - n
+            wm = np.full(2 * n + 1, 0.5 / (n + lam))
+            wc = wm.copy()
+            wm[0] = lam / (n + lam)
+            wc[0] = lam / (n + lam) + (1.0 - a * a + b)
+            self._ut[n] = (float(np.sqrt(n + lam)), wm, wc)
+        return self._ut[n]
+
+    def _chol(self, A: np.ndarray) -> np.ndarray:
+        """Lower Cholesky factor; adds a small jitter (counted) if A is not numerically PD."""
+        try:
+            return np.linalg.cholesky(A)
+        except np.linalg.LinAlgError:
+            self.counts.cholesky_jitter += 1
+            eps = 1e-12 * max(1.0, float(np.trace(A)))
+            return np.linalg.cholesky(0.5 * (A + A.T) + eps * np.eye(len(A)))
+
+    def _sigma(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                 np.ndarray, np.ndarray]:
+        n = len(mean)
+        c, wm, wc = self._weights(n)
+        L = self._chol(cov)
+        X = np.empty((2 * n + 1, n))
+        X[0] = mean
+        X[1:n + 1] = mean + c * L.T
+        X[n + 1:] = mean - c * L.T
+        return X, wm, wc, L
+
+    def _angle_index(self) -> np.ndarray:
+        return np.array([IPHI] + [N_MAIN + N_CLONE * k + 3 for k in range(len(self.clones))])
+
+    # -- set-up ----------------------------------------------------------------------------------
+
+    def initialize(
+        self,
+        world_R_body: np.ndarray,
+        world_p_body: np.ndarray,
+        world_v_body: np.ndarray,
+        scale: float,
+        scale_rel_sigma: float,
+        body_T_cam: np.ndarray,
+        body_T_range: np.ndarray,
+        imu_noise,
+        yaw_sigma: float | None = None,
+    ) -> None:
+        """Initial main state and covariance; no clones."""
+        o = self.opt
+        self._noise = imu_noise
+        self._body_T_cam = np.asarray(body_T_cam, float)
+        self._body_T_range = np.asarray(body_T_range, float)
+        x = np.zeros(N_MAIN)
+        x[IP:IP + 3] = world_p_body
+        x[IPHI:IPHI + 3] = matrix_to_euler(world_R_body[None])[0]
+        x[IV:IV + 3] = world_R_body.T @ np.asarray(world_v_body, float)
+        x[IS] = scale
+        sa = o.initial_attitude_sigma
+        var = np.concatenate([
+            [1e-6] * 3,
+            [(yaw_sigma or sa) ** 2, sa**2, sa**2],
+            [o.initial_velocity_sigma**2] * 3,
+            [o.initial_bias_sigma_accel**2] * 3,
+            [o.initial_bias_sigma_gyro**2] * 3,
+            [o.initial_altimeter_bias_sigma**2],
+            [(scale_rel_sigma * scale) ** 2],
+        ])
+        self.x, self.P, self.clones = x, np.diag(var), []
+        nz = imu_noise
+        q = np.zeros(N_MAIN)  # per second (position: per s^3, see predict)
+        q[IP:IP + 3] = nz.accel_noise_density**2 / 3.0
+        q[IV:IV + 3] = nz.accel_noise_density**2
+        q[IBA:IBA + 3] = nz.accel_random_walk**2
+        q[IBG:IBG + 3] = nz.gyro_random_walk**2
+        q[IZB] = o.altimeter_bias_walk**2
+        self._Q_unit = np.diag(q)
+
+    # -- propagation -----------------------------------------------------------------------------
+
+    def _f(self, X: np.ndarray, omegas: np.ndarray, fs: np.ndarray, dts: np.ndarray) -> np.ndarray:
+        """Eq. 5.1 on (M, 17) sigma points (noise-free part), over the IMU samples ``omegas``,
+        ``fs`` (K, 3) held for ``dts`` (K,) each (sequential strapdown steps)."""
+        R = euler_to_matrix(X[:, IPHI:IPHI + 3])
+        bg, ba = X[:, IBG:IBG + 3], X[:, IBA:IBA + 3]
+        v_w = np.einsum("mij,mj->mi", R, X[:, IV:IV + 3])
+        p = X[:, IP:IP + 3].copy()
+        for omega, f, dt in zip(omegas, fs, dts, strict=True):
+            a_w = np.einsum("mij,mj->mi", R, f - ba)
+            a_w[:, 2] -= GRAVITY
+            p += v_w * dt + 0.5 * dt * dt * a_w
+            v_w = v_w + a_w * dt
+            R = R @ _exp_rows((omega - bg) * dt)
+        Y = X.copy()
+        Y[:, IP:IP + 3] = p
+        phi1 = matrix_to_euler(R)
+        phi1[:, 0] = X[:, IPHI] + _wrap(phi1[:, 0] - X[:, IPHI])  # keep yaw continuous
+        Y[:, IPHI:IPHI + 3] = phi1
+        Y[:, IV:IV + 3] = np.einsum("mji,mj->mi", R, v_w)
+        return Y
+
+    def predict(self, omega: np.ndarray, f: np.ndarray, dt: float | np.ndarray) -> None:
+        """Propagate with body rate ``omega`` [rad/s] and specific force ``f`` [m/s^2] held over
+        ``dt`` [s]; or, with (K, 3) ``omega``, ``f`` and (K,) ``dt``, over K consecutive IMU
+        samples in one unscented transform. Clones are static; their cross-covariances follow
+        ``F = P_{x+ x} P_xx^-1``."""
+        omegas = np.atleast_2d(omega)
+        fs = np.atleast_2d(f)
+        dts = np.atleast_1d(np.asarray(dt, float))
+        keep = dts > 0
+        if not keep.any():
+            return
+        omegas, fs, dts = omegas[keep], fs[keep], dts[keep]
+        T = float(dts.sum())
+        o, nz = self.opt, self._noise
+        Pxx = self.P[:N_MAIN, :N_MAIN]
+        xm = self.x[:N_MAIN]
+        X, wm, wc, _ = self._sigma(xm, Pxx)
+        Y = self._f(X, omegas, fs, dts)
+        y = wm @ Y
+        y[IPHI] = Y[0, IPHI] + wm @ _wrap(Y[:, IPHI] - Y[0, IPHI])
+        dY = Y - y
+        dY[:, IPHI] = _wrap(dY[:, IPHI])
+        dX = X - xm
+        Pyy = (wc[:, None] * dY).T @ dY
+        # Additive process noise (module docstring).
+        Q = self._Q_unit * T
+        Q[IP:IP + 3, IP:IP + 3] *= T * T
+        E = euler_rate_matrix(xm[IPHI:IPHI + 3])
+        Q[IPHI:IPHI + 3, IPHI:IPHI + 3] = E @ E.T * (nz.gyro_noise_density**2 * T)
+        Q[IS, IS] = (o.scale_walk * xm[IS]) ** 2 * T
+        if len(self.x) > N_MAIN:
+            Pyx = (wc[:, None] * dY).T @ dX
+            F = np.linalg.solve(Pxx, Pyx.T).T
+            Pxc = F @ self.P[:N_MAIN, N_MAIN:]
+            self.P[:N_MAIN, N_MAIN:] = Pxc
+            self.P[N_MAIN:, :N_MAIN] = Pxc.T
+        self.x[:N_MAIN] = y
+        self.P[:N_MAIN, :N_MAIN] = Pyy + Q
+
+    # -- augmentation ----------------------------------------------------------------------------
+
+    def clone(self, t: float) -> None:
+        """Append ``[p, Phi]`` of the main state as a clone taken at time ``t``
+        (``P_aug = M P M^T``, ``M = [I; B]``)."""
+        n = len(self.x)
+        sel = np.r_[IP:IP + 3, IPHI:IPHI + 3]
+        self.x = np.concatenate([self.x, self.x[sel]])
+        P = np.zeros((n + N_CLONE, n + N_CLONE))
+        P[:n, :n] = self.P
+        P[n:, :n] = self.P[sel, :]
+        P[:n, n:] = self.P[:, sel]
+        P[n:, n:] = self.P[np.ix_(sel, sel)]
+        self.P = P
+        self.clones.append(float(t))
+
+    def drop_clone(self, k: int) -> None:
+        """Marginalise clone k (remove its rows and columns)."""
+        a = N_MAIN + N_CLONE * k
+        keep = np.r_[0:a, a + N_CLONE:len(self.x)]
+        self.x = self.x[keep]
+        self.P = self.P[np.ix_(keep, keep)]
+        del self.clones[k]
+
+    def clone_index(self, t: float) -> int | None:
+        """Index of the clone taken at time ``t``, or None."""
+        for k, tc in enumerate(self.clones):
+            if abs(tc - t) < 1e-9:
+                return k
+        return None
+
+    # -- updates ---------------------------------------------------------------------------------
+
+    def _update(self, idx: np.ndarray, h, z: np.ndarray, Rm: np.ndarray,
+                wrap_z: np.ndarray | None = None, consider: np.ndarray | None = None) -> bool:
+        """Unscented update with the measurement ``z = h(x[idx]) + n``, ``n ~ N(0, Rm)``.
+
+        Sigma points come from the marginal of ``x[idx]`` only; the gain of the other state
+        entries follows by Gaussian conditioning. ``wrap_z``: components of z that are angles.
+        ``consider``: state entries whose uncertainty enters ``S`` but which are not corrected
+        (Schmidt "consider" update: zero gain rows, general covariance update). Returns False
+        when gated out."""
+        P_II = self.P[np.ix_(idx, idx)]
+        X, wm, wc, L = self._sigma(self.x[idx], P_II)
+        Z = h(X)
+        z_hat = wm @ Z
+        dZ = Z - z_hat
+        r = z - z_hat
+        if wrap_z is not None:
+            z_hat[wrap_z] = Z[0, wrap_z] + wm @ _wrap(Z[:, wrap_z] - Z[0, wrap_z])
+            dZ[:, wrap_z] = _wrap(Z[:, wrap_z] - z_hat[wrap_z])
+            r[wrap_z] = _wrap(z[wrap_z] - z_hat[wrap_z])
+        dX = X - self.x[idx]
+        ang = self._angle_index()
+        local = np.flatnonzero(np.isin(idx, ang))
+        dX[:, local] = _wrap(dX[:, local])
+        S = (wc[:, None] * dZ).T @ dZ + Rm
+        P_Iz = (wc[:, None] * dX).T @ dZ
+        if self.opt.gate:
+            d2 = float(r @ np.linalg.solve(S, r))
+            if d2 > CHI2_999[len(z)]:
+                return False
+        P_az = self.P[:, idx] @ cho_solve((L, True), P_Iz)
+        K = np.linalg.solve(S, P_az.T).T
+        if consider is not None:
+            K[consider] = 0.0
+            KPza = K @ P_az.T
+            self.P = self.P - KPza - KPza.T + K @ S @ K.T
+        else:
+            self.P = self.P - K @ S @ K.T
+        self.x = self.x + K @ r
+        self.x[ang] = _wrap(self.x[ang])
+        self.P = 0.5 * (self.P + self.P.T)
+        return True
+
+    def update_range(self, r_meas: float) -> bool:
+        """Tilted rangefinder reading [m] (module docstring)."""
+        o = self.opt
+        R_br = self._body_T_range[:3, :3]
+        beam, lever = R_br[:, 2], self._body_T_range[:3, 3]
+        c = -(euler_to_matrix(self.x[None, IPHI:IPHI + 3])[0] @ beam)[2]
+        if c < np.cos(o.range_max_tilt_rad):
+            self.counts.range_rejected_tilt += 1
+            return False
+
+        def h(X):  # X columns: p_z, yaw, pitch, roll, z_b
+            R = euler_to_matrix(X[:, 1:4])
+            cos_t = -(R @ beam)[:, 2]
+            return ((X[:, 0] + (R @ lever)[:, 2] - X[:, 4]) / cos_t)[:, None]
+
+        idx = np.array([IP + 2, IPHI, IPHI + 1, IPHI + 2, IZB])
+        ok = self._update(idx, h, np.array([r_meas]), np.array([[o.range_sigma**2]]))
+        if ok:
+            self.counts.range_updates += 1
+        else:
+            self.counts.range_rejected_gate += 1
+        return ok
+
+    def update_yaw(self, yaw: float) -> bool:
+        """Yaw reading [rad] (residual wrapped)."""
+        idx = np.array([IPHI])
+        ok = self._update(idx, lambda X: X[:, :1], np.array([yaw]),
+                          np.array([[self.opt.yaw_sigma**2]]), wrap_z=np.array([0]))
+        if ok:
+            self.counts.yaw_updates += 1
+        else:
+            self.counts.yaw_rejected_gate += 1
+        return ok
+
+    def update_attitude(self, world_R_body: np.ndarray) -> bool:
+        """Roll and pitch of an AHRS attitude reading."""
+        phi = matrix_to_euler(world_R_body[None])[0]
+        idx = np.array([IPHI + 1, IPHI + 2])
+        ok = self._update(idx, lambda X: X, phi[1:],
+                          np.eye(2) * self.opt.attitude_sigma**2, wrap_z=np.array([1]))
+        if ok:
+            self.counts.attitude_updates += 1
+        else:
+            self.counts.attitude_rejected_gate += 1
+        return ok
+
+    def update_relative_slam(
+        self,
+        k_i: int,
+        k_j: int,
+        slam_t_cam_i: np.ndarray,
+        slam_R_cam_i: np.ndarray,
+        slam_t_cam_j: np.ndarray,
+        slam_R_cam_j: np.ndarray,
+    ) -> bool:
+        """Relative SLAM measurement between clones ``k_i`` (earlier) and ``k_j`` (module
+        docstring); the SLAM frame's rotation and origin cancel, its scale is ``s``."""
+        o = self.opt
+        R_bc, b_tc = self._body_T_cam[:3, :3], self._body_T_cam[:3, 3]
+        z_t = slam_R_cam_i.T @ (slam_t_cam_j - slam_t_cam_i)
+        ai, aj = N_MAIN + N_CLONE * k_i, N_MAIN + N_CLONE * k_j
+        idx = np.r_[ai:ai + N_CLONE, aj:aj + N_CLONE, IS]
+        rot = o.use_slam_rotation
+
+        def h(X):
+            Ri, Rj = euler_to_matrix(X[:, 3:6]), euler_to_matrix(X[:, 9:12])
+            d = X[:, 6:9] + Rj @ b_tc - X[:, 0:3]
+            body_d = np.einsum("mji,mj->mi", Ri, d) - b_tc
+            # Predicted minus measured displacement in camera i [SLAM units] (z = 0).
+            zt = X[:, 12:13] * (body_d @ R_bc) - z_t
+            if not rot:
+                return zt
+            Rrel = np.einsum("ji,mjk->mik", R_bc, np.einsum("mji,mjk->mik", Ri, Rj)) @ R_bc
+            return np.concatenate([zt, _log_rows(Rrel)], axis=1)
+
+        s = self.x[IS]
+        var_t = 2.0 * (s * o.slam_position_sigma_m) ** 2 + (
+            np.linalg.norm(z_t) * o.slam_rotation_sigma
+        ) ** 2
+        if rot:
+            z = np.concatenate([np.zeros(3), so3_log(slam_R_cam_i.T @ slam_R_cam_j)])
+            Rm = np.diag([var_t] * 3 + [2.0 * o.slam_rotation_sigma**2] * 3)
+        else:
+            z, Rm = np.zeros(3), np.eye(3) * var_t
+        # Errors in variables: with a displacement buried in noise, the uncertain predicted
+        # displacement enters through the product s d and biases s towards 0 (the scale
+        # collapsed on the hover of two-turns); s is only corrected by displacements with a
+        # signal-to-noise ratio of at least scale_min_snr.
+        excited = np.linalg.norm(z_t) >= o.scale_min_snr * np.sqrt(var_t)
+        ok = self._update(idx, h, z, Rm, consider=None if excited else np.array([IS]))
+        if ok and not excited:
+            self.counts.slam_scale_considered += 1
+        if ok:
+            self.counts.slam_updates += 1
+        else:
+            self.counts.slam_rejected_gate += 1
+        return ok
+
+    # -- whole flight ----------------------------------------------------------------------------
+
+    def run(self, flight: Flight) -> Estimate:
+        """Run over a flight in arrival order and return the causal estimate."""
+        o = self.opt
+        imu, slam = flight.imu, flight.slam
+        missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
+        if missing:
+            raise FlightDataError(
+                f"{flight.name}: the seed-003 UKF needs the imu and slam streams; missing "
+                f"{', '.join(missing)}"
+            )
+        calib = flight.calib
+        wall0 = time.perf_counter()
+        good = np.flatnonzero(slam.session >= 0)
+        self.counts.slam_lost = int(len(slam) - len(good))
+        if len(good) < 2:
+            raise FlightDataError(f"{flight.name}: fewer than two tracked SLAM poses")
+        t_start = max(float(imu.t[0]), float(slam.t[good[0]]))
+        R0, yaw_sigma = self._initial_attitude(flight, t_start)
+        if o.initial_scale is not None:
+            s0, v0, rel0 = float(o.initial_scale), np.zeros(3), 0.15
+        else:
+            s0, v0, rel0 = initial_state_guess(flight)
+        rel = (o.initial_scale_rel_sigma if o.initial_scale_rel_sigma is not None
+               else max(2.0 * rel0, MIN_SCALE_REL_SIGMA))
+        p0 = np.array([0.0, 0.0, self._initial_height(flight, t_start, R0)])
+        self.initialize(R0, p0, v0, s0, rel, calib.body_T_cam, calib.body_T_range,
+                        calib.imu_noise, yaw_sigma)
+        self.counts.extra["initial_scale"] = s0
+
+        events = self._events(flight, t_start)
+        slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+        att_R = (quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)
+                 if (o.use_attitude and flight.attitude is not None) else None)
+        session: int | None = None
+        ref: int | None = None  # SLAM index of the reference clone
+        pending: tuple[int, float] | None = None  # (new session, time of its first pose)
+        t_last_att = -np.inf
+        i0 = int(np.searchsorted(imu.t, t_start))
+        cur_t = float(imu.t[i0])
+        out_dt = 1.0 / o.output_rate_hz
+        next_out = cur_t
+        out_t, out_x, out_P, lat = [], [], [], []
+        sh_t, sh, ss, zb = [], [], [], []
+        ev = 0
+        n_imu = len(imu)
+        batch_w: list[np.ndarray] = []
+        batch_f: list[np.ndarray] = []
+        batch_dt: list[float] = []
+
+        def flush() -> None:
+            if batch_dt:
+                self.predict(np.asarray(batch_w), np.asarray(batch_f), np.asarray(batch_dt))
+                batch_w.clear()
+                batch_f.clear()
+                batch_dt.clear()
+
+        for i in range(i0, n_imu - 1):
+            omega, f = imu.body_omega[i], imu.body_accel[i]
+            t_next = float(imu.t[i + 1])
+            # Events in [t_i, t_next): propagate to each with this sample (zero-order hold).
+            while ev < len(events) and events[ev][0] < t_next:
+                t_ev, kind, j = events[ev]
+                ev += 1
+                if t_ev > cur_t:
+                    batch_w.append(omega)
+                    batch_f.append(f)
+                    batch_dt.append(t_ev - cur_t)
+                    cur_t = t_ev
+                flush()
+                w0 = time.perf_counter()
+                if kind == 0:  # image capture: clone
+                    self.clone(float(slam.t[j]))
+                    continue
+                if kind == 1:
+                    session, ref, pending = self._on_slam(
+                        flight, j, slam_R, session, ref, pending, cur_t)
+                    sh_t.append(cur_t)
+                    sh.append(self.scale)
+                    ss.append(self.scale_sigma)
+                elif kind == 2:
+                    self.update_range(float(flight.range.range[j]))
+                elif kind == 3:
+                    self.update_yaw(float(flight.yaw.yaw[j]))
+                elif kind == 4 and t_ev - t_last_att >= o.attitude_min_interval_s:
+                    t_last_att = t_ev
+                    self.update_attitude(att_R[j])
+                lat.append(time.perf_counter() - w0)
+            batch_w.append(omega)
+            batch_f.append(f)
+            batch_dt.append(t_next - cur_t)
+            cur_t = t_next
+            if sum(batch_dt) >= o.ut_interval_s - 1e-9 or cur_t >= next_out - 1e-9:
+                flush()
+            if cur_t >= next_out - 1e-9:
+                out_t.append(cur_t)
+                out_x.append(self.x[:N_MAIN].copy())
+                out_P.append(self.P[:N_MAIN, :N_MAIN].copy())
+                zb.append(self.x[IZB])
+                next_out += out_dt
+        flush()
+        self.counts.extra["events_after_imu_end"] = len(events) - ev
+        self.counts.extra["clones_left"] = len(self.clones)
+        series = {
+            "slam_scale": TimeSeries(np.asarray(sh_t), np.asarray(sh), np.asarray(ss)),
+            "altimeter_bias": TimeSeries(np.asarray(out_t), np.asarray(zb)),
+        }
+        return self._estimate(out_t, out_x, out_P, lat, series, session,
+                              time.perf_counter() - wall0)
+
+    def _on_slam(self, flight, j, slam_R, session, ref, pending, cur_t):
+        """A SLAM pose j arrives: relative update against the reference clone, map resets."""
+        slam = flight.slam
+        sid = int(slam.session[j])
+        k_j = self.clone_index(float(slam.t[j]))
+        if k_j is None:
+            self.counts.slam_no_clone += 1
+            return session, ref, pending
+        if session is None:
+            # First pose: the clone becomes the reference.
+            self.counts.slam_first_of_map += 1
+            self._keep_only_clone(k_j)
+            return sid, j, None
+        if sid != session:
+            if pending is None or pending[0] != sid:
+                pending = (sid, float(slam.t[j]))
+            guess = self._reinit_guess(flight, pending[1], float(slam.t[j]), cur_t)
+            if guess is None:
+                self.counts.slam_waiting_reinit += 1
+                self.drop_clone(k_j)
+                return session, ref, pending
+            s_new, rel = guess
+            self._reset_scale(s_new, rel)
+            self.counts.session_resets += 1
+            self._keep_only_clone(self.clone_index(float(slam.t[j])))
+            return sid, j, None
+        k_i = self.clone_index(float(slam.t[ref]))
+        if k_i is None or slam.t[j] <= slam.t[ref]:
+            self.counts.slam_out_of_order += 1
+            self.drop_clone(k_j)
+            return session, ref, pending
+        self.update_relative_slam(k_i, k_j, slam.slam_t_cam[ref], slam_R[ref],
+                                  slam.slam_t_cam[j], slam_R[j])
+        if slam.t[j] - slam.t[ref] < self.opt.keyframe_interval_s - 1e-9:
+            self.drop_clone(k_j)  # same keyframe: the next pose is measured against it again
+            return session, ref, pending
+        # New keyframe: marginalise the old one; clones older than j can never be used.
+        t_ref = float(slam.t[j])
+        for k in reversed(range(len(self.clones))):
+            if self.clones[k] < t_ref - 1e-9:
+                if k != k_i:
+                    self.counts.slam_out_of_order += 1
+                self.drop_clone(k)
+        self.counts.keyframes += 1
+        return session, j, pending
+
+    def _keep_only_clone(self, k: int) -> None:
+        """Drop every clone except k, and those taken after it (pending images)."""
+        t_k = self.clones[k]
+        for m in reversed(range(len(self.clones))):
+            if self.clones[m] < t_k - 1e-9:
+                self.drop_clone(m)
+
+    def _reset_scale(self, scale: float, rel_sigma: float) -> None:
+        self.x[IS] = scale
+        self.P[IS, :] = 0.0
+        self.P[:, IS] = 0.0
+        self.P[IS, IS] = (rel_sigma * scale) ** 2
+
+    def _reinit_guess(self, flight: Flight, t_first: float, t_meas: float,
+                      t_now: float) -> tuple[float, float] | None:
+        """Closed-form scale of a new map from its data so far (causal); None while undetermined;
+        after ``REINIT_GIVE_UP_S`` the old scale with ``RESET_SCALE_REL_SIGMA``."""
+        if t_meas - t_first < REINIT_MIN_S:
+            return None
+        if t_meas - t_first > REINIT_GIVE_UP_S:
+            self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
+            return self.scale, RESET_SCALE_REL_SIGMA
+        sub = dataclasses.replace(
+            flight,
+            imu=flight.imu.between(t_first, t_now),
+            slam=flight.slam.between(t_first, t_meas),
+            attitude=flight.attitude.between(t_first, t_now) if flight.attitude else None,
+        )
+        try:
+            s, _, rel = initial_state_guess(sub)
+        except FlightDataError:
+            return None
+        return s, max(2.0 * rel, MIN_SCALE_REL_SIGMA)
+
+    def _events(self, flight: Flight, t_start: float) -> list[tuple[float, int, int]]:
+        """(time, kind, index) sorted; kinds: 0 clone at image time, 1 SLAM arrival, 2 range,
+        3 yaw, 4 attitude. At equal times clones come first (kind order)."""
+        o, slam = self.opt, flight.slam
+        lat = slam.latency if slam.latency is not None else np.zeros(len(slam))
+        ev: list[tuple[float, int, int]] = []
+        for j in range(len(slam)):
+            if slam.session[j] < 0 or slam.t[j] < t_start:
+                continue
+            ev.append((float(slam.t[j]), 0, j))
+            ev.append((float(slam.t[j] + lat[j]), 1, j))
+        if o.use_range and flight.range is not None:
+            rng, c = flight.range, flight.calib
+            ok = (rng.range >= c.range_min) & (rng.range <= c.range_max)
+            self.counts.range_out_of_limits = int((~ok).sum())
+            ev += [(float(rng.t[j]), 2, j) for j in np.flatnonzero(ok) if rng.t[j] >= t_start]
+        if o.use_yaw and flight.yaw is not None:
+            ev += [(float(t), 3, j) for j, t in enumerate(flight.yaw.t) if t >= t_start]
+        if o.use_attitude and flight.attitude is not None:
+            ev += [(float(t), 4, j) for j, t in enumerate(flight.attitude.t) if t >= t_start]
+        ev.sort()
+        return ev
+
+    def _initial_attitude(self, flight: Flight, t_start: float) -> tuple[np.ndarray, float | None]:
+        """Attitude stream if present, else accelerometer tilt; yaw from the yaw stream when
+        present. Returns ``(world_R_body, yaw sigma or None)``."""
+        from fgnav.baselines.msf_ekf import _tilt_from_accel
+        from fgnav.datasets.geometry import rpy_to_matrix
+
+        if flight.attitude is not None:
+            att = flight.attitude
+            k = min(int(np.searchsorted(att.t, t_start)), len(att) - 1)
+            R = quat_wxyz_to_matrix(att.world_q_body_wxyz[k])
+        else:
+            imu = flight.imu
+            k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
+            R = _tilt_from_accel(imu.body_accel[k].mean(axis=0))
+        yaw_sigma = None
+        if self.opt.use_yaw and flight.yaw is not None:
+            yw = flight.yaw
+            k = min(int(np.searchsorted(yw.t, t_start)), len(yw) - 1)
+            _, pitch, roll = matrix_to_euler(R[None])[0]
+            R = rpy_to_matrix(roll, pitch, float(yw.yaw[k]))
+            yaw_sigma = self.opt.yaw_sigma
+        return R, yaw_sigma
+
+    def _initial_height(self, flight: Flight, t_start: float, R0: np.ndarray) -> float:
+        """Height of the body above the ground (``z_b = 0``) from the first valid range reading
+        (0 without a rangefinder)."""
+        rng = flight.range
+        if rng is None or not self.opt.use_range:
+            return 0.0
+        c = flight.calib
+        ok = np.flatnonzero((rng.range >= c.range_min) & (rng.range <= c.range_max)
+                            & (rng.t >= t_start))
+        if ok.size == 0:
+            return 0.0
+        # Median of the first readings resists an obstacle spike.
+        r = float(np.median(rng.range[ok[:5]]))
+        T = np.asarray(c.body_T_range, float)
+        cos_t = -(R0 @ T[:3, 2])[2]
+        return r * cos_t - (R0 @ T[:3, 3])[2]
+
+    def _estimate(self, out_t, out_x, out_P, lat, series, session, wall) -> Estimate:
+        n = len(out_t)
+        X = np.asarray(out_x).reshape(n, N_MAIN)
+        R = euler_to_matrix(X[:, IPHI:IPHI + 3])
+        v_w = np.einsum("nij,nj->ni", R, X[:, IV:IV + 3])
+        pose_cov = np.empty((n, 6, 6))
+        vel_cov = np.empty((n, 3, 3))
+        for k in range(n):
+            Jr = body_rotation_jacobian(X[k, IPHI:IPHI + 3])
+            # [rot (body), trans (body)] <- [p (world), Phi]
+            J = np.zeros((6, N_MAIN))
+            J[0:3, IPHI:IPHI + 3] = Jr
+            J[3:6, IP:IP + 3] = R[k].T
+            pose_cov[k] = J @ out_P[k] @ J.T
+            vb = X[k, IV:IV + 3]
+            Jv = np.zeros((3, N_MAIN))
+            Jv[:, IV:IV + 3] = R[k]
+            Jv[:, IPHI:IPHI + 3] = -R[k] @ np.array(
+                [[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]]) @ Jr
+            vel_cov[k] = Jv @ out_P[k] @ Jv.T
+        traj = Trajectory(
+            t=np.asarray(out_t, float),
+            world_t_body=X[:, IP:IP + 3].copy(),
+            world_q_body_wxyz=matrix_to_quat_wxyz(R),
+            world_v_body=v_w,
+            gyro_bias=X[:, IBG:IBG + 3].copy(),
+            accel_bias=X[:, IBA:IBA + 3].copy(),
+        )
+        sid = 0 if session is None else int(session)
+        return Estimate(
+            method="ukf003",
+            trajectory=traj,
+            pose_cov=pose_cov,
+            vel_cov=vel_cov,
+            slam_scale={sid: self.scale},
+            slam_scale_sigma={sid: self.scale_sigma},
+            ground_height=float(self.x[IZB]),
+            series=series,
+            update_latency=np.asarray(lat),
+            runtime_s=wall,
+            causal=True,
+            info={
+                "options": dataclasses.asdict(self.opt),
+                "counts": dataclasses.asdict(self.counts),
+            },
+        ).check()
+
+
+def run_ukf003(flight: Flight, options: Ukf003Options | None = None) -> Estimate:
+    """Run the seed-003 UKF over a flight (library entry point)."""
+    return Ukf003(options).run(flight)
