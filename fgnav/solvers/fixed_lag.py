@@ -63,6 +63,8 @@ class FixedLagOptions:
         slam_init_min_excitation_m: a session's alignment is initialised once the RMS metric
             second difference of its motion (0.5 s half-width) reaches this [m]: below it the
             closed-form scale is dominated by noise (hover; see ``init_slam_alignment``).
+        slam_init_max_rel_se: ... and once the fit's relative standard error of the scale is
+            below this.
         rebuild_rot_sigma [rad], rebuild_pos_sigma [m], rebuild_vel_sigma [m/s],
         rebuild_accel_bias_sigma [m/s^2], rebuild_gyro_bias_sigma [rad/s]: priors of a rebuilt
             smoother on the last good state.
@@ -80,6 +82,7 @@ class FixedLagOptions:
     slam_init_window_s: float = 3.0
     slam_init_scale_sigma_rel: float = 0.2
     slam_init_min_excitation_m: float = 0.01
+    slam_init_max_rel_se: float = 0.3
     rebuild_rot_sigma: float = 0.01
     rebuild_pos_sigma: float = 0.05
     rebuild_vel_sigma: float = 0.1
@@ -266,7 +269,10 @@ class FixedLagRunner:
         except FlightDataError as e:
             log.debug("SLAM session %d: not initialised at t=%.2f: %s", session, self.t_latest, e)
             return None, 0.0
-        if init.excitation < self.options.slam_init_min_excitation_m:
+        if (
+            init.excitation < self.options.slam_init_min_excitation_m
+            or not init.scale_rel_se <= self.options.slam_init_max_rel_se
+        ):
             return None, 0.0
         log.info(
             "SLAM session %d initialised at t=%.2f: scale %.4g (excitation %.3f m)",

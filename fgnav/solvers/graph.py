@@ -593,7 +593,7 @@ class GraphBuilder:
         slam = self.flight.slam
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
-        sd2, wd2 = second_difference_pairs(
+        sd2, wd2, _ = second_difference_pairs(
             slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1
         )
         if len(sd2) < 3:

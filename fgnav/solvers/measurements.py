@@ -313,6 +313,7 @@ class SlamAlignmentInit:
         n_pairs: number of acceleration pairs used for the scale.
         excitation: RMS of the metric second differences used [m] (small = scale poorly
             observable from the IMU).
+        scale_rel_se: relative standard error of the least-squares scale.
     """
 
     scale: float
@@ -320,6 +321,7 @@ class SlamAlignmentInit:
     slam_t_world: np.ndarray
     n_pairs: int
     excitation: float
+    scale_rel_se: float = float("nan")
 
 
 def rotation_mean(Rs: np.ndarray) -> np.ndarray:
@@ -349,12 +351,13 @@ def second_difference_pairs(
     half-width h, which is the exact second difference of a twice-integrated signal).
 
     Returns:
-        (slam_d2 (P, 3) [SLAM units], world_d2 (P, 3) [m]) at centres every ``step`` seconds.
+        (slam_d2 (P, 3) [SLAM units], world_d2 (P, 3) [m], centres (P,) [s]), centres every
+        ``step`` seconds.
     """
     t_lo = max(t_slam[0], imu_t[0]) + h
     t_hi = min(t_slam[-1], imu_t[-1]) - h
     if t_hi <= t_lo:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
     centers = np.arange(t_lo, t_hi, step)
     slam_d2 = np.empty((len(centers), 3))
     for a in range(3):
@@ -368,7 +371,7 @@ def second_difference_pairs(
     for a in range(3):
         aa = np.interp(centers[:, None] + offs[None, :], imu_t, world_a[:, a])
         world_d2[:, a] = aa @ w
-    return slam_d2, world_d2
+    return slam_d2, world_d2, centers
 
 
 def init_slam_alignment(
@@ -384,8 +387,8 @@ def init_slam_alignment(
 
     1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``.
     2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
-       second differences from the accelerometer (:func:`second_difference_pairs`), both centred
-       (an accelerometer bias is a constant offset of the metric ones).
+       second differences from the accelerometer (:func:`second_difference_pairs`), jointly with
+       the accelerometer bias (a body-frame offset ``h^2 b_a`` of the metric ones).
     3. ``slam_t_world`` from the first SLAM position with the world origin at the first camera.
 
     Args:
@@ -404,26 +407,40 @@ def init_slam_alignment(
         slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1))
     )
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
-    slam_d2, world_d2 = second_difference_pairs(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
-    # An accelerometer bias adds a near-constant offset (b h^2) to the metric second differences
-    # that the SLAM ones do not have: fit the scale to the centred pairs.
-    slam_d2 = slam_d2 - slam_d2.mean(axis=0) if len(slam_d2) else slam_d2
-    world_d2 = world_d2 - world_d2.mean(axis=0) if len(world_d2) else world_d2
-    rotated = world_d2 @ slam_R_world.T
-    den = float((rotated**2).sum())
-    if len(slam_d2) < 3 or den <= 0.0:
+    slam_d2, world_d2, centers = second_difference_pairs(
+        slam.t, slam.slam_t_cam, imu.t, world_a, h, step
+    )
+    if len(slam_d2) < 6:
         raise FlightDataError(
-            "SLAM scale initialisation: fewer than 3 acceleration pairs (session shorter than "
-            f"{2 * h + 3 * step:.1f} s); give an initial scale (front-end priors) or a longer "
+            "SLAM scale initialisation: fewer than 6 acceleration pairs (session shorter than "
+            f"{2 * h + 6 * step:.1f} s); give an initial scale (front-end priors) or a longer "
             "session"
         )
-    scale = float((slam_d2 * rotated).sum() / den)
+    # Joint least squares of the scale s and c = s b_a: an accelerometer bias b_a (body frame)
+    # adds h^2 world_R_body b_a to each metric second difference, which SLAM does not see:
+    #   slam_d2 = s slam_R_world world_d2 - h^2 slam_R_world world_R_body(t) c.
+    R_c = slerp_rotations(imu.t, world_R_body_imu, centers)
+    A = np.zeros((len(centers), 3, 4))
+    A[:, :, 0] = world_d2 @ slam_R_world.T
+    A[:, :, 1:] = -(h**2) * (slam_R_world[None] @ R_c)
+    A = A.reshape(-1, 4)
+    y = slam_d2.reshape(-1)
+    x, *_ = np.linalg.lstsq(A, y, rcond=None)
+    scale = float(x[0])
     if not np.isfinite(scale) or scale <= 0:
         raise FlightDataError(
             f"SLAM scale initialisation gave {scale}: the SLAM motion does not match the IMU "
             "(wrong body_T_cam, time offset or SLAM frame?)"
         )
-    excitation = float(np.sqrt((world_d2**2).sum(axis=1).mean()))
+    centred = world_d2 - world_d2.mean(axis=0)
+    excitation = float(np.sqrt((centred**2).sum(axis=1).mean()))
+    resid = y - A @ x
+    # Standard error of the scale (residuals of neighbouring pairs overlap: a lower bound).
+    dof = max(len(y) - 4, 1)
+    cov = np.linalg.pinv(A.T @ A) * float(resid @ resid) / dof
+    scale_se = float(np.sqrt(max(cov[0, 0], 0.0)))
     world_t_cam0 = np.zeros(3)
     slam_t_world = slam.slam_t_cam[0] - scale * slam_R_world @ world_t_cam0
-    return SlamAlignmentInit(scale, slam_R_world, slam_t_world, len(slam_d2), excitation)
+    return SlamAlignmentInit(
+        scale, slam_R_world, slam_t_world, len(slam_d2), excitation, scale_se / scale
+    )

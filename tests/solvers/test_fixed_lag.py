@@ -30,7 +30,7 @@ def test_fixed_lag_two_turns(two_turns_12s, online_two_turns):
     # The newest state after each update: dead reckoning (IMU + drag + range + yaw) until the SLAM
     # scale becomes observable (the hover of the first seconds), then SLAM-aided.
     m = evaluate(est, f.ground_truth, alignment="se3")
-    assert m.ate_rmse_m < 0.3, m.ate_rmse_m
+    assert m.ate_rmse_m < 0.4, m.ate_rmse_m
     assert m.vel_rmse_mps < 0.15
     s_true = _truth_scale_at(f, 0, float(est.trajectory.t[-1]))
     assert abs(est.slam_scale[0] / s_true - 1) < 0.03
