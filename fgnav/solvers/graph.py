@@ -128,10 +128,10 @@ class GraphOptions:
     slam_sigma_m: float = 0.01
     slam_rotation: bool = False
     slam_rot_sigma: float = 0.005
-    slam_segment_s: float = 5.0
+    slam_segment_s: float = 2.0
     slam_scale_rw: float = 1e-3
     slam_rot_rw: float = 2e-4
-    slam_trans_rw_m: float = 2e-3
+    slam_trans_rw_m: float = 1e-2
     drag_per_axis: bool = True
     drag_model_sigma: float = 0.05
     drag_k_init: float | None = None
