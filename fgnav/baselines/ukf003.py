@@ -316,6 +316,7 @@ class Ukf003:
         self.x = np.zeros(N_MAIN)
         self.P = np.eye(N_MAIN)
         self.clones: list[float] = []  # clone times, in state order after the main block
+        self._session_scale: dict[int, tuple[float, float]] = {}  # final (s, sigma) of old maps
         self._noise = None
         self._body_T_cam = np.eye(4)
         self._body_T_range = np.eye(4)
@@ -781,6 +782,7 @@ class Ukf003:
                 self.drop_clone(k_j)
                 return session, ref, pending
             s_new, rel = guess
+            self._session_scale[session] = (self.scale, self.scale_sigma)
             self._reset_scale(s_new, rel)
             self.counts.session_resets += 1
             self._keep_only_clone(self.clone_index(float(slam.t[j])))
@@ -931,13 +933,14 @@ class Ukf003:
             accel_bias=X[:, IBA:IBA + 3].copy(),
         )
         sid = 0 if session is None else int(session)
+        scales = {**self._session_scale, sid: (self.scale, self.scale_sigma)}
         return Estimate(
             method="ukf003",
             trajectory=traj,
             pose_cov=pose_cov,
             vel_cov=vel_cov,
-            slam_scale={sid: self.scale},
-            slam_scale_sigma={sid: self.scale_sigma},
+            slam_scale={k: v[0] for k, v in scales.items()},
+            slam_scale_sigma={k: v[1] for k, v in scales.items()},
             ground_height=float(self.x[IZB]),
             series=series,
             update_latency=np.asarray(lat),
