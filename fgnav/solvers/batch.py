@@ -31,6 +31,10 @@ from fgnav.solvers.graph import GraphBuilder, GraphOptions
 
 log = logging.getLogger(__name__)
 
+#: Damping (information per unit tangent) added when the final system is indeterminate, so that the
+#: observable marginals can still be computed: sigma of an unobservable direction = 100.
+COVARIANCE_REGULARISATION = 1e-4
+
 
 class SolverError(FgnavError, RuntimeError):
     """The solver could not produce an estimate (indeterminate system, divergence)."""
@@ -206,11 +210,27 @@ def solve_batch(
     )
     est = estimate_from_values(builder, res.values, method="batch")
     marg = None
+    cov_regularised = False
     if o.covariance != "none":
         try:
             marg = gtsam.Marginals(res.linear, res.values)
-        except RuntimeError as e:
-            log.warning("marginal covariances unavailable: %s", e)
+        except RuntimeError:
+            # An unobservable direction (e.g. the vertical SLAM scale at constant altitude): add a
+            # tiny damping so the others can be reported; the unobservable ones come out huge.
+            zero = res.values.zeroVectors()
+            dims = {k: int(zero.at(k).shape[0]) for k in res.values.keys()}
+            try:
+                marg = gtsam.Marginals(
+                    _damping_graph(res.linear, dims, COVARIANCE_REGULARISATION), res.values
+                )
+                cov_regularised = True
+                log.warning(
+                    "indeterminate system: covariances computed with a %.0e damping "
+                    "(unobservable directions have sigma ~ 100)",
+                    COVARIANCE_REGULARISATION,
+                )
+            except RuntimeError as e:
+                log.warning("marginal covariances unavailable: %s", " ".join(str(e).split())[:120])
     pose_cov = vel_cov = None
     slow_sigma: dict[int, np.ndarray] = {}
     if marg is not None:
@@ -237,6 +257,7 @@ def solve_batch(
             "time_solve_s": t_solved - t_built,
             "time_covariance_s": t_cov - t_solved,
             "covariance": o.covariance,
+            "covariance_regularised": cov_regularised,
             "cov_pose_stride": o.cov_pose_stride,
             "lm_options": asdict(o.lm),
         }
