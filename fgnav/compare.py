@@ -51,6 +51,11 @@ ROW_METRICS = (
 )
 
 
+#: Top view: the truth's extent grown by this fraction on each side (a diverging estimate
+#: leaves the view instead of shrinking the others to a dot; the legend says so).
+TOP_VIEW_MARGIN = 0.25
+
+
 @dataclass
 class MethodRun:
     """The outcome of one method.
@@ -252,8 +257,10 @@ class CompareResult:
         scored = [e for e in ests if truth is None or self.runs[e.method].metrics is not None]
         dropped = [e.method for e in ests if e not in scored]
         jobs = {
-            "top_view": lambda p: plots.plot_top_view(scored, truth, p),
-            "errors": lambda p: plots.plot_errors_over_time(scored, truth, p),
+            "top_view": lambda p: plots.plot_top_view(
+                scored, truth, p, view_margin=TOP_VIEW_MARGIN
+            ),
+            "errors": lambda p: plots.plot_errors_over_time(scored, truth, p, log_scale=True),
             "scale": lambda p: plots.plot_scale(ests, p, self.truth_scale),
             "drag": lambda p: plots.plot_drag(
                 [held_to_end(e, "drag_k") for e in ests], p, self.truth_drag_k()

@@ -200,12 +200,39 @@ def run_ukf003(flight: Flight, config: Mapping[str, Any], progress: bool = False
     return _run_options_function(mod, "run_ukf003", "Ukf003Options", flight, config, "ukf003")
 
 
+#: Where the seed-000 observer's drag coefficient came from when the config does not give it.
+DRAG_FROM_SIM_TRUTH = "simulator truth: seed 000 takes mu/m as known (calibrated)"
+
+
 def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
-    """Seed 000's I&I observer alone with ``[ii-observer]``."""
-    mod = importlib.import_module("fgnav.baselines.seed000")
-    return _run_options_function(
-        mod, "run_seed000", "Seed000Options", flight, config, "ii-observer"
-    )
+    """Seed 000's I&I observer alone with ``[ii-observer]`` (fields of ``Seed000Options``).
+
+    Defaults filled here (stated in ``info["compare_defaults"]``): ``align_slam_axes`` is True
+    unless the flight's SLAM follows the paper's per-axis model (``meta["truth"]
+    ["slam_axis_scale"]``: SLAM axes are the world's); ``drag_k``, which the paper takes as known,
+    comes from ``flight.meta["drag_k"]`` or, on a simulated flight, from the simulator's value.
+    """
+    from fgnav.baselines.seed000 import Seed000Options, run_seed000
+
+    table = dict(config.get("ii-observer", {}))
+    truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
+    truth = truth if isinstance(truth, dict) else {}
+    defaults: dict[str, Any] = {}
+    if "align_slam_axes" not in table:
+        defaults["align_slam_axes"] = not truth.get("slam_axis_scale")
+    if "drag_k" not in table and flight.meta.get("drag_k") is None and truth.get("drag_k"):
+        defaults["drag_k"] = tuple(float(k) for k in truth["drag_k"])
+        defaults["drag_k_source"] = DRAG_FROM_SIM_TRUTH
+    fields = {k: v for k, v in defaults.items() if k != "drag_k_source"}
+    opts = _options(Seed000Options, {"ii-observer": {**fields, **table}}, "ii-observer")
+    est = run_seed000(flight, opts)
+    return _with_info(est, compare_defaults=defaults)
+
+
+def _with_info(est: Estimate, **items: Any) -> Estimate:
+    import dataclasses
+
+    return dataclasses.replace(est, info={**est.info, **items})
 
 
 def run_ekf_vo002(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:

@@ -60,22 +60,41 @@ def plot_top_view(
     truth: Trajectory | None,
     path: str | Path,
     alignment: str = "se3",
+    view_margin: float | None = None,
 ) -> Path:
-    """Top view (world x-y, metres) of each estimate, aligned to the truth when given."""
+    """Top view (world x-y, metres) of each estimate, aligned to the truth when given.
+
+    ``view_margin``: with truth, limit the view to the truth's x-y extent grown by this fraction
+    of its size on each side (at least 1 m), so that one diverging estimate does not shrink the
+    others to a dot; estimates leaving the view say so in the legend.
+    """
     fig = Figure(figsize=FIGSIZE)
     ax = fig.add_subplot()
+    box = None
     if truth is not None:
         ax.plot(truth.world_t_body[:, 0], truth.world_t_body[:, 1], "k-", lw=2, label="truth")
+        if view_margin is not None:
+            lo, hi = truth.world_t_body[:, :2].min(axis=0), truth.world_t_body[:, :2].max(axis=0)
+            pad = max(1.0, view_margin * float(np.max(hi - lo)))
+            box = (lo - pad, hi + pad)
     for est in estimates:
         if truth is not None:
             traj, _, al = aligned_to_truth(est, truth, alignment)
             label = f"{est.method} ({al.mode}" + (f", s={al.s:.3g})" if al.mode == "sim3" else ")")
         else:
             traj, label = est.trajectory, est.method
-        ax.plot(traj.world_t_body[:, 0], traj.world_t_body[:, 1], lw=1, label=label)
+        xy = traj.world_t_body[:, :2]
+        if box is not None and (np.any(xy < box[0]) or np.any(xy > box[1])):
+            label += ", leaves the view"
+        ax.plot(xy[:, 0], xy[:, 1], lw=1, label=label)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_aspect("equal", adjustable="datalim")
+    if box is not None:
+        ax.set_xlim(box[0][0], box[1][0])
+        ax.set_ylim(box[0][1], box[1][1])
+        ax.set_aspect("equal", adjustable="box")
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
     mode = alignment if truth is not None else "no truth"
@@ -88,9 +107,11 @@ def plot_errors_over_time(
     truth: Trajectory,
     path: str | Path,
     alignment: str = "se3",
+    log_scale: bool = False,
 ) -> Path:
     """Position error [m], velocity error [m/s] (when both have velocity) and wrapped yaw error
-    [deg] over time, after alignment."""
+    [deg] over time, after alignment. ``log_scale``: logarithmic position and velocity axes (for
+    methods whose errors differ by orders of magnitude)."""
     fig = Figure(figsize=(FIGSIZE[0], 1.4 * FIGSIZE[1]))
     ax_p, ax_v, ax_y = fig.subplots(3, 1, sharex=True)
     t0 = float(truth.t[0])
@@ -104,6 +125,9 @@ def plot_errors_over_time(
             ax_v.plot([], [])
         dyaw = wrap_angle(yaw_of(traj.world_R_body()) - yaw_of(gt.world_R_body()))
         ax_y.plot(t, np.rad2deg(dyaw))
+    if log_scale:
+        ax_p.set_yscale("log")
+        ax_v.set_yscale("log")
     ax_p.set_ylabel("position error [m]")
     ax_v.set_ylabel("velocity error [m/s]")
     ax_y.set_ylabel("yaw error [deg]")
