@@ -245,3 +245,24 @@ def test_piecewise_constant_series_held_to_end(flight):
     np.testing.assert_array_equal(ts.value, [[0.38, 0.41], [0.38, 0.41]])
     assert ts.sigma.shape == (2, 2)
     assert held_to_end(est, "slam_scale") is est
+
+
+def test_seed000_defaults_are_stated(flight):
+    from fgnav.methods import DRAG_FROM_SIM_TRUTH
+
+    res = compare(flight, ["ii-observer"], progress=False)
+    info = res.runs["ii-observer"].estimate.info
+    assert info["compare_defaults"] == {
+        "align_slam_axes": True,
+        "drag_k": (0.38, 0.42),
+        "drag_k_source": DRAG_FROM_SIM_TRUTH,
+    }
+    res = compare(
+        flight, ["ii-observer"], config={"ii-observer": {"drag_k": [0.3, 0.3]}}, progress=False
+    )
+    run = res.runs["ii-observer"]
+    assert run.estimate.info["compare_defaults"] == {"align_slam_axes": True}
+    assert list(run.estimate.drag_k) == [0.3, 0.3]
+    # A config typo fails that method, naming the valid options; nothing else is affected.
+    res = compare(flight, ["ii-observer"], config={"ii-observer": {"dragk": 1}}, progress=False)
+    assert "unknown option(s) ['dragk'] for Seed000Options" in res.failed["ii-observer"]
