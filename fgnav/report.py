@@ -180,10 +180,18 @@ def render_report(data: Mapping[str, Any]) -> str:
             lines += [f"Failed after {_fmt(m['wall_s'], '{:.2f}')} s: `{m['error']}`", ""]
             continue
         est = m["estimate"]
+        wall = (
+            f"computed before the comparison, scored in {_fmt(m['wall_s'], '{:.2f}')} s"
+            if m.get("reused")
+            else f"wall {_fmt(m['wall_s'], '{:.2f}')} s incl. scoring"
+        )
         lines.append(
             f"- {est['n_states']} states, run time {_fmt(est['runtime_s'], '{:.2f}')} s "
-            f"(wall {_fmt(m['wall_s'], '{:.2f}')} s incl. scoring); outputs: `{m['output']}`"
+            f"({wall}); outputs: `{m['output']}`"
         )
+        defaults = (est.get("info") or {}).get("compare_defaults")
+        if defaults:
+            lines.append(f"- options filled in by compare: {defaults}")
         for sid, s in (est.get("slam_scale") or {}).items():
             sig = s.get("sigma")
             sig_txt = f" +/- {_fmt(sig, '{:.2g}')}" if sig is not None else ""
@@ -194,7 +202,8 @@ def render_report(data: Mapping[str, Any]) -> str:
                 f"metre{err_txt}"
             )
         if est.get("drag_k_per_s") is not None:
-            lines.append(f"- drag k: {est['drag_k_per_s']} 1/s")
+            ks = ", ".join(_fmt(k, "{:.4g}") for k in est["drag_k_per_s"])
+            lines.append(f"- drag k: [{ks}] 1/s")
         if m.get("evaluation_error"):
             lines.append(f"- not scored: {m['evaluation_error']}")
         lines.append("")
