@@ -104,7 +104,7 @@ def run_seed000(flight: Flight, options: Seed000Options | None = None) -> Estima
     est = res.to_estimate()
     info = dict(est.info)
     info["align_slam_axes"] = options.align_slam_axes
-    info["wrapper_options"] = options
+    info["wrapper_options"] = dataclasses.asdict(options)
     out = dataclasses.replace(est, runtime_s=time.perf_counter() - wall0, info=info).check()
     log.info("seed 000 observer on %s: scale %s, %d rows without position", flight.name,
              info.get("slam_scale_xy"), info.get("rows_without_position", 0))
