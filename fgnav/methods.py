@@ -20,9 +20,9 @@ batch           ``[graph]``, ``[lm]``, ``[batch]`` (as ``fgnav batch``)
 fixed-lag       ``[graph]``, ``[online]`` (as ``fgnav online``)
 msf-ekf         ``[msf-ekf]`` (:class:`~fgnav.baselines.msf_ekf.MsfOptions`)
 ekf004          ``[ekf004]`` (:class:`~fgnav.baselines.ekf004.Ekf004Options`)
-ukf003          ``[ukf003]``
-ii-observer     ``[ii-observer]``
-ekf-vo002       ``[ekf-vo002]``
+ukf003          ``[ukf003]`` (:class:`~fgnav.baselines.ukf003.Ukf003Options`)
+ii-observer     ``[ii-observer]`` (:class:`~fgnav.baselines.seed000.Seed000Options`)
+ekf-vo002       ``[ekf-vo002]`` (:class:`~fgnav.baselines.seed002.Seed002Options`)
 px4-ekf2        none (the log's own estimate; nothing is run)
 ==============  =================================================================
 """
@@ -196,8 +196,10 @@ def run_ekf004(flight: Flight, config: Mapping[str, Any], progress: bool = False
 
 def run_ukf003(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """Seed 003's UKF with ``[ukf003]``."""
-    mod = importlib.import_module("fgnav.baselines.ukf003")
-    return _run_options_function(mod, "run_ukf003", "Ukf003Options", flight, config, "ukf003")
+    from fgnav.baselines.ukf003 import Ukf003Options
+    from fgnav.baselines.ukf003 import run_ukf003 as _run
+
+    return _run(flight, _options(Ukf003Options, config, "ukf003"))
 
 
 #: Where the seed-000 observer's drag coefficient came from when the config does not give it.
@@ -237,24 +239,9 @@ def _with_info(est: Estimate, **items: Any) -> Estimate:
 
 def run_ekf_vo002(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """Seed 002's attitude-height EKF + homography VO dead reckoning with ``[ekf-vo002]``."""
-    mod = importlib.import_module("fgnav.baselines.seed002")
-    return _run_options_function(mod, "run_seed002", "Seed002Options", flight, config, "ekf-vo002")
+    from fgnav.baselines.seed002 import Seed002Options, run_seed002
 
-
-def _run_options_function(
-    mod: Any, func: str, options_cls: str, flight: Flight, config: Mapping[str, Any], section: str
-) -> Estimate:
-    fn = getattr(mod, func, None)
-    if fn is None:
-        raise MethodUnavailableError(f"{mod.__name__} has no function {func!r}")
-    cls = getattr(mod, options_cls, None)
-    if cls is None:
-        if config.get(section):
-            raise MethodUnavailableError(
-                f"config [{section}] given but {mod.__name__} has no {options_cls}"
-            )
-        return fn(flight)
-    return fn(flight, _options(cls, config, section))
+    return run_seed002(flight, _options(Seed002Options, config, "ekf-vo002"))
 
 
 def reference_estimate(flight: Flight, ref: str, method: str) -> Estimate:
