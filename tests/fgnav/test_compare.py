@@ -266,3 +266,15 @@ def test_seed000_defaults_are_stated(flight):
     # A config typo fails that method, naming the valid options; nothing else is affected.
     res = compare(flight, ["ii-observer"], config={"ii-observer": {"dragk": 1}}, progress=False)
     assert "unknown option(s) ['dragk'] for Seed000Options" in res.failed["ii-observer"]
+
+
+def test_missing_implementation_is_a_skip_reason(flight, registry):
+    reg = dict(registry)
+    reg["later"] = Method(
+        "later", "not written yet", ("imu",), (), True, "fgnav.baselines.nope", _deliberate_failure
+    )
+    runnable, skipped = available_methods(flight, ["later", "px4-ekf2"], reg)
+    assert runnable == ["px4-ekf2"]
+    assert skipped == {
+        "later": "implementation fgnav.baselines.nope is not available in this version"
+    }
