@@ -15,6 +15,12 @@ Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` i
    slow variable stays in the window while it is measured).
 5. Read the newest state: the causal trajectory.
 
+Causality: the states, slow variables and SLAM alignment use only measurements arrived so far.
+Two initial values come from the builder's whole-flight preparation: the gyro bias of the first
+keyframe (``GraphOptions.gyro_bias_from_slam``) and, for a flight without an attitude stream, the
+attitude track used for gating and for the SLAM scale fit (``attitude_from_slam``). Switch
+``gyro_bias_from_slam`` off for a strictly causal run on such flights.
+
 Failures: a ``RuntimeError`` from the smoother (``Indeterminate linear system`` ...) leaves it
 unusable (../shared/GTSAM-NOTES.md). The runner then rebuilds a fresh smoother from the last good
 newest state and slow variables with priors, re-adds the keyframe without its measurements, counts
