@@ -184,6 +184,9 @@ class FixedLagRunner:
         if b.use_drag:
             for k in np.flatnonzero(b.drag_count > 0):
                 rows.append((float(b.drag_arrival[k]), int(k), "drag", int(k)))
+        if b.vision is not None:
+            # Homography pairs arrive with frame j and tie keyframes i and j (both in the window).
+            rows.extend(b.vision.stream_rows())
         rows.sort(key=lambda r: (r[0], r[1]))
         return rows
 

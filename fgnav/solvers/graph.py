@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -79,7 +79,13 @@ class GraphOptions:
         gravity: magnitude of gravity [m/s^2].
         use_gyro: integrate the gyro; False replaces it by rates differentiated from the attitude
             stream (seed 000's sensor set: accelerometer + attitude + SLAM).
-        use_slam, use_drag, use_range, use_yaw, use_homography: measurement switches.
+        use_slam, use_drag, use_range, use_yaw: measurement switches.
+        use_homography: downward-camera homography factors (``fgnav.solvers.vision``); None
+            ("auto"): on when the flight has images with intrinsics, a rangefinder that the graph
+            uses (``use_range``) and an IMU, else off. The builder's ``options`` hold the
+            resolved value.
+        homography: options of the homography factors and their VO front-end
+            (``vision.HomographyFactorOptions``, or a TOML table of them; None: defaults).
         use_frontend_priors: add the front-end priors given to the builder.
         slam_model: ``"sim3"`` (``Similarity3`` alignment per session) or ``"axis"`` (seed 000's
             per-axis scale, SLAM axes = world axes); ``"auto"`` picks ``"axis"`` when the flight's
@@ -122,7 +128,8 @@ class GraphOptions:
     use_drag: bool = True
     use_range: bool = True
     use_yaw: bool = True
-    use_homography: bool = False
+    use_homography: bool | None = None
+    homography: Any = None
     use_frontend_priors: bool = True
     slam_model: str = "auto"
     slam_sigma_m: float = 0.01
@@ -234,12 +241,17 @@ class GraphBuilder:
         self._row_index: dict[str, dict[int, list[int]]] = {}
         self._accel_sigma: float | None = None
         self.slam_model = self._choose_slam_model()
+        from fgnav.solvers.vision import resolve_use_homography
+
+        o = self.options = replace(
+            o, use_homography=resolve_use_homography(flight, o.use_homography, o.use_range)
+        )
         check_observability(flight, o, self.slam_model)
+        self.vision = None
         if o.use_homography:
-            raise FgnavError(
-                "GraphOptions.use_homography: homography-motion factors are not built by this "
-                "version of the graph builder; set use_homography = false"
-            )
+            from fgnav.solvers.vision import HomographyFactors, homography_options
+
+            self.vision = HomographyFactors(flight, homography_options(o.homography), self._skip)
         self.imu = self._imu_used()
         slam_t = flight.slam.t if (o.use_slam and flight.slam is not None) else None
         t0, t1 = float(self.imu.t[0]), float(self.imu.t[-1])
@@ -248,7 +260,10 @@ class GraphBuilder:
             t0 = max(t0, float(slam_t[0]))
         from fgnav.solvers.measurements import keyframe_times
 
-        self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, slam_t)
+        anchors = slam_t
+        if self.vision is not None:
+            anchors = np.union1d(self.vision.anchor_times(), [] if slam_t is None else slam_t)
+        self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, anchors)
         self.K = len(self.t_kf)
         self.pim_params = self._pim_params()
         body_T_cam = np.asarray(flight.calib.body_T_cam, float)
@@ -270,6 +285,8 @@ class GraphBuilder:
         self._prepare_yaw()
         self._prepare_drag()
         self.ground_segment = self._segments(o.ground_segment_s) if self.use_range else None
+        if self.vision is not None:
+            self.vision.associate(self.t_kf)
         self.drag_segment = self._segments(o.drag_segment_s) if self.use_drag else None
 
     # ------------------------------------------------------------------------------------------
@@ -523,6 +540,10 @@ class GraphBuilder:
             a = self.slam_assoc
             y = f.slam.slam_t_cam[a.meas_index]
             pos[a.keyframe] = y / kscale - np.einsum("nij,j->ni", self.R_kf[a.keyframe], body_t_cam)
+        if not np.isfinite(pos).any() and self.vision is not None:
+            pos = self.vision.initial_positions(self.t_kf)
+            if pos is None:
+                pos = np.full((K, 3), np.nan)
         if not np.isfinite(pos).any():
             pos[0] = 0.0
         pos = _fill_positions(pos, self.t_kf)
@@ -939,7 +960,8 @@ class GraphBuilder:
             k: keyframe index.
             slam_init_scale: initial scale per SLAM variable key (converts the SLAM noise in
                 metres into SLAM units).
-            kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"yaw"``); None: all.
+            kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"yaw"``,
+                ``"homography"``); None: all.
         """
         o = self.options
         f = self.flight
@@ -1022,6 +1044,10 @@ class GraphBuilder:
                 noise = self._robust(_isotropic(1, o.yaw_sigma))
                 fac = make_yaw_factor(X(k), float(self.yaw_val[n]), noise)
                 out.append(MeasurementFactor(float(self.yaw_arrival[n]), k, "yaw", fac, (X(k),)))
+        if self.vision is not None and want("homography"):
+            ground_key = lambda kf: G(int(self.ground_segment[kf]))  # noqa: E731
+            for arrival, fac, keys in self.vision.factors_at(k, ground_key, self._robust):
+                out.append(MeasurementFactor(arrival, k, "homography", fac, keys))
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -1091,6 +1117,7 @@ class GraphBuilder:
             "slam_model": self.slam_model if self.use_slam else None,
             "factors": dict(self.counts),
             "skipped": dict(self.skipped),
+            "homography": self.vision.report() if self.vision is not None else None,
             "options": asdict(self.options),
         }
 

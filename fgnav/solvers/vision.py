@@ -1,0 +1,466 @@
+"""Downward-camera homography motion in the smoother graph (seed 002's "double coupling" as one
+graph; ../shared/DESIGN.md sec. 4.5 and 5).
+
+The homography visual odometry (:mod:`fgnav.frontends.homography_vo`, seed 002 Algorithms 1-2) is
+the front-end: it runs once per flight (cached per flight object and VO options, so the batch and
+the fixed-lag smoother of the same flight share it) and gives, per pair of consecutive usable
+frames ``(i, j)``, the homography ``H`` (original pixels, ``p_j ~ H p_i``), its inlier count and
+inlier RMS. This module turns those pairs into corner-transfer factors
+(:func:`fgnav.factors.homography_motion.make_homography_factor`) on ``X(k_i), X(k_j), G(g_i)``:
+
+1. **Gate** each VO pair (:func:`gate_pair`): the VO's own rejection (``vo-<reason>``), fewer
+   than ``min_inliers`` RANSAC inliers, an inlier RMS above ``max_inlier_rms_px``, an image corner
+   mapped behind the camera or to infinity, or a corner moved by more than
+   ``max_corner_shift_frac`` of the image size (no LK pyramid tracks that far between two frames:
+   such a model is a wrong RANSAC fit).
+2. **Keyframes**: the image times of the gated pairs are anchors of the builder's keyframe policy
+   (:func:`fgnav.solvers.measurements.keyframe_times`), so at equal camera and keyframe rates every
+   frame has its keyframe. When the camera is faster than the keyframes, the anchors closer than
+   0.75 keyframe periods are dropped by that policy; the homographies of a chain of pairs between
+   two keyframed frames are then composed (``H_ac = H_bc H_ab``) into one factor. A chain that
+   breaks (rejected pair) before it reaches a keyframe is counted as ``homography:no-keyframe``.
+3. **Noise**: isotropic on the 8 corner coordinates, ``sigma = max(corner_sigma_floor_px,
+   corner_sigma_per_rms * inlier_rms)`` [px] (composed chains: root sum of squares of the RMS), or a
+   fixed ``corner_sigma_px``; the graph's robust kernel (Huber by default) on top, because a wrong
+   RANSAC model moves all four corners at once. On the simulated two-turns flight the corner
+   transfer error at the true poses was about half the inlier RMS (0.02 px RMS against a median
+   inlier RMS of 0.04 px), so ``corner_sigma_per_rms = 1`` is a conservative sigma.
+4. **Ground**: the factor's plane is the ground-height variable of camera i's keyframe segment,
+   the one the rangefinder measures: metric translation comes from the height (first coupling);
+   the rotation and yaw of the homography constrain the attitude (second coupling).
+
+Arrival time of a pair: ``t_j + latency_s``; in the fixed-lag smoother both keyframes must still
+be in the window (else ``homography:dropped-too-late`` / ``variable-marginalized``).
+
+VO inputs: the attitude (rectification and the normal used by its decomposition) is the flight's
+attitude stream, or seed 002's ``[q, h]`` EKF (:mod:`fgnav.frontends.attitude_ekf`) when the
+flight has none (``attitude="auto"``); the height is the VO's rangefinder height. The graph uses
+only ``H``, which is in original pixels whatever the rectification.
+
+Not modelled: sloped or non-planar ground (the ground normal is world z), camera-IMU time offset,
+rolling shutter. The VO yaw increments are not added as separate factors: the homography already
+constrains the relative rotation, yaw included.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+import weakref
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.types import Flight
+from fgnav.factors.homography_motion import image_corners, make_homography_factor
+from fgnav.frontends.homography_vo import HomographyVOOptions, VOResult
+from fgnav.keys import X
+
+log = logging.getLogger(__name__)
+
+#: Smallest ``w`` of a transferred corner relative to the largest ``|q|`` (``H`` normalised to
+#: ``H[2, 2] = 1``): below it the corner is at infinity or behind camera j.
+MIN_CORNER_W_REL = 1e-6
+
+
+@dataclass
+class HomographyFactorOptions:
+    """Options of the homography factors (``GraphOptions.homography``; None there: defaults).
+
+    Attributes:
+        vo: options of the homography VO front-end (default: rectified images, OpenCV
+            decomposition, as seed 002 publishes it).
+        attitude: VO attitude source: ``"flight"`` (attitude stream, required), ``"ekf"`` (seed
+            002's attitude-and-height EKF) or ``"auto"`` (the stream when present, else the EKF).
+        min_inliers: fewer RANSAC inliers rejects a pair (``homography:few-inliers``).
+        max_inlier_rms_px: inlier RMS transfer error above this rejects it [px]
+            (``homography:large-inlier-rms``).
+        max_corner_shift_frac: an image corner moved by more than this fraction of the larger image
+            side rejects it (``homography:corner-shift``).
+        corner_sigma_px: fixed corner noise [px] (None: from the inlier RMS, below).
+        corner_sigma_per_rms: corner sigma per pixel of inlier RMS.
+        corner_sigma_floor_px: smallest corner sigma [px].
+        frame_tolerance_s: largest time between an image and its keyframe [s].
+        latency_s: delay between the exposure of frame j and the arrival of the pair [s].
+    """
+
+    vo: HomographyVOOptions = field(default_factory=HomographyVOOptions)
+    attitude: str = "auto"
+    min_inliers: int = 30
+    max_inlier_rms_px: float = 1.0
+    max_corner_shift_frac: float = 0.25
+    corner_sigma_px: float | None = None
+    corner_sigma_per_rms: float = 1.0
+    corner_sigma_floor_px: float = 0.05
+    frame_tolerance_s: float = 0.005
+    latency_s: float = 0.0
+
+    def check(self) -> HomographyFactorOptions:
+        if self.attitude not in ("auto", "flight", "ekf"):
+            raise FlightDataError(
+                f"homography.attitude={self.attitude!r}: expected auto, flight or ekf"
+            )
+        if self.corner_sigma_px is not None and not self.corner_sigma_px > 0:
+            raise FlightDataError(
+                f"homography.corner_sigma_px={self.corner_sigma_px}: expected > 0"
+            )
+        if not self.corner_sigma_floor_px > 0:
+            raise FlightDataError(
+                f"homography.corner_sigma_floor_px={self.corner_sigma_floor_px}: expected > 0"
+            )
+        self.vo.check()
+        return self
+
+
+def homography_options(value: Any) -> HomographyFactorOptions:
+    """``GraphOptions.homography`` as options: None -> defaults; a dict (TOML table) by name, its
+    ``vo`` entry filling :class:`HomographyVOOptions`."""
+    if value is None:
+        return HomographyFactorOptions().check()
+    if isinstance(value, HomographyFactorOptions):
+        return value.check()
+    if isinstance(value, dict):
+        table = dict(value)
+        names = {f.name for f in dataclasses.fields(HomographyFactorOptions)}
+        unknown = sorted(set(table) - names)
+        if unknown:
+            raise FlightDataError(f"unknown homography option(s) {unknown}; valid: {sorted(names)}")
+        if isinstance(table.get("vo"), dict):
+            table["vo"] = HomographyVOOptions(**table["vo"])
+        return HomographyFactorOptions(**table).check()
+    raise FlightDataError(
+        f"GraphOptions.homography: expected HomographyFactorOptions, a table or None, got "
+        f"{type(value).__name__}"
+    )
+
+
+def homography_available(flight: Flight) -> bool:
+    """True when the flight has what the homography factors need: images with intrinsics, a
+    rangefinder (metric height) and an IMU (attitude for the VO)."""
+    if flight.images is None or flight.range is None or flight.imu is None:
+        return False
+    return flight.images.camera is not None or flight.calib.camera is not None
+
+
+def resolve_use_homography(flight: Flight, use_homography: bool | None, use_range: bool) -> bool:
+    """``GraphOptions.use_homography``: None ("auto") is True when the flight has images, a
+    rangefinder that the graph uses, and an IMU; an explicit value is kept."""
+    if use_homography is None:
+        return bool(use_range) and homography_available(flight)
+    return bool(use_homography)
+
+
+# ----------------------------------------------------------------------------------------------
+# Front-end (run once per flight)
+# ----------------------------------------------------------------------------------------------
+
+_VO_CACHE: weakref.WeakKeyDictionary[Flight, dict[tuple, tuple[VOResult, float]]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def run_homography_frontend(
+    flight: Flight, options: HomographyFactorOptions | None = None
+) -> tuple[VOResult, float]:
+    """The homography VO of ``flight`` and its wall time [s], computed once per flight object and
+    (VO options, attitude source); later calls return the cached result (time of the first run).
+
+    Raises:
+        FlightDataError: no images/intrinsics, no IMU, ``attitude="flight"`` without an attitude
+            stream, or no usable height.
+    """
+    o = (options or HomographyFactorOptions()).check()
+    key = (o.vo, o.attitude)
+    per_flight = _VO_CACHE.setdefault(flight, {})
+    if key in per_flight:
+        return per_flight[key]
+    from fgnav.frontends.homography_vo import run as run_vo
+
+    t0 = time.perf_counter()
+    if flight.images is None:
+        raise FlightDataError(f"{flight.name}: homography factors need an images stream")
+    attitude = flight.attitude
+    source = "flight"
+    if o.attitude == "ekf" or (o.attitude == "auto" and attitude is None):
+        from fgnav.frontends.attitude_ekf import run_attitude_ekf
+
+        if flight.imu is None:
+            raise FlightDataError(f"{flight.name}: the VO attitude EKF needs an IMU stream")
+        attitude = run_attitude_ekf(flight).attitude_series()
+        source = "ekf"
+    elif attitude is None:
+        raise FlightDataError(
+            f"{flight.name}: homography.attitude='flight' but the flight has no attitude stream"
+        )
+    vo = run_vo(flight, attitude=attitude, options=o.vo)
+    wall = time.perf_counter() - t0
+    log.info(
+        "%s: homography VO (attitude from %s) in %.2f s: %d of %d pairs valid",
+        flight.name,
+        source,
+        wall,
+        vo.counts.get("valid_pairs", 0),
+        vo.counts.get("pairs", 0),
+    )
+    per_flight[key] = (vo, wall)
+    return vo, wall
+
+
+def clear_frontend_cache() -> None:
+    """Forget every cached VO result."""
+    _VO_CACHE.clear()
+
+
+# ----------------------------------------------------------------------------------------------
+# Gating and pairs
+# ----------------------------------------------------------------------------------------------
+
+
+def gate_pair(
+    H: np.ndarray,
+    num_inliers: int,
+    inlier_rms_px: float,
+    image_size: tuple[int, int],
+    options: HomographyFactorOptions,
+) -> str:
+    """Reason a VO pair is not used (``""``: use it).
+
+    Args:
+        H: (3, 3) homography image i -> image j [px].
+        num_inliers: RANSAC inliers.
+        inlier_rms_px: RMS transfer error of the inliers [px].
+        image_size: ``(width, height)`` [px].
+        options: gate thresholds.
+    """
+    if not np.all(np.isfinite(H)):
+        return "non-finite"
+    if num_inliers < options.min_inliers:
+        return "few-inliers"
+    if not inlier_rms_px <= options.max_inlier_rms_px:
+        return "large-inlier-rms"
+    H = np.asarray(H, float)
+    if H[2, 2] == 0.0:
+        return "corner-at-infinity"
+    corners = image_corners(image_size)
+    q = corners @ (H / H[2, 2]).T
+    if np.any(q[:, 2] <= MIN_CORNER_W_REL * np.max(np.abs(q))):
+        return "corner-at-infinity"
+    shift = np.linalg.norm(q[:, :2] / q[:, 2:3] - corners[:, :2], axis=1)
+    if np.max(shift) > options.max_corner_shift_frac * max(image_size):
+        return "corner-shift"
+    return ""
+
+
+@dataclass(frozen=True)
+class HomographyPair:
+    """One homography factor's measurement: frames ``frame_i -> frame_j`` on keyframes
+    ``keyframe_i -> keyframe_j``.
+
+    Attributes:
+        frame_i, frame_j: image indices.
+        keyframe_i, keyframe_j: keyframe indices.
+        t_j: time of frame j [s].
+        H: (3, 3) homography image i -> image j [px] (``H[2, 2] = 1``).
+        num_inliers: smallest inlier count of the composed VO pairs.
+        inlier_rms_px: root sum of squares of their inlier RMS [px].
+        links: number of VO pairs composed (1: consecutive frames).
+    """
+
+    frame_i: int
+    frame_j: int
+    keyframe_i: int
+    keyframe_j: int
+    t_j: float
+    H: np.ndarray
+    num_inliers: int
+    inlier_rms_px: float
+    links: int
+
+
+class HomographyFactors:
+    """Homography factors of one flight (see module docstring).
+
+    Args:
+        flight: the flight (images with intrinsics, calibration ``body_T_cam``).
+        options: factor options (None: defaults).
+        skip: ``skip(reason, n)`` records unused measurements (the builder's ``_skip``); reasons
+            are prefixed ``homography:``.
+    """
+
+    def __init__(
+        self,
+        flight: Flight,
+        options: HomographyFactorOptions | None = None,
+        skip: Callable[[str, int], None] | None = None,
+    ) -> None:
+        self.options = (options or HomographyFactorOptions()).check()
+        self._skip = skip or (lambda reason, n=1: None)
+        self.vo, self.vo_time_s = run_homography_frontend(flight, self.options)
+        images = flight.images
+        cam = images.camera if images.camera is not None else flight.calib.camera
+        self.K = np.asarray(cam.K, float)
+        self.image_size = (int(cam.width), int(cam.height))
+        self.body_T_cam = np.asarray(flight.calib.body_T_cam, float)
+        self.image_t = np.asarray(images.t, float)
+        self.counts: Counter[str] = Counter()
+        # 1. Gate every VO pair; keep (frame_i, frame_j, H, inliers, rms) of the good ones.
+        self.links: list[tuple[int, int, np.ndarray, int, float]] = []
+        for m in self.vo.measurements:
+            if not m.valid:
+                reason = "vo-" + m.reason.replace("_", "-")
+            else:
+                reason = gate_pair(
+                    m.H, m.num_inliers, m.inlier_rms_px, self.image_size, self.options
+                )
+            if reason:
+                self.counts[reason] += 1
+                self._skip(f"homography:{reason}", 1)
+                continue
+            self.links.append(
+                (
+                    m.index_i,
+                    m.index_j,
+                    np.asarray(m.H, float),
+                    m.num_inliers,
+                    float(m.inlier_rms_px),
+                )
+            )
+        self.counts["vo-pairs"] = len(self.vo.measurements)
+        self.counts["gated-pairs"] = len(self.links)
+        self.pairs: list[HomographyPair] = []
+        self._by_keyframe: dict[int, list[int]] = {}
+
+    def anchor_times(self) -> np.ndarray:
+        """Sorted image times of the frames of the gated pairs [s] (keyframe anchors)."""
+        frames = sorted({f for i, j, *_ in self.links for f in (i, j)})
+        return self.image_t[np.asarray(frames, int)] if frames else np.array([])
+
+    def associate(self, t_kf: np.ndarray) -> None:
+        """Pairs between keyframed frames (composing chains across frames without a keyframe)."""
+        t_kf = np.asarray(t_kf, float)
+        kf_of_frame: dict[int, int] = {}
+        if len(t_kf):
+            idx = np.clip(np.searchsorted(t_kf, self.image_t), 1, len(t_kf) - 1)
+            idx = np.where(
+                np.abs(t_kf[idx - 1] - self.image_t) <= np.abs(t_kf[idx] - self.image_t),
+                idx - 1,
+                idx,
+            )
+            if len(t_kf) == 1:
+                idx = np.zeros(len(self.image_t), int)
+            ok = np.abs(t_kf[idx] - self.image_t) <= self.options.frame_tolerance_s
+            kf_of_frame = {int(f): int(idx[f]) for f in np.flatnonzero(ok)}
+        self.pairs = []
+        start: int | None = None
+        chain: list[tuple[int, int, np.ndarray, int, float]] = []
+
+        def drop_chain() -> None:
+            if chain:
+                self.counts["no-keyframe"] += len(chain)
+                self._skip("homography:no-keyframe", len(chain))
+
+        for link in self.links:
+            i, j = link[0], link[1]
+            if start is None or not chain or chain[-1][1] != i:
+                drop_chain()
+                chain = []
+                start = i if i in kf_of_frame else None
+                if start is None:
+                    self.counts["no-keyframe"] += 1
+                    self._skip("homography:no-keyframe", 1)
+                    continue
+            chain.append(link)
+            if j in kf_of_frame and kf_of_frame[j] != kf_of_frame[start]:
+                H = np.eye(3)
+                for _, _, Hl, _, _ in chain:
+                    H = Hl @ H
+                self.pairs.append(
+                    HomographyPair(
+                        frame_i=start,
+                        frame_j=j,
+                        keyframe_i=kf_of_frame[start],
+                        keyframe_j=kf_of_frame[j],
+                        t_j=float(self.image_t[j]),
+                        H=H / H[2, 2],
+                        num_inliers=min(c[3] for c in chain),
+                        inlier_rms_px=float(np.sqrt(sum(c[4] ** 2 for c in chain))),
+                        links=len(chain),
+                    )
+                )
+                start, chain = j, []
+        drop_chain()
+        self._by_keyframe = {}
+        for n, p in enumerate(self.pairs):
+            self._by_keyframe.setdefault(p.keyframe_j, []).append(n)
+        self.counts["factors"] = len(self.pairs)
+        self.counts["composed"] = sum(1 for p in self.pairs if p.links > 1)
+
+    def sigma_px(self, pair: HomographyPair) -> float:
+        """Corner noise of a pair [px] (module docstring, step 3)."""
+        o = self.options
+        if o.corner_sigma_px is not None:
+            return float(o.corner_sigma_px)
+        return float(max(o.corner_sigma_floor_px, o.corner_sigma_per_rms * pair.inlier_rms_px))
+
+    def arrival(self, pair: HomographyPair) -> float:
+        return pair.t_j + self.options.latency_s
+
+    def stream_rows(self) -> list[tuple[float, int, str, int]]:
+        """``(arrival, keyframe_j, "homography", pair index)`` of every pair (fixed-lag stream)."""
+        return [(self.arrival(p), p.keyframe_j, "homography", n) for n, p in enumerate(self.pairs)]
+
+    def factors_at(
+        self,
+        k: int,
+        ground_key: Callable[[int], int],
+        robust: Callable[[gtsam.noiseModel.Base], gtsam.noiseModel.Base],
+    ) -> list[tuple[float, gtsam.NonlinearFactor, tuple[int, ...]]]:
+        """``(arrival, factor, keys)`` of the pairs ending at keyframe k.
+
+        Args:
+            k: keyframe index (frame j's).
+            ground_key: ground-height key of a keyframe index (the segment of camera i's frame).
+            robust: wraps the Gaussian noise in the graph's robust kernel.
+        """
+        out = []
+        for n in self._by_keyframe.get(k, []):
+            p = self.pairs[n]
+            gk = ground_key(p.keyframe_i)
+            noise = robust(gtsam.noiseModel.Isotropic.Sigma(8, self.sigma_px(p)))
+            fac = make_homography_factor(
+                X(p.keyframe_i),
+                X(p.keyframe_j),
+                gk,
+                p.H,
+                self.K,
+                self.body_T_cam,
+                self.image_size,
+                noise,
+            )
+            out.append((self.arrival(p), fac, (X(p.keyframe_i), X(p.keyframe_j), gk)))
+        return out
+
+    def initial_positions(self, t_kf: np.ndarray) -> np.ndarray | None:
+        """VO dead-reckoned body positions interpolated to ``t_kf`` (held at the ends), or None
+        when the VO posed fewer than two frames (initial values only: non-causal)."""
+        traj = self.vo.estimate.trajectory
+        if len(traj) < 2:
+            return None
+        return np.column_stack([np.interp(t_kf, traj.t, traj.world_t_body[:, a]) for a in range(3)])
+
+    def report(self) -> dict[str, Any]:
+        """Counts of the VO pairs, gates and factors, and the VO's wall time."""
+        return {
+            "counts": dict(self.counts),
+            "vo_counts": dict(self.vo.counts),
+            "vo_time_s": float(self.vo_time_s),
+            "median_sigma_px": float(np.median([self.sigma_px(p) for p in self.pairs]))
+            if self.pairs
+            else None,
+        }
