@@ -57,7 +57,7 @@ GRAVITY = 9.81
 IP, IV, ITH, IBG, IBA, IS, IPHI, ITSW = 0, 3, 6, 9, 12, 15, 16, 19
 N_ERR = 22
 
-MIN_SCALE_REL_SIGMA = 0.02
+MIN_SCALE_REL_SIGMA = 0.05
 """Floor of the initial relative scale uncertainty (the closed-form fit neglects biases)."""
 
 RESET_SCALE_REL_SIGMA = 0.5
@@ -161,6 +161,30 @@ def initial_scale_guess(flight: Flight, max_rel_std: float = 0.05) -> float:
     return initial_state_guess(flight, max_rel_std)[0]
 
 
+@dataclass(frozen=True)
+class InitFit:
+    """Result of the closed-form initialisation over one window ``[t_start, t_end]``.
+
+    Attributes:
+        scale: ``s`` (SLAM units per metre).
+        rel_std: relative standard error of ``scale``.
+        t_start, t_end: the window [s]; the filter starts at ``t_end`` (causal).
+        world_v_body_start, world_v_body_end: velocity at the window's ends [m/s].
+        world_R_body_end: attitude at ``t_end``.
+        gyro_bias: gyro bias [rad/s] used (from SLAM rotation increments without an attitude
+            stream, else zero).
+    """
+
+    scale: float
+    rel_std: float
+    t_start: float
+    t_end: float
+    world_v_body_start: np.ndarray
+    world_v_body_end: np.ndarray
+    world_R_body_end: np.ndarray
+    gyro_bias: np.ndarray
+
+
 def initial_state_guess(
     flight: Flight, max_rel_std: float = 0.05
 ) -> tuple[float, np.ndarray, float]:
@@ -183,7 +207,43 @@ def initial_state_guess(
     slam, imu = flight.slam, flight.imu
     if slam is None or imu is None:
         raise FlightDataError(f"{flight.name}: MSF needs IMU and SLAM streams")
-    t0 = max(slam.t[0], imu.t[0])
+    fit, last = _fit_from(flight, max(slam.t[0], imu.t[0]), max_rel_std)
+    if fit is None:
+        raise FlightDataError(
+            f"{flight.name}: the start of the flight does not determine the SLAM scale "
+            f"(last try: {last}); pass MsfOptions.initial_scale"
+        )
+    return fit.scale, fit.world_v_body_start, fit.rel_std
+
+
+def initial_fit(flight: Flight, max_rel_std: float = 0.05, step_s: float = 2.0) -> InitFit:
+    """The first window of the flight that determines the SLAM scale (see
+    :func:`initial_state_guess` for the model): windows start at the first SLAM pose and slide by
+    ``step_s`` while the vehicle has not moved enough (a static start, as in EuRoC). Without an
+    attitude stream the gyro bias is first estimated from the window's SLAM rotation increments
+    (metric-free), so the integrated attitude does not drift. Raises :class:`FlightDataError`
+    when no window of the flight determines the scale."""
+    slam, imu = flight.slam, flight.imu
+    if slam is None or imu is None:
+        raise FlightDataError(f"{flight.name}: MSF needs IMU and SLAM streams")
+    t_from = max(slam.t[0], imu.t[0])
+    last = None
+    while t_from + SCALE_INIT_WINDOWS_S[0] <= min(slam.t[-1], imu.t[-1]):
+        fit, last = _fit_from(flight, t_from, max_rel_std)
+        if fit is not None:
+            return fit
+        t_from += step_s
+    raise FlightDataError(
+        f"{flight.name}: no window of the flight determines the SLAM scale "
+        f"(last try: {last}); pass MsfOptions.initial_scale"
+    )
+
+
+def _fit_from(
+    flight: Flight, t0: float, max_rel_std: float
+) -> tuple[InitFit | None, tuple | None]:
+    """Growing windows from ``t0``; the first that determines ``s``, and the last try."""
+    slam, imu = flight.slam, flight.imu
     last = None
     for window_s in SCALE_INIT_WINDOWS_S:
         j = np.flatnonzero((slam.t >= t0) & (slam.t <= t0 + window_s))
@@ -193,35 +253,36 @@ def initial_state_guess(
         k = np.flatnonzero((imu.t >= t0) & (imu.t <= slam.t[j[-1]]))
         if len(j) < 10 or len(k) < 20:
             continue
-        s, rel_std, v0 = _scale_lsq(flight, j, k, t0)
-        last = (window_s, s, rel_std)
-        if np.isfinite(s) and s > 0 and rel_std < max_rel_std:
-            log.info("initial SLAM scale %.4f (+-%.1f %%) from the first %.0f s",
-                     s, 100 * rel_std, window_s)
-            return s, v0, rel_std
+        fit = _scale_lsq(flight, j, k, t0)
+        last = (window_s, fit.scale, fit.rel_std)
+        if np.isfinite(fit.scale) and fit.scale > 0 and fit.rel_std < max_rel_std:
+            log.info("initial SLAM scale %.4f (+-%.1f %%) from %.0f s of data at t=%.1f s",
+                     fit.scale, 100 * fit.rel_std, window_s, t0 - slam.t[0])
+            return fit, last
         if slam.t[j[-1]] < t0 + window_s - 1.0:
             break
-    raise FlightDataError(
-        f"{flight.name}: the start of the flight does not determine the SLAM scale "
-        f"(last try: {last}); pass MsfOptions.initial_scale"
-    )
+    return None, last
 
 
-def _scale_lsq(
-    flight: Flight, j: np.ndarray, k: np.ndarray, t0: float
-) -> tuple[float, float, np.ndarray]:
+def _scale_lsq(flight: Flight, j: np.ndarray, k: np.ndarray, t0: float) -> InitFit:
     slam, imu = flight.slam, flight.imu
+    gyro_bias = np.zeros(3)
     if flight.attitude is not None:
         att = flight.attitude
         idx = np.clip(np.searchsorted(att.t, imu.t[k]), 0, len(att) - 1)
         Rs = quat_wxyz_to_matrix(att.world_q_body_wxyz[idx])
     else:
+        from fgnav.solvers.measurements import gyro_bias_from_slam
+
+        t1 = slam.t[j[-1]]
+        sub_slam = slam.select(j)
+        gyro_bias = gyro_bias_from_slam(imu.between(t0, t1), sub_slam, flight.calib.body_T_cam)
         R = _tilt_from_accel(imu.body_accel[k[:20]].mean(axis=0))
         Rs = np.empty((len(k), 3, 3))
         for m, i in enumerate(k):
             Rs[m] = R
             if i + 1 < len(imu):
-                R = R @ so3_exp(imu.body_omega[i] * (imu.t[i + 1] - imu.t[i]))
+                R = R @ so3_exp((imu.body_omega[i] - gyro_bias) * (imu.t[i + 1] - imu.t[i]))
     a_w = np.einsum("nij,nj->ni", Rs, imu.body_accel[k]) - np.array([0.0, 0.0, GRAVITY])
     dt = np.diff(imu.t[k], append=imu.t[k][-1])[:, None]
     v = np.cumsum(a_w * dt, axis=0) - a_w * dt  # velocity at the start of each step
@@ -246,10 +307,20 @@ def _scale_lsq(
     dof = max(len(b) - A.shape[1], 1)
     cov = (res @ res / dof) * np.linalg.pinv(A.T @ A)
     s = float(sol[0])
-    if s == 0:
-        return s, np.inf, np.zeros(3)
-    v0 = R_sw.T @ sol[1:4] / s
-    return s, float(np.sqrt(max(cov[0, 0], 0.0)) / abs(s)), v0
+    ok = s != 0 and np.isfinite(s)
+    v0 = R_sw.T @ sol[1:4] / s if ok else np.zeros(3)
+    # w = -s slam_R_world b: the accelerometer bias b (world) integrated over the window.
+    bias_world = -R_sw.T @ sol[7:10] / s if ok else np.zeros(3)
+    return InitFit(
+        scale=s,
+        rel_std=float(np.sqrt(max(cov[0, 0], 0.0)) / abs(s)) if ok else np.inf,
+        t_start=float(t0),
+        t_end=float(slam.t[j[-1]]),
+        world_v_body_start=v0,
+        world_v_body_end=v0 + v[m[-1]] - bias_world * ts[-1],
+        world_R_body_end=Rs[m[-1]],
+        gyro_bias=gyro_bias,
+    )
 
 
 class MsfEkf:
@@ -470,27 +541,34 @@ class MsfEkf:
         use_range = o.use_range and flight.range is not None
         wall0 = time.perf_counter()
 
-        # Initial attitude: the attitude stream if present, else accelerometer tilt with yaw 0.
-        t_start = max(imu.t[0], slam.t[0])
+        # Start: with a given scale, at the first SLAM pose at rest-free zero velocity; else at the
+        # end of the first window whose closed-form fit determines the scale (causal start).
+        bg0 = np.zeros(3)
+        if o.initial_scale is not None:
+            t_start = max(imu.t[0], slam.t[0])
+            scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
+            R0 = None
+        else:
+            fit = initial_fit(flight)
+            t_start, scale0, v0, rel0 = fit.t_end, fit.scale, fit.world_v_body_end, fit.rel_std
+            R0, bg0 = fit.world_R_body_end, fit.gyro_bias
+            self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
         if flight.attitude is not None:
             i0 = min(np.searchsorted(flight.attitude.t, t_start), len(flight.attitude) - 1)
             R0 = quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz[i0])
-        else:
+        elif R0 is None:
             k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
             R0 = _tilt_from_accel(imu.body_accel[k].mean(axis=0))
-        if o.initial_scale is not None:
-            scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
-        else:
-            scale0, v0, rel0 = initial_state_guess(flight)
         self._scale_rel_sigma = (
             o.initial_scale_rel_sigma
             if o.initial_scale_rel_sigma is not None
-            else max(2.0 * rel0, MIN_SCALE_REL_SIGMA)
+            else max(3.0 * rel0, MIN_SCALE_REL_SIGMA)
         )
         j0 = int(np.searchsorted(slam.t, t_start))
         slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
         self.initialize(R0, slam.slam_t_cam[j0], slam_R[j0], scale0, calib.body_T_cam,
                         calib.imu_noise, world_v_body=v0)
+        self.x.bg = np.asarray(bg0, float).copy()
         session = int(slam.session[j0])
         self.counts.extra["initial_scale"] = scale0
 

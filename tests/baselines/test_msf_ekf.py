@@ -71,7 +71,9 @@ def test_two_turns_hover_start():
     est = run_msf(fl)
     s_true = _truth_scale_at(fl, 0, est.trajectory.t[-1])
     assert est.slam_scale[0] == pytest.approx(s_true, rel=0.03)
-    assert _ate_se3(est, fl.ground_truth) < 0.06
+    # Causal start at the end of the first window that fixes the scale (measured 5.9 cm).
+    assert _ate_se3(est, fl.ground_truth) < 0.09
+    assert est.trajectory.t[0] > fl.slam.t[0]
 
 
 def test_missing_slam_is_a_clear_error(rectangle):
@@ -80,3 +82,22 @@ def test_missing_slam_is_a_clear_error(rectangle):
     fl = dataclasses.replace(rectangle, slam=None)
     with pytest.raises(FlightDataError, match="needs IMU and SLAM"):
         run_msf(fl, MsfOptions(initial_scale=1.0))
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_euroc_mh01_defaults(real_data):
+    """Real data with default options: EuRoC MH_01 IMU + ORB-SLAM3 monocular run A (no attitude
+    stream, body = IMU frame). Measured: ATE 9.1 cm (SE(3)), scale within 0.2 % of the SLAM
+    run's Sim(3) scale against ground truth."""
+    from fgnav.datasets.load import load_flight
+    from testutil import PROJECT_ROOT
+
+    from fgnav.eval.metrics import evaluate, slam_scale_vs_truth
+
+    flight = load_flight(PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml")
+    est = run_msf(flight)
+    m = evaluate(est, flight.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.15
+    s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
+    assert est.slam_scale[0] == pytest.approx(s_true, rel=0.01)
