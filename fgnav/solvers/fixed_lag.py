@@ -9,8 +9,15 @@ Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` i
 3. Attach every measurement factor that arrived up to ``t_k`` (SLAM poses arrive at
    ``t + latency``): to its own keyframe when that keyframe is still inside the window (minus one
    keyframe period of margin), else count it as ``dropped-too-late``. A SLAM session's alignment is
-   created once ``slam_init_window_s`` of its poses have arrived (closed-form fit on those data
-   only); earlier poses are counted as ``slam:before-scale-init``.
+   created at its first pose: from the closed-form fit on the data arrived so far once the motion
+   excites the scale (``slam_init_min_excitation_m``), else *provisionally*
+   (``slam_provisional``): rotation from the SLAM orientation and the current attitude, scale
+   ``slam_provisional_scale`` (or the session's last estimate) under a wide log-scale prior, origin
+   placed at the newest pose. In hover the SLAM positions say "not moving" whatever the scale, so
+   the velocity is held from the first pose; the scale is found by the smoother once the vehicle
+   accelerates. Slow variables get their own (small) relinearisation threshold so that the large
+   moves of a provisional scale are relinearised. Without ``slam_provisional`` the poses before the
+   closed-form fit are counted as ``slam:before-scale-init``.
 4. Update the smoother with timestamps of the new keys and of the slow keys used (refreshed so a
    slow variable stays in the window while it is measured).
 5. Read the newest state: the causal trajectory.
@@ -43,7 +50,7 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import matrix_to_quat_wxyz
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.keys import B, V, X
+from fgnav.keys import B, S, V, X
 from fgnav.solvers.graph import GraphBuilder, GraphOptions, MeasurementFactor
 
 log = logging.getLogger(__name__)
@@ -51,6 +58,9 @@ log = logging.getLogger(__name__)
 #: Seconds between attempts to initialise a SLAM session's alignment (each attempt is a
 #: closed-form fit over the session so far; retrying every frame would spike the latency).
 SLAM_INIT_RETRY_S = 0.5
+#: Index offset of the provisional SLAM-alignment keys ``S(PROVISIONAL_KEY_BASE + n)`` (the
+#: builder's alignment keys count from 0 per graph).
+PROVISIONAL_KEY_BASE = 1_000_000
 
 
 @dataclass
@@ -60,7 +70,11 @@ class FixedLagOptions:
     Attributes:
         graph: graph builder options.
         lag_s: smoother lag [s].
-        relinearize_threshold: ISAM2 relinearization threshold (tangent-space norm).
+        relinearize_threshold: ISAM2 relinearization threshold of the keyframe states ``X, V, B``
+            (largest tangent-space component).
+        relinearize_threshold_slow: the same for the slow variables ``S, D, G`` (a provisional
+            SLAM scale moves by tens of percent when it becomes observable: its factors must be
+            relinearised then).
         relinearize_skip: ISAM2 relinearizes at most every this many updates.
         factorization: ``"QR"`` or ``"CHOLESKY"`` (QR survives the first bias better).
         slam_init_window_s: seconds of a SLAM session's poses used for its closed-form alignment
@@ -71,6 +85,13 @@ class FixedLagOptions:
             closed-form scale is dominated by noise (hover; see ``init_slam_alignment``).
         slam_init_max_rel_se: ... and once the fit's relative standard error of the scale is
             below this.
+        slam_provisional: before the closed-form fit is possible, attach the SLAM poses to a
+            provisional alignment (see module docstring) instead of holding them back.
+        slam_provisional_scale: scale of a provisional alignment when the session has no earlier
+            estimate and no front-end scale prior [SLAM units per metre].
+        slam_provisional_log_scale_sigma: sigma of its log-scale prior (1.0: a factor e).
+        slam_provisional_rot_sigma: sigma of its rotation prior [rad] (initial value from the SLAM
+            orientation and the attitude).
         rebuild_rot_sigma [rad], rebuild_pos_sigma [m], rebuild_vel_sigma [m/s],
         rebuild_accel_bias_sigma [m/s^2], rebuild_gyro_bias_sigma [rad/s]: priors of a rebuilt
             smoother on the last good state.
@@ -83,12 +104,17 @@ class FixedLagOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)
     lag_s: float = 2.0
     relinearize_threshold: float = 0.5
+    relinearize_threshold_slow: float = 0.01
     relinearize_skip: int = 10
     factorization: str = "QR"
     slam_init_window_s: float = 3.0
     slam_init_scale_sigma_rel: float = 0.2
     slam_init_min_excitation_m: float = 0.01
     slam_init_max_rel_se: float = 0.3
+    slam_provisional: bool = True
+    slam_provisional_scale: float = 1.0
+    slam_provisional_log_scale_sigma: float = 1.0
+    slam_provisional_rot_sigma: float = 0.3
     rebuild_rot_sigma: float = 0.01
     rebuild_pos_sigma: float = 0.05
     rebuild_vel_sigma: float = 0.1
@@ -99,9 +125,15 @@ class FixedLagOptions:
     slow_read_every: int = 5
 
 
-def _isam2_params(o: FixedLagOptions) -> gtsam.ISAM2Params:
+def _isam2_params(o: FixedLagOptions, slow_dims: dict[str, int]) -> gtsam.ISAM2Params:
+    """ISAM2 parameters; ``slow_dims``: tangent dimension of each slow-variable symbol."""
     p = gtsam.ISAM2Params()
-    p.setRelinearizeThreshold(o.relinearize_threshold)
+    thresholds = gtsam.ISAM2ThresholdMap()
+    for c, dim in {"x": 6, "v": 3, "b": 6}.items():
+        thresholds.insert((c, np.full(dim, o.relinearize_threshold)))
+    for c, dim in slow_dims.items():
+        thresholds.insert((c, np.full(dim, o.relinearize_threshold_slow)))
+    p.setRelinearizeThreshold(thresholds)
     p.relinearizeSkip = int(o.relinearize_skip)
     p.setFactorization(o.factorization.upper())
     p.findUnusedFactorSlots = True
@@ -122,7 +154,7 @@ class FixedLagRunner:
         self.builder = GraphBuilder(flight, self.options.graph, priors)
         self.period = 1.0 / self.options.graph.keyframe_hz
         self.smoother = gtsam.IncrementalFixedLagSmoother(
-            self.options.lag_s, _isam2_params(self.options)
+            self.options.lag_s, _isam2_params(self.options, self.builder.slow_dims())
         )
         self.k_next = 0
         self.t_latest = -math.inf
@@ -136,6 +168,9 @@ class FixedLagRunner:
         self.failure_messages: list[str] = []
         self.slam_scale_init: dict[int, float] = {}
         self.session_ready: dict[int, bool] = {}
+        self.session_scale: dict[int, float] = {}
+        self.provisional_alignments: list[tuple[int, float]] = []
+        self.provisional_key: dict[int, int] = {}
         self.last_good: dict[int, Any] = {}
         self.newest_k = -1
         # Causal outputs.
@@ -195,8 +230,11 @@ class FixedLagRunner:
         b = self.builder
         if kind == "slam":
             sk = b.slam_key(row)
-            if not self._ensure_slam_key(sk, row):
+            key = self._slam_variable(sk, row)
+            if key is None:
                 return []
+            if key != sk:
+                return [self._provisional_factor(k, row, key)]
             return b.measurement_factors(
                 k, {sk: self.slam_scale_init.get(sk, 1.0)}, kinds=("slam",)
             )
@@ -216,54 +254,152 @@ class FixedLagRunner:
             return self.smoother.calculateEstimateSimilarity3(key)
         return self.smoother.calculateEstimateVector(key)
 
-    def _ensure_slam_key(self, sk: int, row: int) -> bool:
-        """Create SLAM alignment ``sk`` if needed; False when the measurement must be skipped."""
+    def _slam_variable(self, sk: int, row: int) -> int | None:
+        """The alignment variable the SLAM measurement ``row`` attaches to (created if needed):
+        the builder's ``sk``, or a provisional variable while the session's scale is not
+        initialised; None when the measurement must be skipped."""
         b = self.builder
+        o = self.options
         if sk in self.ever_created:
             if self._alive(sk):
-                return True
+                return sk
             self._drop("slam:alignment-marginalized")
-            return False
+            return None
         slam = b.flight.slam
         i = int(b.slam_assoc.meas_index[row])
         session = int(slam.session[i])
         prev = b.slow_chain_previous(sk)
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
         if prev is not None and self._alive(prev):
             value = self._current_value(prev)
-            graph.push_back(b.slow_factors(sk, value, chain_start=False))
             self.slam_scale_init[sk] = self.slam_scale_init.get(prev, 1.0)
-        else:
-            first_t = float(slam.t[slam.session == session][0])
-            if (
-                self.t_latest < first_t + self.options.slam_init_window_s
-                or self.t_latest < self._next_init_try.get(session, -math.inf)
-            ):
-                self._drop("slam:before-scale-init")
-                return False
+            self._create_slow(sk, value, b.slow_factors(sk, value, chain_start=False))
+            return sk
+        # Chain start: a new session, or a gap longer than the lag.
+        first_t = float(slam.t[slam.session == session][0])
+        value = None
+        if self.t_latest >= first_t + o.slam_init_window_s and self.t_latest >= (
+            self._next_init_try.get(session, -math.inf)
+        ):
             self._next_init_try[session] = self.t_latest + SLAM_INIT_RETRY_S
             value, scale = self._init_slam_value(session, sk, i)
-            if value is None:
-                self._drop("slam:before-scale-init")
-                return False
-            self.slam_scale_init[sk] = scale
-            graph.push_back(
-                b.slow_factors(
-                    sk,
-                    value,
-                    chain_start=True,
-                    scale_sigma_rel=self.options.slam_init_scale_sigma_rel,
-                )
+        if value is not None:
+            prior = b.slow_factors(
+                sk, value, chain_start=True, scale_sigma_rel=o.slam_init_scale_sigma_rel
             )
-        values.insert(sk, value)
-        self.queued_graph.push_back(graph)
-        self.queued_values.insert(values)
-        self.queued_stamps[sk] = self.t_latest
-        self.key_stamp[sk] = self.t_latest
-        self.created_slow.add(sk)
-        self.ever_created.add(sk)
-        return True
+        elif not (o.slam_provisional and b.slam_model == "sim3"):
+            self._drop("slam:before-scale-init")
+            return None
+        elif session in self.session_scale:
+            # A gap in an initialised session: restart its chain at the last scale estimate.
+            value, scale = self._provisional_slam_value(session)
+            prior = b.slow_factors(
+                sk, value, chain_start=True, scale_sigma_rel=o.slam_init_scale_sigma_rel
+            )
+        else:
+            return self._provisional_variable(session)
+        self.slam_scale_init[sk] = scale
+        self.session_scale[session] = scale
+        self._create_slow(sk, value, prior)
+        return sk
+
+    def _provisional_variable(self, session: int) -> int:
+        """The live provisional alignment of ``session`` (a new one when none is alive)."""
+        pk = self.provisional_key.get(session)
+        if pk is not None and self._alive(pk):
+            return pk
+        pk = S(PROVISIONAL_KEY_BASE + len(self.provisional_alignments))
+        value, scale = self._provisional_slam_value(session)
+        self.provisional_key[session] = pk
+        self.provisional_alignments.append((session, self.t_latest))
+        self.slam_scale_init[pk] = scale
+        self._create_slow(pk, value, self._provisional_slam_prior(pk, value))
+        return pk
+
+    def _provisional_factor(self, k: int, row: int, pk: int) -> MeasurementFactor:
+        """SLAM position factor of association ``row`` (keyframe k) on provisional alignment pk."""
+        from fgnav.factors.slam_scale import make_slam_position_factor
+
+        b = self.builder
+        slam = b.flight.slam
+        i = int(b.slam_assoc.meas_index[row])
+        noise = b._robust(
+            gtsam.noiseModel.Isotropic.Sigma(
+                3, b.options.slam_sigma_m * self.slam_scale_init.get(pk, 1.0)
+            )
+        )
+        fac = make_slam_position_factor(
+            X(k), pk, slam.slam_t_cam[i], np.asarray(b.flight.calib.body_T_cam, float), noise
+        )
+        arrival = float(slam.t[i] + b.slam_latency[i])
+        return MeasurementFactor(arrival, k, "slam", fac, (X(k), pk))
+
+    def _create_slow(self, key: int, value: Any, prior: gtsam.NonlinearFactorGraph) -> None:
+        """Queue a new slow variable with its prior or random-walk factors."""
+        self.queued_graph.push_back(prior)
+        self.queued_values.insert(key, value)
+        self.queued_stamps[key] = self.t_latest
+        self.key_stamp[key] = self.t_latest
+        self.created_slow.add(key)
+        self.ever_created.add(key)
+
+    def _newest_world_t_cam(self) -> tuple[np.ndarray, np.ndarray]:
+        """``world_R_cam`` and ``world_t_cam`` of the newest keyframe's estimate."""
+        b = self.builder
+        pose = self.last_good[X(self.newest_k)]
+        body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
+        world_R_body = pose.rotation().matrix()
+        return world_R_body @ body_T_cam[:3, :3], pose.translation() + world_R_body @ body_T_cam[
+            :3, 3
+        ]
+
+    def _nearest_slam_row(self, session: int) -> int:
+        """Row of the session's arrived SLAM pose closest in time to the newest keyframe."""
+        b = self.builder
+        slam = b.flight.slam
+        rows = np.flatnonzero((slam.session == session) & (slam.t <= self.t_latest))
+        return int(rows[np.argmin(np.abs(slam.t[rows] - b.t_kf[self.newest_k]))])
+
+    def _provisional_slam_value(self, session: int) -> tuple[Any, float]:
+        """Provisional alignment of a session whose scale is not observable yet (causal).
+
+        Rotation ``slam_R_world = slam_R_cam (world_R_cam)^T`` from the SLAM orientation and the
+        newest attitude estimate; scale: the session's last estimate, else the front-end prior,
+        else ``slam_provisional_scale``; origin such that the SLAM pose nearest the newest keyframe
+        maps onto its camera position.
+        """
+        from fgnav.datasets.geometry import quat_wxyz_to_matrix
+        from fgnav.factors.slam_scale import make_slam_T_world
+
+        b = self.builder
+        slam = b.flight.slam
+        scale = self.session_scale.get(session)
+        if scale is None:
+            prior = b._prior_scale(session)
+            scale = prior if prior is not None else self.options.slam_provisional_scale
+        j = self._nearest_slam_row(session)
+        world_R_cam, world_t_cam = self._newest_world_t_cam()
+        slam_R_world = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j]) @ world_R_cam.T
+        slam_t_world = slam.slam_t_cam[j] - scale * slam_R_world @ world_t_cam
+        log.info(
+            "SLAM session %d: provisional alignment at t=%.2f (scale %.4g, log-scale sigma %.2g)",
+            session,
+            self.t_latest,
+            scale,
+            self.options.slam_provisional_log_scale_sigma,
+        )
+        return make_slam_T_world(float(scale), slam_R_world, slam_t_world), float(scale)
+
+    def _provisional_slam_prior(self, key: int, value: Any) -> gtsam.NonlinearFactorGraph:
+        """Wide prior on a provisional alignment (tangent ``[omega, u, lambda]``)."""
+        o = self.options
+        g = gtsam.NonlinearFactorGraph()
+        sig = np.r_[
+            [o.slam_provisional_rot_sigma] * 3,
+            [10.0] * 3,
+            [o.slam_provisional_log_scale_sigma],
+        ]
+        g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        return g
 
     def _init_slam_value(self, session: int, sk: int, meas_i: int) -> tuple[Any, float]:
         """Causal closed-form SLAM alignment from the data arrived so far."""
@@ -292,13 +428,8 @@ class FixedLagRunner:
         )
         # Place the SLAM origin so that the newest keyframe's SLAM position matches the smoother.
         slam = b.flight.slam
-        kn = self.newest_k
-        pose = self.last_good[X(kn)]
-        body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ body_T_cam[:3, 3]
-        # Use the SLAM pose closest to the newest keyframe time.
-        sess_rows = np.flatnonzero((slam.session == session) & (slam.t <= self.t_latest))
-        j = sess_rows[np.argmin(np.abs(slam.t[sess_rows] - b.t_kf[kn]))]
+        _, world_t_cam = self._newest_world_t_cam()
+        j = self._nearest_slam_row(session)
         slam_t_world = slam.slam_t_cam[j] - init.scale * init.slam_R_world @ world_t_cam
         return make_slam_T_world(init.scale, init.slam_R_world, slam_t_world), init.scale
 
@@ -332,7 +463,9 @@ class FixedLagRunner:
     def _rebuild(self) -> None:
         """Fresh smoother with priors on the last good newest state and the live slow variables."""
         o = self.options
-        self.smoother = gtsam.IncrementalFixedLagSmoother(o.lag_s, _isam2_params(o))
+        self.smoother = gtsam.IncrementalFixedLagSmoother(
+            o.lag_s, _isam2_params(o, self.builder.slow_dims())
+        )
         kg = self.newest_good_k
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
@@ -568,9 +701,15 @@ class FixedLagRunner:
         sym = gtsam.Symbol(key)
         c = chr(sym.chr())
         val = self.last_good[key]
+        name = {"s": "slam", "d": "drag_k", "g": "ground_height"}[c]
         if c == "s" and self.builder.slam_model == "sim3":
             val = np.array([val.scale()])
-        name = {"s": "slam", "d": "drag_k", "g": "ground_height"}[c] + f"#{sym.index()}"
+            sess_seg = self.builder.slam_session_segment(key)
+            if sess_seg is not None:
+                self.session_scale[sess_seg[0]] = float(val[0])
+            elif sym.index() >= PROVISIONAL_KEY_BASE:
+                name = "slam_scale_provisional"
+        name += f"#{sym.index()}"
         self.slow_track.setdefault(name, []).append((t, np.atleast_1d(np.asarray(val, float))))
 
     def run(self, progress: bool = False) -> Estimate:
@@ -665,6 +804,9 @@ class FixedLagRunner:
                 "lag_s": self.options.lag_s,
                 "used": dict(self.used),
                 "dropped": dict(self.dropped),
+                "slam_provisional_alignments": [
+                    {"session": sess, "t": t} for sess, t in self.provisional_alignments
+                ],
                 "solver_failures": self.n_failures,
                 "solver_failure_messages": self.failure_messages[:10],
                 "updates": n,

@@ -824,6 +824,27 @@ class GraphBuilder:
             self._row_index[name] = index
         return index.get(k, [])
 
+    def slow_dims(self) -> dict[str, int]:
+        """Tangent dimension of each slow-variable symbol used by this graph."""
+        out: dict[str, int] = {}
+        if self.use_slam:
+            out["s"] = 7 if self.slam_model == "sim3" else 3
+        if self.use_drag:
+            out["d"] = 2 if self.options.drag_per_axis else 1
+        if self.use_range:
+            out["g"] = 1
+        return out
+
+    def slam_session_segment(self, key: int) -> tuple[int, int] | None:
+        """``(session, segment)`` of a SLAM-alignment key (None: not one of this graph)."""
+        if not self.use_slam or chr(gtsam.Symbol(key).chr()) != "s":
+            return None
+        j = int(gtsam.Symbol(key).index())
+        for sess_seg, jj in self.slam_var.items():
+            if jj == j:
+                return sess_seg
+        return None
+
     def slam_keys_at(self, k: int) -> list[int]:
         """SLAM alignment keys used by the SLAM measurements of keyframe k."""
         if not self.use_slam:
