@@ -15,10 +15,11 @@ at once) and the fixed-lag smoother (streamed in arrival order):
 - :meth:`GraphBuilder.measurement_factors` gives the factors of the measurements associated with
   keyframe k, each with its arrival time (a SLAM pose arrives at ``t + latency``).
 
-Keyframes: fixed rate (``keyframe_hz``) anchored at the SLAM frame times so that SLAM positions need
-no time shift; rangefinder and yaw readings are interpolated linearly to the keyframe time from the
-two samples around it; the drag factor uses the mean accelerometer over the keyframe interval.
-Everything not used is counted in :attr:`GraphBuilder.skipped` (and reported in ``Estimate.info``).
+Keyframes: fixed rate (``keyframe_hz``) anchored at the SLAM frame times and, with homography
+factors (``fgnav.solvers.vision``), at the image times of the camera frames used, so that neither
+needs a time shift; rangefinder and yaw readings are interpolated linearly to the keyframe time
+from the two samples around it; the drag factor uses the mean accelerometer over the keyframe
+interval. Everything not used is counted in :attr:`GraphBuilder.skipped` (and reported in ``Estimate.info``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gtsam
 import numpy as np
@@ -48,6 +49,9 @@ from fgnav.solvers.measurements import (
     second_difference_pairs,
     world_specific_accel,
 )
+
+if TYPE_CHECKING:
+    from fgnav.solvers.vision import HomographyFactorOptions
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +133,7 @@ class GraphOptions:
     use_range: bool = True
     use_yaw: bool = True
     use_homography: bool | None = None
-    homography: Any = None
+    homography: HomographyFactorOptions | dict[str, Any] | None = None
     use_frontend_priors: bool = True
     slam_model: str = "auto"
     slam_sigma_m: float = 0.01
