@@ -19,7 +19,8 @@ Keyframes: fixed rate (``keyframe_hz``) anchored at the SLAM frame times and, wi
 factors (``fgnav.solvers.vision``), at the image times of the camera frames used, so that neither
 needs a time shift; rangefinder and yaw readings are interpolated linearly to the keyframe time
 from the two samples around it; the drag factor uses the mean accelerometer over the keyframe
-interval. Everything not used is counted in :attr:`GraphBuilder.skipped` (and reported in ``Estimate.info``).
+interval. Everything not used is counted in :attr:`GraphBuilder.skipped` (and reported in
+``Estimate.info``).
 """
 
 from __future__ import annotations
