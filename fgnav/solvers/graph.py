@@ -124,6 +124,13 @@ class GraphOptions:
         initial_yaw: yaw of the first pose when neither attitude nor yaw streams exist [rad].
         gyro_bias_from_slam: initialise the gyro bias (and centre its prior) from SLAM orientation
             increments (see ``measurements.gyro_bias_from_slam``; uses the whole flight).
+        drag_thrust_check: switch the drag factor off (logged, reason in ``Estimate.info`` under
+            ``drag_disabled``) when the mean specific force of the flight is not within
+            ``drag_thrust_max_angle_deg`` of body +z: the drag model assumes the thrust along body
+            z (FLU), which an IMU frame used as body (EuRoC: x up) violates. False forces drag
+            whenever ``use_drag`` is on.
+        drag_thrust_max_angle_deg: largest angle between the mean normalised specific force and
+            body +z for the drag model [deg].
     """
 
     keyframe_hz: float = 20.0
@@ -168,6 +175,8 @@ class GraphOptions:
     prior_gyro_bias_sigma: float = 0.01
     initial_yaw: float = 0.0
     gyro_bias_from_slam: bool = True
+    drag_thrust_check: bool = True
+    drag_thrust_max_angle_deg: float = 30.0
 
     def check(self) -> GraphOptions:
         if self.robust not in ("huber", "cauchy", "none"):
@@ -246,6 +255,10 @@ class GraphBuilder:
         self._row_index: dict[str, dict[int, list[int]]] = {}
         self._accel_sigma: float | None = None
         self.slam_model = self._choose_slam_model()
+        self.drag_disabled = self._drag_model_invalid()
+        if self.drag_disabled is not None:
+            log.warning("%s: drag factor off: %s", flight.name, self.drag_disabled)
+            self.options = o = replace(o, use_drag=False)
         from fgnav.solvers.vision import resolve_use_homography
 
         o = self.options = replace(
@@ -297,6 +310,28 @@ class GraphBuilder:
     # ------------------------------------------------------------------------------------------
     # Setup
     # ------------------------------------------------------------------------------------------
+
+    def _drag_model_invalid(self) -> str | None:
+        """Why the rotor-drag model does not apply to this flight's body frame (None: it does, or
+        the check is off): the mean normalised specific force must be near body +z."""
+        o = self.options
+        if not (o.use_drag and o.drag_thrust_check):
+            return None
+        a = np.asarray(self.flight.imu.body_accel, float)
+        norm = np.linalg.norm(a, axis=1)
+        ok = norm > 0.5 * o.gravity
+        if not ok.any():
+            return None
+        mean_dir = (a[ok] / norm[ok, None]).mean(axis=0)
+        mean_dir /= max(float(np.linalg.norm(mean_dir)), 1e-12)
+        angle = math.degrees(math.acos(float(np.clip(mean_dir[2], -1.0, 1.0))))
+        if angle <= o.drag_thrust_max_angle_deg:
+            return None
+        return (
+            f"the mean specific force is {angle:.0f} deg from body +z (direction "
+            f"{np.round(mean_dir, 2).tolist()}); the drag model needs the thrust along body z "
+            "(FLU body frame); set graph.drag_thrust_check = false to force it"
+        )
 
     def _choose_slam_model(self) -> str:
         o = self.options
@@ -1141,6 +1176,7 @@ class GraphBuilder:
         return {
             "keyframes": int(self.K),
             "slam_model": self.slam_model if self.use_slam else None,
+            "drag_disabled": self.drag_disabled,
             "factors": dict(self.counts),
             "skipped": dict(self.skipped),
             "homography": self.vision.report() if self.vision is not None else None,
