@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -34,6 +35,9 @@ log = logging.getLogger(__name__)
 #: Damping (information per unit tangent) added when the final system is indeterminate, so that the
 #: observable marginals can still be computed: sigma of an unobservable direction = 100.
 COVARIANCE_REGULARISATION = 1e-4
+#: A regularised marginal sigma above this fraction of ``1/sqrt(COVARIANCE_REGULARISATION)`` marks
+#: the variable as unobservable (reported in ``Estimate.info["covariance_unobservable"]``).
+UNOBSERVABLE_SIGMA_FRACTION = 0.1
 
 
 class SolverError(FgnavError, RuntimeError):
@@ -210,33 +214,27 @@ def solve_batch(
     )
     est = estimate_from_values(builder, res.values, method="batch")
     marg = None
-    cov_regularised = False
+    cov_info: dict[str, Any] = {"covariance_regularised": False}
     if o.covariance != "none":
-        try:
-            marg = gtsam.Marginals(res.linear, res.values)
-        except RuntimeError:
-            # An unobservable direction (e.g. the vertical SLAM scale at constant altitude): add a
-            # tiny damping so the others can be reported; the unobservable ones come out huge.
-            zero = res.values.zeroVectors()
-            dims = {k: int(zero.at(k).shape[0]) for k in res.values.keys()}
-            try:
-                marg = gtsam.Marginals(
-                    _damping_graph(res.linear, dims, COVARIANCE_REGULARISATION), res.values
-                )
-                cov_regularised = True
-                log.warning(
-                    "indeterminate system: covariances computed with a %.0e damping "
-                    "(unobservable directions have sigma ~ 100)",
-                    COVARIANCE_REGULARISATION,
-                )
-            except RuntimeError as e:
-                log.warning("marginal covariances unavailable: %s", " ".join(str(e).split())[:120])
+        marg, cov_info = _marginals(res.linear, res.values)
     pose_cov = vel_cov = None
     slow_sigma: dict[int, np.ndarray] = {}
     if marg is not None:
         slow_sigma = {
             k: np.sqrt(np.diag(marg.marginalCovariance(k))) for k in _slow_keys(res.values)
         }
+        if cov_info["covariance_regularised"]:
+            weak = [
+                describe(k)
+                for k, sg in slow_sigma.items()
+                if np.max(sg) > UNOBSERVABLE_SIGMA_FRACTION / math.sqrt(COVARIANCE_REGULARISATION)
+            ]
+            cov_info["covariance_unobservable"] = weak
+            if weak:
+                log.warning(
+                    "unobservable slow variables (sigma set by the regularisation): %s",
+                    ", ".join(weak),
+                )
         if o.covariance == "all":
             pose_cov = np.full((builder.K, 6, 6), np.nan)
             vel_cov = np.full((builder.K, 3, 3), np.nan)
@@ -257,7 +255,7 @@ def solve_batch(
             "time_solve_s": t_solved - t_built,
             "time_covariance_s": t_cov - t_solved,
             "covariance": o.covariance,
-            "covariance_regularised": cov_regularised,
+            **cov_info,
             "cov_pose_stride": o.cov_pose_stride,
             "lm_options": asdict(o.lm),
         }
@@ -277,6 +275,50 @@ def solve_batch(
         causal=False,
         info=info,
     ).check()
+
+
+def _indeterminate_key(message: str) -> str | None:
+    """The variable GTSAM names in an "Indeterminate linear system" message (``x12``), if any."""
+    m = re.search(r"Symbol: ([A-Za-z]\d+)", message)
+    return m.group(1) if m else None
+
+
+def _marginals(
+    linear: gtsam.GaussianFactorGraph, values: gtsam.Values
+) -> tuple[gtsam.Marginals | None, dict[str, Any]]:
+    """``gtsam.Marginals`` of the final linearization, never raising.
+
+    An indeterminate system (an unobservable direction: the vertical SLAM scale at constant
+    altitude, drag ky on a forward-only flight) is retried with a tiny damping
+    (``COVARIANCE_REGULARISATION``) on every variable, so that the observable marginals can still
+    be reported; the variable GTSAM names is logged and recorded. Returns the marginals (None when
+    even the regularised system fails) and the ``Estimate.info`` entries.
+    """
+    info: dict[str, Any] = {"covariance_regularised": False}
+    try:
+        return gtsam.Marginals(linear, values), info
+    except RuntimeError as e:
+        msg = " ".join(str(e).split())
+        near = _indeterminate_key(msg)
+        info["covariance_indeterminate_near"] = near
+    zero = values.zeroVectors()
+    dims = {k: int(zero.at(k).shape[0]) for k in values.keys()}
+    try:
+        marg = gtsam.Marginals(_damping_graph(linear, dims, COVARIANCE_REGULARISATION), values)
+    except RuntimeError as e:
+        msg = " ".join(str(e).split())[:160]
+        log.warning("marginal covariances unavailable (indeterminate near %s): %s", near, msg)
+        info["covariance_unavailable"] = msg
+        return None, info
+    info["covariance_regularised"] = True
+    log.warning(
+        "indeterminate system near %s: covariances computed with a %.0e damping (unobservable "
+        "directions have sigma ~ %.0f)",
+        near,
+        COVARIANCE_REGULARISATION,
+        1.0 / math.sqrt(COVARIANCE_REGULARISATION),
+    )
+    return marg, info
 
 
 def _slow_keys(values: gtsam.Values) -> list[int]:

@@ -159,3 +159,51 @@ def test_batch_circle_seed000_sensor_set_recovers_axis_scale_and_velocity():
     np.testing.assert_allclose(k_est[:2], k_true[:2], rtol=0.08)
     m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.vel_rmse_mps < 0.1
+
+
+def test_marginals_of_indeterminate_system_are_regularised_and_named():
+    from fgnav.solvers.batch import _marginals
+
+    g = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 0.1)
+    x0, d0 = gtsam.symbol("x", 0), gtsam.symbol("d", 0)
+    g.add(gtsam.PriorFactorVector(x0, np.zeros(2), noise))
+    # d0 is tied to x0 along its first component only: its second one is unobservable.
+    g.add(
+        gtsam.CustomFactor(
+            gtsam.noiseModel.Isotropic.Sigma(1, 0.1),
+            [x0, d0],
+            lambda this, v, H: _one_component(v, H, x0, d0),
+        )
+    )
+    v = gtsam.Values()
+    v.insert(x0, np.zeros(2))
+    v.insert(d0, np.zeros(2))
+    marg, info = _marginals(g.linearize(v), v)
+    assert marg is not None and info["covariance_regularised"]
+    assert info["covariance_indeterminate_near"] == "d0"
+    sig = np.sqrt(np.diag(marg.marginalCovariance(d0)))
+    assert sig[0] < 1.0 and sig[1] > 10.0
+
+
+def _one_component(v, H, x0, d0):
+    e = np.array([v.atVector(d0)[0] - v.atVector(x0)[0]])
+    if H is not None:
+        H[0] = np.array([[-1.0, 0.0]])
+        H[1] = np.array([[1.0, 0.0]])
+    return e
+
+
+def test_drag_off_when_body_z_is_not_the_thrust_axis(two_turns_12s):
+    f = two_turns_12s
+    # The IMU frame with x up (EuRoC-like): rotate the body axes z -> x.
+    imu = dataclasses.replace(
+        f.imu,
+        body_accel=f.imu.body_accel[:, [2, 1, 0]] * np.array([1.0, 1.0, -1.0]),
+    )
+    tilted = dataclasses.replace(f, imu=imu)
+    b = GraphBuilder(tilted, GraphOptions(use_range=False))
+    assert not b.use_drag and "body +z" in b.report()["drag_disabled"]
+    forced = GraphBuilder(tilted, GraphOptions(use_range=False, drag_thrust_check=False))
+    assert forced.use_drag and forced.report()["drag_disabled"] is None
+    assert GraphBuilder(f, GraphOptions()).use_drag
