@@ -171,6 +171,7 @@ class FixedLagRunner:
         self.session_scale: dict[int, float] = {}
         self.provisional_alignments: list[tuple[int, float]] = []
         self.provisional_key: dict[int, int] = {}
+        self.first_pose = gtsam.Pose3()
         self.last_good: dict[int, Any] = {}
         self.newest_k = -1
         # Causal outputs.
@@ -343,21 +344,22 @@ class FixedLagRunner:
         self.ever_created.add(key)
 
     def _newest_world_t_cam(self) -> tuple[np.ndarray, np.ndarray]:
-        """``world_R_cam`` and ``world_t_cam`` of the newest keyframe's estimate."""
+        """``world_R_cam`` and ``world_t_cam`` of the newest keyframe's estimate (before the first
+        update: the first keyframe's initial value)."""
         b = self.builder
-        pose = self.last_good[X(self.newest_k)]
+        pose = self.last_good[X(self.newest_k)] if self.newest_k >= 0 else self.first_pose
         body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
         world_R_body = pose.rotation().matrix()
-        return world_R_body @ body_T_cam[:3, :3], pose.translation() + world_R_body @ body_T_cam[
-            :3, 3
-        ]
+        world_t_cam = pose.translation() + world_R_body @ body_T_cam[:3, 3]
+        return world_R_body @ body_T_cam[:3, :3], world_t_cam
 
     def _nearest_slam_row(self, session: int) -> int:
         """Row of the session's arrived SLAM pose closest in time to the newest keyframe."""
         b = self.builder
         slam = b.flight.slam
         rows = np.flatnonzero((slam.session == session) & (slam.t <= self.t_latest))
-        return int(rows[np.argmin(np.abs(slam.t[rows] - b.t_kf[self.newest_k]))])
+        t_ref = b.t_kf[max(self.newest_k, 0)]
+        return int(rows[np.argmin(np.abs(slam.t[rows] - t_ref))])
 
     def _provisional_slam_value(self, session: int) -> tuple[Any, float]:
         """Provisional alignment of a session whose scale is not observable yet (causal).
@@ -525,6 +527,7 @@ class FixedLagRunner:
         if k == 0:
             R0 = b.R_kf[0]
             pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
+            self.first_pose = pose
             pv = b._prior_velocity(0)
             vel = pv[0] if pv is not None else np.zeros(3)
             bias = b.initial_bias()

@@ -8,7 +8,6 @@ from testutil import PROJECT_ROOT
 
 from fgnav.eval.metrics import evaluate, slam_scale_vs_truth
 from fgnav.solvers.batch import BatchOptions, solve_batch
-from fgnav.solvers.graph import GraphOptions
 
 MANIFEST = PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml"
 
@@ -17,9 +16,10 @@ MANIFEST = PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml"
 @pytest.mark.realdata
 def test_euroc_mh01_metric_trajectory_and_scale(real_data):
     flight = load_flight(MANIFEST)
-    # The EuRoC body is the IMU frame (x up), not FLU: the rotor-drag model does not apply.
-    opts = BatchOptions(graph=GraphOptions(use_drag=False, keyframe_hz=10.0), covariance="slow")
-    est = solve_batch(flight, opts)
+    # Default options: the EuRoC body is the IMU frame (x up), not FLU, so the builder switches
+    # the rotor-drag model off by itself and says why.
+    est = solve_batch(flight, BatchOptions(covariance="slow"))
+    assert "body +z" in est.info["drag_disabled"]
     m = evaluate(est, flight.ground_truth, alignment="se3")
     # The SLAM run alone, Sim(3)-aligned, has 3.7 cm ATE; the metric estimate reaches 3-4 cm.
     assert m.ate_rmse_m < 0.06, m.ate_rmse_m
