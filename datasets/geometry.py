@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+GRAVITY = 9.81
+"""Gravity magnitude [m/s^2] used everywhere in fgnav (world gravity is ``(0, 0, -GRAVITY)``):
+GTSAM's ``PreintegrationParams.MakeSharedU()`` default and the simulator's value, so that
+simulated specific force, IMU preintegration and every filter agree."""
+
 
 def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """Unit quaternion(s) ``[w, x, y, z]`` (..., 4) -> rotation matrix(es) (..., 3, 3).
@@ -42,16 +47,36 @@ def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
         tr = m[0, 0] + m[1, 1] + m[2, 2]
         if tr > 0:
             s = 2.0 * np.sqrt(tr + 1.0)
-            q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+            q = [
+                0.25 * s,
+                (m[2, 1] - m[1, 2]) / s,
+                (m[0, 2] - m[2, 0]) / s,
+                (m[1, 0] - m[0, 1]) / s,
+            ]
         elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
             s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+            q = [
+                (m[2, 1] - m[1, 2]) / s,
+                0.25 * s,
+                (m[0, 1] + m[1, 0]) / s,
+                (m[0, 2] + m[2, 0]) / s,
+            ]
         elif m[1, 1] > m[2, 2]:
             s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+            q = [
+                (m[0, 2] - m[2, 0]) / s,
+                (m[0, 1] + m[1, 0]) / s,
+                0.25 * s,
+                (m[1, 2] + m[2, 1]) / s,
+            ]
         else:
             s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+            q = [
+                (m[1, 0] - m[0, 1]) / s,
+                (m[0, 2] + m[2, 0]) / s,
+                (m[1, 2] + m[2, 1]) / s,
+                0.25 * s,
+            ]
         q = np.asarray(q)
         q /= np.linalg.norm(q)
         out[i] = q if q[0] >= 0 else -q
@@ -100,11 +125,7 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     K = skew(phi)
     if angle < 1e-8:
         return np.eye(3) + K + 0.5 * K @ K
-    return (
-        np.eye(3)
-        + np.sin(angle) / angle * K
-        + (1.0 - np.cos(angle)) / angle**2 * K @ K
-    )
+    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * K @ K
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -125,8 +146,8 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def yaw_of(world_R_body: np.ndarray) -> np.ndarray:
-    """Yaw (rad, (-pi, pi]) of rotation matrix(es): heading of the body x axis in the world x-y plane
-    (ZYX Euler convention, z up)."""
+    """Yaw (rad, (-pi, pi]) of rotation matrix(es): heading of the body x axis in the world x-y
+    plane (ZYX Euler convention, z up)."""
     R = np.asarray(world_R_body, dtype=float)
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 

@@ -291,7 +291,9 @@ class ImageSeries(_Series):
         if self.paths is not None and len(self.paths) != len(self):
             raise FlightDataError(f"{name}.paths: {len(self.paths)} paths for {len(self)} times")
         if self.frames is not None and (self.frames.shape[0] != len(self)):
-            raise FlightDataError(f"{name}.frames: {self.frames.shape[0]} frames for {len(self)} times")
+            raise FlightDataError(
+                f"{name}.frames: {self.frames.shape[0]} frames for {len(self)} times"
+            )
         if self.camera is None:
             raise FlightDataError(f"{name}.camera: intrinsics missing")
         self.camera.check(f"{name}.camera")
@@ -307,7 +309,9 @@ class ImageSeries(_Series):
             flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_UNCHANGED
             img = cv2.imread(str(self.paths[i]), flag)
             if img is None:
-                raise FlightDataError(f"cannot read image {self.paths[i]} (missing or not an image)")
+                raise FlightDataError(
+                    f"cannot read image {self.paths[i]} (missing or not an image)"
+                )
             return img
         if grey and img.ndim == 3:
             import cv2

@@ -28,9 +28,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from fgnav.datasets.geometry import GRAVITY
 
-#: Gravity [m/s^2] (GTSAM's ``PreintegrationParams.MakeSharedU`` default).
-GRAVITY = 9.81
 #: Lowest commanded vertical force when the position loop asks for less (fraction of g): the
 #: vehicle never free-falls or flips to follow a reference.
 MIN_VERTICAL_FORCE_FRACTION = 0.2

@@ -67,6 +67,7 @@ from scipy.stats import chi2
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
+    GRAVITY,
     matrix_to_quat_wxyz,
     quat_wxyz_to_matrix,
     rpy_to_matrix,
@@ -78,8 +79,6 @@ from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions
 
 log = logging.getLogger(__name__)
 
-GRAVITY = 9.81
-"""Gravity magnitude [m/s^2] (the simulator uses the same constant)."""
 
 # State layout.
 IP, IV, IR, IPI, IY, IYR = 0, 3, 6, 7, 8, 9

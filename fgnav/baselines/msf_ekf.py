@@ -15,7 +15,7 @@ state estimation for modular vision-inertial systems"; ethzasl_msf's pose sensor
   at the first valid reading, so terrain steps bias it; the smoother estimates ground instead).
 
 Error state (22): ``[dp(3) world, dv(3) world, dtheta(3) body (right perturbation),
-dbg(3), dba(3), ds(1), dphi_sw(3) (right perturbation of slam_R_world), dt_sw(3)]``.
+dbg(3), dba(3), ds(1), dphi_sw(3) (right perturbation of slam_R_world), dslam_t_world(3)]``.
 
 Measurements are Mahalanobis-gated (chi-square). Delayed measurements (SLAM poses arriving
 ``latency`` seconds after their image time) are handled MSF-style with a state buffer: the filter
@@ -39,6 +39,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
+    GRAVITY,
     matrix_to_quat_wxyz,
     quat_wxyz_to_matrix,
     skew,
@@ -47,11 +48,10 @@ from fgnav.datasets.geometry import (
 )
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
+from fgnav.solvers.measurements import gyro_bias_from_slam, level_rotation_from_accel
 
 log = logging.getLogger(__name__)
 
-GRAVITY = 9.81
-"""Gravity magnitude [m/s^2] used for propagation (the simulator uses the same constant)."""
 
 # Error-state layout.
 IP, IV, ITH, IBG, IBA, IS, IPHI, ITSW = 0, 3, 6, 9, 12, 15, 16, 19
@@ -125,14 +125,14 @@ class _State:
     bg: np.ndarray
     ba: np.ndarray
     s: float
-    R_sw: np.ndarray
-    t_sw: np.ndarray
+    slam_R_world: np.ndarray
+    slam_t_world: np.ndarray
     P: np.ndarray
 
     def copy(self) -> _State:
         return _State(
             self.p.copy(), self.v.copy(), self.R.copy(), self.bg.copy(), self.ba.copy(),
-            float(self.s), self.R_sw.copy(), self.t_sw.copy(), self.P.copy(),
+            float(self.s), self.slam_R_world.copy(), self.slam_t_world.copy(), self.P.copy(),
         )
 
 
@@ -272,12 +272,10 @@ def _scale_lsq(flight: Flight, j: np.ndarray, k: np.ndarray, t0: float) -> InitF
         idx = np.clip(np.searchsorted(att.t, imu.t[k]), 0, len(att) - 1)
         Rs = quat_wxyz_to_matrix(att.world_q_body_wxyz[idx])
     else:
-        from fgnav.solvers.measurements import gyro_bias_from_slam
-
         t1 = slam.t[j[-1]]
         sub_slam = slam.select(j)
         gyro_bias = gyro_bias_from_slam(imu.between(t0, t1), sub_slam, flight.calib.body_T_cam)
-        R = _tilt_from_accel(imu.body_accel[k[:20]].mean(axis=0))
+        R = level_rotation_from_accel(imu.body_accel[k[:20]].mean(axis=0))
         Rs = np.empty((len(k), 3, 3))
         for m, i in enumerate(k):
             Rs[m] = R
@@ -289,14 +287,14 @@ def _scale_lsq(flight: Flight, j: np.ndarray, k: np.ndarray, t0: float) -> InitF
     step = v * dt + 0.5 * a_w * dt**2
     D = np.cumsum(step, axis=0) - step  # displacement at the start of each step
     slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j])
-    R_bc = flight.calib.body_T_cam[:3, :3]
-    b_tc = flight.calib.body_T_cam[:3, 3]
-    R_sw = slam_R[0] @ (Rs[0] @ R_bc).T
+    body_R_cam = flight.calib.body_T_cam[:3, :3]
+    body_t_cam = flight.calib.body_T_cam[:3, 3]
+    slam_R_world = slam_R[0] @ (Rs[0] @ body_R_cam).T
     ts = slam.t[j] - t0
     m = np.clip(np.searchsorted(imu.t[k], slam.t[j]), 0, len(k) - 1)
-    pc = D[m] + np.einsum("nij,j->ni", Rs[m], b_tc)
+    pc = D[m] + np.einsum("nij,j->ni", Rs[m], body_t_cam)
     A = np.zeros((3 * len(j), 10))
-    A[:, 0] = (pc @ R_sw.T).ravel()
+    A[:, 0] = (pc @ slam_R_world.T).ravel()
     for ax in range(3):
         A[ax::3, 1 + ax] = ts
         A[ax::3, 4 + ax] = 1.0
@@ -308,9 +306,9 @@ def _scale_lsq(flight: Flight, j: np.ndarray, k: np.ndarray, t0: float) -> InitF
     cov = (res @ res / dof) * np.linalg.pinv(A.T @ A)
     s = float(sol[0])
     ok = s != 0 and np.isfinite(s)
-    v0 = R_sw.T @ sol[1:4] / s if ok else np.zeros(3)
+    v0 = slam_R_world.T @ sol[1:4] / s if ok else np.zeros(3)
     # w = -s slam_R_world b: the accelerometer bias b (world) integrated over the window.
-    bias_world = -R_sw.T @ sol[7:10] / s if ok else np.zeros(3)
+    bias_world = -slam_R_world.T @ sol[7:10] / s if ok else np.zeros(3)
     return InitFit(
         scale=s,
         rel_std=float(np.sqrt(max(cov[0, 0], 0.0)) / abs(s)) if ok else np.inf,
@@ -359,11 +357,11 @@ class MsfEkf:
         o = self.opt
         self._body_T_cam = np.asarray(body_T_cam, float)
         self._noise = imu_noise
-        R_bc = self._body_T_cam[:3, :3]
-        b_tc = self._body_T_cam[:3, 3]
+        body_R_cam = self._body_T_cam[:3, :3]
+        body_t_cam = self._body_T_cam[:3, 3]
         p = np.zeros(3)
-        R_sw = slam_R_cam @ (world_R_body @ R_bc).T
-        t_sw = slam_t_cam - scale * R_sw @ (p + world_R_body @ b_tc)
+        slam_R_world = slam_R_cam @ (world_R_body @ body_R_cam).T
+        slam_t_world = slam_t_cam - scale * slam_R_world @ (p + world_R_body @ body_t_cam)
         P = np.zeros((N_ERR, N_ERR))
         P[IP:IP + 3, IP:IP + 3] = np.eye(3) * 1e-6
         P[IV:IV + 3, IV:IV + 3] = np.eye(3) * o.initial_velocity_sigma**2
@@ -373,7 +371,7 @@ class MsfEkf:
         self._reset_alignment_cov(P, scale)
         v = np.zeros(3) if world_v_body is None else np.asarray(world_v_body, float)
         self.x = _State(p, v, world_R_body.copy(), np.zeros(3), np.zeros(3),
-                        float(scale), R_sw, t_sw, P)
+                        float(scale), slam_R_world, slam_t_world, P)
 
     def _reset_alignment_cov(self, P: np.ndarray, scale: float) -> None:
         P[IS:, :] = 0.0
@@ -393,12 +391,12 @@ class MsfEkf:
         alignment on this pose, with ``scale`` (or the old ``s`` when None) as the new map's
         initial scale."""
         x = self.x
-        R_bc = self._body_T_cam[:3, :3]
-        b_tc = self._body_T_cam[:3, 3]
+        body_R_cam = self._body_T_cam[:3, :3]
+        body_t_cam = self._body_T_cam[:3, 3]
         if scale is not None:
             x.s = float(scale)
-        x.R_sw = slam_R_cam @ (x.R @ R_bc).T
-        x.t_sw = slam_t_cam - x.s * x.R_sw @ (x.p + x.R @ b_tc)
+        x.slam_R_world = slam_R_cam @ (x.R @ body_R_cam).T
+        x.slam_t_world = slam_t_cam - x.s * x.slam_R_world @ (x.p + x.R @ body_t_cam)
         self._scale_rel_sigma = scale_rel_sigma
         self._reset_alignment_cov(x.P, x.s)
         self.counts.session_resets += 1
@@ -461,31 +459,31 @@ class MsfEkf:
         x.bg = x.bg + dx[IBG:IBG + 3]
         x.ba = x.ba + dx[IBA:IBA + 3]
         x.s = float(x.s + dx[IS])
-        x.R_sw = x.R_sw @ so3_exp(dx[IPHI:IPHI + 3])
-        x.t_sw = x.t_sw + dx[ITSW:ITSW + 3]
+        x.slam_R_world = x.slam_R_world @ so3_exp(dx[IPHI:IPHI + 3])
+        x.slam_t_world = x.slam_t_world + dx[ITSW:ITSW + 3]
         return True
 
     def update_slam(self, slam_t_cam: np.ndarray, slam_R_cam: np.ndarray | None) -> bool:
         """Fuse one SLAM camera pose (position, and orientation if enabled and given)."""
         x = self.x
         o = self.opt
-        R_bc = self._body_T_cam[:3, :3]
-        b_tc = self._body_T_cam[:3, 3]
-        world_t_cam = x.p + x.R @ b_tc
-        h = x.s * x.R_sw @ world_t_cam + x.t_sw
+        body_R_cam = self._body_T_cam[:3, :3]
+        body_t_cam = self._body_T_cam[:3, 3]
+        world_t_cam = x.p + x.R @ body_t_cam
+        h = x.s * x.slam_R_world @ world_t_cam + x.slam_t_world
         Hp = np.zeros((3, N_ERR))
-        Hp[:, IP:IP + 3] = x.s * x.R_sw
-        Hp[:, ITH:ITH + 3] = -x.s * x.R_sw @ x.R @ skew(b_tc)
-        Hp[:, IS] = x.R_sw @ world_t_cam
-        Hp[:, IPHI:IPHI + 3] = -x.s * x.R_sw @ skew(world_t_cam)
+        Hp[:, IP:IP + 3] = x.s * x.slam_R_world
+        Hp[:, ITH:ITH + 3] = -x.s * x.slam_R_world @ x.R @ skew(body_t_cam)
+        Hp[:, IS] = x.slam_R_world @ world_t_cam
+        Hp[:, IPHI:IPHI + 3] = -x.s * x.slam_R_world @ skew(world_t_cam)
         Hp[:, ITSW:ITSW + 3] = np.eye(3)
         rp = slam_t_cam - h
         if o.use_slam_rotation and slam_R_cam is not None:
-            h_R = x.R_sw @ x.R @ R_bc
+            h_R = x.slam_R_world @ x.R @ body_R_cam
             rr = so3_log(h_R.T @ slam_R_cam)
             Hr = np.zeros((3, N_ERR))
-            Hr[:, ITH:ITH + 3] = R_bc.T
-            Hr[:, IPHI:IPHI + 3] = R_bc.T @ x.R.T
+            Hr[:, ITH:ITH + 3] = body_R_cam.T
+            Hr[:, IPHI:IPHI + 3] = body_R_cam.T @ x.R.T
             H = np.vstack([Hp, Hr])
             r = np.concatenate([rp, rr])
             Rm = np.diag([(x.s * o.slam_position_sigma_m) ** 2] * 3
@@ -503,18 +501,18 @@ class MsfEkf:
         """Fuse one tilted-rangefinder reading against the fixed ground height."""
         x = self.x
         o = self.opt
-        R_br = self._body_T_range[:3, :3]
-        b_tr = self._body_T_range[:3, 3]
-        d_body = R_br[:, 2]
+        body_R_range = self._body_T_range[:3, :3]
+        body_t_range = self._body_T_range[:3, 3]
+        d_body = body_R_range[:, 2]
         c = -(x.R @ d_body)[2]
         if c < np.cos(o.range_max_tilt_rad):
             self.counts.range_rejected_tilt += 1
             return False
-        num = x.p[2] + (x.R @ b_tr)[2] - self._ground
+        num = x.p[2] + (x.R @ body_t_range)[2] - self._ground
         h = num / c
         dnum = np.zeros(N_ERR)
         dnum[IP + 2] = 1.0
-        dnum[ITH:ITH + 3] = (-x.R @ skew(b_tr))[2]
+        dnum[ITH:ITH + 3] = (-x.R @ skew(body_t_range))[2]
         dc = np.zeros(N_ERR)
         dc[ITH:ITH + 3] = (x.R @ skew(d_body))[2]
         H = ((dnum * c - num * dc) / c**2)[None, :]
@@ -550,15 +548,18 @@ class MsfEkf:
             R0 = None
         else:
             fit = initial_fit(flight)
-            t_start, scale0, v0, rel0 = fit.t_end, fit.scale, fit.world_v_body_end, fit.rel_std
+            scale0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             R0, bg0 = fit.world_R_body_end, fit.gyro_bias
             self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
+            # Causal: the filter starts when the window's last SLAM pose has arrived; the state
+            # at its image time t_end is carried to the arrival by the IMU below.
+            t_start = fit.t_end
         if flight.attitude is not None:
             i0 = min(np.searchsorted(flight.attitude.t, t_start), len(flight.attitude) - 1)
             R0 = quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz[i0])
         elif R0 is None:
             k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
-            R0 = _tilt_from_accel(imu.body_accel[k].mean(axis=0))
+            R0 = level_rotation_from_accel(imu.body_accel[k].mean(axis=0))
         self._scale_rel_sigma = (
             o.initial_scale_rel_sigma
             if o.initial_scale_rel_sigma is not None
@@ -592,9 +593,11 @@ class MsfEkf:
         snap_times: list[float] = []
         applied: list[tuple[float, object]] = []  # (time, update) fused within the buffer
         out_dt = 1.0 / o.output_rate_hz
-        next_out = t_imu[i_start]
+        # Causal output: nothing before the anchoring SLAM pose has arrived.
+        next_out = max(t_imu[i_start], float(slam.t[j0] + latency[j0]))
         out_t, out_x, lat = [], [], []
-        scale_hist_t, scale_hist, scale_sig = [], [], []
+        scale_hist_t, scale_hist, scale_sig, scale_sid = [], [], [], []
+        final_scales: dict[int, tuple[float, float]] = {}  # closed maps: (s, sigma)
         ev = 0
         pending: tuple[int, float] | None = None  # (new session, its first image time)
         cur_t = t_imu[i_start]
@@ -612,6 +615,7 @@ class MsfEkf:
                     if guess is None:
                         self.counts.slam_waiting_reinit += 1
                         continue
+                    final_scales[session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
                     session = pending[0]
                     pending = None
                     self.reset_session(slam.slam_t_cam[j], slam_R[j], *guess)
@@ -627,6 +631,7 @@ class MsfEkf:
                     scale_hist_t.append(t_imu[i])
                     scale_hist.append(self.x.s)
                     scale_sig.append(np.sqrt(self.x.P[IS, IS]))
+                    scale_sid.append(session)
             dt = t_imu[i + 1] - t_imu[i]
             self.propagate(imu.body_omega[i], imu.body_accel[i], dt)
             cur_t = t_imu[i + 1]
@@ -642,8 +647,10 @@ class MsfEkf:
                 out_x.append(self.x.copy())
                 next_out += out_dt
         self.counts.extra["events_after_imu_end"] = len(events) - ev
-        return self._estimate(flight, out_t, out_x, lat, scale_hist_t, scale_hist, scale_sig,
-                              session, time.perf_counter() - wall0)
+        final_scales[session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
+        history = (scale_hist_t, scale_hist, scale_sig, scale_sid)
+        return self._estimate(out_t, out_x, lat, history, final_scales,
+                              time.perf_counter() - wall0)
 
     def _reinit_guess(
         self, flight: Flight, t_first: float, t_meas: float, t_now: float
@@ -678,8 +685,8 @@ class MsfEkf:
 
     def _init_ground(self, r: float) -> None:
         x = self.x
-        R_br = self._body_T_range[:3, :3]
-        c = -(x.R @ R_br[:, 2])[2]
+        body_R_range = self._body_T_range[:3, :3]
+        c = -(x.R @ body_R_range[:, 2])[2]
         self._ground = x.p[2] + (x.R @ self._body_T_range[:3, 3])[2] - r * c
 
     def _apply_at(self, t_meas, cur_t, i, imu, snaps, snap_times, applied, apply) -> None:
@@ -730,7 +737,8 @@ class MsfEkf:
             self.counts = saved
             self.counts.extra = extra
 
-    def _estimate(self, flight, out_t, out_x, lat, sh_t, sh, ss, session, wall) -> Estimate:
+    def _estimate(self, out_t, out_x, lat, history, final_scales, wall) -> Estimate:
+        sh_t, sh, ss, sid = (np.asarray(h) for h in history)
         n = len(out_t)
         R = np.array([x.R for x in out_x])
         pose_cov = np.empty((n, 6, 6))
@@ -748,30 +756,22 @@ class MsfEkf:
             gyro_bias=np.array([x.bg for x in out_x]),
             accel_bias=np.array([x.ba for x in out_x]),
         )
-        x = self.x
         return Estimate(
             method="msf-ekf",
             trajectory=traj,
             pose_cov=pose_cov,
             vel_cov=np.array([x.P[IV:IV + 3, IV:IV + 3] for x in out_x]),
-            slam_scale={session: x.s},
-            slam_scale_sigma={session: float(np.sqrt(x.P[IS, IS]))},
-            series={"slam_scale": TimeSeries(np.asarray(sh_t), np.asarray(sh), np.asarray(ss))},
+            slam_scale={k: v[0] for k, v in final_scales.items()},
+            slam_scale_sigma={k: v[1] for k, v in final_scales.items()},
+            series={
+                "slam_scale": TimeSeries(sh_t, sh, ss),
+                "slam_session": TimeSeries(sh_t, sid.astype(int)),
+            },
             update_latency=np.asarray(lat),
             runtime_s=wall,
             causal=True,
             info={"options": self.opt.__dict__.copy(), "counts": self.counts.__dict__.copy()},
         )
-
-
-def _tilt_from_accel(f: np.ndarray) -> np.ndarray:
-    """world_R_body with yaw 0 whose body z aligns with the measured specific force."""
-    z = f / np.linalg.norm(f)
-    roll = np.arctan2(z[1], z[2])
-    pitch = np.arctan2(-z[0], np.hypot(z[1], z[2]))
-    from fgnav.datasets.geometry import rpy_to_matrix
-
-    return rpy_to_matrix(roll, pitch, 0.0)
 
 
 def run_msf(flight: Flight, options: MsfOptions | None = None) -> Estimate:

@@ -101,14 +101,12 @@ from scipy.linalg import cho_solve
 
 from fgnav.baselines.msf_ekf import initial_state_guess
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_log
+from fgnav.datasets.geometry import GRAVITY, matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_log
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 
 log = logging.getLogger(__name__)
 
-GRAVITY = 9.81
-"""Gravity magnitude [m/s^2] used for propagation (the simulator uses the same constant)."""
 
 # Main-state layout.
 IP, IPHI, IV, IBA, IBG, IZB, IS = 0, 3, 6, 9, 12, 15, 16
@@ -695,7 +693,7 @@ class Ukf003:
         out_dt = 1.0 / o.output_rate_hz
         next_out = cur_t
         out_t, out_x, out_P, lat = [], [], [], []
-        sh_t, sh, ss, zb = [], [], [], []
+        sh_t, sh, ss, sh_sid, zb = [], [], [], [], []
         ev = 0
         n_imu = len(imu)
         batch_w: list[np.ndarray] = []
@@ -732,6 +730,7 @@ class Ukf003:
                     sh_t.append(cur_t)
                     sh.append(self.scale)
                     ss.append(self.scale_sigma)
+                    sh_sid.append(0 if session is None else int(session))
                 elif kind == 2:
                     self.update_range(float(flight.range.range[j]))
                 elif kind == 3:
@@ -757,6 +756,7 @@ class Ukf003:
         self.counts.extra["clones_left"] = len(self.clones)
         series = {
             "slam_scale": TimeSeries(np.asarray(sh_t), np.asarray(sh), np.asarray(ss)),
+            "slam_session": TimeSeries(np.asarray(sh_t), np.asarray(sh_sid, dtype=int)),
             "altimeter_bias": TimeSeries(np.asarray(out_t), np.asarray(zb)),
         }
         return self._estimate(out_t, out_x, out_P, lat, series, session,
@@ -869,8 +869,8 @@ class Ukf003:
     def _initial_attitude(self, flight: Flight, t_start: float) -> tuple[np.ndarray, float | None]:
         """Attitude stream if present, else accelerometer tilt; yaw from the yaw stream when
         present. Returns ``(world_R_body, yaw sigma or None)``."""
-        from fgnav.baselines.msf_ekf import _tilt_from_accel
         from fgnav.datasets.geometry import rpy_to_matrix
+        from fgnav.solvers.measurements import level_rotation_from_accel
 
         if flight.attitude is not None:
             att = flight.attitude
@@ -879,7 +879,7 @@ class Ukf003:
         else:
             imu = flight.imu
             k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
-            R = _tilt_from_accel(imu.body_accel[k].mean(axis=0))
+            R = level_rotation_from_accel(imu.body_accel[k].mean(axis=0))
         yaw_sigma = None
         if self.opt.use_yaw and flight.yaw is not None:
             yw = flight.yaw

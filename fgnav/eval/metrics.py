@@ -476,11 +476,16 @@ def evaluate(
     m.yaw_rmse_deg = math.degrees(_rmse(dyaw))
 
     if estimate.pose_cov is not None:
-        cov = estimate.pose_cov[idx]
-        m.nees_pos = float(np.mean(position_nees(err, est_R, cov, al)))
-        m.nees_pose = float(np.mean(pose_nees(a_xyz, a_R, gt.world_t_body, gt_R, cov, al.s)))
-        m.n_nees = int(idx.size)
-        m.nees_pos_interval = nees_interval(m.n_nees, 3)
+        # Only samples with a covariance (solvers may compute it on a stride and leave NaN rows).
+        has = np.all(np.isfinite(estimate.pose_cov[idx]), axis=(1, 2))
+        if has.any():
+            cov = estimate.pose_cov[idx][has]
+            m.nees_pos = float(np.mean(position_nees(err[has], est_R[has], cov, al)))
+            m.nees_pose = float(np.mean(
+                pose_nees(a_xyz[has], a_R[has], gt.world_t_body[has], gt_R[has], cov, al.s)
+            ))
+            m.n_nees = int(has.sum())
+            m.nees_pos_interval = nees_interval(m.n_nees, 3)
 
     if estimate.update_latency is not None and np.asarray(estimate.update_latency).size:
         lat = np.asarray(estimate.update_latency, dtype=float)

@@ -1,1 +1,2 @@
-"""Front-ends from the seed papers: they turn raw series into measurements, priors and initial values."""
+"""Front-ends from the seed papers: they turn raw series into measurements, priors and initial
+values."""

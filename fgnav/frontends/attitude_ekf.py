@@ -52,13 +52,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.geometry import GRAVITY, quat_wxyz_to_matrix, wrap_angle, yaw_of
 from fgnav.datasets.types import AttitudeSeries, Flight
 
 log = logging.getLogger(__name__)
 
-#: Standard gravity [m/s^2] (CGPM 1901), as in GTSAM's ``MakeSharedU`` default.
-GRAVITY = 9.80665
 
 #: Default downward beam direction in body FLU (DESIGN.md section 4.4).
 BEAM_DOWN_BODY = np.array([0.0, 0.0, -1.0])

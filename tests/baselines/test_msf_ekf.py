@@ -62,6 +62,15 @@ def test_map_reset_starts_new_session():
     s_true = _truth_scale_at(fl, last, est.trajectory.t[-1])
     assert est.slam_scale[last] == pytest.approx(s_true, rel=0.05)
     assert _ate_se3(est, fl.ground_truth) < 0.10
+    # Both maps are reported, and the history says which map each scale sample belongs to, so
+    # the evaluation scores each session against its own truth.
+    from fgnav.eval.metrics import evaluate
+
+    sessions = fl.meta["truth"]["slam_sessions"]
+    truth = {int(k): _truth_scale_at(fl, int(k), v["t_end"]) for k, v in sessions.items()}
+    assert set(est.slam_scale) == set(truth)
+    m = evaluate(est, fl.ground_truth, truth_scale=truth)
+    assert all(abs(e) < 5.0 for e in m.scale_final_err_pct.values()), m.scale_final_err_pct
 
 
 def test_two_turns_hover_start():

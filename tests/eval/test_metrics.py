@@ -190,3 +190,28 @@ def test_partial_overlap_is_counted(truth):
     assert m.n_unmatched_after == int(np.sum(later.t > truth.t[-1])) > 0
     assert m.n_matched + m.n_unmatched_after == len(later)
     assert isinstance(m, Metrics)
+
+
+def test_nees_skips_rows_without_covariance():
+    """Solvers may fill pose_cov on a stride with NaN rows in between: NEES uses the others."""
+    import dataclasses
+
+    rng = np.random.default_rng(7)
+    n = 200
+    t = np.arange(n) * 0.1
+    gt_xyz = np.column_stack([np.cos(t), np.sin(t), 0.1 * t])
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    sigma = 0.05
+    est_xyz = gt_xyz + rng.normal(scale=sigma, size=(n, 3))
+    cov = np.zeros((n, 6, 6))
+    cov[:, :3, :3] = np.eye(3) * 1e-4
+    cov[:, 3:, 3:] = np.eye(3) * sigma**2
+    cov[1::2] = np.nan
+    truth = Trajectory(t, gt_xyz, q)
+    est = Estimate("x", Trajectory(t, est_xyz, q), pose_cov=cov)
+    m = evaluate(est, truth, alignment="none")
+    assert m.n_nees == n // 2
+    assert np.isfinite(m.nees_pos) and 2.0 < m.nees_pos < 4.0
+    full = evaluate(dataclasses.replace(est, pose_cov=np.where(np.isnan(cov), cov[0], cov)), truth,
+                    alignment="none")
+    assert full.n_nees == n
