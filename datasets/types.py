@@ -213,9 +213,10 @@ class SlamSeries(_Series):
         t: (N,) image time [s] (the time the image was taken, not when the pose arrived).
         slam_t_cam: (N, 3) camera position in the SLAM frame [SLAM units].
         slam_q_cam_wxyz: (N, 4) camera orientation ``slam_R_cam`` as ``[w, x, y, z]``.
-        session: (N,) int map/session id; a new id at every map reset (new frame and scale).
-        latency: optional (N,) seconds between image time and the pose's arrival (online mode
-            feeds the pose at ``t + latency``).
+        session: (N,) int map/session id >= 0; a new id at every map reset (new frame and
+            scale). Tracking losses are gaps (no sample), never a special id.
+        latency: optional (N,) seconds >= 0 between image time and the pose's arrival (online
+            mode feeds the pose at ``t + latency``).
     """
 
     t: np.ndarray
@@ -231,7 +232,19 @@ class SlamSeries(_Series):
         _check_column(name, "session", self.session, len(self), None)
         if self.session.dtype.kind not in "iu":
             raise FlightDataError(f"{name}.session: expected integer ids, got {self.session.dtype}")
+        bad = np.flatnonzero(self.session < 0)
+        if bad.size:
+            raise FlightDataError(
+                f"{name}.session: negative id {self.session[bad[0]]} at sample {bad[0]}; ids are "
+                ">= 0 (a tracking loss is a gap, not an id)"
+            )
         _check_column(name, "latency", self.latency, len(self), None, optional=True)
+        if self.latency is not None and np.any(self.latency < 0):
+            i = int(np.flatnonzero(self.latency < 0)[0])
+            raise FlightDataError(
+                f"{name}.latency: negative latency {self.latency[i]} s at sample {i}; expected the "
+                "delay (>= 0) between image time and arrival"
+            )
         return self
 
 

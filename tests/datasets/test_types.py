@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from fgnav.datasets import FlightDataError, ImuSeries, SlamSeries, Trajectory
 from fgnav.datasets.geometry import (
     matrix_to_quat_wxyz,
@@ -30,7 +29,9 @@ def test_good_series_passes():
 def test_non_increasing_time_is_named():
     imu = _imu()
     imu.t[5] = imu.t[4]
-    with pytest.raises(FlightDataError, match=r"imu\.t: time must be strictly increasing; sample 5"):
+    with pytest.raises(
+        FlightDataError, match=r"imu\.t: time must be strictly increasing; sample 5"
+    ):
         imu.check()
 
 
@@ -56,7 +57,9 @@ def test_non_unit_quaternion_and_float_session():
         Trajectory(np.arange(n, dtype=float), np.zeros((n, 3)), q).check()
     with pytest.raises(FlightDataError, match="integer ids"):
         SlamSeries(
-            np.arange(n, dtype=float), np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+            np.arange(n, dtype=float),
+            np.zeros((n, 3)),
+            np.tile([1.0, 0, 0, 0], (n, 1)),
             np.zeros(n),
         ).check()
 
@@ -73,3 +76,18 @@ def test_quaternion_round_trip_and_so3():
     assert wrap_angle(np.pi) == pytest.approx(np.pi)
     assert wrap_angle(-np.pi) == pytest.approx(np.pi)
     assert wrap_angle(3 * np.pi / 2) == pytest.approx(-np.pi / 2)
+
+
+def test_slam_session_and_latency_must_be_non_negative():
+    n = 3
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    with pytest.raises(FlightDataError, match=r"slam\.session: negative id -1 at sample 1"):
+        SlamSeries(np.arange(n, dtype=float), np.zeros((n, 3)), q, np.array([0, -1, 0])).check()
+    with pytest.raises(FlightDataError, match=r"slam\.latency: negative latency"):
+        SlamSeries(
+            np.arange(n, dtype=float),
+            np.zeros((n, 3)),
+            q,
+            np.zeros(n, int),
+            np.array([0.1, -0.1, 0]),
+        ).check()
