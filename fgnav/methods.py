@@ -36,6 +36,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import STREAMS, Flight, Trajectory
 from fgnav.estimate import Estimate
@@ -187,11 +189,16 @@ def run_msf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = Fals
 
 
 def run_ekf004(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
-    """Seed 004's EKF with ``[ekf004]``."""
+    """Seed 004's EKF with ``[ekf004]``; like the seed-000 observer it takes the drag coefficient
+    as calibrated (:func:`calibrated_drag_k`)."""
     from fgnav.baselines.ekf004 import Ekf004Options
     from fgnav.baselines.ekf004 import run_ekf004 as _run
 
-    return _run(flight, _options(Ekf004Options, config, "ekf004"))
+    table = dict(config.get("ekf004", {}))
+    defaults = calibrated_drag_k(flight, table)
+    fields = {k: v for k, v in defaults.items() if k != "drag_k_source"}
+    est = _run(flight, _options(Ekf004Options, {"ekf004": {**fields, **table}}, "ekf004"))
+    return _with_info(est, compare_defaults=defaults)
 
 
 def run_ukf003(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
@@ -202,8 +209,8 @@ def run_ukf003(flight: Flight, config: Mapping[str, Any], progress: bool = False
     return _run(flight, _options(Ukf003Options, config, "ukf003"))
 
 
-#: Where the seed-000 observer's drag coefficient came from when the config does not give it.
-DRAG_FROM_SIM_TRUTH = "simulator truth: seed 000 takes mu/m as known (calibrated)"
+#: Where a calibrated drag coefficient came from when the config does not give it.
+DRAG_FROM_SIM_TRUTH = "simulator truth: seeds 000 and 004 take mu/m as known (calibrated)"
 
 
 def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
@@ -222,13 +229,29 @@ def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = 
     defaults: dict[str, Any] = {}
     if "align_slam_axes" not in table:
         defaults["align_slam_axes"] = not truth.get("slam_axis_scale")
-    if "drag_k" not in table and flight.meta.get("drag_k") is None and truth.get("drag_k"):
-        defaults["drag_k"] = tuple(float(k) for k in truth["drag_k"])
-        defaults["drag_k_source"] = DRAG_FROM_SIM_TRUTH
+    defaults.update(calibrated_drag_k(flight, table))
     fields = {k: v for k, v in defaults.items() if k != "drag_k_source"}
     opts = _options(Seed000Options, {"ii-observer": {**fields, **table}}, "ii-observer")
     est = run_seed000(flight, opts)
     return _with_info(est, compare_defaults=defaults)
+
+
+def calibrated_drag_k(flight: Flight, table: Mapping[str, Any]) -> dict[str, Any]:
+    """The drag coefficient of the methods that take it as calibrated (seeds 000 and 004), when
+    their config table does not give it: the flight's calibration ``flight.meta["drag_k"]``, else
+    on a simulated flight the simulator's value; returned with its ``drag_k_source``."""
+    if "drag_k" in table or not isinstance(flight.meta, dict):
+        return {}
+    if flight.meta.get("drag_k") is not None:
+        k = np.atleast_1d(np.asarray(flight.meta["drag_k"], dtype=float))
+        return {"drag_k": (float(k[0]), float(k[-1])), "drag_k_source": "flight.meta drag_k"}
+    truth = flight.meta.get("truth")
+    if isinstance(truth, dict) and truth.get("drag_k"):
+        return {
+            "drag_k": tuple(float(k) for k in truth["drag_k"]),
+            "drag_k_source": DRAG_FROM_SIM_TRUTH,
+        }
+    return {}
 
 
 def _with_info(est: Estimate, **items: Any) -> Estimate:
