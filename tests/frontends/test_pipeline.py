@@ -6,9 +6,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.simulate import SimOptions, simulate
+
 from fgnav.frontends.pipeline import frontend_priors
 
 
