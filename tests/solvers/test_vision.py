@@ -64,21 +64,21 @@ def test_vo_frontend_runs_once_per_flight(flight):
 
 
 def test_double_coupling_as_one_graph_against_truth(flight, batch_no_slam):
-    """IMU + rangefinder + homography + yaw, SLAM and drag off. Measured: ATE 0.41 cm (SE(3)),
-    RPE 0.83 % over 1 m, end-point error 1.30 cm after 2.60 m, velocity 2.4 mm/s, yaw 0.30 deg;
-    200 homography factors (every pair), 5 LM iterations."""
+    """IMU + rangefinder + homography + yaw, SLAM and drag off. Measured: ATE 0.69 cm (SE(3)),
+    RPE 1.21 % over 1 m, end-point error 2.11 cm after 2.60 m, velocity 3.6 mm/s, yaw 0.39 deg;
+    200 homography factors (every pair)."""
     est, truth = batch_no_slam, flight.ground_truth
     assert est.info["factors"]["homography"] == len(flight.images) - 1
     assert est.info["homography"]["counts"]["factors"] == len(flight.images) - 1
     assert est.info["options"]["use_homography"] is True
     m = evaluate(est, truth, "se3", delta_m=RPE_DELTA_M)
-    assert m.ate_rmse_m < 0.01
-    assert m.rpe_pct < 2.0
+    assert m.ate_rmse_m < 0.015
+    assert m.rpe_pct < 2.5
     assert m.vel_rmse_mps < 0.01
-    assert m.yaw_rmse_deg < 0.7
+    assert m.yaw_rmse_deg < 0.8
     end_err, path = _end_error_m(est, truth)
     assert path > 2.0
-    assert end_err < 0.03
+    assert end_err < 0.045
     # The ground variable is metric: the simulator's flat ground at 0 m, world z from the range.
     assert abs(est.ground_height - flight.meta["truth"]["ground_height"]) < 0.05
 
@@ -87,7 +87,7 @@ def test_double_coupling_as_one_graph_against_truth(flight, batch_no_slam):
 def test_graph_against_seed002_dead_reckoning(flight, batch_no_slam):
     """Same flight, same sensors: seed 002's EKF + rectified VO dead reckoning (the papers'
     double coupling as published). Measured: seed 002 ATE 1.39 cm, RPE 3.33 %, end-point error
-    11.6 cm, velocity 0.22 m/s; the graph 0.41 cm, 0.83 %, 1.30 cm, 2.4 mm/s."""
+    11.6 cm, velocity 0.22 m/s; the graph 0.69 cm, 1.21 %, 2.11 cm, 3.6 mm/s."""
     from fgnav.baselines.seed002 import run_seed002
 
     truth = flight.ground_truth
@@ -95,12 +95,13 @@ def test_graph_against_seed002_dead_reckoning(flight, batch_no_slam):
     m_ref = evaluate(ref, truth, "se3", delta_m=RPE_DELTA_M)
     m = evaluate(batch_no_slam, truth, "se3", delta_m=RPE_DELTA_M)
     assert m_ref.ate_rmse_m < 0.03
-    assert m.ate_rmse_m < 0.5 * m_ref.ate_rmse_m
+    assert m.ate_rmse_m < 0.75 * m_ref.ate_rmse_m
     assert _end_error_m(batch_no_slam, truth)[0] < 0.5 * _end_error_m(ref, truth)[0]
+    assert m.vel_rmse_mps < 0.1 * m_ref.vel_rmse_mps
 
 
 def test_homography_does_not_degrade_all_sensors(flight):
-    """All sensors (SLAM, drag, range, yaw). Measured: ATE 0.26 cm with homography, 2.05 cm
+    """All sensors (SLAM, drag, range, yaw). Measured: ATE 0.24 cm with homography, 2.05 cm
     without (the 10 s are mostly hover: the SLAM scale is weakly observed)."""
     truth = flight.ground_truth
     with_h = solve_batch(flight, BatchOptions(covariance="none"))
@@ -115,11 +116,11 @@ def test_homography_does_not_degrade_all_sensors(flight):
 
 
 def test_fixed_lag_uses_homography_pairs_in_the_window(flight):
-    """Measured: ATE 0.86 cm (SE(3)), every pair attached, no solver failure."""
+    """Measured: ATE 1.24 cm (SE(3), causal), every pair attached, no solver failure."""
     est = run_fixed_lag(flight, FixedLagOptions(graph=SEED002_GRAPH))
     assert est.info["used"]["homography"] == len(flight.images) - 1
     assert est.info["solver_failures"] == 0
-    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.02
+    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.025
     # A lag shorter than one frame pair: keyframe i is gone when frame j arrives.
     short = run_fixed_lag(flight, FixedLagOptions(graph=SEED002_GRAPH, lag_s=0.05))
     lost = sum(v for k, v in short.info["dropped"].items() if k.startswith("homography"))
@@ -141,12 +142,12 @@ def test_rejected_pairs_are_counted_with_reasons(flight):
 
 
 def test_camera_faster_than_keyframes_composes_pairs(flight):
-    """20 Hz images, 10 Hz keyframes: two VO pairs per factor. Measured ATE 0.34 cm."""
+    """20 Hz images, 10 Hz keyframes: two VO pairs per factor. Measured ATE 0.63 cm."""
     opts = dataclasses.replace(SEED002_GRAPH, keyframe_hz=10.0)
     est = solve_batch(flight, BatchOptions(graph=opts, covariance="none"))
     counts = est.info["homography"]["counts"]
     assert counts["composed"] == counts["factors"] > 0.9 * (len(flight.images) - 1) / 2
-    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.01
+    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.015
 
 
 def test_use_homography_auto_and_errors(flight):
@@ -186,9 +187,9 @@ def test_homography_options_from_a_table():
 
 @pytest.mark.slow
 def test_flight_without_attitude_stream_uses_the_ekf_for_the_vo(flight):
-    """No attitude stream: the VO rectifies with seed 002's EKF attitude. Measured ATE 0.38 cm
+    """No attitude stream: the VO rectifies with seed 002's EKF attitude. Measured ATE 0.61 cm
     with the EKF attitude forced on the flight above."""
     f = dataclasses.replace(flight, attitude=None)
     est = solve_batch(f, BatchOptions(graph=SEED002_GRAPH, covariance="none"))
     assert est.info["homography"]["counts"]["factors"] == len(flight.images) - 1
-    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.01
+    assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.015
