@@ -141,6 +141,27 @@ def test_rejected_pairs_are_counted_with_reasons(flight):
     assert rep["homography"]["counts"]["few-inliers"] == rejected
 
 
+@pytest.mark.parametrize("robust, bound_m", [("huber", 0.015), ("none", None)])
+def test_wrong_homographies_are_down_weighted(flight, robust, bound_m):
+    """10 of the 200 pairs replaced by a homography shifted by (8, -6) px (inside every gate).
+    Measured ATE: 0.73 cm with the Huber kernel (0.69 cm clean), 17.4 cm without a kernel."""
+    from fgnav.solvers.batch import LMOptions, estimate_from_values, levenberg_marquardt
+
+    b = GraphBuilder(flight, dataclasses.replace(SEED002_GRAPH, robust=robust))
+    shift = np.array([[1.0, 0.0, 8.0], [0.0, 1.0, -6.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(0)
+    for n in rng.choice(len(b.vision.pairs), 10, replace=False):
+        p = b.vision.pairs[n]
+        b.vision.pairs[n] = dataclasses.replace(p, H=shift @ p.H)
+    graph, values = b.build()
+    res = levenberg_marquardt(graph, values, LMOptions())
+    ate = evaluate(estimate_from_values(b, res.values, "batch"), flight.ground_truth).ate_rmse_m
+    if bound_m is not None:
+        assert ate < bound_m
+    else:
+        assert ate > 0.05
+
+
 def test_camera_faster_than_keyframes_composes_pairs(flight):
     """20 Hz images, 10 Hz keyframes: two VO pairs per factor. Measured ATE 0.63 cm."""
     opts = dataclasses.replace(SEED002_GRAPH, keyframe_hz=10.0)
