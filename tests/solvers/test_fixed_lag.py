@@ -27,11 +27,15 @@ def test_fixed_lag_two_turns(two_turns_12s, online_two_turns):
     n = len(est.trajectory)
     assert est.update_latency.shape == (n,) and est.info["updates"] == n
     assert est.info["solver_failures"] == 0
-    # The newest state after each update: dead reckoning (IMU + drag + range + yaw) until the SLAM
-    # scale becomes observable (the hover of the first seconds), then SLAM-aided.
+    # The newest state after each update. SLAM from the first pose on a provisional alignment
+    # (hover: "not moving" whatever the scale), then the closed-form alignment once the motion
+    # excites the scale; the flight ends while the causal scale is still converging (measured
+    # 10.9 cm ATE, 7.7 cm/s; before the provisional alignment the hover was dead reckoning).
     m = evaluate(est, f.ground_truth, alignment="se3")
-    assert m.ate_rmse_m < 0.4, m.ate_rmse_m
-    assert m.vel_rmse_mps < 0.15
+    assert m.ate_rmse_m < 0.2, m.ate_rmse_m
+    assert m.vel_rmse_mps < 0.12
+    assert est.info["slam_provisional_alignments"][0]["session"] == 0
+    assert "slam:before-scale-init" not in est.info["dropped"]
     s_true = _truth_scale_at(f, 0, float(est.trajectory.t[-1]))
     assert abs(est.slam_scale[0] / s_true - 1) < 0.03
     # SLAM poses before the scale could be initialised are counted, never silently lost.
@@ -40,6 +44,17 @@ def test_fixed_lag_two_turns(two_turns_12s, online_two_turns):
     dropped = sum(v for k, v in est.info["dropped"].items() if k.startswith("slam"))
     skipped = sum(v for k, v in est.info["skipped"].items() if k.startswith("slam"))
     assert used > 0 and used + dropped + skipped == n_slam
+
+
+@pytest.mark.slow
+def test_fixed_lag_two_turns_28s_causal_accuracy():
+    """The full two-turns flight (seed 0): measured causal ATE 4.7 cm, velocity 4.3 cm/s."""
+    f = simulate("two-turns", seed=0, options=SimOptions(images=False))
+    est = run_fixed_lag(f, FixedLagOptions(lag_s=2.0))
+    m = evaluate(est, f.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.08, m.ate_rmse_m
+    assert m.vel_rmse_mps < 0.07
+    assert abs(est.slam_scale[0] / _truth_scale_at(f, 0, float(est.trajectory.t[-1])) - 1) < 0.02
 
 
 def test_late_measurements_beyond_lag_are_counted():
