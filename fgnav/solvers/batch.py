@@ -50,7 +50,9 @@ class LMOptions:
 
     Attributes:
         max_iterations: most outer iterations (linearizations).
-        rel_tol: stop when the relative error decrease is below this.
+        rel_tol: stop when the relative error decrease is below this (1e-4: on a 60 s figure8
+            the iterations after that changed the error by 7e-5 relative and the ATE by 0.02 mm,
+            at 0.4 s each per flight minute).
         abs_tol: stop when the error is below this.
         lambda_init: damping tried after the first rejected Gauss-Newton step.
         lambda_factor: multiplier of lambda on rejection (divisor on acceptance).
@@ -59,7 +61,7 @@ class LMOptions:
     """
 
     max_iterations: int = 30
-    rel_tol: float = 1e-6
+    rel_tol: float = 1e-4
     abs_tol: float = 1e-9
     lambda_init: float = 1e-4
     lambda_factor: float = 10.0
