@@ -39,6 +39,7 @@ from fgnav.datasets.geometry import wrap_angle
 from fgnav.datasets.types import Flight, ImuSeries
 from fgnav.keys import B, D, G, S, V, X
 from fgnav.solvers.measurements import (
+    MIN_ANCHOR_GAP_PERIODS,
     SlamAlignmentInit,
     associate,
     attitude_from_slam,
@@ -280,7 +281,9 @@ class GraphBuilder:
 
         anchors = slam_t
         if self.vision is not None:
-            anchors = np.union1d(self.vision.anchor_times(), [] if slam_t is None else slam_t)
+            # SLAM frames first: images too close to a SLAM frame would take its keyframe.
+            images_t = self.vision.anchor_times(slam_t, MIN_ANCHOR_GAP_PERIODS / o.keyframe_hz)
+            anchors = np.union1d(images_t, [] if slam_t is None else slam_t)
         self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, anchors)
         self.K = len(self.t_kf)
         self.pim_params = self._pim_params()

@@ -24,6 +24,12 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------
 
 
+#: Anchors closer than this fraction of a keyframe period to the previous keyframe are skipped by
+#: :func:`keyframe_times`; the margin absorbs the jitter of logged time stamps (a 20 Hz stream at a
+#: 20 Hz keyframe rate).
+MIN_ANCHOR_GAP_PERIODS = 0.75
+
+
 def keyframe_times(
     t_start: float,
     t_end: float,
@@ -47,9 +53,7 @@ def keyframe_times(
     if t_end <= t_start:
         raise FlightDataError(f"empty keyframe window [{t_start}, {t_end}] s")
     period = 1.0 / rate_hz
-    # Anchors closer than this fraction of a period to the previous keyframe are skipped; the
-    # margin absorbs the jitter of logged time stamps (a 20 Hz stream at a 20 Hz keyframe rate).
-    min_gap = 0.75 * period
+    min_gap = MIN_ANCHOR_GAP_PERIODS * period
     anchors = np.array([]) if anchor_t is None else np.asarray(anchor_t, dtype=float)
     anchors = anchors[(anchors >= t_start) & (anchors <= t_end)]
     out: list[float] = [t_start]

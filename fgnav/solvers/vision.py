@@ -344,10 +344,30 @@ class HomographyFactors:
         self.pairs: list[HomographyPair] = []
         self._by_keyframe: dict[int, list[int]] = {}
 
-    def anchor_times(self) -> np.ndarray:
-        """Sorted image times of the frames of the gated pairs [s] (keyframe anchors)."""
+    def anchor_times(
+        self, priority_t: np.ndarray | None = None, min_gap_s: float = 0.0
+    ) -> np.ndarray:
+        """Sorted image times of the frames of the gated pairs [s] (keyframe anchors).
+
+        Args:
+            priority_t: times that keep their keyframes first (SLAM frames): an image closer
+                than ``min_gap_s`` to one of them, but not at the same time (within
+                ``frame_tolerance_s``), is left out, because the keyframe policy keeps only the
+                earlier of two anchors closer than its minimum gap. Its pairs are then composed
+                across it, or counted as ``homography:no-keyframe``.
+            min_gap_s: that minimum gap [s].
+        """
         frames = sorted({f for i, j, *_ in self.links for f in (i, j)})
-        return self.image_t[np.asarray(frames, int)] if frames else np.array([])
+        t = self.image_t[np.asarray(frames, int)] if frames else np.array([])
+        if priority_t is None or len(priority_t) == 0 or len(t) == 0:
+            return t
+        p = np.sort(np.asarray(priority_t, float))
+        n = np.clip(np.searchsorted(p, t), 1, len(p) - 1) if len(p) > 1 else np.zeros(len(t), int)
+        d = np.abs(p[n] - t)
+        if len(p) > 1:
+            d = np.minimum(d, np.abs(p[n - 1] - t))
+        keep = (d <= self.options.frame_tolerance_s) | (d >= min_gap_s)
+        return t[keep]
 
     def associate(self, t_kf: np.ndarray) -> None:
         """Pairs between keyframed frames (composing chains across frames without a keyframe)."""

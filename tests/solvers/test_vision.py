@@ -171,6 +171,21 @@ def test_camera_faster_than_keyframes_composes_pairs(flight):
     assert evaluate(est, flight.ground_truth, "se3").ate_rmse_m < 0.015
 
 
+def test_slam_frames_keep_their_keyframes(flight):
+    """SLAM poses half a frame after the images (not synchronised): the SLAM frames keep their
+    keyframes, and the images, all within 0.75 keyframe periods of one, get none: their pairs are
+    counted as ``homography:no-keyframe`` (a pair between non-keyframe times is not modelled)."""
+    late = dataclasses.replace(
+        flight, slam=dataclasses.replace(flight.slam, t=flight.slam.t + 0.025)
+    )
+    ref = GraphBuilder(late, GraphOptions(use_homography=False))
+    b = GraphBuilder(late, GraphOptions())
+    assert np.array_equal(b.t_kf, ref.t_kf)
+    assert len(b.slam_assoc.meas_index) == len(ref.slam_assoc.meas_index)
+    assert b.skipped["homography:no-keyframe"] == len(flight.images) - 1
+    assert not b.vision.pairs
+
+
 def test_use_homography_auto_and_errors(flight):
     assert GraphBuilder(flight, SEED002_GRAPH).options.use_homography is True
     no_images = dataclasses.replace(flight, images=None)
