@@ -73,6 +73,9 @@ class Method:
             tables and calls the implementation).
         alignment: trajectory alignment used to score it against truth (``"se3"`` for metric
             estimates, DESIGN.md section 9).
+        any_of: alternative stream sets, at least one of which must be present besides
+            ``requires`` (the smoothers: ``slam``, or ``images`` with ``range`` for the homography
+            and rangefinder factors).
     """
 
     name: str
@@ -83,11 +86,18 @@ class Method:
     implementation: str
     entry: Callable[[Flight, Mapping[str, Any], bool], Estimate]
     alignment: str = "se3"
+    any_of: tuple[tuple[str, ...], ...] = ()
 
     def missing(self, flight: Flight) -> list[str]:
-        """The required streams the flight does not have (``[]`` when it can run)."""
+        """The required streams the flight does not have (``[]`` when it can run); for
+        ``any_of``, those of the alternative closest to being complete."""
         present = set(flight.streams())
-        return [s for s in self.requires if s not in present]
+        out = [s for s in self.requires if s not in present]
+        if self.any_of:
+            gaps = [[s for s in alt if s not in present] for alt in self.any_of]
+            if all(gaps):
+                out += min(gaps, key=len)
+        return out
 
     def implementation_problem(self) -> str | None:
         """Why the implementation module cannot be found (None when it exists)."""
@@ -127,6 +137,11 @@ def _renamed(est: Estimate, name: str) -> Estimate:
 
 def _join(items: list[str]) -> str:
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+#: The smoothers need a position source: monocular SLAM, or the downward camera's homographies
+#: made metric by the rangefinder (seed 002's sensor set).
+SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"))
 
 
 def missing_reason(missing: list[str]) -> str:
@@ -320,20 +335,22 @@ METHODS: dict[str, Method] = {
         Method(
             "batch",
             "factor-graph smoother over the whole flight (Levenberg-Marquardt)",
-            ("imu", "slam"),
-            ("attitude", "range", "yaw"),
+            ("imu",),
+            ("slam", "attitude", "range", "yaw", "images"),
             False,
             "fgnav.solvers.batch",
             run_batch,
+            any_of=SMOOTHER_ALTERNATIVES,
         ),
         Method(
             "fixed-lag",
             "online iSAM2 fixed-lag smoother, newest state after each update",
-            ("imu", "slam"),
-            ("attitude", "range", "yaw"),
+            ("imu",),
+            ("slam", "attitude", "range", "yaw", "images"),
             True,
             "fgnav.solvers.fixed_lag",
             run_fixed_lag,
+            any_of=SMOOTHER_ALTERNATIVES,
         ),
         Method(
             "msf-ekf",

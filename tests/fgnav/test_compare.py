@@ -278,3 +278,21 @@ def test_missing_implementation_is_a_skip_reason(flight, registry):
     assert skipped == {
         "later": "implementation fgnav.baselines.nope is not available in this version"
     }
+
+
+def test_smoothers_run_without_slam_when_camera_and_range_exist():
+    """Seed 002's sensor set (downward camera + rangefinder, no SLAM) feeds the smoothers; with
+    neither SLAM nor images the reason names SLAM."""
+    import dataclasses
+
+    from fgnav.datasets.simulate import SimOptions, simulate
+    from fgnav.methods import available_methods
+
+    fl = simulate("two-turns", seed=1, options=SimOptions(duration=2.0))
+    no_slam = dataclasses.replace(fl, slam=None)
+    runnable, skipped = available_methods(no_slam)
+    assert {"batch", "fixed-lag", "ekf-vo002"} <= set(runnable)
+    assert skipped["msf-ekf"] == "needs slam; the flight has none"
+    runnable, skipped = available_methods(dataclasses.replace(no_slam, images=None))
+    assert "batch" not in runnable
+    assert skipped["batch"] == "needs slam; the flight has none"
