@@ -20,6 +20,9 @@ import numpy as np
 #: Largest deviation of ``R^T R`` from identity accepted for a calibration rotation (about what
 #: four printed decimals give); closer rotations are re-orthonormalised.
 ROTATION_TOLERANCE = 1e-3
+#: Deviation of ``R^T R`` from identity below which a rotation counts as exactly orthonormal
+#: (double rounding of a projected rotation is ~1e-16).
+ORTHONORMAL_EXACT = 1e-12
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -89,8 +92,14 @@ def as_pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray, name: str) -> np.ndarray:
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise ValueError(f"{name}: expected a Pose3 or a finite 4x4 pose, got shape {m.shape}")
     R = m[:3, :3]
-    if np.max(np.abs(R.T @ R - np.eye(3))) > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+    deviation = np.max(np.abs(R.T @ R - np.eye(3)))
+    if deviation > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
         raise ValueError(f"{name}: rotation block is not a rotation matrix:\n{R}")
+    if deviation <= ORTHONORMAL_EXACT:
+        # Already orthonormal to rounding (a Pose3, or a matrix projected before): no SVD, which
+        # costs more than the rest of a factor's construction.
+        m[3] = (0.0, 0.0, 0.0, 1.0)
+        return m
     U, _, Vt = np.linalg.svd(R)
     out = np.eye(4)
     out[:3, :3] = U @ Vt

@@ -6,6 +6,7 @@ Prints updates/s, update latency p50/p99/max, times real time, Python heap peak 
 causal trajectory. Wall-clock numbers depend on the machine's load: run it on an idle machine.
 
     .venv/bin/python scripts/bench_online.py [--duration 180] [--keyframe-hz 20] [--lag 2]
+        [--marginalize-every 1]
 """
 
 from __future__ import annotations
@@ -30,6 +31,12 @@ def main() -> None:
     ap.add_argument("--keyframe-hz", type=float, default=20.0)
     ap.add_argument("--lag", type=float, default=2.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--marginalize-every",
+        type=float,
+        default=FixedLagOptions.marginalize_every_s,
+        help="marginalisation block [s] (FixedLagOptions.marginalize_every_s; 0: every update)",
+    )
     ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     args = ap.parse_args()
     sim = SimOptions(duration=args.duration, images=False, slam_rate_hz=20.0, range_rate_hz=50.0)
@@ -37,8 +44,12 @@ def main() -> None:
     flight = simulate(args.scenario, seed=args.seed, options=sim)
     print(f"simulated {args.scenario} {args.duration:.0f} s in {time.perf_counter() - t0:.1f} s")
     opts = FixedLagOptions(
-        lag_s=args.lag, graph=GraphOptions(keyframe_hz=args.keyframe_hz), track_memory=args.memory
+        lag_s=args.lag,
+        graph=GraphOptions(keyframe_hz=args.keyframe_hz),
+        marginalize_every_s=args.marginalize_every,
+        track_memory=args.memory,
     )
+    print(f"lag {args.lag} s, marginalisation every {args.marginalize_every} s")
     cpu0 = time.process_time()
     est = run_fixed_lag(flight, opts, progress=True)
     cpu = time.process_time() - cpu0
