@@ -19,7 +19,8 @@ Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` i
    moves of a provisional scale are relinearised. Without ``slam_provisional`` the poses before the
    closed-form fit are counted as ``slam:before-scale-init``.
 4. Update the smoother with timestamps of the new keys and of the slow keys used (refreshed so a
-   slow variable stays in the window while it is measured).
+   slow variable stays in the window while it is measured), rounded up to
+   ``marginalize_every_s`` blocks so that keyframes leave the window one block at a time.
 5. Read the newest state: the causal trajectory.
 
 Causality: the states, slow variables and SLAM alignment use only measurements arrived so far.
@@ -77,8 +78,9 @@ class FixedLagOptions:
             relinearised then).
         relinearize_skip: ISAM2 relinearizes at most every this many updates.
         factorization: ``"QR"`` or ``"CHOLESKY"`` (QR survives the first bias better).
-        slam_init_window_s: seconds of a SLAM session's poses used for its closed-form alignment
-            before its factors enter the graph.
+        slam_init_window_s: seconds of a SLAM session's poses before its closed-form alignment
+            is first tried (until then, and until the fit passes its gates, the session uses a
+            provisional alignment, or its poses are held back without ``slam_provisional``).
         slam_init_scale_sigma_rel: relative sigma of the prior on the initial SLAM scale.
         slam_init_min_excitation_m: a session's alignment is initialised once the RMS metric
             second difference of its motion (0.5 s half-width) reaches this [m]: below it the
