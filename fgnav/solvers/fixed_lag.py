@@ -17,9 +17,12 @@ Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` i
    the velocity is held from the first pose. When the closed-form fit passes its gates, the
    session's alignment chain starts from it and the provisional factors still in the window are
    removed and re-attached to it (left on the provisional alignment, they tied the window to a
-   scale the hover had not determined: simulated two-turns causal ATE 4.8 cm, moved 1.9 cm). Slow variables get their own (small) relinearisation threshold so that the large
-   moves of a provisional scale are relinearised. Without ``slam_provisional`` the poses before the
-   closed-form fit are counted as ``slam:before-scale-init``.
+   scale the hover had not determined: simulated two-turns causal ATE 4.8 cm against 1.9 cm).
+   Slow variables get their own (small) relinearisation threshold; note that iSAM2 fixes the
+   linearisation point of every variable a marginal factor involves, so a slow variable is
+   relinearised only until its first keyframe leaves the window (the 2 s SLAM segments start
+   from the current estimate). Without ``slam_provisional`` the poses before the closed-form fit
+   are counted as ``slam:before-scale-init``.
 4. Update the smoother with timestamps of the new keys and of the slow keys used (refreshed so a
    slow variable stays in the window while it is measured), rounded up to
    ``marginalize_every_s`` blocks so that keyframes leave the window one block at a time.
