@@ -31,8 +31,10 @@ def main() -> None:
     step = max(1, len(gt) // args.frames)
     R = gt.world_R_body()
     poses = np.stack(
-        [make_pose(R[i], gt.world_t_body[i]) @ flight.calib.body_T_cam
-         for i in range(0, len(gt), step)][: args.frames]
+        [
+            make_pose(R[i], gt.world_t_body[i]) @ flight.calib.body_T_cam
+            for i in range(0, len(gt), step)
+        ][: args.frames]
     )
     rng = np.random.default_rng(args.seed)
     print(f"{len(poses)} poses of two-turns (3.5-4 m high); machine load affects the timings")
