@@ -286,6 +286,7 @@ def test_smoothers_run_without_slam_when_camera_and_range_exist():
     import dataclasses
 
     from fgnav.datasets.simulate import SimOptions, simulate
+
     from fgnav.methods import available_methods
 
     fl = simulate("two-turns", seed=1, options=SimOptions(duration=2.0))
