@@ -184,7 +184,7 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
         graph=_graph_options(config),
         lm=_options(LMOptions, config, "lm"),
     )
-    return solve_batch(flight, opts, progress=progress)
+    return solve_batch(flight, opts, priors=_frontend_priors(flight, config), progress=progress)
 
 
 def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
@@ -193,7 +193,15 @@ def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
     from fgnav.solvers.fixed_lag import run_fixed_lag as _run
 
     opts = _options(FixedLagOptions, config, "online", graph=_graph_options(config))
-    return _run(flight, opts, progress=progress)
+    return _run(flight, opts, priors=_frontend_priors(flight, config), progress=progress)
+
+
+def _frontend_priors(flight: Flight, config: Mapping[str, Any]):
+    """Front-end priors of the smoothers from the ``[priors]`` table (``sources``, ``drag_k``)."""
+    from fgnav.frontends.pipeline import frontend_priors
+
+    table = config.get("priors", {})
+    return frontend_priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
 
 
 def run_msf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:

@@ -14,7 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from fgnav.commands.batch import graph_options, score_and_write
+from fgnav.commands.batch import (
+    add_priors_argument,
+    frontend_priors_from,
+    graph_options,
+    score_and_write,
+)
 from fgnav.config import load_config, options_from
 from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 
@@ -29,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lag", type=float, default=None, help="smoother lag [s] (default 2)")
     parser.add_argument("--config", default=None, help="TOML file with [graph] and [online] tables")
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
+    add_priors_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -43,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
         graph=graph_options(args),
         lag_s=args.lag,
     )
-    est = run_fixed_lag(flight, opts, progress=not args.no_progress)
+    priors = frontend_priors_from(args, flight)
+    est = run_fixed_lag(flight, opts, priors=priors, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info
     print(

@@ -34,6 +34,8 @@ logger = logging.getLogger(__name__)
 
 AlignMode = Literal["se3", "sim3", "4dof", "none"]
 ALIGN_MODES: tuple[str, ...] = ("se3", "sim3", "4dof", "none")
+#: Mode reported when SE(3)/Sim(3) is undetermined (points on a line): centroids aligned only.
+DEGENERATE_MODE = "translation (degenerate geometry)"
 
 #: Default largest time gap [s] of ground truth across which it is interpolated. Motion-capture
 #: ground truth runs at 100-200 Hz (EuRoC 200 Hz); a gap above 0.1 s means missing data.
@@ -197,7 +199,16 @@ def align(est_xyz: np.ndarray, gt_xyz: np.ndarray, mode: str = "se3") -> Alignme
     if mode == "4dof":
         R, t = align_4dof(est_xyz, gt_xyz)
         return Alignment(R, t, 1.0, mode)
-    R, t, s = umeyama(est_xyz, gt_xyz, with_scale=(mode == "sim3"))
+    try:
+        R, t, s = umeyama(est_xyz, gt_xyz, with_scale=(mode == "sim3"))
+    except FlightDataError as e:
+        if "degenerate" not in str(e):
+            raise
+        # A straight-line trajectory (e.g. a purely vertical flight) leaves the rotation about the
+        # line undetermined: align the centroids only, and say so in the mode.
+        est, gt = _check_pair(est_xyz, gt_xyz)
+        logger.warning("align: %s; %s falls back to translation only", e, mode)
+        return Alignment(np.eye(3), gt.mean(axis=0) - est.mean(axis=0), 1.0, DEGENERATE_MODE)
     return Alignment(R, t, s, mode)
 
 

@@ -664,11 +664,20 @@ class GraphBuilder:
             raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
         sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
         den = (wd2**2).sum(axis=0)
-        k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), 1.0)
-        if np.any(~np.isfinite(k)) or np.any(k <= 0):
+        k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), np.nan)
+        ok = np.isfinite(k) & (k > 0)
+        if not ok.any():
             raise FlightDataError(
-                f"per-axis SLAM scale initialisation gave {k}: too little motion on some axis"
+                f"per-axis SLAM scale initialisation gave {k}: too little motion on every axis"
             )
+        if not ok.all():
+            # An axis without acceleration (e.g. z at constant altitude) is not seen by second
+            # differences; the absolute per-axis factors still fix it, from this initial value.
+            log.warning(
+                "per-axis SLAM scale init %s: axis %s without motion starts at the mean of the "
+                "others", np.round(k, 4), "".join("xyz"[i] for i in np.flatnonzero(~ok))
+            )
+            k = np.where(ok, k, k[ok].mean())
         log.info("per-axis SLAM scale init %s", np.round(k, 4))
         return k
 

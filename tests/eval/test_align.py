@@ -14,7 +14,14 @@ from fgnav.datasets.geometry import (
 )
 from fgnav.datasets.types import Trajectory
 
-from fgnav.eval.align import Alignment, align, associate, interpolate_trajectory, slerp_wxyz
+from fgnav.eval.align import (
+    Alignment,
+    align,
+    associate,
+    interpolate_trajectory,
+    slerp_wxyz,
+    umeyama,
+)
 
 
 def _transform(traj: Trajectory, R: np.ndarray, t: np.ndarray, s: float) -> Trajectory:
@@ -95,7 +102,7 @@ def test_bad_inputs_raise_clear_errors(truth):
         align(truth.world_t_body, truth.world_t_body, "sim4")
     line = np.outer(np.arange(10.0), [1.0, 2.0, 3.0])
     with pytest.raises(FlightDataError, match="degenerate"):
-        align(line, line, "se3")
+        umeyama(line, line, with_scale=False)
     with pytest.raises(FlightDataError, match="equal shape"):
         align(truth.world_t_body, truth.world_t_body[:-1], "se3")
 
@@ -141,3 +148,15 @@ def test_associate_counts_unmatched(truth):
     assert np.abs(a.gt.world_t_body - est.world_t_body[a.est_index]).max() < 1e-2
     with pytest.raises(FlightDataError, match="same clock"):
         associate(Trajectory(est.t + 1e4, est.world_t_body, est.world_q_body_wxyz), gt)
+
+
+def test_line_trajectory_falls_back_to_translation_and_says_so():
+    """A purely vertical flight: the rotation about the line is undetermined."""
+    from fgnav.eval.align import DEGENERATE_MODE, align
+
+    z = np.linspace(0.0, 2.0, 50)
+    gt = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    est = gt + np.array([1.0, -2.0, 0.5])
+    al = align(est, gt, "se3")
+    assert al.mode == DEGENERATE_MODE
+    assert np.allclose(al.apply_positions(est), gt)
