@@ -413,7 +413,8 @@ class FixedLagRunner:
         """Row of the session's arrived SLAM pose closest in time to the newest keyframe."""
         b = self.builder
         slam = b.flight.slam
-        rows = np.flatnonzero((slam.session == session) & (slam.t <= self.t_latest))
+        arrived = slam.t + b.slam_latency <= self.t_latest
+        rows = np.flatnonzero((slam.session == session) & arrived)
         t_ref = b.t_kf[max(self.newest_k, 0)]
         return int(rows[np.argmin(np.abs(slam.t[rows] - t_ref))])
 

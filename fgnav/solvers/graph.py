@@ -600,11 +600,12 @@ class GraphBuilder:
         return guess
 
     def init_session(self, session: int, t_limit: float | None = None) -> SlamAlignmentInit:
-        """Closed-form alignment of one SLAM session from data up to ``t_limit`` (None: all)."""
+        """Closed-form alignment of one SLAM session from the poses that have arrived by
+        ``t_limit`` (arrival = image time + latency; None: all)."""
         slam = self.flight.slam
         m = slam.session == session
         if t_limit is not None:
-            m &= slam.t <= t_limit
+            m &= slam.t + self.slam_latency <= t_limit
         sl = slam.select(m)
         im = (self.imu.t >= sl.t[0] - 1.0) & (self.imu.t <= sl.t[-1] + 1.0)
         prior_scale = self._prior_scale(session)
