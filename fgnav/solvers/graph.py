@@ -35,7 +35,7 @@ import gtsam
 import numpy as np
 
 from fgnav.datasets.errors import FgnavError, FlightDataError
-from fgnav.datasets.geometry import wrap_angle
+from fgnav.datasets.geometry import GRAVITY, wrap_angle
 from fgnav.datasets.types import Flight, ImuSeries
 from fgnav.keys import B, D, G, S, V, X
 from fgnav.solvers.measurements import (
@@ -57,8 +57,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: Standard gravity [m/s^2] (the simulator and GTSAM's MakeSharedU default use this value).
-STANDARD_GRAVITY = 9.81
 #: Drag coefficient used when no closed-form initial value is possible [1/s]; seed 000's
 #: simulation uses kx = 0.3, ky = 0.2 and the simulator's default is (0.38, 0.42).
 DEFAULT_DRAG_K = 0.3
@@ -135,7 +133,7 @@ class GraphOptions:
     """
 
     keyframe_hz: float = 20.0
-    gravity: float = STANDARD_GRAVITY
+    gravity: float = GRAVITY
     use_gyro: bool = True
     use_slam: bool = True
     use_drag: bool = True
