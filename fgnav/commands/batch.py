@@ -125,5 +125,8 @@ def run(args: argparse.Namespace) -> int:
         f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
         f"{est.runtime_s:.2f} s"
     )
-    score_and_write(flight, est, Path(args.out), {"flight": flight.name, "command": "batch"})
+    extra = {"flight": flight.name, "command": "batch"}
+    if priors is not None:
+        extra["frontend_priors"] = {"sources": priors.sources, "slam_scale": priors.slam_scale}
+    score_and_write(flight, est, Path(args.out), extra)
     return 0

@@ -60,5 +60,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if info["dropped"]:
         print(f"dropped measurements: {info['dropped']}")
-    score_and_write(flight, est, Path(args.out), {"flight": flight.name, "command": "online"})
+    extra = {"flight": flight.name, "command": "online"}
+    if priors is not None:
+        extra["frontend_priors"] = {"sources": priors.sources, "slam_scale": priors.slam_scale}
+    score_and_write(flight, est, Path(args.out), extra)
     return 0

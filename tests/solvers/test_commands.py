@@ -59,3 +59,20 @@ def test_bad_config_is_one_line_error(flight_folder, tmp_path, capsys):
     )
     err = capsys.readouterr().err
     assert "keyframe_hzz" in err and len(err.strip().splitlines()) == 1
+
+
+def test_frontend_priors_flag(tmp_path, capsys):
+    """``--priors ml-scale`` runs seed 004's closed-form scale on a vertical flight and the
+    smoother starts from it; an unknown source is a one-line error."""
+    folder = tmp_path / "vertical"
+    simulate_to_folder("vertical", folder, seed=2, options=SimOptions(duration=12.0, images=False))
+    out = tmp_path / "online"
+    args = ["online", str(folder), "--out", str(out), "--priors", "ml-scale", "--no-progress"]
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "fixed-lag"
+    truth = json.loads((folder / "meta.json").read_text())["meta"]["truth"]["slam_sessions"]["0"]
+    prior = summary["extra"]["frontend_priors"]["slam_scale"]["0"]
+    assert abs(prior / truth["scale"] - 1.0) < 0.05
+    assert main(["batch", str(folder), "--out", str(tmp_path / "b"), "--priors", "magic"]) == 1
+    assert "unknown front-end prior" in capsys.readouterr().err
