@@ -198,12 +198,6 @@ class Ekf004Options:
 # ----------------------------------------------------------------------------------------------
 
 
-def _wrap(a: float) -> float:
-    """Scalar angle wrapped to (-pi, pi] (``wrap_angle`` for floats, without numpy overhead)."""
-    w = math.fmod(a + math.pi, 2.0 * math.pi)
-    if w <= 0.0:
-        w += 2.0 * math.pi
-    return w - math.pi
 
 
 def rpy_of(world_R_body: np.ndarray) -> np.ndarray:
@@ -380,7 +374,7 @@ class Ekf004:
         xn = x.copy()
         xn[IP : IP + 3] += dt * x[IV : IV + 3]
         xn[IV : IV + 2] += dt * a_xy
-        xn[IY] = _wrap(x[IY] + dt * x[IYR])
+        xn[IY] = wrap_angle(x[IY] + dt * x[IYR])
         self.x = xn
         self.P = F @ self.P @ F.T
         self.P[self._diag, self._diag] += self._q * dt
@@ -417,7 +411,7 @@ class Ekf004:
             return False
         K = PHt @ S_inv
         self.x = self.x + K @ r
-        self.x[IY] = _wrap(self.x[IY])
+        self.x[IY] = wrap_angle(self.x[IY])
         P = self.P - K @ PHt.T
         self.P = 0.5 * (P + P.T)
         self.counts.add("used", kind)
@@ -437,7 +431,7 @@ class Ekf004:
                 return False
             col = self.P[:, j].copy()
             self.x = self.x + col * (rj / s)
-            self.x[IY] = _wrap(self.x[IY])
+            self.x[IY] = wrap_angle(self.x[IY])
             self.P = self.P - np.outer(col, col) / s
             self.counts.add("used", kind)
             return True
@@ -449,7 +443,7 @@ class Ekf004:
             return False
         K = PHt @ S_inv
         self.x = self.x + K @ r
-        self.x[IY] = _wrap(self.x[IY])
+        self.x[IY] = wrap_angle(self.x[IY])
         P = self.P - K @ PHt.T
         self.P = 0.5 * (P + P.T)
         self.counts.add("used", kind)
@@ -457,13 +451,13 @@ class Ekf004:
 
     def update_attitude(self, roll: float, pitch: float) -> bool:
         """Roll and pitch [rad] from the attitude stream."""
-        r = np.array([_wrap(roll - self.x[IR]), _wrap(pitch - self.x[IPI])])
+        r = np.array([wrap_angle(roll - self.x[IR]), wrap_angle(pitch - self.x[IPI])])
         var = np.full(2, self.opt.attitude_sigma**2)
         return self.update_state_components("attitude", [IR, IPI], r, var)
 
     def update_yaw(self, yaw: float) -> bool:
         """Absolute yaw [rad] (wrapped residual)."""
-        r = np.array([_wrap(yaw - self.x[IY])])
+        r = np.array([wrap_angle(yaw - self.x[IY])])
         return self.update_state_components("yaw", [IY], r, np.array([self.opt.yaw_sigma**2]))
 
     def update_body_rates(self, body_omega: np.ndarray) -> bool:

@@ -101,7 +101,13 @@ from scipy.linalg import cho_solve
 
 from fgnav.baselines.msf_ekf import initial_state_guess
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import GRAVITY, matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_log
+from fgnav.datasets.geometry import (
+    GRAVITY,
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    so3_log,
+    wrap_angle,
+)
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 
@@ -224,10 +230,6 @@ class Ukf003Counts:
     extra: dict = field(default_factory=dict)
 
 
-def _wrap(a):
-    """Wrap angle(s) to [-pi, pi) (cheaper than ``wrap_angle``; the half-open end is irrelevant
-    for residuals)."""
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 # ----------------------------------------------------------------------------------------------
@@ -432,7 +434,7 @@ class Ukf003:
         Y = X.copy()
         Y[:, IP:IP + 3] = p
         phi1 = matrix_to_euler(R)
-        phi1[:, 0] = X[:, IPHI] + _wrap(phi1[:, 0] - X[:, IPHI])  # keep yaw continuous
+        phi1[:, 0] = X[:, IPHI] + wrap_angle(phi1[:, 0] - X[:, IPHI])  # keep yaw continuous
         Y[:, IPHI:IPHI + 3] = phi1
         Y[:, IV:IV + 3] = np.einsum("mji,mj->mi", R, v_w)
         return Y
@@ -456,9 +458,9 @@ class Ukf003:
         X, wm, wc, _ = self._sigma(xm, Pxx)
         Y = self._f(X, omegas, fs, dts)
         y = wm @ Y
-        y[IPHI] = Y[0, IPHI] + wm @ _wrap(Y[:, IPHI] - Y[0, IPHI])
+        y[IPHI] = Y[0, IPHI] + wm @ wrap_angle(Y[:, IPHI] - Y[0, IPHI])
         dY = Y - y
-        dY[:, IPHI] = _wrap(dY[:, IPHI])
+        dY[:, IPHI] = wrap_angle(dY[:, IPHI])
         dX = X - xm
         Pyy = (wc[:, None] * dY).T @ dY
         # Additive process noise (module docstring).
@@ -525,13 +527,13 @@ class Ukf003:
         dZ = Z - z_hat
         r = z - z_hat
         if wrap_z is not None:
-            z_hat[wrap_z] = Z[0, wrap_z] + wm @ _wrap(Z[:, wrap_z] - Z[0, wrap_z])
-            dZ[:, wrap_z] = _wrap(Z[:, wrap_z] - z_hat[wrap_z])
-            r[wrap_z] = _wrap(z[wrap_z] - z_hat[wrap_z])
+            z_hat[wrap_z] = Z[0, wrap_z] + wm @ wrap_angle(Z[:, wrap_z] - Z[0, wrap_z])
+            dZ[:, wrap_z] = wrap_angle(Z[:, wrap_z] - z_hat[wrap_z])
+            r[wrap_z] = wrap_angle(z[wrap_z] - z_hat[wrap_z])
         dX = X - self.x[idx]
         ang = self._angle_index()
         local = np.flatnonzero(np.isin(idx, ang))
-        dX[:, local] = _wrap(dX[:, local])
+        dX[:, local] = wrap_angle(dX[:, local])
         S = (wc[:, None] * dZ).T @ dZ + Rm
         P_Iz = (wc[:, None] * dX).T @ dZ
         if self.opt.gate:
@@ -547,7 +549,7 @@ class Ukf003:
         else:
             self.P = self.P - K @ S @ K.T
         self.x = self.x + K @ r
-        self.x[ang] = _wrap(self.x[ang])
+        self.x[ang] = wrap_angle(self.x[ang])
         self.P = 0.5 * (self.P + self.P.T)
         return True
 
