@@ -1237,6 +1237,13 @@ def check_observability(flight: Flight, options: GraphOptions, slam_model: str) 
             f"{flight.name}: horizontal velocity and position are unobservable with this sensor "
             "set (IMU only); enable slam, homography or drag"
         )
+    if not (has_slam or has_homography):
+        log.warning(
+            "%s: no position source (SLAM, or camera with rangefinder): positions are "
+            "dead-reckoned from the IMU with drag-model velocity; drift grows without bound%s",
+            flight.name,
+            "" if has_range else ", and height and vertical velocity are unobservable (no range)",
+        )
     if has_homography and not has_range:
         raise ObservabilityError(
             f"{flight.name}: homography motion without a rangefinder has no metric height: the "
