@@ -403,10 +403,13 @@ class Ekf004:
             True when applied, False when rejected by the chi-square gate (counted).
         """
         PHt = self.P @ H.T
-        S = H @ PHt + Rm
+        return self._gated_correction(kind, r, PHt, H @ PHt + Rm)
+
+    def _gated_correction(self, kind: str, r: np.ndarray, PHt: np.ndarray, S: np.ndarray) -> bool:
+        """Chi-square gate on ``r`` with innovation covariance ``S``, then the correction with
+        gain ``PHt S^-1`` (counted as used or gated)."""
         S_inv = np.linalg.inv(S)
-        d2 = float(r @ S_inv @ r)
-        if d2 > self._gate(r.size):
+        if float(r @ S_inv @ r) > self._gate(r.size):
             self.counts.add("gated", kind)
             return False
         K = PHt @ S_inv
@@ -436,18 +439,7 @@ class Ekf004:
             self.counts.add("used", kind)
             return True
         PHt = self.P[:, idx]
-        S = PHt[idx, :] + np.diag(var)
-        S_inv = np.linalg.inv(S)
-        if float(r @ S_inv @ r) > self._gate(r.size):
-            self.counts.add("gated", kind)
-            return False
-        K = PHt @ S_inv
-        self.x = self.x + K @ r
-        self.x[IY] = wrap_angle(self.x[IY])
-        P = self.P - K @ PHt.T
-        self.P = 0.5 * (P + P.T)
-        self.counts.add("used", kind)
-        return True
+        return self._gated_correction(kind, r, PHt, PHt[idx, :] + np.diag(var))
 
     def update_attitude(self, roll: float, pitch: float) -> bool:
         """Roll and pitch [rad] from the attitude stream."""

@@ -216,6 +216,30 @@ def initial_state_guess(
     return fit.scale, fit.world_v_body_start, fit.rel_std
 
 
+def new_map_scale_guess(
+    flight: Flight, t_first: float, t_meas: float, t_now: float, min_rel_sigma: float
+) -> tuple[float, float] | None:
+    """Closed-form scale of a new SLAM map (after a reset) from the data received since its
+    first pose ``t_first``, causally: SLAM up to ``t_meas``, IMU and attitude up to ``t_now``.
+
+    Returns ``(s, rel_sigma)`` with ``rel_sigma = max(2 * standard error, min_rel_sigma)``, or
+    None while the map is younger than the first fit window or the data do not fix the scale.
+    """
+    if t_meas - t_first < SCALE_INIT_WINDOWS_S[0]:
+        return None
+    sub = dataclasses.replace(
+        flight,
+        imu=flight.imu.between(t_first, t_now),
+        slam=flight.slam.between(t_first, t_meas),
+        attitude=flight.attitude.between(t_first, t_now) if flight.attitude else None,
+    )
+    try:
+        s, _, rel = initial_state_guess(sub)
+    except FlightDataError:
+        return None
+    return s, max(2.0 * rel, min_rel_sigma)
+
+
 def initial_fit(flight: Flight, max_rel_std: float = 0.05, step_s: float = 2.0) -> InitFit:
     """The first window of the flight that determines the SLAM scale (see
     :func:`initial_state_guess` for the model): windows start at the first SLAM pose and slide by
@@ -655,25 +679,12 @@ class MsfEkf:
     def _reinit_guess(
         self, flight: Flight, t_first: float, t_meas: float, t_now: float
     ) -> tuple[float, float] | None:
-        """Closed-form scale of a new SLAM map from the data received since its first pose
-        (causal: SLAM up to ``t_meas``, IMU up to ``t_now``); None while undetermined. After
+        """Scale of a new SLAM map (:func:`new_map_scale_guess`); None while undetermined. After
         ``REINIT_GIVE_UP_S`` the old scale is kept with a large uncertainty."""
-        if t_meas - t_first < SCALE_INIT_WINDOWS_S[0]:
-            return None
         if t_meas - t_first > REINIT_GIVE_UP_S:
             self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
             return self.x.s, RESET_SCALE_REL_SIGMA
-        sub = dataclasses.replace(
-            flight,
-            imu=flight.imu.between(t_first, t_now),
-            slam=flight.slam.between(t_first, t_meas),
-            attitude=flight.attitude.between(t_first, t_now) if flight.attitude else None,
-        )
-        try:
-            s, _, rel = initial_state_guess(sub)
-        except FlightDataError:
-            return None
-        return s, max(2.0 * rel, MIN_SCALE_REL_SIGMA)
+        return new_map_scale_guess(flight, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
 
     def _measure(self, kind: str, j: int, slam, slam_R, flight: Flight) -> None:
         if kind == "slam":

@@ -99,7 +99,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_solve
 
-from fgnav.baselines.msf_ekf import initial_state_guess
+from fgnav.baselines.msf_ekf import initial_state_guess, new_map_scale_guess
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
     GRAVITY,
@@ -131,9 +131,6 @@ REINIT_GIVE_UP_S = 20.0
 
 RESET_SCALE_REL_SIGMA = 0.5
 """Relative scale uncertainty when the old scale is kept after a reset (no fit possible)."""
-
-REINIT_MIN_S = 4.0
-"""Seconds of a new map's data before its closed-form scale is tried (the fit's first window)."""
 
 
 @dataclass
@@ -826,24 +823,12 @@ class Ukf003:
 
     def _reinit_guess(self, flight: Flight, t_first: float, t_meas: float,
                       t_now: float) -> tuple[float, float] | None:
-        """Closed-form scale of a new map from its data so far (causal); None while undetermined;
-        after ``REINIT_GIVE_UP_S`` the old scale with ``RESET_SCALE_REL_SIGMA``."""
-        if t_meas - t_first < REINIT_MIN_S:
-            return None
+        """Scale of a new map (:func:`~fgnav.baselines.msf_ekf.new_map_scale_guess`); None while
+        undetermined; after ``REINIT_GIVE_UP_S`` the old scale with ``RESET_SCALE_REL_SIGMA``."""
         if t_meas - t_first > REINIT_GIVE_UP_S:
             self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
             return self.scale, RESET_SCALE_REL_SIGMA
-        sub = dataclasses.replace(
-            flight,
-            imu=flight.imu.between(t_first, t_now),
-            slam=flight.slam.between(t_first, t_meas),
-            attitude=flight.attitude.between(t_first, t_now) if flight.attitude else None,
-        )
-        try:
-            s, _, rel = initial_state_guess(sub)
-        except FlightDataError:
-            return None
-        return s, max(2.0 * rel, MIN_SCALE_REL_SIGMA)
+        return new_map_scale_guess(flight, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
 
     def _events(self, flight: Flight, t_start: float) -> list[tuple[float, int, int]]:
         """(time, kind, index) sorted; kinds: 0 clone at image time, 1 SLAM arrival, 2 range,
