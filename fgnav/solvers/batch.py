@@ -355,15 +355,27 @@ def _with_slow(
     scale, scale_sigma = {}, {}
     t_kf = builder.t_kf
     if builder.use_slam:
-        if builder.slam_model == "axis" and values.exists(S(0)):
-            k = values.atVector(S(0))
-            sg = sigma.get(S(0))
-            scale[0] = float(np.cbrt(np.prod(k)))
-            if sg is not None:
-                scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
-            series["slam_axis_scale"] = TimeSeries(
-                np.array([t_kf[0]]), k[None, :], None if sg is None else sg[None, :]
-            )
+        if builder.slam_model == "axis":
+            # One chain of per-axis scale segments (seed 000's model); the flight's scale is
+            # the last segment's geometric mean.
+            ts, ks, sgs = [], [], []
+            a = builder.slam_assoc
+            for (_sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
+                if not values.exists(S(j)):
+                    continue
+                rows = np.flatnonzero(builder.slam_chain == seg)
+                ts.append(float(np.mean(t_kf[a.keyframe[rows]])) if len(rows) else t_kf[0])
+                ks.append(values.atVector(S(j))[:3])
+                sg = sigma.get(S(j))
+                sgs.append(np.full(3, np.nan) if sg is None else np.asarray(sg, float)[:3])
+            if ks:
+                k, sg = ks[-1], sgs[-1]
+                scale[0] = float(np.cbrt(np.prod(k)))
+                if np.all(np.isfinite(sg)):
+                    scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+                series["slam_axis_scale"] = TimeSeries(
+                    np.asarray(ts), np.asarray(ks), np.asarray(sgs)
+                )
         else:
             ts, vs, ss, sess_ids = [], [], [], []
             slam = builder.flight.slam
