@@ -262,19 +262,9 @@ def make_slam_axis_scale_factor(
         noise_model: 3-D noise in SLAM units.
         body_t_cam: optional (3,) lever arm [m].
     """
-    z = as_vector(slam_t_meas, 3, "slam_t_meas")
-    lever = None if body_t_cam is None else as_vector(body_t_cam, 3, "body_t_cam")
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_axis_scale_error(
-            values.atPose3(pose_key), values.atVector(scale_key), z, lever
-        )
-        if H is not None:
-            H[0], H[1] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, scale_key], error_fn)
+    return _axis_factor(
+        slam_axis_scale_error, pose_key, scale_key, slam_t_meas, noise_model, body_t_cam
+    )
 
 
 def make_slam_axis_offset_factor(
@@ -296,19 +286,24 @@ def make_slam_axis_offset_factor(
     Not modelled: a rotation between the SLAM and world axes (use the Sim(3) factor), scale drift
     within one alignment variable (chain them with a random walk).
     """
+    return _axis_factor(
+        slam_axis_offset_error, pose_key, alignment_key, slam_t_meas, noise_model, body_t_cam
+    )
+
+
+def _axis_factor(error, pose_key, vector_key, slam_t_meas, noise_model, body_t_cam):
+    """CustomFactor on ``(X: Pose3, Vector)`` from a per-axis ``error(pose, vector, z, lever)``."""
     z = as_vector(slam_t_meas, 3, "slam_t_meas")
     lever = None if body_t_cam is None else as_vector(body_t_cam, 3, "body_t_cam")
     check_noise_dim(noise_model, ERROR_DIM)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_axis_offset_error(
-            values.atPose3(pose_key), values.atVector(alignment_key), z, lever
-        )
+        e, jacobians = error(values.atPose3(pose_key), values.atVector(vector_key), z, lever)
         if H is not None:
             H[0], H[1] = jacobians
         return e
 
-    return gtsam.CustomFactor(noise_model, [pose_key, alignment_key], error_fn)
+    return gtsam.CustomFactor(noise_model, [pose_key, vector_key], error_fn)
 
 
 def make_slam_relative_factor(
