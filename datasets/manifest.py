@@ -26,7 +26,7 @@ Example (``datasets/manifests/euroc_mh01_orbslam3.toml``)::
     path = "rpg_vio_mono/stamped_traj_estimate.txt"
 
     [body]
-    frame = "flu"
+    frame = "imu"   # or "flu"
 
 Top-level keys: ``name`` (required), ``root`` (folder the ``path`` values are relative to; itself
 relative to the manifest's folder; default: the manifest's folder), ``source`` (free text), and
