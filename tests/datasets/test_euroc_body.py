@@ -435,3 +435,15 @@ def test_other_sequences_same_thrust_axis(real_data, mh01_pair, imu_file, gt_fil
         np.testing.assert_allclose(g.ground_truth.accel_bias, gt.accel_bias @ R.T, atol=1e-12)
         tilt = np.degrees(tilt_angle(g.ground_truth.world_R_body()))
         assert tilt.mean() < 6.0
+
+
+def test_info_prints_body_rotation():
+    from fgnav.commands.info import body_frame_lines
+
+    assert body_frame_lines({}) == []
+    g = to_flu_body(_synthetic_flight(), [1.0, 0.0, 0.0])
+    lines = body_frame_lines(g.meta)
+    assert lines[1] == "body frame flu (v_body = body_from_imu @ v_imu)"
+    R = np.array(g.meta["body_from_imu"])
+    assert lines[4] == "  [" + ", ".join(f"{x:+.4f}" for x in R[2]) + "]"
+    assert lines[5] == "  thrust axis in the IMU frame: [+1.0000, +0.0000, +0.0000]"
