@@ -106,6 +106,14 @@ class GraphOptions:
         slam_trans_rw_m: origin random walk of the SLAM frame [m/sqrt(s)].
         drag_per_axis: estimate ``kx, ky`` instead of one ``k``.
         drag_model_sigma: drag-model error floor of the mean accelerometer [m/s^2].
+        drag_sigma_from_data: raise that floor to the flight's measured scatter of the keyframe
+            means (robust standard deviation of their deviation from a 0.5 s running median: rotor
+            vibration and turbulence of a real vehicle; the simulator has none).
+        drag_max_tilt_deg: skip the drag factor at keyframes whose mean specific force is more
+            than this from body +z (not thrust-borne: carried, standing on the ground, touching
+            down), counted as ``drag:not-thrust-borne``. Linear drag at 4 m/s and k = 0.4 1/s
+            tilts it by 9 deg.
+        drag_robust: robust kernel on the drag factor (as ``robust``).
         drag_k_init: initial drag k [1/s] (None: closed form from the initial velocities).
         drag_prior_sigma: prior on the first drag variable [1/s].
         drag_segment_s: drag segment length [s] (None: one variable for the flight).
@@ -154,6 +162,9 @@ class GraphOptions:
     slam_trans_rw_m: float = 1e-2
     drag_per_axis: bool = True
     drag_model_sigma: float = 0.05
+    drag_sigma_from_data: bool = True
+    drag_max_tilt_deg: float = 15.0
+    drag_robust: bool = True
     drag_k_init: float | None = None
     drag_prior_sigma: float = 0.2
     drag_segment_s: float | None = None
@@ -513,12 +524,42 @@ class GraphBuilder:
             if self.K > 1
             else np.array([0.5 / self.options.keyframe_hz])
         )
-        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel[:, :2], self.t_kf, half)
-        self.drag_mean = means
-        self.drag_count = counts
-        self.drag_arrival = self.t_kf + half
+        o = self.options
+        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel, self.t_kf, half)
+        self.drag_mean = means[:, :2]
         n_none = int((counts == 0).sum())
         self._skip("drag:keyframes-without-imu-samples", n_none)
+        # Thrust-borne gate: the mean specific force near body +z.
+        norm = np.linalg.norm(means, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos_tilt = means[:, 2] / norm
+        tilted = (counts > 0) & ~(cos_tilt >= math.cos(math.radians(o.drag_max_tilt_deg)))
+        self._skip("drag:not-thrust-borne", int(tilted.sum()))
+        counts = np.where(tilted, 0, counts)
+        self.drag_count = counts
+        self.drag_arrival = self.t_kf + half
+        self.drag_sigma = float(o.drag_model_sigma)
+        if o.drag_sigma_from_data:
+            self.drag_sigma = max(self.drag_sigma, self._drag_scatter(counts > 0))
+            self._count("drag-model-sigma-mm/s2", int(round(1000 * self.drag_sigma)))
+
+    def _drag_scatter(self, ok: np.ndarray) -> float:
+        """Robust standard deviation [m/s^2] of the keyframe-mean specific force xy about its
+        0.5 s running median (both axes pooled), over the keyframes ``ok``; minus the part the
+        accelerometer noise density explains."""
+        idx = np.flatnonzero(ok)
+        if len(idx) < 10:
+            return 0.0
+        half_n = max(1, int(round(0.25 * self.options.keyframe_hz)))
+        x = self.drag_mean[idx]
+        pad = np.pad(x, ((half_n, half_n), (0, 0)), mode="edge")
+        win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half_n + 1, axis=0)
+        dev = x - np.median(win, axis=-1)
+        mad = float(np.median(np.abs(dev - np.median(dev, axis=0))))
+        scatter = 1.4826 * mad
+        n = float(np.median(self.drag_count[idx]))
+        white = self.imu_accel_sigma() / math.sqrt(max(n, 1.0))
+        return math.sqrt(max(scatter**2 - white**2, 0.0))
 
     # ------------------------------------------------------------------------------------------
     # Noise models
@@ -711,7 +752,7 @@ class GraphBuilder:
             return np.full(n, float(self.options.drag_k_init))
         u = np.einsum("nji,nj->ni", guess.world_R_body, guess.world_v_body)[:, :2]
         f = self.drag_mean
-        ok = np.all(np.isfinite(f), axis=1)
+        ok = np.all(np.isfinite(f), axis=1) & (self.drag_count > 0)
         if n == 1:
             den = float((u[ok] ** 2).sum())
             k = np.array([-(f[ok] * u[ok]).sum() / den]) if den > 0 else np.array([np.nan])
@@ -1079,8 +1120,10 @@ class GraphBuilder:
             from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 
             noise = mean_accel_noise(
-                self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma
+                self.imu_accel_sigma(), int(self.drag_count[k]), self.drag_sigma
             )
+            if o.drag_robust:
+                noise = self._robust(noise)
             dk = D(int(self.drag_segment[k]))
             fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
             out.append(
