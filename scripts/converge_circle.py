@@ -212,8 +212,13 @@ def run_fixed_lag_curve(flight: Flight, graph: GraphOptions) -> Curve:
         info={
             "solver_failures": est.info.get("solver_failures"),
             "slam_before_scale_init": int(dropped.get("slam:before-scale-init", 0)),
+            "drag_k": _rounded(est.drag_k),
         },
     )
+
+
+def _rounded(x, digits: int = 4) -> list[float] | None:
+    return None if x is None else [round(float(v), digits) for v in np.ravel(x)]
 
 
 def crop(flight: Flight, t1: float) -> Flight:
@@ -249,6 +254,7 @@ def run_batch_full(flight: Flight, graph: GraphOptions) -> Curve:
         scale_final=k,
         runtime_s=runtime,
         note="one constant scale for the flight; smoothed velocity",
+        info={"drag_k": _rounded(est.drag_k), "lm_iterations": est.info.get("lm_iterations")},
     )
 
 
@@ -286,7 +292,12 @@ def run_batch_prefixes(flight: Flight, graph: GraphOptions, t_grid: list[float])
         scale_final=k_last,
         runtime_s=runtime,
         note=f"re-solved on prefixes T = {', '.join(f'{x:g}' for x in t_grid)} s; newest state",
-        info={"failed_prefixes": failed},
+        info={
+            "failed_prefixes": failed,
+            "prefix_scale_rel_pct": {
+                f"{T:g}": _rounded(100 * r, 2) for T, r in zip(t_grid, rel, strict=True)
+            },
+        },
     )
 
 
@@ -516,9 +527,12 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(format_table(rows, v_thr))
         for r in rows:
-            extra = {k: r[k] for k in ("solver_failures", "slam_before_scale_init") if k in r}
+            keys = ("solver_failures", "slam_before_scale_init", "drag_k", "lm_iterations")
+            extra = {k: r[k] for k in keys if k in r}
             if r.get("failed_prefixes"):
                 extra["failed_prefixes"] = r["failed_prefixes"]
+            if "prefix_scale_rel_pct" in r:
+                extra["|kx|,|ky| err % per T"] = r["prefix_scale_rel_pct"]
             fin = ", ".join(f"{x:.4f}" for x in r["scale_final"])
             print(
                 f"  {r['method']}: final (kx, ky) = ({fin}); {r['note']}"
