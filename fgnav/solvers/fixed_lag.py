@@ -187,6 +187,8 @@ class FixedLagRunner:
         self.n_failures = 0
         self.failure_messages: list[str] = []
         self.slam_scale_init: dict[int, float] = {}
+        self._held: dict[int, list[int]] = {}
+        self._axis_sigma_rel: dict[int, np.ndarray] = {}
         self.session_ready: dict[int, bool] = {}
         self.session_scale: dict[int, float] = {}
         self.provisional_alignments: list[tuple[int, float]] = []
@@ -321,13 +323,21 @@ class FixedLagRunner:
             self._next_init_try[session] = self.t_latest + SLAM_INIT_RETRY_S
             value, scale = self._init_slam_value(session, sk, i)
         if value is not None:
+            sig_rel = self._axis_sigma_rel.pop(session, None) if b.slam_model == "axis" else None
             prior = b.slow_factors(
-                sk, value, chain_start=True, scale_sigma_rel=o.slam_init_scale_sigma_rel
+                sk,
+                value,
+                chain_start=True,
+                scale_sigma_rel=o.slam_init_scale_sigma_rel if sig_rel is None else sig_rel,
             )
             if self.provisional_factors.get(session):
                 self._reattach[session] = sk
+            self._release_held(session, sk)
         elif not (o.slam_provisional and b.slam_model == "sim3"):
+            # Held back: attached to the alignment when it is created if its keyframe is still
+            # in the window (counted as dropped until then).
             self._drop("slam:before-scale-init")
+            self._held.setdefault(session, []).append(row)
             return None
         elif session in self.session_scale:
             # A gap in an initialised session: restart its chain at the last scale estimate.
@@ -341,6 +351,21 @@ class FixedLagRunner:
         self.session_scale[session] = scale
         self._create_slow(sk, value, prior)
         return sk
+
+    def _release_held(self, session: int, sk: int) -> None:
+        """Attach the session's held-back SLAM poses whose keyframes are still in the window to
+        its new alignment ``sk`` (queued like late measurements)."""
+        b = self.builder
+        for row in self._held.pop(session, []):
+            k = int(b.slam_assoc.keyframe[row])
+            if b.t_kf[k] < self.t_latest - self.options.lag_s + self.period:
+                continue
+            self.dropped["slam:before-scale-init"] -= 1
+            m = self._provisional_factor(k, row, sk)
+            self._provisional_rows.pop(id(m.factor), None)
+            self.pending.append(m)
+        if self.dropped.get("slam:before-scale-init") == 0:
+            del self.dropped["slam:before-scale-init"]
 
     def _provisional_variable(self, session: int) -> int:
         """The live provisional alignment of ``session`` (a new one when none is alive)."""
@@ -356,8 +381,9 @@ class FixedLagRunner:
         return pk
 
     def _provisional_factor(self, k: int, row: int, pk: int) -> MeasurementFactor:
-        """SLAM position factor of association ``row`` (keyframe k) on provisional alignment pk."""
-        from fgnav.factors.slam_scale import make_slam_position_factor
+        """SLAM position factor of association ``row`` (keyframe k) on alignment ``pk`` (a
+        provisional one, or the session's first alignment for poses held back before it)."""
+        from fgnav.factors.slam_scale import make_slam_axis_offset_factor, make_slam_position_factor
 
         b = self.builder
         slam = b.flight.slam
@@ -367,9 +393,13 @@ class FixedLagRunner:
                 3, b.options.slam_sigma_m * self.slam_scale_init.get(pk, 1.0)
             )
         )
-        fac = make_slam_position_factor(
-            X(k), pk, slam.slam_t_cam[i], np.asarray(b.flight.calib.body_T_cam, float), noise
-        )
+        body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
+        if b.slam_model == "axis":
+            fac = make_slam_axis_offset_factor(
+                X(k), pk, slam.slam_t_cam[i], noise, body_T_cam[:3, 3]
+            )
+        else:
+            fac = make_slam_position_factor(X(k), pk, slam.slam_t_cam[i], body_T_cam, noise)
         arrival = float(slam.t[i] + b.slam_latency[i])
         self._provisional_rows[id(fac)] = (int(slam.session[i]), k, row)
         return MeasurementFactor(arrival, k, "slam", fac, (X(k), pk))
@@ -510,6 +540,13 @@ class FixedLagRunner:
         _, world_t_cam = self._newest_world_t_cam()
         j = self._nearest_slam_row(session)
         o = b.flight.slam.slam_t_cam[j] - k * world_t_cam
+        # Prior on k from the fit: its relative standard error per axis (at least 2 %; an axis
+        # the fit does not determine keeps the initial-prior width).
+        self._axis_sigma_rel[session] = np.where(
+            np.isfinite(rel_se),
+            np.maximum(rel_se, 0.02),
+            self.options.slam_init_scale_sigma_rel,
+        )
         log.info(
             "per-axis SLAM alignment initialised at t=%.2f: k %s (rel. s.e. %s)",
             self.t_latest,

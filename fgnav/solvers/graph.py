@@ -978,7 +978,11 @@ class GraphBuilder:
         return gtsam.symbol(c, j - 1)
 
     def slow_factors(
-        self, key: int, value: Any, chain_start: bool, scale_sigma_rel: float | None = None
+        self,
+        key: int,
+        value: Any,
+        chain_start: bool,
+        scale_sigma_rel: float | np.ndarray | None = None,
     ) -> gtsam.NonlinearFactorGraph:
         """Prior (``chain_start``: around ``value``) or random-walk factor from the previous
         segment of a new slow variable.
@@ -987,7 +991,8 @@ class GraphBuilder:
             key: the new slow variable.
             value: its initial value.
             chain_start: True for a prior, False for a random walk from the previous segment.
-            scale_sigma_rel: relative sigma of a SLAM scale prior (default: weak, 50 %).
+            scale_sigma_rel: relative sigma of a SLAM scale prior (default: weak, 50 %); for the
+                per-axis model a scalar or one per axis.
         """
         o = self.options
         g = gtsam.NonlinearFactorGraph()
@@ -1019,8 +1024,9 @@ class GraphBuilder:
             a = np.asarray(value, float)
             k_max = float(np.max(a[:3]))
             if prev is None:
+                # scale_sigma_rel: scalar, or one per axis.
                 rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
-                sig = np.r_[[rel * k_max] * 3, [10.0 * k_max] * 3]
+                sig = np.r_[np.broadcast_to(rel, 3) * np.abs(a[:3]), [10.0 * k_max] * 3]
                 g.add(gtsam.PriorFactorVector(key, a, gtsam.noiseModel.Diagonal.Sigmas(sig)))
             else:
                 # Relative random walk of every axis (the same drift as the Sim(3) scale) and an
