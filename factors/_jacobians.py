@@ -42,6 +42,16 @@ def pose_parts(a_T_b: gtsam.Pose3 | np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return m[:3, :3], m[:3, 3]
 
 
+def pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray) -> np.ndarray:
+    """4x4 homogeneous matrix of a ``gtsam.Pose3`` or of a 4x4 pose matrix."""
+    if isinstance(a_T_b, gtsam.Pose3):
+        return a_T_b.matrix()
+    m = np.asarray(a_T_b, dtype=float)
+    if m.shape != (4, 4):
+        raise ValueError(f"expected a Pose3 or a 4x4 pose matrix, got shape {m.shape}")
+    return m
+
+
 def sim3_parts(a_T_b: gtsam.Similarity3) -> tuple[np.ndarray, np.ndarray, float]:
     """``(R (3, 3), t (3,), s)`` of a ``gtsam.Similarity3`` that maps ``p -> s (R p + t)``."""
     return a_T_b.rotation().matrix(), np.asarray(a_T_b.translation(), dtype=float), a_T_b.scale()

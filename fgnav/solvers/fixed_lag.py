@@ -701,9 +701,9 @@ class FixedLagRunner:
         nav = pim.predict(
             gtsam.NavState(self.last_good[X(kg)], self.last_good[V(kg)]), self.last_good[B(kg)]
         )
-        v.insert(X(k), nav.pose())
-        v.insert(V(k), nav.velocity())
-        v.insert(B(k), self.last_good[B(kg)])
+        v.insert(X(k), pose3=nav.pose())
+        v.insert(V(k), vector=nav.velocity())
+        v.insert(B(k), constant_bias=self.last_good[B(kg)])
         t = float(b.t_kf[k])
         stamps = {X(k): t, V(k): t, B(k): t}
         self.key_stamp.update(stamps)

@@ -848,9 +848,11 @@ class GraphBuilder:
         t = float(self.t_kf[k])
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        vals.insert(X(k), pose)
-        vals.insert(V(k), np.asarray(velocity, float))
-        vals.insert(B(k), bias)
+        # Keyword arguments pick the overload at once: positionally, pybind tries Values.insert's
+        # overloads in order, and ConstantBias is the 44th (~90 us against ~20 us).
+        vals.insert(X(k), pose3=pose)
+        vals.insert(V(k), vector=np.asarray(velocity, float))
+        vals.insert(B(k), constant_bias=bias)
         stamps = {X(k): t, V(k): t, B(k): t}
         if k == 0:
             if with_first_priors:
