@@ -150,7 +150,7 @@ def _homog_dec(truth: Truth, k: int):
 
 CASES: list[tuple[str, object, str, FactorMaker]] = [
     ("BetweenFactorPose3 (C++)", None, "", _between),
-    ("accel_drag", accel_drag, "accel_drag_error", _drag),
+    ("accel_drag", accel_drag, "_accel_drag", _drag),
     ("slam_position", slam_scale, "_slam_position", _slam_pos),
     ("slam_relative", slam_scale, "slam_relative_error", _slam_rel),
     ("slam_rotation", slam_scale, "slam_rotation_error", _slam_rot),
