@@ -42,6 +42,16 @@ def pose_parts(a_T_b: gtsam.Pose3 | np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return m[:3, :3], m[:3, 3]
 
 
+def pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray) -> np.ndarray:
+    """4x4 homogeneous matrix of a ``gtsam.Pose3`` or of a 4x4 pose matrix."""
+    if isinstance(a_T_b, gtsam.Pose3):
+        return a_T_b.matrix()
+    m = np.asarray(a_T_b, dtype=float)
+    if m.shape != (4, 4):
+        raise ValueError(f"expected a Pose3 or a 4x4 pose matrix, got shape {m.shape}")
+    return m
+
+
 def sim3_parts(a_T_b: gtsam.Similarity3) -> tuple[np.ndarray, np.ndarray, float]:
     """``(R (3, 3), t (3,), s)`` of a ``gtsam.Similarity3`` that maps ``p -> s (R p + t)``."""
     return a_T_b.rotation().matrix(), np.asarray(a_T_b.translation(), dtype=float), a_T_b.scale()
@@ -66,10 +76,10 @@ def so3_right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
 
 def as_vector(value: np.ndarray | float, size: int, name: str) -> np.ndarray:
     """``value`` as a float vector of length ``size``; ``ValueError`` naming ``name`` otherwise."""
-    v = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
+    v = np.asarray(value, dtype=float).reshape(-1)
     if v.shape != (size,):
         raise ValueError(f"{name}: expected {size} values, got shape {np.shape(value)}")
-    if not np.all(np.isfinite(v)):
+    if not np.isfinite(v).all():
         raise ValueError(f"{name}: non-finite value {v}")
     return v
 
@@ -81,27 +91,49 @@ def check_noise_dim(noise_model: gtsam.noiseModel.Base, dim: int) -> None:
         raise ValueError(f"noise model has dimension {noise_model.dim()}, the factor needs {dim}")
 
 
+#: Validated pose matrices by their bytes (calibrations repeat for every factor of a flight).
+_POSE_CACHE: dict[bytes, np.ndarray] = {}
+_POSE_CACHE_MAX = 64
+_I3 = np.eye(3)
+
+
+def _det3(R: np.ndarray) -> float:
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
 def as_pose_matrix(a_T_b: gtsam.Pose3 | np.ndarray, name: str) -> np.ndarray:
     """A ``Pose3`` or 4x4 rigid pose as a 4x4 float matrix with an exactly orthonormal rotation.
 
     Calibration files often print rotations with few digits, so a rotation block within
     ``ROTATION_TOLERANCE`` of orthonormal is projected onto the nearest rotation (SVD); anything
-    further raises ``ValueError`` naming ``name``.
+    further raises ``ValueError`` naming ``name``. The result is read-only; results are cached by
+    the input's bytes (a flight's factors share a few calibration poses).
     """
     m = a_T_b.matrix() if isinstance(a_T_b, gtsam.Pose3) else np.array(a_T_b, dtype=float)
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+    if m.shape == (4, 4):
+        cached = _POSE_CACHE.get(m.tobytes())
+        if cached is not None:
+            return cached
+    if m.shape != (4, 4) or not np.isfinite(m).all():
         raise ValueError(f"{name}: expected a Pose3 or a finite 4x4 pose, got shape {m.shape}")
+    raw = m.tobytes()
     R = m[:3, :3]
-    deviation = np.max(np.abs(R.T @ R - np.eye(3)))
-    if deviation > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+    deviation = float(np.abs(R.T @ R - _I3).max())
+    if deviation > ROTATION_TOLERANCE or _det3(R) < 0:
         raise ValueError(f"{name}: rotation block is not a rotation matrix:\n{R}")
     if deviation <= ORTHONORMAL_EXACT:
         # Already orthonormal to rounding (a Pose3, or a matrix projected before): no SVD, which
         # costs more than the rest of a factor's construction.
         m[3] = (0.0, 0.0, 0.0, 1.0)
-        return m
-    U, _, Vt = np.linalg.svd(R)
-    out = np.eye(4)
-    out[:3, :3] = U @ Vt
-    out[:3, 3] = m[:3, 3]
+        out = m
+    else:
+        U, _, Vt = np.linalg.svd(R)
+        out = np.eye(4)
+        out[:3, :3] = U @ Vt
+        out[:3, 3] = m[:3, 3]
+    out.flags.writeable = False
+    if len(_POSE_CACHE) >= _POSE_CACHE_MAX:
+        _POSE_CACHE.clear()
+    _POSE_CACHE[raw] = out
     return out

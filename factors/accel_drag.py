@@ -66,7 +66,32 @@ def accel_drag_error(
         ``(e, [e_D_pose (2x6), e_D_vel (2x3), e_D_bias (2x6), e_D_drag (2xn_k)])`` with
         ``e = h(x) - z`` [m/s^2]; with wind a fifth Jacobian ``e_D_wind`` (2x2) follows.
     """
-    world_R_body = world_T_body.rotation().matrix()
+    v_air = np.array(world_v_body, dtype=float)
+    if world_v_wind_xy is not None:
+        v_air[:2] -= world_v_wind_xy
+    e, jacobians = _accel_drag(
+        world_T_body.rotation().matrix(),
+        v_air,
+        bias.accelerometer(),
+        drag_k,
+        mean_body_accel_xy,
+        True,
+    )
+    if world_v_wind_xy is None:
+        return e, jacobians
+    return e, [*jacobians, -jacobians[1][:, :2]]
+
+
+def _accel_drag(
+    world_R_body: np.ndarray,
+    v_air: np.ndarray,
+    b: np.ndarray,
+    drag_k: np.ndarray,
+    z: np.ndarray,
+    with_jacobians: bool,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """``accel_drag_error`` on the rotation matrix, the air-relative velocity and the
+    accelerometer bias (the factor's callback); no Jacobians unless ``with_jacobians``."""
     k = np.atleast_1d(np.asarray(drag_k, dtype=float))
     if k.shape == (1,):
         kx = ky = float(k[0])
@@ -74,14 +99,10 @@ def accel_drag_error(
         kx, ky = k.tolist()
     else:
         raise ValueError(f"drag_k: expected 1 or 2 values, got shape {np.shape(drag_k)}")
-    v_air = np.array(world_v_body, dtype=float)
-    if world_v_wind_xy is not None:
-        v_air[:2] -= world_v_wind_xy
     u0, u1, u2 = (world_R_body.T @ v_air).tolist()
-    b = bias.accelerometer()
-    z = mean_body_accel_xy
     e = np.array([-kx * u0 + b[0] - z[0], -ky * u1 + b[1] - z[1]])
-
+    if not with_jacobians:
+        return e, None
     # -K [u]x rows x, y (rotation columns); translation columns are zero.
     e_D_pose = np.zeros((2, 6))
     e_D_pose[0, 1] = kx * u2
@@ -93,9 +114,7 @@ def accel_drag_error(
     e_D_bias[0, 0] = 1.0
     e_D_bias[1, 1] = 1.0
     e_D_drag = np.array([[-u0], [-u1]]) if k.size == 1 else np.array([[-u0, 0.0], [0.0, -u1]])
-    if world_v_wind_xy is None:
-        return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag]
-    return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag, -e_D_vel[:, :2]]
+    return e, [e_D_pose, e_D_vel, e_D_bias, e_D_drag]
 
 
 def make_accel_drag_factor(
@@ -121,14 +140,24 @@ def make_accel_drag_factor(
     check_noise_dim(noise_model, ERROR_DIM)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = accel_drag_error(
-            values.atPose3(pose_key),
-            values.atVector(vel_key),
-            values.atConstantBias(bias_key),
-            values.atVector(drag_key),
-            z,
-            None if wind_key is None else values.atVector(wind_key),
-        )
+        if wind_key is not None:
+            e, jacobians = accel_drag_error(
+                values.atPose3(pose_key),
+                values.atVector(vel_key),
+                values.atConstantBias(bias_key),
+                values.atVector(drag_key),
+                z,
+                values.atVector(wind_key),
+            )
+        else:
+            e, jacobians = _accel_drag(
+                values.atPose3(pose_key).rotation().matrix(),
+                values.atVector(vel_key),
+                values.atConstantBias(bias_key).accelerometer(),
+                values.atVector(drag_key),
+                z,
+                H is not None,
+            )
         if H is not None:
             for i, J in enumerate(jacobians):
                 H[i] = J

@@ -46,6 +46,7 @@ from fgnav.factors._jacobians import (
     as_pose_matrix,
     as_vector,
     check_noise_dim,
+    pose_matrix,
     pose_parts,
     sim3_parts,
     skew,
@@ -106,11 +107,40 @@ def slam_position_error(
         ``(e (3,), [e_D_pose (3x6), e_D_sim (3x7)])``.
     """
     _, body_t_cam = pose_parts(body_T_cam)
-    p, p_D_pose = _world_t_cam(world_T_body, body_t_cam)
-    R, t, s = sim3_parts(slam_T_world)
+    e, jacobians = _slam_position(
+        pose_matrix(world_T_body),
+        slam_T_world,
+        np.asarray(slam_t_cam_meas, dtype=float),
+        body_t_cam,
+        skew(body_t_cam),
+        True,
+    )
+    return e, jacobians
+
+
+def _slam_position(
+    m: np.ndarray,
+    slam_T_world: gtsam.Similarity3,
+    z: np.ndarray,
+    body_t_cam: np.ndarray,
+    body_t_cam_skew: np.ndarray,
+    with_jacobians: bool,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """``slam_position_error`` with the lever arm's skew matrix precomputed (the factor's
+    callback: every linearisation calls it; ``m``: 4x4 ``world_T_body``); no Jacobians unless
+    ``with_jacobians``."""
+    world_R_body = m[:3, :3]
+    p = m[:3, 3] + world_R_body @ body_t_cam
+    R = slam_T_world.rotation().matrix()
+    s = slam_T_world.scale()
+    y = s * (R @ p + slam_T_world.translation())
+    e = y - z
+    if not with_jacobians:
+        return e, None
     sR = s * R
-    y = s * (R @ p + t)
-    e = y - np.asarray(slam_t_cam_meas, dtype=float)
+    p_D_pose = np.empty((3, 6))
+    p_D_pose[:, :3] = -world_R_body @ body_t_cam_skew
+    p_D_pose[:, 3:] = world_R_body
     e_D_sim = np.empty((3, 7))
     e_D_sim[:, :3] = -sR @ skew(p)
     e_D_sim[:, 3:6] = sR
@@ -234,12 +264,18 @@ def make_slam_position_factor(
         noise_model: 3-D noise in SLAM units (may be robust).
     """
     z = as_vector(slam_t_cam_meas, 3, "slam_t_cam_meas")
-    body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
+    body_t_cam = np.array(as_pose_matrix(body_T_cam, "body_T_cam")[:3, 3])
+    body_t_cam_skew = skew(body_t_cam)
     check_noise_dim(noise_model, ERROR_DIM)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_position_error(
-            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam
+        e, jacobians = _slam_position(
+            values.atPose3(pose_key).matrix(),
+            values.atSimilarity3(sim_key),
+            z,
+            body_t_cam,
+            body_t_cam_skew,
+            H is not None,
         )
         if H is not None:
             H[0], H[1] = jacobians

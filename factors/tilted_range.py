@@ -38,7 +38,13 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from fgnav.factors._jacobians import as_pose_matrix, check_noise_dim, pose_parts, skew
+from fgnav.factors._jacobians import (
+    as_pose_matrix,
+    check_noise_dim,
+    pose_matrix,
+    pose_parts,
+    skew,
+)
 
 ERROR_DIM = 1
 
@@ -66,20 +72,48 @@ def tilted_range_error(
     Returns:
         ``(e (1,), [e_D_pose (1x6), e_D_ground (1x1)])`` [m].
     """
-    world_R_body, world_t_body = pose_parts(world_T_body)
     body_R_range, body_t_range = pose_parts(body_T_range)
     b = body_R_range @ _E_Z
-    cos_tilt = -(world_R_body[2] @ b)
-    cos_D_omega = (world_R_body @ skew(b))[2]
-    if cos_tilt < MIN_COS_TILT:
+    return _tilted_range(
+        pose_matrix(world_T_body),
+        float(np.asarray(ground).ravel()[0]),
+        range_meas,
+        b,
+        skew(b),
+        body_t_range,
+        skew(body_t_range),
+        True,
+    )
+
+
+def _tilted_range(
+    m: np.ndarray,
+    ground: float,
+    range_meas: float,
+    b: np.ndarray,
+    b_skew: np.ndarray,
+    body_t_range: np.ndarray,
+    body_t_range_skew: np.ndarray,
+    with_jacobians: bool,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """``tilted_range_error`` with the beam direction ``b``, the lever arm and their skew
+    matrices precomputed (the factor's callback; ``m``: 4x4 ``world_T_body``); no Jacobians
+    unless ``with_jacobians``."""
+    world_R_body = m[:3, :3]
+    Rz = world_R_body[2]
+    cos_tilt = -(Rz @ b)
+    floored = cos_tilt < MIN_COS_TILT
+    if floored:
         cos_tilt = MIN_COS_TILT
-        cos_D_omega = np.zeros(3)
-    height = world_t_body[2] + world_R_body[2] @ body_t_range - float(np.asarray(ground).ravel()[0])
+    height = m[2, 3] + Rz @ body_t_range - ground
     r = height / cos_tilt
     e = np.array([r - range_meas])
+    if not with_jacobians:
+        return e, None
+    cos_D_omega = np.zeros(3) if floored else Rz @ b_skew
     e_D_pose = np.empty((1, 6))
-    e_D_pose[0, :3] = (-(world_R_body @ skew(body_t_range))[2] - r * cos_D_omega) / cos_tilt
-    e_D_pose[0, 3:] = world_R_body[2] / cos_tilt
+    e_D_pose[0, :3] = (-(Rz @ body_t_range_skew) - r * cos_D_omega) / cos_tilt
+    e_D_pose[0, 3:] = Rz / cos_tilt
     return e, [e_D_pose, np.array([[-1.0 / cos_tilt]])]
 
 
@@ -100,12 +134,22 @@ def make_range_factor(
     z = float(range_meas)
     if not np.isfinite(z):
         raise ValueError(f"range_meas: non-finite value {range_meas}")
-    body_T_range = as_pose_matrix(body_T_range, "body_T_range")
+    body_R_range, body_t_range = pose_parts(as_pose_matrix(body_T_range, "body_T_range"))
+    beam = body_R_range @ _E_Z
+    beam_skew, body_t_range_skew = skew(beam), skew(body_t_range)
+    body_t_range = np.array(body_t_range)
     check_noise_dim(noise_model, ERROR_DIM)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = tilted_range_error(
-            values.atPose3(pose_key), values.atVector(ground_key), z, body_T_range
+        e, jacobians = _tilted_range(
+            values.atPose3(pose_key).matrix(),
+            float(values.atVector(ground_key)[0]),
+            z,
+            beam,
+            beam_skew,
+            body_t_range,
+            body_t_range_skew,
+            H is not None,
         )
         if H is not None:
             H[0], H[1] = jacobians

@@ -25,15 +25,14 @@ horizontal projection of the body x axis vanishes; its squared norm is floored a
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
-from fgnav.factors._jacobians import check_noise_dim, pose_parts
+from fgnav.factors._jacobians import check_noise_dim, pose_matrix
 
 #: Floor on ``R[0,0]^2 + R[1,0]^2`` = cos(pitch)^2; 1e-4 = cos(89.43 deg)^2, beyond any flight.
 MIN_HORIZONTAL_NORM2 = 1e-4
-
-# [e_x]x rows 0 and 1 enter the derivative of the body x axis: R (I + [w]x) e_x = r0 - R [e_x]x w.
-_SKEW_EX = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
 def wrap_angle(a: float) -> float:
@@ -55,20 +54,34 @@ def yaw_error(
     Returns:
         ``(e, [e_D_pose])``: ``e`` (1,) [rad] and ``e_D_pose`` (1x6); or ``e`` (2,) and (2x6).
     """
-    world_R_body, _ = pose_parts(world_T_body)
-    c, s = world_R_body[0, 0], world_R_body[1, 0]
-    psi = float(np.arctan2(s, c))
-    dx = -(world_R_body @ _SKEW_EX)
-    norm2 = max(c * c + s * s, MIN_HORIZONTAL_NORM2)
-    psi_D_omega = (c * dx[1] - s * dx[0]) / norm2
+    return _yaw(pose_matrix(world_T_body), yaw_meas, cos_sin, True)
+
+
+def _yaw(
+    m: np.ndarray, yaw_meas: float, cos_sin: bool, with_jacobians: bool
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """``yaw_error`` on the 4x4 ``world_T_body`` in plain float arithmetic (the factor's
+    callback); no Jacobian unless ``with_jacobians``. With ``S = [e_x]x``,
+    ``(R S)[i] = [0, R[i, 2], -R[i, 1]]``, so
+    ``dpsi/domega = [0, s R[0, 2] - c R[1, 2], c R[1, 1] - s R[0, 1]] / (c^2 + s^2)``.
+    """
+    (c, r01, r02, _), (s, r11, r12, _) = m[:2].tolist()
+    psi = math.atan2(s, c)
     if cos_sin:
-        e = np.array([np.cos(psi) - np.cos(yaw_meas), np.sin(psi) - np.sin(yaw_meas)])
+        e = np.array([math.cos(psi) - math.cos(yaw_meas), math.sin(psi) - math.sin(yaw_meas)])
+    else:
+        e = np.array([wrap_angle(psi - yaw_meas)])
+    if not with_jacobians:
+        return e, None
+    norm2 = max(c * c + s * s, MIN_HORIZONTAL_NORM2)
+    d_omega = [0.0, (s * r02 - c * r12) / norm2, (c * r11 - s * r01) / norm2]
+    if cos_sin:
         J = np.zeros((2, 6))
-        J[:, :3] = np.outer([-np.sin(psi), np.cos(psi)], psi_D_omega)
+        J[:, :3] = np.outer([-math.sin(psi), math.cos(psi)], d_omega)
         return e, [J]
     J = np.zeros((1, 6))
-    J[0, :3] = psi_D_omega
-    return np.array([wrap_angle(psi - yaw_meas)]), [J]
+    J[0, :3] = d_omega
+    return e, [J]
 
 
 def make_yaw_factor(
@@ -86,7 +99,7 @@ def make_yaw_factor(
     check_noise_dim(noise_model, 2 if cos_sin else 1)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = yaw_error(values.atPose3(pose_key), z, cos_sin)
+        e, jacobians = _yaw(values.atPose3(pose_key).matrix(), z, cos_sin, H is not None)
         if H is not None:
             H[0] = jacobians[0]
         return e

@@ -78,8 +78,8 @@ def _decomposed(truth: Truth, k: int) -> tuple[np.ndarray, np.ndarray]:
     return cam_j_T_cam_i.rotation().matrix(), cam_j_T_cam_i.translation() / d
 
 
-# name -> (module whose *_error is counted, error function name, factor maker (truth, k) or None
-# when the factor needs a previous pose and k == 0)
+# name -> (module, name of the error function its callback calls (counted), factor maker (truth, k)
+# or None when the factor needs a previous pose and k == 0)
 FactorMaker = Callable[[Truth, int], gtsam.NonlinearFactor | None]
 
 
@@ -150,14 +150,14 @@ def _homog_dec(truth: Truth, k: int):
 
 CASES: list[tuple[str, object, str, FactorMaker]] = [
     ("BetweenFactorPose3 (C++)", None, "", _between),
-    ("accel_drag", accel_drag, "accel_drag_error", _drag),
-    ("slam_position", slam_scale, "slam_position_error", _slam_pos),
+    ("accel_drag", accel_drag, "_accel_drag", _drag),
+    ("slam_position", slam_scale, "_slam_position", _slam_pos),
     ("slam_relative", slam_scale, "slam_relative_error", _slam_rel),
     ("slam_rotation", slam_scale, "slam_rotation_error", _slam_rot),
     ("slam_axis_scale", slam_scale, "slam_axis_scale_error", _slam_axis),
-    ("yaw", yaw, "yaw_error", _yaw),
-    ("yaw cos_sin", yaw, "yaw_error", _yaw_cs),
-    ("tilted_range", tilted_range, "tilted_range_error", _range),
+    ("yaw", yaw, "_yaw", _yaw),
+    ("yaw cos_sin", yaw, "_yaw", _yaw_cs),
+    ("tilted_range", tilted_range, "_tilted_range", _range),
     ("homography (8-D)", homography_motion, "homography_error", _homog),
     ("homography_decomposed", homography_motion, "homography_decomposed_error", _homog_dec),
 ]

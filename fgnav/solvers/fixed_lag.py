@@ -67,6 +67,14 @@ SLAM_INIT_RETRY_S = 0.5
 #: Index offset of the provisional SLAM-alignment keys ``S(PROVISIONAL_KEY_BASE + n)`` (the
 #: builder's alignment keys count from 0 per graph).
 PROVISIONAL_KEY_BASE = 1_000_000
+#: Character codes of the slow-variable symbols (SLAM alignment, drag, ground height).
+_SLOW_CHARS = frozenset(map(ord, "sdg"))
+
+
+def _is_slow(key: int) -> bool:
+    """Slow variable (``S``, ``D`` or ``G``)? A GTSAM ``Symbol`` key holds its character in the
+    top 8 bits: this avoids building a ``gtsam.Symbol`` per key on the per-update path."""
+    return (key >> 56) in _SLOW_CHARS
 
 
 @dataclass
@@ -691,7 +699,7 @@ class FixedLagRunner:
         self.queued_stamps.update(chunk.timestamps)
         for key, ts in chunk.timestamps.items():
             self.key_stamp[key] = ts
-            if chr(gtsam.Symbol(key).chr()) in "sdg":
+            if _is_slow(key):
                 self.created_slow.add(key)
         self.keyframes_in.add(k)
         # 3. Measurements arrived up to t_k.
@@ -719,7 +727,7 @@ class FixedLagRunner:
             if prov is not None:
                 provisional_at.append((measurement_graph.size() - 1, prov))
             for key in m.keys:
-                if chr(gtsam.Symbol(key).chr()) in "sdg":
+                if _is_slow(key):
                     self.queued_stamps[key] = t_k
                     self.key_stamp[key] = t_k
         self.pending = still_pending
@@ -756,9 +764,9 @@ class FixedLagRunner:
         nav = pim.predict(
             gtsam.NavState(self.last_good[X(kg)], self.last_good[V(kg)]), self.last_good[B(kg)]
         )
-        v.insert(X(k), nav.pose())
-        v.insert(V(k), nav.velocity())
-        v.insert(B(k), self.last_good[B(kg)])
+        v.insert(X(k), pose3=nav.pose())
+        v.insert(V(k), vector=nav.velocity())
+        v.insert(B(k), constant_bias=self.last_good[B(kg)])
         t = float(b.t_kf[k])
         stamps = {X(k): t, V(k): t, B(k): t}
         self.key_stamp.update(stamps)
@@ -821,9 +829,10 @@ class FixedLagRunner:
             self.out_vel.append(vel)
             self.out_bias.append(bias)
             return
-        self.last_good = {
-            key: val for key, val in self.last_good.items() if chr(gtsam.Symbol(key).chr()) in "sdg"
-        }
+        # Only the newest state is kept (with the slow variables): drop the previous one.
+        kp = self.newest_good_k
+        for key in (X(kp), V(kp), B(kp)):
+            self.last_good.pop(key, None)
         self.last_good[X(k)], self.last_good[V(k)], self.last_good[B(k)] = pose, vel, bias
         self.newest_good_k = k
         t = float(self.builder.t_kf[k])

@@ -265,6 +265,10 @@ class GraphBuilder:
                 f"{flight.name}: no IMU stream; the graph needs the IMU between keyframes"
             )
         self._row_index: dict[str, dict[int, list[int]]] = {}
+        self._noise_cache: dict[tuple[int, float, bool], gtsam.noiseModel.Base] = {}
+        self._drag_noise: dict[int, gtsam.noiseModel.Base] = {}
+        self.body_T_cam = np.asarray(flight.calib.body_T_cam, float)
+        self.body_T_range = np.asarray(flight.calib.body_T_range, float)
         self._accel_sigma: float | None = None
         self.slam_model = self._choose_slam_model()
         self.drag_disabled = self._drag_model_invalid()
@@ -565,6 +569,18 @@ class GraphBuilder:
     # Noise models
     # ------------------------------------------------------------------------------------------
 
+    def _noise(self, dim: int, sigma: float, robust: bool = True) -> gtsam.noiseModel.Base:
+        """Isotropic noise model (robust per ``options.robust`` when ``robust``), cached: the
+        measurement factors of a flight share a few noise models (immutable in GTSAM)."""
+        key = (dim, float(sigma), robust)
+        model = self._noise_cache.get(key)
+        if model is None:
+            model = _isotropic(dim, sigma)
+            if robust:
+                model = self._robust(model)
+            self._noise_cache[key] = model
+        return model
+
     def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
         o = self.options
         if o.robust == "huber":
@@ -783,14 +799,20 @@ class GraphBuilder:
         pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
         ta, tb = self.t_kf[k - 1 if k_from is None else k_from], self.t_kf[k]
         t = self.imu.t
-        i = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
-        w, a = self.imu.body_omega, self.imu.body_accel
-        while i < len(t) and t[i] < tb:
-            s0 = max(t[i], ta)
-            s1 = min(t[i + 1], tb) if i + 1 < len(t) else tb
-            if s1 > s0:
-                pim.integrateMeasurement(a[i], w[i], s1 - s0)
-            i += 1
+        n = len(t)
+        # Samples i0 <= i < i1 start before tb; sample i holds from max(t[i], ta) to
+        # min(t[i+1], tb) (tb after the last sample).
+        i0 = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
+        i1 = max(int(np.searchsorted(t, tb, side="left")), i0)
+        if i1 <= i0:
+            return pim
+        s0 = np.maximum(t[i0:i1], ta)
+        s1 = np.minimum(t[i0 + 1 : i1 + 1], tb) if i1 < n else np.r_[t[i0 + 1 : i1], tb]
+        dt = (s1 - s0).tolist()
+        w, a = self.imu.body_omega[i0:i1], self.imu.body_accel[i0:i1]
+        for j, d in enumerate(dt):
+            if d > 0:
+                pim.integrateMeasurement(a[j], w[j], d)
         return pim
 
     def slam_key(self, assoc_row: int) -> int:
@@ -888,9 +910,11 @@ class GraphBuilder:
         t = float(self.t_kf[k])
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        vals.insert(X(k), pose)
-        vals.insert(V(k), np.asarray(velocity, float))
-        vals.insert(B(k), bias)
+        # Keyword arguments pick the overload at once: positionally, pybind tries Values.insert's
+        # overloads in order, and ConstantBias is the 44th (~90 us against ~20 us).
+        vals.insert(X(k), pose3=pose)
+        vals.insert(V(k), vector=np.asarray(velocity, float))
+        vals.insert(B(k), constant_bias=bias)
         stamps = {X(k): t, V(k): t, B(k): t}
         if k == 0:
             if with_first_priors:
@@ -1125,11 +1149,13 @@ class GraphBuilder:
         if self.use_drag and self.drag_count[k] > 0 and want("drag"):
             from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 
-            noise = mean_accel_noise(
-                self.imu_accel_sigma(), int(self.drag_count[k]), self.drag_sigma
-            )
-            if o.drag_robust:
-                noise = self._robust(noise)
+            n_acc = int(self.drag_count[k])
+            noise = self._drag_noise.get(n_acc)
+            if noise is None:
+                noise = mean_accel_noise(self.imu_accel_sigma(), n_acc, self.drag_sigma)
+                if o.drag_robust:
+                    noise = self._robust(noise)
+                self._drag_noise[n_acc] = noise
             dk = D(int(self.drag_segment[k]))
             fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
             out.append(
@@ -1151,31 +1177,27 @@ class GraphBuilder:
                 if self.slam_model == "axis":
                     scale = slam_init_scale.get(sk, 1.0) if slam_init_scale else 1.0
                     scale = float(np.max(np.atleast_1d(scale)[:3]))
-                    noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
+                    noise = self._noise(3, o.slam_sigma_m * scale)
                     fac = make_slam_axis_offset_factor(
-                        X(k),
-                        sk,
-                        slam.slam_t_cam[i],
-                        noise,
-                        np.asarray(f.calib.body_T_cam, float)[:3, 3],
+                        X(k), sk, slam.slam_t_cam[i], noise, self.body_T_cam[:3, 3]
                     )
                 else:
                     scale = slam_init_scale.get(sk, 1.0) if slam_init_scale else 1.0
-                    noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
+                    noise = self._noise(3, o.slam_sigma_m * scale)
                     fac = make_slam_position_factor(
-                        X(k), sk, slam.slam_t_cam[i], np.asarray(f.calib.body_T_cam, float), noise
+                        X(k), sk, slam.slam_t_cam[i], self.body_T_cam, noise
                     )
                 out.append(MeasurementFactor(arrival, k, "slam", fac, (X(k), sk)))
                 if o.slam_rotation and self.slam_model == "sim3":
                     from fgnav.datasets.geometry import quat_wxyz_to_matrix
                     from fgnav.factors.slam_scale import make_slam_rotation_factor
 
-                    noise = self._robust(_isotropic(3, o.slam_rot_sigma))
+                    noise = self._noise(3, o.slam_rot_sigma)
                     fac = make_slam_rotation_factor(
                         X(k),
                         sk,
                         quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i]),
-                        np.asarray(f.calib.body_T_cam, float),
+                        self.body_T_cam,
                         noise,
                     )
                     out.append(MeasurementFactor(arrival, k, "slam-rotation", fac, (X(k), sk)))
@@ -1184,13 +1206,9 @@ class GraphBuilder:
 
             for n in self._rows_at("range", self.range_kf, k):
                 gk = G(int(self.ground_segment[k]))
-                noise = self._robust(_isotropic(1, o.range_sigma))
+                noise = self._noise(1, o.range_sigma)
                 fac = make_range_factor(
-                    X(k),
-                    gk,
-                    float(self.range_val[n]),
-                    np.asarray(f.calib.body_T_range, float),
-                    noise,
+                    X(k), gk, float(self.range_val[n]), self.body_T_range, noise
                 )
                 out.append(
                     MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk))
@@ -1199,7 +1217,7 @@ class GraphBuilder:
             from fgnav.factors.yaw import make_yaw_factor
 
             for n in self._rows_at("yaw", self.yaw_kf, k):
-                noise = self._robust(_isotropic(1, o.yaw_sigma))
+                noise = self._noise(1, o.yaw_sigma)
                 fac = make_yaw_factor(X(k), float(self.yaw_val[n]), noise)
                 out.append(MeasurementFactor(float(self.yaw_arrival[n]), k, "yaw", fac, (X(k),)))
         if self.vision is not None and want("homography"):
