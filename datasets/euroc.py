@@ -13,13 +13,49 @@ Files (Burri et al., "The EuRoC micro aerial vehicle datasets", IJRR 2016):
 Time is integer nanoseconds in the files and float seconds here. Quaternions are ``[w, x, y, z]``
 in the files as in fgnav.
 
-Frames: the dataset's body frame is its IMU frame ``S`` (ADIS16448 of the VI-sensor); fgnav uses
-it as ``body`` unchanged. It is **not FLU**: from cam0's ``T_BS`` (cam0 x ~ +y_imu, cam0 y ~
--x_imu, cam0 z ~ +z_imu) the IMU axes are about x up, y right, z forward along cam0's optical axis;
-the sensor head pitches down about 20 deg, so at rest the accelerometer reads about
-(+9.2, 0, -3.3) m/s^2. The world frame of the ground truth (Leica total station / Vicon) is z up,
-gravity ``(0, 0, -g)``, as fgnav's. Estimators take ``calib.body_T_cam`` and the IMU readings as
-they are; nothing is rotated here.
+Frames: the dataset's body frame is its IMU frame ``S`` (ADIS16448 of the VI-sensor). It is
+**not FLU**: from cam0's ``T_BS`` (cam0 x ~ +y_imu, cam0 y ~ -x_imu, cam0 z ~ +z_imu) the IMU axes
+are about x up, y right, z forward along cam0's optical axis; the sensor head pitches down about
+20 deg, so in hover the accelerometer reads about (+9.2, 0, -3.3) m/s^2. The world frame of the
+ground truth (Leica total station / Vicon) is z up, gravity ``(0, 0, -g)``, as fgnav's.
+
+Body frame option (``body=`` of :func:`read_euroc_folder`, ``[body] frame`` of a manifest):
+
+- ``"imu"`` (the default, also of ``datasets/manifests/euroc_mh01_orbslam3.toml``): body = ``S``
+  unchanged, nothing rotated.
+- ``"flu"``: a FLU multirotor body, ``v_flu = flu_R_imu @ v_imu`` (:func:`flu_R_imu`, recorded
+  as ``meta["body_from_imu"]`` and printed by ``fgnav info``): body z = the thrust axis, body x =
+  cam0's optical axis projected orthogonal to z (forward), y = z x x (left), origin at the IMU
+  (no lever arm: positions and world velocities are unchanged). :func:`to_flu_body` rotates gyro
+  and accelerometer, ground-truth orientation and biases, references (taken as IMU-frame body
+  trajectories) and ``body_T_cam``; SLAM camera poses and images stay. On MH_01::
+
+      flu_R_imu = [[ 0.3319,  0.0289,  0.9429],
+                   [ 0.0141, -0.9996,  0.0257],
+                   [ 0.9432,  0.0048, -0.3322]]
+
+  (a turn of 179.4 deg: body x ~ imu z, y ~ -imu y, z ~ imu x; the thrust axis is 19.4 deg
+  from imu x toward -imu z).
+
+  The thrust axis (:data:`THRUST_AXIS_IMU`) is the normalised mean specific force of MH_01's
+  IMU over its airborne part (45-182 s after the first sample). Thrust acts along the rotor axis
+  and its mean direction over a flight that starts and ends near hover is vertical, so the mean
+  specific force points along the rotor axis up to the small mean rotor drag. Checks on the data:
+  the MH_01 ground truth's mean "up" direction over the same window is 0.84 deg from it, and the
+  IMU's mean specific force in flight on V1_01 and V1_02 (same Firefly, same mount) is 0.35 and
+  0.7 deg from it. After conversion the MH_01 ground-truth body z is 2.2 deg from vertical on
+  average (max 15.2 deg, 95th percentile 5.2 deg) over 45-182 s. The rest on the ground
+  (22-30 s) was **not** used: the Firefly stands 5.5 deg tilted on the floor there (ground
+  truth and accelerometer agree, 5.3 deg), so the rest specific force reads (0.68, 0.59, 9.74)
+  m/s^2 in the FLU body, not the thrust axis.
+
+  Downstream (MH_01, default options): the FLU body switches the graph's rotor-drag factor on
+  (its thrust-axis check passes), which has no airborne gate and a model noise (0.05 m/s^2) below
+  the Firefly's vibration in a 50 ms accelerometer mean (0.12-0.19 m/s^2): the batch smoother
+  then fails and the fixed-lag one diverges. With ``[graph] use_drag = false`` the FLU body gives
+  the IMU body's batch and fixed-lag results, and it fixes the filters that use Euler angles
+  (seed-003 UKF: ATE 0.22 m instead of diverging at the x-up body's gimbal lock). Hence the
+  manifest keeps ``"imu"`` as its default for now.
 
 Bad input policy (decision for the spreadsheet-damaged ``euroc_MH_01_easy/imu0/data.csv``): the
 file is **loaded, with warnings**, because nothing in it is ambiguous:
@@ -39,6 +75,7 @@ file is **loaded, with warnings**, because nothing in it is ambiguous:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from pathlib import Path
@@ -49,6 +86,7 @@ import yaml
 
 from . import _tables
 from .errors import FlightDataError, FlightFormatError
+from .frames import rotate_body_frame
 from .geometry import invert_pose
 from .types import (
     Calibration,
@@ -65,6 +103,19 @@ log = logging.getLogger(__name__)
 IMU_COLUMNS = ("timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
 POSE_COLUMNS = 8
 STATE_COLUMNS = 17
+
+BODY_FRAMES = ("imu", "flu")
+"""Body frames the readers give: ``"imu"`` (EuRoC's IMU frame S, unchanged) or ``"flu"`` (the
+multirotor FLU body of :func:`flu_R_imu`; see the module docstring)."""
+
+THRUST_AXIS_IMU = (0.9432, 0.0048, -0.3322)
+"""The Firefly's thrust axis (rotor axis, body +z of the FLU body) in EuRoC's IMU frame S: the
+normalised mean specific force of MH_01_easy's ``imu0`` over its airborne part, 45-182 s after the
+first sample (derivation in the module docstring). Same vehicle and sensor mount in all EuRoC
+sequences: V1_01 gives a direction 0.35 deg away, V1_02 0.7 deg."""
+
+#: Smallest angle [deg] between cam0's optical axis and the thrust axis for a usable forward axis.
+MIN_FORWARD_ANGLE_DEG = 30.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -292,13 +343,98 @@ def _camera(d: dict[str, Any], path: Path) -> CameraIntrinsics:
     return CameraIntrinsics(fx, fy, cx, cy, width, height, dist)
 
 
-def read_euroc_folder(mav0_dir: str | Path) -> Flight:
+# ----------------------------------------------------------------------------------------------
+# FLU body
+# ----------------------------------------------------------------------------------------------
+
+
+def flu_R_imu(
+    imu_T_cam: np.ndarray, thrust_axis_imu: Any = THRUST_AXIS_IMU, *, where: str = "thrust_axis"
+) -> np.ndarray:
+    """Rotation ``flu_R_imu`` (3x3, ``v_flu = flu_R_imu @ v_imu``) to the FLU multirotor body.
+
+    Body z: the thrust axis (normalised); body x: cam0's optical axis (``imu_T_cam[:3, 2]``)
+    projected orthogonal to z (forward); body y = z x x (left). The rows of the result are the
+    FLU axes in the IMU frame. Same origin as the IMU (no lever arm).
+
+    Raises:
+        FlightDataError: naming ``where``: the thrust axis is not 3 finite numbers of non-zero
+            length, or it lies within :data:`MIN_FORWARD_ANGLE_DEG` of the optical axis.
+    """
+    try:
+        z = np.asarray(thrust_axis_imu, dtype=float).reshape(3)
+    except (TypeError, ValueError) as e:
+        raise FlightDataError(
+            f"{where}: expected 3 numbers (IMU frame), got {thrust_axis_imu!r}"
+        ) from e
+    norm = float(np.linalg.norm(z))
+    if not np.all(np.isfinite(z)) or norm < 1e-9:
+        raise FlightDataError(f"{where}: expected a finite non-zero vector, got {z.tolist()}")
+    z = z / norm
+    c = np.asarray(imu_T_cam, dtype=float)[:3, 2]
+    c = c / np.linalg.norm(c)
+    angle = math.degrees(math.acos(float(np.clip(abs(c @ z), 0.0, 1.0))))
+    if angle < MIN_FORWARD_ANGLE_DEG:
+        raise FlightDataError(
+            f"{where}: {np.round(z, 4).tolist()} is {angle:.1f} deg from cam0's optical axis "
+            f"(need >= {MIN_FORWARD_ANGLE_DEG:g} deg to define the forward axis)"
+        )
+    x = c - (c @ z) * z
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def to_flu_body(
+    flight: Flight, thrust_axis_imu: Any = None, *, where: str = "thrust_axis"
+) -> Flight:
+    """Convert a flight whose body is EuRoC's IMU frame to the FLU multirotor body.
+
+    The rotation is :func:`flu_R_imu` of ``flight.calib.body_T_cam`` and the thrust axis
+    (default :data:`THRUST_AXIS_IMU`), applied by :func:`.frames.rotate_body_frame`. Records
+    ``meta["body_frame"] = "flu"``, ``meta["body_from_imu"]`` (the 3x3 ``flu_R_imu`` as nested
+    lists) and ``meta["thrust_axis_imu"]``.
+
+    Raises:
+        FlightDataError: no camera calibration (the forward axis comes from cam0), a bad thrust
+            axis (naming ``where``), or a flight already converted.
+    """
+    if flight.calib.camera is None:
+        raise FlightDataError(
+            f"{flight.name}: the FLU body needs cam0's calibration (calib.body_T_cam and the "
+            "camera; cam0/sensor.yaml or the manifest's [calib]) for its forward axis"
+        )
+    if flight.meta.get("body_frame", "imu") != "imu":
+        raise FlightDataError(
+            f"{flight.name}: body already converted ({flight.meta['body_frame']})"
+        )
+    axis = THRUST_AXIS_IMU if thrust_axis_imu is None else thrust_axis_imu
+    R = flu_R_imu(flight.calib.body_T_cam, axis, where=where)
+    out = rotate_body_frame(flight, R)
+    meta = dict(flight.meta)
+    meta["body_frame"] = "flu"
+    meta["body_from_imu"] = R.tolist()
+    meta["thrust_axis_imu"] = R[2].tolist()
+    return dataclasses.replace(out, meta=meta)
+
+
+def read_euroc_folder(
+    mav0_dir: str | Path, *, body: str = "imu", thrust_axis_imu: Any = None
+) -> Flight:
     """Read an EuRoC/ASL ``mav0`` folder (or the sequence folder holding ``mav0``).
 
     Reads ``imu0`` (required), ``state_groundtruth_estimate0`` and ``cam0`` when present, with
-    their ``sensor.yaml`` files (IMU noise, ``body_T_cam = inv(T_BS_imu0) * T_BS_cam0`` so that the
-    body stays the IMU frame, camera intrinsics). Reader notes go to ``meta["notes"]``.
+    their ``sensor.yaml`` files (IMU noise, ``body_T_cam = inv(T_BS_imu0) * T_BS_cam0`` in the IMU
+    frame, camera intrinsics). Reader notes go to ``meta["notes"]``.
+
+    Args:
+        mav0_dir: the folder.
+        body: ``"imu"`` keeps the IMU frame as body; ``"flu"`` converts the flight to the FLU
+            multirotor body (:func:`to_flu_body`, needs ``cam0``).
+        thrust_axis_imu: thrust axis in the IMU frame for ``body="flu"`` (default
+            :data:`THRUST_AXIS_IMU`).
     """
+    if body not in BODY_FRAMES:
+        raise FlightDataError(f"body = {body!r}; valid: {', '.join(BODY_FRAMES)}")
     root = Path(mav0_dir)
     if not root.is_dir():
         raise FlightFormatError(root, "folder not found")
@@ -347,6 +483,8 @@ def read_euroc_folder(mav0_dir: str | Path) -> Flight:
         meta={"format": "euroc", "sources": sources, "notes": notes},
     )
     try:
+        if body == "flu":
+            flight = to_flu_body(flight, thrust_axis_imu)
         return flight.check()
     except FlightDataError as e:
         raise FlightFormatError(root, str(e)) from e

@@ -23,13 +23,19 @@ Conventions converted here:
   (both frames converted). The rigid body's axes are whatever Motive was given at creation; the
   fixed rotation to the vehicle's FLU body is a calibration (see :func:`align_rotation_sequences`).
   Lengths in mm are converted with :data:`MM_TO_M`.
+* **A different body frame, same origin** (e.g. EuRoC's IMU frame to a FLU multirotor body):
+  :func:`rotate_body_frame` rotates every body-frame quantity of a flight consistently.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
+from .errors import FlightDataError
 from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_exp
+from .types import DOWNWARD_RANGE, Flight, Trajectory
 
 #: Rotation taking NED vectors to ENU (symmetric: also ``NED_R_ENU``).
 ENU_R_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -176,3 +182,70 @@ def align_rotation_sequences(
     E = np.swapaxes(A, -1, -2) @ (a_R_b @ B @ y_R_x)
     cos = np.clip((np.trace(E, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     return a_R_b, y_R_x, np.arccos(cos)
+
+
+def rotate_body_frame(flight: Flight, new_R_old: np.ndarray) -> Flight:
+    """Re-express a flight in a new body frame with the same origin, ``v_new = new_R_old @ v_old``.
+
+    Rotated: IMU angular rate and specific force, ``attitude`` (``world_R_new = world_R_old @
+    new_R_old^T``), ground truth and ``references`` (orientation as attitude; ``gyro_bias`` and
+    ``accel_bias`` as body vectors; positions and ``world_v_body`` are world vectors of the same
+    point and stay), ``calib.body_T_cam`` (``new_T_cam = [new_R_old, 0] @ old_T_cam``) and
+    ``calib.body_T_range`` when the flight has a range stream or a ``body_T_range`` other than the
+    ``DOWNWARD_RANGE`` default (which only says "looking down the body z axis" and so stays).
+    Untouched: SLAM camera poses, images, range values, metadata. References are taken to be
+    body trajectories like the ground truth.
+
+    Raises:
+        FlightDataError: ``new_R_old`` is not a proper rotation, or the flight has a ``yaw`` stream
+            (a yaw angle of the old body x axis cannot be converted without roll and pitch).
+    """
+    R = np.asarray(new_R_old, dtype=float)
+    if (
+        R.shape != (3, 3)
+        or not np.all(np.isfinite(R))
+        or np.abs(R @ R.T - np.eye(3)).max() > 1e-9
+        or np.linalg.det(R) < 0
+    ):
+        raise FlightDataError(f"body rotation: expected a proper 3x3 rotation, got {R.tolist()}")
+    if flight.yaw is not None:
+        raise FlightDataError(
+            f"{flight.name}: cannot rotate the body frame of a flight with a yaw stream (the yaw "
+            "of the old body x axis needs roll and pitch to convert)"
+        )
+
+    def vec(v: np.ndarray | None) -> np.ndarray | None:
+        return None if v is None else np.asarray(v, dtype=float) @ R.T
+
+    def quat(q: np.ndarray) -> np.ndarray:
+        return matrix_to_quat_wxyz(quat_wxyz_to_matrix(q) @ R.T)
+
+    def traj(tr: Trajectory | None) -> Trajectory | None:
+        if tr is None:
+            return None
+        return replace(
+            tr,
+            world_q_body_wxyz=quat(tr.world_q_body_wxyz),
+            gyro_bias=vec(tr.gyro_bias),
+            accel_bias=vec(tr.accel_bias),
+        )
+
+    T = np.eye(4)
+    T[:3, :3] = R
+    calib = replace(flight.calib, body_T_cam=T @ np.asarray(flight.calib.body_T_cam, dtype=float))
+    if flight.range is not None or not np.array_equal(calib.body_T_range, DOWNWARD_RANGE):
+        calib = replace(calib, body_T_range=T @ np.asarray(calib.body_T_range, dtype=float))
+    imu = flight.imu
+    if imu is not None:
+        imu = replace(imu, body_omega=vec(imu.body_omega), body_accel=vec(imu.body_accel))
+    att = flight.attitude
+    if att is not None:
+        att = replace(att, world_q_body_wxyz=quat(att.world_q_body_wxyz))
+    return replace(
+        flight,
+        imu=imu,
+        attitude=att,
+        ground_truth=traj(flight.ground_truth),
+        references={k: traj(v) for k, v in flight.references.items()},
+        calib=calib,
+    )

@@ -25,11 +25,22 @@ Example (``datasets/manifests/euroc_mh01_orbslam3.toml``)::
     format = "tum"
     path = "rpg_vio_mono/stamped_traj_estimate.txt"
 
+    [body]
+    frame = "imu"   # or "flu"
+
 Top-level keys: ``name`` (required), ``root`` (folder the ``path`` values are relative to; itself
 relative to the manifest's folder; default: the manifest's folder), ``source`` (free text), and
 the tables in :data:`TABLE_FORMATS` plus ``[references.<name>]`` (trajectories recorded beside the
-flight, e.g. another estimator's output; they become baseline rows) and ``[meta]`` (free metadata
-copied into ``flight.meta["manifest_meta"]``).
+flight, e.g. another estimator's output; they become baseline rows), ``[meta]`` (free metadata
+copied into ``flight.meta["manifest_meta"]``) and ``[body]``.
+
+``[body]`` (optional) chooses the body frame: ``frame = "imu"`` (the default) keeps the streams'
+body as read; ``frame = "flu"`` (needs ``[imu] format = "euroc"`` and ``[calib]``) converts EuRoC's
+IMU frame to the FLU multirotor body (:func:`.euroc.to_flu_body`: z along the thrust axis, x toward
+cam0's optical axis, same origin), rotating the IMU, attitude, ground truth, references (taken as
+IMU-frame body trajectories, as rpg_vio_mono's) and ``body_T_cam``; SLAM camera poses stay.
+``thrust_axis = [x, y, z]`` (IMU frame, optional) replaces :data:`.euroc.THRUST_AXIS_IMU`. The
+rotation goes to ``flight.meta["body_from_imu"]``.
 
 Keys of a stream table: ``format`` and ``path`` (required), ``time_offset_s`` (added to the
 stream's times to put it on the flight's clock; recorded in ``calib.time_offsets``), and per
@@ -53,8 +64,14 @@ from pathlib import Path
 from typing import Any
 
 from .calib_yaml import read_orbslam3_yaml
-from .errors import FlightFormatError
-from .euroc import read_euroc_groundtruth, read_euroc_images, read_euroc_imu
+from .errors import FlightDataError, FlightFormatError
+from .euroc import (
+    BODY_FRAMES,
+    read_euroc_groundtruth,
+    read_euroc_images,
+    read_euroc_imu,
+    to_flu_body,
+)
 from .load import lazy_reader
 from .native import read_calib_yaml, read_stream_csv
 from .tum import TIME_UNITS, read_tum, read_tum_slam
@@ -75,7 +92,10 @@ TABLE_FORMATS: dict[str, tuple[str, ...]] = {
 """Stream tables and the formats each accepts (``[references.<name>]`` takes those of
 ``ground_truth``)."""
 
-TOP_LEVEL_KEYS = ("name", "root", "source", "references", "meta", *TABLE_FORMATS)
+TOP_LEVEL_KEYS = ("name", "root", "source", "references", "meta", "body", *TABLE_FORMATS)
+
+BODY_KEYS = ("frame", "thrust_axis")
+"""Keys of the ``[body]`` table (see the module docstring)."""
 
 _COMMON_KEYS = ("format", "path", "time_offset_s")
 _FORMAT_KEYS: dict[str, tuple[str, ...]] = {
@@ -125,6 +145,49 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
     return fmt
 
 
+def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
+    """The ``[body]`` table, checked (``{}`` when absent or ``frame = "imu"``)."""
+    spec = doc.get("body")
+    if spec is None:
+        return {}
+    if not isinstance(spec, dict):
+        raise FlightFormatError(manifest, "[body] must be a table (frame, thrust_axis)")
+    unknown = [k for k in spec if k not in BODY_KEYS]
+    if unknown:
+        raise FlightFormatError(
+            manifest, f"[body] unknown key(s) {unknown}; valid: {', '.join(BODY_KEYS)}"
+        )
+    frame = spec.get("frame", "imu")
+    if frame not in BODY_FRAMES:
+        raise FlightFormatError(
+            manifest, f"[body] frame = {frame!r}; valid: {', '.join(BODY_FRAMES)}"
+        )
+    if frame == "imu":
+        if "thrust_axis" in spec:
+            raise FlightFormatError(manifest, '[body] thrust_axis: only with frame = "flu"')
+        return {}
+    imu = doc.get("imu")
+    if not isinstance(imu, dict) or imu.get("format") != "euroc":
+        raise FlightFormatError(
+            manifest,
+            '[body] frame = "flu" converts EuRoC\'s IMU frame: needs [imu] format = "euroc"',
+        )
+    if "calib" not in doc:
+        raise FlightFormatError(
+            manifest, '[body] frame = "flu" needs [calib] (cam0\'s body_T_cam gives body x)'
+        )
+    axis = spec.get("thrust_axis")
+    if axis is not None and (
+        not isinstance(axis, list)
+        or len(axis) != 3
+        or not all(isinstance(a, int | float) and not isinstance(a, bool) for a in axis)
+    ):
+        raise FlightFormatError(
+            manifest, f"[body] thrust_axis: expected 3 numbers (IMU frame), got {axis!r}"
+        )
+    return {"frame": frame, "thrust_axis": axis}
+
+
 def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
     p = (root / rel).resolve()
     if not p.exists():
@@ -140,8 +203,9 @@ class _LogCache:
         self.manifest = manifest
         self.flights: dict[tuple[str, str, str], Flight] = {}
 
-    def get(self, fmt: str, path: Path, table: str, stream: str, topic: str | None,
-            notes: list[str]) -> Flight:
+    def get(
+        self, fmt: str, path: Path, table: str, stream: str, topic: str | None, notes: list[str]
+    ) -> Flight:
         key = (fmt, str(path), topic or "")
         if key not in self.flights:
             if fmt == "ulog":
@@ -156,8 +220,9 @@ class _LogCache:
                 notes += [f"[{table}] {k}: {v}" for k, v in log_notes.items()]
         return self.flights[key]
 
-    def stream(self, fmt: str, path: Path, table: str, stream: str, topic: str | None,
-               notes: list[str]) -> Any:
+    def stream(
+        self, fmt: str, path: Path, table: str, stream: str, topic: str | None, notes: list[str]
+    ) -> Any:
         flight = self.get(fmt, path, table, stream, topic, notes)
         streams = flight.streams()
         if stream not in streams:
@@ -213,6 +278,7 @@ def read_manifest(path: str | Path) -> Flight:
     root = (manifest.parent / doc.get("root", ".")).resolve()
     if not root.is_dir():
         raise FlightFormatError(manifest, f"root: folder {root} not found")
+    body = _check_body(manifest, doc)
 
     notes: list[str] = []
     sources: dict[str, dict[str, str]] = {}
@@ -237,16 +303,18 @@ def read_manifest(path: str | Path) -> Flight:
     refs = doc.get("references", {})
     if not isinstance(refs, dict):
         raise FlightFormatError(manifest, "[references] must hold tables [references.<name>]")
-    jobs += [(f"references.{n}", "references", s, TABLE_FORMATS["ground_truth"])
-             for n, s in refs.items()]
+    jobs += [
+        (f"references.{n}", "references", s, TABLE_FORMATS["ground_truth"]) for n, s in refs.items()
+    ]
     references = {}
     for table, kind, spec, formats in jobs:
         fmt = _check_table(manifest, table, spec, formats)
         p = _resolve(manifest, root, table, spec["path"])
         if fmt in ("ulog", "rosbag"):
             default = f"ref:{table.split('.', 1)[1]}" if kind == "references" else kind
-            series = logs.stream(fmt, p, table, spec.get("stream", default), spec.get("topic"),
-                                 notes)
+            series = logs.stream(
+                fmt, p, table, spec.get("stream", default), spec.get("topic"), notes
+            )
         else:
             series = _read_stream(kind, fmt, p, spec, calib, notes)
         offset = float(spec.get("time_offset_s", 0.0))
@@ -259,8 +327,12 @@ def read_manifest(path: str | Path) -> Flight:
         else:
             streams[kind] = series
     calib = dataclasses.replace(calib, time_offsets=offsets)
-    meta: dict[str, Any] = {"format": "manifest", "manifest": str(manifest), "sources": sources,
-                            "notes": notes}
+    meta: dict[str, Any] = {
+        "format": "manifest",
+        "manifest": str(manifest),
+        "sources": sources,
+        "notes": notes,
+    }
     if "meta" in doc:
         meta["manifest_meta"] = doc["meta"]
     flight = Flight(
@@ -271,5 +343,10 @@ def read_manifest(path: str | Path) -> Flight:
         meta=meta,
         **streams,
     )
+    if body:
+        try:
+            flight = to_flu_body(flight, body["thrust_axis"], where="[body] thrust_axis")
+        except FlightDataError as e:
+            raise FlightFormatError(manifest, str(e)) from e
     log.info("read manifest %s: %s", manifest, ", ".join(flight.streams()))
     return flight.check()

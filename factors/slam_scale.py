@@ -20,6 +20,11 @@ Factors of this module (residual = unwhitened ``h(x) - z``, SLAM units):
   similarity maps the true camera position onto the measured one.
 - ``make_slam_axis_scale_factor`` (keys ``X``, per-axis scale Vector3 ``[kx, ky, kz]``; 3-D): seed
   000's ``slam_t = diag(kx, ky, kz) world_t_cam`` (SLAM frame axes and origin equal the world's).
+- ``make_slam_axis_offset_factor`` (keys ``X``, Vector6 ``[kx, ky, kz, ox, oy, oz]``; 3-D): the
+  per-axis model with an unknown SLAM origin, ``slam_t = diag(k) world_t_cam + o`` (SLAM axes
+  equal the world's). The smoothers use it: the world origin is then the first keyframe's position
+  (as with ``S``), not the SLAM origin, which is unknown until the scale is (a causal estimator
+  would otherwise jump when the per-axis scale is first initialised).
 - ``make_slam_relative_factor`` (keys ``X_i, X_j, S``; 3-D): the displacement
   ``slam_t_cam_j - slam_t_cam_i = s slam_R_world (world_t_cam_j - world_t_cam_i)``; independent of
   ``slam_t_world``, so a slow drift of the SLAM origin does not bias it (the translation part of
@@ -137,6 +142,28 @@ def slam_axis_scale_error(
     return e, [k[:, None] * p_D_pose, np.diag(p)]
 
 
+def slam_axis_offset_error(
+    world_T_body: gtsam.Pose3,
+    alignment: np.ndarray,
+    slam_t_meas: np.ndarray,
+    body_t_cam: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per-axis scale and offset residual ``diag(k) world_t_cam + o - slam_t_meas``.
+
+    Args:
+        world_T_body: body pose in the world.
+        alignment: (6,) ``[kx, ky, kz]`` [SLAM units per metre] and ``[ox, oy, oz]`` [SLAM units].
+        slam_t_meas: (3,) measured SLAM position [SLAM units].
+        body_t_cam: (3,) lever arm [m] (default zero).
+
+    Returns:
+        ``(e (3,), [e_D_pose (3x6), e_D_alignment (3x6)])``.
+    """
+    a = np.asarray(alignment, dtype=float)
+    e, (e_D_pose, e_D_k) = slam_axis_scale_error(world_T_body, a[:3], slam_t_meas, body_t_cam)
+    return e + a[3:], [e_D_pose, np.hstack([e_D_k, np.eye(3)])]
+
+
 def slam_relative_error(
     world_T_body_i: gtsam.Pose3,
     world_T_body_j: gtsam.Pose3,
@@ -235,19 +262,48 @@ def make_slam_axis_scale_factor(
         noise_model: 3-D noise in SLAM units.
         body_t_cam: optional (3,) lever arm [m].
     """
+    return _axis_factor(
+        slam_axis_scale_error, pose_key, scale_key, slam_t_meas, noise_model, body_t_cam
+    )
+
+
+def make_slam_axis_offset_factor(
+    pose_key: int,
+    alignment_key: int,
+    slam_t_meas: np.ndarray,
+    noise_model: gtsam.noiseModel.Base,
+    body_t_cam: np.ndarray | None = None,
+) -> gtsam.CustomFactor:
+    """Per-axis scale + SLAM-origin offset factor on ``(X: Pose3, alignment: Vector6
+    [kx, ky, kz, ox, oy, oz])`` (3-D): ``diag(k) world_t_cam + o - slam_t_meas``.
+
+    Args:
+        slam_t_meas: (3,) SLAM position [SLAM units]; SLAM axes equal the world's (seed 000),
+            the origin is free.
+        noise_model: 3-D noise in SLAM units.
+        body_t_cam: optional (3,) lever arm [m].
+
+    Not modelled: a rotation between the SLAM and world axes (use the Sim(3) factor), scale drift
+    within one alignment variable (chain them with a random walk).
+    """
+    return _axis_factor(
+        slam_axis_offset_error, pose_key, alignment_key, slam_t_meas, noise_model, body_t_cam
+    )
+
+
+def _axis_factor(error, pose_key, vector_key, slam_t_meas, noise_model, body_t_cam):
+    """CustomFactor on ``(X: Pose3, Vector)`` from a per-axis ``error(pose, vector, z, lever)``."""
     z = as_vector(slam_t_meas, 3, "slam_t_meas")
     lever = None if body_t_cam is None else as_vector(body_t_cam, 3, "body_t_cam")
     check_noise_dim(noise_model, ERROR_DIM)
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_axis_scale_error(
-            values.atPose3(pose_key), values.atVector(scale_key), z, lever
-        )
+        e, jacobians = error(values.atPose3(pose_key), values.atVector(vector_key), z, lever)
         if H is not None:
             H[0], H[1] = jacobians
         return e
 
-    return gtsam.CustomFactor(noise_model, [pose_key, scale_key], error_fn)
+    return gtsam.CustomFactor(noise_model, [pose_key, vector_key], error_fn)
 
 
 def make_slam_relative_factor(

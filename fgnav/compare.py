@@ -24,7 +24,7 @@ import math
 import re
 import time
 import traceback
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -392,6 +392,24 @@ def truth_slam_scales(flight: Flight) -> tuple[dict[int, float] | None, str]:
     return out, "Sim(3) fit of the SLAM camera positions to the ground truth (whole session)"
 
 
+def truth_slam_scale_at(flight: Flight) -> dict[int, Callable[[np.ndarray], np.ndarray]] | None:
+    """True SLAM scale of each session as a function of time, for simulated flights (the
+    simulator's linear drift ``scale (1 + scale_drift_per_s (t - t_start))``); None otherwise.
+    For the per-axis model the scale is the geometric mean of the axes (as the estimates')."""
+    truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
+    sessions = truth.get("slam_sessions") if isinstance(truth, dict) else None
+    if not sessions:
+        return None
+    out: dict[int, Callable[[np.ndarray], np.ndarray]] = {}
+    for sid, v in sessions.items():
+        scale, drift = float(v["scale"]), float(v.get("scale_drift_per_s", 0.0))
+        t_start = float(v.get("t_start", 0.0))
+        out[int(sid)] = lambda t, s0=scale, d=drift, t0=t_start: s0 * (
+            1.0 + d * (np.asarray(t, float) - t0)
+        )
+    return out
+
+
 def compare(
     flight: Flight,
     methods: list[str] | None = None,
@@ -450,6 +468,7 @@ def compare(
                     alignment=method.alignment,
                     truth_scale=res.truth_scale if has_scale(run.estimate) else None,
                     delta_m=res.rpe_delta_m,
+                    truth_scale_at=truth_slam_scale_at(flight),
                 )
             except Exception as e:  # scoring problems are reported per method
                 run.evaluation_error = f"{type(e).__name__}: {one_line(str(e))}"

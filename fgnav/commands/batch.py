@@ -77,7 +77,7 @@ def graph_options(args: argparse.Namespace) -> GraphOptions:
 
 def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, Any]) -> None:
     """Evaluate against the flight's ground truth when present, print a summary, write files."""
-    from fgnav.compare import truth_slam_scales
+    from fgnav.compare import truth_slam_scale_at, truth_slam_scales
     from fgnav.eval.metrics import evaluate
     from fgnav.eval.outputs import write_estimate
 
@@ -85,7 +85,11 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
     if flight.ground_truth is not None:
         try:
             metrics = evaluate(
-                est, flight.ground_truth, alignment="se3", truth_scale=truth_slam_scales(flight)[0]
+                est,
+                flight.ground_truth,
+                alignment="se3",
+                truth_scale=truth_slam_scales(flight)[0],
+                truth_scale_at=truth_slam_scale_at(flight),
             )
         except FgnavError as e:  # the estimate is written all the same
             log.warning("%s: not scored against ground truth: %s", est.method, e)
@@ -98,7 +102,13 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
     for sid, s in sorted(est.slam_scale.items()):
         sig = est.slam_scale_sigma.get(sid)
         sig_txt = f" +/- {sig:.2g}" if sig is not None else ""
-        print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre")
+        err = ""
+        if metrics is not None and sid in metrics.scale_final_err_pct:
+            err = f" (error vs truth: final {metrics.scale_final_err_pct[sid]:+.2f} %"
+            if sid in metrics.scale_mean_abs_err_pct:
+                err += f", mean |error| over time {metrics.scale_mean_abs_err_pct[sid]:.2f} %"
+            err += ")"
+        print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
         print(f"drag k: {est.drag_k} 1/s")
     paths = write_estimate(est, out, metrics=metrics, extra=extra)

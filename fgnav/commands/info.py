@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.load import SUPPORTED, load_flight
@@ -34,7 +35,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def body_frame_lines(meta: dict[str, Any]) -> list[str]:
+    """Lines describing a converted body frame (``meta["body_from_imu"]``), or none."""
+    R = meta.get("body_from_imu")
+    if R is None:
+        return []
+    out = ["", f"body frame {meta.get('body_frame', '?')} (v_body = body_from_imu @ v_imu)"]
+    out += [f"  [{', '.join(f'{x:+.4f}' for x in row)}]" for row in R]
+    if "thrust_axis_imu" in meta:
+        axis = ", ".join(f"{x:+.4f}" for x in meta["thrust_axis_imu"])
+        out.append(f"  thrust axis in the IMU frame: [{axis}]")
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     flight = load_flight(args.flight, topics=parse_topics(args.topics))
-    print(flight_info(flight).format())
+    print("\n".join([flight_info(flight).format(), *body_frame_lines(flight.meta)]))
     return 0

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from enum import Enum
 from typing import Any
@@ -374,9 +375,18 @@ def scale_series(estimate: Estimate, sessions: list[int] | None = None) -> dict[
 
 
 def scale_errors(
-    estimate: Estimate, truth_scale: dict[int, float]
+    estimate: Estimate,
+    truth_scale: dict[int, float],
+    truth_scale_at: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
 ) -> tuple[dict[int, float], dict[int, float]]:
-    """Final and time-averaged absolute scale errors [%] per session in ``truth_scale``."""
+    """Final and time-averaged absolute scale errors [%] per session in ``truth_scale``.
+
+    ``truth_scale`` holds the true scale at the session's end (compared with the estimate's
+    final scale). ``truth_scale_at`` optionally gives the true scale as a function of time per
+    session (a drifting simulated SLAM scale): the time average then compares each value of the
+    estimate's scale series with the truth at its own time, else with the constant
+    ``truth_scale``.
+    """
     final: dict[int, float] = {}
     mean_abs: dict[int, float] = {}
     for sid, s_true in truth_scale.items():
@@ -388,8 +398,10 @@ def scale_errors(
             logger.warning("estimate[%s] has no scale for SLAM session %s", estimate.method, sid)
     for sid, ts in scale_series(estimate, sorted(truth_scale)).items():
         if sid in truth_scale and np.asarray(ts.value).size:
-            s_true = truth_scale[sid]
-            mean_abs[sid] = float(np.mean(np.abs(np.asarray(ts.value) - s_true)) / s_true * 100.0)
+            fn = (truth_scale_at or {}).get(sid)
+            s_true = truth_scale[sid] if fn is None else np.asarray(fn(np.asarray(ts.t)), float)
+            rel = np.abs(np.asarray(ts.value, float) - s_true) / s_true
+            mean_abs[sid] = float(np.mean(rel) * 100.0)
     return final, mean_abs
 
 
@@ -405,6 +417,7 @@ def evaluate(
     truth_scale: dict[int, float] | None = None,
     delta_m: float = DEFAULT_RPE_DELTA_M,
     max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+    truth_scale_at: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
 ) -> Metrics:
     """Score an estimate against ground truth.
 
@@ -412,7 +425,10 @@ def evaluate(
         estimate: the estimate (its trajectory in its own world frame).
         truth: ground-truth body trajectory on the same clock.
         alignment: ``"se3"``, ``"sim3"``, ``"4dof"`` or ``"none"`` (always reported).
-        truth_scale: true SLAM scale ``s`` (SLAM units per metre) per session, when known.
+        truth_scale: true SLAM scale ``s`` (SLAM units per metre) per session, when known (its
+            value at the session's end).
+        truth_scale_at: optional true scale as a function of time per session (see
+            :func:`scale_errors`).
         delta_m: RPE segment length [m].
         max_gap_s: largest truth gap [s] interpolated across (see :func:`associate`).
 
@@ -465,7 +481,9 @@ def evaluate(
         )
 
     if truth_scale:
-        m.scale_final_err_pct, m.scale_mean_abs_err_pct = scale_errors(estimate, truth_scale)
+        m.scale_final_err_pct, m.scale_mean_abs_err_pct = scale_errors(
+            estimate, truth_scale, truth_scale_at
+        )
 
     if est.world_v_body is not None and gt.world_v_body is not None:
         dv = gt.world_v_body - al.apply_velocities(est.world_v_body[idx])

@@ -222,8 +222,12 @@ def solve_batch(
     pose_cov = vel_cov = None
     slow_sigma: dict[int, np.ndarray] = {}
     if marg is not None:
+        wanted = list(_slow_keys(res.values))
+        pose_ks = range(0, builder.K, max(1, o.cov_pose_stride)) if o.covariance == "all" else []
+        wanted += [key for k in pose_ks for key in (X(k), V(k))]
+        covs = _marginal_covariances(marg, res.linear, res.values, wanted, cov_info)
         slow_sigma = {
-            k: np.sqrt(np.diag(marg.marginalCovariance(k))) for k in _slow_keys(res.values)
+            k: np.sqrt(np.diag(covs[k])) for k in _slow_keys(res.values) if k in covs
         }
         if cov_info["covariance_regularised"]:
             weak = [
@@ -240,9 +244,9 @@ def solve_batch(
         if o.covariance == "all":
             pose_cov = np.full((builder.K, 6, 6), np.nan)
             vel_cov = np.full((builder.K, 3, 3), np.nan)
-            for k in range(0, builder.K, max(1, o.cov_pose_stride)):
-                pose_cov[k] = marg.marginalCovariance(X(k))
-                vel_cov[k] = marg.marginalCovariance(V(k))
+            for k in pose_ks:
+                pose_cov[k] = covs.get(X(k), np.nan)
+                vel_cov[k] = covs.get(V(k), np.nan)
     t_cov = time.perf_counter()
     est = _with_slow(builder, res.values, est, slow_sigma)
     info = dict(est.info)
@@ -323,6 +327,49 @@ def _marginals(
     return marg, info
 
 
+def _marginal_covariances(
+    marg: gtsam.Marginals,
+    linear: gtsam.GaussianFactorGraph,
+    values: gtsam.Values,
+    keys: list[int],
+    info: dict[str, Any],
+) -> dict[int, np.ndarray]:
+    """Marginal covariance of each key, never raising: GTSAM may only find an indeterminate
+    system when a marginal is queried (after ``Marginals`` was built); then the regularised
+    marginals are used (see :func:`_marginals`), and a key whose covariance still fails is left
+    out (counted in ``info["covariance_failed_keys"]``)."""
+    try:
+        return {k: marg.marginalCovariance(k) for k in keys}
+    except RuntimeError as e:
+        near = _indeterminate_key(" ".join(str(e).split()))
+        info["covariance_indeterminate_near"] = near
+    zero = values.zeroVectors()
+    dims = {k: int(zero.at(k).shape[0]) for k in values.keys()}
+    out: dict[int, np.ndarray] = {}
+    try:
+        reg = gtsam.Marginals(_damping_graph(linear, dims, COVARIANCE_REGULARISATION), values)
+    except RuntimeError as e:
+        info["covariance_unavailable"] = " ".join(str(e).split())[:160]
+        log.warning("marginal covariances unavailable: %s", info["covariance_unavailable"])
+        return out
+    info["covariance_regularised"] = True
+    log.warning(
+        "indeterminate system near %s found while querying marginals: covariances computed with "
+        "a %.0e damping",
+        info.get("covariance_indeterminate_near"),
+        COVARIANCE_REGULARISATION,
+    )
+    failed = 0
+    for k in keys:
+        try:
+            out[k] = reg.marginalCovariance(k)
+        except RuntimeError:
+            failed += 1
+    if failed:
+        info["covariance_failed_keys"] = failed
+    return out
+
+
 def _slow_keys(values: gtsam.Values) -> list[int]:
     return [k for k in values.keys() if chr(gtsam.Symbol(k).chr()) in "sdg"]
 
@@ -355,15 +402,27 @@ def _with_slow(
     scale, scale_sigma = {}, {}
     t_kf = builder.t_kf
     if builder.use_slam:
-        if builder.slam_model == "axis" and values.exists(S(0)):
-            k = values.atVector(S(0))
-            sg = sigma.get(S(0))
-            scale[0] = float(np.cbrt(np.prod(k)))
-            if sg is not None:
-                scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
-            series["slam_axis_scale"] = TimeSeries(
-                np.array([t_kf[0]]), k[None, :], None if sg is None else sg[None, :]
-            )
+        if builder.slam_model == "axis":
+            # One chain of per-axis scale segments (seed 000's model); the flight's scale is
+            # the last segment's geometric mean.
+            ts, ks, sgs = [], [], []
+            a = builder.slam_assoc
+            for (_sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
+                if not values.exists(S(j)):
+                    continue
+                rows = np.flatnonzero(builder.slam_chain == seg)
+                ts.append(float(np.mean(t_kf[a.keyframe[rows]])) if len(rows) else t_kf[0])
+                ks.append(values.atVector(S(j))[:3])
+                sg = sigma.get(S(j))
+                sgs.append(np.full(3, np.nan) if sg is None else np.asarray(sg, float)[:3])
+            if ks:
+                k, sg = ks[-1], sgs[-1]
+                scale[0] = float(np.cbrt(np.prod(k)))
+                if np.all(np.isfinite(sg)):
+                    scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+                series["slam_axis_scale"] = TimeSeries(
+                    np.asarray(ts), np.asarray(ks), np.asarray(sgs)
+                )
         else:
             ts, vs, ss, sess_ids = [], [], [], []
             slam = builder.flight.slam

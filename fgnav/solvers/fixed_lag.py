@@ -467,8 +467,7 @@ class FixedLagRunner:
 
         try:
             if b.slam_model == "axis":
-                k = b.init_axis_scale(self.t_latest)
-                return np.asarray(k, float), float(np.max(k))
+                return self._init_axis_value(session)
             init = b.init_session(session, t_limit=self.t_latest)
         except FlightDataError as e:
             log.debug("SLAM session %d: not initialised at t=%.2f: %s", session, self.t_latest, e)
@@ -491,6 +490,33 @@ class FixedLagRunner:
         j = self._nearest_slam_row(session)
         slam_t_world = slam.slam_t_cam[j] - init.scale * init.slam_R_world @ world_t_cam
         return make_slam_T_world(init.scale, init.slam_R_world, slam_t_world), init.scale
+
+    def _init_axis_value(self, session: int) -> tuple[Any, float]:
+        """Causal per-axis alignment ``[k, o]`` (seed 000's model): the closed-form per-axis
+        scale once every axis it determines has a relative standard error below
+        ``slam_init_max_rel_se``; the origin offset ``o`` maps the newest keyframe's camera
+        position onto the SLAM pose nearest in time (the world origin stays at the first
+        keyframe)."""
+        b = self.builder
+        k, rel_se = b.init_axis_fit(self.t_latest)
+        finite = rel_se[np.isfinite(rel_se)]
+        if not len(finite) or finite.max() > self.options.slam_init_max_rel_se:
+            log.debug(
+                "per-axis SLAM scale not initialised at t=%.2f: rel. s.e. %s",
+                self.t_latest,
+                np.round(rel_se, 3),
+            )
+            return None, 0.0
+        _, world_t_cam = self._newest_world_t_cam()
+        j = self._nearest_slam_row(session)
+        o = b.flight.slam.slam_t_cam[j] - k * world_t_cam
+        log.info(
+            "per-axis SLAM alignment initialised at t=%.2f: k %s (rel. s.e. %s)",
+            self.t_latest,
+            np.round(k, 4),
+            np.round(rel_se, 3),
+        )
+        return np.r_[k, o], float(np.max(k))
 
     # ------------------------------------------------------------------------------------------
     # Updates
@@ -860,7 +886,7 @@ class FixedLagRunner:
             val = np.array([r[1] for r in rows])
             if kind == "slam":
                 series["slam_scale" if b.slam_model == "sim3" else "slam_axis_scale"] = TimeSeries(
-                    t, val[:, 0] if b.slam_model == "sim3" else val
+                    t, val[:, 0] if b.slam_model == "sim3" else val[:, :3]
                 )
             else:
                 series[kind] = TimeSeries(t, val[:, 0] if val.shape[1] == 1 else val)
@@ -872,7 +898,9 @@ class FixedLagRunner:
                 j = int(name.split("#")[1])
                 v = rows[-1][1]
                 if b.slam_model == "axis":
-                    slam_scale[0] = float(np.cbrt(np.prod(v)))
+                    if rows[-1][0] >= self._last_t_of(0):
+                        slam_scale[0] = float(np.cbrt(np.prod(v[:3])))
+                        self._sess_last_t[0] = rows[-1][0]
                 else:
                     sess = inv[j][0]
                     if sess not in slam_scale or rows[-1][0] >= self._last_t_of(sess):

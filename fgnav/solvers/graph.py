@@ -3,7 +3,8 @@
 Variables (``fgnav.keys``, ../shared/DESIGN.md section 3): per keyframe k ``X(k)`` Pose3
 ``world_T_body``, ``V(k)`` ``world_v_body`` [m/s], ``B(k)`` IMU bias; slow variables with random
 walks between segments: ``S(j)`` SLAM alignment (``Similarity3`` ``slam_T_world``, a new chain per
-SLAM session, or a per-axis scale Vector3 for seed 000's model), ``D(j)`` drag coefficient
+SLAM session, or for seed 000's per-axis model a Vector6 ``[kx, ky, kz, ox, oy, oz]``: per-axis
+scale and SLAM-origin offset, one chain for the flight), ``D(j)`` drag coefficient
 (Vector1 ``k`` or Vector2 ``kx, ky``) [1/s], ``G(j)`` ground height (Vector1) [m].
 
 The builder emits the graph per keyframe so that the same code feeds the batch solver (everything
@@ -92,8 +93,9 @@ class GraphOptions:
             (``vision.HomographyFactorOptions``, or a TOML table of them; None: defaults).
         use_frontend_priors: add the front-end priors given to the builder.
         slam_model: ``"sim3"`` (``Similarity3`` alignment per session) or ``"axis"`` (seed 000's
-            per-axis scale, SLAM axes = world axes); ``"auto"`` picks ``"axis"`` when the flight's
-            metadata says the SLAM stream is per-axis.
+            per-axis scale, SLAM axes = world axes, with an estimated SLAM-origin offset so the
+            world origin stays at the first keyframe); ``"auto"`` picks ``"axis"`` when the
+            flight's metadata says the SLAM stream is per-axis.
         slam_sigma_m: SLAM position noise [m] (converted to SLAM units with the initial scale).
         slam_rotation: also use the SLAM orientation (fixes the yaw of the SLAM frame).
         slam_rot_sigma: SLAM orientation noise [rad].
@@ -104,6 +106,14 @@ class GraphOptions:
         slam_trans_rw_m: origin random walk of the SLAM frame [m/sqrt(s)].
         drag_per_axis: estimate ``kx, ky`` instead of one ``k``.
         drag_model_sigma: drag-model error floor of the mean accelerometer [m/s^2].
+        drag_sigma_from_data: raise that floor to the flight's measured scatter of the keyframe
+            means (robust standard deviation of their deviation from a 0.5 s running median: rotor
+            vibration and turbulence of a real vehicle; the simulator has none).
+        drag_max_tilt_deg: skip the drag factor at keyframes whose mean specific force is more
+            than this from body +z (not thrust-borne: carried, standing on the ground, touching
+            down), counted as ``drag:not-thrust-borne``. Linear drag at 4 m/s and k = 0.4 1/s
+            tilts it by 9 deg.
+        drag_robust: robust kernel on the drag factor (as ``robust``).
         drag_k_init: initial drag k [1/s] (None: closed form from the initial velocities).
         drag_prior_sigma: prior on the first drag variable [1/s].
         drag_segment_s: drag segment length [s] (None: one variable for the flight).
@@ -152,6 +162,9 @@ class GraphOptions:
     slam_trans_rw_m: float = 1e-2
     drag_per_axis: bool = True
     drag_model_sigma: float = 0.05
+    drag_sigma_from_data: bool = True
+    drag_max_tilt_deg: float = 15.0
+    drag_robust: bool = True
     drag_k_init: float | None = None
     drag_prior_sigma: float = 0.2
     drag_segment_s: float | None = None
@@ -424,12 +437,18 @@ class GraphBuilder:
                 t_first = slam.t[a.meas_index[m][0]]
                 seg = np.floor((slam.t[a.meas_index[m]] - t_first) / seg_s + 1e-9).astype(int)
                 chain[m] = seg
+        elif len(a.meas_index):
+            # Seed 000's per-axis model: every session shares the per-axis scale, so one chain
+            # of segments over the flight (the scale drifts; a fixed-lag smoother also needs the
+            # segments to move the scale's linearisation point, see fixed_lag's docstring).
+            t_meas = slam.t[a.meas_index]
+            chain[:] = np.floor((t_meas - t_meas[0]) / seg_s + 1e-9).astype(int)
         self.slam_chain = chain
         self.slam_latency = slam.latency if slam.latency is not None else np.zeros(len(slam))
         # Variable index per (session, segment): contiguous integers in order of appearance.
         self.slam_var: dict[tuple[int, int], int] = {}
         for i, c in zip(a.meas_index, chain, strict=True):
-            key = (int(slam.session[i]), int(c)) if self.slam_model == "sim3" else (0, 0)
+            key = (int(slam.session[i]), int(c)) if self.slam_model == "sim3" else (0, int(c))
             if key not in self.slam_var:
                 self.slam_var[key] = len(self.slam_var)
 
@@ -505,12 +524,42 @@ class GraphBuilder:
             if self.K > 1
             else np.array([0.5 / self.options.keyframe_hz])
         )
-        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel[:, :2], self.t_kf, half)
-        self.drag_mean = means
-        self.drag_count = counts
-        self.drag_arrival = self.t_kf + half
+        o = self.options
+        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel, self.t_kf, half)
+        self.drag_mean = means[:, :2]
         n_none = int((counts == 0).sum())
         self._skip("drag:keyframes-without-imu-samples", n_none)
+        # Thrust-borne gate: the mean specific force near body +z.
+        norm = np.linalg.norm(means, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos_tilt = means[:, 2] / norm
+        tilted = (counts > 0) & ~(cos_tilt >= math.cos(math.radians(o.drag_max_tilt_deg)))
+        self._skip("drag:not-thrust-borne", int(tilted.sum()))
+        counts = np.where(tilted, 0, counts)
+        self.drag_count = counts
+        self.drag_arrival = self.t_kf + half
+        self.drag_sigma = float(o.drag_model_sigma)
+        if o.drag_sigma_from_data:
+            self.drag_sigma = max(self.drag_sigma, self._drag_scatter(counts > 0))
+            self._count("drag-model-sigma-mm/s2", int(round(1000 * self.drag_sigma)))
+
+    def _drag_scatter(self, ok: np.ndarray) -> float:
+        """Robust standard deviation [m/s^2] of the keyframe-mean specific force xy about its
+        0.5 s running median (both axes pooled), over the keyframes ``ok``; minus the part the
+        accelerometer noise density explains."""
+        idx = np.flatnonzero(ok)
+        if len(idx) < 10:
+            return 0.0
+        half_n = max(1, int(round(0.25 * self.options.keyframe_hz)))
+        x = self.drag_mean[idx]
+        pad = np.pad(x, ((half_n, half_n), (0, 0)), mode="edge")
+        win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half_n + 1, axis=0)
+        dev = x - np.median(win, axis=-1)
+        mad = float(np.median(np.abs(dev - np.median(dev, axis=0))))
+        scatter = 1.4826 * mad
+        n = float(np.median(self.drag_count[idx]))
+        white = self.imu_accel_sigma() / math.sqrt(max(n, 1.0))
+        return math.sqrt(max(scatter**2 - white**2, 0.0))
 
     # ------------------------------------------------------------------------------------------
     # Noise models
@@ -653,18 +702,32 @@ class GraphBuilder:
 
     def init_axis_scale(self, t_limit: float | None = None) -> np.ndarray:
         """Per-axis SLAM scale ``[kx, ky, kz]`` by least squares of second differences."""
+        return self.init_axis_fit(t_limit)[0]
+
+    def init_axis_fit(self, t_limit: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per-axis SLAM scale ``[kx, ky, kz]`` by least squares of second differences (0.5 s
+        half-width, 0.1 s step) and the relative standard error of each axis (inflated by
+        ``sqrt(10)`` for the overlap of neighbouring second differences; inf for an axis without
+        motion, which starts at the mean of the others)."""
         slam = self.flight.slam
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
+        half, step = 0.5, 0.1
         sd2, wd2, _ = second_difference_pairs(
-            slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, 0.5, 0.1
+            slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, half, step
         )
         if len(sd2) < 3:
             raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
         sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
         den = (wd2**2).sum(axis=0)
         k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), np.nan)
-        ok = np.isfinite(k) & (k > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            res = sd2 - k * wd2
+            se = np.sqrt((res**2).sum(axis=0) / max(len(sd2) - 2, 1) / den)
+            rel_se = se * math.sqrt(2.0 * half / step) / np.abs(k)
+        # An axis whose fit has a relative standard error above 1 is not determined by it.
+        ok = np.isfinite(k) & (k > 0) & (rel_se <= 1.0)
+        rel_se = np.where(ok, rel_se, np.inf)
         if not ok.any():
             raise FlightDataError(
                 f"per-axis SLAM scale initialisation gave {k}: too little motion on every axis"
@@ -672,13 +735,15 @@ class GraphBuilder:
         if not ok.all():
             # An axis without acceleration (e.g. z at constant altitude) is not seen by second
             # differences; the absolute per-axis factors still fix it, from this initial value.
-            log.warning(
-                "per-axis SLAM scale init %s: axis %s without motion starts at the mean of the "
-                "others", np.round(k, 4), "".join("xyz"[i] for i in np.flatnonzero(~ok))
+            log.info(
+                "per-axis SLAM scale init %s: axis %s without enough motion starts at the mean of "
+                "the others",
+                np.round(k, 4),
+                "".join("xyz"[i] for i in np.flatnonzero(~ok)),
             )
             k = np.where(ok, k, k[ok].mean())
-        log.info("per-axis SLAM scale init %s", np.round(k, 4))
-        return k
+        log.info("per-axis SLAM scale init %s (rel. s.e. %s)", np.round(k, 4), np.round(rel_se, 3))
+        return k, rel_se
 
     def init_drag_k(self, guess: InitialGuess) -> np.ndarray:
         """Closed-form drag from ``f_xy = -k u_xy`` with the initial body velocities."""
@@ -687,7 +752,7 @@ class GraphBuilder:
             return np.full(n, float(self.options.drag_k_init))
         u = np.einsum("nji,nj->ni", guess.world_R_body, guess.world_v_body)[:, :2]
         f = self.drag_mean
-        ok = np.all(np.isfinite(f), axis=1)
+        ok = np.all(np.isfinite(f), axis=1) & (self.drag_count > 0)
         if n == 1:
             den = float((u[ok] ** 2).sum())
             k = np.array([-(f[ok] * u[ok]).sum() / den]) if den > 0 else np.array([np.nan])
@@ -731,9 +796,8 @@ class GraphBuilder:
     def slam_key(self, assoc_row: int) -> int:
         slam = self.flight.slam
         i = self.slam_assoc.meas_index[assoc_row]
-        if self.slam_model == "axis":
-            return S(0)
-        return S(self.slam_var[(int(slam.session[i]), int(self.slam_chain[assoc_row]))])
+        sess = 0 if self.slam_model == "axis" else int(slam.session[i])
+        return S(self.slam_var[(sess, int(self.slam_chain[assoc_row]))])
 
     def first_prior_factors(
         self, guess_R: np.ndarray, guess_t: np.ndarray, guess_v: np.ndarray
@@ -745,8 +809,6 @@ class GraphBuilder:
         pos_sigma = o.prior_position_sigma
         if self.use_yaw or (self.use_slam and self.slam_model == "axis"):
             yaw_sigma = max(yaw_sigma, 1.0)
-        if self.use_slam and self.slam_model == "axis":
-            pos_sigma = max(pos_sigma, 10.0)
         sig = np.array(
             [
                 o.prior_rollpitch_sigma,
@@ -879,7 +941,7 @@ class GraphBuilder:
         """Tangent dimension of each slow-variable symbol used by this graph."""
         out: dict[str, int] = {}
         if self.use_slam:
-            out["s"] = 7 if self.slam_model == "sim3" else 3
+            out["s"] = 7 if self.slam_model == "sim3" else 6
         if self.use_drag:
             out["d"] = 2 if self.options.drag_per_axis else 1
         if self.use_range:
@@ -910,8 +972,6 @@ class GraphBuilder:
         if j == 0:
             return None
         if c == "s":
-            if self.slam_model == "axis":
-                return None
             inv = {v: kk for kk, v in self.slam_var.items()}
             sess, seg = inv[j]
             return None if seg == 0 else S(self.slam_var[(sess, seg - 1)])
@@ -955,12 +1015,25 @@ class GraphBuilder:
                 sig = o.ground_rw * math.sqrt(o.ground_segment_s)
                 g.add(gtsam.BetweenFactorVector(prev, key, np.zeros(1), _isotropic(1, sig)))
         elif c == "s" and self.slam_model == "axis":
-            rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
-            g.add(
-                gtsam.PriorFactorVector(
-                    key, np.asarray(value, float), _isotropic(3, rel * float(np.max(value)))
+            # Vector6 [k (3), o (3)]: per-axis scale and SLAM-origin offset [SLAM units].
+            a = np.asarray(value, float)
+            k_max = float(np.max(a[:3]))
+            if prev is None:
+                rel = WEAK_SCALE_PRIOR_REL if scale_sigma_rel is None else scale_sigma_rel
+                sig = np.r_[[rel * k_max] * 3, [10.0 * k_max] * 3]
+                g.add(gtsam.PriorFactorVector(key, a, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            else:
+                # Relative random walk of every axis (the same drift as the Sim(3) scale) and an
+                # origin walk of slam_trans_rw_m metres.
+                dt = math.sqrt(o.slam_segment_s)
+                sig = np.r_[
+                    o.slam_scale_rw * dt * np.abs(a[:3]), [o.slam_trans_rw_m * dt * k_max] * 3
+                ]
+                g.add(
+                    gtsam.BetweenFactorVector(
+                        prev, key, np.zeros(6), gtsam.noiseModel.Diagonal.Sigmas(sig)
+                    )
                 )
-            )
         elif c == "s":
             if prev is None:
                 # Weak prior: the closed-form initial value, 0.3 rad, 10 m, 50 % in scale.
@@ -995,6 +1068,10 @@ class GraphBuilder:
         v = np.asarray(value, float)
         if c == "g":
             sig = np.full(v.shape, self.options.range_sigma * 5.0)
+        elif c == "s":
+            # Per-axis alignment [k, o]: relative on k, 0.5 m on the origin.
+            k_max = float(np.max(v[:3]))
+            sig = np.r_[np.maximum(np.abs(v[:3]) * sigma_rel, 1e-3), [0.5 * k_max] * 3]
         else:
             sig = np.maximum(np.abs(v) * sigma_rel, 1e-3)
         g.add(gtsam.PriorFactorVector(key, v, gtsam.noiseModel.Diagonal.Sigmas(sig)))
@@ -1043,8 +1120,10 @@ class GraphBuilder:
             from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 
             noise = mean_accel_noise(
-                self.imu_accel_sigma(), int(self.drag_count[k]), o.drag_model_sigma
+                self.imu_accel_sigma(), int(self.drag_count[k]), self.drag_sigma
             )
+            if o.drag_robust:
+                noise = self._robust(noise)
             dk = D(int(self.drag_segment[k]))
             fac = make_accel_drag_factor(X(k), V(k), B(k), dk, self.drag_mean[k], noise)
             out.append(
@@ -1054,7 +1133,7 @@ class GraphBuilder:
             )
         if self.use_slam and want("slam"):
             from fgnav.factors.slam_scale import (
-                make_slam_axis_scale_factor,
+                make_slam_axis_offset_factor,
                 make_slam_position_factor,
             )
 
@@ -1064,9 +1143,10 @@ class GraphBuilder:
                 sk = self.slam_key(int(r))
                 arrival = float(slam.t[i] + self.slam_latency[i])
                 if self.slam_model == "axis":
-                    scale = float(np.max(slam_init_scale.get(sk, 1.0))) if slam_init_scale else 1.0
+                    scale = slam_init_scale.get(sk, 1.0) if slam_init_scale else 1.0
+                    scale = float(np.max(np.atleast_1d(scale)[:3]))
                     noise = self._robust(_isotropic(3, o.slam_sigma_m * scale))
-                    fac = make_slam_axis_scale_factor(
+                    fac = make_slam_axis_offset_factor(
                         X(k),
                         sk,
                         slam.slam_t_cam[i],
@@ -1140,7 +1220,9 @@ class GraphBuilder:
                 out[G(int(j))] = np.array([z])
         if self.use_slam:
             if self.slam_model == "axis":
-                out[S(0)] = np.asarray(guess.axis_scale, float)
+                # Initial positions are SLAM / k (see initial_guess): zero origin offset.
+                for j in self.slam_var.values():
+                    out[S(j)] = np.r_[np.asarray(guess.axis_scale, float), np.zeros(3)]
             else:
                 for (sess, _seg), j in self.slam_var.items():
                     init = guess.slam[sess]
@@ -1151,7 +1233,7 @@ class GraphBuilder:
         out = {}
         for key, v in slow.items():
             if chr(gtsam.Symbol(key).chr()) == "s":
-                out[key] = float(np.max(v)) if isinstance(v, np.ndarray) else float(v.scale())
+                out[key] = float(np.max(v[:3])) if isinstance(v, np.ndarray) else float(v.scale())
         return out
 
     def build(

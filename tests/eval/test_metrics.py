@@ -165,6 +165,34 @@ def test_scale_errors_per_session(truth):
         evaluate(est, truth, truth_scale={0: 0.0})
 
 
+def test_scale_error_over_time_against_a_drifting_truth(truth):
+    t = truth.t
+    drift = lambda tt: 0.2 * (1.0 + 0.01 * (np.asarray(tt) - t[0]))  # noqa: E731
+    exact = Estimate(
+        "s",
+        _est(truth),
+        slam_scale={0: float(drift(t[-1]))},
+        series={"slam_scale": TimeSeries(t, drift(t))},
+    )
+    m = evaluate(exact, truth, truth_scale={0: float(drift(t[-1]))}, truth_scale_at={0: drift})
+    assert m.scale_final_err_pct[0] == pytest.approx(0.0, abs=1e-9)
+    assert m.scale_mean_abs_err_pct[0] == pytest.approx(0.0, abs=1e-9)
+    # Against the constant end value the same exact series shows the drift as error.
+    m_const = evaluate(exact, truth, truth_scale={0: float(drift(t[-1]))})
+    assert m_const.scale_mean_abs_err_pct[0] > 1.0
+    # A constant estimate at the truth's end value: 1 % off on average for a 2 % drift.
+    flat = Estimate(
+        "s",
+        _est(truth),
+        slam_scale={0: float(drift(t[-1]))},
+        series={"slam_scale": TimeSeries(t, np.full(t.size, float(drift(t[-1]))))},
+    )
+    m_flat = evaluate(flat, truth, truth_scale={0: float(drift(t[-1]))}, truth_scale_at={0: drift})
+    expected = np.mean(np.abs(drift(t[-1]) / drift(t) - 1.0)) * 100.0
+    assert m_flat.scale_mean_abs_err_pct[0] == pytest.approx(expected, rel=1e-9)
+    assert m_flat.scale_mean_abs_err_pct[0] > 0.1
+
+
 def test_timing_and_output_formats(truth):
     lat = np.linspace(0.001, 0.010, 1000)
     est = Estimate("online", _est(truth), update_latency=lat, runtime_s=6.0, causal=True)
@@ -212,6 +240,9 @@ def test_nees_skips_rows_without_covariance():
     m = evaluate(est, truth, alignment="none")
     assert m.n_nees == n // 2
     assert np.isfinite(m.nees_pos) and 2.0 < m.nees_pos < 4.0
-    full = evaluate(dataclasses.replace(est, pose_cov=np.where(np.isnan(cov), cov[0], cov)), truth,
-                    alignment="none")
+    full = evaluate(
+        dataclasses.replace(est, pose_cov=np.where(np.isnan(cov), cov[0], cov)),
+        truth,
+        alignment="none",
+    )
     assert full.n_nees == n

@@ -6,12 +6,14 @@ import gtsam
 import numpy as np
 import pytest
 from fgnav.factors.slam_scale import (
+    make_slam_axis_offset_factor,
     make_slam_axis_scale_factor,
     make_slam_position_factor,
     make_slam_relative_factor,
     make_slam_rotation_factor,
     make_slam_T_world,
     slam_alignment_parts,
+    slam_axis_offset_error,
     slam_axis_scale_error,
     slam_position_error,
     slam_relative_error,
@@ -68,6 +70,10 @@ def test_zero_error_and_shapes_at_consistent_state() -> None:
     e, J = slam_axis_scale_error(pose_i, k, k * (pose_i.transformFrom(lever)), lever)
     np.testing.assert_allclose(e, 0.0, atol=1e-12)
     assert [j.shape for j in J] == [(3, 6), (3, 3)]
+    a = np.r_[k, 0.4, -1.2, 2.0]
+    e, J = slam_axis_offset_error(pose_i, a, k * (pose_i.transformFrom(lever)) + a[3:], lever)
+    np.testing.assert_allclose(e, 0.0, atol=1e-12)
+    assert [j.shape for j in J] == [(3, 6), (3, 6)]
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -81,6 +87,7 @@ def test_jacobians_match_central_differences(seed: int) -> None:
     values.insert(X(1), pose_j)
     values.insert(S(0), sim)
     values.insert(S(1), rng.uniform(0.2, 2.0, 3))
+    values.insert(S(2), np.r_[rng.uniform(0.2, 2.0, 3), rng.normal(0.0, 2.0, 3)])
     unit = unit_noise(3)
     assert_jacobians_close(
         make_slam_position_factor(X(0), S(0), z_i, body_T_cam, unit), values, [6, 7]
@@ -96,6 +103,11 @@ def test_jacobians_match_central_differences(seed: int) -> None:
         make_slam_axis_scale_factor(X(1), S(1), z_j, unit, body_t_cam=body_T_cam.translation()),
         values,
         [6, 3],
+    )
+    assert_jacobians_close(
+        make_slam_axis_offset_factor(X(1), S(2), z_j, unit, body_t_cam=body_T_cam.translation()),
+        values,
+        [6, 6],
     )
 
 

@@ -151,12 +151,19 @@ def test_batch_circle_seed000_sensor_set_recovers_axis_scale_and_velocity():
     opts = GraphOptions(use_gyro=False, use_range=False, use_yaw=False)
     est = solve_batch(f, BatchOptions(graph=opts, covariance="none"))
     assert est.info["slam_model"] == "axis"
-    k_est = est.series["slam_axis_scale"].value[0]
+    # One per-axis scale per 2 s segment (random walk): compare each with the drifting truth.
+    series = est.series["slam_axis_scale"]
+    assert len(series.t) >= 10
     truth = f.meta["truth"]
-    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * 15.0
-    k_true = np.asarray(truth["slam_axis_scale"]) * drift
+    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * series.t
+    k_true = np.asarray(truth["slam_axis_scale"])[None, :] * drift[:, None]
     # Horizontal per-axis scale recovered; kz is unobservable at constant altitude (not checked).
-    np.testing.assert_allclose(k_est[:2], k_true[:2], rtol=0.08)
+    # Measured (seeds 0/1/2): largest error of a segment after 10 s 2.3/14/7 %, mean over them
+    # below 5 %.
+    late = series.t > 10.0
+    rel = series.value[late, :2] / k_true[late, :2] - 1.0
+    assert np.all(np.abs(rel.mean(axis=0)) < 0.05), rel.mean(axis=0)
+    assert np.all(np.abs(rel) < 0.08), np.abs(rel).max(axis=0)
     m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.vel_rmse_mps < 0.1
 
