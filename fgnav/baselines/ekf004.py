@@ -352,6 +352,27 @@ def drag_model_velocity(
     return out
 
 
+MAX_THRUST_TILT_DEG = 30.0
+"""Largest angle between body z and the flight's mean specific force (the thrust axis)."""
+
+
+def check_thrust_axis(flight: Flight) -> None:
+    """Raise :class:`FlightDataError` when body z is not the thrust axis: the mean specific force
+    of the IMU is more than ``MAX_THRUST_TILT_DEG`` from it (EuRoC's IMU frame, x up). The
+    drag-model prediction and the tilt-to-acceleration model assume a FLU multirotor body."""
+    imu = flight.imu
+    if imu is None or len(imu) == 0:
+        return
+    f = imu.body_accel.mean(axis=0)
+    angle = math.degrees(math.acos(float(np.clip(f[2] / np.linalg.norm(f), -1.0, 1.0))))
+    if angle > MAX_THRUST_TILT_DEG:
+        raise FlightDataError(
+            f"{flight.name}: ekf004's drag model needs body z along the rotor thrust (a FLU body); "
+            f"the mean specific force is {angle:.0f} deg from body z (EuRoC: manifest [body] "
+            'frame = "flu")'
+        )
+
+
 def attitude_source(flight: Flight, opt: Ekf004Options) -> str:
     """``"stream"`` (the flight's attitude) or ``"imu"`` (:func:`imu_attitude`) for
     ``opt.attitude_source``; raises :class:`FlightDataError` when the needed stream is missing."""
@@ -754,6 +775,7 @@ class Ekf004Runner:
     """
 
     def __init__(self, flight: Flight, opt: Ekf004Options) -> None:
+        check_thrust_axis(flight)
         self.attitude_source = attitude_source(flight, opt)
         # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): an IMU-only
         # attitude's tilt error would enter their double integration.
