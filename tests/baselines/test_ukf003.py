@@ -118,19 +118,19 @@ def test_missing_streams_are_named():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("scenario", "seed", "ate", "nees"),
-    [("two-turns", 0, 0.049, 3.8), ("figure8", 1, 0.029, 4.1)],
+    [("two-turns", 0, 0.049, 2.7), ("figure8", 1, 0.027, 1.8)],
 )
 def test_position_nees_is_consistent(scenario, seed, ate, nees):
     """Full-length flights, default noise: the position NEES (3 for a consistent filter) with the
     SLAM noise of every image in its clone. Measured (quoted in the parameters): two-turns seed 0
-    ATE 4.9 cm, NEES 3.8; figure8 seed 1 2.9 cm, 4.1 (before: NEES 13.9 and 6.8, ATE 8.6 and
+    ATE 4.9 cm, NEES 2.7; figure8 seed 1 2.7 cm, 1.8 (before: NEES 13.9 and 6.8, ATE 8.6 and
     7.7 cm, each relative SLAM measurement taken as independent of the others of its
     keyframe). The filter starts after the closed-form initialisation window (causal)."""
     flight = simulate(scenario, seed, SimOptions(images=False))
     est = run_ukf003(flight)
     m = evaluate(est, flight.ground_truth, "se3", truth_scale=_truth_scale(flight))
     assert m.ate_rmse_m < 1.6 * ate
-    assert 1.0 < m.nees_pos < 1.6 * nees
+    assert 0.8 < m.nees_pos < 1.6 * nees
     assert abs(m.scale_final_err_pct[0]) < 3.0
     assert est.info["counts"]["extra"]["init_window_s"][1] <= 8.0
 
@@ -171,8 +171,10 @@ def test_body_with_x_up_runs_in_an_internal_body():
 @pytest.mark.realdata
 def test_euroc_mh01_in_the_imu_body(real_data):
     """EuRoC MH_01 with ORB-SLAM3 mono, body = the IMU frame (x up): the filter runs in its
-    internal body. Measured: ATE 0.158 m (msf-ekf 0.081-0.091 m), final scale +1.6 %, position
-    NEES 163 (overconfident: the ORB-SLAM errors are not white; see the module docstring)."""
+    internal body. Measured: ATE 0.147 m (msf-ekf 0.081-0.091 m), final scale +1.5 %, position
+    NEES 57 (overconfident: ORB-SLAM drifts more than ``slam_drift_walk_*``; 163 without the
+    drift walk, 11 with 2.5 times larger walks, which make the simulated flights underconfident,
+    NEES 0.5)."""
     from fgnav.datasets.load import load_flight
     from testutil import PROJECT_ROOT
 
