@@ -41,17 +41,31 @@ Measurements (Shen: "absolute" and "relative", any rate):
 
 State augmentation (stochastic cloning, Shen sec. III-A following Roumeliotis & Burdick 2002):
 at the capture time of every image that has a SLAM pose the pose part ``[p, Phi]`` of the main
-state is appended to the state (``x_aug = [x, B x]``, ``P_aug = M P M^T`` with ``M = [I; B]``).
+state is appended to the state (``x_aug = [x, B x]``, ``P_aug = M P M^T`` with ``M = [I; B]``),
+together with that image's SLAM pose noise ``[a, rho]`` (``slam_t_cam = t + R a``,
+``slam_R_cam = R Exp(rho)``; zero mean, ``(s slam_position_sigma_m)^2`` and
+``slam_rotation_sigma^2``, independent of everything else). The relative measurement then predicts
+``z_t = Exp(-rho_i) (s d + R_rel a_j - a_i)`` and ``z_R = Log(Exp(-rho_i) R_rel Exp(rho_j))``
+exactly, with only a numerical ``1e-6`` of that noise left in ``R``: the keyframe's noise is
+shared by every measurement against it and is estimated once, not counted again by each of them.
+(Taking each relative measurement as independent, with noise ``2 (s sigma)^2``, made the filter
+overconfident: position NEES 7-17 with 2 s keyframes on the simulated flights; with this,
+1.2-4.1 on two-turns, rectangle and figure8, seeds 0 and 1, and the ATE halved: see the tests.)
+A map that drifts makes later poses see the keyframe's pose offset by the drift since it was
+taken: the pose noise of every clone random-walks (``slam_drift_walk_m``, ``slam_drift_walk_rot``,
+the order of the MSF baseline's SLAM-frame walks). On EuRoC MH_01 with ORB-SLAM3 this brought the
+NEES from 163 to 57 (ATE 0.158 -> 0.147 m): ORB-SLAM drifts more; 2.5 times larger walks give 11
+there but NEES 0.5 on the simulated flights, so the defaults stay.
 A relative measurement relates two clones (i: the keyframe, j: this image) and is fused when the
 SLAM pose *arrives* (``t_j + latency``), so SLAM latency is handled exactly: the clone holds the
 state at the image time. Afterwards clone j is marginalised (its rows and columns removed),
 unless it is at least ``keyframe_interval_s`` after the keyframe: then the keyframe is
 marginalised and j becomes the keyframe (Shen's augmented state is the relative sensor's
-keyframe). Measured on two-turns, rectangle and figure8 (seed 1, full length): ATE 0.136,
-0.062, 0.029 m with every pose measured against the previous one (``keyframe_interval_s=0``;
-scale -9.7 % after the hover of two-turns) vs 0.068, 0.071, 0.077 m with 2 s keyframes (scale
-+3.0, +1.2, +2.0 %, the truth drifting +1.4 to +2 % over the flight); the default takes the
-better worst case.
+keyframe). Measured on two-turns, rectangle and figure8 (seed 1, full length, SLAM noise cloned
+as below): ATE 0.061, 0.025, 0.034 m with every pose measured against the previous one
+(``keyframe_interval_s=0``; scale -5.7 % after the hover of two-turns) vs 0.077, 0.018, 0.029 m
+with 2 s keyframes (scale +1.7, +1.2, +1.8 %, the truth drifting +1.4 to +2 % over the flight);
+the default keeps the scale.
 
 Semi-definite covariance (Shen sec. III-B): right after cloning, ``P_aug`` is singular (the clone
 equals part of the main state), so its Cholesky factor does not exist and sigma points cannot be
@@ -65,25 +79,25 @@ Gaussian conditioning, ``P_{a z} = P_{a I} P_II^-1 P_{I z}``. The update is the 
 ``K = P_{a z} S^-1``, ``P -= K S K^T``, Mahalanobis-gated (chi-square 0.999).
 
 SLAM scale: Shen's relative sensors are metric; a monocular SLAM is not. The scale ``s`` is a
-state (random walk, following a slowly drifting map scale); its initial value and that of the
-velocity come from the same closed-form least-squares fit over the first seconds of IMU and SLAM
-as the MSF baseline (:func:`fgnav.baselines.msf_ekf.initial_state_guess`), so the first output
-sample uses data from the first 4-8 s (the only non-causal step; ``Ukf003Options.initial_scale``
-skips it). The measurement multiplies two uncertain quantities (``s`` and the predicted
-displacement): without motion this errors-in-variables model pulls ``s`` towards 0 (on the
-hover that starts two-turns, seed 1, with a 30 % initial sigma, ``s`` fell to zero within 4 s),
-so ``s`` is corrected only by displacements whose signal-to-noise ratio exceeds
-``scale_min_snr``; below it ``s`` is a Schmidt "consider" parameter (its uncertainty enters the
-innovation covariance, its gain is zero).
+state (random walk, following a slowly drifting map scale); its initial value, the velocity, the
+attitude (without an attitude stream) and the gyro bias come from the same causal closed-form fit
+as the MSF baseline (:func:`fgnav.baselines.msf_ekf.initial_fit`): the filter starts at the end of
+the first window of the flight that determines the scale, sliding past a static start (EuRoC),
+and outputs from the arrival of that window's last SLAM pose (``Ukf003Options.initial_scale``
+skips the fit and starts at the first SLAM pose). The measurement multiplies two uncertain
+quantities (``s`` and the predicted displacement): without motion this errors-in-variables model
+pulls ``s`` towards 0 (on the hover that starts two-turns, seed 1, with a 30 % initial sigma,
+``s`` fell to zero within 4 s), so ``s`` is corrected only by displacements whose signal-to-noise
+ratio exceeds ``scale_min_snr``; below it ``s`` is a Schmidt "consider" parameter (its
+uncertainty enters the innovation covariance, its gain is zero).
 A SLAM map reset (new session id) waits for the same closed-form fit on the new map's
 data since its first pose, then restarts ``s`` and the clone chain. Tracking-lost samples
 (negative session) and poses arriving out of order are skipped and counted.
 
-Not modelled: rotor drag, the correlation between relative measurements sharing the keyframe's
-SLAM noise (each is treated as independent, so the covariance is optimistic: position NEES 7-17 on
-those flights with 2 s keyframes), IMU-camera time offset, Euler-angle singularity at
-pitch +-90 deg (never reached by a multirotor in these flights), terrain steps beyond the ``z_b``
-random walk.
+Not modelled: rotor drag, correlated (drifting) SLAM errors beyond the scale random walk (on
+EuRoC MH_01 the filter is overconfident, see the real-data test), IMU-camera time offset,
+Euler-angle singularity at pitch +-90 deg (never reached by a multirotor in a FLU body), terrain
+steps beyond the ``z_b`` random walk.
 
 Reference: ../shared/seeds/003_*.txt (Shen's thesis ch. 5: state ``[p, Phi, p_dot^b, a_b^b,
 omega_b^b, z_b^w]`` and eq. 5.1).
@@ -99,7 +113,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import cho_solve
 
-from fgnav.baselines.msf_ekf import initial_state_guess, new_map_scale_guess
+from fgnav.baselines.msf_ekf import InitFit, initial_fit, new_map_scale_guess
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
     GRAVITY,
@@ -117,8 +131,12 @@ log = logging.getLogger(__name__)
 # Main-state layout.
 IP, IPHI, IV, IBA, IBG, IZB, IS = 0, 3, 6, 9, 12, 15, 16
 N_MAIN = 17
-N_CLONE = 6
-"""A clone holds ``[world_p_body (3), Phi (3)]``; its yaw is at offset 3."""
+N_CLONE = 12
+"""A clone holds ``[world_p_body (3), Phi (3), a (3), rho (3)]``: the pose at an image time and
+that image's SLAM pose noise (``a`` translation in its camera frame [SLAM units], ``rho`` rotation
+[rad]); its yaw is at offset 3."""
+CLONE_POSE = 6
+"""Entries of a clone copied from the main state (the pose)."""
 
 CHI2_999 = {1: 10.83, 2: 13.82, 3: 16.27, 6: 22.46}
 """Chi-square quantiles (probability 0.999) for the gates, by measurement dimension."""
@@ -141,6 +159,9 @@ class Ukf003Options:
         slam_position_sigma_m: SLAM position noise per pose [m]; a displacement of two poses gets
             ``sqrt(2) * s * sigma`` in SLAM units.
         slam_rotation_sigma: SLAM orientation noise per pose [rad].
+        slam_drift_walk_m [m/sqrt(s)], slam_drift_walk_rot [rad/sqrt(s)]: random walk of the
+            SLAM pose noise of the clones (a map that drifts: later poses see the keyframe's pose
+            offset by the drift since it was taken).
         use_slam_rotation: also fuse the relative rotation ``z_R``.
         use_range, range_sigma [m], range_max_tilt_rad: rangefinder (absolute).
         use_yaw, yaw_sigma [rad]: yaw stream (absolute).
@@ -173,6 +194,8 @@ class Ukf003Options:
 
     slam_position_sigma_m: float = 0.015
     slam_rotation_sigma: float = 0.01
+    slam_drift_walk_m: float = 2e-3
+    slam_drift_walk_rot: float = 2e-4
     use_slam_rotation: bool = True
     use_range: bool = True
     range_sigma: float = 0.03
@@ -225,8 +248,6 @@ class Ukf003Counts:
     attitude_rejected_gate: int = 0
     cholesky_jitter: int = 0
     extra: dict = field(default_factory=dict)
-
-
 
 
 # ----------------------------------------------------------------------------------------------
@@ -355,15 +376,16 @@ class Ukf003:
             eps = 1e-12 * max(1.0, float(np.trace(A)))
             return np.linalg.cholesky(0.5 * (A + A.T) + eps * np.eye(len(A)))
 
-    def _sigma(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                 np.ndarray, np.ndarray]:
+    def _sigma(
+        self, mean: np.ndarray, cov: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         n = len(mean)
         c, wm, wc = self._weights(n)
         L = self._chol(cov)
         X = np.empty((2 * n + 1, n))
         X[0] = mean
-        X[1:n + 1] = mean + c * L.T
-        X[n + 1:] = mean - c * L.T
+        X[1 : n + 1] = mean + c * L.T
+        X[n + 1 :] = mean - c * L.T
         return X, wm, wc, L
 
     def _angle_index(self) -> np.ndarray:
@@ -389,27 +411,29 @@ class Ukf003:
         self._body_T_cam = np.asarray(body_T_cam, float)
         self._body_T_range = np.asarray(body_T_range, float)
         x = np.zeros(N_MAIN)
-        x[IP:IP + 3] = world_p_body
-        x[IPHI:IPHI + 3] = matrix_to_euler(world_R_body[None])[0]
-        x[IV:IV + 3] = world_R_body.T @ np.asarray(world_v_body, float)
+        x[IP : IP + 3] = world_p_body
+        x[IPHI : IPHI + 3] = matrix_to_euler(world_R_body[None])[0]
+        x[IV : IV + 3] = world_R_body.T @ np.asarray(world_v_body, float)
         x[IS] = scale
         sa = o.initial_attitude_sigma
-        var = np.concatenate([
-            [1e-6] * 3,
-            [(yaw_sigma or sa) ** 2, sa**2, sa**2],
-            [o.initial_velocity_sigma**2] * 3,
-            [o.initial_bias_sigma_accel**2] * 3,
-            [o.initial_bias_sigma_gyro**2] * 3,
-            [o.initial_altimeter_bias_sigma**2],
-            [(scale_rel_sigma * scale) ** 2],
-        ])
+        var = np.concatenate(
+            [
+                [1e-6] * 3,
+                [(yaw_sigma or sa) ** 2, sa**2, sa**2],
+                [o.initial_velocity_sigma**2] * 3,
+                [o.initial_bias_sigma_accel**2] * 3,
+                [o.initial_bias_sigma_gyro**2] * 3,
+                [o.initial_altimeter_bias_sigma**2],
+                [(scale_rel_sigma * scale) ** 2],
+            ]
+        )
         self.x, self.P, self.clones = x, np.diag(var), []
         nz = imu_noise
         q = np.zeros(N_MAIN)  # per second (position: per s^3, see predict)
-        q[IP:IP + 3] = nz.accel_noise_density**2 / 3.0
-        q[IV:IV + 3] = nz.accel_noise_density**2
-        q[IBA:IBA + 3] = nz.accel_random_walk**2
-        q[IBG:IBG + 3] = nz.gyro_random_walk**2
+        q[IP : IP + 3] = nz.accel_noise_density**2 / 3.0
+        q[IV : IV + 3] = nz.accel_noise_density**2
+        q[IBA : IBA + 3] = nz.accel_random_walk**2
+        q[IBG : IBG + 3] = nz.gyro_random_walk**2
         q[IZB] = o.altimeter_bias_walk**2
         self._Q_unit = np.diag(q)
 
@@ -418,10 +442,10 @@ class Ukf003:
     def _f(self, X: np.ndarray, omegas: np.ndarray, fs: np.ndarray, dts: np.ndarray) -> np.ndarray:
         """Eq. 5.1 on (M, 17) sigma points (noise-free part), over the IMU samples ``omegas``,
         ``fs`` (K, 3) held for ``dts`` (K,) each (sequential strapdown steps)."""
-        R = euler_to_matrix(X[:, IPHI:IPHI + 3])
-        bg, ba = X[:, IBG:IBG + 3], X[:, IBA:IBA + 3]
-        v_w = np.einsum("mij,mj->mi", R, X[:, IV:IV + 3])
-        p = X[:, IP:IP + 3].copy()
+        R = euler_to_matrix(X[:, IPHI : IPHI + 3])
+        bg, ba = X[:, IBG : IBG + 3], X[:, IBA : IBA + 3]
+        v_w = np.einsum("mij,mj->mi", R, X[:, IV : IV + 3])
+        p = X[:, IP : IP + 3].copy()
         for omega, f, dt in zip(omegas, fs, dts, strict=True):
             a_w = np.einsum("mij,mj->mi", R, f - ba)
             a_w[:, 2] -= GRAVITY
@@ -429,11 +453,11 @@ class Ukf003:
             v_w = v_w + a_w * dt
             R = R @ _exp_rows((omega - bg) * dt)
         Y = X.copy()
-        Y[:, IP:IP + 3] = p
+        Y[:, IP : IP + 3] = p
         phi1 = matrix_to_euler(R)
         phi1[:, 0] = X[:, IPHI] + wrap_angle(phi1[:, 0] - X[:, IPHI])  # keep yaw continuous
-        Y[:, IPHI:IPHI + 3] = phi1
-        Y[:, IV:IV + 3] = np.einsum("mji,mj->mi", R, v_w)
+        Y[:, IPHI : IPHI + 3] = phi1
+        Y[:, IV : IV + 3] = np.einsum("mji,mj->mi", R, v_w)
         return Y
 
     def predict(self, omega: np.ndarray, f: np.ndarray, dt: float | np.ndarray) -> None:
@@ -462,9 +486,9 @@ class Ukf003:
         Pyy = (wc[:, None] * dY).T @ dY
         # Additive process noise (module docstring).
         Q = self._Q_unit * T
-        Q[IP:IP + 3, IP:IP + 3] *= T * T
-        E = euler_rate_matrix(xm[IPHI:IPHI + 3])
-        Q[IPHI:IPHI + 3, IPHI:IPHI + 3] = E @ E.T * (nz.gyro_noise_density**2 * T)
+        Q[IP : IP + 3, IP : IP + 3] *= T * T
+        E = euler_rate_matrix(xm[IPHI : IPHI + 3])
+        Q[IPHI : IPHI + 3, IPHI : IPHI + 3] = E @ E.T * (nz.gyro_noise_density**2 * T)
         Q[IS, IS] = (o.scale_walk * xm[IS]) ** 2 * T
         if len(self.x) > N_MAIN:
             Pyx = (wc[:, None] * dY).T @ dX
@@ -474,27 +498,38 @@ class Ukf003:
             self.P[N_MAIN:, :N_MAIN] = Pxc.T
         self.x[:N_MAIN] = y
         self.P[:N_MAIN, :N_MAIN] = Pyy + Q
+        if self.clones:
+            # SLAM map drift: the pose noise of every clone (seen by later poses) random-walks.
+            k = np.arange(len(self.clones)) * N_CLONE + N_MAIN + CLONE_POSE
+            ia, ir = (k[:, None] + np.arange(3)).ravel(), (k[:, None] + 3 + np.arange(3)).ravel()
+            self.P[ia, ia] += (o.slam_drift_walk_m * xm[IS]) ** 2 * T
+            self.P[ir, ir] += o.slam_drift_walk_rot**2 * T
 
     # -- augmentation ----------------------------------------------------------------------------
 
     def clone(self, t: float) -> None:
         """Append ``[p, Phi]`` of the main state as a clone taken at time ``t``
-        (``P_aug = M P M^T``, ``M = [I; B]``)."""
+        (``P_aug = M P M^T``, ``M = [I; B]``), with the SLAM pose noise of that image (zero mean,
+        ``(s slam_position_sigma_m)^2`` and ``slam_rotation_sigma^2``, independent)."""
+        o = self.opt
         n = len(self.x)
-        sel = np.r_[IP:IP + 3, IPHI:IPHI + 3]
-        self.x = np.concatenate([self.x, self.x[sel]])
+        m = CLONE_POSE
+        sel = np.r_[IP : IP + 3, IPHI : IPHI + 3]
+        self.x = np.concatenate([self.x, self.x[sel], np.zeros(N_CLONE - m)])
         P = np.zeros((n + N_CLONE, n + N_CLONE))
         P[:n, :n] = self.P
-        P[n:, :n] = self.P[sel, :]
-        P[:n, n:] = self.P[:, sel]
-        P[n:, n:] = self.P[np.ix_(sel, sel)]
+        P[n : n + m, :n] = self.P[sel, :]
+        P[:n, n : n + m] = self.P[:, sel]
+        P[n : n + m, n : n + m] = self.P[np.ix_(sel, sel)]
+        noise = [(self.scale * o.slam_position_sigma_m) ** 2] * 3 + [o.slam_rotation_sigma**2] * 3
+        P[n + m :, n + m :] = np.diag(noise)
         self.P = P
         self.clones.append(float(t))
 
     def drop_clone(self, k: int) -> None:
         """Marginalise clone k (remove its rows and columns)."""
         a = N_MAIN + N_CLONE * k
-        keep = np.r_[0:a, a + N_CLONE:len(self.x)]
+        keep = np.r_[0:a, a + N_CLONE : len(self.x)]
         self.x = self.x[keep]
         self.P = self.P[np.ix_(keep, keep)]
         del self.clones[k]
@@ -508,8 +543,15 @@ class Ukf003:
 
     # -- updates ---------------------------------------------------------------------------------
 
-    def _update(self, idx: np.ndarray, h, z: np.ndarray, Rm: np.ndarray,
-                wrap_z: np.ndarray | None = None, consider: np.ndarray | None = None) -> bool:
+    def _update(
+        self,
+        idx: np.ndarray,
+        h,
+        z: np.ndarray,
+        Rm: np.ndarray,
+        wrap_z: np.ndarray | None = None,
+        consider: np.ndarray | None = None,
+    ) -> bool:
         """Unscented update with the measurement ``z = h(x[idx]) + n``, ``n ~ N(0, Rm)``.
 
         Sigma points come from the marginal of ``x[idx]`` only; the gain of the other state
@@ -555,7 +597,7 @@ class Ukf003:
         o = self.opt
         R_br = self._body_T_range[:3, :3]
         beam, lever = R_br[:, 2], self._body_T_range[:3, 3]
-        c = -(euler_to_matrix(self.x[None, IPHI:IPHI + 3])[0] @ beam)[2]
+        c = -(euler_to_matrix(self.x[None, IPHI : IPHI + 3])[0] @ beam)[2]
         if c < np.cos(o.range_max_tilt_rad):
             self.counts.range_rejected_tilt += 1
             return False
@@ -576,8 +618,13 @@ class Ukf003:
     def update_yaw(self, yaw: float) -> bool:
         """Yaw reading [rad] (residual wrapped)."""
         idx = np.array([IPHI])
-        ok = self._update(idx, lambda X: X[:, :1], np.array([yaw]),
-                          np.array([[self.opt.yaw_sigma**2]]), wrap_z=np.array([0]))
+        ok = self._update(
+            idx,
+            lambda X: X[:, :1],
+            np.array([yaw]),
+            np.array([[self.opt.yaw_sigma**2]]),
+            wrap_z=np.array([0]),
+        )
         if ok:
             self.counts.yaw_updates += 1
         else:
@@ -588,8 +635,9 @@ class Ukf003:
         """Roll and pitch of an AHRS attitude reading."""
         phi = matrix_to_euler(world_R_body[None])[0]
         idx = np.array([IPHI + 1, IPHI + 2])
-        ok = self._update(idx, lambda X: X, phi[1:],
-                          np.eye(2) * self.opt.attitude_sigma**2, wrap_z=np.array([1]))
+        ok = self._update(
+            idx, lambda X: X, phi[1:], np.eye(2) * self.opt.attitude_sigma**2, wrap_z=np.array([1])
+        )
         if ok:
             self.counts.attitude_updates += 1
         else:
@@ -611,29 +659,40 @@ class Ukf003:
         R_bc, b_tc = self._body_T_cam[:3, :3], self._body_T_cam[:3, 3]
         z_t = slam_R_cam_i.T @ (slam_t_cam_j - slam_t_cam_i)
         ai, aj = N_MAIN + N_CLONE * k_i, N_MAIN + N_CLONE * k_j
-        idx = np.r_[ai:ai + N_CLONE, aj:aj + N_CLONE, IS]
+        idx = np.r_[ai : ai + N_CLONE, aj : aj + N_CLONE, IS]
         rot = o.use_slam_rotation
+        c = N_CLONE
 
         def h(X):
-            Ri, Rj = euler_to_matrix(X[:, 3:6]), euler_to_matrix(X[:, 9:12])
-            d = X[:, 6:9] + Rj @ b_tc - X[:, 0:3]
+            # Clone i: X[:, 0:12], clone j: X[:, 12:24], s: X[:, 24].
+            Ri, Rj = euler_to_matrix(X[:, 3:6]), euler_to_matrix(X[:, c + 3 : c + 6])
+            d = X[:, c : c + 3] + Rj @ b_tc - X[:, 0:3]
             body_d = np.einsum("mji,mj->mi", Ri, d) - b_tc
+            Rrel = np.einsum("ji,mjk->mik", R_bc, np.einsum("mji,mjk->mik", Ri, Rj)) @ R_bc
+            # The SLAM poses' noise: slam_t = t + e, slam_R = R Exp(rho), a = R^T e per image.
+            a_j = np.einsum("mij,mj->mi", Rrel, X[:, c + 6 : c + 9])
+            t_cam = X[:, 24:25] * (body_d @ R_bc) + a_j - X[:, 6:9]
+            E_i = _exp_rows(-X[:, 9:12])
             # Predicted minus measured displacement in camera i [SLAM units] (z = 0).
-            zt = X[:, 12:13] * (body_d @ R_bc) - z_t
+            zt = np.einsum("mij,mj->mi", E_i, t_cam) - z_t
             if not rot:
                 return zt
-            Rrel = np.einsum("ji,mjk->mik", R_bc, np.einsum("mji,mjk->mik", Ri, Rj)) @ R_bc
-            return np.concatenate([zt, _log_rows(Rrel)], axis=1)
+            return np.concatenate([zt, _log_rows(E_i @ Rrel @ _exp_rows(X[:, c + 9 : c + 12]))], 1)
 
         s = self.x[IS]
-        var_t = 2.0 * (s * o.slam_position_sigma_m) ** 2 + (
-            np.linalg.norm(z_t) * o.slam_rotation_sigma
-        ) ** 2
+        var_t = (
+            2.0 * (s * o.slam_position_sigma_m) ** 2
+            + (np.linalg.norm(z_t) * o.slam_rotation_sigma) ** 2
+        )
+        # The measurement noise is in the clones (a, rho of both images): what remains is numerical.
+        eps = 1e-6
         if rot:
             z = np.concatenate([np.zeros(3), so3_log(slam_R_cam_i.T @ slam_R_cam_j)])
-            Rm = np.diag([var_t] * 3 + [2.0 * o.slam_rotation_sigma**2] * 3)
+            Rm = eps * np.diag(
+                [(s * o.slam_position_sigma_m) ** 2] * 3 + [o.slam_rotation_sigma**2] * 3
+            )
         else:
-            z, Rm = np.zeros(3), np.eye(3) * var_t
+            z, Rm = np.zeros(3), eps * np.eye(3) * (s * o.slam_position_sigma_m) ** 2
         # Errors in variables: with a displacement buried in noise, the uncertain predicted
         # displacement enters through the product s d and biases s towards 0 (the scale
         # collapsed on the hover of two-turns); s is only corrected by displacements with a
@@ -651,7 +710,23 @@ class Ukf003:
     # -- whole flight ----------------------------------------------------------------------------
 
     def run(self, flight: Flight) -> Estimate:
-        """Run over a flight in arrival order and return the causal estimate."""
+        """Run over a flight in arrival order and return the causal estimate.
+
+        When the body's z axis is more than ``MAX_BODY_TILT_DEG`` from the specific force of the
+        first ``BODY_CHECK_S`` of IMU data (EuRoC's IMU frame, x up: the ZYX Euler angles would
+        sit near pitch -90 deg), the filter runs in an internal body with z along that specific
+        force (:func:`internal_body`) and its estimate is rotated back to the flight's body.
+        """
+        int_R_body = internal_body(flight)
+        if int_R_body is None:
+            return self._run(flight)
+        from fgnav.datasets.frames import rotate_body_frame
+
+        log.info("ukf003: %s: internal body z along the initial specific force", flight.name)
+        est = self._run(rotate_body_frame(dataclasses.replace(flight, references={}), int_R_body))
+        return _estimate_in_body(est, int_R_body)
+
+    def _run(self, flight: Flight) -> Estimate:
         o = self.opt
         imu, slam = flight.imu, flight.slam
         missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
@@ -667,22 +742,44 @@ class Ukf003:
         if len(good) < 2:
             raise FlightDataError(f"{flight.name}: fewer than two tracked SLAM poses")
         t_start = max(float(imu.t[0]), float(slam.t[good[0]]))
-        R0, yaw_sigma = self._initial_attitude(flight, t_start)
+        t_first_out = t_start
+        fit = None
         if o.initial_scale is not None:
             s0, v0, rel0 = float(o.initial_scale), np.zeros(3), 0.15
         else:
-            s0, v0, rel0 = initial_state_guess(flight)
-        rel = (o.initial_scale_rel_sigma if o.initial_scale_rel_sigma is not None
-               else max(2.0 * rel0, MIN_SCALE_REL_SIGMA))
+            # Causal start (as the MSF baseline): at the end of the first window of the flight
+            # whose closed-form fit determines the scale, sliding past a static start.
+            fit = initial_fit(flight)
+            s0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
+            t_start = fit.t_end
+            j_end = int(np.searchsorted(slam.t, t_start))
+            lat = slam.latency[j_end] if slam.latency is not None else 0.0
+            t_first_out = t_start + max(0.0, float(lat))
+            self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
+        R0, yaw_sigma = self._initial_attitude(flight, t_start, fit)
+        if fit is not None:
+            # The fit's velocity is in its own world (yaw of its attitude); keep it in body.
+            v0 = R0 @ fit.world_R_body_end.T @ v0
+        rel = (
+            o.initial_scale_rel_sigma
+            if o.initial_scale_rel_sigma is not None
+            else max(2.0 * rel0, MIN_SCALE_REL_SIGMA)
+        )
         p0 = np.array([0.0, 0.0, self._initial_height(flight, t_start, R0)])
-        self.initialize(R0, p0, v0, s0, rel, calib.body_T_cam, calib.body_T_range,
-                        calib.imu_noise, yaw_sigma)
+        self.initialize(
+            R0, p0, v0, s0, rel, calib.body_T_cam, calib.body_T_range, calib.imu_noise, yaw_sigma
+        )
         self.counts.extra["initial_scale"] = s0
+        if fit is not None:
+            self.x[IBG : IBG + 3] = fit.gyro_bias
 
         events = self._events(flight, t_start)
         slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
-        att_R = (quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)
-                 if (o.use_attitude and flight.attitude is not None) else None)
+        att_R = (
+            quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)
+            if (o.use_attitude and flight.attitude is not None)
+            else None
+        )
         session: int | None = None
         ref: int | None = None  # SLAM index of the reference clone
         pending: tuple[int, float] | None = None  # (new session, time of its first pose)
@@ -690,7 +787,8 @@ class Ukf003:
         i0 = int(np.searchsorted(imu.t, t_start))
         cur_t = float(imu.t[i0])
         out_dt = 1.0 / o.output_rate_hz
-        next_out = cur_t
+        # Outputs once the data the start used have arrived (causal).
+        next_out = max(cur_t, t_first_out)
         out_t, out_x, out_P, lat = [], [], [], []
         sh_t, sh, ss, sh_sid, zb = [], [], [], [], []
         ev = 0
@@ -725,7 +823,8 @@ class Ukf003:
                     continue
                 if kind == 1:
                     session, ref, pending = self._on_slam(
-                        flight, j, slam_R, session, ref, pending, cur_t)
+                        flight, j, slam_R, session, ref, pending, cur_t
+                    )
                     sh_t.append(cur_t)
                     sh.append(self.scale)
                     ss.append(self.scale_sigma)
@@ -758,8 +857,9 @@ class Ukf003:
             "slam_session": TimeSeries(np.asarray(sh_t), np.asarray(sh_sid, dtype=int)),
             "altimeter_bias": TimeSeries(np.asarray(out_t), np.asarray(zb)),
         }
-        return self._estimate(out_t, out_x, out_P, lat, series, session,
-                              time.perf_counter() - wall0)
+        return self._estimate(
+            out_t, out_x, out_P, lat, series, session, time.perf_counter() - wall0
+        )
 
     def _on_slam(self, flight, j, slam_R, session, ref, pending, cur_t):
         """A SLAM pose j arrives: relative update against the reference clone, map resets."""
@@ -793,8 +893,9 @@ class Ukf003:
             self.counts.slam_out_of_order += 1
             self.drop_clone(k_j)
             return session, ref, pending
-        self.update_relative_slam(k_i, k_j, slam.slam_t_cam[ref], slam_R[ref],
-                                  slam.slam_t_cam[j], slam_R[j])
+        self.update_relative_slam(
+            k_i, k_j, slam.slam_t_cam[ref], slam_R[ref], slam.slam_t_cam[j], slam_R[j]
+        )
         if slam.t[j] - slam.t[ref] < self.opt.keyframe_interval_s - 1e-9:
             self.drop_clone(k_j)  # same keyframe: the next pose is measured against it again
             return session, ref, pending
@@ -821,8 +922,9 @@ class Ukf003:
         self.P[:, IS] = 0.0
         self.P[IS, IS] = (rel_sigma * scale) ** 2
 
-    def _reinit_guess(self, flight: Flight, t_first: float, t_meas: float,
-                      t_now: float) -> tuple[float, float] | None:
+    def _reinit_guess(
+        self, flight: Flight, t_first: float, t_meas: float, t_now: float
+    ) -> tuple[float, float] | None:
         """Scale of a new map (:func:`~fgnav.baselines.msf_ekf.new_map_scale_guess`); None while
         undetermined; after ``REINIT_GIVE_UP_S`` the old scale with ``RESET_SCALE_REL_SIGMA``."""
         if t_meas - t_first > REINIT_GIVE_UP_S:
@@ -853,9 +955,12 @@ class Ukf003:
         ev.sort()
         return ev
 
-    def _initial_attitude(self, flight: Flight, t_start: float) -> tuple[np.ndarray, float | None]:
-        """Attitude stream if present, else accelerometer tilt; yaw from the yaw stream when
-        present. Returns ``(world_R_body, yaw sigma or None)``."""
+    def _initial_attitude(
+        self, flight: Flight, t_start: float, fit: InitFit | None = None
+    ) -> tuple[np.ndarray, float | None]:
+        """Attitude stream if present, else the closed-form fit's (gyro-integrated from a level
+        start) or the accelerometer tilt; yaw from the yaw stream when present. Returns
+        ``(world_R_body, yaw sigma or None)``."""
         from fgnav.datasets.geometry import rpy_to_matrix
         from fgnav.solvers.measurements import level_rotation_from_accel
 
@@ -863,6 +968,8 @@ class Ukf003:
             att = flight.attitude
             k = min(int(np.searchsorted(att.t, t_start)), len(att) - 1)
             R = quat_wxyz_to_matrix(att.world_q_body_wxyz[k])
+        elif fit is not None:
+            R = fit.world_R_body_end
         else:
             imu = flight.imu
             k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
@@ -883,8 +990,9 @@ class Ukf003:
         if rng is None or not self.opt.use_range:
             return 0.0
         c = flight.calib
-        ok = np.flatnonzero((rng.range >= c.range_min) & (rng.range <= c.range_max)
-                            & (rng.t >= t_start))
+        ok = np.flatnonzero(
+            (rng.range >= c.range_min) & (rng.range <= c.range_max) & (rng.t >= t_start)
+        )
         if ok.size == 0:
             return 0.0
         # Median of the first readings resists an obstacle spike.
@@ -896,30 +1004,33 @@ class Ukf003:
     def _estimate(self, out_t, out_x, out_P, lat, series, session, wall) -> Estimate:
         n = len(out_t)
         X = np.asarray(out_x).reshape(n, N_MAIN)
-        R = euler_to_matrix(X[:, IPHI:IPHI + 3])
-        v_w = np.einsum("nij,nj->ni", R, X[:, IV:IV + 3])
+        R = euler_to_matrix(X[:, IPHI : IPHI + 3])
+        v_w = np.einsum("nij,nj->ni", R, X[:, IV : IV + 3])
         pose_cov = np.empty((n, 6, 6))
         vel_cov = np.empty((n, 3, 3))
         for k in range(n):
-            Jr = body_rotation_jacobian(X[k, IPHI:IPHI + 3])
+            Jr = body_rotation_jacobian(X[k, IPHI : IPHI + 3])
             # [rot (body), trans (body)] <- [p (world), Phi]
             J = np.zeros((6, N_MAIN))
-            J[0:3, IPHI:IPHI + 3] = Jr
-            J[3:6, IP:IP + 3] = R[k].T
+            J[0:3, IPHI : IPHI + 3] = Jr
+            J[3:6, IP : IP + 3] = R[k].T
             pose_cov[k] = J @ out_P[k] @ J.T
-            vb = X[k, IV:IV + 3]
+            vb = X[k, IV : IV + 3]
             Jv = np.zeros((3, N_MAIN))
-            Jv[:, IV:IV + 3] = R[k]
-            Jv[:, IPHI:IPHI + 3] = -R[k] @ np.array(
-                [[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]]) @ Jr
+            Jv[:, IV : IV + 3] = R[k]
+            Jv[:, IPHI : IPHI + 3] = (
+                -R[k]
+                @ np.array([[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]])
+                @ Jr
+            )
             vel_cov[k] = Jv @ out_P[k] @ Jv.T
         traj = Trajectory(
             t=np.asarray(out_t, float),
-            world_t_body=X[:, IP:IP + 3].copy(),
+            world_t_body=X[:, IP : IP + 3].copy(),
             world_q_body_wxyz=matrix_to_quat_wxyz(R),
             world_v_body=v_w,
-            gyro_bias=X[:, IBG:IBG + 3].copy(),
-            accel_bias=X[:, IBA:IBA + 3].copy(),
+            gyro_bias=X[:, IBG : IBG + 3].copy(),
+            accel_bias=X[:, IBA : IBA + 3].copy(),
         )
         sid = 0 if session is None else int(session)
         scales = {**self._session_scale, sid: (self.scale, self.scale_sigma)}
@@ -940,6 +1051,51 @@ class Ukf003:
                 "counts": dataclasses.asdict(self.counts),
             },
         ).check()
+
+
+MAX_BODY_TILT_DEG = 45.0
+"""Largest angle of the initial specific force from body z before an internal body is used."""
+
+BODY_CHECK_S = 0.5
+"""Seconds of IMU data from the start whose mean specific force gives the internal body's z."""
+
+
+def internal_body(flight: Flight) -> np.ndarray | None:
+    """``int_R_body`` of the internal body (z along the mean specific force of the first
+    ``BODY_CHECK_S``, x along the camera's optical axis projected, else body x), or None when body
+    z is within ``MAX_BODY_TILT_DEG`` of that specific force (the flight's body is used)."""
+    imu = flight.imu
+    if imu is None or len(imu) == 0:
+        return None
+    k = imu.t <= imu.t[0] + BODY_CHECK_S
+    f = imu.body_accel[k].mean(axis=0)
+    z = f / np.linalg.norm(f)
+    if np.degrees(np.arccos(np.clip(z[2], -1.0, 1.0))) <= MAX_BODY_TILT_DEG:
+        return None
+    x = np.asarray(flight.calib.body_T_cam, float)[:3, 2]  # camera optical axis in body
+    if abs(x @ z) > 0.9:
+        x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.vstack([x, np.cross(z, x), z])
+
+
+def _estimate_in_body(est: Estimate, int_R_body: np.ndarray) -> Estimate:
+    """An estimate of the internal body re-expressed in the flight's body (same origin)."""
+    tr = est.trajectory
+    R = quat_wxyz_to_matrix(tr.world_q_body_wxyz) @ int_R_body
+    back = int_R_body.T  # body_R_int
+    traj = dataclasses.replace(
+        tr,
+        world_q_body_wxyz=matrix_to_quat_wxyz(R),
+        gyro_bias=None if tr.gyro_bias is None else tr.gyro_bias @ back.T,
+        accel_bias=None if tr.accel_bias is None else tr.accel_bias @ back.T,
+    )
+    D = np.zeros((6, 6))
+    D[:3, :3] = D[3:, 3:] = back
+    pose_cov = None if est.pose_cov is None else D @ est.pose_cov @ D.T
+    info = {**est.info, "internal_body_R_body": int_R_body.tolist()}
+    return dataclasses.replace(est, trajectory=traj, pose_cov=pose_cov, info=info).check()
 
 
 def run_ukf003(flight: Flight, options: Ukf003Options | None = None) -> Estimate:

@@ -75,7 +75,7 @@ def test_missing_stream_reasons(flight):
     _, skipped = available_methods(no_slam, ["batch", "ekf004"])
     assert skipped == {
         "batch": "needs slam; the flight has none",
-        "ekf004": "needs attitude and slam; the flight has neither",
+        "ekf004": "needs slam; the flight has none",
     }
     assert missing_reason(["imu", "slam", "images"]) == (
         "needs imu, slam and images; the flight has none of them"
