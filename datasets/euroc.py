@@ -414,6 +414,7 @@ def to_flu_body(
     meta["body_frame"] = "flu"
     meta["body_from_imu"] = R.tolist()
     meta["thrust_axis_imu"] = R[2].tolist()
+    meta["thrust_axis_body"] = [0.0, 0.0, 1.0]
     return dataclasses.replace(out, meta=meta)
 
 
@@ -480,7 +481,12 @@ def read_euroc_folder(
         images=images,
         ground_truth=gt,
         calib=Calibration(**calib_kwargs),
-        meta={"format": "euroc", "sources": sources, "notes": notes},
+        meta={
+            "format": "euroc",
+            "sources": sources,
+            "notes": notes,
+            "thrust_axis_body": list(map(float, THRUST_AXIS_IMU)),
+        },
     )
     try:
         if body == "flu":

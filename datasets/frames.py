@@ -29,12 +29,13 @@ Conventions converted here:
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 
 from .errors import FlightDataError
-from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_exp
+from .geometry import GRAVITY, matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_exp
 from .types import DOWNWARD_RANGE, Flight, Trajectory
 
 #: Rotation taking NED vectors to ENU (symmetric: also ``NED_R_ENU``).
@@ -249,3 +250,53 @@ def rotate_body_frame(flight: Flight, new_R_old: np.ndarray) -> Flight:
         references={k: traj(v) for k, v in flight.references.items()},
         calib=calib,
     )
+
+
+#: Largest angle [deg] between body z and the thrust axis for a flight's body to count as a
+#: multirotor (FLU-like) body.
+MAX_THRUST_TILT_DEG = 30.0
+
+
+def thrust_axis(flight: Flight) -> np.ndarray:
+    """Unit rotor-thrust axis in the flight's body frame: ``meta["thrust_axis_body"]`` when the
+    reader knows it (EuRoC: the mean specific force in flight, see ``fgnav.datasets.euroc``),
+    else the mean direction of the specific force over the IMU samples within 20 % of g
+    (hover-like: the thrust balances gravity)."""
+    axis = flight.meta.get("thrust_axis_body") if isinstance(flight.meta, dict) else None
+    if axis is not None:
+        a = np.asarray(axis, dtype=float).reshape(3)
+    else:
+        if flight.imu is None or len(flight.imu) == 0:
+            raise FlightDataError(f"{flight.name}: no IMU to find the thrust axis from")
+        f = np.asarray(flight.imu.body_accel, float)
+        n = np.linalg.norm(f, axis=1)
+        ok = np.abs(n - GRAVITY) < 0.2 * GRAVITY
+        if not ok.any():
+            raise FlightDataError(
+                f"{flight.name}: no IMU sample with a specific force near g: no thrust axis"
+            )
+        a = (f[ok] / n[ok, None]).mean(axis=0)
+    return a / np.linalg.norm(a)
+
+
+def thrust_body_rotation(
+    flight: Flight, max_tilt_deg: float = MAX_THRUST_TILT_DEG
+) -> np.ndarray | None:
+    """``thrust_R_body`` of a body with z along :func:`thrust_axis` and x along the camera's
+    optical axis projected orthogonal to it (else the body axis farthest from z), or None when the
+    flight's body z is already within ``max_tilt_deg`` of the thrust axis or the flight has neither
+    an IMU nor a recorded thrust axis (its users then name the missing stream). For filters whose
+    models need a multirotor body (Euler angles near level, thrust along z): run them on
+    ``rotate_body_frame(flight, R)`` and map the estimate back."""
+    meta = flight.meta if isinstance(flight.meta, dict) else {}
+    if "thrust_axis_body" not in meta and (flight.imu is None or len(flight.imu) == 0):
+        return None
+    z = thrust_axis(flight)
+    if math.degrees(math.acos(float(np.clip(z[2], -1.0, 1.0)))) <= max_tilt_deg:
+        return None
+    x = np.asarray(flight.calib.body_T_cam, float)[:3, 2]
+    if abs(float(x @ z)) > 0.9:
+        x = np.eye(3)[int(np.argmin(np.abs(z)))]
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.vstack([x, np.cross(z, x), z])

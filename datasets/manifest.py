@@ -40,7 +40,9 @@ IMU frame to the FLU multirotor body (:func:`.euroc.to_flu_body`: z along the th
 cam0's optical axis, same origin), rotating the IMU, attitude, ground truth, references (taken as
 IMU-frame body trajectories, as rpg_vio_mono's) and ``body_T_cam``; SLAM camera poses stay.
 ``thrust_axis = [x, y, z]`` (IMU frame, optional) replaces :data:`.euroc.THRUST_AXIS_IMU`. The
-rotation goes to ``flight.meta["body_from_imu"]``.
+rotation goes to ``flight.meta["body_from_imu"]``. With ``frame = "imu"``, ``thrust_axis`` is only
+recorded (``flight.meta["thrust_axis_body"]``, normalised): the filter baselines whose models need
+a multirotor body run in one with z along it (:func:`.frames.thrust_body_rotation`).
 
 Keys of a stream table: ``format`` and ``path`` (required), ``time_offset_s`` (added to the
 stream's times to put it on the flight's clock; recorded in ``calib.time_offsets``), and per
@@ -62,6 +64,8 @@ import logging
 import tomllib
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .calib_yaml import read_orbslam3_yaml
 from .errors import FlightDataError, FlightFormatError
@@ -162,10 +166,19 @@ def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
         raise FlightFormatError(
             manifest, f"[body] frame = {frame!r}; valid: {', '.join(BODY_FRAMES)}"
         )
+    axis = spec.get("thrust_axis")
+    if axis is not None and (
+        not isinstance(axis, list)
+        or len(axis) != 3
+        or not all(isinstance(a, int | float) and not isinstance(a, bool) for a in axis)
+        or not any(axis)
+    ):
+        raise FlightFormatError(
+            manifest, f"[body] thrust_axis: expected 3 numbers (IMU frame), got {axis!r}"
+        )
     if frame == "imu":
-        if "thrust_axis" in spec:
-            raise FlightFormatError(manifest, '[body] thrust_axis: only with frame = "flu"')
-        return {}
+        # The body stays; a given thrust axis is recorded for filters that need a thrust body.
+        return {} if axis is None else {"frame": "imu", "thrust_axis": axis}
     imu = doc.get("imu")
     if not isinstance(imu, dict) or imu.get("format") != "euroc":
         raise FlightFormatError(
@@ -175,15 +188,6 @@ def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
     if "calib" not in doc:
         raise FlightFormatError(
             manifest, '[body] frame = "flu" needs [calib] (cam0\'s body_T_cam gives body x)'
-        )
-    axis = spec.get("thrust_axis")
-    if axis is not None and (
-        not isinstance(axis, list)
-        or len(axis) != 3
-        or not all(isinstance(a, int | float) and not isinstance(a, bool) for a in axis)
-    ):
-        raise FlightFormatError(
-            manifest, f"[body] thrust_axis: expected 3 numbers (IMU frame), got {axis!r}"
         )
     return {"frame": frame, "thrust_axis": axis}
 
@@ -343,7 +347,10 @@ def read_manifest(path: str | Path) -> Flight:
         meta=meta,
         **streams,
     )
-    if body:
+    if body.get("frame") == "imu":
+        a = np.asarray(body["thrust_axis"], float)
+        flight.meta["thrust_axis_body"] = (a / np.linalg.norm(a)).tolist()
+    elif body:
         try:
             flight = to_flu_body(flight, body["thrust_axis"], where="[body] thrust_axis")
         except FlightDataError as e:

@@ -82,3 +82,28 @@ class Estimate:
                 f"estimate[{self.method}].vel_cov: expected ({n}, 3, 3), got {self.vel_cov.shape}"
             )
         return self
+
+
+def estimate_in_body(est: Estimate, int_R_body: np.ndarray) -> Estimate:
+    """An estimate made in an internal body frame (``v_int = int_R_body @ v_body``, same origin;
+    e.g. :func:`fgnav.datasets.frames.thrust_body_rotation`) re-expressed in the flight's body:
+    orientation ``world_R_body = world_R_int @ int_R_body``, biases and pose covariance rotated.
+    Positions and world velocities are unchanged. ``info["internal_body_R_body"]`` records it."""
+    import dataclasses
+
+    from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+
+    tr = est.trajectory
+    R = quat_wxyz_to_matrix(tr.world_q_body_wxyz) @ int_R_body
+    back = np.asarray(int_R_body, float).T  # body_R_int
+    traj = dataclasses.replace(
+        tr,
+        world_q_body_wxyz=matrix_to_quat_wxyz(R),
+        gyro_bias=None if tr.gyro_bias is None else tr.gyro_bias @ back.T,
+        accel_bias=None if tr.accel_bias is None else tr.accel_bias @ back.T,
+    )
+    D = np.zeros((6, 6))
+    D[:3, :3] = D[3:, 3:] = back
+    pose_cov = None if est.pose_cov is None else D @ est.pose_cov @ D.T
+    info = {**est.info, "internal_body_R_body": np.asarray(int_R_body, float).tolist()}
+    return dataclasses.replace(est, trajectory=traj, pose_cov=pose_cov, info=info).check()

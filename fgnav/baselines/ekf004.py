@@ -65,11 +65,12 @@ ATE without / with the attitude stream: two-turns 0.10 / 0.020 m (seed 0), 0.11 
 1); rectangle 0.039 / 0.029 m, 0.068 / 0.042 m; scale errors -1.6 to +1.4 %; position NEES 0.5-4.2.
 The gap is the drag-tilt bias of the estimated roll and pitch in the prediction.
 
-The body must be a FLU multirotor body (z along the rotor thrust): a flight whose mean specific
-force is more than ``MAX_THRUST_TILT_DEG`` from body z (EuRoC's IMU frame, x up) is refused with
-the fix named (:func:`check_thrust_axis`; EuRoC: manifest ``[body] frame = "flu"``). On EuRoC
-MH_01 (FLU body, no attitude stream, default drag 0.4 1/s): ATE 0.070 m, scale -0.26 %, NEES 4.2
-(msf-ekf 0.081 m).
+The model needs a FLU multirotor body (z along the rotor thrust): when the flight's body z is more
+than ``fgnav.datasets.frames.MAX_THRUST_TILT_DEG`` from the thrust axis (EuRoC's IMU frame, x up),
+:func:`run_ekf004` runs the filter in a body with z along it
+(:func:`fgnav.datasets.frames.thrust_body_rotation`; EuRoC's manifest records the Firefly's thrust
+axis) and maps the estimate back. On EuRoC MH_01 (FLU body, no attitude stream, default drag
+0.4 1/s): ATE 0.070 m, scale -0.26 %, NEES 4.2 (msf-ekf 0.081 m).
 
 A filter whose every SLAM pose has been gated for ``slam_reset_s`` has diverged (its prediction
 left the SLAM track, e.g. the drag model on the ground): the next pose restarts position and
@@ -356,27 +357,6 @@ def drag_model_velocity(
         vx, vy = cy * bx - sy * by, sy * bx + cy * by
         out[i] = (vx, vy)
     return out
-
-
-MAX_THRUST_TILT_DEG = 30.0
-"""Largest angle between body z and the flight's mean specific force (the thrust axis)."""
-
-
-def check_thrust_axis(flight: Flight) -> None:
-    """Raise :class:`FlightDataError` when body z is not the thrust axis: the mean specific force
-    of the IMU is more than ``MAX_THRUST_TILT_DEG`` from it (EuRoC's IMU frame, x up). The
-    drag-model prediction and the tilt-to-acceleration model assume a FLU multirotor body."""
-    imu = flight.imu
-    if imu is None or len(imu) == 0:
-        return
-    f = imu.body_accel.mean(axis=0)
-    angle = math.degrees(math.acos(float(np.clip(f[2] / np.linalg.norm(f), -1.0, 1.0))))
-    if angle > MAX_THRUST_TILT_DEG:
-        raise FlightDataError(
-            f"{flight.name}: ekf004's drag model needs body z along the rotor thrust (a FLU body); "
-            f"the mean specific force is {angle:.0f} deg from body z (EuRoC: manifest [body] "
-            'frame = "flu")'
-        )
 
 
 def attitude_source(flight: Flight, opt: Ekf004Options) -> str:
@@ -781,7 +761,6 @@ class Ekf004Runner:
     """
 
     def __init__(self, flight: Flight, opt: Ekf004Options) -> None:
-        check_thrust_axis(flight)
         self.attitude_source = attitude_source(flight, opt)
         # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): an IMU-only
         # attitude's tilt error would enter their double integration.
@@ -1064,6 +1043,12 @@ class Ekf004Runner:
     # -- result ----------------------------------------------------------------------------------
 
     def _estimate(self, latencies: np.ndarray, runtime_s: float) -> Estimate:
+        if not self.out_x:
+            raise FlightDataError(
+                f"{self.flight.name}: ekf004 produced no state: its output starts at the first "
+                f"SLAM scale fit ({self.scale_source}), which the flight never allowed (too short "
+                "or too little motion)"
+            )
         X = np.asarray(self.out_x)
         R = np.stack([rpy_to_matrix(*x[IR : IY + 1]) for x in X])
         traj = Trajectory(
@@ -1131,6 +1116,16 @@ def run_ekf004(flight: Flight, options: Ekf004Options | None = None) -> Estimate
         ``Estimate(method="ekf004", causal=True)`` with pose and velocity covariances, the SLAM
         scale per session and its history (``series["slam_scale"]``, ``series["slam_session"]``).
     """
+    from fgnav.datasets.frames import rotate_body_frame, thrust_body_rotation
+    from fgnav.estimate import estimate_in_body
+
     opt = options or Ekf004Options()
     opt.validate()
-    return Ekf004Runner(flight, opt).run()
+    # The drag-model prediction and the tilt-to-acceleration model need a multirotor body (z
+    # along the rotor thrust; EuRoC's IMU frame has x up): run in one and map the estimate back.
+    thrust_R_body = thrust_body_rotation(flight)
+    if thrust_R_body is None:
+        return Ekf004Runner(flight, opt).run()
+    log.info("ekf004: %s: runs in a body with z along the rotor thrust axis", flight.name)
+    inner = rotate_body_frame(dataclasses.replace(flight, references={}), thrust_R_body)
+    return estimate_in_body(Ekf004Runner(inner, opt).run(), thrust_R_body)

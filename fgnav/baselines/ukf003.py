@@ -123,7 +123,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
 )
 from fgnav.datasets.types import Flight, Trajectory
-from fgnav.estimate import Estimate, TimeSeries
+from fgnav.estimate import Estimate, TimeSeries, estimate_in_body
 
 log = logging.getLogger(__name__)
 
@@ -712,10 +712,10 @@ class Ukf003:
     def run(self, flight: Flight) -> Estimate:
         """Run over a flight in arrival order and return the causal estimate.
 
-        When the body's z axis is more than ``MAX_BODY_TILT_DEG`` from the specific force of the
-        first ``BODY_CHECK_S`` of IMU data (EuRoC's IMU frame, x up: the ZYX Euler angles would
-        sit near pitch -90 deg), the filter runs in an internal body with z along that specific
-        force (:func:`internal_body`) and its estimate is rotated back to the flight's body.
+        When the body's z axis is more than ``MAX_BODY_TILT_DEG`` from the thrust axis
+        (:func:`fgnav.datasets.frames.thrust_axis`; EuRoC's IMU frame, x up: the ZYX Euler angles
+        would sit near pitch -90 deg), the filter runs in an internal body with z along it
+        (:func:`internal_body`) and its estimate is rotated back to the flight's body.
         """
         int_R_body = internal_body(flight)
         if int_R_body is None:
@@ -724,7 +724,7 @@ class Ukf003:
 
         log.info("ukf003: %s: internal body z along the initial specific force", flight.name)
         est = self._run(rotate_body_frame(dataclasses.replace(flight, references={}), int_R_body))
-        return _estimate_in_body(est, int_R_body)
+        return estimate_in_body(est, int_R_body)
 
     def _run(self, flight: Flight) -> Estimate:
         o = self.opt
@@ -1056,46 +1056,13 @@ class Ukf003:
 MAX_BODY_TILT_DEG = 45.0
 """Largest angle of the initial specific force from body z before an internal body is used."""
 
-BODY_CHECK_S = 0.5
-"""Seconds of IMU data from the start whose mean specific force gives the internal body's z."""
-
 
 def internal_body(flight: Flight) -> np.ndarray | None:
-    """``int_R_body`` of the internal body (z along the mean specific force of the first
-    ``BODY_CHECK_S``, x along the camera's optical axis projected, else body x), or None when body
-    z is within ``MAX_BODY_TILT_DEG`` of that specific force (the flight's body is used)."""
-    imu = flight.imu
-    if imu is None or len(imu) == 0:
-        return None
-    k = imu.t <= imu.t[0] + BODY_CHECK_S
-    f = imu.body_accel[k].mean(axis=0)
-    z = f / np.linalg.norm(f)
-    if np.degrees(np.arccos(np.clip(z[2], -1.0, 1.0))) <= MAX_BODY_TILT_DEG:
-        return None
-    x = np.asarray(flight.calib.body_T_cam, float)[:3, 2]  # camera optical axis in body
-    if abs(x @ z) > 0.9:
-        x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = x - (x @ z) * z
-    x /= np.linalg.norm(x)
-    return np.vstack([x, np.cross(z, x), z])
+    """``int_R_body`` of the internal body (see :func:`fgnav.datasets.frames.thrust_body_rotation`
+    with ``MAX_BODY_TILT_DEG``), or None when the flight's body is used."""
+    from fgnav.datasets.frames import thrust_body_rotation
 
-
-def _estimate_in_body(est: Estimate, int_R_body: np.ndarray) -> Estimate:
-    """An estimate of the internal body re-expressed in the flight's body (same origin)."""
-    tr = est.trajectory
-    R = quat_wxyz_to_matrix(tr.world_q_body_wxyz) @ int_R_body
-    back = int_R_body.T  # body_R_int
-    traj = dataclasses.replace(
-        tr,
-        world_q_body_wxyz=matrix_to_quat_wxyz(R),
-        gyro_bias=None if tr.gyro_bias is None else tr.gyro_bias @ back.T,
-        accel_bias=None if tr.accel_bias is None else tr.accel_bias @ back.T,
-    )
-    D = np.zeros((6, 6))
-    D[:3, :3] = D[3:, 3:] = back
-    pose_cov = None if est.pose_cov is None else D @ est.pose_cov @ D.T
-    info = {**est.info, "internal_body_R_body": int_R_body.tolist()}
-    return dataclasses.replace(est, trajectory=traj, pose_cov=pose_cov, info=info).check()
+    return thrust_body_rotation(flight, MAX_BODY_TILT_DEG)
 
 
 def run_ukf003(flight: Flight, options: Ukf003Options | None = None) -> Estimate:

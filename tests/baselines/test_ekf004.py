@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import rpy_to_matrix, so3_exp, so3_log
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix, so3_exp, so3_log
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import Flight
 
@@ -276,15 +276,30 @@ def test_without_attitude_stream_estimates_it_from_the_imu():
     assert abs(est.trajectory.rate_hz - 100.0) < 1.0
 
 
-def test_body_z_must_be_the_thrust_axis():
-    """A body with x along the thrust (EuRoC's IMU frame) is refused with the fix named."""
-    from fgnav.datasets.frames import rotate_body_frame
+def test_body_with_x_up_runs_in_a_thrust_body():
+    """A body with x along the thrust (EuRoC's IMU frame) runs in a body with z along the thrust
+    axis (:func:`thrust_body_rotation`) and the estimate is mapped back to the flight's body."""
+    from fgnav.datasets.frames import rotate_body_frame, thrust_body_rotation
 
-    f = simulate("hover", 0, SimOptions(images=False, duration=2.0))
+    f = simulate("two-turns", 0, SimOptions(images=False, duration=14.0))
+    base = dataclasses.replace(f, yaw=None, attitude=None)
+    with pytest.raises(FlightDataError, match="no state"):
+        run_ekf004(dataclasses.replace(base, imu=base.imu.between(-np.inf, 3.0)), _options(f))
     new_R_old = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-    x_up = rotate_body_frame(dataclasses.replace(f, yaw=None, attitude=None), new_R_old)
-    with pytest.raises(FlightDataError, match="thrust"):
-        run_ekf004(x_up, _options(f))
+    x_up = rotate_body_frame(base, new_R_old)
+    R_int = thrust_body_rotation(x_up)
+    assert thrust_body_rotation(base) is None
+    # The thrust axis found (mean specific force near g) is the FLU z up to the flight's tilt.
+    assert np.degrees(np.arccos(np.clip((R_int @ new_R_old)[2, 2], -1, 1))) < 3.0
+    turned = run_ekf004(x_up, _options(f))
+    inner = run_ekf004(rotate_body_frame(x_up, R_int), _options(f))
+    np.testing.assert_allclose(turned.info["internal_body_R_body"], R_int)
+    np.testing.assert_allclose(turned.trajectory.world_t_body, inner.trajectory.world_t_body)
+    R_turned = quat_wxyz_to_matrix(turned.trajectory.world_q_body_wxyz)
+    R_inner = quat_wxyz_to_matrix(inner.trajectory.world_q_body_wxyz)
+    np.testing.assert_allclose(R_turned, R_inner @ R_int, atol=1e-9)
+    m = evaluate(turned, x_up.ground_truth, alignment="se3")
+    assert np.isfinite(m.ate_rmse_m) and m.n_matched == len(turned.trajectory)
 
 
 @pytest.mark.slow

@@ -287,12 +287,25 @@ def test_synthetic_mav0_folder_flu(tmp_path):
         ('frame = "flu"\nthrust = 1', r"\[body\] unknown key\(s\) \['thrust'\]; valid: frame"),
         ('frame = "flu"\nthrust_axis = [1, 0]', r"\[body\] thrust_axis: expected 3 numbers"),
         ('frame = "flu"\nthrust_axis = [0, 0, 1]', r"m\.toml: \[body\] thrust_axis: .* optical"),
-        ('frame = "imu"\nthrust_axis = [1, 0, 0]', r"thrust_axis: only with frame = \"flu\""),
+        ('frame = "imu"\nthrust_axis = [0, 0, 0]', r"\[body\] thrust_axis: expected 3 numbers"),
     ],
 )
 def test_manifest_bad_body_named(real_data, tmp_path, body, match):
     with pytest.raises(FlightFormatError, match=match):
         read_manifest(_manifest_copy(real_data, body, tmp_path))
+
+
+def test_manifest_imu_body_records_the_thrust_axis(real_data, tmp_path):
+    """``frame = "imu"`` with ``thrust_axis``: the body stays, the axis is recorded normalised
+    for the filters that need a thrust body (fgnav.datasets.frames.thrust_body_rotation)."""
+    from fgnav.datasets.frames import thrust_body_rotation
+
+    f = read_manifest(_manifest_copy(real_data, 'frame = "imu"\nthrust_axis = [2, 0, 0]', tmp_path))
+    assert f.meta["thrust_axis_body"] == [1.0, 0.0, 0.0]
+    assert "body_from_imu" not in f.meta
+    R = thrust_body_rotation(f)
+    np.testing.assert_allclose(R[2], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
 
 
 def test_manifest_flu_needs_euroc_imu(tmp_path):
