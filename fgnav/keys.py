@@ -26,7 +26,8 @@ def B(k: int) -> int:
 
 
 def S(j: int) -> int:
-    """SLAM alignment of SLAM session j (``Similarity3`` ``slam_T_world`` or per-axis scale)."""
+    """SLAM alignment j (``Similarity3`` ``slam_T_world`` of a session segment, or for seed 000's
+    per-axis model a Vector6 ``[kx, ky, kz, ox, oy, oz]``: per-axis scale and origin offset)."""
     return gtsam.symbol("s", j)
 
 
