@@ -21,8 +21,11 @@ Per keyframe k (one update, at the keyframe's time, when the IMU up to ``t_k`` i
    Slow variables get their own (small) relinearisation threshold; note that iSAM2 fixes the
    linearisation point of every variable a marginal factor involves, so a slow variable is
    relinearised only until its first keyframe leaves the window (the 2 s SLAM segments start
-   from the current estimate). Without ``slam_provisional`` the poses before the closed-form fit
-   are counted as ``slam:before-scale-init``.
+   from the current estimate). Without ``slam_provisional`` (and always for seed 000's per-axis
+   model, whose alignment starts when every axis the fit determines has a relative standard error
+   below ``slam_init_max_rel_se``) the poses before the closed-form fit are held back and attached
+   to the new alignment when their keyframes are still in the window; the others are counted as
+   ``slam:before-scale-init``.
 4. Update the smoother with timestamps of the new keys and of the slow keys used (refreshed so a
    slow variable stays in the window while it is measured), rounded up to
    ``marginalize_every_s`` blocks so that keyframes leave the window one block at a time.
