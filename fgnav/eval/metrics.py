@@ -17,7 +17,9 @@ estimate's times, then aligning it with the stated mode, see :mod:`fgnav.eval.al
 - **Scale error** per SLAM session: ``100 (s_est - s_true) / s_true`` [%], final value from
   ``Estimate.slam_scale``; mean of its absolute value over time from ``series["slam_scale"]``.
 - **Velocity RMSE** [m/s] of ``|gt_v - s R est_v|`` when both carry velocity.
-- **Yaw RMSE** [deg] of the wrapped difference of the ZYX yaw of aligned estimate and truth.
+- **Yaw RMSE** [deg] of the heading (ZYX yaw) of the world-frame rotation error
+  ``R_est_aligned R_true^T``: the difference of the yaws for a pure heading error, and independent
+  of the body axes (EuRoC's x-up IMU body has no meaningful ZYX yaw).
 - **NEES** (normalised estimation error squared, Bar-Shalom et al. 2001, sec. 5.4) where
   ``pose_cov`` exists: position ``e^T P^-1 e`` with ``P = s^2 R world_R_body P_tt world_R_body^T
   R^T`` (expected 3 for a consistent estimator), and pose ``xi^T P^-1 xi`` with ``xi =
@@ -490,7 +492,9 @@ def evaluate(
         m.vel_rmse_mps = _rmse(np.linalg.norm(dv, axis=1))
         m.n_vel = int(dv.shape[0])
 
-    dyaw = wrap_angle(yaw_of(a_R) - yaw_of(gt_R))
+    # Heading of the world-frame rotation error: independent of the body axes (a body whose x
+    # is vertical, as EuRoC's IMU frame, has no ZYX yaw to compare).
+    dyaw = wrap_angle(yaw_of(np.einsum("nij,nkj->nik", a_R, gt_R)))
     m.yaw_rmse_deg = math.degrees(_rmse(dyaw))
 
     if estimate.pose_cov is not None:

@@ -87,6 +87,11 @@ def test_velocity_and_wrapped_yaw_errors(truth):
     assert m.yaw_rmse_deg == pytest.approx(2.0, rel=1e-9)
     assert m.vel_rmse_mps == pytest.approx(0.1, rel=1e-9)
     assert m.n_vel == len(truth)
+    # The same error with both bodies re-expressed with x up (EuRoC's IMU frame): unchanged.
+    B = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]).T  # old_R_new
+    x_up_truth = _est(truth, world_q_body_wxyz=matrix_to_quat_wxyz(truth.world_R_body() @ B))
+    x_up = Estimate("test", _est(truth, world_q_body_wxyz=matrix_to_quat_wxyz(R @ B)))
+    assert evaluate(x_up, x_up_truth, alignment="none").yaw_rmse_deg == pytest.approx(2.0, rel=1e-9)
 
 
 def _sample_pose_errors(truth: Trajectory, rng: np.random.Generator, inflate: float = 1.0):
