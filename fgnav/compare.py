@@ -370,12 +370,11 @@ def truth_slam_scales(flight: Flight) -> tuple[dict[int, float] | None, str]:
     truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
     sessions = truth.get("slam_sessions") if isinstance(truth, dict) else None
     if sessions:
+        at = truth_slam_scale_at(flight) or {}
         out = {}
         for sid, v in sessions.items():
-            drift = float(v.get("scale_drift_per_s", 0.0))
-            t_start = float(v.get("t_start", 0.0))
-            t_end = float(v.get("t_end", t_start))
-            out[int(sid)] = float(v["scale"]) * (1.0 + drift * (t_end - t_start))
+            t_end = float(v.get("t_end", v.get("t_start", 0.0)))
+            out[int(sid)] = float(at[int(sid)](t_end))
         return out, "simulator truth, value at the session's end time (linear scale drift)"
     if flight.slam is None:
         return None, "the flight has no SLAM stream"
@@ -404,8 +403,8 @@ def truth_slam_scale_at(flight: Flight) -> dict[int, Callable[[np.ndarray], np.n
     for sid, v in sessions.items():
         scale, drift = float(v["scale"]), float(v.get("scale_drift_per_s", 0.0))
         t_start = float(v.get("t_start", 0.0))
-        out[int(sid)] = lambda t, s0=scale, d=drift, t0=t_start: s0 * (
-            1.0 + d * (np.asarray(t, float) - t0)
+        out[int(sid)] = lambda t, s0=scale, d=drift, t0=t_start: (
+            s0 * (1.0 + d * (np.asarray(t, float) - t0))
         )
     return out
 

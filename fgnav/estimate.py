@@ -7,6 +7,8 @@ in the body frame (right perturbation ``world_T_body * Exp(xi)``).
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,6 +16,8 @@ import numpy as np
 
 from fgnav.datasets import Trajectory
 from fgnav.datasets.errors import FlightDataError
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,3 +111,23 @@ def estimate_in_body(est: Estimate, int_R_body: np.ndarray) -> Estimate:
     pose_cov = None if est.pose_cov is None else D @ est.pose_cov @ D.T
     info = {**est.info, "internal_body_R_body": np.asarray(int_R_body, float).tolist()}
     return dataclasses.replace(est, trajectory=traj, pose_cov=pose_cov, info=info).check()
+
+
+def run_in_thrust_body(
+    flight: Any, run: Callable[[Any], Estimate], max_tilt_deg: float | None = None
+) -> Estimate:
+    """``run(flight)`` for a filter whose model needs a multirotor body (z along the rotor thrust,
+    Euler angles near level): when the flight's body is not one
+    (:func:`fgnav.datasets.frames.thrust_body_rotation`), run it on the flight re-expressed in
+    such a body (references dropped) and map the estimate back with :func:`estimate_in_body`."""
+    import dataclasses
+
+    from fgnav.datasets.frames import MAX_THRUST_TILT_DEG, rotate_body_frame, thrust_body_rotation
+
+    tilt = MAX_THRUST_TILT_DEG if max_tilt_deg is None else max_tilt_deg
+    thrust_R_body = thrust_body_rotation(flight, tilt)
+    if thrust_R_body is None:
+        return run(flight)
+    logger.info("%s: run in a body with z along the rotor thrust axis", flight.name)
+    inner = rotate_body_frame(dataclasses.replace(flight, references={}), thrust_R_body)
+    return estimate_in_body(run(inner), thrust_R_body)

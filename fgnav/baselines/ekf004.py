@@ -1116,16 +1116,10 @@ def run_ekf004(flight: Flight, options: Ekf004Options | None = None) -> Estimate
         ``Estimate(method="ekf004", causal=True)`` with pose and velocity covariances, the SLAM
         scale per session and its history (``series["slam_scale"]``, ``series["slam_session"]``).
     """
-    from fgnav.datasets.frames import rotate_body_frame, thrust_body_rotation
-    from fgnav.estimate import estimate_in_body
+    from fgnav.estimate import run_in_thrust_body
 
     opt = options or Ekf004Options()
     opt.validate()
     # The drag-model prediction and the tilt-to-acceleration model need a multirotor body (z
     # along the rotor thrust; EuRoC's IMU frame has x up): run in one and map the estimate back.
-    thrust_R_body = thrust_body_rotation(flight)
-    if thrust_R_body is None:
-        return Ekf004Runner(flight, opt).run()
-    log.info("ekf004: %s: runs in a body with z along the rotor thrust axis", flight.name)
-    inner = rotate_body_frame(dataclasses.replace(flight, references={}), thrust_R_body)
-    return estimate_in_body(Ekf004Runner(inner, opt).run(), thrust_R_body)
+    return run_in_thrust_body(flight, lambda f: Ekf004Runner(f, opt).run())

@@ -123,7 +123,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
 )
 from fgnav.datasets.types import Flight, Trajectory
-from fgnav.estimate import Estimate, TimeSeries, estimate_in_body
+from fgnav.estimate import Estimate, TimeSeries, run_in_thrust_body
 
 log = logging.getLogger(__name__)
 
@@ -715,16 +715,10 @@ class Ukf003:
         When the body's z axis is more than ``MAX_BODY_TILT_DEG`` from the thrust axis
         (:func:`fgnav.datasets.frames.thrust_axis`; EuRoC's IMU frame, x up: the ZYX Euler angles
         would sit near pitch -90 deg), the filter runs in an internal body with z along it
-        (:func:`internal_body`) and its estimate is rotated back to the flight's body.
+        (:func:`fgnav.estimate.run_in_thrust_body`) and its estimate is rotated back to the
+        flight's body.
         """
-        int_R_body = internal_body(flight)
-        if int_R_body is None:
-            return self._run(flight)
-        from fgnav.datasets.frames import rotate_body_frame
-
-        log.info("ukf003: %s: internal body z along the initial specific force", flight.name)
-        est = self._run(rotate_body_frame(dataclasses.replace(flight, references={}), int_R_body))
-        return estimate_in_body(est, int_R_body)
+        return run_in_thrust_body(flight, self._run, MAX_BODY_TILT_DEG)
 
     def _run(self, flight: Flight) -> Estimate:
         o = self.opt
@@ -1055,14 +1049,6 @@ class Ukf003:
 
 MAX_BODY_TILT_DEG = 45.0
 """Largest angle of the initial specific force from body z before an internal body is used."""
-
-
-def internal_body(flight: Flight) -> np.ndarray | None:
-    """``int_R_body`` of the internal body (see :func:`fgnav.datasets.frames.thrust_body_rotation`
-    with ``MAX_BODY_TILT_DEG``), or None when the flight's body is used."""
-    from fgnav.datasets.frames import thrust_body_rotation
-
-    return thrust_body_rotation(flight, MAX_BODY_TILT_DEG)
 
 
 def run_ukf003(flight: Flight, options: Ukf003Options | None = None) -> Estimate:

@@ -226,9 +226,7 @@ def solve_batch(
         pose_ks = range(0, builder.K, max(1, o.cov_pose_stride)) if o.covariance == "all" else []
         wanted += [key for k in pose_ks for key in (X(k), V(k))]
         covs = _marginal_covariances(marg, res.linear, res.values, wanted, cov_info)
-        slow_sigma = {
-            k: np.sqrt(np.diag(covs[k])) for k in _slow_keys(res.values) if k in covs
-        }
+        slow_sigma = {k: np.sqrt(np.diag(covs[k])) for k in _slow_keys(res.values) if k in covs}
         if cov_info["covariance_regularised"]:
             weak = [
                 describe(k)
@@ -307,6 +305,15 @@ def _marginals(
         msg = " ".join(str(e).split())
         near = _indeterminate_key(msg)
         info["covariance_indeterminate_near"] = near
+    return _regularised_marginals(linear, values, info), info
+
+
+def _regularised_marginals(
+    linear: gtsam.GaussianFactorGraph, values: gtsam.Values, info: dict[str, Any]
+) -> gtsam.Marginals | None:
+    """Marginals with a ``COVARIANCE_REGULARISATION`` damping on every variable (None when even
+    that fails); records and logs the outcome in ``info``."""
+    near = info.get("covariance_indeterminate_near")
     zero = values.zeroVectors()
     dims = {k: int(zero.at(k).shape[0]) for k in values.keys()}
     try:
@@ -315,7 +322,7 @@ def _marginals(
         msg = " ".join(str(e).split())[:160]
         log.warning("marginal covariances unavailable (indeterminate near %s): %s", near, msg)
         info["covariance_unavailable"] = msg
-        return None, info
+        return None
     info["covariance_regularised"] = True
     log.warning(
         "indeterminate system near %s: covariances computed with a %.0e damping (unobservable "
@@ -324,7 +331,7 @@ def _marginals(
         COVARIANCE_REGULARISATION,
         1.0 / math.sqrt(COVARIANCE_REGULARISATION),
     )
-    return marg, info
+    return marg
 
 
 def _marginal_covariances(
@@ -341,24 +348,11 @@ def _marginal_covariances(
     try:
         return {k: marg.marginalCovariance(k) for k in keys}
     except RuntimeError as e:
-        near = _indeterminate_key(" ".join(str(e).split()))
-        info["covariance_indeterminate_near"] = near
-    zero = values.zeroVectors()
-    dims = {k: int(zero.at(k).shape[0]) for k in values.keys()}
+        info["covariance_indeterminate_near"] = _indeterminate_key(" ".join(str(e).split()))
     out: dict[int, np.ndarray] = {}
-    try:
-        reg = gtsam.Marginals(_damping_graph(linear, dims, COVARIANCE_REGULARISATION), values)
-    except RuntimeError as e:
-        info["covariance_unavailable"] = " ".join(str(e).split())[:160]
-        log.warning("marginal covariances unavailable: %s", info["covariance_unavailable"])
+    reg = _regularised_marginals(linear, values, info)
+    if reg is None:
         return out
-    info["covariance_regularised"] = True
-    log.warning(
-        "indeterminate system near %s found while querying marginals: covariances computed with "
-        "a %.0e damping",
-        info.get("covariance_indeterminate_near"),
-        COVARIANCE_REGULARISATION,
-    )
     failed = 0
     for k in keys:
         try:

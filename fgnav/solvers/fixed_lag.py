@@ -399,11 +399,7 @@ class FixedLagRunner:
         b = self.builder
         slam = b.flight.slam
         i = int(b.slam_assoc.meas_index[row])
-        noise = b._robust(
-            gtsam.noiseModel.Isotropic.Sigma(
-                3, b.options.slam_sigma_m * self.slam_scale_init.get(pk, 1.0)
-            )
-        )
+        noise = b._noise(3, b.options.slam_sigma_m * self.slam_scale_init.get(pk, 1.0))
         body_T_cam = np.asarray(b.flight.calib.body_T_cam, float)
         if b.slam_model == "axis":
             fac = make_slam_axis_offset_factor(
