@@ -503,9 +503,9 @@ def evaluate(
         if has.any():
             cov = estimate.pose_cov[idx][has]
             m.nees_pos = float(np.mean(position_nees(err[has], est_R[has], cov, al)))
-            m.nees_pose = float(np.mean(
-                pose_nees(a_xyz[has], a_R[has], gt.world_t_body[has], gt_R[has], cov, al.s)
-            ))
+            m.nees_pose = float(
+                np.mean(pose_nees(a_xyz[has], a_R[has], gt.world_t_body[has], gt_R[has], cov, al.s))
+            )
             m.n_nees = int(has.sum())
             m.nees_pos_interval = nees_interval(m.n_nees, 3)
 
@@ -518,6 +518,47 @@ def evaluate(
         m.runtime_s = float(estimate.runtime_s)
         m.times_real_time = est.duration / estimate.runtime_s
     return m
+
+
+def _slam_truth_pairs(
+    slam: SlamSeries,
+    gt: Trajectory,
+    body_T_cam: np.ndarray,
+    max_gap_s: float,
+    min_samples: int,
+    caller: str,
+) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per SLAM session: ``(t (N,), world_t_cam (N, 3) [m], slam_t_cam (N, 3))`` at the SLAM times
+    matched to truth (truth interpolated, camera = body + ``world_R_body body_t_cam``); sessions
+    with fewer than ``min_samples`` matches are skipped and logged."""
+    slam.check(f"{caller}.slam")
+    body_T_cam = np.asarray(body_T_cam, dtype=float)
+    out: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for sid in np.unique(slam.session):
+        m = slam.session == sid
+        t = slam.t[m]
+        fake = Trajectory(
+            t=t,
+            world_t_body=slam.slam_t_cam[m],
+            world_q_body_wxyz=slam.slam_q_cam_wxyz[m],
+        )
+        assoc = associate(fake, gt, max_gap_s=max_gap_s)
+        if assoc.n_matched < min_samples:
+            logger.warning(
+                "%s: session %d has %d samples matched to truth (< %d): skipped",
+                caller,
+                sid,
+                assoc.n_matched,
+                min_samples,
+            )
+            continue
+        g = assoc.gt
+        world_t_cam = g.world_t_body + np.einsum("nij,j->ni", g.world_R_body(), body_T_cam[:3, 3])
+        idx = assoc.est_index
+        out[int(sid)] = (t[idx], world_t_cam, slam.slam_t_cam[m][idx])
+        if assoc.n_unmatched:
+            logger.info("%s: session %d: %d samples unmatched", caller, sid, assoc.n_unmatched)
+    return out
 
 
 def slam_scale_vs_truth(
@@ -544,36 +585,92 @@ def slam_scale_vs_truth(
     Returns:
         ``{session id: s}``.
     """
-    slam.check("slam_scale_vs_truth.slam")
-    body_T_cam = np.asarray(body_T_cam, dtype=float)
     out: dict[int, float] = {}
-    for sid in np.unique(slam.session):
-        m = slam.session == sid
-        t = slam.t[m]
-        fake = Trajectory(
-            t=t,
-            world_t_body=slam.slam_t_cam[m],
-            world_q_body_wxyz=slam.slam_q_cam_wxyz[m],
-        )
-        assoc = associate(fake, gt, max_gap_s=max_gap_s)
-        if assoc.n_matched < min_samples:
-            logger.warning(
-                "slam_scale_vs_truth: session %d has %d samples matched to truth (< %d): skipped",
-                sid,
-                assoc.n_matched,
-                min_samples,
-            )
-            continue
-        g = assoc.gt
-        world_t_cam = g.world_t_body + np.einsum("nij,j->ni", g.world_R_body(), body_T_cam[:3, 3])
-        _, _, s = umeyama(world_t_cam, slam.slam_t_cam[m][assoc.est_index], with_scale=True)
-        out[int(sid)] = s
+    pairs = _slam_truth_pairs(slam, gt, body_T_cam, max_gap_s, min_samples, "slam_scale_vs_truth")
+    for sid, (t, world_t_cam, slam_t_cam) in pairs.items():
+        _, _, s = umeyama(world_t_cam, slam_t_cam, with_scale=True)
+        out[sid] = s
         logger.info(
-            "slam_scale_vs_truth: session %d: s = %.6g SLAM units per metre from %d samples "
-            "(%d unmatched)",
+            "slam_scale_vs_truth: session %d: s = %.6g SLAM units per metre from %d samples",
             sid,
             s,
-            assoc.n_matched,
-            assoc.n_unmatched,
+            len(t),
+        )
+    return out
+
+
+@dataclass
+class ScaleDrift:
+    """Scale drift of one SLAM session against ground truth (:func:`slam_scale_drift`).
+
+    Attributes:
+        session: SLAM session id.
+        scale: Sim(3) scale of the whole session [SLAM units per metre].
+        t: (W,) mid time of each window used [s from the session's first pose].
+        rel_scale: (W,) Sim(3) scale of each window relative to ``scale`` minus one.
+        path_m: (W,) camera path length in each window [m].
+        n_skipped: windows skipped for too short a camera path (scale not determined).
+        slope_per_s: least-squares trend of ``rel_scale`` [1/s]; NaN with fewer than 3 windows.
+        slope_sigma_per_s: its standard error from the residual scatter [1/s].
+        scatter: standard deviation of ``rel_scale`` about the trend.
+    """
+
+    session: int
+    scale: float
+    t: np.ndarray
+    rel_scale: np.ndarray
+    path_m: np.ndarray
+    n_skipped: int
+    slope_per_s: float
+    slope_sigma_per_s: float
+    scatter: float
+
+
+def slam_scale_drift(
+    slam: SlamSeries,
+    gt: Trajectory,
+    body_T_cam: np.ndarray,
+    window_s: float = 10.0,
+    min_path_m: float = 2.0,
+    max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+) -> dict[int, ScaleDrift]:
+    """How a SLAM run's scale changes over time: Sim(3) scale in consecutive, non-overlapping
+    windows of ``window_s`` (truth camera positions aligned to the SLAM ones, as
+    :func:`slam_scale_vs_truth`) and its linear trend.
+
+    Windows where the camera moved less than ``min_path_m`` (hover, SLAM initialisation) do
+    not determine a scale: they are skipped and counted. A window's scale also carries the SLAM
+    noise, so ``scatter`` bounds the scale's wander from above.
+    """
+    if not window_s > 0 or not min_path_m >= 0:
+        raise ValueError(f"window_s must be > 0 and min_path_m >= 0, got {window_s}, {min_path_m}")
+    out: dict[int, ScaleDrift] = {}
+    pairs = _slam_truth_pairs(slam, gt, body_T_cam, max_gap_s, 10, "slam_scale_drift")
+    for sid, (t, x, y) in pairs.items():
+        _, _, s_all = umeyama(x, y, with_scale=True)
+        tw, rel, path = [], [], []
+        skipped = 0
+        t0 = t[0]
+        for a in np.arange(t[0], t[-1] - window_s + 1e-9, window_s):
+            m = (t >= a) & (t < a + window_s)
+            d = float(np.linalg.norm(np.diff(x[m], axis=0), axis=1).sum()) if m.sum() > 1 else 0.0
+            if m.sum() < 10 or d < min_path_m:
+                skipped += 1
+                continue
+            _, _, s = umeyama(x[m], y[m], with_scale=True)
+            tw.append(a + 0.5 * window_s - t0)
+            rel.append(s / s_all - 1.0)
+            path.append(d)
+        tw_a, rel_a = np.asarray(tw), np.asarray(rel)
+        slope = slope_sig = scatter = math.nan
+        if len(tw_a) >= 3:
+            A = np.column_stack([tw_a, np.ones_like(tw_a)])
+            coef, *_ = np.linalg.lstsq(A, rel_a, rcond=None)
+            r = rel_a - A @ coef
+            var = float(r @ r) / (len(r) - 2)
+            slope, scatter = float(coef[0]), math.sqrt(var)
+            slope_sig = math.sqrt(var * float(np.linalg.inv(A.T @ A)[0, 0]))
+        out[sid] = ScaleDrift(
+            sid, s_all, tw_a, rel_a, np.asarray(path), skipped, slope, slope_sig, scatter
         )
     return out

@@ -10,10 +10,17 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import matrix_to_quat_wxyz, rpy_to_matrix
-from fgnav.datasets.types import Trajectory
+from fgnav.datasets.types import SlamSeries, Trajectory
 
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.eval.metrics import Metrics, evaluate, format_table, nees_interval, rpe_pairs
+from fgnav.eval.metrics import (
+    Metrics,
+    evaluate,
+    format_table,
+    nees_interval,
+    rpe_pairs,
+    slam_scale_drift,
+)
 
 
 def _est(truth: Trajectory, **kw) -> Trajectory:
@@ -251,3 +258,40 @@ def test_nees_skips_rows_without_covariance():
         alignment="none",
     )
     assert full.n_nees == n
+
+
+def test_slam_scale_drift_recovers_a_known_trend(truth):
+    rng = np.random.default_rng(7)
+    t = truth.t
+    body_T_cam = np.eye(4)
+    body_T_cam[:3, 3] = [0.05, 0.0, -0.04]
+    R = rpy_to_matrix(0.3, -0.2, 1.1)
+    world_t_cam = truth.world_t_body + np.einsum(
+        "nij,j->ni", truth.world_R_body(), body_T_cam[:3, 3]
+    )
+    rate = 1e-3  # relative scale drift per second
+    s = 0.4 * (1.0 + rate * (t - t[0]))
+    slam_t = s[:, None] * (world_t_cam @ R.T) + [1.0, -2.0, 0.5]
+    slam_t = slam_t + rng.normal(0.0, 0.4 * 0.005, slam_t.shape)
+    # Hover for the first 10 s (no scale information): must be skipped, not fitted.
+    hover = t < t[0] + 10.0
+    slam_t[hover] = slam_t[np.flatnonzero(hover)[-1] + 1]
+    slam = SlamSeries(
+        t=t,
+        slam_t_cam=slam_t,
+        slam_q_cam_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (t.size, 1)),
+        session=np.zeros(t.size, np.int64),
+    )
+    truth_cam_hover = Trajectory(
+        t=t,
+        world_t_body=np.where(
+            hover[:, None], truth.world_t_body[np.flatnonzero(~hover)[0]], truth.world_t_body
+        ),
+        world_q_body_wxyz=truth.world_q_body_wxyz,
+    )
+    d = slam_scale_drift(slam, truth_cam_hover, body_T_cam, window_s=10.0, min_path_m=2.0)[0]
+    assert d.n_skipped == 1 and len(d.t) == 4
+    assert d.slope_per_s == pytest.approx(rate, rel=0.1)
+    assert d.slope_sigma_per_s < 0.2 * rate  # four windows
+    with pytest.raises(ValueError, match="window_s"):
+        slam_scale_drift(slam, truth, body_T_cam, window_s=0.0)
