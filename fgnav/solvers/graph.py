@@ -38,6 +38,14 @@ import numpy as np
 from fgnav.datasets.errors import FgnavError, FlightDataError
 from fgnav.datasets.geometry import GRAVITY, wrap_angle
 from fgnav.datasets.types import Flight, ImuSeries
+from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
+from fgnav.factors.slam_scale import (
+    make_slam_axis_offset_factor,
+    make_slam_position_factor,
+    make_slam_rotation_factor,
+)
+from fgnav.factors.tilted_range import make_range_factor
+from fgnav.factors.yaw import make_yaw_factor
 from fgnav.keys import B, D, G, S, V, X
 from fgnav.solvers.measurements import (
     MIN_ANCHOR_GAP_PERIODS,
@@ -1147,8 +1155,6 @@ class GraphBuilder:
         out: list[MeasurementFactor] = []
         want = (lambda kind: True) if kinds is None else (lambda kind: kind in kinds)
         if self.use_drag and self.drag_count[k] > 0 and want("drag"):
-            from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
-
             n_acc = int(self.drag_count[k])
             noise = self._drag_noise.get(n_acc)
             if noise is None:
@@ -1164,11 +1170,6 @@ class GraphBuilder:
                 )
             )
         if self.use_slam and want("slam"):
-            from fgnav.factors.slam_scale import (
-                make_slam_axis_offset_factor,
-                make_slam_position_factor,
-            )
-
             slam = f.slam
             for r in self._rows_at("slam", self.slam_assoc.keyframe, k):
                 i = int(self.slam_assoc.meas_index[r])
@@ -1190,7 +1191,6 @@ class GraphBuilder:
                 out.append(MeasurementFactor(arrival, k, "slam", fac, (X(k), sk)))
                 if o.slam_rotation and self.slam_model == "sim3":
                     from fgnav.datasets.geometry import quat_wxyz_to_matrix
-                    from fgnav.factors.slam_scale import make_slam_rotation_factor
 
                     noise = self._noise(3, o.slam_rot_sigma)
                     fac = make_slam_rotation_factor(
@@ -1202,8 +1202,6 @@ class GraphBuilder:
                     )
                     out.append(MeasurementFactor(arrival, k, "slam-rotation", fac, (X(k), sk)))
         if self.use_range and want("range"):
-            from fgnav.factors.tilted_range import make_range_factor
-
             for n in self._rows_at("range", self.range_kf, k):
                 gk = G(int(self.ground_segment[k]))
                 noise = self._noise(1, o.range_sigma)
@@ -1214,8 +1212,6 @@ class GraphBuilder:
                     MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk))
                 )
         if self.use_yaw and want("yaw"):
-            from fgnav.factors.yaw import make_yaw_factor
-
             for n in self._rows_at("yaw", self.yaw_kf, k):
                 noise = self._noise(1, o.yaw_sigma)
                 fac = make_yaw_factor(X(k), float(self.yaw_val[n]), noise)

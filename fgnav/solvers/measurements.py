@@ -163,6 +163,18 @@ def _so3_exp_batch(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
+def _ordered_product(R: np.ndarray) -> np.ndarray:
+    """``R[0] @ R[1] @ ... @ R[-1]`` of a stack (N, 3, 3) by pairwise batched products (identity
+    for N = 0)."""
+    if len(R) == 0:
+        return np.eye(3)
+    while len(R) > 1:
+        if len(R) % 2:
+            R = np.concatenate([R, np.eye(3)[None]])
+        R = R[0::2] @ R[1::2]
+    return R[0]
+
+
 def _so3_log_batch(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) -> rotation vectors (N, 3); angles below pi - 1e-6 (the
     relative rotations between neighbouring samples interpolated here are small)."""
@@ -270,6 +282,8 @@ def gyro_bias_from_slam(
     """
     body_R_cam = body_T_cam[:3, :3]
     R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+    # Rotation of each IMU sample over its interval (the last sample has none).
+    steps = _so3_exp_batch(imu.body_omega[:-1] * np.diff(imu.t)[:, None])
     est = []
     i = 0
     n = len(slam)
@@ -281,9 +295,7 @@ def gyro_bias_from_slam(
             dR = body_R_cam @ R_cam[i].T @ R_cam[j] @ body_R_cam.T
             k0 = int(np.searchsorted(imu.t, slam.t[i], side="right")) - 1
             k1 = int(np.searchsorted(imu.t, slam.t[j], side="right")) - 1
-            G = np.eye(3)
-            for k in range(k0, k1):
-                G = G @ so3_exp(imu.body_omega[k] * (imu.t[k + 1] - imu.t[k]))
+            G = _ordered_product(steps[k0:k1])
             est.append(-so3_log(G.T @ dR) / (imu.t[k1] - imu.t[k0]))
         i = j
     if not est:
