@@ -221,6 +221,8 @@ class FixedLagRunner:
         self.dropped: dict[str, int] = {}
         self.used: dict[str, int] = {}
         self.n_failures = 0
+        self.n_fallbacks = 0
+        self._transplanted = False
         self.failure_messages: list[str] = []
         self.slam_scale_init: dict[int, float] = {}
         self._held: dict[int, list[int]] = {}
@@ -607,14 +609,35 @@ class FixedLagRunner:
         stamps: dict[int, float],
         remove: list[int] | None = None,
     ) -> bool:
-        """One smoother update (``remove``: indices of factors to remove); on failure rebuild from
-        the last good estimate (returns False)."""
+        """One smoother update (``remove``: indices of factors to remove).
+
+        On failure under a factorization other than ``fallback_factorization`` (Cholesky), the
+        failed smoother's factors (this update's included) and linearisation point are moved into
+        a fresh smoother with the fallback (QR): nothing is lost, counted as
+        ``factorization_fallbacks``, returns True. Otherwise (or if that fails too) the smoother is
+        rebuilt from the last good estimate with priors, counted as a solver failure, returns
+        False."""
+        self._transplanted = False
         try:
             self.smoother.update(graph, values, self._block_stamps(stamps), list(remove or []))
             return True
         except RuntimeError as e:
-            self.n_failures += 1
             msg = " ".join(str(e).split())[:200]
+            fb = (self.options.fallback_factorization or "").upper()
+            if fb and fb != self.factorization:
+                log.warning(
+                    "fixed-lag: %s update failed at t=%.3f (%s); moving the window to %s",
+                    self.factorization,
+                    self.t_latest,
+                    msg,
+                    fb,
+                )
+                if self._switch_factorization(fb):
+                    self.n_fallbacks += 1
+                    self._switch_to = None
+                    self._transplanted = True
+                    return True
+            self.n_failures += 1
             self.failure_messages.append(msg)
             log.warning(
                 "fixed-lag: smoother update failed at t=%.3f (%s); rebuilding from the last "
@@ -631,10 +654,12 @@ class FixedLagRunner:
             _isam2_params(self.options, self.builder.slow_dims(), factorization),
         )
 
-    def _switch_factorization(self, factorization: str) -> None:
+    def _switch_factorization(self, factorization: str) -> bool:
         """Move the window into a fresh smoother with another factorization, losslessly: the same
         factors (the marginals of the keys gone included) at the same linearisation point and
-        timestamps. Factor indices change: the provisional SLAM factors are re-indexed."""
+        timestamps. Factor indices change: the provisional SLAM factors are re-indexed. Also used
+        on a smoother whose update just failed (its factors and values include that update's).
+        Returns False (smoother unchanged) when the fresh smoother fails too."""
         old = self.smoother
         factors = old.getFactors()
         graph = gtsam.NonlinearFactorGraph()
@@ -656,7 +681,7 @@ class FixedLagRunner:
                 " ".join(str(e).split())[:120],
                 self.factorization,
             )
-            return
+            return False
         self.smoother = smoother
         self.factorization = factorization
         self.provisional_factors = {
@@ -664,6 +689,7 @@ class FixedLagRunner:
             for sess, rows in self.provisional_factors.items()
         }
         log.info("fixed-lag: %s from t=%.2f s", factorization, self.t_latest)
+        return True
 
     def _rebuild(self) -> None:
         """Fresh smoother with priors on the last good newest state and the live slow variables."""
@@ -805,7 +831,7 @@ class FixedLagRunner:
         graph.push_back(measurement_graph)
         # 4. Update (rebuild on failure, then re-add the keyframe without its measurements).
         ok = self.update(graph, self.queued_values, self.queued_stamps, remove)
-        if ok and provisional_at:
+        if ok and provisional_at and not self._transplanted:
             new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
             offset = self.queued_graph.size()
             for pos, (session, kk, row) in provisional_at:
@@ -1040,6 +1066,7 @@ class FixedLagRunner:
                 ],
                 "solver_failures": self.n_failures,
                 "factorization_final": self.factorization,
+                "factorization_fallbacks": self.n_fallbacks,
                 "solver_failure_messages": self.failure_messages[:10],
                 "updates": n,
                 "latency_p50_s": float(np.percentile(lat, 50)) if n else None,
