@@ -6,26 +6,29 @@ Prints updates/s, update latency p50/p99/max, times real time, Python heap peak 
 causal trajectory. Wall-clock numbers depend on the machine's load: run it on an idle machine.
 
     .venv/bin/python scripts/bench_online.py [--duration 180] [--keyframe-hz 20] [--lag 2]
-        [--marginalize-every 1]
+        [--marginalize-every 1] [--factorization CHOLESKY|QR]
 
-Measured with the defaults on the 2-core machine shared with other jobs, the code before and after
-the hot-path work run back to back (``uptime`` 1-minute load average before each run):
+Also prints a machine reference workload (a fixed mix of Python, NumPy and GTSAM work, best of 3,
+before and after the run) and the smoother's CPU time in units of it: this VM's CPU speed varies by
+about 1.5x over a day, so compare runs by that ratio. Setup (graph builder) is included in "CPU";
+OpenCV and SciPy are imported before the clock starts.
 
-    code                      load  real time (wall / CPU)  updates/s  p50 / p99 / max [ms]  ATE
-    before (main 3219fbf)     2.3   15.6x / 14.6x           312        2.95 / 12.6 / 25.7    3.01 cm
-    before                    1.6    8.6x / 12.2x           173        4.65 / 19.8 / 72.2    3.01 cm
-    before                    2.9   18.6x / 17.2x           372        2.35 / 12.9 / 27.4    3.01 cm
-    after                     1.9   13.1x / 18.3x           262        2.36 / 14.8 / 45.3    3.01 cm
-    after                     2.7   21.2x / 20.4x           425        1.98 / 11.3 / 24.9    3.01 cm
-    after                     2.8   16.6x / 19.1x           333        2.02 / 12.7 / 51.3    3.01 cm
-    after                     2.6   22.8x / 20.8x           457        1.91 / 11.7 / 25.1    3.01 cm
+Measured 2026-11-22 (third session), back to back on an idle machine, same causal trajectory (ATE
+2.46 cm, velocity RMSE 2.09 cm/s) in every run:
 
-("CPU" counts the smoother's setup too.) The wall figures swing with the other jobs; the CPU
-figures went from 12-17x to 18-21x, the same causal trajectory (ATE and velocity RMSE equal to
-four digits). Where the time goes (cProfile, perf): ISAM2's update (QR elimination, then the
-Python callbacks of the custom factors at each linearisation, each with a copy of the window's
-``Values``) about 60 %, the newest-state read (the deferred back-substitution) about 10 %, the
-rest Python per keyframe (factor construction, preintegration, bookkeeping).
+    factorization            real time (wall / CPU)  p50 / p99 / max [ms]    reference  CPU/ref
+    QR                       15.1x / 14.8x           2.82 / 14.3 / 38.7      155 ms     78.2
+    Cholesky (after 10 s QR) 17.6x / 17.1x           2.48 / 15.8 / 44.2      158 ms     66.6
+    QR                       16.1x / 15.7x           2.59 / 13.9 / 41.6      145 ms     79.4
+    Cholesky (after 10 s QR) 19.2x / 18.5x           2.29 / 12.3 / 37.9      154 ms     62.9
+
+Earlier the same day, in a faster phase of the machine: Cholesky 23.7x / 22.9x and 24.0x / 23.0x
+(p99 11.4 / 11.6 ms); the QR code at the start of the session 19.3x / 17.3x (p99 12.3 ms), then
+15-22x in repeated runs. Where the time goes (per update, Cholesky): iSAM2 update 1.43 ms (of
+which the Python callbacks of the custom factors ~0.1 ms), reading the newest state 0.32 ms, new
+measurement factors 0.19 ms, IMU preintegration 0.14 ms, keyframe chunk 0.12 ms. Each update
+re-eliminates about 30 variables: the SLAM pose arrives three keyframes late (0.15 s latency) and
+the slow variables (SLAM alignment, drag, ground) sit in every clique's separator.
 """
 
 from __future__ import annotations
@@ -44,6 +47,44 @@ from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 from fgnav.solvers.graph import GraphOptions
 
 
+def reference_workload_s(repeats: int = 3) -> float:
+    """CPU seconds (best of ``repeats``) of a fixed mix of Python, NumPy and GTSAM work (a chain
+    of 400 Pose3 CustomFactor and built-in between factors, linearised and solved 10 times): the
+    machine's speed at the time of the run, to compare runs made at different times (this VM's
+    CPU speed has been seen to vary by 1.5x over a day)."""
+    import gtsam
+
+    def between_error(a, b, z):
+        def f(this, values, H):
+            pa, pb = values.atPose3(this.keys()[0]), values.atPose3(this.keys()[1])
+            e = z.localCoordinates(pa.between(pb))
+            if H is not None:
+                H[0] = -np.eye(6)
+                H[1] = np.eye(6)
+            return e
+
+        return f
+
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    rng = np.random.default_rng(0)
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), noise))
+    for i in range(400):
+        z = gtsam.Pose3.Expmap(rng.normal(0.0, 0.1, 6))
+        values.insert(i, gtsam.Pose3.Expmap(rng.normal(0.0, 0.1, 6)))
+        if i:
+            graph.add(gtsam.CustomFactor(noise, [i - 1, i], between_error(i - 1, i, z)))
+            graph.add(gtsam.BetweenFactorPose3(i - 1, i, z, noise))
+    best = float("inf")
+    for _ in range(repeats):
+        c0 = time.process_time()
+        for _ in range(10):
+            graph.linearize(values).optimize()
+        best = min(best, time.process_time() - c0)
+    return best
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="figure8")
@@ -57,8 +98,15 @@ def main() -> None:
         default=FixedLagOptions.marginalize_every_s,
         help="marginalisation block [s] (FixedLagOptions.marginalize_every_s; 0: every update)",
     )
+    ap.add_argument(
+        "--factorization",
+        default=FixedLagOptions.factorization,
+        choices=("CHOLESKY", "QR"),
+        help="iSAM2 factorization after the QR start (FixedLagOptions.factorization)",
+    )
     ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     args = ap.parse_args()
+    ref0 = reference_workload_s()
     sim = SimOptions(duration=args.duration, images=False, slam_rate_hz=20.0, range_rate_hz=50.0)
     t0 = time.perf_counter()
     flight = simulate(args.scenario, seed=args.seed, options=sim)
@@ -67,6 +115,7 @@ def main() -> None:
         lag_s=args.lag,
         graph=GraphOptions(keyframe_hz=args.keyframe_hz),
         marginalize_every_s=args.marginalize_every,
+        factorization=args.factorization,
         track_memory=args.memory,
     )
     print(f"lag {args.lag} s, marginalisation every {args.marginalize_every} s")
@@ -83,9 +132,18 @@ def main() -> None:
     print(f"process max RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     if info.get("python_heap_peak_bytes"):
         print(f"python heap peak: {info['python_heap_peak_bytes'] / 2**20:.1f} MiB")
-    print(f"solver failures: {info['solver_failures']}, dropped: {info['dropped']}")
+    print(
+        f"solver failures: {info['solver_failures']}, factorization "
+        f"{info['factorization_final']} (fallbacks {info['factorization_fallbacks']}), "
+        f"dropped: {info['dropped']}"
+    )
     print(
         f"ATE (causal, SE(3) alignment): {m.ate_rmse_m:.4f} m; velocity RMSE {m.vel_rmse_mps:.4f}"
+    )
+    ref = 0.5 * (ref0 + reference_workload_s())
+    print(
+        f"machine reference workload: {1e3 * ref:.0f} ms CPU (before and after the run); "
+        f"smoother CPU / reference: {cpu / ref:.1f}"
     )
 
 
