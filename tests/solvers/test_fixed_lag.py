@@ -17,6 +17,18 @@ def _truth_scale_at(flight, session: int, t: float) -> float:
     return s["scale"] * (1.0 + s["scale_drift_per_s"] * (t - s["t_start"]))
 
 
+def _indeterminate_update(r: FixedLagRunner) -> bool:
+    """Update with two new variables tied only to each other: an indeterminate linear system."""
+    g = gtsam.NonlinearFactorGraph()
+    a, b = gtsam.symbol("z", 0), gtsam.symbol("z", 1)
+    g.add(gtsam.BetweenFactorVector(a, b, np.ones(1), gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
+    v = gtsam.Values()
+    v.insert(a, np.zeros(1))
+    v.insert(b, np.zeros(1))
+    t = float(r.builder.t_kf[r.newest_k])
+    return r.update(g, v, {a: t, b: t})
+
+
 @pytest.fixture(scope="module")
 def online_two_turns(two_turns_12s):
     return run_fixed_lag(two_turns_12s, FixedLagOptions(lag_s=2.0))
@@ -82,15 +94,7 @@ def test_solver_failure_rebuilds_and_continues(two_turns_12s, online_two_turns):
     r = FixedLagRunner(f, FixedLagOptions(lag_s=2.0))
     for _ in range(60):
         assert r.step()
-    # Two new variables tied only to each other: an indeterminate linear system.
-    g = gtsam.NonlinearFactorGraph()
-    a, b = gtsam.symbol("z", 0), gtsam.symbol("z", 1)
-    g.add(gtsam.BetweenFactorVector(a, b, np.ones(1), gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
-    v = gtsam.Values()
-    v.insert(a, np.zeros(1))
-    v.insert(b, np.zeros(1))
-    t = float(r.builder.t_kf[r.newest_k])
-    assert r.update(g, v, {a: t, b: t}) is False
+    assert _indeterminate_update(r) is False
     assert r.n_failures == 1 and "Indeterminate" in r.failure_messages[0]
     while r.step():
         pass
@@ -147,14 +151,7 @@ def test_cholesky_failure_falls_back_to_qr(two_turns_12s):
     assert r.factorization == "CHOLESKY"
     for _ in range(30):
         assert r.step()
-    g = gtsam.NonlinearFactorGraph()
-    a, b = gtsam.symbol("z", 0), gtsam.symbol("z", 1)
-    g.add(gtsam.BetweenFactorVector(a, b, np.ones(1), gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
-    v = gtsam.Values()
-    v.insert(a, np.zeros(1))
-    v.insert(b, np.zeros(1))
-    t = float(r.builder.t_kf[r.newest_k])
-    assert r.update(g, v, {a: t, b: t}) is False
+    assert _indeterminate_update(r) is False
     assert r.factorization == "QR"
     while r.step():
         pass
