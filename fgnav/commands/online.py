@@ -58,6 +58,11 @@ def run(args: argparse.Namespace) -> int:
         f"p99 {np.percentile(lat, 99) * 1e3:.2f} ms, max {lat.max() * 1e3:.2f} ms, "
         f"{info['times_real_time']:.1f}x real time, {info['solver_failures']} solver failures"
     )
+    if info.get("factorization_fallbacks"):
+        print(
+            f"factorization: {info['factorization_fallbacks']} Cholesky failure(s) moved the "
+            f"window to {info['factorization_final']} (nothing lost)"
+        )
     if info["dropped"]:
         print(f"dropped measurements: {info['dropped']}")
     extra = {"flight": flight.name, "command": "online"}
