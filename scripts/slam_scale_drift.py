@@ -78,8 +78,9 @@ def main(argv: list[str] | None = None) -> int:
 
         fig, ax = plt.subplots(figsize=(7, 3.5))
         for sid, d in drift.items():
-            ax.plot(d.t, 100 * d.rel_scale, "o-", label=f"session {sid} windows")
-            ax.plot(d.t, 100 * (d.slope_per_s * (d.t - d.t.mean())), "--", label="trend")
+            ax.plot(d.t, 100 * d.rel_scale, "o", label=f"session {sid}: {len(d.t)} windows")
+            trend = d.rel_scale.mean() + d.slope_per_s * (d.t - d.t.mean())
+            ax.plot(d.t, 100 * trend, "--", label=f"trend {d.slope_per_s:.1e} /s")
         ax.set_xlabel("time [s]")
         ax.set_ylabel("window scale vs session [%]")
         ax.set_title(f"{flight.name}: SLAM scale in {args.window:g} s windows")
