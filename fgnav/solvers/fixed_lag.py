@@ -39,7 +39,7 @@ attitude track used for gating and for the SLAM scale fit (``attitude_from_slam`
 
 Factorization: iSAM2 eliminates with QR for the first ``startup_qr_s`` seconds, then the window
 moves into a Cholesky smoother (the same factors, marginals included, at the same linearisation
-point: one full elimination), 1.25x the updates per second of QR on the benchmark.
+point: one full elimination): about 1.2x the updates per second of QR on the benchmark.
 
 Failures: a ``RuntimeError`` from the smoother (``Indeterminate linear system`` ...) leaves it
 unusable (../shared/GTSAM-NOTES.md). Under Cholesky the failed smoother's factors and values (the
@@ -101,12 +101,13 @@ class FixedLagOptions:
             relinearised then).
         relinearize_skip: ISAM2 relinearizes at most every this many updates.
         factorization: ``"CHOLESKY"`` or ``"QR"`` for iSAM2's eliminations. Cholesky is the
-            faster (180 s figure8 benchmark: 1.25x the updates per second of QR, paired runs),
+            faster (180 s figure8 benchmark: about 1.2x the updates per second of QR, paired),
             QR the more robust on a badly conditioned window (GTSAM-NOTES: Cholesky threw
             "Indeterminate" at the first bias of a 20 Hz CombinedImuFactor chain).
-        fallback_factorization: factorization of the smoother rebuilt after a solver failure
-            under another one, for the rest of the flight (None: keep ``factorization``); the
-            switch is reported in ``Estimate.info["factorization_final"]``.
+        fallback_factorization: after a solver failure under another factorization, the window
+            moves to a smoother with this one (or, if that fails too, the smoother is rebuilt
+            with it) for the rest of the flight (None: keep ``factorization``); reported in
+            ``Estimate.info["factorization_final"]`` and ``["factorization_fallbacks"]``.
         startup_qr_s: use QR for this many seconds of flight first, then move the window to
             ``factorization`` (lossless: the same factors, marginals included, at the same
             linearisation point in a fresh smoother; one full elimination). The first seconds
