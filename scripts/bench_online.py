@@ -54,7 +54,7 @@ def reference_workload_s(repeats: int = 3) -> float:
     CPU speed has been seen to vary by 1.5x over a day)."""
     import gtsam
 
-    def between_error(a, b, z):
+    def between_error(z):
         def f(this, values, H):
             pa, pb = values.atPose3(this.keys()[0]), values.atPose3(this.keys()[1])
             e = z.localCoordinates(pa.between(pb))
@@ -74,7 +74,7 @@ def reference_workload_s(repeats: int = 3) -> float:
         z = gtsam.Pose3.Expmap(rng.normal(0.0, 0.1, 6))
         values.insert(i, gtsam.Pose3.Expmap(rng.normal(0.0, 0.1, 6)))
         if i:
-            graph.add(gtsam.CustomFactor(noise, [i - 1, i], between_error(i - 1, i, z)))
+            graph.add(gtsam.CustomFactor(noise, [i - 1, i], between_error(z)))
             graph.add(gtsam.BetweenFactorPose3(i - 1, i, z, noise))
     best = float("inf")
     for _ in range(repeats):

@@ -207,11 +207,11 @@ class FixedLagRunner:
         self.options = options or FixedLagOptions()
         self.builder = GraphBuilder(flight, self.options.graph, priors)
         self.period = 1.0 / self.options.graph.keyframe_hz
-        for name in ("factorization", "fallback_factorization"):
-            val = getattr(self.options, name)
-            if not (val is None and name == "fallback_factorization") and (
-                str(val).upper() not in ("QR", "CHOLESKY")
-            ):
+        for name, val in (
+            ("factorization", self.options.factorization),
+            ("fallback_factorization", self.options.fallback_factorization or "QR"),
+        ):
+            if str(val).upper() not in ("QR", "CHOLESKY"):
                 raise FlightDataError(f"FixedLagOptions.{name}={val!r}: expected QR or CHOLESKY")
         self.factorization = self.options.factorization.upper()
         if self.options.startup_qr_s > 0 and self.factorization != "QR":
