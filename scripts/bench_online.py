@@ -43,7 +43,7 @@ from fgnav.datasets.simulate.simulator import simulate
 
 import fgnav.solvers.vision  # noqa: F401  (OpenCV and SciPy imported before the CPU clock)
 from fgnav.eval.metrics import evaluate
-from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
+from fgnav.solvers.fixed_lag import SMOOTHERS, FixedLagOptions, run_fixed_lag
 from fgnav.solvers.graph import GraphOptions
 
 
@@ -104,6 +104,12 @@ def main() -> None:
         choices=("CHOLESKY", "QR"),
         help="iSAM2 factorization after the QR start (FixedLagOptions.factorization)",
     )
+    ap.add_argument(
+        "--smoother",
+        default=FixedLagOptions.smoother,
+        choices=SMOOTHERS,
+        help="fixed-lag window implementation (FixedLagOptions.smoother)",
+    )
     ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     args = ap.parse_args()
     ref0 = reference_workload_s()
@@ -116,9 +122,13 @@ def main() -> None:
         graph=GraphOptions(keyframe_hz=args.keyframe_hz),
         marginalize_every_s=args.marginalize_every,
         factorization=args.factorization,
+        smoother=args.smoother,
         track_memory=args.memory,
     )
-    print(f"lag {args.lag} s, marginalisation every {args.marginalize_every} s")
+    print(
+        f"lag {args.lag} s, marginalisation every {args.marginalize_every} s, "
+        f"window {args.smoother}"
+    )
     cpu0 = time.process_time()
     est = run_fixed_lag(flight, opts, progress=True)
     cpu = time.process_time() - cpu0

@@ -1,0 +1,230 @@
+"""Fixed-lag iSAM2 smoother that keeps its Bayes tree in time order.
+
+``gtsam.IncrementalFixedLagSmoother`` orders the re-eliminated part of the Bayes tree with at most
+two groups (variables to marginalise first, all others after) and otherwise leaves the order to
+CCOLAMD, which on a keyframe chain tied to a few slow variables (SLAM alignment, drag, ground
+height: in every clique's separator) puts the root in the middle of the window and the newest
+keyframe at the bottom of a chain of cliques. Every later update then re-eliminates that whole
+chain (about 30 variables per 20 Hz keyframe on the 2 s window), and every marginalisation marks
+the cliques below the marginalised keys (about 100 variables once per block).
+
+``TimeOrderedSmoother`` wraps ``gtsam.ISAM2`` directly and gives every update CCOLAMD constraint
+groups that follow time:
+
+* a key's *marginalisation stamp* (the timestamp given with it, rounded by the caller into blocks)
+  orders it first: keys of an older block are always eliminated before keys of a newer block;
+* within the newest block, the keys given in the last ``fine_levels`` updates get one group per
+  update (newest last), so the newest keyframe and the slow variables it measures sit at the root
+  and a new keyframe re-eliminates only the few cliques above the oldest key its factors touch.
+
+Elimination order consistent with the stamps makes the keys to marginalise (the oldest block)
+leaves of the Bayes tree, so ``ISAM2.marginalizeLeaves`` runs without re-eliminating anything.
+The invariant holds by induction: each update re-orders the removed top of the tree with the
+groups, the orphaned subtrees keep their older, consistent order, and a key whose stamp grows
+(a slow variable still measured) is one of the update's keys, so its path to the root is
+re-ordered. CCOLAMD needs every group label <= the number of re-eliminated variables, which is at
+least the number of keys of the update's new factors; when the block groups alone exceed that,
+the update runs unconstrained, the tree is marked out of order, and before the next
+marginalisation the whole window is re-eliminated with the block groups (``reorders``) so the
+marginalised keys are leaves again. GTSAM's release builds do not check that marginalised keys
+are leaves (a non-leaf silently corrupts the tree): this class never relies on luck there.
+
+Interface: the subset of ``IncrementalFixedLagSmoother`` the fixed-lag runner uses
+(``update(graph, values, stamps, remove)``, ``calculateEstimate*``, ``getFactors``,
+``getLinearizationPoint``, ``timestamps``, ``getISAM2Result``).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import gtsam
+
+
+class TimeOrderedSmoother:
+    """iSAM2 over a sliding window with time-ordered elimination (see module docstring).
+
+    Args:
+        lag_s: keys whose stamp is older than the newest stamp minus ``lag_s`` are marginalised.
+        params: ``gtsam.ISAM2Params``.
+        fine_levels: number of most recent updates whose keys get their own constraint group
+            within the newest stamp block (0: blocks only).
+    """
+
+    def __init__(self, lag_s: float, params: gtsam.ISAM2Params, fine_levels: int = 4):
+        if not lag_s > 0:
+            raise ValueError(f"lag_s must be > 0, got {lag_s}")
+        if fine_levels < 0:
+            raise ValueError(f"fine_levels must be >= 0, got {fine_levels}")
+        self.lag_s = float(lag_s)
+        self.fine_levels = int(fine_levels)
+        self.isam = gtsam.ISAM2(params)
+        self._stamp: dict[int, float] = {}
+        self._blocks: dict[float, set[int]] = {}  # stamp -> keys with that stamp
+        self._given: dict[int, int] = {}  # key -> index of the last update that stamped it
+        self._recent: deque[list[int]] = deque()  # keys stamped in each of the last updates
+        self._n_updates = 0
+        # Constraint groups: CCOLAMD labels (absent: group 0), kept between updates and changed
+        # where a key's group changed; rebuilt when the set of blocks or the fine depth changes.
+        self._groups = gtsam.KeyGroupMap()
+        self._label: dict[int, int] = {}
+        self._labelled_blocks: tuple[float, ...] = ()
+        self._labelled_fine = -1
+        self._in_order = True
+        self._result: gtsam.ISAM2Result | None = None
+        #: full re-eliminations made to restore the order before a marginalisation
+        self.reorders = 0
+        #: updates whose groups could not follow the blocks (ran unconstrained)
+        self.unordered_updates = 0
+
+    # -- the part of IncrementalFixedLagSmoother's interface the runner uses -------------------
+
+    def update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, float],
+        remove: list[int] | None = None,
+    ) -> gtsam.ISAM2Result:
+        """Add factors and values (``stamps``: marginalisation stamp of each new or refreshed
+        key), remove factors by index, update iSAM2 and marginalise the keys older than the lag.
+        A ``RuntimeError`` from GTSAM propagates (the smoother is then unusable)."""
+        self._n_updates += 1
+        self._restamp(stamps)
+        n_keys = len(graph.keyVector()) if graph.size() else 0
+        fine = min(self.fine_levels, n_keys - len(self._blocks))
+        if self._blocks and fine >= 0:
+            self._relabel(fine)
+            groups = self._groups
+        else:
+            groups = None
+            self._in_order = False
+            self.unordered_updates += 1
+        self._result = self.isam.update(graph, values, list(remove or []), groups, None, None)
+        self._marginalize()
+        return self._result
+
+    def calculateEstimatePose3(self, key: int) -> gtsam.Pose3:  # noqa: N802 (GTSAM's names)
+        return self.isam.calculateEstimatePose3(key)
+
+    def calculateEstimateVector(self, key: int) -> Any:  # noqa: N802
+        return self.isam.calculateEstimateVector(key)
+
+    def calculateEstimateConstantBias(self, key: int) -> Any:  # noqa: N802
+        return self.isam.calculateEstimateConstantBias(key)
+
+    def calculateEstimateSimilarity3(self, key: int) -> Any:  # noqa: N802
+        return self.isam.calculateEstimateSimilarity3(key)
+
+    def calculateEstimate(self) -> gtsam.Values:  # noqa: N802
+        return self.isam.calculateEstimate()
+
+    def marginalCovariance(self, key: int) -> Any:  # noqa: N802
+        return self.isam.marginalCovariance(key)
+
+    def getFactors(self) -> gtsam.NonlinearFactorGraph:  # noqa: N802
+        return self.isam.getFactorsUnsafe()
+
+    def getLinearizationPoint(self) -> gtsam.Values:  # noqa: N802
+        return self.isam.getLinearizationPoint()
+
+    def getISAM2Result(self) -> gtsam.ISAM2Result:  # noqa: N802
+        if self._result is None:
+            raise RuntimeError("TimeOrderedSmoother: no update yet")
+        return self._result
+
+    def timestamps(self) -> dict[int, float]:
+        return dict(self._stamp)
+
+    # -- ordering ------------------------------------------------------------------------------
+
+    def _restamp(self, stamps: dict[int, float]) -> None:
+        u = self._n_updates
+        for key, t in stamps.items():
+            t = float(t)
+            old = self._stamp.get(key)
+            if old != t:
+                if old is not None:
+                    self._leave_block(key, old)
+                self._stamp[key] = t
+                self._blocks.setdefault(t, set()).add(key)
+            self._given[key] = u
+        self._recent.append(list(stamps))
+        while len(self._recent) > self.fine_levels + 1:
+            self._recent.popleft()
+
+    def _leave_block(self, key: int, t: float) -> None:
+        keys = self._blocks[t]
+        keys.discard(key)
+        if not keys:
+            del self._blocks[t]
+
+    def _relabel(self, fine: int) -> None:
+        """Bring the constraint groups up to date. A key's label is the rank of its stamp block;
+        in the newest block, plus one level per update among the last ``fine`` (newest
+        highest). Labels stay below ``len(blocks) + fine`` (CCOLAMD needs them below the number
+        of re-eliminated variables, at least the keys of the new factors). Between changes of
+        the block set only the keys stamped in the last updates change label."""
+        blocks = tuple(sorted(self._blocks))
+        rank = {b: i for i, b in enumerate(blocks)}
+        if blocks != self._labelled_blocks or fine != self._labelled_fine:
+            keys: Any = self._stamp
+            self._groups.clear()
+            self._label = {}
+            self._labelled_blocks, self._labelled_fine = blocks, fine
+        else:
+            keys = {k for batch in self._recent for k in batch}
+        top = len(blocks) - 1
+        u = self._n_updates
+        stamp, given, label, groups = self._stamp, self._given, self._label, self._groups
+        for key in keys:
+            t = stamp.get(key)
+            if t is None:  # marginalised since
+                continue
+            lvl = rank[t]
+            if lvl == top:
+                lvl += max(0, fine - (u - given[key]))
+            was = label.get(key, 0)
+            if was != lvl:
+                if was:  # KeyGroupMap.insert2 does not overwrite
+                    groups.erase(key)
+                if lvl:
+                    groups.insert2(key, lvl)
+                    label[key] = lvl
+                else:
+                    del label[key]
+
+    def _marginalize(self) -> None:
+        if not self._blocks:
+            return
+        cut = max(self._blocks) - self.lag_s
+        old = [b for b in self._blocks if b < cut]
+        if not old:
+            return
+        if not self._in_order:
+            self._reorder()
+        keys = gtsam.KeyList()
+        gone = [k for b in old for k in self._blocks.pop(b)]
+        for k in gone:
+            keys.push_back(k)
+        self.isam.marginalizeLeaves(keys)
+        for k in gone:
+            del self._stamp[k]
+            self._given.pop(k, None)
+            if self._label.pop(k, 0):
+                self._groups.erase(k)
+
+    def _reorder(self) -> None:
+        """Re-eliminate the whole window with the block groups (the tree then follows the
+        stamps again)."""
+        self._labelled_blocks = ()
+        self._relabel(0)
+        extra = gtsam.KeyList()
+        for k in self._stamp:
+            extra.push_back(k)
+        # (the update's own result, with its new factor indices, stays the one reported)
+        empty = gtsam.NonlinearFactorGraph()
+        self.isam.update(empty, gtsam.Values(), [], self._groups, None, extra)
+        self._in_order = True
+        self.reorders += 1
