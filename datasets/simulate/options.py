@@ -25,7 +25,9 @@ class SimulationError(FgnavError, ValueError):
 class SimOptions:
     """Everything the simulator can vary. ``None`` means "the scenario's default".
 
-    Rates are in Hz and must divide ``imu_rate_hz`` (every stream is sampled on the IMU grid).
+    Rates are in Hz, up to ``imu_rate_hz``: every stream is sampled on the IMU grid, at every
+    ``imu_rate_hz / rate``-th tick, or at the tick nearest each ``j / rate`` when that ratio is
+    not an integer (irregular intervals, e.g. a 30 Hz camera at 200 Hz: 30 or 35 ms).
     A rate of 0 turns a stream off. Noise levels are one standard deviation.
 
     Attributes:
@@ -179,10 +181,6 @@ class SimOptions:
             rate = getattr(self, name)
             if rate < 0 or rate > self.imu_rate_hz:
                 raise bad(name, f"0 (off) or a rate up to imu_rate_hz={self.imu_rate_hz}")
-            if rate > 0:
-                ratio = self.imu_rate_hz / rate
-                if abs(ratio - round(ratio)) > 1e-9:
-                    raise bad(name, f"a rate dividing imu_rate_hz={self.imu_rate_hz}")
         for name in ("range_dropout_prob", "range_outlier_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise bad(name, "a probability in [0, 1]")

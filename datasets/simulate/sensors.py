@@ -22,8 +22,19 @@ log = logging.getLogger(__name__)
 
 
 def decimation(opts: SimOptions, rate_hz: float) -> int:
-    """Number of IMU samples between two samples of a stream at ``rate_hz``."""
+    """Number of IMU samples between two samples of a stream at ``rate_hz`` (rounded)."""
     return int(round(opts.imu_rate_hz / rate_hz))
+
+
+def sample_indices(opts: SimOptions, rate_hz: float, n: int) -> np.ndarray:
+    """Indices of the IMU ticks (of ``n``) that carry a stream at ``rate_hz``: every
+    ``imu_rate_hz / rate_hz``-th tick when that is an integer, else the tick nearest each
+    ``j / rate_hz`` (irregular intervals on the IMU grid, e.g. 30 Hz at 200 Hz: 30 or 35 ms)."""
+    ratio = opts.imu_rate_hz / rate_hz
+    if abs(ratio - round(ratio)) < 1e-9:
+        return np.arange(0, n, int(round(ratio)))
+    idx = np.unique(np.floor(np.arange(0.0, n / ratio) * ratio + 0.5).astype(int))
+    return idx[idx < n]
 
 
 def _exp_stack(phi: np.ndarray) -> np.ndarray:
@@ -90,7 +101,7 @@ def simulate_attitude(
     """AHRS attitude ``world_R_body Exp(n)``, ``n ~ N(0, attitude_noise_rad^2 I)``."""
     if opts.attitude_rate_hz <= 0:
         return None
-    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.attitude_rate_hz))
+    idx = sample_indices(opts, opts.attitude_rate_hz, len(vehicle.t))
     R = vehicle.world_R_body[idx]
     sigma = 0.0 if opts.noise_free else opts.attitude_noise_rad
     if sigma > 0:
@@ -104,7 +115,7 @@ def simulate_yaw(
     """Magnetometer-like yaw ``wrap(yaw_of(world_R_body) + n)``."""
     if opts.yaw_rate_hz <= 0:
         return None
-    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.yaw_rate_hz))
+    idx = sample_indices(opts, opts.yaw_rate_hz, len(vehicle.t))
     yaw = yaw_of(vehicle.world_R_body[idx])
     sigma = 0.0 if opts.noise_free else opts.yaw_noise_rad
     if sigma > 0:
@@ -156,7 +167,7 @@ def simulate_range(
     truth: dict[str, Any] = {"range_outlier_t": [], "range_dropouts": 0, "range_out_of_limits": 0}
     if opts.range_rate_hz <= 0:
         return None, truth
-    idx = np.arange(0, len(vehicle.t), decimation(opts, opts.range_rate_hz))
+    idx = sample_indices(opts, opts.range_rate_hz, len(vehicle.t))
     R = vehicle.world_R_body[idx]
     origin = vehicle.world_t_body[idx] + R @ body_T_range[:3, 3]
     beam = R @ body_T_range[:3, 2]

@@ -36,6 +36,7 @@ from .render import Carpet, ground_footprints, pinhole_from_fov, to_uint8
 from .scenarios import SCENARIO_TABLE, SCENARIOS
 from .sensors import (
     decimation,
+    sample_indices,
     simulate_attitude,
     simulate_imu,
     simulate_range,
@@ -201,13 +202,13 @@ def simulate(
     slam, sessions = None, {}
     axis_scale = sc.slam_axis_scale if opts.slam_axis_scale is None else opts.slam_axis_scale
     if opts.slam_rate_hz > 0:
-        sidx = np.arange(0, len(t), decimation(opts, opts.slam_rate_hz))
+        sidx = sample_indices(opts, opts.slam_rate_hz, len(t))
         slam, sessions = simulate_slam(
             t[sidx], world_T_body[sidx] @ body_T_cam, opts, axis_scale or None, rngs["slam"]
         )
     images = None
     if opts.images and opts.image_rate_hz > 0:
-        iidx = np.arange(0, len(t), decimation(opts, opts.image_rate_hz))
+        iidx = sample_indices(opts, opts.image_rate_hz, len(t))
         images = _render_images(
             vehicle, iidx, body_T_cam, camera, opts, rngs["carpet"], rngs["images"], progress
         )
@@ -239,7 +240,9 @@ def simulate(
         "wind": wind[::wind_step].tolist(),
         "gravity": GRAVITY,
     }
-    n_slam_grid = len(t[:: decimation(opts, opts.slam_rate_hz)]) if opts.slam_rate_hz > 0 else 0
+    n_slam_grid = 0
+    if opts.slam_rate_hz > 0:
+        n_slam_grid = len(sample_indices(opts, opts.slam_rate_hz, len(t)))
     notes = {
         "range_dropouts": range_truth["range_dropouts"],
         "range_out_of_limits": range_truth["range_out_of_limits"],

@@ -332,10 +332,23 @@ def test_same_seed_same_flight_and_other_seed_differs():
     np.testing.assert_array_equal(a.imu.body_accel, d.imu.body_accel)
 
 
+def test_rate_not_dividing_the_imu_rate_samples_the_nearest_ticks():
+    """A 30 Hz stream on the 200 Hz grid: one sample per 1/30 s, each at the IMU tick nearest
+    its nominal time (intervals of 30 or 35 ms), exact truth at those ticks."""
+    f = simulate(
+        "hover", seed=2, options=SimOptions(duration=2.0, images=False, attitude_rate_hz=30.0)
+    )
+    t = f.attitude.t
+    assert len(t) == 61  # 0 to 2 s inclusive
+    np.testing.assert_allclose(t - t[0], np.round(np.arange(61) / 30.0 * 200.0) / 200.0, atol=1e-9)
+    assert set(np.round(np.diff(t) * 1e3).astype(int)) == {30, 35}
+    assert np.isin(np.round(t * 200.0), np.round(f.imu.t * 200.0)).all()
+
+
 @pytest.mark.parametrize(
     "kwargs, field",
     [
-        ({"range_rate_hz": 30.0}, "range_rate_hz"),
+        ({"range_rate_hz": 300.0}, "range_rate_hz"),
         ({"duration": -1.0}, "duration"),
         ({"drag_k": (0.1,)}, "drag_k"),
         ({"slam_axis_scale": (0.3, 0.2)}, "slam_axis_scale"),
