@@ -63,6 +63,12 @@ def run(args: argparse.Namespace) -> int:
             f"factorization: {info['factorization_fallbacks']} Cholesky failure(s) moved the "
             f"window to {info['factorization_final']} (nothing lost)"
         )
+    if info.get("window_reorders"):
+        print(
+            f"window: {info['window_reorders']} full re-orderings before a marginalisation "
+            f"({info['window_unordered_updates']} updates could not keep the time order; "
+            "more stamp blocks than keys per update: see FixedLagOptions.marginalize_every_s)"
+        )
     if info["dropped"]:
         print(f"dropped measurements: {info['dropped']}")
     extra = {"flight": flight.name, "command": "online"}

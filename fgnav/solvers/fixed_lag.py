@@ -686,7 +686,12 @@ class FixedLagRunner:
     def _new_smoother(self, factorization: str) -> Any:
         params = _isam2_params(self.options, self.builder.slow_dims(), factorization)
         if self.options.smoother == "gtsam":
-            return gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
+            s = gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
+            # A Python view of its linearisation point: the CustomFactor callbacks then get this
+            # registered object instead of a copy of the window (see window.py). Only the
+            # newest smoother's view is kept (a smoother that is not used only loses speed).
+            self._theta_view = s.getLinearizationPoint()
+            return s
         return TimeOrderedSmoother(self.options.lag_s, params, self.options.fine_levels)
 
     def _fold_window_stats(self) -> None:

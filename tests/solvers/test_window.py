@@ -246,3 +246,25 @@ def test_runner_rejects_unknown_smoother(two_turns_12s):
         FixedLagRunner(two_turns_12s, FixedLagOptions(smoother="batch"))
     with pytest.raises(FlightDataError, match="fine_levels"):
         FixedLagRunner(two_turns_12s, FixedLagOptions(fine_levels=-2))
+
+
+def test_callbacks_get_the_linearisation_point_without_a_copy():
+    """CustomFactor callbacks inside iSAM2 receive the smoother's registered view of its
+    linearisation point (pybind11 passes an existing wrapper instead of copying the window)."""
+    sm = TimeOrderedSmoother(2.0, _params())
+    seen = []
+
+    def error(this, values, H):
+        seen.append(values)
+        if H is not None:
+            H[0] = np.eye(6)
+        return np.zeros(6)
+
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    for g, v, stamps, newest in _chain_problem(15, block_s=1.0):
+        g.add(gtsam.CustomFactor(noise, [newest], error))
+        sm.update(g, v, stamps)
+    assert len(seen) >= 15
+    assert all(s is sm._theta_view for s in seen)
+    # The view is live: it holds the window's current linearisation point.
+    assert sm._theta_view.size() == sm.isam.getLinearizationPoint().size() == len(sm.timestamps())
