@@ -1,34 +1,47 @@
 """Benchmark of the online fixed-lag smoother on a 3-minute simulated flight.
 
 Flight: ``figure8`` for 180 s, 200 Hz IMU, 20 Hz SLAM, 50 Hz rangefinder, 10 Hz yaw, 100 Hz
-attitude (images off: the camera's 30 Hz frames only feed homography factors, not used here).
-Prints updates/s, update latency p50/p99/max, times real time, Python heap peak and the ATE of the
-causal trajectory. Wall-clock numbers depend on the machine's load: run it on an idle machine.
+attitude, and with ``--camera`` the 30 Hz downward camera (320x240, rendered; its frames go
+through the homography VO front-end once, before the smoother and outside its clock, and feed
+homography factors). Keyframes at 20 Hz, lag 2 s. Prints updates/s, update latency p50/p99/max,
+times real time, memory and the ATE of the causal trajectory. Wall-clock numbers depend on the
+machine's load: run it on an idle machine.
 
-    .venv/bin/python scripts/bench_online.py [--duration 180] [--keyframe-hz 20] [--lag 2]
-        [--marginalize-every 1] [--factorization CHOLESKY|QR]
+    .venv/bin/python scripts/bench_online.py [--camera] [--duration 180] [--keyframe-hz 20]
+        [--lag 2] [--marginalize-every 1] [--factorization CHOLESKY|QR]
+        [--smoother time-ordered|gtsam]
 
 Also prints a machine reference workload (a fixed mix of Python, NumPy and GTSAM work, best of 3,
 before and after the run) and the smoother's CPU time in units of it: this VM's CPU speed varies by
-about 1.5x over a day, so compare runs by that ratio. Setup (graph builder) is included in "CPU";
-OpenCV and SciPy are imported before the clock starts.
+about 1.5x over a day. The ratio is only a rough normaliser (it moved from 36 to 56 between two
+runs of the same code); compare implementations back to back.
 
-Measured 2026-11-22 (third session), back to back on an idle machine, same causal trajectory (ATE
-2.46 cm, velocity RMSE 2.09 cm/s) in every run:
+Measured 2026-11-22 (fourth session), one after the other on an idle machine; the same causal
+trajectory for both windows (ATE 2.46 cm without the camera, 6.63 cm with it):
 
-    factorization            real time (wall / CPU)  p50 / p99 / max [ms]    reference  CPU/ref
-    QR                       15.1x / 14.8x           2.82 / 14.3 / 38.7      155 ms     78.2
-    Cholesky (after 10 s QR) 17.6x / 17.1x           2.48 / 15.8 / 44.2      158 ms     66.6
-    QR                       16.1x / 15.7x           2.59 / 13.9 / 41.6      145 ms     79.4
-    Cholesky (after 10 s QR) 19.2x / 18.5x           2.29 / 12.3 / 37.9      154 ms     62.9
+    flight       window          real time (wall / CPU)  p50 / p99 / max [ms]    CPU/ref
+    no camera    time-ordered    40.9x / 39.1x           1.15 / 2.00 / 11.8      36.2
+    no camera    gtsam           27.7x / 26.8x           1.48 / 7.90 / 35.9      68.4
+    no camera    time-ordered    28.9x / 27.5x           1.67 / 2.84 / 20.8      54.3
+    30 Hz camera time-ordered    23.5x / 21.7x           2.05 / 3.57 / 32.5      55.7
+    30 Hz camera gtsam           20.0x / 18.9x           1.94 / 15.9 / 40.3      69.8
+    30 Hz camera time-ordered    26.9x / 24.6x           1.81 / 2.90 / 29.1      42.6
 
-Earlier the same day, in a faster phase of the machine: Cholesky 23.7x / 22.9x and 24.0x / 23.0x
-(p99 11.4 / 11.6 ms); the QR code at the start of the session 19.3x / 17.3x (p99 12.3 ms), then
-15-22x in repeated runs. Where the time goes (per update, Cholesky): iSAM2 update 1.43 ms (of
-which the Python callbacks of the custom factors ~0.1 ms), reading the newest state 0.32 ms, new
-measurement factors 0.19 ms, IMU preintegration 0.14 ms, keyframe chunk 0.12 ms. Each update
-re-eliminates about 30 variables: the SLAM pose arrives three keyframes late (0.15 s latency) and
-the slow variables (SLAM alignment, drag, ground) sit in every clique's separator.
+(``gtsam``: ``IncrementalFixedLagSmoother``; both windows with the linearisation-point view that
+spares the CustomFactor callbacks a copy of the window.) The homography VO front-end ran at
+3.2-3.7x real time. Earlier the same day, without the callback view, the time-ordered window gave
+24-27x without and 20.1x with the camera; the third session's code (IncrementalFixedLagSmoother,
+callbacks copying the window) 16.2-24.0x without the camera, p99 11-18 ms.
+
+Where the time went (per update, no camera): with ``IncrementalFixedLagSmoother`` each update
+re-eliminated about 30 variables (it re-orders the window at every marginalisation and leaves the
+newest keyframe at the bottom of a chain of cliques), and every marginalisation about 100; the
+time-ordered window (``fgnav.solvers.window``) re-eliminates about 22 (the SLAM pose arrives three
+keyframes late, 0.15 s) and marginalises without re-eliminating. Then (perf, 60 s flight) 41 % of
+the iSAM2 update was in the CustomFactor callbacks, about half of it copying the window's Values
+for each callback: the view removed that copy (15 % less CPU for the whole run, paired). The rest:
+reading the newest state (iSAM2's back-substitution) ~0.2 ms, building the measurement factors,
+the IMU preintegration and the keyframe chunk ~0.1-0.2 ms each.
 """
 
 from __future__ import annotations

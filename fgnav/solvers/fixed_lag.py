@@ -154,8 +154,10 @@ class FixedLagOptions:
             keyframe and the slow variables at the root, the oldest block at the leaves:
             marginalisation without re-elimination); ``"gtsam"``:
             ``gtsam.IncrementalFixedLagSmoother`` (the same factors and marginalisation times;
-            the same estimate to rounding). 180 s figure8 benchmark, paired: 22 instead of 30
-            variables re-eliminated per update, update p99 2.3 instead of 15 ms.
+            the same estimate to rounding). 180 s figure8 benchmark (``scripts/bench_online.py``):
+            22 instead of 30 variables re-eliminated per update, none instead of ~100 per
+            marginalisation; 1.2-1.5x the updates per second, update p99 2-4 ms instead of
+            8-16 ms.
         fine_levels: time-ordered smoother only: the keys of the last this many updates get one
             ordering group each (newest at the root).
         track_memory: record Python heap peak (tracemalloc; slows the run).
