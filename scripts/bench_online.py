@@ -183,6 +183,10 @@ def main() -> None:
     if info.get("python_heap_peak_bytes"):
         print(f"python heap peak: {info['python_heap_peak_bytes'] / 2**20:.1f} MiB")
     print(
+        f"window: {info['smoother']} (re-orderings {info['window_reorders']}, unordered updates "
+        f"{info['window_unordered_updates']})"
+    )
+    print(
         f"solver failures: {info['solver_failures']}, factorization "
         f"{info['factorization_final']} (fallbacks {info['factorization_fallbacks']}), "
         f"dropped: {info['dropped']}"

@@ -75,6 +75,10 @@ log = logging.getLogger(__name__)
 
 #: Implementations of the window (``FixedLagOptions.smoother``).
 SMOOTHERS = ("time-ordered", "gtsam")
+#: The time-ordered window needs its stamp blocks (one ordering group each) to stay below the keys
+#: of one update's new factors (~9 on the benchmark): at most this many blocks per lag, else the
+#: runner uses GTSAM's smoother (0.25 s blocks under a 2 s lag: 2x the CPU of 1 s blocks).
+MAX_BLOCKS_PER_LAG = 4
 #: Seconds between attempts to initialise a SLAM session's alignment (each attempt is a
 #: closed-form fit over the session so far; retrying every frame would spike the latency).
 SLAM_INIT_RETRY_S = 0.5
@@ -158,6 +162,9 @@ class FixedLagOptions:
             22 instead of 30 variables re-eliminated per update, none instead of ~100 per
             marginalisation; 1.2-1.5x the updates per second, update p99 2-4 ms instead of
             8-16 ms.
+            The time-ordered window needs ``marginalize_every_s >= lag_s / 4`` (one ordering
+            group per stamp block; see ``MAX_BLOCKS_PER_LAG``): with smaller blocks (or 0) the
+            runner logs a warning and uses ``"gtsam"`` (reported in ``info["smoother"]``).
         fine_levels: time-ordered smoother only: the keys of the last this many updates get one
             ordering group each (newest at the root).
         track_memory: record Python heap peak (tracemalloc; slows the run).
@@ -242,6 +249,20 @@ class FixedLagRunner:
                 ">= 0"
             )
         self.window_stats = {"reorders": 0, "unordered_updates": 0}
+        self.smoother_kind = self.options.smoother
+        blk = self.options.marginalize_every_s
+        if self.smoother_kind == "time-ordered" and not (
+            blk > 0 and self.options.lag_s / blk <= MAX_BLOCKS_PER_LAG
+        ):
+            log.warning(
+                "fixed-lag: marginalize_every_s=%g with lag_s=%g gives more stamp blocks than the "
+                "time-ordered window can order with the keys of one update; using GTSAM's "
+                "IncrementalFixedLagSmoother (choose marginalize_every_s >= lag_s / %d)",
+                blk,
+                self.options.lag_s,
+                MAX_BLOCKS_PER_LAG,
+            )
+            self.smoother_kind = "gtsam"
         self.factorization = self.options.factorization.upper()
         if self.options.startup_qr_s > 0 and self.factorization != "QR":
             self.factorization = "QR"
@@ -687,7 +708,7 @@ class FixedLagRunner:
 
     def _new_smoother(self, factorization: str) -> Any:
         params = _isam2_params(self.options, self.builder.slow_dims(), factorization)
-        if self.options.smoother == "gtsam":
+        if self.smoother_kind == "gtsam":
             s = gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
             # A Python view of its linearisation point: the CustomFactor callbacks then get this
             # registered object instead of a copy of the window (see window.py). Only the
@@ -1117,7 +1138,7 @@ class FixedLagRunner:
                     {"session": sess, "t": t} for sess, t in self.provisional_alignments
                 ],
                 "solver_failures": self.n_failures,
-                "smoother": self.options.smoother,
+                "smoother": self.smoother_kind,
                 "window_reorders": self.window_stats["reorders"]
                 + getattr(self.smoother, "reorders", 0),
                 "window_unordered_updates": self.window_stats["unordered_updates"]

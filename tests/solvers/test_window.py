@@ -268,3 +268,17 @@ def test_callbacks_get_the_linearisation_point_without_a_copy():
     assert all(s is sm._theta_view for s in seen)
     # The view is live: it holds the window's current linearisation point.
     assert sm._theta_view.size() == sm.isam.getLinearizationPoint().size() == len(sm.timestamps())
+
+
+def test_runner_uses_gtsam_window_for_small_marginalisation_blocks(two_turns_12s, caplog):
+    """Blocks shorter than a quarter of the lag need more ordering groups than an update has keys:
+    the runner then uses GTSAM's smoother, says so, and reports it."""
+    opts = FixedLagOptions(lag_s=2.0, marginalize_every_s=0.0)
+    with caplog.at_level("WARNING", logger="fgnav.solvers.fixed_lag"):
+        r = FixedLagRunner(two_turns_12s, opts)
+    assert r.smoother_kind == "gtsam"
+    assert isinstance(r.smoother, gtsam.IncrementalFixedLagSmoother)
+    assert "marginalize_every_s=0" in caplog.text
+    r_half = FixedLagRunner(two_turns_12s, FixedLagOptions(lag_s=2.0, marginalize_every_s=0.5))
+    assert r_half.smoother_kind == "time-ordered"
+    assert isinstance(r_half.smoother, TimeOrderedSmoother)
