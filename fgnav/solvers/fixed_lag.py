@@ -42,8 +42,8 @@ Factorization: iSAM2 eliminates with QR for the first ``startup_qr_s`` seconds, 
 moves into a Cholesky smoother (the same factors, marginals included, at the same linearisation
 point: one full elimination): about 1.2x the updates per second of QR on the benchmark.
 
-Failures: a ``RuntimeError`` from the smoother (``Indeterminate linear system`` ...) leaves it
-unusable (../shared/GTSAM-NOTES.md). Under Cholesky the failed smoother's factors and values (the
+Failures: an error from the smoother (``SOLVER_ERRORS``, e.g. "Indeterminate linear system") leaves
+it unusable (../shared/GTSAM-NOTES.md). Under Cholesky the failed smoother's factors and values (the
 failing update's included) first move into a QR smoother, which survives systems Cholesky does not
 (EuRoC MH_01 at 100 s): nothing is lost, counted as ``factorization_fallbacks``. Otherwise the
 runner rebuilds a fresh smoother from the last good newest state and slow variables with priors,
@@ -73,6 +73,9 @@ from fgnav.solvers.window import TimeOrderedSmoother
 
 log = logging.getLogger(__name__)
 
+#: What GTSAM raises through its Python wrapper when an update or a read fails (C++
+#: ``runtime_error``, ``out_of_range``, ``invalid_argument``; iSAM2 is unusable afterwards).
+SOLVER_ERRORS = (RuntimeError, IndexError, ValueError)
 #: Implementations of the window (``FixedLagOptions.smoother``).
 SMOOTHERS = ("time-ordered", "gtsam")
 #: The time-ordered window needs its stamp blocks (one ordering group each) to stay below the keys
@@ -679,7 +682,7 @@ class FixedLagRunner:
         try:
             self.smoother.update(graph, values, self._block_stamps(stamps), list(remove or []))
             return True
-        except RuntimeError as e:
+        except SOLVER_ERRORS as e:
             msg = " ".join(str(e).split())[:200]
             fb = (self.options.fallback_factorization or "").upper()
             if fb and fb != self.factorization:
@@ -745,7 +748,7 @@ class FixedLagRunner:
         smoother = self._new_smoother(factorization)
         try:
             smoother.update(graph, old.getLinearizationPoint(), stamps)
-        except RuntimeError as e:
+        except SOLVER_ERRORS as e:
             log.warning(
                 "fixed-lag: moving the window to %s failed (%s); staying with %s",
                 factorization,
@@ -988,7 +991,7 @@ class FixedLagRunner:
             pose = s.calculateEstimatePose3(X(k))
             vel = s.calculateEstimateVector(V(k))
             bias = s.calculateEstimateConstantBias(B(k))
-        except RuntimeError as e:
+        except SOLVER_ERRORS as e:
             self.n_failures += 1
             self.failure_messages.append(" ".join(str(e).split())[:200])
             self._rebuild()
@@ -1017,7 +1020,7 @@ class FixedLagRunner:
             if self._alive(key) and (read_slow or key not in self.last_good):
                 try:
                     self.last_good[key] = self._current_value(key)
-                except RuntimeError:
+                except SOLVER_ERRORS:
                     continue
                 self._track(key, t)
         self.out_t.append(t)

@@ -22,12 +22,15 @@ leaves of the Bayes tree, so ``ISAM2.marginalizeLeaves`` runs without re-elimina
 The invariant holds by induction: each update re-orders the removed top of the tree with the
 groups, the orphaned subtrees keep their older, consistent order, and a key whose stamp grows
 (a slow variable still measured) is one of the update's keys, so its path to the root is
-re-ordered. CCOLAMD needs every group label <= the number of re-eliminated variables, which is at
-least the number of keys of the update's new factors; when the block groups alone exceed that,
+re-ordered (a key re-stamped without a new factor on it is re-eliminated explicitly). CCOLAMD
+needs every group label < the number of re-eliminated variables, which is at least the number of
+keys of the update's new factors; when the block groups alone do not fit (or a stamp decreased),
 the update runs unconstrained, the tree is marked out of order, and before the next
 marginalisation the whole window is re-eliminated with the block groups (``reorders``) so the
-marginalised keys are leaves again. GTSAM's release builds do not check that marginalised keys
-are leaves (a non-leaf silently corrupts the tree): this class never relies on luck there.
+marginalised keys are leaves again. Keys iSAM2 drops (all their factors removed) leave the
+bookkeeping; a new value without a stamp is refused. GTSAM's release builds do not check that
+marginalised keys are leaves (a non-leaf silently corrupts the tree), hence these rules; a fuzz
+test of random stamps, removals and late factors checks the leaves before every marginalisation.
 
 Callbacks: GTSAM's Python wrapper hands every ``CustomFactor`` callback the Values it linearises
 at; for iSAM2's own linearisation point that was a copy of the whole window per callback (about
@@ -42,10 +45,34 @@ Interface: the subset of ``IncrementalFixedLagSmoother`` the fixed-lag runner us
 
 from __future__ import annotations
 
+import re
 from collections import deque
 from typing import Any
 
 import gtsam
+
+_CLIQUE = re.compile(r'^(\d+)\[label="([^"]*)"\];$')
+_EDGE = re.compile(r"^(\d+)->(\d+)$")
+
+
+def bayes_tree(
+    isam: gtsam.ISAM2,
+) -> tuple[dict[str, list[str]], dict[str, list[str]], dict[str, list[str]]]:
+    """The Bayes tree of ``isam`` from ``ISAM2.dot()`` (the Python wrapper has no clique
+    access): per clique id, its frontal key names (elimination order), its separator key names
+    and its children's ids. Key names are ``gtsam.DefaultKeyFormatter``'s."""
+    frontals: dict[str, list[str]] = {}
+    separators: dict[str, list[str]] = {}
+    children: dict[str, list[str]] = {}
+    for line in isam.dot().splitlines():
+        line = line.strip()
+        if m := _CLIQUE.match(line):
+            parts = m.group(2).split(":")
+            frontals[m.group(1)] = [k.strip() for k in parts[0].split(",")]
+            separators[m.group(1)] = [k.strip() for k in parts[1].split(",")] if parts[1:] else []
+        elif m := _EDGE.match(line):
+            children.setdefault(m.group(1), []).append(m.group(2))
+    return frontals, separators, children
 
 
 class TimeOrderedSmoother:
@@ -99,19 +126,40 @@ class TimeOrderedSmoother:
     ) -> gtsam.ISAM2Result:
         """Add factors and values (``stamps``: marginalisation stamp of each new or refreshed
         key), remove factors by index, update iSAM2 and marginalise the keys older than the lag.
-        A ``RuntimeError`` from GTSAM propagates (the smoother is then unusable)."""
+
+        Raises:
+            ValueError: a new value without a stamp (it could never be marginalised).
+            RuntimeError, IndexError, ValueError from GTSAM: the smoother is then unusable.
+        """
+        for key in values.keys():
+            if key not in stamps and key not in self._stamp:
+                raise ValueError(
+                    f"TimeOrderedSmoother.update: new value {gtsam.DefaultKeyFormatter(key)} "
+                    "has no stamp"
+                )
         self._n_updates += 1
-        self._restamp(stamps)
-        n_keys = len(graph.keyVector()) if graph.size() else 0
-        fine = min(self.fine_levels, n_keys - len(self._blocks))
+        observed = set(graph.keyVector()) if graph.size() else set()
+        raised = self._restamp(stamps)
+        # A key whose stamp grew without a new factor on it keeps its old place in the tree:
+        # re-eliminate it (and its path to the root) so that it moves with its new group.
+        extra_keys = [k for k in raised if k not in observed]
+        fine = min(self.fine_levels, len(observed) - len(self._blocks))
         if self._blocks and fine >= 0:
             self._relabel(fine)
             groups = self._groups
         else:
             groups = None
             self._in_order = False
+            self._labelled_blocks = ()  # relabel every key at the next ordered update
             self.unordered_updates += 1
-        self._result = self.isam.update(graph, values, list(remove or []), groups, None, None)
+        extra = None
+        if extra_keys:
+            extra = gtsam.KeyList()
+            for k in extra_keys:
+                extra.push_back(k)
+        self._result = self.isam.update(graph, values, list(remove or []), groups, None, extra)
+        if remove:
+            self._forget_unused()
         self._marginalize()
         return self._result
 
@@ -149,20 +197,37 @@ class TimeOrderedSmoother:
 
     # -- ordering ------------------------------------------------------------------------------
 
-    def _restamp(self, stamps: dict[int, float]) -> None:
+    def _restamp(self, stamps: dict[int, float]) -> list[int]:
+        """Record the stamps; returns the keys already in the window whose stamp grew. A stamp
+        that decreases takes its key out of time order: the window is re-ordered before the
+        next marginalisation."""
         u = self._n_updates
+        raised = []
         for key, t in stamps.items():
             t = float(t)
             old = self._stamp.get(key)
             if old != t:
                 if old is not None:
                     self._leave_block(key, old)
+                    if t > old:
+                        raised.append(key)
+                    else:
+                        self._in_order = False
                 self._stamp[key] = t
                 self._blocks.setdefault(t, set()).add(key)
             self._given[key] = u
         self._recent.append(list(stamps))
         while len(self._recent) > self.fine_levels + 1:
             self._recent.popleft()
+        return raised
+
+    def _forget_unused(self) -> None:
+        """Drop the keys iSAM2 removed (all their factors were removed) from the bookkeeping."""
+        for key in [k for k in self._stamp if not self.isam.valueExists(k)]:
+            self._leave_block(key, self._stamp.pop(key))
+            self._given.pop(key, None)
+            if self._label.pop(key, 0):
+                self._groups.erase(key)
 
     def _leave_block(self, key: int, t: float) -> None:
         keys = self._blocks[t]
@@ -214,16 +279,56 @@ class TimeOrderedSmoother:
             return
         if not self._in_order:
             self._reorder()
-        keys = gtsam.KeyList()
-        gone = [k for b in old for k in self._blocks.pop(b)]
-        for k in gone:
-            keys.push_back(k)
-        self.isam.marginalizeLeaves(keys)
+        gone = [k for b in old for k in self._blocks[b]]
+        first = self._split_cliques_first(gone)
+        for batch in (first, [k for k in gone if k not in first] if first else gone):
+            if batch:
+                keys = gtsam.KeyList()
+                for k in batch:
+                    keys.push_back(k)
+                self.isam.marginalizeLeaves(keys)
+        for b in old:
+            del self._blocks[b]
         for k in gone:
             del self._stamp[k]
             self._given.pop(k, None)
             if self._label.pop(k, 0):
                 self._groups.erase(k)
+
+    def _split_cliques_first(self, gone: list[int]) -> set[int]:
+        """Keys to marginalise in a first ``marginalizeLeaves`` call: those of the cliques that
+        keep some of their keys, with the subtrees that depend on them. In one call, GTSAM 4.3
+        climbs from a marginalised leaf clique to a parent whose first key is marginalised, splits
+        that parent and never removes the leaf clique when its separator does not hold the
+        parent's marginalised keys ("Asking to remove variables from the variable index that are
+        not unused"; found by the fuzz test). Split cliques first, the rest in a second call.
+
+        Raises:
+            RuntimeError: keys to marginalise that do not lead their clique (the time order is
+                broken: iSAM2 would corrupt its tree).
+        """
+        names = {gtsam.DefaultKeyFormatter(k): k for k in gone}
+        frontals, separators, children = bayes_tree(self.isam)
+        first: set[int] = set()
+        for c, fr in frontals.items():
+            mine = [f in names for f in fr]
+            if all(mine) or not any(mine):
+                continue
+            n_lead = mine.index(False)
+            if any(mine[n_lead:]):
+                raise RuntimeError(
+                    f"TimeOrderedSmoother: keys to marginalise do not lead clique {fr}"
+                )
+            lead = set(fr[:n_lead])
+            first.update(names[f] for f in lead)
+            for child in children.get(c, []):
+                if lead & set(separators[child]):
+                    stack = [child]
+                    while stack:
+                        x = stack.pop()
+                        first.update(names[f] for f in frontals[x] if f in names)
+                        stack.extend(children.get(x, []))
+        return first
 
     def _reorder(self) -> None:
         """Re-eliminate the whole window with the block groups (the tree then follows the

@@ -3,7 +3,7 @@ in time order (marginalised keys are leaves), less re-elimination per update."""
 
 from __future__ import annotations
 
-import re
+import math
 
 import gtsam
 import numpy as np
@@ -11,42 +11,58 @@ import pytest
 from fgnav.datasets.errors import FlightDataError
 
 from fgnav.solvers.fixed_lag import FixedLagOptions, FixedLagRunner, run_fixed_lag
-from fgnav.solvers.window import TimeOrderedSmoother
-
-_CLIQUE = re.compile(r'^(\d+)\[label="([^"]*)"\];$')
-_EDGE = re.compile(r"^(\d+)->(\d+)$")
+from fgnav.solvers.window import TimeOrderedSmoother, bayes_tree
 
 
-def _bayes_tree(isam: gtsam.ISAM2) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
-    """Frontal key names of each clique (in elimination order) and each clique's children, from
-    ``ISAM2.dot()``."""
-    frontals: dict[str, list[str]] = {}
-    children: dict[str, list[str]] = {}
-    for line in isam.dot().splitlines():
-        line = line.strip()
-        if m := _CLIQUE.match(line):
-            frontals[m.group(1)] = [k.strip() for k in m.group(2).split(":")[0].split(",")]
-        elif m := _EDGE.match(line):
-            children.setdefault(m.group(1), []).append(m.group(2))
-    return frontals, children
+def _bayes_tree(isam: gtsam.ISAM2) -> tuple[dict, dict, dict, dict]:
+    """``fgnav.solvers.window.bayes_tree`` plus each clique's parent."""
+    frontals, separators, children = bayes_tree(isam)
+    parent = {c: p for p, cs in children.items() for c in cs}
+    return frontals, separators, children, parent
 
 
 def assert_leaves(isam: gtsam.ISAM2, keys) -> None:
-    """The keys to marginalise lead their cliques' frontals and every clique below holds only
-    keys to marginalise (what ``ISAM2.marginalizeLeaves`` needs; release builds do not check)."""
-    names = {gtsam.DefaultKeyFormatter(k) for k in keys}
-    frontals, children = _bayes_tree(isam)
-    for cid, fr in frontals.items():
-        mine = [f in names for f in fr]
-        if not any(mine):
-            continue
-        n_lead = mine.index(False) if False in mine else len(mine)
-        assert all(mine[:n_lead]) and not any(mine[n_lead:]), f"clique {fr}: not a leading set"
-        stack = list(children.get(cid, []))
+    """``ISAM2.marginalizeLeaves(keys)`` replayed on the parsed Bayes tree, key by key in GTSAM's
+    order (its release build checks none of this): every clique it removes holds only keys to
+    marginalise, in a clique it splits the keys to marginalise lead its frontals, and each key is
+    gone after its turn (GTSAM 4.3 strands a leaf clique under a split parent)."""
+    keys = sorted(keys)
+    leaf = {gtsam.DefaultKeyFormatter(k) for k in keys}
+    frontals, separators, children, parent = _bayes_tree(isam)
+    clique_of = {k: c for c, fr in frontals.items() for k in fr}
+    removed: set[str] = set()
+
+    def remove_subtree(root: str) -> None:
+        stack = [root]
         while stack:
             c = stack.pop()
-            assert all(f in names for f in frontals[c]), f"{frontals[c]} below marginalised {fr}"
+            stray = [k for k in frontals[c] if k not in leaf]
+            assert not stray, f"{stray} below marginalised {frontals[root]}"
+            removed.update(frontals[c])
+            frontals[c] = []
             stack.extend(children.get(c, []))
+        if root in parent:
+            children[parent[root]].remove(root)
+
+    for key in (gtsam.DefaultKeyFormatter(k) for k in keys):
+        if key in removed:
+            continue
+        assert key in clique_of, f"{key} not in the Bayes tree"
+        c = clique_of[key]
+        while c in parent and frontals[parent[c]] and frontals[parent[c]][0] in leaf:
+            c = parent[c]
+        if all(k in leaf for k in frontals[c]):
+            remove_subtree(c)
+        else:
+            for child in list(children.get(c, [])):
+                if any(k in leaf for k in separators[child]):
+                    remove_subtree(child)
+            mine = [k in leaf for k in frontals[c]]
+            n_lead = mine.index(False)
+            assert not any(mine[n_lead:]), f"clique {frontals[c]}: not a leading set"
+            removed.update(frontals[c][:n_lead])
+            frontals[c] = frontals[c][n_lead:]
+        assert key in removed, f"{key} left in the tree (its clique hangs under a split clique)"
 
 
 class _CheckedISAM2:
@@ -164,7 +180,7 @@ def test_time_ordered_matches_incremental_fixed_lag_smoother():
     assert steady["ref"].max() >= 3 * steady["ours"].max()
     assert np.mean(reelim["ours"][30:]) < 0.85 * np.mean(reelim["ref"][30:])
     # The leaf check itself: the leading key of a clique with children is not a leaf.
-    frontals, children = _bayes_tree(ours.isam._isam)
+    frontals, _, children, _ = _bayes_tree(ours.isam._isam)
     inner = next(frontals[c][0] for c in children if frontals[c][0].startswith("x"))
     inner_key = next(k for k in ours.timestamps() if gtsam.DefaultKeyFormatter(k) == inner)
     with pytest.raises(AssertionError, match="below marginalised"):
@@ -282,3 +298,95 @@ def test_runner_uses_gtsam_window_for_small_marginalisation_blocks(two_turns_12s
     r_half = FixedLagRunner(two_turns_12s, FixedLagOptions(lag_s=2.0, marginalize_every_s=0.5))
     assert r_half.smoother_kind == "time-ordered"
     assert isinstance(r_half.smoother, TimeOrderedSmoother)
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_fuzz_only_leaves_are_marginalised(seed):
+    """Random windows: blocks, lags, fine levels, relinearisation, factorization; late factors,
+    loop closures and their removal (a key losing its only factor), stamps raised without a
+    factor or lowered, factor-free updates. Before every marginalisation the keys must be leaves
+    (``assert_leaves``); the bookkeeping must follow iSAM2's variables."""
+    rng = np.random.default_rng(seed)
+    blk, lag = float(rng.choice([0.25, 0.5, 1.0])), float(rng.choice([1.0, 2.0]))
+    p = gtsam.ISAM2Params()
+    p.enableRelinearization = bool(rng.random() < 0.6)
+    p.setRelinearizeThreshold(float(rng.choice([0.001, 0.05])))
+    p.relinearizeSkip = int(rng.integers(1, 4))
+    p.setFactorization(str(rng.choice(["CHOLESKY", "QR"])))
+    p.findUnusedFactorSlots = bool(rng.random() < 0.5)
+    sm = TimeOrderedSmoother(lag, p, fine_levels=int(rng.integers(0, 6)))
+    sm.isam = _CheckedISAM2(sm.isam)
+    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
+    Y = lambda i: gtsam.symbol("y", i)  # noqa: E731
+    S = lambda i: gtsam.symbol("s", i)  # noqa: E731
+    U = lambda i: gtsam.symbol("u", i)  # noqa: E731
+    tight, loose, weak = (gtsam.noiseModel.Isotropic.Sigma(6, s) for s in (0.1, 1.0, 10.0))
+    step = gtsam.Pose3(gtsam.Rot3(), np.array([0.1, 0.0, 0.0]))
+    slow, removable, n_slow, n_u = [], [], 0, 0
+    for i in range(90):
+        tb = math.ceil(0.1 * i / blk - 1e-9) * blk
+        stamps = sm.timestamps()
+        cut = max([tb, *stamps.values()]) - lag
+        inside = lambda k: k in stamps and stamps[k] >= cut + blk  # noqa: E731, B023
+        g, v, st, rm = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, []
+        pose = gtsam.Pose3(gtsam.Rot3(), np.array([0.1 * i, 0.0, 0.0]))
+        for key in (X(i), Y(i)):
+            v.insert(key, pose)
+            st[key] = tb
+        if i == 0:
+            g.add(gtsam.PriorFactorPose3(X(0), pose, tight))
+        else:
+            g.add(gtsam.BetweenFactorPose3(X(i - 1), X(i), step, tight))
+            g.add(gtsam.BetweenFactorPose3(Y(i - 1), Y(i), step, tight))
+        g.add(gtsam.BetweenFactorPose3(X(i), Y(i), gtsam.Pose3(), tight))
+        slow = [k for k in slow if k in stamps]
+        if i == 0 or rng.random() < 0.1:
+            key = S(n_slow)
+            n_slow += 1
+            v.insert(key, gtsam.Pose3())
+            st[key] = tb
+            if slow:
+                g.add(gtsam.BetweenFactorPose3(slow[-1], key, gtsam.Pose3(), loose))
+            else:
+                g.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(), loose))
+            slow.append(key)
+        for key in slow:
+            if rng.random() < 0.6:
+                g.add(gtsam.BetweenFactorPose3(X(i), key, gtsam.Pose3(), loose))
+                st[key] = tb
+        extra = []
+        old = [k for k in stamps if gtsam.Symbol(k).chr() == ord("x") and inside(k)]
+        if old and rng.random() < 0.4:  # late factor or loop closure on an older keyframe
+            j = old[int(rng.integers(len(old)))]
+            other = slow[-1] if slow and rng.random() < 0.5 else X(i)
+            g.add(gtsam.BetweenFactorPose3(j, other, gtsam.Pose3(), loose))
+            extra.append(g.size() - 1)
+            if other in slow:
+                st[other] = tb
+        if old and rng.random() < 0.15:  # a key with one factor, removed later (iSAM2 drops it)
+            v.insert(U(n_u), pose)
+            st[U(n_u)] = tb
+            g.add(gtsam.BetweenFactorPose3(X(i), U(n_u), gtsam.Pose3(), loose))
+            extra.append(g.size() - 1)
+            n_u += 1
+        if old and rng.random() < 0.1:  # stamp raised without a factor on the key
+            st[old[int(rng.integers(len(old)))]] = tb
+        if old and rng.random() < 0.05:  # stamp lowered (still inside the lag), with a factor
+            j = old[int(rng.integers(len(old)))]
+            g.add(gtsam.PriorFactorPose3(j, gtsam.Pose3(), weak))
+            st[j] = stamps[j] - blk
+        if removable and rng.random() < 0.3:
+            ok = [r for r in removable if all(inside(k) for k in r[1])]
+            if ok:
+                r = ok[int(rng.integers(len(ok)))]
+                removable.remove(r)
+                rm = [r[0]]
+        if rng.random() < 0.05:
+            sm.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {})
+        res = sm.update(g, v, st, rm)
+        idx = list(res.getNewFactorsIndices())
+        removable += [(idx[e], list(g.at(e).keys())) for e in extra]
+        window = set(sm.timestamps())
+        assert window == set(sm.isam.getLinearizationPoint().keys())
+        assert set(sm._label) <= window
+    assert sm.isam.marginalisations >= 4
