@@ -31,6 +31,9 @@ marginalised keys are leaves again. Keys iSAM2 drops (all their factors removed)
 bookkeeping; a new value without a stamp is refused. GTSAM's release builds do not check that
 marginalised keys are leaves (a non-leaf silently corrupts the tree), hence these rules; a fuzz
 test of random stamps, removals and late factors checks the leaves before every marginalisation.
+Marginalisation itself runs in two ``marginalizeLeaves`` calls when a clique keeps some of its
+keys (split cliques and what depends on them first): GTSAM 4.3 mishandles one call there (see
+``_split_cliques_first``). The tree is read from ``ISAM2.dot()`` for that, once per block.
 
 Callbacks: GTSAM's Python wrapper hands every ``CustomFactor`` callback the Values it linearises
 at; for iSAM2's own linearisation point that was a copy of the whole window per callback (about
