@@ -731,23 +731,37 @@ class FixedLagRunner:
     def _switch_factorization(self, factorization: str) -> bool:
         """Move the window into a fresh smoother with another factorization, losslessly: the same
         factors (the marginals of the keys gone included) at the same linearisation point and
-        timestamps. Factor indices change: the provisional SLAM factors are re-indexed. Also used
-        on a smoother whose update just failed (its factors and values include that update's).
-        Returns False (smoother unchanged) when the fresh smoother fails too."""
+        timestamps; the marginals are anchored at their linearisation point and their variables
+        held there, as the old iSAM2 held them (only the relinearisation schedule restarts).
+        Factor indices change: the provisional SLAM factors are re-indexed. Also used on a
+        smoother whose update just failed (its factors and values include that update's; the
+        provisional factors that update added are found by identity in ``step``). Returns False
+        (smoother unchanged) when the fresh smoother fails too."""
         old = self.smoother
         factors = old.getFactors()
+        lin_point = old.getLinearizationPoint()
         graph = gtsam.NonlinearFactorGraph()
         new_index: dict[int, int] = {}
+        held: set[int] = set()
         for i in range(factors.size()):
             f = factors.at(i)
             if f is None:
                 continue
+            if isinstance(f, gtsam.LinearContainerFactor):
+                # A marginal: the old iSAM2 keeps its variables at their linearisation point
+                # (its "fixed variables"), which a fresh smoother does not know. Anchor the factor
+                # there (it then follows a relinearisation to first order) and ask the
+                # time-ordered window to hold those variables as the old one did.
+                held.update(f.keys())
+                f = gtsam.LinearContainerFactor(f.linearize(lin_point), lin_point)
             new_index[i] = graph.size()
             graph.add(f)
         stamps = old.timestamps()
         smoother = self._new_smoother(factorization)
+        if held and isinstance(smoother, TimeOrderedSmoother):
+            smoother.hold_linearization(held)
         try:
-            smoother.update(graph, old.getLinearizationPoint(), stamps)
+            smoother.update(graph, lin_point, stamps)
         except SOLVER_ERRORS as e:
             log.warning(
                 "fixed-lag: moving the window to %s failed (%s); staying with %s",
@@ -907,13 +921,20 @@ class FixedLagRunner:
         graph.push_back(measurement_graph)
         # 4. Update (rebuild on failure, then re-add the keyframe without its measurements).
         ok = self.update(graph, self.queued_values, self.queued_stamps, remove)
-        if ok and provisional_at and not self._transplanted:
-            new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
-            offset = self.queued_graph.size()
-            for pos, (session, kk, row) in provisional_at:
-                self.provisional_factors.setdefault(session, []).append(
-                    (int(new_idx[offset + pos]), kk, row)
-                )
+        if ok and provisional_at:
+            if self._transplanted:
+                # The failed update's factors moved with the window into a fresh smoother: find
+                # the provisional ones there (the wrapper returns the same Python objects).
+                moved = [measurement_graph.at(p) for p, _ in provisional_at]
+                index_of = self._factor_indices(moved)
+                positions = [index_of.get(id(f)) for f in moved]
+            else:
+                new_idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+                offset = self.queued_graph.size()
+                positions = [int(new_idx[offset + p]) for p, _ in provisional_at]
+            for idx, (_, (session, kk, row)) in zip(positions, provisional_at, strict=True):
+                if idx is not None:
+                    self.provisional_factors.setdefault(session, []).append((idx, kk, row))
         if not ok:
             self._readd_keyframe_after_rebuild(k, pose, vel, bias)
         # 5. Newest state.
@@ -925,6 +946,18 @@ class FixedLagRunner:
             self._switch_to = None
         self.latency.append(time.perf_counter() - wall0)
         return True
+
+    def _factor_indices(self, wanted: list[Any]) -> dict[int, int]:
+        """Index in the smoother of each of the ``wanted`` factor objects (by identity), keyed by
+        ``id()``; factors not found are absent."""
+        ids = {id(f) for f in wanted}
+        factors = self.smoother.getFactors()
+        out = {}
+        for i in range(factors.size()):
+            f = factors.at(i)
+            if f is not None and id(f) in ids:
+                out[id(f)] = i
+        return out
 
     def _readd_keyframe_after_rebuild(self, k, pose, vel, bias) -> None:
         b = self.builder

@@ -112,6 +112,7 @@ class TimeOrderedSmoother:
         self._labelled_blocks: tuple[float, ...] = ()
         self._labelled_fine = -1
         self._in_order = True
+        self._held: set[int] = set()
         self._result: gtsam.ISAM2Result | None = None
         #: full re-eliminations made to restore the order before a marginalisation
         self.reorders = 0
@@ -160,11 +161,22 @@ class TimeOrderedSmoother:
             extra = gtsam.KeyList()
             for k in extra_keys:
                 extra.push_back(k)
-        self._result = self.isam.update(graph, values, list(remove or []), groups, None, extra)
+        held = None
+        if self._held:
+            held = gtsam.KeyList()
+            for k in self._held:
+                held.push_back(k)
+        self._result = self.isam.update(graph, values, list(remove or []), groups, held, extra)
         if remove:
             self._forget_unused()
         self._marginalize()
         return self._result
+
+    def hold_linearization(self, keys) -> None:
+        """Never relinearise these keys while they are in the window (iSAM2 does so for the keys
+        of the marginal factors it creates; a window moved here from another smoother brings
+        such factors without that knowledge)."""
+        self._held.update(int(k) for k in keys)
 
     def calculateEstimatePose3(self, key: int) -> gtsam.Pose3:  # noqa: N802 (GTSAM's names)
         return self.isam.calculateEstimatePose3(key)
@@ -229,6 +241,7 @@ class TimeOrderedSmoother:
         for key in [k for k in self._stamp if not self.isam.valueExists(k)]:
             self._leave_block(key, self._stamp.pop(key))
             self._given.pop(key, None)
+            self._held.discard(key)
             if self._label.pop(key, 0):
                 self._groups.erase(key)
 
@@ -295,6 +308,7 @@ class TimeOrderedSmoother:
         for k in gone:
             del self._stamp[k]
             self._given.pop(k, None)
+            self._held.discard(k)
             if self._label.pop(k, 0):
                 self._groups.erase(k)
 

@@ -8,6 +8,7 @@ from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate
 
 from fgnav.eval.metrics import evaluate
+from fgnav.keys import X
 from fgnav.solvers.fixed_lag import FixedLagOptions, FixedLagRunner, run_fixed_lag
 from fgnav.solvers.graph import GraphOptions
 
@@ -189,3 +190,41 @@ def test_cholesky_failure_moves_the_window_to_qr():
     assert diff[early].max() < 1e-6
     ate = [evaluate(e, f.ground_truth, alignment="se3").ate_rmse_m for e in (qr, ch)]
     assert abs(ate[0] - ate[1]) < 0.01, ate
+
+
+def test_failed_update_with_provisional_slam_factors_keeps_them_registered(two_turns_12s):
+    """An update that adds provisional SLAM factors fails (simulated after iSAM2 took them): the
+    window, that update included, moves to the fallback smoother, where the provisional factors
+    are found again (by identity), so the later re-attachment to the closed-form alignment still
+    moves them."""
+    opts = FixedLagOptions(factorization="QR", fallback_factorization="CHOLESKY", startup_qr_s=0)
+    r = FixedLagRunner(two_turns_12s, opts)
+    real_update = r.smoother.update
+    fail = {"armed": False}
+
+    def failing_update(graph, values, stamps, remove=None):
+        result = real_update(graph, values, stamps, remove)
+        if fail["armed"]:
+            raise RuntimeError("simulated failure after the update")
+        return result
+
+    r.smoother.update = failing_update
+
+    def registered() -> int:
+        return sum(len(rows) for rows in r.provisional_factors.values())
+
+    for _ in range(19):
+        r.step()
+    before = registered()
+    assert before > 0  # the provisional phase (hover)
+    fail["armed"] = True
+    r.step()
+    assert r.n_fallbacks == 1 and r.n_failures == 0 and r.factorization == "CHOLESKY"
+    assert registered() > before
+    factors = r.smoother.getFactors()
+    for rows in r.provisional_factors.values():
+        for idx, k, _ in rows:
+            assert X(k) in factors.at(idx).keys()
+    est = r.run()
+    assert est.info["factorization_fallbacks"] == 1 and est.info["solver_failures"] == 0
+    assert not r.provisional_factors  # all re-attached once the closed-form alignment came

@@ -390,3 +390,25 @@ def test_fuzz_only_leaves_are_marginalised(seed):
         assert window == set(sm.isam.getLinearizationPoint().keys())
         assert set(sm._label) <= window
     assert sm.isam.marginalisations >= 4
+
+
+def test_held_keys_keep_their_linearisation_point():
+    """``hold_linearization``: the keys of marginal factors brought from another smoother are
+    never relinearised while in the window (iSAM2's own rule for its marginals); other keys
+    are."""
+    steps = _chain_problem(40, block_s=1.0)
+    p = _params()
+    p.setRelinearizeThreshold(1e-6)
+    p.relinearizeSkip = 1
+    held, free = gtsam.symbol("l", 0), gtsam.symbol("m", 0)
+    sm = TimeOrderedSmoother(10.0, p)
+    sm.hold_linearization([held])
+    first = {}
+    for i, (g, v, stamps, _) in enumerate(steps):
+        sm.update(g, v, stamps)
+        lp = sm.getLinearizationPoint()
+        if i == 0:
+            first = {k: lp.atPose3(k) for k in (held, free)}
+    lp = sm.getLinearizationPoint()
+    assert lp.atPose3(held).equals(first[held], 0.0)
+    assert not lp.atPose3(free).equals(first[free], 1e-6)
