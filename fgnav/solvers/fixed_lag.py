@@ -273,7 +273,9 @@ class FixedLagRunner:
             self._switch_to: str | None = self.options.factorization.upper()
         else:
             self._switch_to = None
-        self.smoother = self._new_smoother(self.factorization)
+        self.smoother: Any = None
+        self._theta_view: gtsam.Values | None = None
+        self._install(self._new_smoother(self.factorization))
         self.k_next = 0
         self.t_latest = -math.inf
         self.key_stamp: dict[int, float] = {}
@@ -713,21 +715,22 @@ class FixedLagRunner:
     def _new_smoother(self, factorization: str) -> Any:
         params = _isam2_params(self.options, self.builder.slow_dims(), factorization)
         if self.smoother_kind == "gtsam":
-            s = gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
-            # A Python view of its linearisation point: the CustomFactor callbacks then get this
-            # registered object instead of a copy of the window (see window.py). Only the
-            # newest smoother's view is kept (a smoother that is not used only loses speed).
-            self._theta_view = s.getLinearizationPoint()
-            return s
+            return gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
         return TimeOrderedSmoother(self.options.lag_s, params, self.options.fine_levels)
 
-    def _fold_window_stats(self) -> None:
-        """Add the current time-ordered smoother's counters to ``window_stats`` (before it is
-        replaced; the counters restart with the new one)."""
+    def _install(self, smoother: Any) -> None:
+        """Make ``smoother`` the current one: the replaced one's window counters go into
+        ``window_stats``. For ``IncrementalFixedLagSmoother`` keep a Python view of its
+        linearisation point, so the CustomFactor callbacks get that registered object instead of
+        a copy of the window (``TimeOrderedSmoother`` keeps its own, see window.py)."""
         for name in self.window_stats:
             self.window_stats[name] += getattr(self.smoother, name, 0)
-            if hasattr(self.smoother, name):
-                setattr(self.smoother, name, 0)
+        self.smoother = smoother
+        self._theta_view = (
+            smoother.getLinearizationPoint()
+            if isinstance(smoother, gtsam.IncrementalFixedLagSmoother)
+            else None
+        )
 
     def _switch_factorization(self, factorization: str) -> bool:
         """Move the window into a fresh smoother with another factorization, losslessly: the same
@@ -771,8 +774,7 @@ class FixedLagRunner:
                 self.factorization,
             )
             return False
-        self._fold_window_stats()
-        self.smoother = smoother
+        self._install(smoother)
         self.factorization = factorization
         self.provisional_factors = {
             sess: [(new_index[i], k, row) for i, k, row in rows if i in new_index]
@@ -791,8 +793,7 @@ class FixedLagRunner:
                 "fixed-lag: %s failed; the rebuilt smoother uses %s", self.factorization, fb
             )
             self.factorization = fb
-        self._fold_window_stats()
-        self.smoother = self._new_smoother(self.factorization)
+        self._install(self._new_smoother(self.factorization))
         self.provisional_factors = {}
         self._reattach = {}
         kg = self.newest_good_k

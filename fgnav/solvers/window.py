@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import re
 from collections import deque
+from collections.abc import Iterable
 from typing import Any
 
 import gtsam
@@ -76,6 +77,13 @@ def bayes_tree(
         elif m := _EDGE.match(line):
             children.setdefault(m.group(1), []).append(m.group(2))
     return frontals, separators, children
+
+
+def _key_list(keys: Iterable[int]) -> gtsam.KeyList:
+    out = gtsam.KeyList()
+    for k in keys:
+        out.push_back(k)
+    return out
 
 
 class TimeOrderedSmoother:
@@ -156,16 +164,8 @@ class TimeOrderedSmoother:
             self._in_order = False
             self._labelled_blocks = ()  # relabel every key at the next ordered update
             self.unordered_updates += 1
-        extra = None
-        if extra_keys:
-            extra = gtsam.KeyList()
-            for k in extra_keys:
-                extra.push_back(k)
-        held = None
-        if self._held:
-            held = gtsam.KeyList()
-            for k in self._held:
-                held.push_back(k)
+        extra = _key_list(extra_keys) if extra_keys else None
+        held = _key_list(self._held) if self._held else None
         self._result = self.isam.update(graph, values, list(remove or []), groups, held, extra)
         if remove:
             self._forget_unused()
@@ -299,10 +299,7 @@ class TimeOrderedSmoother:
         first = self._split_cliques_first(gone)
         for batch in (first, [k for k in gone if k not in first] if first else gone):
             if batch:
-                keys = gtsam.KeyList()
-                for k in batch:
-                    keys.push_back(k)
-                self.isam.marginalizeLeaves(keys)
+                self.isam.marginalizeLeaves(_key_list(batch))
         for b in old:
             del self._blocks[b]
         for k in gone:
@@ -352,11 +349,8 @@ class TimeOrderedSmoother:
         stamps again)."""
         self._labelled_blocks = ()
         self._relabel(0)
-        extra = gtsam.KeyList()
-        for k in self._stamp:
-            extra.push_back(k)
         # (the update's own result, with its new factor indices, stays the one reported)
         empty = gtsam.NonlinearFactorGraph()
-        self.isam.update(empty, gtsam.Values(), [], self._groups, None, extra)
+        self.isam.update(empty, gtsam.Values(), [], self._groups, None, _key_list(self._stamp))
         self._in_order = True
         self.reorders += 1
