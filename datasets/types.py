@@ -248,6 +248,45 @@ class SlamSeries(_Series):
         return self
 
 
+@dataclass(frozen=True, eq=False)
+class FlowSeries(_Series):
+    """Integrated optical flow of a downward flow sensor (PMW3901, PX4Flow, ARK Flow).
+
+    Convention (fgnav's own; readers convert to it): the sensor frame is given by
+    ``Calibration.body_T_flow`` (default ``DOWNWARD_FLOW``: x forward, y right, z down along the
+    optical axis, i.e. FRD for a level vehicle). ``flow`` is the image motion of the ground point
+    on the optical axis over the interval, in the sensor's x and y image directions, in units of
+    ``Calibration.flow_pixels_per_rad`` per radian (1.0 when the reader delivers radians). With
+    the sensor's velocity ``v`` and angular rate ``w`` in the sensor frame and ``d`` the distance
+    along the optical axis to the ground, the ideal reading is::
+
+        flow = pixels_per_rad * dt * [-v_x / d - w_y,  -v_y / d + w_x]
+
+    Attributes:
+        t: (N,) end time of each integration interval [s].
+        dt: (N,) integration interval [s] (> 0).
+        flow: (N, 2) integrated flow [px, or rad when ``flow_pixels_per_rad`` is 1].
+        quality: optional (N,) quality in [0, 1] (-1 when unknown).
+    """
+
+    t: np.ndarray
+    dt: np.ndarray
+    flow: np.ndarray
+    quality: np.ndarray | None = None
+
+    def check(self, name: str = "flow") -> FlowSeries:
+        _check_time(name, self.t)
+        _check_column(name, "dt", self.dt, len(self), None)
+        _check_column(name, "flow", self.flow, len(self), 2)
+        _check_column(name, "quality", self.quality, len(self), None, optional=True)
+        bad = np.flatnonzero(self.dt <= 0)
+        if bad.size:
+            raise FlightDataError(
+                f"{name}.dt: interval {self.dt[bad[0]]} s at sample {bad[0]}; intervals are > 0"
+            )
+        return self
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole camera with optional radial-tangential distortion (OpenCV order k1 k2 p1 p2 [k3]).
@@ -377,6 +416,9 @@ class Trajectory(_Series):
 DOWNWARD_RANGE = np.diag([1.0, -1.0, -1.0, 1.0])
 """Default ``body_T_range``: no lever arm, sensor +z (the beam) along body -z."""
 
+DOWNWARD_FLOW = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Default ``body_T_flow``: no lever arm, sensor x forward, y right, z (optical axis) down."""
+
 
 @dataclass(frozen=True)
 class ImuNoise:
@@ -407,6 +449,8 @@ class Calibration:
         camera: camera intrinsics, or None.
         imu_noise: IMU noise densities.
         range_min, range_max: valid rangefinder interval [m].
+        body_T_flow: 4x4 pose of the optical-flow sensor (see ``FlowSeries``).
+        flow_pixels_per_rad: flow units per radian of image motion (1.0 for radians).
         time_offsets: per-stream clock offsets [s] already applied by the reader (metadata).
     """
 
@@ -416,10 +460,12 @@ class Calibration:
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     range_min: float = 0.0
     range_max: float = float("inf")
+    body_T_flow: np.ndarray = field(default_factory=lambda: DOWNWARD_FLOW.copy())
+    flow_pixels_per_rad: float = 1.0
     time_offsets: dict[str, float] = field(default_factory=dict)
 
     def check(self, name: str = "calib") -> Calibration:
-        for f in ("body_T_cam", "body_T_range"):
+        for f in ("body_T_cam", "body_T_range", "body_T_flow"):
             T = np.asarray(getattr(self, f), dtype=float)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 raise FlightDataError(f"{name}.{f}: expected a finite 4x4 matrix, got {T.shape}")
@@ -428,12 +474,17 @@ class Calibration:
                 raise FlightDataError(f"{name}.{f}: rotation part is not a proper rotation")
             if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-12:
                 raise FlightDataError(f"{name}.{f}: last row must be [0, 0, 0, 1]")
+        if not (np.isfinite(self.flow_pixels_per_rad) and self.flow_pixels_per_rad > 0):
+            raise FlightDataError(
+                f"{name}.flow_pixels_per_rad: expected a positive number, got "
+                f"{self.flow_pixels_per_rad}"
+            )
         if self.camera is not None:
             self.camera.check(f"{name}.camera")
         return self
 
 
-STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "ground_truth")
+STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow", "ground_truth")
 
 
 @dataclass(frozen=True, eq=False)
@@ -443,7 +494,7 @@ class Flight:
     Attributes:
         name: short name.
         source: where it came from (file path, "simulator", ...).
-        imu, attitude, range, yaw, slam, images: sensor streams, each optional.
+        imu, attitude, range, yaw, slam, images, flow: sensor streams, each optional.
         ground_truth: reference body trajectory, optional (never used by estimators).
         references: other trajectories recorded in the log, e.g. ``{"px4_ekf2": Trajectory}``;
             they become baseline rows, never estimator inputs.
@@ -460,6 +511,7 @@ class Flight:
     yaw: YawSeries | None = None
     slam: SlamSeries | None = None
     images: ImageSeries | None = None
+    flow: FlowSeries | None = None
     ground_truth: Trajectory | None = None
     references: dict[str, Trajectory] = field(default_factory=dict)
     calib: Calibration = field(default_factory=Calibration)
