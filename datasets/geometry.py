@@ -119,30 +119,120 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) -> rotation matrix (Rodrigues)."""
+    """Rotation vector(s) (..., 3) -> rotation matrix(es) (..., 3, 3) (Rodrigues).
+
+    Near zero the coefficients use their Taylor series, so small rotations stay exact to
+    double precision.
+    """
     phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    K = skew(phi)
-    if angle < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * K @ K
+    angle = np.linalg.norm(phi, axis=-1)
+    small = angle < 1e-4
+    safe = np.where(small, 1.0, angle)
+    a2 = angle * angle
+    c1 = np.where(small, 1.0 - a2 / 6.0, np.sin(safe) / safe)
+    c2 = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    K = np.zeros(phi.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -z, y, -x
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = z, -y, x
+    return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> rotation vector (3,), angle in [0, pi]."""
+    """Rotation matrix(es) (..., 3, 3) -> rotation vector(s) (..., 3), angle in [0, pi]."""
     R = np.asarray(R, dtype=float)
-    cos_angle = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos_angle))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-8:
-        return 0.5 * w
-    if np.pi - angle < 1e-6:
-        # Near pi: axis from the largest diagonal element of (R + I) / 2.
-        B = (R + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(B)))
-        axis = B[:, i] / np.sqrt(B[i, i])
-        return angle * axis / np.linalg.norm(axis)
-    return angle / (2.0 * np.sin(angle)) * w
+    cos_angle = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.arccos(cos_angle)
+    w = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )
+    small = angle < 1e-8
+    f = np.where(small, 0.5, angle / (2.0 * np.sin(np.where(small, 1.0, angle))))
+    out = f[..., None] * w
+    near_pi = np.pi - angle < 1e-6
+    if np.any(near_pi):
+        # Near pi: axis from the largest diagonal element of (R + I) / 2, sign from w.
+        flat_R, flat_out = R.reshape(-1, 3, 3), out.reshape(-1, 3)
+        for i in np.flatnonzero(near_pi.reshape(-1)):
+            B = (flat_R[i] + np.eye(3)) / 2.0
+            j = int(np.argmax(np.diag(B)))
+            axis = B[:, j] / np.linalg.norm(B[:, j])
+            flat_out[i] = float(np.arccos(np.clip((np.trace(flat_R[i]) - 1) / 2, -1, 1))) * axis
+        out = flat_out.reshape(out.shape)
+    return out
+
+
+def ordered_product(R: np.ndarray) -> np.ndarray:
+    """``R[0] @ R[1] @ ... @ R[-1]`` of a stack (N, 3, 3) by pairwise batched products (identity
+    for N = 0)."""
+    if len(R) == 0:
+        return np.eye(3)
+    while len(R) > 1:
+        if len(R) % 2:
+            R = np.concatenate([R, np.eye(3)[None]])
+        R = R[0::2] @ R[1::2]
+    return R[0]
+
+
+def rotation_mean(Rs: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations (N, 3, 3): SVD projection of their sum onto SO(3)."""
+    U, _, Vt = np.linalg.svd(np.sum(np.asarray(Rs, dtype=float), axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def slerp_rotations(t_src: np.ndarray, world_R_body: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Interpolate rotations (N, 3, 3) given at increasing ``t_src`` to ``t_query`` (geodesic
+    between neighbours; held at the ends)."""
+    t_query = np.clip(np.asarray(t_query, dtype=float), t_src[0], t_src[-1])
+    if len(t_src) == 1:
+        return np.broadcast_to(world_R_body[0], (len(t_query), 3, 3)).copy()
+    j = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
+    a = (t_query - t_src[j]) / (t_src[j + 1] - t_src[j])
+    Ri = world_R_body[j]
+    rel = so3_log(np.transpose(Ri, (0, 2, 1)) @ world_R_body[j + 1])
+    return Ri @ so3_exp(a[:, None] * rel)
+
+
+def slerp_wxyz(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation of (N, 4) unit quaternions ``[w, x, y, z]`` at ``u``.
+
+    The shorter arc is taken (``q1`` is sign-flipped when ``q0 . q1 < 0``).
+    """
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    u = np.asarray(u, dtype=float)[:, None]
+    dot = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(dot < 0.0, -q1, q1)
+    dot = np.clip(np.abs(dot), 0.0, 1.0)
+    theta = np.arccos(dot)
+    sin_theta = np.sin(theta)
+    small = sin_theta < 1e-9
+    safe = np.where(small, 1.0, sin_theta)
+    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / safe)
+    w1 = np.where(small, u, np.sin(u * theta) / safe)
+    q = w0 * q0 + w1 * q1
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def interpolate_quat_wxyz(t: np.ndarray, q_wxyz: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Normalised linear interpolation of unit quaternions (sign-aligned), clamped at the ends.
+
+    Args:
+        t: (N,) sample times [s], increasing.
+        q_wxyz: (N, 4) quaternions ``[w, x, y, z]``.
+        t_query: (M,) query times [s].
+
+    Returns:
+        (M, 4) unit quaternions.
+    """
+    q = np.array(q_wxyz, dtype=float)
+    flip = np.sum(q[1:] * q[:-1], axis=1) < 0
+    sign = np.concatenate([[1.0], np.cumprod(np.where(flip, -1.0, 1.0))])
+    q *= sign[:, None]
+    out = np.stack([np.interp(t_query, t, q[:, i]) for i in range(4)], axis=1)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
 def yaw_of(world_R_body: np.ndarray) -> np.ndarray:
@@ -159,15 +249,33 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     return np.where(w == -np.pi, np.pi, w)
 
 
-def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """ZYX Euler angles (rad) -> rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+def rpy_to_matrix(roll, pitch, yaw) -> np.ndarray:
+    """ZYX Euler angles (rad; scalars or arrays that broadcast) -> ``Rz(yaw) Ry(pitch) Rx(roll)``
+    of shape (..., 3, 3)."""
+    roll, pitch, yaw = np.broadcast_arrays(*(np.asarray(v, float) for v in (roll, pitch, yaw)))
     cr, sr = np.cos(roll), np.sin(roll)
     cp, sp = np.cos(pitch), np.sin(pitch)
     cy, sy = np.cos(yaw), np.sin(yaw)
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return Rz @ Ry @ Rx
+    R = np.empty(roll.shape + (3, 3))
+    R[..., 0, 0] = cy * cp
+    R[..., 0, 1] = cy * sp * sr - sy * cr
+    R[..., 0, 2] = cy * sp * cr + sy * sr
+    R[..., 1, 0] = sy * cp
+    R[..., 1, 1] = sy * sp * sr + cy * cr
+    R[..., 1, 2] = sy * sp * cr - cy * sr
+    R[..., 2, 0] = -sp
+    R[..., 2, 1] = cp * sr
+    R[..., 2, 2] = cp * cr
+    return R
+
+
+def matrix_to_rpy(world_R_body: np.ndarray) -> np.ndarray:
+    """ZYX ``(roll, pitch, yaw)`` [rad] (..., 3) of rotation matrix(es) (..., 3, 3)."""
+    R = np.asarray(world_R_body, dtype=float)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:

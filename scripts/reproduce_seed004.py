@@ -20,9 +20,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from fgnav.datasets.geometry import interpolate_quat_wxyz
 from fgnav.datasets.simulate import SimOptions, simulate
 
-from fgnav.frontends.attitude_ekf import interpolate_quat_wxyz
 from fgnav.frontends.ii_observer import (
     IIObserverOptions,
     run_ii_observer,

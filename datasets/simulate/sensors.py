@@ -37,11 +37,6 @@ def sample_indices(opts: SimOptions, rate_hz: float, n: int) -> np.ndarray:
     return idx[idx < n]
 
 
-def _exp_stack(phi: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors -> (N, 3, 3) rotations."""
-    return np.stack([so3_exp(p) for p in phi]) if len(phi) else np.zeros((0, 3, 3))
-
-
 # ---------------------------------------------------------------------------------------------
 # IMU
 # ---------------------------------------------------------------------------------------------
@@ -105,7 +100,7 @@ def simulate_attitude(
     R = vehicle.world_R_body[idx]
     sigma = 0.0 if opts.noise_free else opts.attitude_noise_rad
     if sigma > 0:
-        R = R @ _exp_stack(rng.normal(0.0, sigma, (len(idx), 3)))
+        R = R @ so3_exp(rng.normal(0.0, sigma, (len(idx), 3)))
     return AttitudeSeries(vehicle.t[idx].copy(), matrix_to_quat_wxyz(R))
 
 
@@ -298,7 +293,7 @@ def simulate_slam(
         if not noise_free and opts.slam_noise_m > 0:
             world_t_cam = world_t_cam + rng.normal(0.0, opts.slam_noise_m, world_t_cam.shape)
         if not noise_free and opts.slam_rot_noise_rad > 0:
-            world_R_cam = world_R_cam @ _exp_stack(
+            world_R_cam = world_R_cam @ so3_exp(
                 rng.normal(0.0, opts.slam_rot_noise_rad, (len(idx), 3))
             )
         drift = 1.0 + truth.scale_drift_per_s * (t[idx] - truth.t_start)

@@ -101,7 +101,9 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
     GRAVITY,
     matrix_to_quat_wxyz,
+    matrix_to_rpy,
     quat_wxyz_to_matrix,
+    rotation_mean,
     rpy_to_matrix,
     wrap_angle,
 )
@@ -271,15 +273,6 @@ class Ekf004Options:
 # ----------------------------------------------------------------------------------------------
 
 
-def rpy_of(world_R_body: np.ndarray) -> np.ndarray:
-    """ZYX (roll, pitch, yaw) [rad] of (..., 3, 3) rotation matrices."""
-    R = np.asarray(world_R_body, dtype=float)
-    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
-    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
-    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
-    return np.stack([roll, pitch, yaw], axis=-1)
-
-
 def euler_rate_matrix(roll: float, pitch: float) -> np.ndarray:
     """``W`` with ``body_omega = W d(roll, pitch, yaw)/dt`` (ZYX); also maps a small Euler-angle
     error to the body rotation vector of GTSAM's right perturbation."""
@@ -339,7 +332,7 @@ def drag_model_velocity(
     implicit, stable at any step). The drag makes the initial value forgotten with time constant
     ``1/k``, so this metric velocity needs neither SLAM nor an initial velocity.
     """
-    rpy = rpy_of(world_R_body)
+    rpy = matrix_to_rpy(world_R_body)
     kx, ky = drag_k
     out = np.zeros((t.size, 2))
     x = np.zeros(N_STATE)
@@ -663,13 +656,6 @@ class _Session:
     fits: list[tuple[float, float]] = field(default_factory=list)
 
 
-def _mean_rotation(Rs: list[np.ndarray]) -> np.ndarray:
-    """Chordal L2 mean of rotations (SVD projection of the arithmetic mean)."""
-    U, _, Vt = np.linalg.svd(np.mean(Rs, axis=0))
-    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
-    return U @ D @ Vt
-
-
 class _MetricOdometry:
     """Metric camera displacements between two times, independent of SLAM: horizontal from the
     drag-model velocity driven by measured attitude, vertical from rangefinder heights."""
@@ -783,7 +769,7 @@ class Ekf004Runner:
         self.ekf = Ekf004(opt, body_T_cam[:3, 3])
         self.counts = self.ekf.counts
         self.odo = _MetricOdometry(flight, opt, body_T_cam[:3, 3], self.counts)
-        self.att_rpy = rpy_of(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz))
+        self.att_rpy = matrix_to_rpy(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz))
         self.sessions: dict[int, _Session] = {}
         self.history: list[_Entry] = []
         self.out_t: list[float] = []
@@ -907,7 +893,7 @@ class Ekf004Runner:
         if len(sess.rotations) < o.align_poses:
             world_R_cam = ekf.world_R_body() @ self.body_R_cam
             sess.rotations.append(world_R_cam @ slam_R_cam.T)
-            sess.world_R_slam = _mean_rotation(sess.rotations)
+            sess.world_R_slam = rotation_mean(np.asarray(sess.rotations))
         world_R_slam = sess.world_R_slam
         if self.scale_source == "ml":
             self._scale_pair(sess, t, p_sc)
@@ -919,7 +905,7 @@ class Ekf004Runner:
         world_t_cam = sess.anchor_world + world_R_slam @ (p_sc - sess.anchor_slam) / sess.scale
         rpy = None
         if o.use_slam_angles and len(sess.rotations) >= o.align_poses:
-            rpy = rpy_of(world_R_slam @ slam_R_cam @ self.body_R_cam.T)
+            rpy = matrix_to_rpy(world_R_slam @ slam_R_cam @ self.body_R_cam.T)
         return world_t_cam, rpy
 
     def _scale_imu_fit(self, sess: _Session, t: float, p_sc: np.ndarray) -> None:

@@ -118,7 +118,10 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
     GRAVITY,
     matrix_to_quat_wxyz,
+    matrix_to_rpy,
     quat_wxyz_to_matrix,
+    rpy_to_matrix,
+    so3_exp,
     so3_log,
     wrap_angle,
 )
@@ -257,50 +260,12 @@ class Ukf003Counts:
 
 def euler_to_matrix(phi: np.ndarray) -> np.ndarray:
     """(M, 3) ``(yaw, pitch, roll)`` -> (M, 3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    cy, sy = np.cos(phi[:, 0]), np.sin(phi[:, 0])
-    cp, sp = np.cos(phi[:, 1]), np.sin(phi[:, 1])
-    cr, sr = np.cos(phi[:, 2]), np.sin(phi[:, 2])
-    R = np.empty((len(phi), 3, 3))
-    R[:, 0, 0] = cy * cp
-    R[:, 0, 1] = cy * sp * sr - sy * cr
-    R[:, 0, 2] = cy * sp * cr + sy * sr
-    R[:, 1, 0] = sy * cp
-    R[:, 1, 1] = sy * sp * sr + cy * cr
-    R[:, 1, 2] = sy * sp * cr - cy * sr
-    R[:, 2, 0] = -sp
-    R[:, 2, 1] = cp * sr
-    R[:, 2, 2] = cp * cr
-    return R
+    return rpy_to_matrix(phi[:, 2], phi[:, 1], phi[:, 0])
 
 
 def matrix_to_euler(R: np.ndarray) -> np.ndarray:
     """(M, 3, 3) rotations -> (M, 3) ``(yaw, pitch, roll)`` (ZYX)."""
-    yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
-    pitch = -np.arcsin(np.clip(R[:, 2, 0], -1.0, 1.0))
-    roll = np.arctan2(R[:, 2, 1], R[:, 2, 2])
-    return np.stack([yaw, pitch, roll], axis=1)
-
-
-def _exp_rows(w: np.ndarray) -> np.ndarray:
-    """(M, 3) rotation vectors -> (M, 3, 3) rotations (Rodrigues, series near zero)."""
-    a = np.linalg.norm(w, axis=1)
-    small = a < 1e-8
-    a_safe = np.where(small, 1.0, a)
-    c1 = np.where(small, 1.0 - a**2 / 6.0, np.sin(a_safe) / a_safe)
-    c2 = np.where(small, 0.5 - a**2 / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    return np.eye(3) + c1[:, None, None] * K + c2[:, None, None] * (K @ K)
-
-
-def _log_rows(R: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) rotations (small angles, < pi/2) -> (M, 3) rotation vectors."""
-    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    a = np.arccos(c)
-    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
-    f = np.where(a < 1e-8, 0.5, a / (2.0 * np.sin(np.where(a < 1e-8, 1.0, a))))
-    return f[:, None] * w
+    return matrix_to_rpy(R)[:, ::-1]
 
 
 def euler_rate_matrix(phi: np.ndarray) -> np.ndarray:
@@ -451,7 +416,7 @@ class Ukf003:
             a_w[:, 2] -= GRAVITY
             p += v_w * dt + 0.5 * dt * dt * a_w
             v_w = v_w + a_w * dt
-            R = R @ _exp_rows((omega - bg) * dt)
+            R = R @ so3_exp((omega - bg) * dt)
         Y = X.copy()
         Y[:, IP : IP + 3] = p
         phi1 = matrix_to_euler(R)
@@ -672,12 +637,12 @@ class Ukf003:
             # The SLAM poses' noise: slam_t = t + e, slam_R = R Exp(rho), a = R^T e per image.
             a_j = np.einsum("mij,mj->mi", Rrel, X[:, c + 6 : c + 9])
             t_cam = X[:, 24:25] * (body_d @ R_bc) + a_j - X[:, 6:9]
-            E_i = _exp_rows(-X[:, 9:12])
+            E_i = so3_exp(-X[:, 9:12])
             # Predicted minus measured displacement in camera i [SLAM units] (z = 0).
             zt = np.einsum("mij,mj->mi", E_i, t_cam) - z_t
             if not rot:
                 return zt
-            return np.concatenate([zt, _log_rows(E_i @ Rrel @ _exp_rows(X[:, c + 9 : c + 12]))], 1)
+            return np.concatenate([zt, so3_log(E_i @ Rrel @ so3_exp(X[:, c + 9 : c + 12]))], 1)
 
         s = self.x[IS]
         var_t = (

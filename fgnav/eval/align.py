@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import matrix_to_quat_wxyz
+from fgnav.datasets.geometry import matrix_to_quat_wxyz, slerp_wxyz
 from fgnav.datasets.types import Trajectory
 
 logger = logging.getLogger(__name__)
@@ -215,27 +215,6 @@ def align(est_xyz: np.ndarray, gt_xyz: np.ndarray, mode: str = "se3") -> Alignme
 # ----------------------------------------------------------------------------------------------
 # Time association
 # ----------------------------------------------------------------------------------------------
-
-
-def slerp_wxyz(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Spherical linear interpolation of (N, 4) unit quaternions ``[w, x, y, z]`` at ``u``.
-
-    The shorter arc is taken (``q1`` is sign-flipped when ``q0 . q1 < 0``).
-    """
-    q0 = np.asarray(q0, dtype=float)
-    q1 = np.asarray(q1, dtype=float)
-    u = np.asarray(u, dtype=float)[:, None]
-    dot = np.sum(q0 * q1, axis=1, keepdims=True)
-    q1 = np.where(dot < 0.0, -q1, q1)
-    dot = np.clip(np.abs(dot), 0.0, 1.0)
-    theta = np.arccos(dot)
-    sin_theta = np.sin(theta)
-    small = sin_theta < 1e-9
-    safe = np.where(small, 1.0, sin_theta)
-    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / safe)
-    w1 = np.where(small, u, np.sin(u * theta) / safe)
-    q = w0 * q0 + w1 * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 @dataclass(frozen=True, eq=False)

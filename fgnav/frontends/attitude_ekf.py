@@ -52,7 +52,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import GRAVITY, quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.geometry import (
+    GRAVITY,
+    interpolate_quat_wxyz,
+    quat_wxyz_to_matrix,
+    wrap_angle,
+    yaw_of,
+)
 from fgnav.datasets.types import AttitudeSeries, Flight
 
 log = logging.getLogger(__name__)
@@ -245,25 +251,6 @@ class AttitudeHeightResult:
     def height_at(self, t: np.ndarray) -> np.ndarray:
         """Height [m] at times ``t`` [s] by linear interpolation."""
         return np.interp(np.atleast_1d(t), self.t, self.height)
-
-
-def interpolate_quat_wxyz(t: np.ndarray, q_wxyz: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    """Normalised linear interpolation of unit quaternions (sign-aligned), clamped at the ends.
-
-    Args:
-        t: (N,) sample times [s], increasing.
-        q_wxyz: (N, 4) quaternions ``[w, x, y, z]``.
-        t_query: (M,) query times [s].
-
-    Returns:
-        (M, 4) unit quaternions.
-    """
-    q = np.array(q_wxyz, dtype=float)
-    flip = np.sum(q[1:] * q[:-1], axis=1) < 0
-    sign = np.concatenate([[1.0], np.cumprod(np.where(flip, -1.0, 1.0))])
-    q *= sign[:, None]
-    out = np.stack([np.interp(t_query, t, q[:, i]) for i in range(4)], axis=1)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
 class AttitudeHeightEkf:

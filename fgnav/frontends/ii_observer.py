@@ -73,10 +73,10 @@ from typing import Literal
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.geometry import interpolate_quat_wxyz, quat_wxyz_to_matrix
 from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.frontends.attitude_ekf import GRAVITY, interpolate_quat_wxyz
+from fgnav.frontends.attitude_ekf import GRAVITY
 
 log = logging.getLogger(__name__)
 

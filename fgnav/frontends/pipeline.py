@@ -25,8 +25,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.geometry import interpolate_quat_wxyz
 from fgnav.datasets.types import Flight
-from fgnav.frontends.attitude_ekf import interpolate_quat_wxyz, run_attitude_ekf
+from fgnav.frontends.attitude_ekf import run_attitude_ekf
 from fgnav.frontends.priors import (
     FrontendPriors,
     combine_priors,

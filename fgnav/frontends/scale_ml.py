@@ -382,7 +382,7 @@ def estimate_scale(pairs: ScalePairs, options: MLScaleOptions | None = None) -> 
 
 def attitude_at(t_query: np.ndarray, t: np.ndarray, world_q_body_wxyz: np.ndarray) -> np.ndarray:
     """Convenience: attitude quaternions at ``t_query`` (normalised linear interpolation)."""
-    from fgnav.frontends.attitude_ekf import interpolate_quat_wxyz
+    from fgnav.datasets.geometry import interpolate_quat_wxyz
 
     return interpolate_quat_wxyz(t, world_q_body_wxyz, np.asarray(t_query, float))
 

@@ -36,7 +36,7 @@ import gtsam
 import numpy as np
 
 from fgnav.datasets.errors import FgnavError, FlightDataError
-from fgnav.datasets.geometry import GRAVITY, wrap_angle
+from fgnav.datasets.geometry import GRAVITY, slerp_rotations, wrap_angle
 from fgnav.datasets.types import Flight, ImuSeries
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
@@ -323,7 +323,7 @@ class GraphBuilder:
             )
         else:
             self.R_imu = attitude_track(self.imu, flight.attitude, self.imu.t, self._initial_yaw())
-        self.R_kf = _interp_rotations(self.imu.t, self.R_imu, self.t_kf)
+        self.R_kf = slerp_rotations(self.imu.t, self.R_imu, self.t_kf)
         self._prepare_slam()
         self._prepare_range()
         self._prepare_yaw()
@@ -1305,12 +1305,6 @@ def _reason_tag(reason: str) -> str:
             head = head[:i]
             break
     return "-".join(head.split()) or "other"
-
-
-def _interp_rotations(t_src: np.ndarray, R: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    from fgnav.solvers.measurements import slerp_rotations
-
-    return slerp_rotations(t_src, R, t_query)
 
 
 def _fill_positions(pos: np.ndarray, t: np.ndarray) -> np.ndarray:

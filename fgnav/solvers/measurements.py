@@ -13,7 +13,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix, so3_exp, so3_log
+from fgnav.datasets.geometry import (
+    ordered_product,
+    quat_wxyz_to_matrix,
+    rotation_mean,
+    rpy_to_matrix,
+    slerp_rotations,
+    so3_exp,
+    so3_log,
+    yaw_of,
+)
 from fgnav.datasets.types import AttitudeSeries, ImuSeries, SlamSeries
 
 log = logging.getLogger(__name__)
@@ -150,54 +159,6 @@ def mean_in_windows(
 # ----------------------------------------------------------------------------------------------
 
 
-def _so3_exp_batch(phi: np.ndarray) -> np.ndarray:
-    """Rotation vectors (N, 3) -> rotation matrices (N, 3, 3) (Rodrigues, vectorised)."""
-    angle = np.linalg.norm(phi, axis=1)
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
-    K = np.zeros((len(phi), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
-
-
-def _ordered_product(R: np.ndarray) -> np.ndarray:
-    """``R[0] @ R[1] @ ... @ R[-1]`` of a stack (N, 3, 3) by pairwise batched products (identity
-    for N = 0)."""
-    if len(R) == 0:
-        return np.eye(3)
-    while len(R) > 1:
-        if len(R) % 2:
-            R = np.concatenate([R, np.eye(3)[None]])
-        R = R[0::2] @ R[1::2]
-    return R[0]
-
-
-def _so3_log_batch(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) -> rotation vectors (N, 3); angles below pi - 1e-6 (the
-    relative rotations between neighbouring samples interpolated here are small)."""
-    cos_angle = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos_angle)
-    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
-    small = angle < 1e-8
-    f = np.where(small, 0.5, angle / (2.0 * np.sin(np.where(small, 1.0, angle))))
-    return f[:, None] * w
-
-
-def slerp_rotations(t_src: np.ndarray, world_R_body: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    """Interpolate rotations (N, 3, 3) given at ``t_src`` to ``t_query`` (held at the ends)."""
-    t_query = np.clip(np.asarray(t_query, dtype=float), t_src[0], t_src[-1])
-    if len(t_src) == 1:
-        return np.broadcast_to(world_R_body[0], (len(t_query), 3, 3)).copy()
-    j = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
-    a = (t_query - t_src[j]) / (t_src[j + 1] - t_src[j])
-    Ri = world_R_body[j]
-    rel = _so3_log_batch(np.transpose(Ri, (0, 2, 1)) @ world_R_body[j + 1])
-    return Ri @ _so3_exp_batch(a[:, None] * rel)
-
-
 def level_rotation_from_accel(body_accel: np.ndarray, yaw: float = 0.0) -> np.ndarray:
     """``world_R_body`` whose roll/pitch put the mean specific force ``body_accel`` (3,) along world
     +z (quasi-static vehicle), with the given yaw [rad]."""
@@ -252,8 +213,6 @@ def attitude_from_slam(
     that the first query's yaw is ``initial_yaw``. Used when the flight has no attitude stream
     (a gyro integrated over minutes drifts with its bias: EuRoC's ADIS16448 about 0.08 rad/s).
     """
-    from fgnav.datasets.geometry import yaw_of
-
     m = slam.session == slam.session[0]
     t_s = slam.t[m]
     body_R_cam = body_T_cam[:3, :3]
@@ -283,7 +242,7 @@ def gyro_bias_from_slam(
     body_R_cam = body_T_cam[:3, :3]
     R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
     # Rotation of each IMU sample over its interval (the last sample has none).
-    steps = _so3_exp_batch(imu.body_omega[:-1] * np.diff(imu.t)[:, None])
+    steps = so3_exp(imu.body_omega[:-1] * np.diff(imu.t)[:, None])
     est = []
     i = 0
     n = len(slam)
@@ -295,7 +254,7 @@ def gyro_bias_from_slam(
             dR = body_R_cam @ R_cam[i].T @ R_cam[j] @ body_R_cam.T
             k0 = int(np.searchsorted(imu.t, slam.t[i], side="right")) - 1
             k1 = int(np.searchsorted(imu.t, slam.t[j], side="right")) - 1
-            G = _ordered_product(steps[k0:k1])
+            G = ordered_product(steps[k0:k1])
             est.append(-so3_log(G.T @ dR) / (imu.t[k1] - imu.t[k0]))
         i = j
     if not est:
@@ -338,13 +297,6 @@ class SlamAlignmentInit:
     n_pairs: int
     excitation: float
     scale_rel_se: float = float("nan")
-
-
-def rotation_mean(Rs: np.ndarray) -> np.ndarray:
-    """Chordal mean of rotations (N, 3, 3)."""
-    U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def world_specific_accel(imu: ImuSeries, world_R_body: np.ndarray, gravity: float) -> np.ndarray:

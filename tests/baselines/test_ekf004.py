@@ -9,7 +9,13 @@ import math
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix, so3_exp, so3_log
+from fgnav.datasets.geometry import (
+    matrix_to_rpy,
+    quat_wxyz_to_matrix,
+    rpy_to_matrix,
+    so3_exp,
+    so3_log,
+)
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import Flight
 
@@ -24,7 +30,6 @@ from fgnav.baselines.ekf004 import (
     drag_model_velocity,
     euler_rate_matrix,
     horizontal_accel,
-    rpy_of,
     run_ekf004,
 )
 from fgnav.eval.metrics import evaluate
@@ -104,13 +109,13 @@ def test_pose_cov_maps_euler_errors_to_body_rotation():
     np.testing.assert_allclose(C[3:, 3:], R.T @ ekf.P[:3, :3] @ R)
 
 
-def test_rpy_of_inverts_rpy_to_matrix():
+def test_matrix_to_rpy_inverts_rpy_to_matrix():
     rng = np.random.default_rng(2)
     for _ in range(10):
         rpy = rng.uniform([-1, -1.2, -3], [1, 1.2, 3])
-        np.testing.assert_allclose(rpy_of(rpy_to_matrix(*rpy)), rpy, atol=1e-12)
+        np.testing.assert_allclose(matrix_to_rpy(rpy_to_matrix(*rpy)), rpy, atol=1e-12)
     R = so3_exp([0.1, 0.2, 0.3])
-    np.testing.assert_allclose(rpy_to_matrix(*rpy_of(R)), R, atol=1e-12)
+    np.testing.assert_allclose(rpy_to_matrix(*matrix_to_rpy(R)), R, atol=1e-12)
 
 
 def test_selection_update_equals_generic_update():

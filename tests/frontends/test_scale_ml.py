@@ -150,9 +150,9 @@ def test_pairs_from_flight_per_session_vertical_and_xyz():
 def test_simulated_vertical_flight_scale():
     """Seed 004's vertical experiment on the simulator: rangefinder height pairs every second.
     Measured (seed 0): 8 % after 2 s, 1.3 % after 5 s, 0.2-0.9 % from 6 s on."""
+    from fgnav.datasets.geometry import interpolate_quat_wxyz
     from fgnav.datasets.simulate import SimOptions, simulate
 
-    from fgnav.frontends.attitude_ekf import interpolate_quat_wxyz
     from fgnav.frontends.ii_observer import vertical_velocity_from_range
 
     flight = simulate("vertical", 0, SimOptions(images=False, duration=20.0))
