@@ -108,7 +108,11 @@ class GraphOptions:
         slam_rotation: also use the SLAM orientation (fixes the yaw of the SLAM frame).
         slam_rot_sigma: SLAM orientation noise [rad].
         slam_segment_s: length of a SLAM-alignment segment [s] (random walk between segments:
-            monocular scale drifts).
+            monocular scale drifts). Segments are counted from the session's first pose; a
+            segment without a pose (a SLAM pause) has no variable, and the next segment's
+            random walk runs from the last segment that has one over the whole elapsed time
+            (sigma grows with the square root of the gap), so a pause of any length is no
+            error and a long pause widens the walk by itself.
         slam_scale_rw: relative scale random walk [1/sqrt(s)].
         slam_rot_rw: rotation random walk of the SLAM frame [rad/sqrt(s)].
         slam_trans_rw_m: origin random walk of the SLAM frame [m/sqrt(s)].
@@ -429,6 +433,7 @@ class GraphBuilder:
         self.slam_assoc = None
         self.slam_sessions: list[int] = []
         self.slam_chain: np.ndarray | None = None
+        self.slam_chain_prev: dict[int, tuple[int, int]] = {}
         if not self.use_slam:
             return
         slam = self.flight.slam
@@ -463,6 +468,14 @@ class GraphBuilder:
             key = (int(slam.session[i]), int(c)) if self.slam_model == "sim3" else (0, int(c))
             if key not in self.slam_var:
                 self.slam_var[key] = len(self.slam_var)
+        # Chain predecessor of each segment: the session's previous segment that has a pose
+        # (segments without one, SLAM pauses, are skipped), and the segments elapsed since it.
+        last: dict[int, tuple[int, int]] = {}
+        for (sess, seg), j in sorted(self.slam_var.items()):
+            if sess in last:
+                seg_prev, j_prev = last[sess]
+                self.slam_chain_prev[j] = (j_prev, seg - seg_prev)
+            last[sess] = (seg, j)
 
     def _interp_stream(self, t: np.ndarray, x: np.ndarray, name: str) -> tuple[np.ndarray, ...]:
         """Linear interpolation of a scalar stream to the keyframe times from the two samples
@@ -1004,10 +1017,15 @@ class GraphBuilder:
         if j == 0:
             return None
         if c == "s":
-            inv = {v: kk for kk, v in self.slam_var.items()}
-            sess, seg = inv[j]
-            return None if seg == 0 else S(self.slam_var[(sess, seg - 1)])
+            prev = self.slam_chain_prev.get(j)
+            return None if prev is None else S(prev[0])
         return gtsam.symbol(c, j - 1)
+
+    def slam_walk_s(self, key: int) -> float:
+        """Time the random walk of a SLAM-alignment key runs over [s]: one segment, or every
+        segment since the chain's previous variable across a SLAM pause."""
+        prev = self.slam_chain_prev.get(int(gtsam.Symbol(key).index()))
+        return self.options.slam_segment_s * (prev[1] if prev is not None else 1)
 
     def slow_factors(
         self,
@@ -1063,7 +1081,7 @@ class GraphBuilder:
             else:
                 # Relative random walk of every axis (the same drift as the Sim(3) scale) and an
                 # origin walk of slam_trans_rw_m metres.
-                dt = math.sqrt(o.slam_segment_s)
+                dt = math.sqrt(self.slam_walk_s(key))
                 sig = np.r_[
                     o.slam_scale_rw * dt * np.abs(a[:3]), [o.slam_trans_rw_m * dt * k_max] * 3
                 ]
@@ -1081,7 +1099,7 @@ class GraphBuilder:
                     gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig))
                 )
             else:
-                dt = math.sqrt(o.slam_segment_s)
+                dt = math.sqrt(self.slam_walk_s(key))
                 # Similarity3 tangent [omega, u, lambda]; u is the GTSAM translation t / s... in
                 # world-scaled units (t = slam_t_world / s) [m].
                 sig = np.array(
