@@ -409,6 +409,31 @@ def truth_slam_scale_at(flight: Flight) -> dict[int, Callable[[np.ndarray], np.n
     return out
 
 
+def score_estimate(
+    flight: Flight,
+    est: Estimate,
+    alignment: str = "se3",
+    delta_m: float = DEFAULT_RPE_DELTA_M,
+) -> Metrics | None:
+    """Score ``est`` against the flight's ground truth (None when it has none): ``alignment``
+    (DESIGN.md section 9), the true SLAM scale when the estimate has one. One scoring for
+    ``fgnav batch``/``online``, ``compare`` and ``fleet``.
+
+    Raises:
+        FgnavError: the estimate cannot be matched to the truth (see :func:`evaluate`).
+    """
+    if flight.ground_truth is None:
+        return None
+    return evaluate(
+        est,
+        flight.ground_truth,
+        alignment=alignment,
+        truth_scale=truth_slam_scales(flight)[0] if has_scale(est) else None,
+        delta_m=delta_m,
+        truth_scale_at=truth_slam_scale_at(flight),
+    )
+
+
 def compare(
     flight: Flight,
     methods: list[str] | None = None,
@@ -461,13 +486,8 @@ def compare(
                 log.warning("%s failed: %s", name, run.error)
         if run.ok and flight.ground_truth is not None:
             try:
-                run.metrics = evaluate(
-                    run.estimate,
-                    flight.ground_truth,
-                    alignment=method.alignment,
-                    truth_scale=res.truth_scale if has_scale(run.estimate) else None,
-                    delta_m=res.rpe_delta_m,
-                    truth_scale_at=truth_slam_scale_at(flight),
+                run.metrics = score_estimate(
+                    flight, run.estimate, method.alignment, delta_m=res.rpe_delta_m
                 )
             except Exception as e:  # scoring problems are reported per method
                 run.evaluation_error = f"{type(e).__name__}: {one_line(str(e))}"

@@ -167,41 +167,84 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     return options_from(cls, dict(table), source=f"config [{section}]", **overrides)
 
 
-def _graph_options(config: Mapping[str, Any]):
+def with_flags(config: Mapping[str, Any], **tables: Mapping[str, Any]) -> dict[str, Any]:
+    """A copy of ``config`` with command-line flags written into their tables; None values (flags
+    not given) leave the config's own value, e.g. ``with_flags(cfg, graph={"keyframe_hz": None})``.
+    """
+    out = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in config.items()}
+    for section, flags in tables.items():
+        given = {k: v for k, v in flags.items() if v is not None}
+        if given:
+            table = out.setdefault(section, {})
+            if not isinstance(table, dict):
+                raise MethodUnavailableError(f"config [{section}] must be a table")
+            table.update(given)
+    return out
+
+
+def graph_options(config: Mapping[str, Any]):
+    """:class:`~fgnav.solvers.graph.GraphOptions` from the ``[graph]`` table."""
     from fgnav.solvers.graph import GraphOptions
 
     return _options(GraphOptions, config, "graph")
 
 
-def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
-    """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` tables."""
-    from fgnav.solvers.batch import BatchOptions, LMOptions, solve_batch
+def batch_options(config: Mapping[str, Any]):
+    """:class:`~fgnav.solvers.batch.BatchOptions` from ``[graph]``, ``[lm]`` and ``[batch]``."""
+    from fgnav.solvers.batch import BatchOptions, LMOptions
 
-    opts = _options(
+    return _options(
         BatchOptions,
         config,
         "batch",
-        graph=_graph_options(config),
+        graph=graph_options(config),
         lm=_options(LMOptions, config, "lm"),
     )
-    return solve_batch(flight, opts, priors=_frontend_priors(flight, config), progress=progress)
+
+
+def fixed_lag_options(config: Mapping[str, Any]):
+    """:class:`~fgnav.solvers.fixed_lag.FixedLagOptions` from ``[graph]`` and ``[online]``."""
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    return _options(FixedLagOptions, config, "online", graph=graph_options(config))
+
+
+def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` and
+    ``[priors]`` tables."""
+    from fgnav.solvers.batch import solve_batch
+
+    opts = batch_options(config)
+    priors = frontend_priors(flight, config)
+    return _with_priors(solve_batch(flight, opts, priors=priors, progress=progress), priors)
 
 
 def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
-    """The online fixed-lag smoother (``fgnav online``) with ``[graph]`` and ``[online]``."""
-    from fgnav.solvers.fixed_lag import FixedLagOptions
+    """The online fixed-lag smoother (``fgnav online``) with ``[graph]``, ``[online]`` and
+    ``[priors]``."""
     from fgnav.solvers.fixed_lag import run_fixed_lag as _run
 
-    opts = _options(FixedLagOptions, config, "online", graph=_graph_options(config))
-    return _run(flight, opts, priors=_frontend_priors(flight, config), progress=progress)
+    opts = fixed_lag_options(config)
+    priors = frontend_priors(flight, config)
+    return _with_priors(_run(flight, opts, priors=priors, progress=progress), priors)
 
 
-def _frontend_priors(flight: Flight, config: Mapping[str, Any]):
-    """Front-end priors of the smoothers from the ``[priors]`` table (``sources``, ``drag_k``)."""
-    from fgnav.frontends.pipeline import frontend_priors
+def frontend_priors(flight: Flight, config: Mapping[str, Any]):
+    """Front-end priors of the smoothers from the ``[priors]`` table (``sources``, ``drag_k``);
+    None when no source is named."""
+    from fgnav.frontends.pipeline import frontend_priors as _priors
 
     table = config.get("priors", {})
-    return frontend_priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
+    return _priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
+
+
+def _with_priors(est: Estimate, priors: Any) -> Estimate:
+    """``info["frontend_priors"]`` (sources and SLAM scale) when front-end priors were used."""
+    if priors is None:
+        return est
+    return _with_info(
+        est, frontend_priors={"sources": priors.sources, "slam_scale": priors.slam_scale}
+    )
 
 
 def run_msf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:

@@ -1,7 +1,8 @@
 """``fgnav batch``: smooth a whole flight with the batch solver and write the estimate.
 
-Thin layer over :func:`fgnav.solvers.batch.solve_batch`. Options come from the ``[graph]``,
-``[lm]`` and ``[batch]`` tables of ``--config`` (fields of
+Thin layer over the ``batch`` method of :mod:`fgnav.methods` (which assembles the options and
+calls :func:`fgnav.solvers.batch.solve_batch`). Options come from the ``[graph]``, ``[lm]``,
+``[batch]`` and ``[priors]`` tables of ``--config`` with the flags written in (fields of
 :class:`~fgnav.solvers.graph.GraphOptions`, :class:`~fgnav.solvers.batch.LMOptions` and
 ``covariance`` / ``cov_pose_stride`` of :class:`~fgnav.solvers.batch.BatchOptions`). When the
 flight has ground truth, the estimate is scored (SE(3) alignment, printed) and the metrics go into
@@ -15,12 +16,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from fgnav.config import load_config, options_from
+from fgnav.config import load_config
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate
-from fgnav.solvers.batch import BatchOptions, LMOptions, solve_batch
-from fgnav.solvers.graph import GraphOptions
+from fgnav.eval.outputs import summary_extra
+from fgnav.methods import run_batch, with_flags
 
 HELP = "smooth a whole flight (batch solver)"
 
@@ -56,43 +57,34 @@ def add_priors_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def frontend_priors_from(args: argparse.Namespace, flight: Flight):
-    """Run the front-ends asked for by ``--priors`` / ``[priors]`` (None when none)."""
-    from fgnav.frontends.pipeline import frontend_priors
-
-    table = load_config(args.config, "priors")
-    sources = table.get("sources", [])
-    if args.priors is not None:
-        sources = [s.strip() for s in args.priors.split(",") if s.strip()]
-    return frontend_priors(flight, sources, drag_k=table.get("drag_k"))
+def priors_flag(args: argparse.Namespace) -> list[str] | None:
+    """``--priors a,b`` as a list (None when not given: ``[priors] sources`` applies)."""
+    if args.priors is None:
+        return None
+    return [s.strip() for s in args.priors.split(",") if s.strip()]
 
 
-def graph_options(args: argparse.Namespace) -> GraphOptions:
-    """``GraphOptions`` from the ``[graph]`` table and the flags."""
-    src = str(args.config or "flags")
-    return options_from(
-        GraphOptions, load_config(args.config, "graph"), source=src, keyframe_hz=args.keyframe_hz
+def method_config(args: argparse.Namespace, **tables: dict[str, Any]) -> dict[str, Any]:
+    """The ``--config`` tables with the flags written in (:func:`fgnav.methods.with_flags`):
+    ``--keyframe-hz`` into ``[graph]``, ``--priors`` into ``[priors]``, plus ``tables``."""
+    return with_flags(
+        load_config(args.config),
+        graph={"keyframe_hz": args.keyframe_hz},
+        priors={"sources": priors_flag(args)},
+        **tables,
     )
 
 
 def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, Any]) -> None:
     """Evaluate against the flight's ground truth when present, print a summary, write files."""
-    from fgnav.compare import truth_slam_scale_at, truth_slam_scales
-    from fgnav.eval.metrics import evaluate
+    from fgnav.compare import score_estimate
     from fgnav.eval.outputs import write_estimate
 
     metrics = None
-    if flight.ground_truth is not None:
-        try:
-            metrics = evaluate(
-                est,
-                flight.ground_truth,
-                alignment="se3",
-                truth_scale=truth_slam_scales(flight)[0],
-                truth_scale_at=truth_slam_scale_at(flight),
-            )
-        except FgnavError as e:  # the estimate is written all the same
-            log.warning("%s: not scored against ground truth: %s", est.method, e)
+    try:
+        metrics = score_estimate(flight, est)
+    except FgnavError as e:  # the estimate is written all the same
+        log.warning("%s: not scored against ground truth: %s", est.method, e)
     if metrics is not None:
         print(
             f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE (SE(3) alignment), "
@@ -119,24 +111,11 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
     flight = load_flight(args.flight)
-    src = str(args.config or "flags")
-    batch_table = load_config(args.config, "batch")
-    opts = options_from(
-        BatchOptions,
-        batch_table,
-        source=src,
-        graph=graph_options(args),
-        lm=options_from(LMOptions, load_config(args.config, "lm"), source=src),
-        covariance=args.covariance,
-    )
-    priors = frontend_priors_from(args, flight)
-    est = solve_batch(flight, opts, priors=priors, progress=not args.no_progress)
+    config = method_config(args, batch={"covariance": args.covariance})
+    est = run_batch(flight, config, progress=not args.no_progress)
     print(
         f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
         f"{est.runtime_s:.2f} s"
     )
-    extra = {"flight": flight.name, "command": "batch"}
-    if priors is not None:
-        extra["frontend_priors"] = {"sources": priors.sources, "slam_scale": priors.slam_scale}
-    score_and_write(flight, est, Path(args.out), extra)
+    score_and_write(flight, est, Path(args.out), summary_extra(flight.name, est, "batch"))
     return 0

@@ -1,8 +1,10 @@
 """``fgnav online``: run the fixed-lag smoother over a flight as if it were live.
 
-Thin layer over :func:`fgnav.solvers.fixed_lag.run_fixed_lag`. Options come from the ``[graph]``
-and ``[online]`` tables of ``--config`` (fields of :class:`~fgnav.solvers.graph.GraphOptions` and
-:class:`~fgnav.solvers.fixed_lag.FixedLagOptions`); ``--lag`` overrides. Prints the update latency
+Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assembles the options and
+calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
+``[online]`` and ``[priors]`` tables of ``--config`` (fields of
+:class:`~fgnav.solvers.graph.GraphOptions` and :class:`~fgnav.solvers.fixed_lag.FixedLagOptions`);
+``--lag`` overrides. Prints the update latency
 (p50/p99) and how many times faster than real time the run was; scores the causal trajectory when
 the flight has ground truth.
 """
@@ -14,14 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fgnav.commands.batch import (
-    add_priors_argument,
-    frontend_priors_from,
-    graph_options,
-    score_and_write,
-)
-from fgnav.config import load_config, options_from
-from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
+from fgnav.commands.batch import add_priors_argument, method_config, score_and_write
+from fgnav.eval.outputs import summary_extra
+from fgnav.methods import run_fixed_lag
 
 HELP = "run the online fixed-lag smoother over a flight"
 
@@ -42,15 +39,8 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
     flight = load_flight(args.flight)
-    opts = options_from(
-        FixedLagOptions,
-        load_config(args.config, "online"),
-        source=str(args.config or "flags"),
-        graph=graph_options(args),
-        lag_s=args.lag,
-    )
-    priors = frontend_priors_from(args, flight)
-    est = run_fixed_lag(flight, opts, priors=priors, progress=not args.no_progress)
+    config = method_config(args, online={"lag_s": args.lag})
+    est = run_fixed_lag(flight, config, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info
     print(
@@ -71,8 +61,5 @@ def run(args: argparse.Namespace) -> int:
         )
     if info["dropped"]:
         print(f"dropped measurements: {info['dropped']}")
-    extra = {"flight": flight.name, "command": "online"}
-    if priors is not None:
-        extra["frontend_priors"] = {"sources": priors.sources, "slam_scale": priors.slam_scale}
-    score_and_write(flight, est, Path(args.out), extra)
+    score_and_write(flight, est, Path(args.out), summary_extra(flight.name, est, "online"))
     return 0

@@ -125,6 +125,15 @@ def summary_dict(
     return to_jsonable(summary)
 
 
+def summary_extra(flight_name: str, estimate: Estimate, command: str) -> dict[str, Any]:
+    """``summary.json``'s ``extra`` of a command's run: flight name, command, and the front-end
+    priors the estimate used (``info["frontend_priors"]``)."""
+    extra: dict[str, Any] = {"flight": flight_name, "command": command}
+    if "frontend_priors" in estimate.info:
+        extra["frontend_priors"] = estimate.info["frontend_priors"]
+    return extra
+
+
 def write_estimate(
     estimate: Estimate,
     out_dir: str | Path,
