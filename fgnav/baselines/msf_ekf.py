@@ -38,6 +38,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import (
+    AttitudeSample,
+    Event,
+    ImuSample,
+    RangeReading,
+    SlamPose,
+    replay_flight,
+)
 from fgnav.datasets.geometry import (
     GRAVITY,
     matrix_to_quat_wxyz,
@@ -46,7 +54,14 @@ from fgnav.datasets.geometry import (
     so3_exp,
     so3_log,
 )
-from fgnav.datasets.types import Flight, Trajectory
+from fgnav.datasets.types import (
+    AttitudeSeries,
+    Calibration,
+    Flight,
+    ImuSeries,
+    SlamSeries,
+    Trajectory,
+)
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.solvers.measurements import gyro_bias_from_slam, level_rotation_from_accel
 
@@ -65,6 +80,12 @@ RESET_SCALE_REL_SIGMA = 0.5
 
 REINIT_GIVE_UP_S = 20.0
 """After a map reset, how long to wait for the closed-form scale before keeping the old one."""
+
+FIT_RETRY_S = 0.5
+"""Before the start, how often the closed-form scale fit is tried on the data that has arrived."""
+
+HISTORY_BEFORE_START_S = 40.0
+"""Before the start, how much of the arrived data is kept for the fit (longest window 32 s)."""
 
 # Chi-square quantiles (probability 0.999) for the gates, by measurement dimension.
 CHI2_999 = {1: 10.83, 3: 16.27, 6: 22.46}
@@ -348,8 +369,10 @@ def _scale_lsq(flight: Flight, j: np.ndarray, k: np.ndarray, t0: float) -> InitF
 class MsfEkf:
     """Error-state EKF, MSF style. See the module docstring for the model.
 
-    Use :meth:`run` on a flight; or drive it yourself with :meth:`initialize`,
-    :meth:`propagate` and the ``update_*`` methods.
+    Fed events in arrival order (:meth:`start`, then :meth:`feed` per event, :meth:`latest`,
+    :meth:`result`), as every fgnav estimator is; :meth:`run` replays a flight into it. The
+    filter starts once the data that has arrived fixes the SLAM scale. The primitives
+    (:meth:`initialize`, :meth:`propagate`, ``update_*``) can also be driven directly.
     """
 
     def __init__(self, options: MsfOptions | None = None) -> None:
@@ -548,40 +571,103 @@ class MsfEkf:
         return ok
 
     # ------------------------------------------------------------------------------------------
-    # Whole flight
+    # Event stream (the estimator never sees the flight; see fgnav.datasets.events)
     # ------------------------------------------------------------------------------------------
 
-    def run(self, flight: Flight) -> Estimate:
-        """Run over a flight in arrival order and return the causal estimate."""
-        o = self.opt
-        imu, slam = flight.imu, flight.slam
-        if imu is None or slam is None:
-            missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
-            raise FlightDataError(f"{flight.name}: MSF-EKF needs IMU and SLAM; missing {missing}")
-        calib = flight.calib
+    def start(self, calib: Calibration, name: str = "flight") -> None:
+        """Prepare to be fed events of a vehicle with calibration ``calib``."""
+        self._calib = calib
+        self._name = name
         self._body_T_range = np.asarray(calib.body_T_range, float)
-        use_range = o.use_range and flight.range is not None
-        wall0 = time.perf_counter()
+        self._hist = _History()
+        self._queue: list[Event] = []  # measurements that arrived after the newest IMU sample
+        self._imu_prev: ImuSample | None = None
+        self._snaps: list[tuple[int, _State]] = []  # (IMU sample index, state at that sample)
+        self._snap_times: list[float] = []
+        self._applied: list[tuple[float, object]] = []  # (time, update) fused within the buffer
+        self._session: int | None = None
+        self._pending: tuple[int, float] | None = None  # (new session, its first image time)
+        self._next_fit_try = -np.inf
+        self._next_out = np.inf
+        self._out_t: list[float] = []
+        self._out_x: list[_State] = []
+        self._lat: list[float] = []
+        self._scale_hist: tuple[list, list, list, list] = ([], [], [], [])
+        self._final_scales: dict[int, tuple[float, float]] = {}
+        self._t0 = time.perf_counter()
+        self._n_slam = 0
+        self._n_range_out = 0
 
-        # Start: with a given scale, at the first SLAM pose at rest-free zero velocity; else at the
-        # end of the first window whose closed-form fit determines the scale (causal start).
-        bg0 = np.zeros(3)
-        if o.initial_scale is not None:
-            t_start = max(imu.t[0], slam.t[0])
-            scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
-            R0 = None
+    def feed(self, ev: Event) -> None:
+        """One measurement event, in arrival order (IMU, attitude, SLAM pose, range)."""
+        if isinstance(ev, ImuSample):
+            self._hist.add_imu(ev)
+            if self.x is None:
+                self._try_start(ev.arrival)
+                return
+            self._propagate_to(ev)
+            return
+        if isinstance(ev, AttitudeSample):
+            self._hist.add_attitude(ev)
+            return
+        if isinstance(ev, SlamPose):
+            self._n_slam += 1
+            self._hist.add_slam(ev)
+        elif isinstance(ev, RangeReading):
+            c = self._calib
+            if not self.opt.use_range:
+                return
+            if not (c.range_min <= ev.range <= c.range_max):
+                self._n_range_out += 1
+                return
+            if self.x is None:
+                self._hist.add_range(ev)
         else:
-            fit = initial_fit(flight)
+            return
+        if self.x is None:
+            return
+        if self._imu_prev is not None and ev.arrival <= self._imu_prev.t:
+            self._deliver(ev)
+        else:
+            self._queue.append(ev)
+
+    def latest(self) -> _State | None:
+        """The filter's current state (None before the scale is known)."""
+        return self.x
+
+    def _try_start(self, t_now: float) -> None:
+        """Start once the data that has arrived fixes the scale (closed-form fit over the
+        arrived prefix, :func:`initial_fit`), or at the first SLAM pose with a given scale."""
+        o, h = self.opt, self._hist
+        if not h.slam_t or t_now < self._next_fit_try:
+            return
+        self._next_fit_try = t_now + FIT_RETRY_S
+        prefix = h.flight(self._calib, self._name)
+        bg0 = np.zeros(3)
+        R0 = None
+        if o.initial_scale is not None:
+            t_start = max(prefix.imu.t[0], prefix.slam.t[0])
+            scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
+        else:
+            try:
+                fit = initial_fit(prefix)
+            except FlightDataError:
+                h.trim(t_now - HISTORY_BEFORE_START_S)
+                return
             scale0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             R0, bg0 = fit.world_R_body_end, fit.gyro_bias
-            self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
-            # Causal: the filter starts when the window's last SLAM pose has arrived; the state
-            # at its image time t_end is carried to the arrival by the IMU below.
+            self.counts.extra["init_window_s"] = (
+                fit.t_start - prefix.slam.t[0], fit.t_end - prefix.slam.t[0]
+            )
+            # Causal: the state at the window's last image time t_end is carried to now by
+            # the IMU samples buffered since.
             t_start = fit.t_end
-        if flight.attitude is not None:
-            i0 = min(np.searchsorted(flight.attitude.t, t_start), len(flight.attitude) - 1)
-            R0 = quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz[i0])
+        if prefix.attitude is not None:
+            att = prefix.attitude
+            i0 = min(int(np.searchsorted(att.t, t_start)), len(att) - 1)
+            R0 = quat_wxyz_to_matrix(att.world_q_body_wxyz[i0])
         elif R0 is None:
+            imu = prefix.imu
             k = (imu.t >= t_start) & (imu.t <= t_start + 0.5)
             R0 = level_rotation_from_accel(imu.body_accel[k].mean(axis=0))
         self._scale_rel_sigma = (
@@ -589,110 +675,133 @@ class MsfEkf:
             if o.initial_scale_rel_sigma is not None
             else max(3.0 * rel0, MIN_SCALE_REL_SIGMA)
         )
-        j0 = int(np.searchsorted(slam.t, t_start))
-        slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
-        self.initialize(R0, slam.slam_t_cam[j0], slam_R[j0], scale0, calib.body_T_cam,
-                        calib.imu_noise, world_v_body=v0)
+        slam = prefix.slam
+        j0 = min(int(np.searchsorted(slam.t, t_start)), len(slam) - 1)
+        slam_R0 = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j0])
+        self.initialize(R0, slam.slam_t_cam[j0], slam_R0, scale0, self._calib.body_T_cam,
+                        self._calib.imu_noise, world_v_body=v0)
         self.x.bg = np.asarray(bg0, float).copy()
-        session = int(slam.session[j0])
+        self._session = int(slam.session[j0])
         self.counts.extra["initial_scale"] = scale0
-
-        # Events in arrival order: SLAM at t + latency; range at its time.
-        latency = slam.latency if slam.latency is not None else np.zeros(len(slam))
-        events: list[tuple[float, float, str, int]] = [
-            (float(slam.t[j] + latency[j]), float(slam.t[j]), "slam", j)
-            for j in range(j0 + 1, len(slam))
-        ]
-        if use_range:
-            rng = flight.range
-            valid = (rng.range >= calib.range_min) & (rng.range <= calib.range_max)
-            self.counts.extra["range_out_of_limits"] = int((~valid).sum())
-            events += [(float(rng.t[j]), float(rng.t[j]), "range", j)
-                       for j in np.flatnonzero(valid) if rng.t[j] >= t_start]
-        events.sort()
-
-        i_start = int(np.searchsorted(imu.t, t_start))
-        t_imu = imu.t
-        snaps: list[tuple[int, _State]] = []  # (imu index after which the snapshot holds)
-        snap_times: list[float] = []
-        applied: list[tuple[float, object]] = []  # (time, update) fused within the buffer
-        out_dt = 1.0 / o.output_rate_hz
         # Causal output: nothing before the anchoring SLAM pose has arrived.
-        next_out = max(t_imu[i_start], float(slam.t[j0] + latency[j0]))
-        out_t, out_x, lat = [], [], []
-        scale_hist_t, scale_hist, scale_sig, scale_sid = [], [], [], []
-        final_scales: dict[int, tuple[float, float]] = {}  # closed maps: (s, sigma)
-        ev = 0
-        pending: tuple[int, float] | None = None  # (new session, its first image time)
-        cur_t = t_imu[i_start]
-        for i in range(i_start, len(imu) - 1):
-            # Deliver every measurement that has arrived by the time of IMU sample i.
-            while ev < len(events) and events[ev][0] <= t_imu[i]:
-                _, t_meas, kind, j = events[ev]
-                ev += 1
-                w0 = time.perf_counter()
-                if kind == "slam" and int(slam.session[j]) != session:
-                    # New map: wait until the data since the reset fixes its scale.
-                    if pending is None or pending[0] != int(slam.session[j]):
-                        pending = (int(slam.session[j]), t_meas)
-                    guess = self._reinit_guess(flight, pending[1], t_meas, t_imu[i])
-                    if guess is None:
-                        self.counts.slam_waiting_reinit += 1
-                        continue
-                    final_scales[session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
-                    session = pending[0]
-                    pending = None
-                    self.reset_session(slam.slam_t_cam[j], slam_R[j], *guess)
-                    # No replay across a reset: buffered states belong to the old map.
-                    snaps.clear()
-                    snap_times.clear()
-                    applied.clear()
-                    continue
-                self._apply_at(t_meas, cur_t, i, imu, snaps, snap_times, applied,
-                               lambda k=kind, jj=j: self._measure(k, jj, slam, slam_R, flight))
-                lat.append(time.perf_counter() - w0)
-                if kind == "slam":
-                    scale_hist_t.append(t_imu[i])
-                    scale_hist.append(self.x.s)
-                    scale_sig.append(np.sqrt(self.x.P[IS, IS]))
-                    scale_sid.append(session)
-            dt = t_imu[i + 1] - t_imu[i]
-            self.propagate(imu.body_omega[i], imu.body_accel[i], dt)
-            cur_t = t_imu[i + 1]
-            snaps.append((i + 1, self.x.copy()))
-            snap_times.append(cur_t)
-            while snap_times and snap_times[0] < cur_t - o.buffer_s:
-                snaps.pop(0)
-                snap_times.pop(0)
-            while applied and applied[0][0] < cur_t - o.buffer_s:
-                applied.pop(0)
-            if cur_t >= next_out:
-                out_t.append(cur_t)
-                out_x.append(self.x.copy())
-                next_out += out_dt
-        self.counts.extra["events_after_imu_end"] = len(events) - ev
-        final_scales[session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
-        history = (scale_hist_t, scale_hist, scale_sig, scale_sid)
-        return self._estimate(out_t, out_x, lat, history, final_scales,
-                              time.perf_counter() - wall0)
+        self._next_out = max(float(slam.t[j0]), h.slam_arrival[j0])
+        # Re-deliver what arrived since t_start: the IMU from t_start, the later poses.
+        imu_t = np.asarray(h.imu_t)
+        i_start = int(np.searchsorted(imu_t, t_start))
+        later = [e for e in h.events_after(slam.t[j0], t_start)]
+        replay_ev = sorted(later + h.imu_events(i_start), key=lambda e: (e.arrival, _RANK[type(e)]))
+        h.trim(t_start - self.opt.buffer_s)
+        for e in replay_ev:
+            if isinstance(e, ImuSample):
+                self._propagate_to(e)
+            elif self._imu_prev is not None and e.arrival <= self._imu_prev.t:
+                self._deliver(e)
+            else:
+                self._queue.append(e)
 
-    def _reinit_guess(
-        self, flight: Flight, t_first: float, t_meas: float, t_now: float
-    ) -> tuple[float, float] | None:
-        """Scale of a new SLAM map (:func:`new_map_scale_guess`); None while undetermined. After
-        ``REINIT_GIVE_UP_S`` the old scale is kept with a large uncertainty."""
+    def _propagate_to(self, ev: ImuSample) -> None:
+        """Measurements that arrived before this IMU sample, then the strapdown step to it."""
+        prev = self._imu_prev
+        if prev is not None:
+            for q in self._queue:
+                self._deliver(q)
+            self._queue.clear()
+            self.propagate(prev.body_omega, prev.body_accel, ev.t - prev.t)
+        self._imu_prev = ev
+        o = self.opt
+        if prev is None:
+            self._snaps.append((self._hist.imu_index(ev), self.x.copy()))
+            self._snap_times.append(ev.t)
+            return
+        self._snaps.append((self._hist.imu_index(ev), self.x.copy()))
+        self._snap_times.append(ev.t)
+        while self._snap_times and self._snap_times[0] < ev.t - o.buffer_s:
+            self._snaps.pop(0)
+            self._snap_times.pop(0)
+        while self._applied and self._applied[0][0] < ev.t - o.buffer_s:
+            self._applied.pop(0)
+        self._hist.trim(ev.t - max(o.buffer_s, REINIT_GIVE_UP_S) - 1.0, keep_session=self._pending)
+        if ev.t >= self._next_out:
+            self._out_t.append(ev.t)
+            self._out_x.append(self.x.copy())
+            self._next_out += 1.0 / o.output_rate_hz
+
+    def _deliver(self, ev: Event) -> None:
+        """Apply one measurement at its measurement time (through the state buffer)."""
+        cur_t = self._imu_prev.t
+        w0 = time.perf_counter()
+        if isinstance(ev, SlamPose) and ev.session != self._session:
+            # New map: wait until the data since the reset fixes its scale.
+            if self._pending is None or self._pending[0] != ev.session:
+                self._pending = (ev.session, ev.t)
+            guess = self._reinit_guess(self._pending[1], ev.t, cur_t)
+            if guess is None:
+                self.counts.slam_waiting_reinit += 1
+                return
+            self._final_scales[self._session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
+            self._session = self._pending[0]
+            self._pending = None
+            self.reset_session(ev.slam_t_cam, quat_wxyz_to_matrix(ev.slam_q_cam_wxyz), *guess)
+            # No replay across a reset: buffered states belong to the old map.
+            self._snaps.clear()
+            self._snap_times.clear()
+            self._applied.clear()
+            return
+        self._apply_at(ev.t, cur_t, lambda e=ev: self._measure(e))
+        self._lat.append(time.perf_counter() - w0)
+        if isinstance(ev, SlamPose):
+            for lst, v in zip(
+                self._scale_hist,
+                (cur_t, self.x.s, np.sqrt(self.x.P[IS, IS]), self._session),
+                strict=True,
+            ):
+                lst.append(v)
+
+    def run(self, flight: Flight) -> Estimate:
+        """Run over a flight's events in arrival order and return the causal estimate."""
+        imu, slam = flight.imu, flight.slam
+        if imu is None or slam is None:
+            missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
+            raise FlightDataError(f"{flight.name}: MSF-EKF needs IMU and SLAM; missing {missing}")
+        self.start(flight.calib, flight.name)
+        for ev in replay_flight(flight, ("imu", "attitude", "slam", "range")):
+            self.feed(ev)
+        return self.result()
+
+    def result(self) -> Estimate:
+        """The causal estimate of everything fed so far."""
+        if self.x is None:
+            raise FlightDataError(
+                f"{self._name}: no window of the flight determines the SLAM scale; pass "
+                "MsfOptions.initial_scale"
+            )
+        self.counts.extra["events_after_imu_end"] = len(self._queue)
+        self.counts.extra["range_out_of_limits"] = self._n_range_out
+        final = dict(self._final_scales)
+        final[self._session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
+        return self._estimate(self._out_t, self._out_x, self._lat, self._scale_hist, final,
+                              time.perf_counter() - self._t0)
+
+    def _reinit_guess(self, t_first: float, t_meas: float, t_now: float
+                      ) -> tuple[float, float] | None:
+        """Scale of a new SLAM map (:func:`new_map_scale_guess`) from the data that has
+        arrived; None while undetermined. After ``REINIT_GIVE_UP_S`` the old scale is kept with
+        a large uncertainty."""
         if t_meas - t_first > REINIT_GIVE_UP_S:
             self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
             return self.x.s, RESET_SCALE_REL_SIGMA
-        return new_map_scale_guess(flight, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
+        if t_meas - t_first < SCALE_INIT_WINDOWS_S[0]:
+            return None
+        prefix = self._hist.flight(self._calib, self._name)
+        return new_map_scale_guess(prefix, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
 
-    def _measure(self, kind: str, j: int, slam, slam_R, flight: Flight) -> None:
-        if kind == "slam":
-            self.update_slam(slam.slam_t_cam[j], slam_R[j])
+    def _measure(self, ev: Event) -> None:
+        if isinstance(ev, SlamPose):
+            self.update_slam(ev.slam_t_cam, quat_wxyz_to_matrix(ev.slam_q_cam_wxyz))
         else:
             if self._ground is None:
-                self._init_ground(float(flight.range.range[j]))
-            self.update_range(float(flight.range.range[j]))
+                self._init_ground(float(ev.range))
+            self.update_range(float(ev.range))
 
     def _init_ground(self, r: float) -> None:
         x = self.x
@@ -700,10 +809,11 @@ class MsfEkf:
         c = -(x.R @ body_R_range[:, 2])[2]
         self._ground = x.p[2] + (x.R @ self._body_T_range[:3, 3])[2] - r * c
 
-    def _apply_at(self, t_meas, cur_t, i, imu, snaps, snap_times, applied, apply) -> None:
+    def _apply_at(self, t_meas: float, cur_t: float, apply) -> None:
         """Apply a measurement taken at ``t_meas``. If it is in the past, restore the buffered
-        state there, apply it, then re-propagate the IMU to ``cur_t`` (IMU index ``i``),
+        state there, apply it, then re-propagate the buffered IMU samples to ``cur_t``,
         re-applying in time order the measurements already fused after ``t_meas``."""
+        snaps, snap_times, applied = self._snaps, self._snap_times, self._applied
         if t_meas >= cur_t - 1e-9 or not snaps:
             apply()
             applied.append((t_meas, apply))
@@ -715,23 +825,25 @@ class MsfEkf:
         self.counts.replayed += 1
         idx, st = snaps[k]
         self.x = st.copy()
-        t_imu = imu.t
+        h = self._hist
+        i = h.imu_index(self._imu_prev)
         # Measurements after t_meas, already fused, to re-apply on the way back to cur_t.
         later = sorted((a for a in applied if a[0] > t_meas), key=lambda a: a[0])
         applied[:] = [a for a in applied if a[0] <= t_meas]
         queue = [(t_meas, apply, True)] + [(tq, fn, False) for tq, fn in later]
         snaps[k + 1:] = []
         snap_times[k + 1:] = []
-        t_now = t_imu[idx]
+        t_now = h.imu_at(idx).t
         for m in range(idx, i):
-            t_next = t_imu[m + 1]
+            cur, nxt = h.imu_at(m), h.imu_at(m + 1)
+            t_next = nxt.t
             while queue and queue[0][0] < t_next:
                 tq, fn, first = queue.pop(0)
-                self.propagate(imu.body_omega[m], imu.body_accel[m], tq - t_now)
+                self.propagate(cur.body_omega, cur.body_accel, tq - t_now)
                 t_now = max(t_now, tq)
                 self._apply_counted(fn, first)
                 applied.append((tq, fn))
-            self.propagate(imu.body_omega[m], imu.body_accel[m], t_next - t_now)
+            self.propagate(cur.body_omega, cur.body_accel, t_next - t_now)
             t_now = t_next
             snaps.append((m + 1, self.x.copy()))
             snap_times.append(t_next)
@@ -783,6 +895,98 @@ class MsfEkf:
             causal=True,
             info={"options": self.opt.__dict__.copy(), "counts": self.counts.__dict__.copy()},
         )
+
+
+_RANK = {ImuSample: 0, AttitudeSample: 1, RangeReading: 2, SlamPose: 3}
+
+
+class _History:
+    """The recent samples that have arrived, for the closed-form scale fits and replays.
+
+    IMU samples carry a running index (``imu_index``) that stays valid when old samples are
+    trimmed; ``flight`` builds a :class:`Flight` of what is held (the fits' input), so nothing
+    is read that has not arrived.
+    """
+
+    def __init__(self) -> None:
+        self.imu: list[ImuSample] = []
+        self.imu_t: list[float] = []
+        self.base = 0  # running index of imu[0]
+        self.att: list[AttitudeSample] = []
+        self.slam: list[SlamPose] = []
+        self.slam_t: list[float] = []
+        self.slam_arrival: list[float] = []
+        self.range: list[RangeReading] = []
+
+    def add_imu(self, ev: ImuSample) -> None:
+        if self.imu_t and ev.t <= self.imu_t[-1]:
+            return
+        self.imu.append(ev)
+        self.imu_t.append(ev.t)
+
+    def add_attitude(self, ev: AttitudeSample) -> None:
+        if not self.att or ev.t > self.att[-1].t:
+            self.att.append(ev)
+
+    def add_slam(self, ev: SlamPose) -> None:
+        # Late poses may arrive out of capture order: keep capture order.
+        k = bisect.bisect_right(self.slam_t, ev.t)
+        if k and self.slam_t[k - 1] == ev.t:
+            return
+        self.slam.insert(k, ev)
+        self.slam_t.insert(k, ev.t)
+        self.slam_arrival.insert(k, ev.arrival)
+
+    def imu_index(self, ev: ImuSample) -> int:
+        return self.base + bisect.bisect_left(self.imu_t, ev.t)
+
+    def imu_at(self, index: int) -> ImuSample:
+        return self.imu[index - self.base]
+
+    def imu_events(self, i_from: int) -> list[ImuSample]:
+        return self.imu[i_from:]
+
+    def add_range(self, ev: RangeReading) -> None:
+        self.range.append(ev)
+
+    def events_after(self, t_slam: float, t_range: float) -> list[Event]:
+        """SLAM poses taken after ``t_slam`` and range readings from ``t_range`` on."""
+        k = bisect.bisect_right(self.slam_t, t_slam)
+        return list(self.slam[k:]) + [e for e in self.range if e.t >= t_range]
+
+    def trim(self, t_keep: float, keep_session: tuple[int, float] | None = None) -> None:
+        """Forget samples before ``t_keep`` (and before a pending new map's first pose)."""
+        if keep_session is not None:
+            t_keep = min(t_keep, keep_session[1])
+        n = bisect.bisect_left(self.imu_t, t_keep)
+        if n > 4096 or (n and n >= len(self.imu_t) // 2):
+            del self.imu[:n], self.imu_t[:n]
+            self.base += n
+            k = bisect.bisect_left([a.t for a in self.att], t_keep)
+            del self.att[:k]
+            k = bisect.bisect_left(self.slam_t, t_keep)
+            del self.slam[:k], self.slam_t[:k], self.slam_arrival[:k]
+            self.range = [e for e in self.range if e.t >= t_keep]
+
+    def flight(self, calib: Calibration, name: str) -> Flight:
+        """What has arrived, as a flight (IMU, attitude, SLAM)."""
+        imu = ImuSeries(
+            np.asarray(self.imu_t),
+            np.array([e.body_omega for e in self.imu]).reshape(-1, 3),
+            np.array([e.body_accel for e in self.imu]).reshape(-1, 3),
+        )
+        att = None
+        if self.att:
+            att = AttitudeSeries(
+                np.array([e.t for e in self.att]), np.array([e.world_q_body_wxyz for e in self.att])
+            )
+        slam = SlamSeries(
+            np.asarray(self.slam_t),
+            np.array([e.slam_t_cam for e in self.slam]).reshape(-1, 3),
+            np.array([e.slam_q_cam_wxyz for e in self.slam]).reshape(-1, 4),
+            np.array([e.session for e in self.slam], dtype=int),
+        )
+        return Flight(name, imu=imu, attitude=att, slam=slam, calib=calib)
 
 
 def run_msf(flight: Flight, options: MsfOptions | None = None) -> Estimate:
