@@ -117,8 +117,9 @@ def test_event_fed_filter_is_causal(rectangle):
     arrives after T: a run on the flight cut at T gives the same states before T."""
     import dataclasses
 
-    from fgnav.baselines.msf_ekf import MsfEkf
     from fgnav.datasets.events import replay_flight
+
+    from fgnav.baselines.msf_ekf import MsfEkf
 
     full = run_msf(rectangle)
     t_cut = 15.0
