@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgnav.baselines._arrived import Arrived
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     AttitudeSample,
@@ -55,11 +56,8 @@ from fgnav.datasets.geometry import (
     so3_log,
 )
 from fgnav.datasets.types import (
-    AttitudeSeries,
     Calibration,
     Flight,
-    ImuSeries,
-    SlamSeries,
     Trajectory,
 )
 from fgnav.estimate import Estimate, TimeSeries
@@ -579,7 +577,7 @@ class MsfEkf:
         self._calib = calib
         self._name = name
         self._body_T_range = np.asarray(calib.body_T_range, float)
-        self._hist = _History()
+        self._hist = Arrived()
         self._queue: list[Event] = []  # measurements that arrived after the newest IMU sample
         self._imu_prev: ImuSample | None = None
         self._snaps: list[tuple[int, _State]] = []  # (IMU sample index, state at that sample)
@@ -601,18 +599,18 @@ class MsfEkf:
     def feed(self, ev: Event) -> None:
         """One measurement event, in arrival order (IMU, attitude, SLAM pose, range)."""
         if isinstance(ev, ImuSample):
-            self._hist.add_imu(ev)
+            self._hist.add(ev)
             if self.x is None:
                 self._try_start(ev.arrival)
                 return
             self._propagate_to(ev)
             return
         if isinstance(ev, AttitudeSample):
-            self._hist.add_attitude(ev)
+            self._hist.add(ev)
             return
         if isinstance(ev, SlamPose):
             self._n_slam += 1
-            self._hist.add_slam(ev)
+            self._hist.add(ev)
         elif isinstance(ev, RangeReading):
             c = self._calib
             if not self.opt.use_range:
@@ -621,7 +619,7 @@ class MsfEkf:
                 self._n_range_out += 1
                 return
             if self.x is None:
-                self._hist.add_range(ev)
+                self._hist.add(ev)
         else:
             return
         if self.x is None:
@@ -684,12 +682,10 @@ class MsfEkf:
         self._session = int(slam.session[j0])
         self.counts.extra["initial_scale"] = scale0
         # Causal output: nothing before the anchoring SLAM pose has arrived.
-        self._next_out = max(float(slam.t[j0]), h.slam_arrival[j0])
+        self._next_out = max(float(slam.t[j0]), float(slam.t[j0] + slam.latency[j0]))
         # Re-deliver what arrived since t_start: the IMU from t_start, the later poses.
-        imu_t = np.asarray(h.imu_t)
-        i_start = int(np.searchsorted(imu_t, t_start))
-        later = [e for e in h.events_after(slam.t[j0], t_start)]
-        replay_ev = sorted(later + h.imu_events(i_start), key=lambda e: (e.arrival, _RANK[type(e)]))
+        later = h.slam_after(slam.t[j0]) + [e for e in h.range if e.t >= t_start]
+        replay_ev = sorted(later + h.imu_from(t_start), key=lambda e: (e.arrival, _RANK[type(e)]))
         h.trim(t_start - self.opt.buffer_s)
         for e in replay_ev:
             if isinstance(e, ImuSample):
@@ -720,7 +716,8 @@ class MsfEkf:
             self._snap_times.pop(0)
         while self._applied and self._applied[0][0] < ev.t - o.buffer_s:
             self._applied.pop(0)
-        self._hist.trim(ev.t - max(o.buffer_s, REINIT_GIVE_UP_S) - 1.0, keep_session=self._pending)
+        t_keep = ev.t - max(o.buffer_s, REINIT_GIVE_UP_S) - 1.0
+        self._hist.trim(t_keep if self._pending is None else min(t_keep, self._pending[1]))
         if ev.t >= self._next_out:
             self._out_t.append(ev.t)
             self._out_x.append(self.x.copy())
@@ -898,95 +895,6 @@ class MsfEkf:
 
 
 _RANK = {ImuSample: 0, AttitudeSample: 1, RangeReading: 2, SlamPose: 3}
-
-
-class _History:
-    """The recent samples that have arrived, for the closed-form scale fits and replays.
-
-    IMU samples carry a running index (``imu_index``) that stays valid when old samples are
-    trimmed; ``flight`` builds a :class:`Flight` of what is held (the fits' input), so nothing
-    is read that has not arrived.
-    """
-
-    def __init__(self) -> None:
-        self.imu: list[ImuSample] = []
-        self.imu_t: list[float] = []
-        self.base = 0  # running index of imu[0]
-        self.att: list[AttitudeSample] = []
-        self.slam: list[SlamPose] = []
-        self.slam_t: list[float] = []
-        self.slam_arrival: list[float] = []
-        self.range: list[RangeReading] = []
-
-    def add_imu(self, ev: ImuSample) -> None:
-        if self.imu_t and ev.t <= self.imu_t[-1]:
-            return
-        self.imu.append(ev)
-        self.imu_t.append(ev.t)
-
-    def add_attitude(self, ev: AttitudeSample) -> None:
-        if not self.att or ev.t > self.att[-1].t:
-            self.att.append(ev)
-
-    def add_slam(self, ev: SlamPose) -> None:
-        # Late poses may arrive out of capture order: keep capture order.
-        k = bisect.bisect_right(self.slam_t, ev.t)
-        if k and self.slam_t[k - 1] == ev.t:
-            return
-        self.slam.insert(k, ev)
-        self.slam_t.insert(k, ev.t)
-        self.slam_arrival.insert(k, ev.arrival)
-
-    def imu_index(self, ev: ImuSample) -> int:
-        return self.base + bisect.bisect_left(self.imu_t, ev.t)
-
-    def imu_at(self, index: int) -> ImuSample:
-        return self.imu[index - self.base]
-
-    def imu_events(self, i_from: int) -> list[ImuSample]:
-        return self.imu[i_from:]
-
-    def add_range(self, ev: RangeReading) -> None:
-        self.range.append(ev)
-
-    def events_after(self, t_slam: float, t_range: float) -> list[Event]:
-        """SLAM poses taken after ``t_slam`` and range readings from ``t_range`` on."""
-        k = bisect.bisect_right(self.slam_t, t_slam)
-        return list(self.slam[k:]) + [e for e in self.range if e.t >= t_range]
-
-    def trim(self, t_keep: float, keep_session: tuple[int, float] | None = None) -> None:
-        """Forget samples before ``t_keep`` (and before a pending new map's first pose)."""
-        if keep_session is not None:
-            t_keep = min(t_keep, keep_session[1])
-        n = bisect.bisect_left(self.imu_t, t_keep)
-        if n > 4096 or (n and n >= len(self.imu_t) // 2):
-            del self.imu[:n], self.imu_t[:n]
-            self.base += n
-            k = bisect.bisect_left([a.t for a in self.att], t_keep)
-            del self.att[:k]
-            k = bisect.bisect_left(self.slam_t, t_keep)
-            del self.slam[:k], self.slam_t[:k], self.slam_arrival[:k]
-            self.range = [e for e in self.range if e.t >= t_keep]
-
-    def flight(self, calib: Calibration, name: str) -> Flight:
-        """What has arrived, as a flight (IMU, attitude, SLAM)."""
-        imu = ImuSeries(
-            np.asarray(self.imu_t),
-            np.array([e.body_omega for e in self.imu]).reshape(-1, 3),
-            np.array([e.body_accel for e in self.imu]).reshape(-1, 3),
-        )
-        att = None
-        if self.att:
-            att = AttitudeSeries(
-                np.array([e.t for e in self.att]), np.array([e.world_q_body_wxyz for e in self.att])
-            )
-        slam = SlamSeries(
-            np.asarray(self.slam_t),
-            np.array([e.slam_t_cam for e in self.slam]).reshape(-1, 3),
-            np.array([e.slam_q_cam_wxyz for e in self.slam]).reshape(-1, 4),
-            np.array([e.session for e in self.slam], dtype=int),
-        )
-        return Flight(name, imu=imu, attitude=att, slam=slam, calib=calib)
 
 
 def run_msf(flight: Flight, options: MsfOptions | None = None) -> Estimate:
