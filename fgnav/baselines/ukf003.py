@@ -109,12 +109,31 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_solve
 
-from fgnav.baselines.msf_ekf import InitFit, initial_fit, new_map_scale_guess
+from fgnav.baselines._arrived import Arrived
+from fgnav.baselines.msf_ekf import (
+    FIT_RETRY_S,
+    HISTORY_BEFORE_START_S,
+    SCALE_INIT_WINDOWS_S,
+    InitFit,
+    initial_fit,
+    new_map_scale_guess,
+)
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import (
+    AttitudeSample,
+    Event,
+    ImuSample,
+    RangeReading,
+    SlamPose,
+    YawReading,
+    flight_streams,
+    replay,
+)
 from fgnav.datasets.geometry import (
     GRAVITY,
     matrix_to_quat_wxyz,
@@ -125,7 +144,7 @@ from fgnav.datasets.geometry import (
     so3_log,
     wrap_angle,
 )
-from fgnav.datasets.types import Flight, Trajectory
+from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries, run_in_thrust_body
 
 log = logging.getLogger(__name__)
@@ -153,6 +172,13 @@ REINIT_GIVE_UP_S = 20.0
 RESET_SCALE_REL_SIGMA = 0.5
 """Relative scale uncertainty when the old scale is kept after a reset (no fit possible)."""
 
+
+
+class CameraTrigger(NamedTuple):
+    """An image was captured at ``t`` (the camera trigger); its SLAM pose arrives later."""
+
+    t: float
+    arrival: float
 
 @dataclass
 class Ukf003Options:
@@ -686,7 +712,6 @@ class Ukf003:
         return run_in_thrust_body(flight, self._run, MAX_BODY_TILT_DEG)
 
     def _run(self, flight: Flight) -> Estimate:
-        o = self.opt
         imu, slam = flight.imu, flight.slam
         missing = [n for n, s in (("imu", imu), ("slam", slam)) if s is None]
         if missing:
@@ -694,28 +719,163 @@ class Ukf003:
                 f"{flight.name}: the seed-003 UKF needs the imu and slam streams; missing "
                 f"{', '.join(missing)}"
             )
-        calib = flight.calib
-        wall0 = time.perf_counter()
-        good = np.flatnonzero(slam.session >= 0)
-        self.counts.slam_lost = int(len(slam) - len(good))
-        if len(good) < 2:
+        self.counts.slam_lost = int(np.count_nonzero(slam.session < 0))
+        if np.count_nonzero(slam.session >= 0) < 2:
             raise FlightDataError(f"{flight.name}: fewer than two tracked SLAM poses")
-        t_start = max(float(imu.t[0]), float(slam.t[good[0]]))
+        self.start(flight.calib, flight.name)
+        streams = flight_streams(flight, ("imu", "slam", "range", "yaw", "attitude"))
+        # The camera trigger: an image's capture time is known when it is taken (the SLAM pose
+        # for it arrives later); the filter clones its state then.
+        trigger = (CameraTrigger(float(t), float(t)) for t in slam.t)
+        order = [streams.pop("imu"), trigger, *streams.values()]
+        for ev in replay(order):
+            self.feed(ev)
+        return self.result()
+
+    # -- event stream (the filter never sees the flight; see fgnav.datasets.events) --------------
+
+    def start(self, calib: Calibration, name: str = "flight") -> None:
+        """Prepare to be fed events of a vehicle with calibration ``calib``."""
+        self._calib, self._name = calib, name
+        self._hist = Arrived()
+        self._pre: list[Event] = []  # non-IMU events that arrived before the start
+        self._imu_prev: ImuSample | None = None
+        self._cur_t = -np.inf
+        self._batch: tuple[list, list, list] = ([], [], [])
+        self._session: int | None = None
+        self._ref: tuple[float, np.ndarray, np.ndarray] | None = None  # reference pose
+        self._pending: tuple[int, float] | None = None
+        self._t_last_att = -np.inf
+        self._next_fit_try = -np.inf
+        self._next_out = np.inf
+        self._out: tuple[list, list, list, list] = ([], [], [], [])  # t, x, P, altimeter bias
+        self._scale_hist: tuple[list, list, list, list] = ([], [], [], [])
+        self._lat: list[float] = []
+        self._t0 = time.perf_counter()
+        self._started = False
+
+    def feed(self, ev: Event) -> None:
+        """One event in arrival order: IMU sample, camera trigger, SLAM pose, range, yaw or
+        attitude."""
+        if not self._started:
+            self._hist.add(ev)
+            if isinstance(ev, CameraTrigger):
+                self._pre.append(ev)
+            elif isinstance(ev, ImuSample):
+                self._try_start(ev.arrival)
+            return
+        if isinstance(ev, ImuSample | SlamPose | AttitudeSample):
+            self._hist.add(ev)  # for the scale guess of a new map
+        if isinstance(ev, ImuSample):
+            self._imu_step(ev)
+            return
+        if self._imu_prev is None:
+            return
+        t_ev = ev.arrival if isinstance(ev, SlamPose) else ev.t
+        if t_ev > self._cur_t:
+            self._hold(t_ev - self._cur_t)
+            self._cur_t = t_ev
+        self._flush()
+        w0 = time.perf_counter()
+        if isinstance(ev, CameraTrigger):
+            self.clone(ev.t)
+            return
+        if isinstance(ev, SlamPose):
+            self._on_slam(ev)
+            h = self._scale_hist
+            for lst, v in zip(h, (self._cur_t, self.scale, self.scale_sigma,
+                                  0 if self._session is None else int(self._session)), strict=True):
+                lst.append(v)
+        elif isinstance(ev, RangeReading):
+            c = self._calib
+            if not self.opt.use_range:
+                return
+            if not (c.range_min <= ev.range <= c.range_max):
+                self.counts.range_out_of_limits += 1
+                return
+            self.update_range(float(ev.range))
+        elif isinstance(ev, YawReading):
+            if not self.opt.use_yaw:
+                return
+            self.update_yaw(float(ev.yaw))
+        elif isinstance(ev, AttitudeSample):
+            o = self.opt
+            if not o.use_attitude or ev.t - self._t_last_att < o.attitude_min_interval_s:
+                return
+            self._t_last_att = ev.t
+            self.update_attitude(quat_wxyz_to_matrix(ev.world_q_body_wxyz))
+        else:
+            return
+        self._lat.append(time.perf_counter() - w0)
+
+    def latest(self) -> np.ndarray | None:
+        """The main state vector (module docstring layout), None before the start."""
+        return self.x[:N_MAIN].copy() if self._started else None
+
+    def _hold(self, dt: float) -> None:
+        """Hold the previous IMU sample for ``dt`` (zero-order hold; batched)."""
+        w, f, d = self._batch
+        w.append(self._imu_prev.body_omega)
+        f.append(self._imu_prev.body_accel)
+        d.append(dt)
+
+    def _flush(self) -> None:
+        w, f, d = self._batch
+        if d:
+            self.predict(np.asarray(w), np.asarray(f), np.asarray(d))
+            w.clear(), f.clear(), d.clear()
+
+    def _imu_step(self, ev: ImuSample) -> None:
+        o = self.opt
+        if self._imu_prev is not None:
+            self._hold(ev.t - self._cur_t)
+            self._cur_t = ev.t
+            due = self._cur_t >= self._next_out - 1e-9
+            if sum(self._batch[2]) >= o.ut_interval_s - 1e-9 or due:
+                self._flush()
+            if due:
+                t, x, P, zb = self._out
+                t.append(self._cur_t)
+                x.append(self.x[:N_MAIN].copy())
+                P.append(self.P[:N_MAIN, :N_MAIN].copy())
+                zb.append(self.x[IZB])
+                self._next_out += 1.0 / o.output_rate_hz
+        else:
+            self._cur_t = ev.t
+            self._next_out = max(self._next_out, ev.t)
+        self._imu_prev = ev
+        t_keep = ev.t - REINIT_GIVE_UP_S - 1.0
+        self._hist.trim(t_keep if self._pending is None else min(t_keep, self._pending[1]))
+
+    def _try_start(self, t_now: float) -> None:
+        """Start once the arrived data fix the SLAM scale (closed-form fit on the arrived prefix,
+        sliding past a static start), or at the first tracked SLAM pose with a given scale."""
+        o, h = self.opt, self._hist
+        if not h.slam or t_now < self._next_fit_try:
+            return
+        self._next_fit_try = t_now + FIT_RETRY_S
+        prefix = h.flight(self._calib, self._name)
+        slam = prefix.slam
+        good = np.flatnonzero(slam.session >= 0)
+        if len(good) < 2:
+            return
+        t_start = max(float(prefix.imu.t[0]), float(slam.t[good[0]]))
         t_first_out = t_start
         fit = None
         if o.initial_scale is not None:
             s0, v0, rel0 = float(o.initial_scale), np.zeros(3), 0.15
         else:
-            # Causal start (as the MSF baseline): at the end of the first window of the flight
-            # whose closed-form fit determines the scale, sliding past a static start.
-            fit = initial_fit(flight)
+            try:
+                fit = initial_fit(prefix)
+            except FlightDataError:
+                h.trim(t_now - HISTORY_BEFORE_START_S)
+                return
             s0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             t_start = fit.t_end
-            j_end = int(np.searchsorted(slam.t, t_start))
-            lat = slam.latency[j_end] if slam.latency is not None else 0.0
-            t_first_out = t_start + max(0.0, float(lat))
+            j_end = min(int(np.searchsorted(slam.t, t_start)), len(slam) - 1)
+            t_first_out = t_start + max(0.0, float(slam.latency[j_end]))
             self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
-        R0, yaw_sigma = self._initial_attitude(flight, t_start, fit)
+        R0, yaw_sigma = self._initial_attitude(prefix, t_start, fit)
         if fit is not None:
             # The fit's velocity is in its own world (yaw of its attitude); keep it in body.
             v0 = R0 @ fit.world_R_body_end.T @ v0
@@ -724,149 +884,94 @@ class Ukf003:
             if o.initial_scale_rel_sigma is not None
             else max(2.0 * rel0, MIN_SCALE_REL_SIGMA)
         )
-        p0 = np.array([0.0, 0.0, self._initial_height(flight, t_start, R0)])
-        self.initialize(
-            R0, p0, v0, s0, rel, calib.body_T_cam, calib.body_T_range, calib.imu_noise, yaw_sigma
-        )
+        c = self._calib
+        p0 = np.array([0.0, 0.0, self._initial_height(prefix, t_start, R0)])
+        self.initialize(R0, p0, v0, s0, rel, c.body_T_cam, c.body_T_range, c.imu_noise, yaw_sigma)
         self.counts.extra["initial_scale"] = s0
         if fit is not None:
             self.x[IBG : IBG + 3] = fit.gyro_bias
+        self._started = True
+        self._next_out = t_first_out
+        # Re-deliver what arrived since t_start, in arrival order (ties as the replay orders).
+        later: list[Event] = [e for e in self._pre if e.t >= t_start]
+        later += [e for e in h.slam if e.t >= t_start and e.session >= 0]
+        later += [e for e in h.others_from(t_start)]
+        rank = {ImuSample: 0, CameraTrigger: 1, SlamPose: 2, RangeReading: 3, YawReading: 4,
+                AttitudeSample: 5}
+        redo = sorted(later + h.imu_from(t_start), key=lambda e: (e.arrival, rank[type(e)]))
+        self._pre.clear()
+        for e in redo:
+            self.feed(e)
 
-        events = self._events(flight, t_start)
-        slam_R = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
-        att_R = (
-            quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz)
-            if (o.use_attitude and flight.attitude is not None)
-            else None
-        )
-        session: int | None = None
-        ref: int | None = None  # SLAM index of the reference clone
-        pending: tuple[int, float] | None = None  # (new session, time of its first pose)
-        t_last_att = -np.inf
-        i0 = int(np.searchsorted(imu.t, t_start))
-        cur_t = float(imu.t[i0])
-        out_dt = 1.0 / o.output_rate_hz
-        # Outputs once the data the start used have arrived (causal).
-        next_out = max(cur_t, t_first_out)
-        out_t, out_x, out_P, lat = [], [], [], []
-        sh_t, sh, ss, sh_sid, zb = [], [], [], [], []
-        ev = 0
-        n_imu = len(imu)
-        batch_w: list[np.ndarray] = []
-        batch_f: list[np.ndarray] = []
-        batch_dt: list[float] = []
-
-        def flush() -> None:
-            if batch_dt:
-                self.predict(np.asarray(batch_w), np.asarray(batch_f), np.asarray(batch_dt))
-                batch_w.clear()
-                batch_f.clear()
-                batch_dt.clear()
-
-        for i in range(i0, n_imu - 1):
-            omega, f = imu.body_omega[i], imu.body_accel[i]
-            t_next = float(imu.t[i + 1])
-            # Events in [t_i, t_next): propagate to each with this sample (zero-order hold).
-            while ev < len(events) and events[ev][0] < t_next:
-                t_ev, kind, j = events[ev]
-                ev += 1
-                if t_ev > cur_t:
-                    batch_w.append(omega)
-                    batch_f.append(f)
-                    batch_dt.append(t_ev - cur_t)
-                    cur_t = t_ev
-                flush()
-                w0 = time.perf_counter()
-                if kind == 0:  # image capture: clone
-                    self.clone(float(slam.t[j]))
-                    continue
-                if kind == 1:
-                    session, ref, pending = self._on_slam(
-                        flight, j, slam_R, session, ref, pending, cur_t
-                    )
-                    sh_t.append(cur_t)
-                    sh.append(self.scale)
-                    ss.append(self.scale_sigma)
-                    sh_sid.append(0 if session is None else int(session))
-                elif kind == 2:
-                    self.update_range(float(flight.range.range[j]))
-                elif kind == 3:
-                    self.update_yaw(float(flight.yaw.yaw[j]))
-                elif kind == 4 and t_ev - t_last_att >= o.attitude_min_interval_s:
-                    t_last_att = t_ev
-                    self.update_attitude(att_R[j])
-                lat.append(time.perf_counter() - w0)
-            batch_w.append(omega)
-            batch_f.append(f)
-            batch_dt.append(t_next - cur_t)
-            cur_t = t_next
-            if sum(batch_dt) >= o.ut_interval_s - 1e-9 or cur_t >= next_out - 1e-9:
-                flush()
-            if cur_t >= next_out - 1e-9:
-                out_t.append(cur_t)
-                out_x.append(self.x[:N_MAIN].copy())
-                out_P.append(self.P[:N_MAIN, :N_MAIN].copy())
-                zb.append(self.x[IZB])
-                next_out += out_dt
-        flush()
-        self.counts.extra["events_after_imu_end"] = len(events) - ev
+    def result(self) -> Estimate:
+        """The causal estimate of everything fed so far."""
+        if not self._started:
+            raise FlightDataError(
+                f"{self._name}: no window of the flight determines the SLAM scale; pass "
+                "Ukf003Options.initial_scale"
+            )
+        self._flush()
         self.counts.extra["clones_left"] = len(self.clones)
+        out_t, out_x, out_P, zb = self._out
+        sh_t, sh, ss, sh_sid = self._scale_hist
         series = {
             "slam_scale": TimeSeries(np.asarray(sh_t), np.asarray(sh), np.asarray(ss)),
             "slam_session": TimeSeries(np.asarray(sh_t), np.asarray(sh_sid, dtype=int)),
             "altimeter_bias": TimeSeries(np.asarray(out_t), np.asarray(zb)),
         }
         return self._estimate(
-            out_t, out_x, out_P, lat, series, session, time.perf_counter() - wall0
+            out_t, out_x, out_P, self._lat, series, self._session, time.perf_counter() - self._t0
         )
 
-    def _on_slam(self, flight, j, slam_R, session, ref, pending, cur_t):
-        """A SLAM pose j arrives: relative update against the reference clone, map resets."""
-        slam = flight.slam
-        sid = int(slam.session[j])
-        k_j = self.clone_index(float(slam.t[j]))
+    def _on_slam(self, ev: SlamPose) -> None:
+        """A SLAM pose arrives: relative update against the reference clone, map resets."""
+        if ev.session < 0:
+            return
+        t_j, sid = float(ev.t), int(ev.session)
+        R_j = quat_wxyz_to_matrix(ev.slam_q_cam_wxyz)
+        k_j = self.clone_index(t_j)
         if k_j is None:
             self.counts.slam_no_clone += 1
-            return session, ref, pending
-        if session is None:
+            return
+        if self._session is None:
             # First pose: the clone becomes the reference.
             self.counts.slam_first_of_map += 1
             self._keep_only_clone(k_j)
-            return sid, j, None
-        if sid != session:
-            if pending is None or pending[0] != sid:
-                pending = (sid, float(slam.t[j]))
-            guess = self._reinit_guess(flight, pending[1], float(slam.t[j]), cur_t)
+            self._session, self._ref, self._pending = sid, (t_j, ev.slam_t_cam, R_j), None
+            return
+        if sid != self._session:
+            if self._pending is None or self._pending[0] != sid:
+                self._pending = (sid, t_j)
+            guess = self._reinit_guess(self._pending[1], t_j, self._cur_t)
             if guess is None:
                 self.counts.slam_waiting_reinit += 1
                 self.drop_clone(k_j)
-                return session, ref, pending
+                return
             s_new, rel = guess
-            self._session_scale[session] = (self.scale, self.scale_sigma)
+            self._session_scale[self._session] = (self.scale, self.scale_sigma)
             self._reset_scale(s_new, rel)
             self.counts.session_resets += 1
-            self._keep_only_clone(self.clone_index(float(slam.t[j])))
-            return sid, j, None
-        k_i = self.clone_index(float(slam.t[ref]))
-        if k_i is None or slam.t[j] <= slam.t[ref]:
+            self._keep_only_clone(self.clone_index(t_j))
+            self._session, self._ref, self._pending = sid, (t_j, ev.slam_t_cam, R_j), None
+            return
+        t_ref, p_ref, R_ref = self._ref
+        k_i = self.clone_index(t_ref)
+        if k_i is None or t_j <= t_ref:
             self.counts.slam_out_of_order += 1
             self.drop_clone(k_j)
-            return session, ref, pending
-        self.update_relative_slam(
-            k_i, k_j, slam.slam_t_cam[ref], slam_R[ref], slam.slam_t_cam[j], slam_R[j]
-        )
-        if slam.t[j] - slam.t[ref] < self.opt.keyframe_interval_s - 1e-9:
+            return
+        self.update_relative_slam(k_i, k_j, p_ref, R_ref, ev.slam_t_cam, R_j)
+        if t_j - t_ref < self.opt.keyframe_interval_s - 1e-9:
             self.drop_clone(k_j)  # same keyframe: the next pose is measured against it again
-            return session, ref, pending
+            return
         # New keyframe: marginalise the old one; clones older than j can never be used.
-        t_ref = float(slam.t[j])
         for k in reversed(range(len(self.clones))):
-            if self.clones[k] < t_ref - 1e-9:
+            if self.clones[k] < t_j - 1e-9:
                 if k != k_i:
                     self.counts.slam_out_of_order += 1
                 self.drop_clone(k)
         self.counts.keyframes += 1
-        return session, j, pending
+        self._ref = (t_j, ev.slam_t_cam, R_j)
 
     def _keep_only_clone(self, k: int) -> None:
         """Drop every clone except k, and those taken after it (pending images)."""
@@ -882,37 +987,18 @@ class Ukf003:
         self.P[IS, IS] = (rel_sigma * scale) ** 2
 
     def _reinit_guess(
-        self, flight: Flight, t_first: float, t_meas: float, t_now: float
+        self, t_first: float, t_meas: float, t_now: float
     ) -> tuple[float, float] | None:
-        """Scale of a new map (:func:`~fgnav.baselines.msf_ekf.new_map_scale_guess`); None while
-        undetermined; after ``REINIT_GIVE_UP_S`` the old scale with ``RESET_SCALE_REL_SIGMA``."""
+        """Scale of a new map (:func:`~fgnav.baselines.msf_ekf.new_map_scale_guess`) from the
+        arrived data; None while undetermined; after ``REINIT_GIVE_UP_S`` the old scale with
+        ``RESET_SCALE_REL_SIGMA``."""
         if t_meas - t_first > REINIT_GIVE_UP_S:
             self.counts.extra["reinit_gave_up"] = self.counts.extra.get("reinit_gave_up", 0) + 1
             return self.scale, RESET_SCALE_REL_SIGMA
-        return new_map_scale_guess(flight, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
-
-    def _events(self, flight: Flight, t_start: float) -> list[tuple[float, int, int]]:
-        """(time, kind, index) sorted; kinds: 0 clone at image time, 1 SLAM arrival, 2 range,
-        3 yaw, 4 attitude. At equal times clones come first (kind order)."""
-        o, slam = self.opt, flight.slam
-        lat = slam.latency if slam.latency is not None else np.zeros(len(slam))
-        ev: list[tuple[float, int, int]] = []
-        for j in range(len(slam)):
-            if slam.session[j] < 0 or slam.t[j] < t_start:
-                continue
-            ev.append((float(slam.t[j]), 0, j))
-            ev.append((float(slam.t[j] + lat[j]), 1, j))
-        if o.use_range and flight.range is not None:
-            rng, c = flight.range, flight.calib
-            ok = (rng.range >= c.range_min) & (rng.range <= c.range_max)
-            self.counts.range_out_of_limits = int((~ok).sum())
-            ev += [(float(rng.t[j]), 2, j) for j in np.flatnonzero(ok) if rng.t[j] >= t_start]
-        if o.use_yaw and flight.yaw is not None:
-            ev += [(float(t), 3, j) for j, t in enumerate(flight.yaw.t) if t >= t_start]
-        if o.use_attitude and flight.attitude is not None:
-            ev += [(float(t), 4, j) for j, t in enumerate(flight.attitude.t) if t >= t_start]
-        ev.sort()
-        return ev
+        if t_meas - t_first < SCALE_INIT_WINDOWS_S[0]:
+            return None
+        prefix = self._hist.flight(self._calib, self._name)
+        return new_map_scale_guess(prefix, t_first, t_meas, t_now, MIN_SCALE_REL_SIGMA)
 
     def _initial_attitude(
         self, flight: Flight, t_start: float, fit: InitFit | None = None
