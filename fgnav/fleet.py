@@ -135,9 +135,9 @@ def is_flight(p: Path) -> bool:
 def flight_name(p: Path) -> str:
     """Name of a flight in the table: its folder name (the parent of ``mav0``) or file stem."""
     p = Path(os.path.abspath(p))
-    if p.is_dir():
-        return p.parent.name if p.name == "mav0" else p.name
-    return p.stem
+    if p.name == "mav0":
+        return p.parent.name
+    return p.name if p.is_dir() else p.stem
 
 
 def _scan(folder: Path) -> list[Path]:

@@ -43,16 +43,24 @@ def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+#: Error texts of a failed allocation (an import under RLIMIT_AS fails to map its library).
+MEMORY_HINTS = ("memory", "failed to map", "cannot allocate", "bad_alloc")
+
+
 def error_reason(e: BaseException, memory_limit_mb: float | None = None) -> str:
-    """One line for an exception; fgnav's known errors are given as their message alone."""
+    """One line for an exception; fgnav's known errors are given as their message alone; an
+    allocation failure under a memory limit says so."""
     from fgnav.datasets.errors import FgnavError
 
-    if isinstance(e, MemoryError):
+    text = one_line(e)
+    if isinstance(e, MemoryError) or (
+        memory_limit_mb and any(h in text.lower() for h in MEMORY_HINTS)
+    ):
         limit = f" (--memory-limit {memory_limit_mb:g} MB)" if memory_limit_mb else ""
-        return f"out of memory{limit}: {one_line(e) or 'MemoryError'}"
+        return f"out of memory{limit}: {type(e).__name__}: {text}"
     if isinstance(e, FgnavError):
-        return one_line(e)
-    return f"{type(e).__name__}: {one_line(e)}"
+        return text
+    return f"{type(e).__name__}: {text}"
 
 
 def result_row(flight: Any, est: Any, metrics: Any) -> dict[str, Any]:
