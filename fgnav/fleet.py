@@ -390,14 +390,21 @@ class FleetOptions:
 
 @dataclass
 class FleetResult:
-    """Rows of the fleet table (plain dicts, :data:`COLUMNS`), files written, timings."""
+    """Rows of the fleet table (plain dicts, :data:`COLUMNS`), files written, timings.
+
+    Attributes:
+        wall_s: the whole call, hashing and table included [s].
+        startup_s: connecting to the scheduler or starting the LocalCluster [s].
+        tasks_s: first submission to last result [s] (0 when every run was skipped).
+    """
 
     rows: list[dict[str, Any]]
     out: Path
     n_flights: int
     workers: int
     wall_s: float
-    compute_s: float
+    startup_s: float = 0.0
+    tasks_s: float = 0.0
     files: dict[str, Path] = field(default_factory=dict)
 
     def counts(self) -> dict[str, int]:
@@ -517,33 +524,36 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
             "memory_limit_mb": opts.memory_limit_mb,
         }
         jobs.append((job, {**ident, "input_hash": h, "out_base": rel}))
-    workers = 0
-    t_compute = time.perf_counter()
+    timing = {"workers": 0, "startup_s": 0.0, "tasks_s": 0.0}
     if jobs:
-        done, workers = _run_jobs(jobs, opts, o_hash)
-        rows += done
-    compute_s = time.perf_counter() - t_compute
+        rows += _run_jobs(jobs, opts, o_hash, timing)
     order = {m: i for i, m in enumerate(opts.methods)}
     pos = {f.input: i for i, f in enumerate(flights)}
     rows.sort(key=lambda r: (pos.get(r["input"], 0), order.get(r["method"], 0)))
     rows = [{c: r.get(c) for c in COLUMNS} for r in rows]
-    res = FleetResult(rows, out, len(flights), workers, time.perf_counter() - t_all, compute_s)
+    res = FleetResult(rows, out, len(flights), wall_s=time.perf_counter() - t_all, **timing)
     res.files = write_table(rows, out)
     res.files["report"] = write_report(rows, out)
     return res
 
 
 def _run_jobs(
-    jobs: list[tuple[dict[str, Any], dict[str, Any]]], opts: FleetOptions, o_hash: dict[str, str]
-) -> tuple[list[dict[str, Any]], int]:
+    jobs: list[tuple[dict[str, Any], dict[str, Any]]],
+    opts: FleetOptions,
+    o_hash: dict[str, str],
+    timing: dict[str, Any],
+) -> list[dict[str, Any]]:
     """Submit the jobs, gather their rows as they complete (progress bar), close the client;
-    return the rows and the number of workers."""
+    ``timing`` gets ``workers``, ``startup_s`` and ``tasks_s``."""
+    t0 = time.perf_counter()
     from distributed import as_completed
 
     client, cluster = _dask_client(opts)
     rows: list[dict[str, Any]] = []
     try:
-        n_workers = len(client.scheduler_info().get("workers", {}))
+        timing["workers"] = len(client.scheduler_info().get("workers", {}))
+        t1 = time.perf_counter()
+        timing["startup_s"] = t1 - t0
         futures = {
             client.submit(run_flight_job, job, pure=False, key=f"fleet-{i}-{job['flight']}"): (
                 job,
@@ -576,11 +586,12 @@ def _run_jobs(
                 failed += any(r["status"] in FAILED for r in got)
                 bar.set_postfix(failed=failed)
                 bar.update(1)
+        timing["tasks_s"] = time.perf_counter() - t1
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
-    return rows, n_workers
+    return rows
 
 
 def _method_dir(name: str) -> str:
