@@ -23,6 +23,7 @@ COMMANDS: dict[str, str] = {
     "online": "run the online fixed-lag smoother over a flight",
     "compare": "run the smoothers and the filter baselines on a flight and compare them",
     "demo": "simulate a flight and run the main job on it",
+    "fleet": "run methods over many logged flights on Dask (local or a cluster), one table",
 }
 
 

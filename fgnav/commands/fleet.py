@@ -1,0 +1,84 @@
+"""``fgnav fleet INPUTS... --out DIR``: run methods over many logged flights on Dask, one table.
+
+Thin layer over :func:`fgnav.fleet.run_fleet`: each INPUT is a flight (anything ``fgnav info``
+reads), a folder scanned recursively for flights, or a glob pattern (``'logs/**/*.ulg'``, quoted:
+fgnav expands it). Without ``--scheduler`` a LocalCluster runs on this machine (loopback, one
+single-threaded worker per core); with it, the same tasks run on an existing Dask cluster (``DIR``
+must then be a path shared by every worker and this client). Writes ``DIR/fleet.csv``,
+``fleet.json``, ``fleet.parquet`` (with pyarrow), ``fleet.md`` and, per flight and method,
+``DIR/flights/<flight>-<hash>/<method>/``. A rerun skips the runs already done with the same
+input content and options (``--force`` reruns them). Failed flights are rows of the table (status
+``error``, ``timeout``, ``crashed``): the exit code is 0 once the table is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from fgnav.config import load_config
+
+HELP = "run methods over many logged flights on Dask (local or a cluster), one table"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="INPUT",
+        help="flight (log, manifest, flight folder), folder to scan, or quoted glob pattern",
+    )
+    parser.add_argument("--out", required=True, help="output folder (the table, per-flight runs)")
+    parser.add_argument(
+        "--methods",
+        default="batch",
+        help="comma-separated methods of `fgnav compare` (default batch)",
+    )
+    parser.add_argument("--config", default=None, help="TOML file with the per-method tables")
+    parser.add_argument(
+        "--scheduler", default=None, help="address of a running Dask scheduler (tcp://HOST:PORT)"
+    )
+    parser.add_argument(
+        "--workers", type=int, default=None, help="local workers (default: one per core)"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=None, help="wall-time limit per flight [s]"
+    )
+    parser.add_argument(
+        "--memory-limit",
+        type=float,
+        default=None,
+        help="address-space limit of each flight's child process [MB]",
+    )
+    parser.add_argument("--force", action="store_true", help="rerun flights already done")
+    parser.add_argument(
+        "--no-flight-files", action="store_true", help="write the table only, no per-flight files"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgnav.datasets.errors import FgnavError
+    from fgnav.fleet import FleetOptions, run_fleet
+
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    for flag, v in (
+        ("--workers", args.workers),
+        ("--timeout", args.timeout),
+        ("--memory-limit", args.memory_limit),
+    ):
+        if v is not None and v <= 0:
+            raise FgnavError(f"{flag} must be positive, got {v:g}")
+    opts = FleetOptions(
+        methods=methods or ("batch",),
+        config=load_config(args.config),
+        scheduler=args.scheduler,
+        workers=args.workers,
+        timeout_s=args.timeout,
+        memory_limit_mb=args.memory_limit,
+        force=args.force,
+        flight_files=not args.no_flight_files,
+        progress=not args.no_progress,
+    )
+    res = run_fleet(args.inputs, args.out, opts)
+    print(res.summary_line())
+    return 0

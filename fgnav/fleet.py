@@ -1,0 +1,788 @@
+"""Fleets of logged flights: every flight's methods in a Dask task, one table.
+
+:func:`run_fleet` finds the flights of its inputs (:func:`discover`), hashes each one's content
+(:func:`content_hash`), skips the (flight, method) runs a previous run in the same output folder
+already did with the same input and options (resume), and maps :func:`run_flight_job` over the
+rest on a Dask cluster: a ``LocalCluster`` on this machine (loopback only, one single-threaded
+worker per core) or an existing scheduler (``tcp://host:port``). The client writes the table
+(:func:`write_table`) and the report (:func:`write_report`) from the returned dicts.
+
+Isolation: a Dask task takes paths and returns plain dicts (GTSAM's CustomFactors do not pickle).
+It runs the flight in a fresh child interpreter, ``python -m fgnav.fleet_worker`` (a
+``subprocess``, so Dask's daemonic worker processes need no ``distributed.worker.daemon``
+change), which calls the registry's methods (:mod:`fgnav.methods`, the same library calls as
+``fgnav batch`` / ``online``). A native crash, a ``--timeout`` or the ``--memory-limit`` (the
+child's ``RLIMIT_AS``) ends the child only: the task returns an error row (``crashed``,
+``timeout``, ``error``) and the worker goes on with the next flight.
+
+Outputs under ``out``: ``flights/<flight>-<8 hex of the content hash>/<method>/`` (``estimate.tum``,
+``states.csv``, ``summary.json``, written by the child: on a cluster ``out`` must be a path every
+worker and the client share), ``fleet.csv``, ``fleet.json`` (typed rows, read back to resume),
+``fleet.parquet`` (when pyarrow is importable), ``fleet.md`` and ``figures/``.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import json
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fgnav.datasets.errors import FgnavError
+from fgnav.fleet_worker import CRASHED, ERROR, OK, SKIPPED, TIMEOUT
+
+log = logging.getLogger(__name__)
+
+#: Columns of ``fleet.csv`` in order (units in the names; multi-valued cells as compact JSON).
+COLUMNS = (
+    "flight",  # flight name (the input's folder or file name)
+    "input",  # the path as given (or as found under a given folder or glob)
+    "method",  # registry name (fgnav.methods)
+    "status",  # ok, error, timeout, crashed, skipped (ok in an earlier run, figures kept)
+    "reason",  # one-line error; empty when ok or skipped
+    "duration_s",  # overlap of the flight's sensor streams [s]
+    "streams",  # JSON list of the flight's streams
+    "ate_rmse_m",  # ATE RMSE after the method's alignment [m] (ground truth only)
+    "scale_err_pct",  # JSON {session: final SLAM-scale error [%]} (ground truth only)
+    "slam_scale",  # JSON {session: SLAM units per metre}
+    "drag_k_per_s",  # JSON [kx, ky] drag coefficient [1/s]
+    "solver_failures",  # solver failures the method recovered from (fixed-lag)
+    "dropped",  # JSON {reason: count} of measurements not used
+    "runtime_s",  # the method's own run time [s]
+    "work_s",  # child time loading the flight, running, scoring and writing [s]
+    "task_wall_s",  # the Dask task's wall time: child start to result [s]
+    "n_states",  # states in the estimate
+    "input_hash",  # sha256 of the input's content (with the files a manifest names)
+    "options_hash",  # sha256 of the method, its config and fgnav's version
+    "out_dir",  # outputs of the run, relative to the fleet folder ("" with --no-flight-files)
+    "worker",  # Dask worker address
+)
+
+#: Cells holding several values, written as compact JSON.
+JSON_COLUMNS = ("streams", "scale_err_pct", "slam_scale", "drag_k_per_s", "dropped")
+
+#: Failed statuses (counted by the progress bar and the summary line).
+FAILED = (ERROR, TIMEOUT, CRASHED)
+
+#: Statuses of runs a rerun does not repeat.
+DONE = (OK, SKIPPED)
+
+#: File suffixes of flights found when scanning a folder (folders: see :func:`is_flight`).
+FLIGHT_SUFFIXES = (".ulg", ".bag", ".db3", ".mcap")
+
+#: The child is single-threaded: one Dask worker per core, no BLAS or OpenMP threads on top.
+SINGLE_THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENCV_NUM_THREADS": "1",
+}
+
+
+class FleetError(FgnavError):
+    """A fleet cannot start: no flights found, an unknown method, an unreachable scheduler."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Finding flights
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FlightInput:
+    """One flight of the fleet: its ``name`` in the table, the ``input`` as given, ``path``."""
+
+    name: str
+    input: str
+    path: Path
+
+
+def _is_euroc(p: Path) -> bool:
+    return (p / "imu0" / "data.csv").is_file() or (p / "mav0" / "imu0" / "data.csv").is_file()
+
+
+def _is_manifest(p: Path) -> bool:
+    """A ``*.toml`` file that reads as a flight manifest (has an ``[imu]`` table)."""
+    try:
+        return isinstance(tomllib.loads(p.read_text()).get("imu"), dict)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def is_flight(p: Path) -> bool:
+    """True when ``p`` is a flight ``fgnav info`` reads: a native flight folder (``meta.json``),
+    a ROS 2 bag folder (``metadata.yaml``), an EuRoC folder, a log file (``*.ulg``, ``*.bag``,
+    ``*.db3``, ``*.mcap``) or a manifest (``*.toml`` with an ``[imu]`` table)."""
+    if p.is_dir():
+        return (p / "meta.json").is_file() or (p / "metadata.yaml").is_file() or _is_euroc(p)
+    if p.suffix.lower() == ".toml":
+        return _is_manifest(p)
+    return p.is_file() and p.suffix.lower() in FLIGHT_SUFFIXES
+
+
+def flight_name(p: Path) -> str:
+    """Name of a flight in the table: its folder name (the parent of ``mav0``) or file stem."""
+    p = Path(os.path.abspath(p))
+    if p.name == "mav0":
+        return p.parent.name
+    return p.name if p.is_dir() else p.stem
+
+
+def _scan(folder: Path) -> list[Path]:
+    """Flights under ``folder`` (recursively; a flight folder is not searched further)."""
+    found: list[Path] = []
+    for root, dirs, files in os.walk(folder):
+        dirs.sort()
+        here = Path(root)
+        keep = []
+        for d in dirs:
+            if d.startswith("."):
+                continue
+            if is_flight(here / d):
+                found.append(here / d)
+            else:
+                keep.append(d)
+        dirs[:] = keep
+        found += [here / f for f in sorted(files) if is_flight(here / f)]
+    return found
+
+
+def discover(inputs: Sequence[str]) -> list[FlightInput]:
+    """The flights of the command line's inputs, in order, each once.
+
+    Each input is a flight (taken as one even when its format is not recognised: reading it then
+    fails with the reason, in the table) or a folder that is not a flight, scanned recursively;
+    glob patterns (``logs/**/*.ulg``) are expanded here.
+
+    Raises:
+        FleetError: an input that does not exist, or a pattern or folder without flights.
+    """
+    out: list[FlightInput] = []
+    seen: set[Path] = set()
+
+    def add(p: Path, given: str) -> None:
+        key = Path(os.path.abspath(p))
+        if key not in seen:
+            seen.add(key)
+            out.append(FlightInput(flight_name(p), given, key))
+
+    for given in inputs:
+        if glob.has_magic(given):
+            matches = sorted(glob.glob(given, recursive=True))
+            if not matches:
+                raise FleetError(f"{given}: no file or folder matches this pattern")
+            paths = [Path(m) for m in matches]
+        else:
+            paths = [Path(given)]
+        for p in paths:
+            if not p.exists():
+                raise FleetError(f"{p}: no such file or folder")
+            if p.is_dir() and not is_flight(p):
+                flights = _scan(p)
+                if not flights and not glob.has_magic(given):
+                    raise FleetError(f"{p}: no flights found in this folder")
+                for f in flights:
+                    add(f, str(f))
+            else:
+                add(p, str(p))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Hashes (resume)
+# ----------------------------------------------------------------------------------------------
+
+
+def _manifest_files(p: Path) -> list[Path]:
+    """The manifest and the files or folders its tables name (``root`` + ``path``)."""
+    try:
+        doc = tomllib.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return [p]
+    root = p.parent / str(doc.get("root", "."))
+    files = [p]
+
+    def walk(table: Mapping[str, Any]) -> None:
+        for key, v in table.items():
+            if isinstance(v, Mapping):
+                walk(v)
+            elif key == "path" and isinstance(v, str):
+                files.append(root / v)
+
+    walk(doc)
+    return files
+
+
+def _files_of(p: Path) -> list[Path]:
+    if p.is_dir():
+        return sorted(f for f in p.rglob("*") if f.is_file())
+    if p.suffix.lower() == ".toml":
+        out: list[Path] = []
+        for f in _manifest_files(p):
+            out += _files_of(f) if f != p else [f]
+        return out
+    return [p]
+
+
+def content_hash(path: Path) -> str:
+    """sha256 (hex) of a flight input's content: the file; a folder's files (relative names and
+    bytes); a manifest and the files it names. Unchanged content, same hash, wherever it lies.
+
+    Raises:
+        OSError: a file cannot be read.
+    """
+    h = hashlib.sha256()
+    base = path if path.is_dir() else path.parent
+    for f in _files_of(path):
+        h.update(os.path.relpath(f, base).encode() + b"\0")
+        if not f.exists():
+            h.update(b"<missing>\0")
+            continue
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def options_hash(method: str, config: Mapping[str, Any]) -> str:
+    """sha256 (hex) of a method, the config tables and fgnav's version."""
+    from fgnav import __version__
+
+    text = json.dumps(
+        {"method": method, "config": config, "fgnav": __version__}, sort_keys=True, default=str
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# ----------------------------------------------------------------------------------------------
+# The Dask task
+# ----------------------------------------------------------------------------------------------
+
+
+def _tail(text: str) -> str:
+    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def _worker_address() -> str:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):
+        return ""
+
+
+def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
+    """Run one flight's methods in a fresh child interpreter and return its rows (plain dicts).
+
+    Args:
+        job: see :func:`fgnav.fleet_worker.run_job`, plus ``timeout_s`` (None: no limit).
+
+    Returns:
+        The child's rows, or when the child did not finish one row per method with status
+        ``timeout`` (killed after ``timeout_s``) or ``crashed`` (killed by a signal, or it exited
+        without a result) and the reason; each with ``task_wall_s`` and ``worker``.
+    """
+    t0 = time.perf_counter()
+    env = {**os.environ, **SINGLE_THREAD_ENV}
+    proc = subprocess.Popen(
+        [sys.executable, "-X", "faulthandler", "-m", "fgnav.fleet_worker"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    status = reason = None
+    try:
+        out, err = proc.communicate(json.dumps(job), timeout=job.get("timeout_s"))
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        status, reason = TIMEOUT, f"timed out after {job['timeout_s']:g} s (--timeout)"
+    rows: list[dict[str, Any]] = []
+    if status is None and proc.returncode == 0:
+        try:
+            rows = json.loads(out)
+        except ValueError:
+            status, reason = CRASHED, f"child interpreter gave no result: {_tail(err)}"
+    elif status is None:
+        rc = proc.returncode
+        if rc < 0:
+            try:
+                sig = signal.Signals(-rc).name
+            except ValueError:
+                sig = f"signal {-rc}"
+            reason = f"child interpreter killed by {sig}"
+        else:
+            reason = f"child interpreter exited with code {rc}"
+        limit = job.get("memory_limit_mb")
+        if limit:
+            reason += f" (memory limit {limit:g} MB)"
+        last = _tail(err)
+        status, reason = CRASHED, reason + (f": {last}" if last else "")
+    if status is not None:
+        rows = [{"method": m, "status": status, "reason": reason} for m in job["methods"]]
+        if job.get("out_dir"):
+            Path(job["out_dir"]).mkdir(parents=True, exist_ok=True)
+            (Path(job["out_dir"]) / "child-stderr.txt").write_text(err or "")
+    wall = time.perf_counter() - t0
+    worker = _worker_address()
+    for r in rows:
+        r.update(task_wall_s=wall, worker=worker)
+    return rows
+
+
+# ----------------------------------------------------------------------------------------------
+# The fleet
+# ----------------------------------------------------------------------------------------------
+
+
+def default_workers() -> int:
+    """One worker per core this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+@dataclass
+class FleetOptions:
+    """Options of :func:`run_fleet`.
+
+    Attributes:
+        methods: registry names run on every flight (default: the batch smoother).
+        config: config tables by name (as ``--config``; see :mod:`fgnav.methods`).
+        scheduler: address of an existing Dask scheduler (None: a LocalCluster here).
+        workers: LocalCluster workers (None: one per core); ignored with ``scheduler``.
+        timeout_s: wall-time limit of one flight's child [s] (None: none).
+        memory_limit_mb: address-space limit of one flight's child [MiB] (None: none).
+        force: rerun flights a previous run already did.
+        flight_files: write each run's ``estimate.tum``, ``states.csv``, ``summary.json``.
+        progress: progress bar over completed flights.
+    """
+
+    methods: tuple[str, ...] = ("batch",)
+    config: dict[str, Any] = field(default_factory=dict)
+    scheduler: str | None = None
+    workers: int | None = None
+    timeout_s: float | None = None
+    memory_limit_mb: float | None = None
+    force: bool = False
+    flight_files: bool = True
+    progress: bool = True
+
+
+@dataclass
+class FleetResult:
+    """Rows of the fleet table (plain dicts, :data:`COLUMNS`), files written, timings.
+
+    Attributes:
+        wall_s: the whole call, hashing and table included [s].
+        startup_s: connecting to the scheduler or starting the LocalCluster [s].
+        tasks_s: first submission to last result [s] (0 when every run was skipped).
+    """
+
+    rows: list[dict[str, Any]]
+    out: Path
+    n_flights: int
+    workers: int
+    wall_s: float
+    startup_s: float = 0.0
+    tasks_s: float = 0.0
+    files: dict[str, Path] = field(default_factory=dict)
+
+    def counts(self) -> dict[str, int]:
+        """Rows per status."""
+        out = {s: 0 for s in (OK, SKIPPED, ERROR, TIMEOUT, CRASHED)}
+        for r in self.rows:
+            out[r["status"]] = out.get(r["status"], 0) + 1
+        return out
+
+    def summary_line(self) -> str:
+        c = self.counts()
+        parts = ", ".join(f"{n} {s}" for s, n in c.items())
+        return (
+            f"fleet: {self.n_flights} flights, {len(self.rows)} runs: {parts}; "
+            f"{self.wall_s:.1f} s on {self.workers} workers; table {self.files.get('csv', '')}"
+        )
+
+
+def _check_methods(methods: Iterable[str]) -> None:
+    from fgnav.methods import METHODS, REFERENCE_PREFIX
+
+    for m in methods:
+        if m not in METHODS and not m.startswith(REFERENCE_PREFIX):
+            raise FleetError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
+
+
+def previous_rows(out: Path) -> dict[tuple[str, str, str], dict[str, Any]]:
+    """Runs an earlier fleet in ``out`` finished (``ok`` or ``skipped``), by (input hash,
+    method, options hash); empty when there is no readable ``fleet.json``."""
+    path = out / "fleet.json"
+    if not path.is_file():
+        return {}
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        log.warning("%s: not read (%s); every flight runs", path, e)
+        return {}
+    return {
+        (r["input_hash"], r["method"], r["options_hash"]): r
+        for r in rows
+        if isinstance(r, dict) and r.get("status") in DONE and r.get("input_hash")
+    }
+
+
+def _dask_client(opts: FleetOptions):
+    """A Dask client: on ``opts.scheduler``, or on a loopback LocalCluster of single-threaded
+    worker processes."""
+    from distributed import Client, LocalCluster
+
+    # The scheduler of a LocalCluster runs in this process: its INFO lines are not the user's.
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+    if opts.scheduler:
+        try:
+            return Client(opts.scheduler, timeout="20s"), None
+        except (OSError, TimeoutError) as e:
+            raise FleetError(f"--scheduler {opts.scheduler}: cannot connect ({e})") from e
+    cluster = LocalCluster(
+        n_workers=opts.workers or default_workers(),
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        silence_logs=logging.WARNING,
+    )
+    return Client(cluster), cluster
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="flight", desc="fleet", disable=not enabled, file=sys.stderr)
+
+
+def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None = None):
+    """Run ``opts.methods`` on every flight of ``inputs`` on Dask; write and return the table.
+
+    Raises:
+        FleetError: no flights, an unknown method, an unreachable scheduler.
+    """
+    opts = opts or FleetOptions()
+    _check_methods(opts.methods)
+    out = Path(out)
+    flights = discover(inputs)
+    if not flights:
+        raise FleetError("no flights in the inputs")
+    out.mkdir(parents=True, exist_ok=True)
+    old = {} if opts.force else previous_rows(out)
+    o_hash = {m: options_hash(m, opts.config) for m in opts.methods}
+    t_all = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    jobs: list[tuple[dict[str, Any], dict[str, Any]]] = []
+    for f in flights:
+        ident = {"flight": f.name, "input": f.input}
+        try:
+            h = content_hash(f.path)
+        except OSError as e:
+            for m in opts.methods:
+                rows.append({**ident, "method": m, "status": ERROR, "reason": f"{f.path}: {e}"})
+            continue
+        todo = []
+        for m in opts.methods:
+            prev = old.get((h, m, o_hash[m]))
+            if prev and (prev.get("out_dir") or not opts.flight_files):
+                rows.append({**prev, **ident, "status": SKIPPED, "reason": ""})
+            else:
+                todo.append(m)
+        if not todo:
+            continue
+        rel = f"flights/{f.name}-{h[:8]}" if opts.flight_files else ""
+        job = {
+            "flight": f.name,
+            "path": str(f.path),
+            "methods": todo,
+            "config": opts.config,
+            "out_dir": str((out / rel).resolve()) if rel else None,
+            "timeout_s": opts.timeout_s,
+            "memory_limit_mb": opts.memory_limit_mb,
+        }
+        jobs.append((job, {**ident, "input_hash": h, "out_base": rel}))
+    timing = {"workers": 0, "startup_s": 0.0, "tasks_s": 0.0}
+    if jobs:
+        rows += _run_jobs(jobs, opts, o_hash, timing)
+    order = {m: i for i, m in enumerate(opts.methods)}
+    pos = {f.input: i for i, f in enumerate(flights)}
+    rows.sort(key=lambda r: (pos.get(r["input"], 0), order.get(r["method"], 0)))
+    rows = [{c: r.get(c) for c in COLUMNS} for r in rows]
+    res = FleetResult(rows, out, len(flights), wall_s=time.perf_counter() - t_all, **timing)
+    res.files = write_table(rows, out)
+    res.files["report"] = write_report(rows, out)
+    return res
+
+
+def _run_jobs(
+    jobs: list[tuple[dict[str, Any], dict[str, Any]]],
+    opts: FleetOptions,
+    o_hash: dict[str, str],
+    timing: dict[str, Any],
+) -> list[dict[str, Any]]:
+    """Submit the jobs, gather their rows as they complete (progress bar), close the client;
+    ``timing`` gets ``workers``, ``startup_s`` and ``tasks_s``."""
+    t0 = time.perf_counter()
+    from distributed import as_completed
+
+    client, cluster = _dask_client(opts)
+    rows: list[dict[str, Any]] = []
+    try:
+        timing["workers"] = len(client.scheduler_info().get("workers", {}))
+        t1 = time.perf_counter()
+        timing["startup_s"] = t1 - t0
+        futures = {
+            client.submit(run_flight_job, job, pure=False, key=f"fleet-{i}-{job['flight']}"): (
+                job,
+                ident,
+            )
+            for i, (job, ident) in enumerate(jobs)
+        }
+        failed = 0
+        with _progress(len(futures), opts.progress) as bar:
+            for fut in as_completed(futures):
+                job, ident = futures[fut]
+                try:
+                    got = fut.result()
+                except Exception as e:  # the task itself failed (lost worker, bad pickle)
+                    reason = f"Dask task failed: {type(e).__name__}: {' '.join(str(e).split())}"
+                    got = [
+                        {"method": m, "status": CRASHED, "reason": reason} for m in job["methods"]
+                    ]
+                for r in got:
+                    base = ident["out_base"]
+                    written = r["status"] == OK and bool(base)
+                    r.update(
+                        flight=ident["flight"],
+                        input=ident["input"],
+                        input_hash=ident["input_hash"],
+                        options_hash=o_hash[r["method"]],
+                        out_dir=f"{base}/{_method_dir(r['method'])}" if written else "",
+                    )
+                    rows.append(r)
+                failed += any(r["status"] in FAILED for r in got)
+                bar.set_postfix(failed=failed)
+                bar.update(1)
+        timing["tasks_s"] = time.perf_counter() - t1
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return rows
+
+
+def _method_dir(name: str) -> str:
+    from fgnav.compare import method_dirname
+
+    return method_dirname(name)
+
+
+# ----------------------------------------------------------------------------------------------
+# Table and report
+# ----------------------------------------------------------------------------------------------
+
+
+def _cell(column: str, v: Any) -> str:
+    if v is None:
+        return ""
+    if column in JSON_COLUMNS:
+        return json.dumps(v, separators=(",", ":"), sort_keys=True)
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def write_table(rows: list[dict[str, Any]], out: Path) -> dict[str, Path]:
+    """``fleet.csv`` (strings; multi-valued cells as compact JSON; empty = none), ``fleet.json``
+    (typed rows) and ``fleet.parquet`` when pyarrow is importable."""
+    paths = {"csv": out / "fleet.csv", "json": out / "fleet.json"}
+    with open(paths["csv"], "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(COLUMNS)
+        for r in rows:
+            w.writerow([_cell(c, r.get(c)) for c in COLUMNS])
+    paths["json"].write_text(json.dumps(rows, indent=1, allow_nan=False) + "\n")
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        return paths
+    flat = [
+        {c: (_cell(c, r.get(c)) if c in JSON_COLUMNS else r.get(c)) for c in COLUMNS} for r in rows
+    ]
+    paths["parquet"] = out / "fleet.parquet"
+    pq.write_table(pa.Table.from_pylist(flat), paths["parquet"])
+    return paths
+
+
+def _values(rows: list[dict[str, Any]], column: str) -> list[float]:
+    return [float(r[column]) for r in rows if isinstance(r.get(column), int | float)]
+
+
+def _figures(rows: list[dict[str, Any]], out: Path) -> dict[str, Path]:
+    """Distributions across flights: ATE, final scale error, drag k, run time vs duration."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figdir = out / "figures"
+    figdir.mkdir(exist_ok=True)
+    done = [r for r in rows if r["status"] in DONE]
+    methods = sorted({r["method"] for r in done})
+    figs: dict[str, Path] = {}
+
+    def hist(name: str, title: str, xlabel: str, series: dict[str, list[float]]) -> None:
+        if not any(series.values()):
+            return
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        for label, vals in series.items():
+            if vals:
+                ax.hist(vals, bins=min(20, max(5, len(vals))), alpha=0.6, label=label)
+        ax.set(title=title, xlabel=xlabel, ylabel="flights")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        figs[name] = figdir / f"{name}.png"
+        fig.savefig(figs[name], dpi=90)
+        plt.close(fig)
+
+    by = {m: [r for r in done if r["method"] == m] for m in methods}
+    hist(
+        "ate",
+        "ATE RMSE across flights",
+        "ATE RMSE [m]",
+        {m: _values(v, "ate_rmse_m") for m, v in by.items()},
+    )
+    scale = {
+        m: [e for r in v for e in (r.get("scale_err_pct") or {}).values() if e is not None]
+        for m, v in by.items()
+    }
+    hist("scale_err", "final SLAM-scale error across flights and sessions", "error [%]", scale)
+    drag: dict[str, list[float]] = {}
+    for m, v in by.items():
+        for r in v:
+            for ax_name, k in zip("xy", r.get("drag_k_per_s") or [], strict=False):
+                drag.setdefault(f"{m} k{ax_name}", []).append(float(k))
+    hist("drag_k", "drag coefficient across flights", "k [1/s]", drag)
+    pts = {
+        m: [
+            (r["duration_s"], r["runtime_s"])
+            for r in v
+            if r.get("duration_s") is not None and r.get("runtime_s") is not None
+        ]
+        for m, v in by.items()
+    }
+    if any(pts.values()):
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        for m, p in pts.items():
+            if p:
+                ax.scatter(*zip(*p, strict=True), label=m, s=16)
+        ax.set(
+            title="run time vs flight duration",
+            xlabel="flight duration [s]",
+            ylabel="method run time [s]",
+        )
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        figs["runtime"] = figdir / "runtime.png"
+        fig.savefig(figs["runtime"], dpi=90)
+        plt.close(fig)
+    return figs
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.{digits}g}"
+    if isinstance(v, dict | list):
+        return json.dumps(v, separators=(",", ":"), sort_keys=True, default=str)
+    return str(v)
+
+
+#: Columns of the Markdown tables of ``fleet.md``.
+REPORT_COLUMNS = (
+    "flight",
+    "method",
+    "status",
+    "duration_s",
+    "ate_rmse_m",
+    "scale_err_pct",
+    "drag_k_per_s",
+    "runtime_s",
+    "reason",
+)
+
+
+def markdown_table(rows: list[dict[str, Any]], columns: Sequence[str] = REPORT_COLUMNS) -> str:
+    """Rows as a Markdown table (numbers to 4 significant digits, JSON cells rounded)."""
+
+    def cell(c: str, v: Any) -> str:
+        if isinstance(v, dict):
+            v = {k: (round(x, 3) if isinstance(x, float) else x) for k, x in v.items()}
+        elif isinstance(v, list):
+            v = [round(x, 4) if isinstance(x, float) else x for x in v]
+        return _fmt(v).replace("|", "/")
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(c, r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+#: Flights listed as the worst in the report.
+N_WORST = 5
+
+
+def write_report(rows: list[dict[str, Any]], out: Path) -> Path:
+    """``fleet.md``: counts, the distribution figures, the worst flights by ATE per method, the
+    failed runs with their reasons, and the whole table."""
+    figs = _figures(rows, out)
+    counts: dict[str, int] = {}
+    for r in rows:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    lines = [
+        "# Fleet report",
+        "",
+        f"{len({r['input'] for r in rows})} flights, {len(rows)} runs: "
+        + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+        + ". Columns of `fleet.csv`: see `fgnav.fleet.COLUMNS`.",
+        "",
+    ]
+    if figs:
+        lines += ["## Distributions across flights", ""]
+        lines += [f"![{k}](figures/{p.name})" for k, p in figs.items()] + [""]
+    done = [r for r in rows if r["status"] in DONE and r.get("ate_rmse_m") is not None]
+    for m in sorted({r["method"] for r in done}):
+        worst = sorted((r for r in done if r["method"] == m), key=lambda r: -r["ate_rmse_m"])
+        lines += [f"## Worst flights by ATE: {m}", "", markdown_table(worst[:N_WORST]), ""]
+    failed = [r for r in rows if r["status"] in FAILED]
+    if failed:
+        cols = ("flight", "input", "method", "status", "reason")
+        lines += ["## Failed runs", "", markdown_table(failed, cols), ""]
+    lines += ["## All runs", "", markdown_table(rows), ""]
+    path = out / "fleet.md"
+    path.write_text("\n".join(lines))
+    return path
