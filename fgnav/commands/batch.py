@@ -15,8 +15,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from fgnav.config import load_config, options_from
-from fgnav.datasets.errors import FgnavError
+from fgnav.config import check_tables, load_config, options_from
+from fgnav.datasets.errors import FgnavError, FlightFormatError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate
 from fgnav.solvers.batch import BatchOptions, LMOptions, solve_batch
@@ -61,6 +61,11 @@ def frontend_priors_from(args: argparse.Namespace, flight: Flight):
     from fgnav.frontends.pipeline import frontend_priors
 
     table = load_config(args.config, "priors")
+    unknown = sorted(set(table) - {"sources", "drag_k"})
+    if unknown:
+        raise FlightFormatError(
+            args.config, f"[priors]: unknown option(s) {unknown}; valid: ['drag_k', 'sources']"
+        )
     sources = table.get("sources", [])
     if args.priors is not None:
         sources = [s.strip() for s in args.priors.split(",") if s.strip()]
@@ -71,7 +76,11 @@ def graph_options(args: argparse.Namespace) -> GraphOptions:
     """``GraphOptions`` from the ``[graph]`` table and the flags."""
     src = str(args.config or "flags")
     return options_from(
-        GraphOptions, load_config(args.config, "graph"), source=src, keyframe_hz=args.keyframe_hz
+        GraphOptions,
+        load_config(args.config, "graph"),
+        source=src,
+        section="graph",
+        keyframe_hz=args.keyframe_hz,
     )
 
 
@@ -118,17 +127,19 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
-    flight = load_flight(args.flight)
+    check_tables(args.config, ["graph", "lm", "batch", "priors"])
     src = str(args.config or "flags")
     batch_table = load_config(args.config, "batch")
     opts = options_from(
         BatchOptions,
         batch_table,
         source=src,
+        section="batch",
         graph=graph_options(args),
-        lm=options_from(LMOptions, load_config(args.config, "lm"), source=src),
+        lm=options_from(LMOptions, load_config(args.config, "lm"), source=src, section="lm"),
         covariance=args.covariance,
     )
+    flight = load_flight(args.flight)
     priors = frontend_priors_from(args, flight)
     est = solve_batch(flight, opts, priors=priors, progress=not args.no_progress)
     print(

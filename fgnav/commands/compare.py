@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from fgnav.compare import CompareResult, compare
-from fgnav.config import load_config
+from fgnav.config import check_tables, load_config
 from fgnav.methods import METHODS
 
 HELP = "run the smoothers and the filter baselines on a flight and compare them"
@@ -40,6 +40,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
+#: ``--config`` tables read by ``fgnav compare`` (one per method's options, see fgnav.methods).
+COMPARE_TABLES = [
+    "graph",
+    "lm",
+    "batch",
+    "online",
+    "priors",
+    "msf-ekf",
+    "ekf004",
+    "ukf003",
+    "ii-observer",
+    "ekf-vo002",
+]
+
+
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
     """Print the table, skipped and failed methods, and the files written."""
     print(result.table())
@@ -56,11 +71,13 @@ def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> No
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
+    check_tables(args.config, COMPARE_TABLES)
+    config = load_config(args.config)
     flight = load_flight(args.flight)
     result = compare(
         flight,
         methods=parse_methods(args.methods),
-        config=load_config(args.config),
+        config=config,
         progress=not args.no_progress,
     )
     out = Path(args.out)

@@ -20,7 +20,7 @@ from fgnav.commands.batch import (
     graph_options,
     score_and_write,
 )
-from fgnav.config import load_config, options_from
+from fgnav.config import check_tables, load_config, options_from
 from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 
 HELP = "run the online fixed-lag smoother over a flight"
@@ -41,14 +41,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
-    flight = load_flight(args.flight)
+    check_tables(args.config, ["graph", "online", "priors"])
     opts = options_from(
         FixedLagOptions,
         load_config(args.config, "online"),
         source=str(args.config or "flags"),
+        section="online",
         graph=graph_options(args),
         lag_s=args.lag,
     )
+    flight = load_flight(args.flight)
     priors = frontend_priors_from(args, flight)
     est = run_fixed_lag(flight, opts, priors=priors, progress=not args.no_progress)
     lat = est.update_latency
