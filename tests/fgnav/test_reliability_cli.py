@@ -102,3 +102,18 @@ def test_option_value_rules():
     assert options_from(GraphOptions, {"initial_yaw": -1.0}).initial_yaw == -1.0
     with pytest.raises(OptionValueError, match="expected a finite number"):
         options_from(SimOptions, {"drag_k": [0.3, float("nan")]})
+
+
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_streams_without_overlap(tmp_path, capsys, command):
+    import dataclasses
+
+    from fgnav.datasets.native import write_flight
+    from fgnav.datasets.simulate.simulator import simulate
+
+    f = simulate("two-turns", seed=5, options=SimOptions(duration=6.0, images=False))
+    slam = dataclasses.replace(f.slam, t=f.slam.t + 1000.0)
+    folder = write_flight(dataclasses.replace(f, slam=slam), tmp_path / "flight")
+    err = _one_line_error(capsys, [command, str(folder), "--out", str(tmp_path / "o")])
+    assert "the imu and slam streams do not overlap in time" in err
+    assert "imu 0.000-6.000 s, slam 1000.000-1006.000 s" in err
