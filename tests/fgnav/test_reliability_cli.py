@@ -117,3 +117,26 @@ def test_streams_without_overlap(tmp_path, capsys, command):
     err = _one_line_error(capsys, [command, str(folder), "--out", str(tmp_path / "o")])
     assert "the imu and slam streams do not overlap in time" in err
     assert "imu 0.000-6.000 s, slam 1000.000-1006.000 s" in err
+
+
+def test_unreadable_image_is_skipped_and_counted(tmp_path, capsys):
+    """One truncated PNG in a flight folder: the run continues (it aborted before), the frame is
+    counted by reason in summary.json and the VO pairs the next frame with the last good one."""
+    import json
+
+    folder = simulate_to_folder(
+        "two-turns",
+        tmp_path / "flight",
+        seed=1,
+        options=SimOptions(duration=4.0, image_rate_hz=10.0),
+    )
+    pngs = sorted((folder / "cam0").glob("*.png"), key=lambda p: int(p.stem))
+    bad = pngs[10]
+    bad.write_bytes(bad.read_bytes()[:200])
+    out = tmp_path / "batch"
+    assert main(["batch", str(folder), "--out", str(out), "--no-progress"]) == 0
+    info = json.loads((out / "summary.json").read_text())["info"]
+    assert info["skipped"]["homography:vo-unreadable-image"] == 1
+    vo = info["homography"]["vo_counts"]
+    assert vo["unreadable_image"] == 1 and vo["frames"] == len(pngs)
+    assert vo["valid_pairs"] == len(pngs) - 2
