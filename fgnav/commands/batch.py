@@ -87,6 +87,7 @@ def graph_options(args: argparse.Namespace) -> GraphOptions:
 def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, Any]) -> None:
     """Evaluate against the flight's ground truth when present, print a summary, write files."""
     from fgnav.compare import truth_slam_scale_at, truth_slam_scales
+    from fgnav.coverage import coverage, coverage_lines
     from fgnav.eval.metrics import evaluate
     from fgnav.eval.outputs import write_estimate
 
@@ -120,6 +121,9 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
         print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
         print(f"drag k: {est.drag_k} 1/s")
+    for line in coverage_lines(flight, est):
+        print(line)
+    extra = {**extra, "coverage": coverage(flight, est)}
     paths = write_estimate(est, out, metrics=metrics, extra=extra)
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
 

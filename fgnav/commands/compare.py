@@ -13,6 +13,7 @@ from pathlib import Path
 
 from fgnav.compare import CompareResult, compare
 from fgnav.config import check_tables, load_config
+from fgnav.coverage import compare_lines
 from fgnav.methods import METHODS
 
 HELP = "run the smoothers and the filter baselines on a flight and compare them"
@@ -58,6 +59,9 @@ COMPARE_TABLES = [
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
     """Print the table, skipped and failed methods, and the files written."""
     print(result.table())
+    runs = {n: r.estimate for n, r in result.runs.items() if r.estimate is not None}
+    for line in compare_lines(result.flight, runs):
+        print(line)
     for name, reason in result.skipped.items():
         print(f"skipped {name}: {reason}")
     for name, error in result.failed.items():

@@ -71,8 +71,6 @@ def run(args: argparse.Namespace) -> int:
             f"({info['window_unordered_updates']} updates could not keep the time order; "
             "more stamp blocks than keys per update: see FixedLagOptions.marginalize_every_s)"
         )
-    if info["dropped"]:
-        print(f"dropped measurements: {info['dropped']}")
     extra = {"flight": flight.name, "command": "online"}
     if priors is not None:
         extra["frontend_priors"] = {"sources": priors.sources, "slam_scale": priors.slam_scale}
