@@ -140,3 +140,27 @@ def test_unreadable_image_is_skipped_and_counted(tmp_path, capsys):
     vo = info["homography"]["vo_counts"]
     assert vo["unreadable_image"] == 1 and vo["frames"] == len(pngs)
     assert vo["valid_pairs"] == len(pngs) - 2
+
+
+def test_online_scores_a_flight_with_a_slam_reset(tmp_path, capsys):
+    """A SLAM map reset at 10 s: ``fgnav online`` scores the run per session as ``fgnav batch``
+    does (before: "cannot tell the session of each value", not scored)."""
+    import json
+
+    folder = simulate_to_folder(
+        "two-turns",
+        tmp_path / "flight",
+        seed=4,
+        options=SimOptions(duration=20.0, images=False, slam_resets=(10.0,)),
+    )
+    out = tmp_path / "online"
+    assert main(["online", str(folder), "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "fixed-lag: ATE" in text
+    summary = json.loads((out / "summary.json").read_text())
+    m = summary["metrics"]
+    assert m["ate_rmse_m"] < 0.15
+    # Both sessions scored (measured: ATE 4.6 cm, final scale error +1.7 % and +0.4 %).
+    assert set(m["scale_final_err_pct"]) == {"0", "1"}
+    assert set(m["scale_mean_abs_err_pct"]) == {"0", "1"}
+    assert all(abs(v) < 5.0 for v in m["scale_final_err_pct"].values())
