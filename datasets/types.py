@@ -529,6 +529,22 @@ class Flight:
         self.calib.check(f"{self.name}.calib")
         return self
 
+    def require_overlap(self, a: str, b: str) -> tuple[float, float]:
+        """Time overlap ``(t0, t1)`` of streams ``a`` and ``b``; a one-line error naming both
+        streams and their spans when they do not overlap (or one of them is empty)."""
+        sa, sb = getattr(self, a), getattr(self, b)
+        for name, st in ((a, sa), (b, sb)):
+            if st is None or len(st) == 0:
+                raise FlightDataError(f"{self.name}: the {name} stream is empty")
+        t0, t1 = max(sa.t[0], sb.t[0]), min(sa.t[-1], sb.t[-1])
+        if not t1 > t0:
+            raise FlightDataError(
+                f"{self.name}: the {a} and {b} streams do not overlap in time ({a} "
+                f"{sa.t[0]:.3f}-{sa.t[-1]:.3f} s, {b} {sb.t[0]:.3f}-{sb.t[-1]:.3f} s); "
+                "check the files and their clocks"
+            )
+        return float(t0), float(t1)
+
     def time_window(self) -> tuple[float, float]:
         """Overlap ``(t0, t1)`` of all sensor streams (ground truth and references excluded)."""
         sensors = [getattr(self, s) for s in STREAMS[:-1] if getattr(self, s) is not None]

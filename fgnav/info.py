@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from fgnav.coverage import stream_span_notes
 from fgnav.datasets.geometry import so3_log
 from fgnav.datasets.types import (
     STREAMS,
@@ -75,6 +76,8 @@ class FlightInfo:
         overlap_streams: the sensor streams the overlap is taken over.
         calibration: readable calibration lines.
         notes: reader notes (skipped lines, detected units ...) from ``flight.meta``.
+        stream_notes: sensor streams that end or start long before / after the others (a
+            truncated file; :func:`fgnav.coverage.stream_span_notes`).
     """
 
     name: str
@@ -85,6 +88,7 @@ class FlightInfo:
     overlap_streams: tuple[str, ...]
     calibration: tuple[str, ...]
     notes: tuple[str, ...]
+    stream_notes: tuple[str, ...] = ()
 
     def stream(self, name: str) -> StreamInfo:
         """The row of stream ``name``; KeyError when absent."""
@@ -123,6 +127,7 @@ class FlightInfo:
                 f"sensor overlap: {a - self.t0:.3f} .. {b - self.t0:.3f} s ({b - a:.3f} s; "
                 f"absolute {a:.6f} .. {b:.6f}) over {', '.join(self.overlap_streams)}"
             )
+        out += [f"short stream: {n}" for n in self.stream_notes]
         out += ["", "calibration"] + [f"  {line}" for line in self.calibration]
         if self.notes:
             out += ["", "notes (flight.meta)"] + [f"  - {n}" for n in self.notes]
@@ -252,4 +257,5 @@ def flight_info(flight: Flight) -> FlightInfo:
         overlap_streams=sensors,
         calibration=tuple(_calibration_lines(flight.calib)),
         notes=tuple(_notes(flight.meta)),
+        stream_notes=tuple(stream_span_notes(flight)),
     )

@@ -34,11 +34,12 @@ import importlib.util
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from fgnav.datasets.errors import FgnavError
+from fgnav.datasets.errors import FgnavError, FlightFormatError
 from fgnav.datasets.types import STREAMS, Flight, Trajectory
 from fgnav.estimate import Estimate
 
@@ -161,10 +162,32 @@ def missing_reason(missing: list[str]) -> str:
 def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) -> Any:
     from fgnav.config import options_from
 
-    table = config.get(section, {})
-    if not isinstance(table, Mapping):
+    table = dict(config.get(section, {}))
+    if not isinstance(config.get(section, {}), Mapping):
         raise MethodUnavailableError(f"config [{section}] must be a table")
-    return options_from(cls, dict(table), source=f"config [{section}]", **overrides)
+    # Values written in from command-line flags are passed as overrides, so an error names the
+    # flag's value as coming from the command line.
+    flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
+    source = str(config.get(SOURCE_KEY, "config"))
+    return options_from(cls, table, source=source, section=section, **flagged, **overrides)
+
+
+FLAGS_KEY = "__flags__"
+"""Key of a method config that lists, per table, the values written in from command-line flags."""
+
+SOURCE_KEY = "__source__"
+"""Key of a method config that names the file it was read from (for error messages)."""
+
+
+def load_method_config(path: str | Path | None) -> dict[str, Any]:
+    """The tables of a ``--config`` file (empty without one), marked with the file's name so
+    that option errors name it."""
+    from fgnav.config import load_config
+
+    config = load_config(path)
+    if path is not None:
+        config[SOURCE_KEY] = str(path)
+    return config
 
 
 def with_flags(config: Mapping[str, Any], **tables: Mapping[str, Any]) -> dict[str, Any]:
@@ -172,6 +195,7 @@ def with_flags(config: Mapping[str, Any], **tables: Mapping[str, Any]) -> dict[s
     not given) leave the config's own value, e.g. ``with_flags(cfg, graph={"keyframe_hz": None})``.
     """
     out = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in config.items()}
+    marks = out.setdefault(FLAGS_KEY, {})
     for section, flags in tables.items():
         given = {k: v for k, v in flags.items() if v is not None}
         if given:
@@ -179,6 +203,7 @@ def with_flags(config: Mapping[str, Any], **tables: Mapping[str, Any]) -> dict[s
             if not isinstance(table, dict):
                 raise MethodUnavailableError(f"config [{section}] must be a table")
             table.update(given)
+            marks[section] = sorted(set(marks.get(section, ())) | set(given))
     return out
 
 
@@ -235,6 +260,12 @@ def frontend_priors(flight: Flight, config: Mapping[str, Any]):
     from fgnav.frontends.pipeline import frontend_priors as _priors
 
     table = config.get("priors", {})
+    unknown = sorted(set(table) - {"sources", "drag_k"})
+    if unknown:
+        raise FlightFormatError(
+            str(config.get(SOURCE_KEY, "config")),
+            f"[priors]: unknown option(s) {unknown}; valid: ['drag_k', 'sources']",
+        )
     return _priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import ImuNoise
@@ -77,6 +78,11 @@ class SimOptions:
         wind: mean wind in world [m/s] (None: the scenario's); gust_std [m/s] (None: the
             scenario's) and gust_tau_s [s]: Ornstein-Uhlenbeck gusts on the horizontal axes.
     """
+
+    #: Rates for which 0 switches the stream off (``fgnav.config`` accepts 0 for these).
+    ZERO_MEANS_OFF: ClassVar[frozenset[str]] = frozenset(
+        {"attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz", "image_rate_hz"}
+    )
 
     duration: float | None = None
     imu_rate_hz: float = 200.0

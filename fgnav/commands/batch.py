@@ -16,12 +16,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from fgnav.config import load_config
+from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate
 from fgnav.eval.outputs import summary_extra
-from fgnav.methods import run_batch, with_flags
+from fgnav.methods import batch_options, load_method_config, run_batch, with_flags
 
 HELP = "smooth a whole flight (batch solver)"
 
@@ -68,7 +68,7 @@ def method_config(args: argparse.Namespace, **tables: dict[str, Any]) -> dict[st
     """The ``--config`` tables with the flags written in (:func:`fgnav.methods.with_flags`):
     ``--keyframe-hz`` into ``[graph]``, ``--priors`` into ``[priors]``, plus ``tables``."""
     return with_flags(
-        load_config(args.config),
+        load_method_config(args.config),
         graph={"keyframe_hz": args.keyframe_hz},
         priors={"sources": priors_flag(args)},
         **tables,
@@ -78,6 +78,7 @@ def method_config(args: argparse.Namespace, **tables: dict[str, Any]) -> dict[st
 def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, Any]) -> None:
     """Evaluate against the flight's ground truth when present, print a summary, write files."""
     from fgnav.compare import score_estimate
+    from fgnav.coverage import coverage, coverage_lines
     from fgnav.eval.outputs import write_estimate
 
     metrics = None
@@ -103,6 +104,9 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
         print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
         print(f"drag k: {est.drag_k} 1/s")
+    for line in coverage_lines(flight, est):
+        print(line)
+    extra = {**extra, "coverage": coverage(flight, est)}
     paths = write_estimate(est, out, metrics=metrics, extra=extra)
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
 
@@ -110,8 +114,10 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
-    flight = load_flight(args.flight)
+    check_tables(args.config, ["graph", "lm", "batch", "priors"])
     config = method_config(args, batch={"covariance": args.covariance})
+    batch_options(config)  # option values checked before the flight is read
+    flight = load_flight(args.flight)
     est = run_batch(flight, config, progress=not args.no_progress)
     print(
         f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "

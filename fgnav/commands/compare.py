@@ -12,8 +12,9 @@ import argparse
 from pathlib import Path
 
 from fgnav.compare import CompareResult, compare
-from fgnav.config import load_config
-from fgnav.methods import METHODS
+from fgnav.config import check_tables
+from fgnav.coverage import compare_lines
+from fgnav.methods import METHODS, load_method_config
 
 HELP = "run the smoothers and the filter baselines on a flight and compare them"
 
@@ -40,9 +41,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
+#: ``--config`` tables read by ``fgnav compare`` (one per method's options, see fgnav.methods).
+COMPARE_TABLES = [
+    "graph",
+    "lm",
+    "batch",
+    "online",
+    "priors",
+    "msf-ekf",
+    "ekf004",
+    "ukf003",
+    "ii-observer",
+    "ekf-vo002",
+]
+
+
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
     """Print the table, skipped and failed methods, and the files written."""
     print(result.table())
+    runs = {n: r.estimate for n, r in result.runs.items() if r.estimate is not None}
+    for line in compare_lines(result.flight, runs):
+        print(line)
     for name, reason in result.skipped.items():
         print(f"skipped {name}: {reason}")
     for name, error in result.failed.items():
@@ -56,11 +75,13 @@ def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> No
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
+    check_tables(args.config, COMPARE_TABLES)
+    config = load_method_config(args.config)
     flight = load_flight(args.flight)
     result = compare(
         flight,
         methods=parse_methods(args.methods),
-        config=load_config(args.config),
+        config=config,
         progress=not args.no_progress,
     )
     out = Path(args.out)

@@ -15,9 +15,9 @@ import logging
 import time
 from pathlib import Path
 
-from fgnav.commands.compare import parse_methods, print_result
+from fgnav.commands.compare import COMPARE_TABLES, parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
-from fgnav.config import load_config, options_from
+from fgnav.config import check_tables, load_config, options_from
 from fgnav.datasets.simulate import SCENARIOS, SimOptions
 
 HELP = "simulate a flight and run the main job on it"
@@ -76,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.simulate import simulate_to_folder
 
     out = Path(args.out)
+    check_tables(args.config, ["simulate", *COMPARE_TABLES])
     config = load_config(args.config)
     sim_opts = options_from(
         SimOptions,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgnav.config import load_config
+from fgnav.methods import load_method_config
 
 HELP = "run methods over many logged flights on Dask (local or a cluster), one table"
 
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             raise FgnavError(f"{flag} must be positive, got {v:g}")
     opts = FleetOptions(
         methods=methods or ("batch",),
-        config=load_config(args.config),
+        config=load_method_config(args.config),
         scheduler=args.scheduler,
         workers=args.workers,
         timeout_s=args.timeout,

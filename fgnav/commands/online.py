@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from fgnav.commands.batch import add_priors_argument, method_config, score_and_write
+from fgnav.config import check_tables
 from fgnav.eval.outputs import summary_extra
-from fgnav.methods import run_fixed_lag
+from fgnav.methods import fixed_lag_options, run_fixed_lag
 
 HELP = "run the online fixed-lag smoother over a flight"
 
@@ -38,8 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
-    flight = load_flight(args.flight)
+    check_tables(args.config, ["graph", "online", "priors"])
     config = method_config(args, online={"lag_s": args.lag})
+    fixed_lag_options(config)  # option values checked before the flight is read
+    flight = load_flight(args.flight)
     est = run_fixed_lag(flight, config, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info
@@ -59,7 +62,5 @@ def run(args: argparse.Namespace) -> int:
             f"({info['window_unordered_updates']} updates could not keep the time order; "
             "more stamp blocks than keys per update: see FixedLagOptions.marginalize_every_s)"
         )
-    if info["dropped"]:
-        print(f"dropped measurements: {info['dropped']}")
     score_and_write(flight, est, Path(args.out), summary_extra(flight.name, est, "online"))
     return 0

@@ -923,10 +923,31 @@ class HomographyVO:
                     )
                     counts["pairs"] += 1
                 continue
+            try:
+                image = images.load(k)
+            except FlightDataError as e:
+                # An unreadable file (corrupt, truncated, missing): the frame is skipped and
+                # counted; the reference stays, so the next readable frame pairs with it.
+                if counts["unreadable_image"] == 0:
+                    logger.warning("%s: %s; skipped, counted as unreadable_image", flight.name, e)
+                counts["unreadable_image"] += 1
+                if ref is not None:
+                    measurements.append(
+                        HomographyMeasurement(
+                            index_i=ref,
+                            index_j=k,
+                            t_i=float(images.t[ref]),
+                            t_j=float(images.t[k]),
+                            valid=False,
+                            reason="unreadable_image",
+                        )
+                    )
+                    counts["pairs"] += 1
+                continue
             if height_ref is None:
                 height_ref = float(cam_h[k])
             scale = cam_h[k] / height_ref if o.normalize_scale else 1.0
-            prep = self._prepare(undistort(images.load(k)), K, att(k), body_R_cam, scale)
+            prep = self._prepare(undistort(image), K, att(k), body_R_cam, scale)
             if ref is None:
                 # First usable frame: the initial pose.
                 ref, ref_prep = k, prep

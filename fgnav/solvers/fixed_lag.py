@@ -1132,9 +1132,13 @@ class FixedLagRunner:
         slam_scale: dict[int, float] = {}
         drag_k = ground = None
         # Slow variables: concatenate the chains by kind (causal value after each update).
-        by_kind: dict[str, list[tuple[float, np.ndarray]]] = {}
+        # SLAM rows carry their session (scored per session, as the batch's series are).
+        by_kind: dict[str, list[tuple[float, np.ndarray, int]]] = {}
+        session_of = {j: key[0] for key, j in getattr(b, "slam_var", {}).items()}
         for name, rows in self.slow_track.items():
-            by_kind.setdefault(name.split("#")[0], []).extend(rows)
+            kind, _, j = name.partition("#")
+            sess = session_of.get(int(j), 0) if kind == "slam" else 0
+            by_kind.setdefault(kind, []).extend((r[0], r[1], sess) for r in rows)
         for kind, rows in by_kind.items():
             rows.sort(key=lambda r: r[0])
             t = np.array([r[0] for r in rows])
@@ -1143,6 +1147,8 @@ class FixedLagRunner:
                 series["slam_scale" if b.slam_model == "sim3" else "slam_axis_scale"] = TimeSeries(
                     t, val[:, 0] if b.slam_model == "sim3" else val[:, :3]
                 )
+                if b.slam_model == "sim3":
+                    series["slam_session"] = TimeSeries(t, np.array([float(r[2]) for r in rows]))
             else:
                 series[kind] = TimeSeries(t, val[:, 0] if val.shape[1] == 1 else val)
         if b.use_slam:

@@ -301,6 +301,8 @@ class GraphBuilder:
         self.imu = self._imu_used()
         slam_t = flight.slam.t if (o.use_slam and flight.slam is not None) else None
         t0, t1 = float(self.imu.t[0]), float(self.imu.t[-1])
+        if slam_t is not None:
+            flight.require_overlap("imu", "slam")
         if slam_t is not None and o.slam_model != "axis":
             # Start at the first SLAM frame: before it nothing but the IMU constrains the state.
             t0 = max(t0, float(slam_t[0]))

@@ -100,8 +100,10 @@ def associate(
     """Associate measurements to their nearest keyframe within ``tolerance`` seconds.
 
     Measurements farther than ``tolerance`` from every keyframe are counted as
-    ``"no-keyframe-within-tolerance"``; with ``one_per_keyframe`` only the nearest measurement of
-    each keyframe is kept and the others are counted as ``"decimated"``.
+    ``"before-first-keyframe"`` / ``"after-last-keyframe"`` (outside the keyframe window, e.g. a
+    stream that outlasts the IMU) or ``"no-keyframe-within-tolerance"``; with
+    ``one_per_keyframe`` only the nearest measurement of each keyframe is kept and the others are
+    counted as ``"decimated"``.
     """
     t_meas = np.asarray(t_meas, dtype=float)
     if t_meas.size == 0:
@@ -117,9 +119,15 @@ def associate(
     dt = t_meas - t_kf[nearest]
     ok = np.abs(dt) <= tolerance
     skipped = {}
-    n_far = int((~ok).sum())
-    if n_far:
-        skipped["no-keyframe-within-tolerance"] = n_far
+    before = ~ok & (t_meas < t_kf[0])
+    after = ~ok & (t_meas > t_kf[-1])
+    for reason, n in (
+        ("before-first-keyframe", int(before.sum())),
+        ("after-last-keyframe", int(after.sum())),
+        ("no-keyframe-within-tolerance", int((~ok & ~before & ~after).sum())),
+    ):
+        if n:
+            skipped[reason] = n
     idx = np.flatnonzero(ok)
     kf = nearest[idx]
     if one_per_keyframe and idx.size:

@@ -30,7 +30,13 @@ def test_associate_nearest_tolerance_and_decimation():
     a = associate(np.array([0.01, 0.02, 0.6, 1.99, 5.0]), t_kf, tolerance=0.05)
     np.testing.assert_array_equal(a.keyframe, [0, 2])
     np.testing.assert_array_equal(a.meas_index, [0, 3])
-    assert a.skipped == {"no-keyframe-within-tolerance": 2, "decimated": 1}
+    assert a.skipped == {
+        "no-keyframe-within-tolerance": 1,
+        "after-last-keyframe": 1,
+        "decimated": 1,
+    }
+    b = associate(np.array([-1.0, 0.0]), t_kf, tolerance=0.05)
+    assert b.skipped == {"before-first-keyframe": 1}
     np.testing.assert_allclose(a.dt, [0.01, -0.01])
 
 

@@ -1,0 +1,166 @@
+"""Bad options and bad flights through the CLI (issue 18 Build 3): one line, exit 1, no
+traceback; nothing lost without saying so."""
+
+from __future__ import annotations
+
+import pytest
+from fgnav.datasets.simulate.options import SimOptions
+from fgnav.datasets.simulate.simulator import simulate_to_folder
+
+from fgnav.cli import main
+
+
+@pytest.fixture(scope="module")
+def flight_folder(tmp_path_factory):
+    out = tmp_path_factory.mktemp("flight") / "two_turns"
+    simulate_to_folder("two-turns", out, seed=4, options=SimOptions(duration=8.0, images=False))
+    return out
+
+
+def _one_line_error(capsys, argv: list[str]) -> str:
+    assert main(argv) == 1
+    cap = capsys.readouterr()
+    err = cap.err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "Traceback" not in err + cap.out
+    return err
+
+
+@pytest.mark.parametrize(
+    ("flags", "needle"),
+    [
+        (["--lag", "0"], "option lag_s = 0.0: expected > 0"),
+        (["--lag", "-1"], "option lag_s = -1.0: expected > 0"),
+        (["--lag", "nan"], "option lag_s = nan: expected a finite number"),
+        (["--keyframe-hz", "0"], "option keyframe_hz = 0.0: expected > 0"),
+    ],
+)
+def test_bad_flag_values(flight_folder, tmp_path, capsys, flags, needle):
+    err = _one_line_error(
+        capsys, ["online", str(flight_folder), "--out", str(tmp_path / "o"), *flags]
+    )
+    assert "command line" in err and needle in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "table", "needle"),
+    [
+        ("batch", "[graph]\nslam_sigma_m = -0.01\n", "[graph]: option slam_sigma_m = -0.01"),
+        ("online", "[graph]\nrange_sigma = 0.0\n", "[graph]: option range_sigma = 0.0: expected"),
+        ("online", "[graph]\nyaw_sigma = inf\n", "option yaw_sigma = inf: expected a finite"),
+        ("online", "[online]\nlag_s = 0\n", "[online]: option lag_s = 0: expected > 0"),
+        ("batch", "[graph]\nslam_scale_rw = 0.0\n", "option slam_scale_rw = 0.0: expected > 0"),
+        ("batch", "[graph]\nslam_segment_s = -2.0\n", "option slam_segment_s = -2.0"),
+        ("batch", "[lm]\nmax_iterations = 0\n", "[lm]: option max_iterations = 0"),
+        ("online", "[online]\nslam_init_window_s = -1.0\n", "expected >= 0"),
+    ],
+)
+def test_bad_config_values(flight_folder, tmp_path, capsys, command, table, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    err = _one_line_error(
+        capsys, [command, str(flight_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    )
+    assert str(cfg) in err and needle in err
+
+
+@pytest.mark.parametrize(
+    ("command", "table", "needle"),
+    [
+        ("online", "[online]\nlag = 2.0\n", "unknown option(s) ['lag'] for FixedLagOptions"),
+        ("batch", "[grpah]\nkeyframe_hz = 10.0\n", "unknown table(s) ['grpah']"),
+        ("online", "[batch]\ncovariance = 'none'\n", "unknown table(s) ['batch']"),
+        ("batch", "[priors]\nsource = ['ml-scale']\n", "[priors]: unknown option(s) ['source']"),
+        ("compare", "[msf_ekf]\nrange_sigma = 0.1\n", "unknown table(s) ['msf_ekf']"),
+    ],
+)
+def test_unknown_config_keys(flight_folder, tmp_path, capsys, command, table, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    err = _one_line_error(
+        capsys, [command, str(flight_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    )
+    assert str(cfg) in err and needle in err
+
+
+def test_option_value_rules():
+    from fgnav.datasets.simulate.options import SimOptions
+
+    from fgnav.config import OptionValueError, options_from
+    from fgnav.solvers.graph import GraphOptions
+
+    # 0 switches a simulated stream off; a negative rate is still refused.
+    assert options_from(SimOptions, {"slam_rate_hz": 0.0}).slam_rate_hz == 0.0
+    with pytest.raises(OptionValueError, match="slam_rate_hz = -1.0: expected >= 0"):
+        options_from(SimOptions, {"slam_rate_hz": -1.0})
+    with pytest.raises(
+        OptionValueError, match="command line: option keyframe_hz = 0.0: expected > 0"
+    ):
+        options_from(GraphOptions, {}, keyframe_hz=0.0)
+    # Offsets and angles may be negative; tuples are checked for finiteness.
+    assert options_from(GraphOptions, {"initial_yaw": -1.0}).initial_yaw == -1.0
+    with pytest.raises(OptionValueError, match="expected a finite number"):
+        options_from(SimOptions, {"drag_k": [0.3, float("nan")]})
+
+
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_streams_without_overlap(tmp_path, capsys, command):
+    import dataclasses
+
+    from fgnav.datasets.native import write_flight
+    from fgnav.datasets.simulate.simulator import simulate
+
+    f = simulate("two-turns", seed=5, options=SimOptions(duration=6.0, images=False))
+    slam = dataclasses.replace(f.slam, t=f.slam.t + 1000.0)
+    folder = write_flight(dataclasses.replace(f, slam=slam), tmp_path / "flight")
+    err = _one_line_error(capsys, [command, str(folder), "--out", str(tmp_path / "o")])
+    assert "the imu and slam streams do not overlap in time" in err
+    assert "imu 0.000-6.000 s, slam 1000.000-1006.000 s" in err
+
+
+def test_unreadable_image_is_skipped_and_counted(tmp_path, capsys):
+    """One truncated PNG in a flight folder: the run continues (it aborted before), the frame is
+    counted by reason in summary.json and the VO pairs the next frame with the last good one."""
+    import json
+
+    folder = simulate_to_folder(
+        "two-turns",
+        tmp_path / "flight",
+        seed=1,
+        options=SimOptions(duration=4.0, image_rate_hz=10.0),
+    )
+    pngs = sorted((folder / "cam0").glob("*.png"), key=lambda p: int(p.stem))
+    bad = pngs[10]
+    bad.write_bytes(bad.read_bytes()[:200])
+    out = tmp_path / "batch"
+    assert main(["batch", str(folder), "--out", str(out), "--no-progress"]) == 0
+    info = json.loads((out / "summary.json").read_text())["info"]
+    assert info["skipped"]["homography:vo-unreadable-image"] == 1
+    vo = info["homography"]["vo_counts"]
+    assert vo["unreadable_image"] == 1 and vo["frames"] == len(pngs)
+    assert vo["valid_pairs"] == len(pngs) - 2
+
+
+def test_online_scores_a_flight_with_a_slam_reset(tmp_path, capsys):
+    """A SLAM map reset at 10 s: ``fgnav online`` scores the run per session as ``fgnav batch``
+    does (before: "cannot tell the session of each value", not scored)."""
+    import json
+
+    folder = simulate_to_folder(
+        "two-turns",
+        tmp_path / "flight",
+        seed=4,
+        options=SimOptions(duration=20.0, images=False, slam_resets=(10.0,)),
+    )
+    out = tmp_path / "online"
+    assert main(["online", str(folder), "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "fixed-lag: ATE" in text
+    summary = json.loads((out / "summary.json").read_text())
+    m = summary["metrics"]
+    assert m["ate_rmse_m"] < 0.15
+    # Both sessions scored (measured: ATE 4.6 cm, final scale error +1.7 % and +0.4 %).
+    assert set(m["scale_final_err_pct"]) == {"0", "1"}
+    assert set(m["scale_mean_abs_err_pct"]) == {"0", "1"}
+    assert all(abs(v) < 5.0 for v in m["scale_final_err_pct"].values())
