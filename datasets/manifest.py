@@ -49,11 +49,14 @@ stream's times to put it on the flight's clock; recorded in ``calib.time_offsets
 format: ``session`` (``tum_slam``: map id of its poses), ``time_unit`` (``tum``, ``tum_slam``:
 ``"auto"``, ``"s"``, ``"ns"``), ``stream`` (``ulog``: which stream of the log's flight to take,
 default the table's name, ``ref:<name>`` for ``[references.<name>]``, e.g. ``"ref:px4_ekf2"``) and
-``topic`` (``rosbag``, required: the topic of this stream). A log read by several tables is read
-once (ULog) or once per topic (bags); ``[calib] format = "ulog"`` takes the log's calibration
-(rangefinder pose and limits from PX4 parameters). Unknown keys, tables and formats are errors
-naming the manifest, table and key and listing the valid ones; a missing file is an error naming
-the resolved path.
+``topic`` (``rosbag``, required: the topic of this stream); ``[slam]`` also takes
+``slam_rotation`` (``"auto"``, ``"as-is"``, ``"inverse"``) and ``slam_time_offset`` (``"report"``,
+``"apply"`` or seconds): this file's SLAM-vs-gyro options (:mod:`.slam_gyro`), which win over a
+config's ``[graph]`` table (they go to ``flight.meta["slam_options"]``). A log read by several
+tables is read once (ULog) or once per topic (bags); ``[calib] format = "ulog"`` takes the log's
+calibration (rangefinder pose and limits from PX4 parameters). Unknown keys, tables and formats
+are errors naming the manifest, table and key and listing the valid ones; a missing file is an
+error naming the resolved path.
 Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
 """
 
@@ -78,6 +81,7 @@ from .euroc import (
 )
 from .load import lazy_reader
 from .native import read_calib_yaml, read_stream_csv
+from .slam_gyro import SlamConventionError, check_modes
 from .tum import TIME_UNITS, read_tum, read_tum_slam
 from .types import Calibration, Flight
 
@@ -102,6 +106,9 @@ BODY_KEYS = ("frame", "thrust_axis")
 """Keys of the ``[body]`` table (see the module docstring)."""
 
 _COMMON_KEYS = ("format", "path", "time_offset_s")
+SLAM_OPTION_KEYS = ("slam_rotation", "slam_time_offset")
+"""Keys of ``[slam]`` that set the graph's SLAM-vs-gyro options for this file (they win over the
+``[graph]`` table of a config; see :mod:`.slam_gyro`)."""
 _FORMAT_KEYS: dict[str, tuple[str, ...]] = {
     "tum": ("time_unit",),
     "tum_slam": ("time_unit", "session"),
@@ -125,6 +132,8 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
             valid += ("stream",)
     else:
         valid = _COMMON_KEYS + _FORMAT_KEYS.get(fmt, ())
+        if table == "slam":
+            valid += SLAM_OPTION_KEYS
     unknown = [k for k in spec if k not in valid]
     if unknown:
         raise FlightFormatError(
@@ -144,6 +153,13 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
     for key in ("stream", "topic"):
         if key in spec and not isinstance(spec[key], str):
             raise FlightFormatError(manifest, f"[{table}] {key}: expected a string")
+    if table == "slam":
+        try:
+            check_modes(
+                spec.get("slam_rotation", "auto"), spec.get("slam_time_offset", "report"), "[slam]"
+            )
+        except SlamConventionError as e:
+            raise FlightFormatError(manifest, str(e)) from e
     if fmt == "rosbag" and "topic" not in spec:
         raise FlightFormatError(manifest, f"[{table}] topic: required for format 'rosbag'")
     return fmt
@@ -339,6 +355,9 @@ def read_manifest(path: str | Path) -> Flight:
     }
     if "meta" in doc:
         meta["manifest_meta"] = doc["meta"]
+    slam_options = {k: doc["slam"][k] for k in SLAM_OPTION_KEYS if k in doc.get("slam", {})}
+    if slam_options:
+        meta["slam_options"] = slam_options
     flight = Flight(
         name=doc["name"],
         source=doc.get("source", str(manifest)),

@@ -35,7 +35,7 @@ from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.eval.metrics import DEFAULT_RPE_DELTA_M, Metrics, evaluate, to_jsonable
-from fgnav.methods import METHODS, Method, available_methods, get_method
+from fgnav.methods import METHODS, Method, available_methods, get_method, slam_checked
 
 log = logging.getLogger(__name__)
 
@@ -462,6 +462,8 @@ def compare(
     """
     flight.check()
     cfg = dict(config or {})
+    # SLAM rotation convention and clock (the [graph] options) decided once for every method.
+    flight = slam_checked(flight, cfg)
     reg = METHODS if registry is None else registry
     t_all = time.perf_counter()
     runnable, skipped = available_methods(flight, methods, reg)

@@ -124,10 +124,27 @@ class Method:
         problem = self.implementation_problem()
         if problem:
             raise MethodUnavailableError(f"{self.name}: {problem}")
-        est = self.entry(flight, dict(config or {}), progress)
+        config = dict(config or {})
+        if "slam" in self.requires + self.optional:
+            flight = slam_checked(flight, config)
+        est = self.entry(flight, config, progress)
         if est.method != self.name:
             est = _renamed(est, self.name)
         return est.check()
+
+
+def slam_checked(flight: Flight, config: Mapping[str, Any]) -> Flight:
+    """The flight with the SLAM-vs-gyro options of the config's ``[graph]`` table applied
+    (:func:`fgnav.datasets.slam_gyro.apply_slam_check`), so that the filters get the SLAM
+    rotations and clock the smoothers use."""
+    from fgnav.datasets.slam_gyro import apply_slam_check
+
+    table = config.get("graph", {})
+    if not isinstance(table, Mapping) or not table.get("use_slam", True):
+        return flight
+    return apply_slam_check(
+        flight, table.get("slam_rotation", "auto"), table.get("slam_time_offset", "report")
+    )
 
 
 def _renamed(est: Estimate, name: str) -> Estimate:

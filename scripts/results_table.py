@@ -1,7 +1,10 @@
-"""Reproduce the README's results table: every method on the seeded simulated scenarios and on
-EuRoC MH_01 (ORB-SLAM3 monocular run A + IMU), through :func:`fgnav.compare.compare`.
+"""Reproduce the README's results table: every method on the seeded simulated scenarios, on
+EuRoC MH_01 (ORB-SLAM3 monocular run A + IMU) and on EuRoC V1_02 (IMU + the keyframes of an
+ORB-SLAM2 and of an ORB-SLAM3 monocular run, with VINS-Mono and SVO 2 as reference rows), through
+:func:`fgnav.compare.compare`.
 
     .venv/bin/python scripts/results_table.py [--out out/results] [--seed 1] [--no-euroc]
+        [--only euroc-v102-orbslam2,euroc-v102-orbslam3]
 
 Writes ``OUT/<flight>/`` (compare.json, report.md, figures) per flight and ``OUT/results.md``
 (one table per flight plus the checks of issue 7: lowest ATE / velocity RMSE for batch, fixed-lag
@@ -24,7 +27,14 @@ from fgnav.compare import compare
 from fgnav.report import markdown_table
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-EUROC_MANIFEST = PROJECT_ROOT / "datasets" / "manifests" / "euroc_mh01_orbslam3.toml"
+MANIFESTS = PROJECT_ROOT / "datasets" / "manifests"
+EUROC_MANIFEST = MANIFESTS / "euroc_mh01_orbslam3.toml"
+#: Real flights: name -> manifest (skipped with --no-euroc or when the manifest is absent).
+EUROC_FLIGHTS = {
+    "euroc-mh01": EUROC_MANIFEST,
+    "euroc-v102-orbslam2": MANIFESTS / "euroc_v102_orbslam2_kf1.toml",
+    "euroc-v102-orbslam3": MANIFESTS / "euroc_v102_orbslam3_kf2.toml",
+}
 SCENARIOS = ("two-turns", "circle", "rectangle", "figure8")
 
 
@@ -63,13 +73,19 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-euroc", action="store_true")
     ap.add_argument("--no-images", action="store_true", help="skip seed 002's VO (faster)")
+    ap.add_argument("--only", default=None, help="comma-separated flight names to run")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     out = Path(args.out)
     flights = [(sc, lambda sc=sc: simulate(sc, args.seed, SimOptions(images=not args.no_images)))
                for sc in SCENARIOS]
-    if not args.no_euroc and EUROC_MANIFEST.is_file():
-        flights.append(("euroc-mh01", lambda: load_flight(EUROC_MANIFEST)))
+    if not args.no_euroc:
+        flights += [
+            (name, lambda m=m: load_flight(m)) for name, m in EUROC_FLIGHTS.items() if m.is_file()
+        ]
+    if args.only:
+        wanted = set(args.only.split(","))
+        flights = [f for f in flights if f[0] in wanted]
     cmd = " ".join(sys.argv)
     lines = [f"# fgnav results (seed {args.seed}; SE(3) alignment; `{cmd}`)", ""]
     for name, make in flights:

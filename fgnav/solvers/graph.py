@@ -37,6 +37,8 @@ import numpy as np
 
 from fgnav.datasets.errors import FgnavError, FlightDataError
 from fgnav.datasets.geometry import GRAVITY, slerp_rotations, wrap_angle
+from fgnav.datasets.slam_gyro import META_KEY as SLAM_CHECK_META_KEY
+from fgnav.datasets.slam_gyro import apply_slam_check, check_modes
 from fgnav.datasets.types import Flight, ImuSeries
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
@@ -105,7 +107,15 @@ class GraphOptions:
             world origin stays at the first keyframe); ``"auto"`` picks ``"axis"`` when the
             flight's metadata says the SLAM stream is per-axis.
         slam_sigma_m: SLAM position noise [m] (converted to SLAM units with the initial scale).
-        slam_rotation: also use the SLAM orientation (fixes the yaw of the SLAM frame).
+        use_slam_rotation: also use the SLAM orientation (fixes the yaw of the SLAM frame).
+        slam_rotation: convention of the SLAM file's orientations (``datasets.slam_gyro``):
+            ``"auto"`` (decided from the gyro; when the inverse fits and the stated one does not,
+            one warning says so and the inverse is used), ``"as-is"`` or ``"inverse"``. A
+            manifest's ``[slam] slam_rotation`` wins. The check also names a wrong ``body_T_cam``
+            rotation.
+        slam_time_offset: SLAM clock offset, estimated from the gyro: ``"report"`` (logged only),
+            ``"apply"`` (added to the SLAM times) or a number of seconds to add (not estimated).
+            A manifest's ``[slam] slam_time_offset`` wins.
         slam_rot_sigma: SLAM orientation noise [rad].
         slam_segment_s: length of a SLAM-alignment segment [s] (random walk between segments:
             monocular scale drifts). Segments are counted from the session's first pose; a
@@ -166,7 +176,9 @@ class GraphOptions:
     use_frontend_priors: bool = True
     slam_model: str = "auto"
     slam_sigma_m: float = 0.01
-    slam_rotation: bool = False
+    use_slam_rotation: bool = False
+    slam_rotation: str = "auto"
+    slam_time_offset: str | float = "report"
     slam_rot_sigma: float = 0.005
     slam_segment_s: float = 2.0
     slam_scale_rw: float = 1e-3
@@ -211,6 +223,13 @@ class GraphOptions:
             raise FlightDataError(
                 f"GraphOptions.slam_model={self.slam_model!r}: expected auto, sim3 or axis"
             )
+        if isinstance(self.slam_rotation, bool):
+            raise FlightDataError(
+                f"GraphOptions.slam_rotation={self.slam_rotation!r}: it is now the SLAM file's "
+                "rotation convention (auto, as-is, inverse); the SLAM orientation factor is "
+                "use_slam_rotation"
+            )
+        check_modes(self.slam_rotation, self.slam_time_offset, "GraphOptions")
         if not self.keyframe_hz > 0:
             raise FlightDataError(f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0")
         return self
@@ -266,8 +285,13 @@ class GraphBuilder:
     """
 
     def __init__(self, flight: Flight, options: GraphOptions | None = None, priors: Any = None):
-        self.flight = flight.check()
         self.options = (options or GraphOptions()).check()
+        if self.options.use_slam:
+            # SLAM rotation convention and clock offset against the gyro (whole flight).
+            flight = apply_slam_check(
+                flight, self.options.slam_rotation, self.options.slam_time_offset
+            )
+        self.flight = flight.check()
         self.priors = priors if self.options.use_frontend_priors else None
         self.skipped: dict[str, int] = {}
         self.counts: dict[str, int] = {}
@@ -1209,7 +1233,7 @@ class GraphBuilder:
                         X(k), sk, slam.slam_t_cam[i], self.body_T_cam, noise
                     )
                 out.append(MeasurementFactor(arrival, k, "slam", fac, (X(k), sk)))
-                if o.slam_rotation and self.slam_model == "sim3":
+                if o.use_slam_rotation and self.slam_model == "sim3":
                     from fgnav.datasets.geometry import quat_wxyz_to_matrix
 
                     noise = self._noise(3, o.slam_rot_sigma)
@@ -1313,6 +1337,7 @@ class GraphBuilder:
             "factors": dict(self.counts),
             "skipped": dict(self.skipped),
             "homography": self.vision.report() if self.vision is not None else None,
+            "slam_gyro_check": self.flight.meta.get(SLAM_CHECK_META_KEY),
             "options": asdict(self.options),
         }
 

@@ -314,6 +314,110 @@ def world_specific_accel(imu: ImuSeries, world_R_body: np.ndarray, gravity: floa
     return a
 
 
+@dataclass
+class SecondDifferences:
+    """Matched second differences of SLAM positions and of the IMU's metric trajectory.
+
+    For three SLAM samples at ``t_i < t_j < t_k`` (``h1 = t_j - t_i``, ``h2 = t_k - t_j``, width
+    ``w = (h1 + h2) / 2``) the divided second difference of the positions,
+    ``w ((p_k - p_j) / h2 - (p_j - p_i) / h1)``, equals ``w`` times the integral of the
+    acceleration against the hat kernel rising from 0 at ``t_i`` to 1 at ``t_j`` and falling to 0
+    at ``t_k`` (exact for any twice-differentiable trajectory). With ``h1 = h2 = h`` it is
+    ``p(t+h) - 2 p(t) + p(t-h)``. A constant acceleration offset ``b`` adds ``w^2 b``.
+
+    Attributes:
+        slam_d2: (P, 3) SLAM second differences [SLAM units].
+        world_d2: (P, 3) metric ones from the world acceleration [m].
+        centers: (P,) middle sample times ``t_j`` [s].
+        width: (P,) ``w`` [s].
+    """
+
+    slam_d2: np.ndarray
+    world_d2: np.ndarray
+    centers: np.ndarray
+    width: np.ndarray
+
+
+def _nearest_index(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Index of the sample of sorted ``t`` nearest each query time."""
+    r = np.clip(np.searchsorted(t, q), 1, len(t) - 1)
+    return np.where(np.abs(t[r - 1] - q) <= np.abs(t[r] - q), r - 1, r)
+
+
+def slam_second_differences(
+    t_slam: np.ndarray,
+    slam_t: np.ndarray,
+    imu_t: np.ndarray,
+    world_a: np.ndarray,
+    h: float,
+    step: float,
+) -> SecondDifferences:
+    """Second differences on the SLAM samples themselves (no interpolation of positions).
+
+    For middle samples at least ``step`` apart, the outer samples are those nearest ``t_j - h``
+    and ``t_j + h``; triples with an outer interval outside ``[h / 2, 2 h]`` (a gap, or samples
+    too dense to reach) are skipped. Low-rate keyframes (3 Hz) thus give unbiased differences:
+    positions interpolated linearly between keyframes would low-pass the motion and bias a
+    scale fitted on them low. The metric side integrates the IMU's world acceleration against the
+    exact hat kernel (see :class:`SecondDifferences`) on the IMU's own grid.
+
+    Args:
+        t_slam, slam_t: (N,) SLAM times [s] and (N, 3) positions [SLAM units] (one session).
+        imu_t, world_a: (M,) IMU times [s] and (M, 3) world kinematic acceleration [m/s^2].
+        h: nominal half-width [s]; step: least spacing of the middle samples [s].
+    """
+    t_slam = np.asarray(t_slam, dtype=float)
+    empty = SecondDifferences(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    if len(t_slam) < 3:
+        return empty
+    j = np.arange(1, len(t_slam) - 1)
+    i = _nearest_index(t_slam, t_slam[j] - h)
+    k = _nearest_index(t_slam, t_slam[j] + h)
+    i, k = np.minimum(i, j - 1), np.maximum(k, j + 1)
+    h1, h2 = t_slam[j] - t_slam[i], t_slam[k] - t_slam[j]
+    ok = (h1 >= 0.5 * h) & (h1 <= 2.0 * h) & (h2 >= 0.5 * h) & (h2 <= 2.0 * h)
+    ok &= (t_slam[i] >= imu_t[0]) & (t_slam[k] <= imu_t[-1])
+    # Middle samples at least `step` apart.
+    keep = np.zeros(len(j), bool)
+    last = -np.inf
+    for n in np.flatnonzero(ok):
+        if t_slam[j[n]] - last >= step - 1e-9:
+            keep[n] = True
+            last = t_slam[j[n]]
+    if not keep.any():
+        return empty
+    i, j, k, h1, h2 = i[keep], j[keep], k[keep], h1[keep], h2[keep]
+    w = 0.5 * (h1 + h2)
+    p = np.asarray(slam_t, dtype=float)
+    slam_d2 = w[:, None] * ((p[k] - p[j]) / h2[:, None] - (p[j] - p[i]) / h1[:, None])
+    # Hat-kernel integral of the acceleration: cumulative trapezoid sums of a and of t a.
+    imu_t = np.asarray(imu_t, dtype=float)
+    dt = np.diff(imu_t)
+    ta = imu_t[:, None] * world_a
+    cum_a = np.vstack(
+        [np.zeros((1, 3)), np.cumsum(0.5 * (world_a[1:] + world_a[:-1]) * dt[:, None], 0)]
+    )
+    cum_ta = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (ta[1:] + ta[:-1]) * dt[:, None], 0)])
+
+    def integral(cum: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, imu_t, cum[:, a]) for a in range(3)])
+
+    ti, tj, tk = t_slam[i], t_slam[j], t_slam[k]
+    Ia_ij, Ita_ij = (
+        integral(cum_a, tj) - integral(cum_a, ti),
+        integral(cum_ta, tj) - integral(cum_ta, ti),
+    )
+    Ia_jk, Ita_jk = (
+        integral(cum_a, tk) - integral(cum_a, tj),
+        integral(cum_ta, tk) - integral(cum_ta, tj),
+    )
+    # int_i^j a (s - t_i) / h1 ds + int_j^k a (t_k - s) / h2 ds
+    rising = (Ita_ij - ti[:, None] * Ia_ij) / h1[:, None]
+    falling = (tk[:, None] * Ia_jk - Ita_jk) / h2[:, None]
+    world_d2 = w[:, None] * (rising + falling)
+    return SecondDifferences(slam_d2, world_d2, tj, w)
+
+
 def second_difference_pairs(
     t_slam: np.ndarray,
     slam_t: np.ndarray,
@@ -321,33 +425,10 @@ def second_difference_pairs(
     world_a: np.ndarray,
     h: float,
     step: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Matched second differences ``p(t+h) - 2 p(t) + p(t-h)`` of SLAM positions and of the metric
-    trajectory implied by the IMU (world acceleration convolved with the triangle kernel of
-    half-width h, which is the exact second difference of a twice-integrated signal).
-
-    Returns:
-        (slam_d2 (P, 3) [SLAM units], world_d2 (P, 3) [m], centres (P,) [s]), centres every
-        ``step`` seconds.
-    """
-    t_lo = max(t_slam[0], imu_t[0]) + h
-    t_hi = min(t_slam[-1], imu_t[-1]) - h
-    if t_hi <= t_lo:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    centers = np.arange(t_lo, t_hi, step)
-    slam_d2 = np.empty((len(centers), 3))
-    for a in range(3):
-        pa = np.interp(centers[:, None] + np.array([-h, 0.0, h]), t_slam, slam_t[:, a])
-        slam_d2[:, a] = pa[:, 0] - 2.0 * pa[:, 1] + pa[:, 2]
-    # Triangle-kernel integral of the acceleration on a fine uniform grid.
-    dt = float(np.median(np.diff(imu_t)))
-    offs = np.arange(-h, h + 0.5 * dt, dt)
-    w = (h - np.abs(offs)) * dt
-    world_d2 = np.empty((len(centers), 3))
-    for a in range(3):
-        aa = np.interp(centers[:, None] + offs[None, :], imu_t, world_a[:, a])
-        world_d2[:, a] = aa @ w
-    return slam_d2, world_d2, centers
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(slam_d2, world_d2, centres)`` of :func:`slam_second_differences`."""
+    d = slam_second_differences(t_slam, slam_t, imu_t, world_a, h, step)
+    return d.slam_d2, d.world_d2, d.centers
 
 
 def init_slam_alignment(
@@ -363,7 +444,8 @@ def init_slam_alignment(
 
     1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``.
     2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
-       second differences from the accelerometer (:func:`second_difference_pairs`), jointly with
+       second differences from the accelerometer (:func:`slam_second_differences`: on the SLAM
+       samples themselves, unbiased on low-rate keyframes), jointly with
        the accelerometer bias (a body-frame offset ``h^2 b_a`` of the metric ones).
     3. ``slam_t_world`` from the first SLAM position with the world origin at the first camera.
 
@@ -383,9 +465,8 @@ def init_slam_alignment(
         slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1))
     )
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
-    slam_d2, world_d2, centers = second_difference_pairs(
-        slam.t, slam.slam_t_cam, imu.t, world_a, h, step
-    )
+    d = slam_second_differences(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
+    slam_d2, world_d2, centers = d.slam_d2, d.world_d2, d.centers
     if len(slam_d2) < 6:
         raise FlightDataError(
             "SLAM scale initialisation: fewer than 6 acceleration pairs (session shorter than "
@@ -398,7 +479,7 @@ def init_slam_alignment(
     R_c = slerp_rotations(imu.t, world_R_body_imu, centers)
     A = np.zeros((len(centers), 3, 4))
     A[:, :, 0] = world_d2 @ slam_R_world.T
-    A[:, :, 1:] = -(h**2) * (slam_R_world[None] @ R_c)
+    A[:, :, 1:] = -(d.width[:, None, None] ** 2) * (slam_R_world[None] @ R_c)
     A = A.reshape(-1, 4)
     y = slam_d2.reshape(-1)
     x, *_ = np.linalg.lstsq(A, y, rcond=None)

@@ -203,3 +203,20 @@ def test_real_ulog_in_manifest(real_data, tmp_path):
     assert f.imu.rate_hz == pytest.approx(187.0, abs=2.0)
     assert f.references["px4_ekf2"].rate_hz == pytest.approx(10.0, abs=1.0)
     assert f.imu.duration == pytest.approx(33.0, abs=1.0)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    ("name", "n_kf", "max_gap_s"),
+    [("euroc_v102_orbslam2_kf1.toml", 178, 2.35), ("euroc_v102_orbslam3_kf2.toml", 247, 1.45)],
+)
+def test_v102_manifests(real_data, name, n_kf, max_gap_s):
+    f = read_manifest(PROJECT_ROOT / "datasets" / "manifests" / name)
+    # Data README: keyframes about 3 Hz with the largest gap stated; IMU 200 Hz over 85.5 s.
+    assert len(f.slam) == n_kf
+    assert np.max(np.diff(f.slam.t)) == pytest.approx(max_gap_s, abs=0.01)
+    assert f.imu.rate_hz == pytest.approx(200.0, abs=1.0)
+    assert f.imu.duration == pytest.approx(85.5, abs=0.1)
+    assert f.ground_truth.world_v_body is not None
+    assert set(f.references) == {"vins_mono", "svo2"}
+    assert "slam_options" not in f.meta  # the ORB-SLAM3 inversion is detected, not configured

@@ -1,0 +1,632 @@
+"""SLAM-vs-gyro consistency: rotation convention, camera extrinsic rotation and SLAM clock offset.
+
+A monocular SLAM's relative camera rotations and the gyro's integrated rotations over the same
+intervals describe one rigid motion: ``G_ij = body_R_cam C_ij body_R_cam^T`` with
+
+- ``G_ij = R_gyro(t_i + offset)^T R_gyro(t_j + offset)``: the body rotation from SLAM pose i to j
+  integrated from the gyro (bias ``b`` removed), body frame;
+- ``C_ij``: the camera rotation between the two poses. A file states ``slam_R_cam`` (fgnav's
+  convention, ``"as-is"``: ``C_ij = R_i^T R_j``); some SLAM forks write ``cam_R_slam`` instead
+  while their positions stay camera centres (``"inverse"``: ``C_ij = R_i R_j^T``). Both give the
+  same rotation *angle* (``trace(A^T B) = trace(A B^T)``); only the axes tell them apart: the
+  wrong convention puts world-frame axes where camera-frame axes belong, which no fixed
+  ``body_R_cam`` maps onto the gyro's once the attitude varies.
+- ``offset``: SLAM clock offset, ``t_imu = t_slam + offset_s`` (the convention of
+  :func:`.time_offset.estimate_time_offset` with clock a = IMU, clock b = SLAM).
+
+The estimator (:func:`check_slam_gyro`) works on whatever has arrived:
+
+1. pairs ``(i, j)``: each SLAM pose with the first one at least ``pair_s`` later in the same
+   session, at most ``max_pair_s`` apart (gaps are skipped);
+2. coarse clock offset: cross-correlation of the gyro's rate magnitude with the SLAM's
+   (:func:`.time_offset.estimate_time_offset`; both are invariant to the convention and to
+   ``body_R_cam``), when at least ``min_overlap_s`` of data has arrived (else 0);
+3. per convention: ``body_R_cam`` fitted to the pairs' rotation vectors (orthogonal Procrustes,
+   a hand-eye rotation) alternating with the gyro bias (first order:
+   ``Log(G_ij(b)^T X C_ij X^T) ~ r_ij + b dt_ij``); its median residual angle is the score;
+4. the convention whose score is at most half the other's wins (else undecided); the offset is
+   refined by the 3-D residual of the winner on a fine grid (parabola through the minimum);
+5. ``body_R_cam`` check: the given rotation is named wrong when the fitted one is more than
+   :data:`EXTRINSIC_TOL_DEG` from it and fits at least 1.5x better.
+
+:class:`SlamGyroCheck` is the causal, incremental form (``add_imu``, ``add_slam`` or ``add(event)``
+with :mod:`.events` events; ``decision()`` is None until enough rotation has arrived, then fixed);
+:func:`check_flight` runs the same core on a whole flight and :func:`apply_slam_check` applies the
+``slam_rotation`` / ``slam_time_offset`` options to a flight (batch side).
+
+Not modelled: a time-varying clock offset (drift), a SLAM rotation that is neither as stated nor
+inverted (e.g. a mirrored frame), the camera's lever arm (rotations do not see it), gyro scale
+errors. The gyro bias is one constant over the data used.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import FgnavError, FlightDataError
+from .frames import _project_to_rotation
+from .geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    slerp_rotations,
+    so3_exp,
+    so3_log,
+)
+from .time_offset import estimate_time_offset
+from .types import Flight, ImuSeries, SlamSeries
+
+log = logging.getLogger(__name__)
+
+#: Values of the ``slam_rotation`` option: decide from the gyro, keep as stated, invert.
+SLAM_ROTATION_MODES = ("auto", "as-is", "inverse")
+#: String values of the ``slam_time_offset`` option (else a number of seconds to add to SLAM
+#: times): estimate and report only, or estimate and apply.
+SLAM_TIME_OFFSET_MODES = ("report", "apply")
+#: A convention wins when the other's median residual is at least this many times larger.
+CONVENTION_RATIO = 2.0
+#: A given body_R_cam this far [deg] from the fitted one (and fitting 1.5x worse) is named wrong.
+EXTRINSIC_TOL_DEG = 5.0
+#: Fitting body_R_cam needs two excited axes: second/first singular value of the correlation.
+MIN_AXIS_SPREAD = 0.05
+
+
+class SlamConventionError(FgnavError, ValueError):
+    """A bad ``slam_rotation`` / ``slam_time_offset`` option."""
+
+
+@dataclass(frozen=True)
+class SlamGyroOptions:
+    """Options of the SLAM-vs-gyro check.
+
+    Attributes:
+        pair_s: shortest interval of a rotation pair [s].
+        max_pair_s: longest interval of a rotation pair [s] (longer: a gap, skipped).
+        max_offset_s: search half-width of the SLAM clock offset [s].
+        min_overlap_s: data needed for the offset's cross-correlation [s] (shorter: offset 0).
+        min_rotation_rad: total rotation (sum of the pairs' angles, non-overlapping) needed before
+            a decision.
+        min_pairs: pairs needed before a decision.
+        refine_half_width_s: the fine offset grid covers the coarse offset +- this [s].
+        refine_step_s: fine grid step [s].
+    """
+
+    pair_s: float = 0.25
+    max_pair_s: float = 1.0
+    max_offset_s: float = 0.5
+    min_overlap_s: float = 5.0
+    min_rotation_rad: float = 3.0
+    min_pairs: int = 20
+    refine_half_width_s: float = 0.03
+    refine_step_s: float = 0.003
+
+
+@dataclass(frozen=True, eq=False)
+class SlamGyroDecision:
+    """Result of :func:`check_slam_gyro`.
+
+    Attributes:
+        convention: ``"as-is"`` or ``"inverse"``: the one that fits (``"as-is"`` when undecided).
+        decided: False when neither convention fits clearly better.
+        residual_deg: convention -> median residual angle with the fitted ``body_R_cam`` [deg].
+        residual_given_deg: the same with the given ``body_R_cam`` [deg].
+        body_R_cam_fit: (3, 3) the rotation that fits under ``convention``.
+        body_R_cam_error_deg: angle between the given and the fitted rotation [deg].
+        body_R_cam_ok: False when the given rotation is wrong (see the module docstring).
+        time_offset_s: SLAM clock offset, ``t_imu = t_slam + offset`` [s].
+        offset_correlation: correlation of the rate magnitudes at the coarse offset (NaN: not
+            estimated, too little data).
+        gyro_bias: (3,) gyro bias [rad/s] fitted with ``convention``.
+        n_pairs: rotation pairs used.
+        rotation_rad: total rotation seen (non-overlapping pairs) [rad].
+    """
+
+    convention: str
+    decided: bool
+    residual_deg: dict[str, float]
+    residual_given_deg: dict[str, float]
+    body_R_cam_fit: np.ndarray
+    body_R_cam_error_deg: float
+    body_R_cam_ok: bool
+    time_offset_s: float
+    offset_correlation: float
+    gyro_bias: np.ndarray
+    n_pairs: int
+    rotation_rad: float
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready summary."""
+        return {
+            "convention": self.convention,
+            "decided": self.decided,
+            "residual_deg": {k: round(v, 3) for k, v in self.residual_deg.items()},
+            "residual_given_deg": {k: round(v, 3) for k, v in self.residual_given_deg.items()},
+            "body_R_cam_ok": self.body_R_cam_ok,
+            "body_R_cam_error_deg": round(self.body_R_cam_error_deg, 2),
+            "body_q_cam_fit_wxyz": np.round(matrix_to_quat_wxyz(self.body_R_cam_fit), 5).tolist(),
+            "time_offset_s": round(self.time_offset_s, 4),
+            "gyro_bias": np.round(self.gyro_bias, 4).tolist(),
+            "n_pairs": self.n_pairs,
+        }
+
+    def extrinsic_message(self) -> str | None:
+        """One line naming a wrong ``body_T_cam`` rotation and the one that fits (None: fits)."""
+        if self.body_R_cam_ok:
+            return None
+        q = matrix_to_quat_wxyz(self.body_R_cam_fit)
+        given, fitted = self.residual_given_deg[self.convention], self.residual_deg[self.convention]
+        return (
+            f"body_T_cam rotation is wrong: it is {self.body_R_cam_error_deg:.1f} deg from the "
+            f"rotation the gyro fits (median residual {given:.2f} vs {fitted:.2f} deg); "
+            "body_q_cam_wxyz that fits: "
+            f"[{', '.join(f'{x:.4f}' for x in q)}]"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Pairs:
+    t_i: np.ndarray
+    t_j: np.ndarray
+    R_i: np.ndarray
+    R_j: np.ndarray
+
+
+def _pairs(t: np.ndarray, R: np.ndarray, session: np.ndarray, o: SlamGyroOptions) -> _Pairs:
+    j = np.searchsorted(t, t + o.pair_s - 1e-9)
+    i = np.arange(len(t))
+    ok = j < len(t)
+    i, j = i[ok], j[ok]
+    ok = (t[j] - t[i] <= o.max_pair_s) & (session[i] == session[j])
+    i, j = i[ok], j[ok]
+    return _Pairs(t[i], t[j], R[i], R[j])
+
+
+def _integrate(t: np.ndarray, omega: np.ndarray, block: int = 64) -> np.ndarray:
+    """Gyro orientation track (N, 3, 3) from the identity at ``t[0]`` (zero bias): products
+    within blocks of ``block`` steps vectorised over the blocks, then chained block by block."""
+    steps = so3_exp(omega[:-1] * np.diff(t)[:, None])
+    n = len(steps)
+    nb = -(-n // block)
+    S = np.concatenate([steps, np.broadcast_to(np.eye(3), (nb * block - n, 3, 3))])
+    S = S.reshape(nb, block, 3, 3)
+    cum = np.empty_like(S)
+    cum[:, 0] = S[:, 0]
+    for k in range(1, block):
+        cum[:, k] = cum[:, k - 1] @ S[:, k]
+    start = np.empty((nb, 3, 3))
+    start[0] = np.eye(3)
+    for b in range(1, nb):
+        start[b] = start[b - 1] @ cum[b - 1, -1]
+    full = (start[:, None] @ cum).reshape(-1, 3, 3)[:n]
+    return np.concatenate([np.eye(3)[None], full])
+
+
+def _camera_increments(p: _Pairs, convention: str) -> np.ndarray:
+    tr = (0, 2, 1)
+    if convention == "as-is":
+        return np.transpose(p.R_i, tr) @ p.R_j
+    return p.R_i @ np.transpose(p.R_j, tr)
+
+
+class _Core:
+    """Residuals of the pairs for one clock offset (gyro track integrated once)."""
+
+    def __init__(self, imu_t: np.ndarray, R_gyro: np.ndarray, p: _Pairs, offset: float):
+        Ri = slerp_rotations(imu_t, R_gyro, p.t_i + offset)
+        Rj = slerp_rotations(imu_t, R_gyro, p.t_j + offset)
+        self.G = np.transpose(Ri, (0, 2, 1)) @ Rj
+        self.dt = p.t_j - p.t_i
+        self.p = p
+
+    def residuals(self, C: np.ndarray, X: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """Rotation vectors (P, 3) of ``G(b)^T X C X^T`` (body frame) [rad]."""
+        G = self.G @ so3_exp(-bias[None, :] * self.dt[:, None])
+        return so3_log(np.transpose(G, (0, 2, 1)) @ X @ C @ X.T)
+
+    def fit(
+        self, convention: str, X_given: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+        """Fitted ``body_R_cam``, bias, median residual [deg] fitted and with ``X_given``, and
+        the axis spread (conditioning of the rotation fit)."""
+        C = _camera_increments(self.p, convention)
+        c = so3_log(C)
+        a = so3_log(self.G)
+        M = a.T @ c
+        sv = np.linalg.svd(M, compute_uv=False)
+        spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+        # From the given rotation, and from the Procrustes one when two axes are excited (a
+        # grossly wrong given rotation); the given start wins unless the other fits 10 % better
+        # (the ridge keeps unexcited directions at the start value).
+        X, bias = self._gauss_newton(C, c, X_given, free_rotation=True)
+        fit_med = _median_deg(self.residuals(C, X, bias))
+        if spread >= MIN_AXIS_SPREAD:
+            X2, bias2 = self._gauss_newton(C, c, _project_to_rotation(M), free_rotation=True)
+            fit2 = _median_deg(self.residuals(C, X2, bias2))
+            if fit2 < fit_med / 1.1:
+                X, bias, fit_med = X2, bias2, fit2
+        _, b_g = self._gauss_newton(C, c, X_given, free_rotation=False)
+        given_med = _median_deg(self.residuals(C, X_given, b_g))
+        return X, bias, fit_med, given_med, spread
+
+    def _gauss_newton(
+        self, C: np.ndarray, c: np.ndarray, X: np.ndarray, free_rotation: bool, iterations: int = 6
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Joint fit of ``body_R_cam = Exp(phi) X`` and the bias. First-order model of the
+        residual ``r = Log(G(b)^T X C X^T)``: ``r(phi, b + db) ~ r - [X c]x phi + db dt``; a
+        ridge on ``phi`` keeps directions the rotations do not excite at the start value. Pairs
+        above 3x the median residual get weight 0."""
+        bias = np.zeros(3)
+        dt = self.dt
+        ridge = 1e-3 * float(np.sum(c**2))
+        for _ in range(iterations):
+            r = self.residuals(C, X, bias)
+            ang = np.linalg.norm(r, axis=1)
+            w = ang <= max(3.0 * float(np.median(ang)), 1e-4)
+            xc = c[w] @ X.T
+            J = np.zeros((int(w.sum()), 3, 6))
+            J[:, 0, 1], J[:, 0, 2] = xc[:, 2], -xc[:, 1]
+            J[:, 1, 0], J[:, 1, 2] = -xc[:, 2], xc[:, 0]
+            J[:, 2, 0], J[:, 2, 1] = xc[:, 1], -xc[:, 0]
+            J[:, :, 3:] = dt[w, None, None] * np.eye(3)
+            if not free_rotation:
+                J = J[:, :, 3:]
+            H = np.einsum("nki,nkj->ij", J, J)
+            g = np.einsum("nki,nk->i", J, r[w])
+            if free_rotation:
+                H[:3, :3] += ridge * np.eye(3)
+            step = -np.linalg.solve(H, g)
+            if free_rotation:
+                X = so3_exp(step[None, :3])[0] @ X
+            bias = bias + step[-3:]
+        return X, bias
+
+
+def _median_deg(r: np.ndarray) -> float:
+    return float(np.degrees(np.median(np.linalg.norm(r, axis=1))))
+
+
+def _rotation_seen(p: _Pairs) -> float:
+    """Sum of the angles of non-overlapping pairs [rad]."""
+    total, t_last = 0.0, -np.inf
+    ang = np.linalg.norm(so3_log(np.transpose(p.R_i, (0, 2, 1)) @ p.R_j), axis=1)
+    for k in range(len(ang)):
+        if p.t_i[k] >= t_last:
+            total += float(ang[k])
+            t_last = float(p.t_j[k])
+    return total
+
+
+def _coarse_offset(
+    imu_t: np.ndarray, imu_omega: np.ndarray, p: _Pairs, o: SlamGyroOptions
+) -> tuple[float, float]:
+    """Offset from the rate magnitudes (convention- and extrinsic-free), or (0, NaN)."""
+    span = min(imu_t[-1], p.t_j[-1]) - max(imu_t[0], p.t_i[0])
+    if span < o.min_overlap_s + o.max_offset_s or len(p.t_i) < 4:
+        return 0.0, float("nan")
+    dt = p.t_j - p.t_i
+    rate = np.linalg.norm(so3_log(np.transpose(p.R_i, (0, 2, 1)) @ p.R_j), axis=1) / dt
+    t_mid = 0.5 * (p.t_i + p.t_j)
+    t_mid, first = np.unique(t_mid, return_index=True)
+    rate = rate[first]
+    smooth = float(min(np.median(dt), 0.5))
+    try:
+        res = estimate_time_offset(
+            imu_t,
+            np.linalg.norm(imu_omega, axis=1),
+            t_mid,
+            rate,
+            o.max_offset_s,
+            smooth_s=smooth,
+            min_overlap_s=o.min_overlap_s,
+        )
+    except FlightDataError:
+        return 0.0, float("nan")
+    return res.offset_s, res.correlation
+
+
+def _angle_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(so3_log((A.T @ B)[None])[0])))
+
+
+def check_slam_gyro(
+    imu_t: np.ndarray,
+    imu_omega: np.ndarray,
+    slam_t: np.ndarray,
+    slam_q_cam_wxyz: np.ndarray,
+    body_R_cam: np.ndarray,
+    session: np.ndarray | None = None,
+    options: SlamGyroOptions | None = None,
+    *,
+    force: bool = False,
+) -> SlamGyroDecision | None:
+    """Compare SLAM relative rotations with the gyro's (module docstring: model and steps).
+
+    Args:
+        imu_t, imu_omega: (N,) IMU times [s] and (N, 3) body angular rates [rad/s].
+        slam_t, slam_q_cam_wxyz: (M,) SLAM image times [s, SLAM clock] and (M, 4) orientations as
+            stored in the file.
+        body_R_cam: (3, 3) the given camera-to-body rotation.
+        session: (M,) SLAM map ids (pairs never span two); None: one map.
+        options: thresholds (:class:`SlamGyroOptions`).
+        force: decide even with less rotation than ``options.min_rotation_rad`` (whole flights).
+
+    Returns:
+        The decision, or None when too little rotation (or too few pairs) has arrived.
+    """
+    o = options or SlamGyroOptions()
+    imu_t = np.asarray(imu_t, float)
+    imu_omega = np.asarray(imu_omega, float)
+    slam_t = np.asarray(slam_t, float)
+    sess = np.zeros(len(slam_t), int) if session is None else np.asarray(session)
+    if len(imu_t) < 2 or len(slam_t) < 2:
+        return None
+    R = quat_wxyz_to_matrix(np.asarray(slam_q_cam_wxyz, float))
+    inside = (slam_t > imu_t[0] + o.max_offset_s) & (slam_t < imu_t[-1] - o.max_offset_s)
+    p = _pairs(slam_t[inside], R[inside], sess[inside], o)
+    if len(p.t_i) < (4 if force else o.min_pairs):
+        return None
+    seen = _rotation_seen(p)
+    if not force and seen < o.min_rotation_rad:
+        return None
+    R_gyro = _integrate(imu_t, imu_omega)
+    offset, corr = _coarse_offset(imu_t, imu_omega, p, o)
+    X_given = np.asarray(body_R_cam, float)
+    core = _Core(imu_t, R_gyro, p, offset)
+    fits = {c: core.fit(c, X_given) for c in ("as-is", "inverse")}
+    fitted = {c: f[2] for c, f in fits.items()}
+    given = {c: f[3] for c, f in fits.items()}
+    best = min(fitted, key=fitted.__getitem__)
+    other = "inverse" if best == "as-is" else "as-is"
+    decided = fitted[other] >= CONVENTION_RATIO * fitted[best]
+    if not decided:
+        best_g = min(given, key=given.__getitem__)
+        other_g = "inverse" if best_g == "as-is" else "as-is"
+        if given[other_g] >= CONVENTION_RATIO * given[best_g]:
+            best, decided = best_g, True
+    convention = best if decided else "as-is"
+    if np.isfinite(corr):
+        # Fine offset: the 3-D residual of the winner (its fitted rotation and bias).
+        X, bias = fits[convention][0], fits[convention][1]
+        C = _camera_increments(p, convention)
+        grid = offset + np.arange(
+            -o.refine_half_width_s, o.refine_half_width_s + 0.5 * o.refine_step_s, o.refine_step_s
+        )
+        cost = np.array(
+            [
+                float(np.mean(np.sum(_Core(imu_t, R_gyro, p, d).residuals(C, X, bias) ** 2, 1)))
+                for d in grid
+            ]
+        )
+        k = int(np.argmin(cost))
+        offset = float(grid[k])
+        if 0 < k < len(grid) - 1:
+            c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
+            denom = c0 - 2.0 * c1 + c2
+            if denom > 0:
+                offset += 0.5 * (c0 - c2) / denom * o.refine_step_s
+        core = _Core(imu_t, R_gyro, p, offset)
+        fits = {c: core.fit(c, X_given) for c in ("as-is", "inverse")}
+        fitted = {c: f[2] for c, f in fits.items()}
+        given = {c: f[3] for c, f in fits.items()}
+    X_fit, bias, fit_med, given_med, _ = fits[convention]
+    err_deg = _angle_deg(X_given, X_fit)
+    ok = not (err_deg > EXTRINSIC_TOL_DEG and given_med > 1.5 * fit_med)
+    return SlamGyroDecision(
+        convention=convention,
+        decided=decided,
+        residual_deg=fitted,
+        residual_given_deg=given,
+        body_R_cam_fit=X_fit,
+        body_R_cam_error_deg=err_deg,
+        body_R_cam_ok=ok,
+        time_offset_s=float(offset),
+        offset_correlation=float(corr),
+        gyro_bias=bias,
+        n_pairs=len(p.t_i),
+        rotation_rad=seen,
+    )
+
+
+class SlamGyroCheck:
+    """Causal SLAM-vs-gyro check, fed measurements as they arrive.
+
+    ``decision()`` is None until enough rotation (``options.min_rotation_rad``) has arrived and
+    the two conventions separate; then it is computed once and kept (later data does not change
+    it). Attempts are spaced ``retry_s`` of SLAM time apart to bound the work.
+
+    Args:
+        body_R_cam: (3, 3) the given camera-to-body rotation.
+        options: thresholds (:class:`SlamGyroOptions`).
+        retry_s: SLAM time between two decision attempts [s].
+    """
+
+    def __init__(
+        self,
+        body_R_cam: np.ndarray,
+        options: SlamGyroOptions | None = None,
+        retry_s: float = 1.0,
+    ) -> None:
+        self.body_R_cam = np.asarray(body_R_cam, float)
+        self.options = options or SlamGyroOptions()
+        self.retry_s = retry_s
+        self._imu_t: list[float] = []
+        self._imu_w: list[np.ndarray] = []
+        self._slam_t: list[float] = []
+        self._slam_q: list[np.ndarray] = []
+        self._slam_s: list[int] = []
+        self._decision: SlamGyroDecision | None = None
+        self._last_try = -np.inf
+
+    def add_imu(self, t: float, body_omega: np.ndarray) -> None:
+        """One gyro sample (body frame) [rad/s] at time ``t`` [s]; times must increase."""
+        if self._imu_t and t <= self._imu_t[-1]:
+            return
+        self._imu_t.append(float(t))
+        self._imu_w.append(np.asarray(body_omega, float))
+
+    def add_slam(self, t: float, slam_q_cam_wxyz: np.ndarray, session: int = 0) -> None:
+        """One SLAM orientation as stored (image time ``t`` [s, SLAM clock])."""
+        if self._slam_t and t <= self._slam_t[-1]:
+            return
+        self._slam_t.append(float(t))
+        self._slam_q.append(np.asarray(slam_q_cam_wxyz, float))
+        self._slam_s.append(int(session))
+
+    def add(self, event: Any) -> None:
+        """An :mod:`.events` event: ``ImuSample`` and ``SlamPose`` are used, others ignored."""
+        from .events import ImuSample, SlamPose
+
+        if isinstance(event, ImuSample):
+            self.add_imu(event.t, event.body_omega)
+        elif isinstance(event, SlamPose):
+            self.add_slam(event.t, event.slam_q_cam_wxyz, event.session)
+
+    def decision(self) -> SlamGyroDecision | None:
+        """The decision once the data separates the conventions (None before)."""
+        if self._decision is not None or len(self._slam_t) < 2:
+            return self._decision
+        if self._slam_t[-1] - self._last_try < self.retry_s:
+            return None
+        self._last_try = self._slam_t[-1]
+        d = check_slam_gyro(
+            np.asarray(self._imu_t),
+            np.asarray(self._imu_w).reshape(-1, 3),
+            np.asarray(self._slam_t),
+            np.asarray(self._slam_q).reshape(-1, 4),
+            self.body_R_cam,
+            np.asarray(self._slam_s),
+            self.options,
+        )
+        if d is not None and d.decided:
+            self._decision = d
+        return self._decision
+
+
+def _flight_decision(
+    flight: Flight, options: SlamGyroOptions | None = None
+) -> SlamGyroDecision | None:
+    imu: ImuSeries = flight.imu
+    slam: SlamSeries = flight.slam
+    return check_slam_gyro(
+        imu.t,
+        imu.body_omega,
+        slam.t,
+        slam.slam_q_cam_wxyz,
+        np.asarray(flight.calib.body_T_cam, float)[:3, :3],
+        slam.session,
+        options,
+        force=True,
+    )
+
+
+def check_flight(flight: Flight, options: SlamGyroOptions | None = None) -> SlamGyroDecision:
+    """The check on a whole flight's IMU and SLAM (decides on whatever rotation there is).
+
+    Raises:
+        FlightDataError: the flight has no IMU or SLAM stream, or too few SLAM pairs.
+    """
+    if flight.imu is None or flight.slam is None:
+        raise FlightDataError(f"{flight.name}: the SLAM-vs-gyro check needs imu and slam streams")
+    d = _flight_decision(flight, options)
+    if d is None:
+        raise FlightDataError(f"{flight.name}: too few SLAM pose pairs for the SLAM-vs-gyro check")
+    return d
+
+
+def check_modes(rotation: Any, time_offset: Any, source: str = "options") -> None:
+    """Raise a one-line :class:`SlamConventionError` for bad ``slam_rotation`` /
+    ``slam_time_offset`` values."""
+    if rotation not in SLAM_ROTATION_MODES:
+        raise SlamConventionError(
+            f"{source}: slam_rotation = {rotation!r}; valid: {', '.join(SLAM_ROTATION_MODES)}"
+        )
+    number = isinstance(time_offset, int | float) and not isinstance(time_offset, bool)
+    if not number and time_offset not in SLAM_TIME_OFFSET_MODES:
+        raise SlamConventionError(
+            f"{source}: slam_time_offset = {time_offset!r}; valid: "
+            f"{', '.join(SLAM_TIME_OFFSET_MODES)} or a number of seconds"
+        )
+
+
+def invert_slam_rotations(slam: SlamSeries) -> SlamSeries:
+    """The SLAM series with each orientation inverted (conjugate quaternion), positions kept."""
+    q = np.array(slam.slam_q_cam_wxyz, float)
+    q[:, 1:] *= -1.0
+    return dataclasses.replace(slam, slam_q_cam_wxyz=q)
+
+
+#: ``flight.meta`` key of the applied check (a flight carrying it is not checked again).
+META_KEY = "slam_gyro_check"
+
+
+def apply_slam_check(
+    flight: Flight, rotation: str = "auto", time_offset: str | float = "report"
+) -> Flight:
+    """Apply the ``slam_rotation`` / ``slam_time_offset`` options to a whole flight (batch).
+
+    A manifest's ``[slam] slam_rotation`` / ``slam_time_offset`` (``flight.meta["slam_options"]``)
+    win over the arguments. ``"auto"`` inverts the rotations when the inverse convention fits and
+    the stated one does not (one warning line says so); ``"inverse"`` always inverts; a wrong
+    ``body_T_cam`` rotation is named in a warning. ``"apply"`` adds the estimated offset to the
+    SLAM times, a number adds that offset, ``"report"`` only logs it. The result is recorded in
+    ``flight.meta["slam_gyro_check"]``; a flight that has it is returned unchanged.
+    """
+    if flight.slam is None or flight.imu is None or META_KEY in flight.meta:
+        return flight
+    per_file = flight.meta.get("slam_options") or {}
+    rotation = per_file.get("slam_rotation", rotation)
+    time_offset = per_file.get("slam_time_offset", time_offset)
+    check_modes(rotation, time_offset, "slam options")
+    d = None
+    if rotation == "auto" or isinstance(time_offset, str):
+        d = _flight_decision(flight)
+        if d is None:
+            log.info("%s: too few SLAM pose pairs for the SLAM-vs-gyro check", flight.name)
+    slam = flight.slam
+    record: dict[str, Any] = {"slam_rotation": rotation, "slam_time_offset": time_offset}
+    invert = rotation == "inverse"
+    if d is not None:
+        record.update(d.summary())
+        if rotation == "auto" and d.convention == "inverse":
+            invert = True
+            log.warning(
+                "%s: SLAM rotations are the inverse of the stated slam_R_cam (gyro residual "
+                "%.2f deg inverted vs %.2f deg as stated): using them inverted",
+                flight.name,
+                d.residual_deg["inverse"],
+                d.residual_deg["as-is"],
+            )
+        elif rotation == "as-is" and d.convention == "inverse":
+            log.warning(
+                "%s: slam_rotation = 'as-is' kept, but the inverse fits the gyro (%.2f vs %.2f "
+                "deg)",
+                flight.name,
+                d.residual_deg["inverse"],
+                d.residual_deg["as-is"],
+            )
+        msg = d.extrinsic_message()
+        if msg:
+            log.warning("%s: %s", flight.name, msg)
+    if invert:
+        slam = invert_slam_rotations(slam)
+    if isinstance(time_offset, str):
+        offset = d.time_offset_s if d is not None else 0.0
+        applied = time_offset == "apply"
+    else:
+        offset, applied = float(time_offset), True
+    log.info(
+        "%s: SLAM clock offset %+.4f s (t_imu = t_slam + offset)%s",
+        flight.name,
+        offset,
+        " applied" if applied and offset else ", reported, not applied",
+    )
+    if applied and offset:
+        slam = dataclasses.replace(slam, t=slam.t + offset)
+    record["applied_time_offset_s"] = offset if applied else 0.0
+    record["inverted"] = invert
+    meta = {**flight.meta, META_KEY: record}
+    return dataclasses.replace(flight, slam=slam, meta=meta)

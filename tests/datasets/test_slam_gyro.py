@@ -1,0 +1,178 @@
+"""SLAM-vs-gyro check: rotation convention, body_T_cam rotation, SLAM clock offset (simulated and
+real V1_02 keyframe files), whole-flight and causal forms, and the options."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+from fgnav.datasets.errors import FgnavError, FlightFormatError
+from fgnav.datasets.events import replay_flight
+from fgnav.datasets.geometry import so3_exp
+from fgnav.datasets.manifest import read_manifest
+from fgnav.datasets.simulate import SimOptions, simulate
+from fgnav.datasets.slam_gyro import (
+    CONVENTION_RATIO,
+    META_KEY,
+    SlamGyroCheck,
+    apply_slam_check,
+    check_flight,
+    invert_slam_rotations,
+)
+from testutil import PROJECT_ROOT
+
+MANIFESTS = PROJECT_ROOT / "datasets" / "manifests"
+
+
+@pytest.fixture(scope="module")
+def sim_flight():
+    # Two turns with tilts: attitude varies, so the two conventions separate. 20 Hz SLAM.
+    return simulate("two-turns", seed=3, options=SimOptions(duration=30.0, images=False))
+
+
+def _axis_angle_deg(A, B, cam_axis=(0.0, 0.0, 1.0)):
+    """Angle between the body directions two body_R_cam give to one camera axis [deg]."""
+    a, b = A @ np.asarray(cam_axis), B @ np.asarray(cam_axis)
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+def test_stated_convention_fits_on_simulated_flight(sim_flight):
+    d = check_flight(sim_flight)
+    assert d.decided and d.convention == "as-is"
+    assert d.residual_deg["inverse"] > CONVENTION_RATIO * d.residual_deg["as-is"]
+    assert d.body_R_cam_ok
+    # The flight turns mostly about body z (camera z): the fit pins that axis; the rotation about
+    # it is weakly excited by the small tilts (a few degrees).
+    true_R = np.asarray(sim_flight.calib.body_T_cam)[:3, :3]
+    assert _axis_angle_deg(d.body_R_cam_fit, true_R) < 0.5
+    assert d.body_R_cam_error_deg < 5.0
+    assert abs(d.time_offset_s) < 0.01
+
+
+def test_inverted_rotations_detected_and_undone(sim_flight, caplog):
+    bad = dataclasses.replace(sim_flight, slam=invert_slam_rotations(sim_flight.slam))
+    d = check_flight(bad)
+    assert d.decided and d.convention == "inverse"
+    assert d.residual_deg["as-is"] > CONVENTION_RATIO * d.residual_deg["inverse"]
+    with caplog.at_level(logging.WARNING, logger="fgnav.datasets.slam_gyro"):
+        fixed = apply_slam_check(bad, "auto", "report")
+    lines = [r for r in caplog.records if "inverse" in r.getMessage()]
+    assert len(lines) == 1
+    np.testing.assert_allclose(
+        np.abs(np.sum(fixed.slam.slam_q_cam_wxyz * sim_flight.slam.slam_q_cam_wxyz, axis=1)),
+        1.0,
+        atol=1e-12,
+    )
+    assert fixed.meta[META_KEY]["inverted"]
+    # Applied once: a checked flight is returned as it is.
+    assert apply_slam_check(fixed, "inverse") is fixed
+    # "as-is" keeps the file's rotations (and says the inverse fits).
+    kept = apply_slam_check(bad, "as-is", "report")
+    np.testing.assert_array_equal(kept.slam.slam_q_cam_wxyz, bad.slam.slam_q_cam_wxyz)
+
+
+def test_wrong_body_T_cam_named_with_the_rotation_that_fits(sim_flight, caplog):
+    true_R = np.asarray(sim_flight.calib.body_T_cam)[:3, :3]
+    wrong = np.array(sim_flight.calib.body_T_cam, float)
+    wrong[:3, :3] = true_R @ so3_exp(np.radians(12.0) * np.array([0.6, -0.8, 0.0]))
+    bad = dataclasses.replace(
+        sim_flight, calib=dataclasses.replace(sim_flight.calib, body_T_cam=wrong)
+    )
+    d = check_flight(bad)
+    assert d.convention == "as-is"
+    assert not d.body_R_cam_ok
+    assert d.body_R_cam_error_deg == pytest.approx(12.0, abs=1.5)
+    assert _axis_angle_deg(d.body_R_cam_fit, true_R) < 0.5
+    assert "body_T_cam rotation is wrong" in d.extrinsic_message()
+    with caplog.at_level(logging.WARNING, logger="fgnav.datasets.slam_gyro"):
+        apply_slam_check(bad)
+    assert sum("body_T_cam rotation is wrong" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_slam_clock_offset_estimated_and_applied(sim_flight):
+    # The SLAM clock runs 0.3 s behind: t_imu = t_slam + 0.3.
+    late = dataclasses.replace(
+        sim_flight, slam=dataclasses.replace(sim_flight.slam, t=sim_flight.slam.t - 0.3)
+    )
+    d = check_flight(late)
+    assert d.time_offset_s == pytest.approx(0.3, abs=0.020)
+    assert d.convention == "as-is" and d.body_R_cam_ok
+    reported = apply_slam_check(late, "auto", "report")
+    np.testing.assert_array_equal(reported.slam.t, late.slam.t)
+    applied = apply_slam_check(late, "auto", "apply")
+    assert np.max(np.abs(applied.slam.t - sim_flight.slam.t)) < 0.020
+    fixed = apply_slam_check(late, "as-is", 0.3)
+    np.testing.assert_allclose(fixed.slam.t, sim_flight.slam.t, atol=1e-9)
+
+
+def test_causal_check_decides_only_on_arrived_data(sim_flight):
+    bad = dataclasses.replace(sim_flight, slam=invert_slam_rotations(sim_flight.slam))
+    check = SlamGyroCheck(np.asarray(bad.calib.body_T_cam)[:3, :3])
+    decided_at = None
+    for ev in replay_flight(bad, streams=("imu", "slam")):
+        check.add(ev)
+        if decided_at is None and check.decision() is not None:
+            decided_at = ev.arrival
+    assert decided_at is not None
+    assert decided_at < bad.slam.t[-1] - 5.0  # decided well before the end
+    d = check.decision()
+    assert d.convention == "inverse"
+    # Before enough rotation has arrived there is no decision.
+    early = SlamGyroCheck(np.asarray(bad.calib.body_T_cam)[:3, :3])
+    for ev in replay_flight(bad, streams=("imu", "slam")):
+        if ev.arrival > bad.slam.t[0] + 0.5:
+            break
+        early.add(ev)
+    assert early.decision() is None
+
+
+def test_options_are_checked(tmp_path, sim_flight):
+    from fgnav.solvers.graph import GraphOptions
+
+    with pytest.raises(FgnavError, match="use_slam_rotation"):
+        GraphOptions(slam_rotation=True).check()
+    with pytest.raises(FgnavError, match="slam_rotation = 'upside-down'"):
+        GraphOptions(slam_rotation="upside-down").check()
+    with pytest.raises(FgnavError, match="slam_time_offset = 'guess'"):
+        apply_slam_check(sim_flight, "auto", "guess")
+    text = (MANIFESTS / "euroc_v102_orbslam2_kf1.toml").read_text()
+    root = str((MANIFESTS / "../../../shared/data/real/euroc_V1_02_medium").resolve())
+    text = text.replace('root = "../../../shared/data/real/euroc_V1_02_medium"', f'root = "{root}"')
+    bad = text.replace('session = 0', 'session = 0\nslam_rotation = "sideways"')
+    (tmp_path / "m.toml").write_text(bad)
+    with pytest.raises(FlightFormatError, match=r"\[slam\]: slam_rotation = 'sideways'"):
+        read_manifest(tmp_path / "m.toml")
+
+
+@pytest.mark.realdata
+def test_real_v102_orbslam3_inverse_detected(real_data):
+    f = read_manifest(MANIFESTS / "euroc_v102_orbslam3_kf2.toml")
+    d = check_flight(f)
+    # Data README: this file's rotations are the inverse of its positions' convention.
+    assert d.decided and d.convention == "inverse"
+    assert d.residual_deg["as-is"] > 10.0 * d.residual_deg["inverse"]
+    assert d.body_R_cam_ok  # EuRoC's calibrated T_BS fits within 1 deg
+    assert d.body_R_cam_error_deg < 2.0
+    assert abs(d.time_offset_s) < 0.02  # EuRoC cam0 and IMU share a hardware clock
+    # The gyro bias of the fit against the ground-truth file's (0.0207, 0.0758 on y, z).
+    assert d.gyro_bias[2] == pytest.approx(0.0758, abs=0.005)
+
+
+@pytest.mark.realdata
+def test_real_v102_orbslam2_as_stated_and_manifest_wins(real_data, tmp_path):
+    f = read_manifest(MANIFESTS / "euroc_v102_orbslam2_kf1.toml")
+    d = check_flight(f)
+    assert d.decided and d.convention == "as-is"
+    assert d.body_R_cam_ok
+    # A manifest's [slam] slam_rotation wins over the options given.
+    text = (MANIFESTS / "euroc_v102_orbslam2_kf1.toml").read_text()
+    root = str((MANIFESTS / "../../../shared/data/real/euroc_V1_02_medium").resolve())
+    text = text.replace('root = "../../../shared/data/real/euroc_V1_02_medium"', f'root = "{root}"')
+    text = text.replace("session = 0", 'session = 0\nslam_rotation = "inverse"')
+    (tmp_path / "m.toml").write_text(text)
+    g = read_manifest(tmp_path / "m.toml")
+    assert g.meta["slam_options"] == {"slam_rotation": "inverse"}
+    out = apply_slam_check(g, "as-is", "report")
+    assert out.meta[META_KEY]["inverted"]
