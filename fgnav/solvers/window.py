@@ -210,6 +210,10 @@ class TimeOrderedSmoother:
     def timestamps(self) -> dict[int, float]:
         return dict(self._stamp)
 
+    def __contains__(self, key: int) -> bool:
+        """Is ``key`` in the window (not marginalised)?"""
+        return key in self._stamp
+
     # -- ordering ------------------------------------------------------------------------------
 
     def _restamp(self, stamps: dict[int, float]) -> list[int]:

@@ -20,7 +20,7 @@ from fgnav.factors.slam_scale import (
     slam_rotation_error,
 )
 
-from fgnav.keys import S, X
+from fgnav.keys import S, V, X
 
 from .numdiff import assert_jacobians_close, random_pose, unit_noise
 
@@ -236,3 +236,69 @@ def test_rounded_calibration_rotation_is_accepted_and_orthonormalised() -> None:
     fixed = as_pose_matrix(m, "body_T_cam")
     np.testing.assert_allclose(fixed[:3, :3].T @ fixed[:3, :3], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(fixed, m, atol=1e-4)
+
+
+def _offset_truth(rng: np.random.Generator):
+    """A body moving at constant specific force and angular rate: the exact pose at ``dt``."""
+    pose, sim = random_pose(rng), _random_sim(rng)
+    v, f, w = rng.normal(0, 1.5, 3), rng.normal(0, 2.0, 3), rng.normal(0, 1.0, 3)
+    return pose, v, sim, f, w
+
+
+@pytest.mark.parametrize("dt", [-0.024, 0.0, 0.031])
+def test_offset_factor_zero_at_consistent_state_and_matches_plain_at_dt0(dt: float) -> None:
+    from fgnav.factors.slam_scale import make_slam_position_offset_factor
+
+    rng = np.random.default_rng(7)
+    pose, v, sim, f, w = _offset_truth(rng)
+    g = 9.81
+    body_T_cam = random_pose(rng, 0.3)
+    # The model's own prediction of the camera at t_k + dt (constant f and omega).
+    R = pose.rotation().matrix()
+    E = gtsam.Rot3.Expmap(w * dt).matrix()
+    p = (
+        pose.translation()
+        + v * dt
+        + 0.5 * (R @ f + np.array([0, 0, -g])) * dt**2
+        + R @ E @ body_T_cam.translation()
+    )
+    z = sim.transformFrom(p)
+    values = gtsam.Values()
+    values.insert(X(0), pose)
+    values.insert(V(0), v)
+    values.insert(S(0), sim)
+    fac = make_slam_position_offset_factor(
+        X(0), V(0), S(0), z, body_T_cam, dt, f, w, g, unit_noise(3)
+    )
+    np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-10)
+    if dt == 0.0:
+        plain = make_slam_position_factor(X(0), S(0), z + 0.1, body_T_cam, unit_noise(3))
+        off = make_slam_position_offset_factor(
+            X(0), V(0), S(0), z + 0.1, body_T_cam, 0.0, f, w, g, unit_noise(3)
+        )
+        np.testing.assert_allclose(off.unwhitenedError(values), plain.unwhitenedError(values))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_offset_factor_jacobians_match_central_differences(seed: int) -> None:
+    from fgnav.factors.slam_scale import make_slam_position_offset_factor
+
+    rng = np.random.default_rng(300 + seed)
+    pose, v, sim, f, w = _offset_truth(rng)
+    values = gtsam.Values()
+    values.insert(X(0), pose)
+    values.insert(V(0), v)
+    values.insert(S(0), sim)
+    fac = make_slam_position_offset_factor(
+        X(0),
+        V(0),
+        S(0),
+        rng.normal(0, 2, 3),
+        random_pose(rng, 0.3),
+        rng.uniform(-0.05, 0.05),
+        f,
+        w,
+        9.81,
+        unit_noise(3),
+    )
+    assert_jacobians_close(fac, values, [6, 3, 7])

@@ -1,0 +1,1497 @@
+"""Push-API online fixed-lag smoother: measurement events in, the newest state out.
+
+``OnlineSmoother(calib, options)`` is fed the typed events of :mod:`fgnav.datasets.events` one at a
+time, in arrival order (a replayed log or a live link: the smoother cannot tell them apart), and
+keeps an iSAM2 fixed-lag window (:class:`fgnav.solvers.window.TimeOrderedSmoother`). It never sees
+a flight: every decision uses only what has arrived.
+
+Keyframes lie on a fixed grid ``t0 + k / keyframe_hz``; keyframe k *closes* when an IMU sample at
+or after ``t_k`` arrives: the IMU preintegrated since k-1 (zero-order hold, the bias estimate of
+the interval's start) gives a ``CombinedImuFactor`` and the predicted initial values, and one
+iSAM2 update adds it with every measurement that has arrived for a keyframe still in the window.
+
+- **Start**: at the first SLAM pose's capture time when a SLAM pose arrives within ``start_wait_s``
+  of the first IMU sample (``FixedLagOptions.graph.use_slam``), else at the IMU. Attitude from the
+  attitude stream when one has arrived, else level from the mean specific force of the last
+  ``init_imu_s``; yaw from the yaw stream or ``graph.initial_yaw``. Gyro bias: the mean rate of
+  the IMU before the start when the vehicle was still over it (specific force within
+  ``still_accel_tol`` of g, rates below ``still_gyro_tol``), else zero (its prior sigma covers it).
+- **SLAM** (``graph.slam_model`` must be ``sim3``): a pose taken at ``t`` attaches to the keyframe
+  nearest ``t`` through :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body
+  carried over ``t - t_k`` by the IMU reading at ``t``). Each session has a chain of
+  ``Similarity3`` alignment variables, one per ``graph.slam_segment_s`` of the session's time, with
+  a random walk between them; a segment whose predecessor has left the window (a SLAM pause longer
+  than the lag) starts from the predecessor's last estimate under a prior widened by the walk over
+  the gap, never from a fresh fit. A session's chain starts from the closed-form fit
+  (:func:`fgnav.solvers.measurements.init_slam_alignment`) over its poses so far once they span
+  ``slam_init_window_s`` and the fit passes the excitation and standard-error gates; before that
+  its poses attach to a *provisional* alignment (rotation from the SLAM orientation and the current
+  attitude, scale from the previous session or ``slam_provisional_scale``, origin at the newest
+  pose, wide log-scale prior). When the chain starts, the provisional factors still in the window
+  are removed and re-attached to it. A new session id (a map reset) starts a new chain.
+- **Range** and **yaw**: interpolated to the keyframe time once the sample after it has arrived
+  (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt.
+- **Drag**: mean accelerometer over the keyframe's interval once the IMU has passed it; off when
+  the mean specific force of the first ``drag_check_s`` is more than
+  ``graph.drag_thrust_max_angle_deg`` from body +z (said once); its noise floor follows the running
+  scatter of the keyframe means (last ``drag_scatter_n`` keyframes).
+- **Time rules**: a sample older than its stream's newest by less than ``clock_jump_s`` is
+  rejected and counted (``<stream>:out-of-order``; equal stamps ``<stream>:duplicate``); an IMU
+  stamp that goes back by more than that is a clock jump and resets the smoother
+  (``reset_counter`` += 1). An IMU gap longer than ``max_imu_gap_s`` also resets it (the chain is
+  not integrated blindly). A measurement whose keyframe has left the window is counted as
+  ``<stream>:late``.
+- **Factorization**: QR for the first ``startup_qr_s``, then Cholesky; a failed update is retried
+  on a fresh QR smoother rebuilt from the last good newest state and slow variables with priors
+  (``solver_failures``, ``reset_counter`` += 1): the smoother never crashes on a solver failure.
+
+Not handled yet on this path (counted as ``<stream>:not-used-online``): camera images (homography
+factors), optical flow, seed 000's per-axis SLAM model, front-end priors.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import (
+    AttitudeSample,
+    FlowSample,
+    ImageFrame,
+    ImuSample,
+    RangeReading,
+    SlamPose,
+    YawReading,
+)
+from fgnav.datasets.geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    slerp_rotations,
+    wrap_angle,
+)
+from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
+from fgnav.estimate import Estimate, TimeSeries
+from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
+from fgnav.factors.slam_scale import (
+    make_slam_position_factor,
+    make_slam_position_offset_factor,
+    make_slam_T_world,
+)
+from fgnav.factors.tilted_range import gate_range, make_range_factor
+from fgnav.factors.yaw import make_yaw_factor
+from fgnav.keys import B, S, V, X
+from fgnav.solvers.fixed_lag import SOLVER_ERRORS, FixedLagOptions, _isam2_params
+from fgnav.solvers.graph import PREINTEGRATION_INTEGRATION_COV
+from fgnav.solvers.measurements import init_slam_alignment, level_rotation_from_accel
+from fgnav.solvers.window import TimeOrderedSmoother
+
+log = logging.getLogger(__name__)
+
+#: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
+PROVISIONAL_BASE = 1_000_000
+#: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
+SESSION_STRIDE = 100_000
+
+
+@dataclass(frozen=True, eq=False)
+class OnlineState:
+    """The newest estimate (see ``/README.md``'s online section for the frames).
+
+    Attributes:
+        t: state time [s] on the input clock (a keyframe time).
+        world_T_body: (4, 4) pose, world z up, body FLU.
+        world_v_body: (3,) velocity in world [m/s].
+        accel_bias, gyro_bias: (3,) IMU biases [m/s^2], [rad/s].
+        pose_cov: (6, 6) marginal covariance, GTSAM Pose3 tangent ``[rot, trans]`` in body frame
+            (right perturbation), or None when not computed.
+        vel_cov: (3, 3) covariance of ``world_v_body``, or None.
+        slam_scale: SLAM units per metre per session (sessions with an alignment).
+        drag_k: drag coefficient(s) [1/s], or None.
+        ground_height: ground height under the rangefinder [m], or None.
+        reset_counter: resets and rebuilds that lost state so far.
+        quality: 0-100: 0 before initialisation, 30 with the IMU alone, 60 on a provisional
+            SLAM alignment, 100 with an aligned session or range and yaw; halved for 2 s after
+            a solver failure or reset.
+    """
+
+    t: float
+    world_T_body: np.ndarray
+    world_v_body: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias: np.ndarray
+    pose_cov: np.ndarray | None
+    vel_cov: np.ndarray | None
+    slam_scale: dict[int, float]
+    drag_k: np.ndarray | None
+    ground_height: float | None
+    reset_counter: int
+    quality: int
+
+
+@dataclass
+class OnlineOptions:
+    """Options of the push API beyond :class:`FixedLagOptions` (``[online]`` table).
+
+    Attributes:
+        start_wait_s: wait this long after the first IMU sample for a SLAM pose to start at [s].
+        init_imu_s: IMU span averaged for the initial attitude [s].
+        still_accel_tol [m/s^2], still_gyro_tol [rad/s]: stillness test of the gyro-bias start.
+        clock_jump_s: a stamp older than its stream's newest by more than this is a clock jump
+            (IMU: reset), by less an out-of-order sample (rejected) [s].
+        max_imu_gap_s: an IMU gap longer than this resets the smoother [s].
+        history_s: IMU and SLAM history kept for fits [s].
+        covariance: read the newest pose and velocity marginals at every keyframe.
+        drag_check_s: IMU span of the thrust-axis check of the drag model [s].
+        drag_scatter_n: keyframes of the running drag-noise estimate.
+        slam_fit_max_s: the closed-form SLAM fit uses the session's last this many seconds [s].
+    """
+
+    start_wait_s: float = 5.0
+    init_imu_s: float = 0.2
+    still_accel_tol: float = 0.3
+    still_gyro_tol: float = 0.05
+    clock_jump_s: float = 1.0
+    max_imu_gap_s: float = 0.5
+    history_s: float = 30.0
+    covariance: bool = True
+    drag_check_s: float = 2.0
+    drag_scatter_n: int = 200
+    slam_fit_max_s: float = 20.0
+
+
+class _Imu:
+    """Arrived IMU samples (lists, trimmed to the history)."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.w: list[np.ndarray] = []
+        self.a: list[np.ndarray] = []
+
+    def add(self, t: float, w: np.ndarray, a: np.ndarray) -> None:
+        self.t.append(t)
+        self.w.append(w)
+        self.a.append(a)
+
+    def trim(self, t_keep: float) -> None:
+        i = bisect.bisect_left(self.t, t_keep)
+        if i > 1000:
+            del self.t[:i], self.w[:i], self.a[:i]
+
+    def span(self, ta: float, tb: float) -> slice:
+        return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
+
+    def series(self, ta: float, tb: float) -> ImuSeries | None:
+        s = self.span(ta, tb)
+        if s.stop - s.start < 2:
+            return None
+        return ImuSeries(np.asarray(self.t[s]), np.asarray(self.w[s]), np.asarray(self.a[s]))
+
+    def nearest(self, t: float) -> int:
+        i = bisect.bisect_left(self.t, t)
+        if i >= len(self.t):
+            return len(self.t) - 1
+        if i > 0 and t - self.t[i - 1] < self.t[i] - t:
+            return i - 1
+        return i
+
+
+@dataclass
+class _Session:
+    """One SLAM session (map): arrived poses, alignment chain, provisional factors."""
+
+    t: list[float]
+    p: list[np.ndarray]
+    q: list[np.ndarray]
+    t_first: float
+    chain: dict[int, int]  # segment -> key
+    last_key: int | None = None
+    last_seg: int = -1
+    provisional: int | None = None  # key of the provisional alignment
+    prov_factors: list = None  # [(factor index, k, row)] still in the smoother
+    next_fit: float = -math.inf
+    scale: float | None = None
+
+
+class OnlineSmoother:
+    """Causal fixed-lag smoother fed one event at a time (see the module docstring).
+
+    Args:
+        calib: the vehicle's calibration (IMU noise, ``body_T_cam``, ``body_T_range``, limits).
+        options: smoother options (graph noise, lag, iSAM2 settings, SLAM start gates).
+        online: push-API options.
+        name: name used in messages.
+    """
+
+    def __init__(
+        self,
+        calib: Calibration,
+        options: FixedLagOptions | None = None,
+        online: OnlineOptions | None = None,
+        name: str = "online",
+    ):
+        self.calib = calib.check()
+        self.options = options or FixedLagOptions()
+        self.go = self.options.graph.check()
+        self.on = online or OnlineOptions()
+        self.name = name
+        if self.go.slam_model not in ("auto", "sim3"):
+            raise FlightDataError(
+                f"{name}: graph.slam_model={self.go.slam_model!r}: the online smoother "
+                "supports the sim3 SLAM model only"
+            )
+        if not self.options.lag_s > 0:
+            raise FlightDataError(f"{name}: lag_s={self.options.lag_s}: expected > 0")
+        self.period = 1.0 / self.go.keyframe_hz
+        self.body_T_cam = np.asarray(calib.body_T_cam, float)
+        self.body_T_range = np.asarray(calib.body_T_range, float)
+        self.pim_params = self._pim_params()
+        self.reset_counter = 0
+        self.received: dict[str, int] = {}
+        self.used: dict[str, int] = {}
+        self.dropped: dict[str, int] = {}
+        self.n_failures = 0
+        self.failure_messages: list[str] = []
+        self.latency: list[float] = []
+        # Outputs (every state).
+        self.out: list[OnlineState] = []
+        self.track: dict[str, list[tuple[float, float, int]]] = {}
+        self._session_scale: dict[int, float] = {}
+        self._drag_decision: str | None = None
+        self._noise_cache: dict[tuple, Any] = {}
+        self._clear()
+
+    # ------------------------------------------------------------------------------------------
+    # Public interface
+    # ------------------------------------------------------------------------------------------
+
+    def feed(self, ev: Any) -> OnlineState | None:
+        """Take one event (arrival order); the newest state when keyframes closed, else None."""
+        if isinstance(ev, ImuSample):
+            return self._feed_imu(ev)
+        stream = _STREAM.get(type(ev))
+        if stream is None:
+            raise TypeError(f"{self.name}: not a measurement event: {type(ev).__name__}")
+        self.received[stream] = self.received.get(stream, 0) + 1
+        if not self._check_time(stream, ev.t):
+            return None
+        if isinstance(ev, SlamPose):
+            if self.go.use_slam:
+                self._on_slam(ev)
+            else:
+                self._drop("slam:off")
+        elif isinstance(ev, RangeReading):
+            if self.go.use_range:
+                self._on_scalar("range", ev.t, ev.range)
+            else:
+                self._drop("range:off")
+        elif isinstance(ev, YawReading):
+            if self.go.use_yaw:
+                self._on_scalar("yaw", ev.t, ev.yaw)
+            else:
+                self._drop("yaw:off")
+        elif isinstance(ev, AttitudeSample):
+            q = np.asarray(ev.world_q_body_wxyz, float)
+            if np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < 0.1:
+                self._att.append((ev.t, q / np.linalg.norm(q)))
+                self._trim(self._att)
+                self._use("attitude")
+            else:
+                self._drop("attitude:non-finite")
+        else:
+            self._drop(f"{stream}:not-used-online")
+        return None
+
+    def latest(self) -> OnlineState | None:
+        """The newest state (None before initialisation)."""
+        return (
+            self.out[-1] if self.out and self.out[-1].reset_counter == self.reset_counter else None
+        )
+
+    def reset(self, reason: str = "requested") -> None:
+        """Drop the window and every buffer; the next events initialise again."""
+        self.reset_counter += 1
+        self._drop(f"reset:{reason}")
+        log.warning("%s: reset (%s) at t=%.3f", self.name, reason, self._t_imu_last)
+        self._clear()
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Received, used, late and dropped counts by stream (late: keyframe left the window)."""
+        late = {k.split(":")[0]: v for k, v in self.dropped.items() if k.endswith(":late")}
+        return {
+            "received": dict(self.received),
+            "used": dict(self.used),
+            "late": late,
+            "dropped": dict(self.dropped),
+        }
+
+    def result(self, runtime: float | None = None) -> Estimate:
+        """The causal estimate: every state output so far."""
+        st = self.out
+        n = len(st)
+        if n == 0:
+            raise FlightDataError(
+                f"{self.name}: the online smoother produced no state (no IMU, or no keyframe "
+                "closed)"
+            )
+        T = np.array([s.world_T_body for s in st])
+        traj = Trajectory(
+            np.array([s.t for s in st]),
+            T[:, :3, 3],
+            matrix_to_quat_wxyz(T[:, :3, :3]),
+            np.array([s.world_v_body for s in st]),
+            np.array([s.gyro_bias for s in st]),
+            np.array([s.accel_bias for s in st]),
+        )
+        pose_cov = vel_cov = None
+        if any(s.pose_cov is not None for s in st):
+            nan6, nan3 = np.full((6, 6), np.nan), np.full((3, 3), np.nan)
+            pose_cov = np.array([nan6 if s.pose_cov is None else s.pose_cov for s in st])
+            vel_cov = np.array([nan3 if s.vel_cov is None else s.vel_cov for s in st])
+        series: dict[str, TimeSeries] = {}
+        for name, rows in self.track.items():
+            if rows:
+                series[name] = TimeSeries(
+                    np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+                )
+                if name == "slam_scale":
+                    series["slam_session"] = TimeSeries(
+                        series[name].t, np.array([float(r[2]) for r in rows])
+                    )
+        lat = np.asarray(self.latency)
+        span = st[-1].t - st[0].t
+        runtime = float(lat.sum()) if runtime is None else runtime
+        last = st[-1]
+        info = {
+            "engine": "push-api",
+            "lag_s": self.options.lag_s,
+            **self.counts(),
+            "solver_failures": self.n_failures,
+            "solver_failure_messages": self.failure_messages[:10],
+            "reset_counter": self.reset_counter,
+            "drag": self._drag_decision,
+            "updates": len(lat),
+            "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
+            "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
+            "latency_max_s": float(lat.max()) if len(lat) else None,
+            "times_real_time": float(span / runtime) if runtime > 0 else None,
+            "options": asdict(self.options),
+            "online_options": asdict(self.on),
+        }
+        return Estimate(
+            method="fixed-lag",
+            trajectory=traj,
+            pose_cov=pose_cov,
+            vel_cov=vel_cov,
+            slam_scale=dict(self._session_scale),
+            drag_k=last.drag_k,
+            ground_height=last.ground_height,
+            series=series,
+            update_latency=lat,
+            runtime_s=runtime,
+            causal=True,
+            info=info,
+        ).check()
+
+    # ------------------------------------------------------------------------------------------
+    # State
+    # ------------------------------------------------------------------------------------------
+
+    def _clear(self) -> None:
+        o = self.options
+        self.smoother: TimeOrderedSmoother | None = None
+        self.factorization = "QR" if o.startup_qr_s > 0 else o.factorization.upper()
+        self.t0: float | None = None
+        self.k = -1  # newest closed keyframe
+        self.t_kf: dict[int, float] = {}
+        self.imu = _Imu()
+        self._t_imu_last = getattr(self, "_t_imu_last", -math.inf)
+        self._t_last: dict[str, float] = {}
+        self._first_imu_t: float | None = None
+        self._first_slam_t: float | None = None
+        self._att: deque = deque()
+        self._scalar: dict[str, deque] = {"range": deque(), "yaw": deque()}
+        self._scalar_done: dict[str, int] = {"range": -1, "yaw": -1}
+        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._pending: list[tuple[int, str, Any]] = []  # (keyframe, kind, payload)
+        self.sessions: dict[int, _Session] = {}
+        self.values: dict[int, Any] = {}  # last good estimate of live keys
+        self.stamp: dict[int, float] = {}
+        self._n_prov = 0
+        self._drag_acc: dict[int, list] = {}
+        self._drag_means: deque = deque(maxlen=self.on.drag_scatter_n)
+        self._drag_sigma = float(self.go.drag_model_sigma)
+        self._drag_on = self.go.use_drag
+        self._drag_checked = False
+        self._thrust_sum = np.zeros(3)
+        self._thrust_n = 0
+        self._thrust_t0: float | None = None
+        self._queued_values = gtsam.Values()
+        self._cur_stamps: dict[int, float] = {}
+        self._held: list = []
+        self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
+        self._bad_since = -math.inf
+
+    def _use(self, kind: str, n: int = 1) -> None:
+        self.used[kind] = self.used.get(kind, 0) + n
+
+    def _drop(self, reason: str, n: int = 1) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + n
+
+    def _trim(self, buf: deque) -> None:
+        horizon = self._t_imu_last - self.on.history_s
+        while len(buf) > 2 and buf[0][0] < horizon:
+            buf.popleft()
+
+    def _check_time(self, stream: str, t: float) -> bool:
+        if not math.isfinite(t):
+            self._drop(f"{stream}:non-finite-time")
+            return False
+        last = self._t_last.get(stream, -math.inf)
+        if t < last:
+            if last - t <= self.on.clock_jump_s or stream != "imu":
+                self._drop(f"{stream}:out-of-order")
+                return False
+            return True  # IMU clock jump: handled by the caller
+        if t == last:
+            self._drop(f"{stream}:duplicate")
+            return False
+        self._t_last[stream] = t
+        return True
+
+    def _pim_params(self) -> gtsam.PreintegrationCombinedParams:
+        n = self.calib.imu_noise
+        p = gtsam.PreintegrationCombinedParams.MakeSharedU(self.go.gravity)
+        p.setGyroscopeCovariance(n.gyro_noise_density**2 * np.eye(3))
+        p.setAccelerometerCovariance(n.accel_noise_density**2 * np.eye(3))
+        p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
+        p.setBiasOmegaCovariance(n.gyro_random_walk**2 * np.eye(3))
+        p.setBiasAccCovariance(n.accel_random_walk**2 * np.eye(3))
+        return p
+
+    def _noise(self, dim: int, sigma: float, robust: bool = True) -> Any:
+        key = (dim, float(sigma), robust)
+        m = self._noise_cache.get(key)
+        if m is None:
+            m = gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
+            if robust:
+                m = self._robust(m)
+            self._noise_cache[key] = m
+        return m
+
+    def _robust(self, base: Any) -> Any:
+        o = self.go
+        if o.robust == "huber":
+            return gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base
+            )
+        if o.robust == "cauchy":
+            return gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base
+            )
+        return base
+
+    # ------------------------------------------------------------------------------------------
+    # IMU: keyframes close here
+    # ------------------------------------------------------------------------------------------
+
+    def _feed_imu(self, ev: ImuSample) -> OnlineState | None:
+        self.received["imu"] = self.received.get("imu", 0) + 1
+        t = float(ev.t)
+        w = np.asarray(ev.body_omega, float)
+        a = np.asarray(ev.body_accel, float)
+        if not (math.isfinite(t) and np.all(np.isfinite(w)) and np.all(np.isfinite(a))):
+            self._drop("imu:non-finite")
+            return None
+        last = self._t_last.get("imu", -math.inf)
+        if not self._check_time("imu", t):
+            return None
+        if t < last:
+            self.reset("imu-clock-jump")
+            self._t_last = {}
+            self._t_last["imu"] = t
+        elif self.t0 is not None and t - last > self.on.max_imu_gap_s:
+            self.reset("imu-gap")
+            self._t_last = {"imu": t}
+        self._use("imu")
+        if self._first_imu_t is None:
+            self._first_imu_t = t
+        prev_t = self.imu.t[-1] if self.imu.t else None
+        prev_w = self.imu.w[-1] if self.imu.w else None
+        prev_a = self.imu.a[-1] if self.imu.a else None
+        self.imu.add(t, w, a)
+        self._t_imu_last = t
+        if self.t0 is None:
+            self._try_start(t)
+            return self.latest() if self.t0 is not None and self.k >= 0 else None
+        closed = self._integrate(prev_t, prev_a, prev_w, t)
+        self.imu.trim(t - self.on.history_s)
+        return self.latest() if closed else None
+
+    def _integrate(self, ta: float | None, a: np.ndarray, w: np.ndarray, t: float) -> bool:
+        """Sample ``(a, w)`` held from ``ta`` to ``t`` (zero-order hold), split at keyframe
+        times; closes the keyframes it passes. True when one closed."""
+        closed = False
+        while ta is not None and ta < t:
+            t_next = self.t0 + (self.k + 1) * self.period
+            tb = min(t, t_next)
+            if tb > ta:
+                self._pim.integrateMeasurement(a, w, tb - ta)
+                self._accumulate_drag(a, ta, tb)
+            ta = tb
+            if tb >= t_next - 1e-9:
+                self._close_keyframe(self.k + 1)
+                closed = True
+        return closed
+
+    def _try_start(self, t: float) -> None:
+        """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
+        if self.go.use_slam and self._first_slam_t is None:
+            if t - self._first_imu_t < self.on.start_wait_s:
+                return
+            t_start = t
+        elif self._first_slam_t is not None:
+            t_start = max(self._first_slam_t, self.imu.t[0] + self.on.init_imu_s)
+            if t < t_start:
+                return
+        else:
+            t_start = t
+        if t_start - self.imu.t[0] < self.on.init_imu_s:
+            return
+        self._start(t_start)
+
+    def _start(self, t_start: float) -> None:
+        _o, go = self.options, self.go
+        s = self.imu.span(t_start - self.on.init_imu_s, t_start)
+        a = np.asarray(self.imu.a[s]) if s.stop > s.start else np.asarray(self.imu.a[-1:])
+        w = np.asarray(self.imu.w[s]) if s.stop > s.start else np.asarray(self.imu.w[-1:])
+        yaw0 = go.initial_yaw
+        yaws = self._scalar["yaw"]
+        if go.use_yaw and yaws:
+            yaw0 = float(yaws[-1][1])
+        R0 = self._attitude_at(t_start)
+        if R0 is None:
+            R0 = level_rotation_from_accel(a.mean(axis=0), yaw0)
+        gyro_b = np.zeros(3)
+        still = (
+            abs(float(np.linalg.norm(a.mean(axis=0))) - go.gravity) < self.on.still_accel_tol
+            and float(np.abs(w).max()) < self.on.still_gyro_tol
+            and len(w) >= 10
+        )
+        if still:
+            gyro_b = w.mean(axis=0)
+        self.t0 = t_start
+        self.k = 0
+        self.t_kf = {0: t_start}
+        bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
+        pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
+        vel = np.zeros(3)
+        self.smoother = self._new_smoother(self.factorization)
+        g = gtsam.NonlinearFactorGraph()
+        yaw_sigma = (
+            go.prior_yaw_sigma if not (go.use_yaw and yaws) else max(go.prior_yaw_sigma, 1.0)
+        )
+        # Gauge: yaw about *world* z and the position; roll and pitch only as well as the initial
+        # attitude knows them. The Pose3 tangent is in body axes, so the world-frame rotation
+        # covariance is rotated into the body (a body whose z is not up, EuRoC's x-up IMU, would
+        # otherwise pin a tilt instead of the yaw).
+        cov = np.zeros((6, 6))
+        cov_w = np.diag([go.prior_rollpitch_sigma**2] * 2 + [yaw_sigma**2])
+        cov[:3, :3] = R0.T @ cov_w @ R0
+        cov[3:, 3:] = np.eye(3) * go.prior_position_sigma**2
+        g.add(gtsam.PriorFactorPose3(X(0), pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        g.add(gtsam.PriorFactorVector(V(0), vel, self._noise(3, go.prior_velocity_sigma, False)))
+        g.add(
+            gtsam.PriorFactorConstantBias(
+                B(0),
+                bias,
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[[go.prior_accel_bias_sigma] * 3, [go.prior_gyro_bias_sigma] * 3]
+                ),
+            )
+        )
+        vals = gtsam.Values()
+        vals.insert(X(0), pose3=pose)
+        vals.insert(V(0), vector=vel)
+        vals.insert(B(0), constant_bias=bias)
+        stamps = {X(0): t_start, V(0): t_start, B(0): t_start}
+        self.values = {X(0): pose, V(0): vel, B(0): bias}
+        self._new_slow(0, g, vals, stamps)
+        wall = time.perf_counter()
+        self._update(g, vals, stamps, [])
+        self._pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
+        self._read(0, wall)
+        # The IMU that arrived after the start time (the start may lie in the past: the first
+        # SLAM pose's capture time) closes its keyframes now.
+        i0 = bisect.bisect_right(self.imu.t, t_start) - 1
+        ts = list(self.imu.t)
+        for j in range(max(i0, 0), len(ts) - 1):
+            self._integrate(max(ts[j], t_start), self.imu.a[j], self.imu.w[j], ts[j + 1])
+        log.info(
+            "%s: started at t=%.3f s (gyro bias %s, %s)",
+            self.name,
+            t_start,
+            np.round(gyro_b, 4).tolist(),
+            "still" if still else "moving",
+        )
+
+    def _attitude_at(self, t: float) -> np.ndarray | None:
+        att = self._att
+        if not att:
+            return None
+        ts = [r[0] for r in att]
+        i = bisect.bisect_left(ts, t)
+        if i == 0:
+            j = 0
+        elif i >= len(ts):
+            j = len(ts) - 1
+        else:
+            j = i if ts[i] - t < t - ts[i - 1] else i - 1
+        if abs(ts[j] - t) > 0.2:
+            return None
+        return quat_wxyz_to_matrix(att[j][1])
+
+    # ------------------------------------------------------------------------------------------
+    # Keyframes
+    # ------------------------------------------------------------------------------------------
+
+    def _close_keyframe(self, k: int) -> None:
+        wall = time.perf_counter()
+        t_k = self.t0 + k * self.period
+        self.t_kf[k] = t_k
+        kp = self.k
+        bias = self.values[B(kp)]
+        pim = self._pim
+        nav = pim.predict(gtsam.NavState(self.values[X(kp)], self.values[V(kp)]), bias)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.CombinedImuFactor(X(kp), V(kp), X(k), V(k), B(kp), B(k), pim))
+        vals = gtsam.Values()
+        vals.insert(X(k), pose3=nav.pose())
+        vals.insert(V(k), vector=nav.velocity())
+        vals.insert(B(k), constant_bias=bias)
+        stamps = {X(k): t_k, V(k): t_k, B(k): t_k}
+        self._cur_stamps = stamps
+        self.values[X(k)], self.values[V(k)], self.values[B(k)] = nav.pose(), nav.velocity(), bias
+        self.k = k
+        self._new_slow(k, g, vals, stamps)
+        self._drag_factor(k - 1, g, stamps)
+        remove: list[int] = []
+        prov_new: list[tuple[int, int, Any]] = []
+        self._attach_pending(g, stamps, remove, prov_new)
+        ok = self._update(g, vals, stamps, remove)
+        self._cur_stamps = {}
+        if ok and prov_new:
+            idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+            for pos, sess, row in prov_new:
+                s = self.sessions.get(sess)
+                if s is not None and s.provisional is not None:
+                    s.prov_factors.append((int(idx[pos]), row))
+        self._pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, self.values[B(k)])
+        self._read(k, wall)
+        if self.factorization == "QR" and self.options.factorization.upper() != "QR":
+            if t_k - self.t0 >= self.options.startup_qr_s and self.n_failures == 0:
+                self._switch_factorization()
+
+    def _new_slow(self, k: int, g, vals, stamps) -> None:
+        """Drag and ground segments starting at keyframe k."""
+        go = self.go
+        t_k = self.t_kf[k]
+        for c, seg_s, on in (
+            ("d", go.drag_segment_s, self._drag_on),
+            ("g", go.ground_segment_s, go.use_range),
+        ):
+            if not on:
+                continue
+            j = int((t_k - self.t0) / seg_s + 1e-9) if seg_s else 0
+            key = gtsam.symbol(c, j)
+            if key in self.values:
+                if self._alive(key) or key in stamps:
+                    stamps[key] = t_k  # the current segment stays in the window
+                continue
+            prev = gtsam.symbol(c, j - 1) if j > 0 else None
+            alive = prev is not None and self._alive(prev)
+            if c == "d":
+                dim = 2 if go.drag_per_axis else 1
+                value = (
+                    self.values[prev]
+                    if alive
+                    else np.full(dim, go.drag_k_init if go.drag_k_init is not None else 0.3)
+                )
+                if alive:
+                    sig = go.drag_rw * math.sqrt(seg_s or 1.0)
+                    g.add(
+                        gtsam.BetweenFactorVector(
+                            prev, key, np.zeros(dim), self._noise(dim, sig, False)
+                        )
+                    )
+                else:
+                    g.add(
+                        gtsam.PriorFactorVector(
+                            key, value, self._noise(dim, go.drag_prior_sigma, False)
+                        )
+                    )
+            else:
+                if alive:
+                    value = self.values[prev]
+                    sig = go.ground_rw * math.sqrt(seg_s)
+                    g.add(
+                        gtsam.BetweenFactorVector(
+                            prev, key, np.zeros(1), self._noise(1, sig, False)
+                        )
+                    )
+                else:
+                    value = np.array([self._ground_guess(k)])
+                    g.add(
+                        gtsam.PriorFactorVector(
+                            key, value, self._noise(1, go.ground_prior_sigma, False)
+                        )
+                    )
+            vals.insert(key, np.asarray(value, float))
+            stamps[key] = t_k
+            self.values[key] = np.asarray(value, float)
+
+    def _ground_guess(self, k: int) -> float:
+        rng = self._scalar["range"]
+        pose = self.values.get(X(k))
+        if not rng or pose is None:
+            return 0.0
+        R = pose.rotation().matrix()
+        z = pose.translation()[2] + (R @ self.body_T_range[:3, 3])[2]
+        beam = R @ self.body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        return float(z + rng[-1][1] * beam[2])
+
+    def _alive(self, key: int) -> bool:
+        """In the window (or added by the update being built), and measured within the lag (a
+        measurement on it may attach)."""
+        if key in self._cur_stamps:
+            return True
+        return (
+            key in self.smoother
+            and key in self.stamp
+            and self.stamp[key] >= self.t_kf[self.k] - self.options.lag_s
+        )
+
+    def _kf_alive(self, k: int) -> bool:
+        return 0 <= k <= self.k and k in self.t_kf and self._alive(X(k))
+
+    # ------------------------------------------------------------------------------------------
+    # Drag
+    # ------------------------------------------------------------------------------------------
+
+    def _accumulate_drag(self, a: np.ndarray, ta: float, tb: float) -> None:
+        """Add a held sample to the thrust-axis check and to the mean accelerometer of the
+        keyframe window ``[t_j - T/2, t_j + T/2)`` holding its midpoint."""
+        if not self._drag_on:
+            return
+        if not self._drag_checked:
+            self._thrust_check(a, ta, tb)
+        j = int(math.floor(((ta + tb) / 2 - self.t0) / self.period + 0.5))
+        acc = self._drag_acc.get(j)
+        if acc is None:
+            acc = self._drag_acc[j] = [np.zeros(3), 0.0, 0]
+        acc[0] += a * (tb - ta)
+        acc[1] += tb - ta
+        acc[2] += 1
+
+    def _thrust_check(self, a: np.ndarray, ta: float, tb: float) -> None:
+        """Decide once, from the first ``drag_check_s`` of IMU, whether the drag model applies."""
+        if self._thrust_t0 is None:
+            self._thrust_t0 = ta
+        n = float(np.linalg.norm(a))
+        if n > 0.5 * self.go.gravity:
+            self._thrust_sum += a / n
+            self._thrust_n += 1
+        if tb - self._thrust_t0 < self.on.drag_check_s or not self._thrust_n:
+            return
+        self._drag_checked = True
+        d = self._thrust_sum / max(float(np.linalg.norm(self._thrust_sum)), 1e-12)
+        ang = math.degrees(math.acos(float(np.clip(d[2], -1.0, 1.0))))
+        if self.go.drag_thrust_check and ang > self.go.drag_thrust_max_angle_deg:
+            self._drag_on = False
+            self._drag_acc.clear()
+            self._drag_decision = (
+                f"off: the mean specific force of the first {self.on.drag_check_s:g} s is "
+                f"{ang:.0f} deg from body +z (the drag model needs the thrust along body z)"
+            )
+            log.warning("%s: drag factor %s", self.name, self._drag_decision)
+        else:
+            self._drag_decision = f"on (mean thrust {ang:.0f} deg from body +z)"
+
+    def _drag_factor(self, j: int, g, stamps) -> None:
+        """The drag factor of keyframe j (its window has passed)."""
+        acc = self._drag_acc.pop(j, None)
+        for old in [jj for jj in self._drag_acc if jj < j]:
+            del self._drag_acc[old]
+        if not (self._drag_on and self._drag_checked) or j < 0:
+            return
+        if acc is None or acc[1] <= 0:
+            self._drop("drag:no-imu-in-interval")
+            return
+        if not self._kf_alive(j):
+            self._drop("drag:late")
+            return
+        mean, dur, n = acc[0] / acc[1], acc[1], acc[2]
+        cos_tilt = mean[2] / max(float(np.linalg.norm(mean)), 1e-12)
+        if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
+            self._drop("drag:not-thrust-borne")
+            return
+        self._drag_means.append(mean[:2].copy())
+        if self.go.drag_sigma_from_data and len(self._drag_means) >= 20 and j % 20 == 0:
+            self._drag_sigma = max(self.go.drag_model_sigma, self._drag_scatter())
+        sigma_a = self.calib.imu_noise.accel_noise_density * math.sqrt(max(n / dur, 1.0))
+        key = ("drag", n, round(self._drag_sigma, 4))
+        noise = self._noise_cache.get(key)
+        if noise is None:
+            noise = mean_accel_noise(sigma_a, n, self._drag_sigma)
+            if self.go.drag_robust:
+                noise = self._robust(noise)
+            self._noise_cache[key] = noise
+        dk = self._slow_key_at("d", self.go.drag_segment_s, j)
+        if dk not in self.values or not self._alive(dk):
+            self._drop("drag:late")
+            return
+        g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, mean[:2], noise))
+        stamps[dk] = self.t_kf[self.k]
+        self._use("drag")
+
+    def _drag_scatter(self) -> float:
+        x = np.asarray(self._drag_means)
+        half = max(1, int(round(0.25 * self.go.keyframe_hz)))
+        pad = np.pad(x, ((half, half), (0, 0)), mode="edge")
+        win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0)
+        dev = x - np.median(win, axis=-1)
+        mad = float(np.median(np.abs(dev - np.median(dev, axis=0))))
+        white = self.calib.imu_noise.accel_noise_density * math.sqrt(self.go.keyframe_hz)
+        return math.sqrt(max((1.4826 * mad) ** 2 - white**2, 0.0))
+
+    def _slow_key_at(self, c: str, seg_s: float | None, k: int) -> int:
+        j = int((self.t_kf[k] - self.t0) / seg_s + 1e-9) if seg_s else 0
+        return gtsam.symbol(c, j)
+
+    # ------------------------------------------------------------------------------------------
+    # Range and yaw
+    # ------------------------------------------------------------------------------------------
+
+    def _on_scalar(self, kind: str, t: float, value: float) -> None:
+        if not math.isfinite(value):
+            self._drop(f"{kind}:non-finite")
+            return
+        buf = self._scalar[kind]
+        if kind == "yaw" and buf:
+            value = buf[-1][1] + wrap_angle(value - buf[-1][1])  # unwrapped
+        buf.append((t, float(value)))
+        self._trim(buf)
+        if self.t0 is None or len(buf) < 2:
+            return
+        (t0, v0), (t1, v1) = buf[-2], buf[-1]
+        if t1 - t0 > self.go.interp_max_gap_s:
+            return
+        # Keyframes in (t0, t1]: interpolate.
+        k_lo = max(math.floor((t0 - self.t0) / self.period) + 1, self._scalar_done[kind] + 1, 0)
+        k_hi = math.floor((t1 - self.t0) / self.period + 1e-9)
+        for k in range(k_lo, k_hi + 1):
+            tk = self.t0 + k * self.period
+            w = (tk - t0) / (t1 - t0)
+            self._pending.append((k, kind, (1 - w) * v0 + w * v1))
+            self._scalar_done[kind] = k
+
+    # ------------------------------------------------------------------------------------------
+    # SLAM
+    # ------------------------------------------------------------------------------------------
+
+    def _on_slam(self, ev: SlamPose) -> None:
+        p = np.asarray(ev.slam_t_cam, float)
+        q = np.asarray(ev.slam_q_cam_wxyz, float)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            self._drop("slam:non-finite")
+            return
+        if self.go.slam_rotation == "inverse":
+            q = q * np.array([1.0, -1.0, -1.0, -1.0])
+        if self._first_slam_t is None:
+            self._first_slam_t = float(ev.t)
+        sess = int(ev.session)
+        s = self.sessions.get(sess)
+        if s is None:
+            s = self.sessions[sess] = _Session([], [], [], float(ev.t), {}, prov_factors=[])
+        s.t.append(float(ev.t))
+        s.p.append(p)
+        s.q.append(q)
+        horizon = self._t_imu_last - self.on.history_s
+        while len(s.t) > 2 and s.t[0] < horizon:
+            del s.t[0], s.p[0], s.q[0]
+        if self.t0 is None:
+            return
+        k = round((ev.t - self.t0) / self.period)
+        if k < 0:
+            self._drop("slam:before-start")
+            return
+        self._pending.append((k, "slam", (sess, len(s.t) - 1, float(ev.t), p, q)))
+
+    def _attach_pending(self, g, stamps, remove, prov_new) -> None:
+        keep = []
+        for item in self._pending:
+            k, kind, payload = item
+            if k > self.k:
+                keep.append(item)
+                continue
+            if not self._kf_alive(k):
+                self._drop(f"{kind}:late")
+                continue
+            if kind == "slam":
+                self._slam_factor(k, payload, g, stamps, remove, prov_new)
+            elif kind == "range":
+                self._range_factor(k, payload, g, stamps)
+            elif kind == "yaw":
+                g.add(
+                    make_yaw_factor(
+                        X(k), float(wrap_angle(payload)), self._noise(1, self.go.yaw_sigma)
+                    )
+                )
+                self._use("yaw")
+        self._pending = keep
+
+    def _range_factor(self, k: int, r: float, g, stamps) -> None:
+        pose = self.values.get(X(k))
+        R = pose.rotation().matrix() if pose is not None else np.eye(3)
+        ok, reason = gate_range(
+            float(r),
+            R,
+            self.body_T_range,
+            self.calib.range_min,
+            self.calib.range_max,
+            math.radians(self.go.range_max_tilt_deg),
+        )
+        if not ok:
+            self._drop(f"range:gated:{reason.split(':')[0].split()[0]}")
+            return
+        gk = self._slow_key_at("g", self.go.ground_segment_s, k)
+        if gk not in self.values or not self._alive(gk):
+            self._drop("range:late")
+            return
+        g.add(
+            make_range_factor(
+                X(k), gk, float(r), self.body_T_range, self._noise(1, self.go.range_sigma)
+            )
+        )
+        stamps[gk] = self.t_kf[self.k]
+        self._use("range")
+
+    def _slam_factor(self, k, payload, g, stamps, remove, prov_new) -> None:
+        sess, row, t, p, q = payload
+        s = self.sessions[sess]
+        key = self._session_key(sess, s, t, g, stamps, remove, prov_new)
+        if key is None:
+            self._held.append((k, "slam", payload))
+            return
+        scale = self._scale_guess(key)
+        noise = self._noise(3, self.go.slam_sigma_m * scale)
+        dt = t - self.t_kf[k]
+        if abs(dt) < 1e-6:
+            fac = make_slam_position_factor(X(k), key, p, self.body_T_cam, noise)
+        else:
+            i = self.imu.nearest(t)
+            b = self.values[B(self.k)]
+            fac = make_slam_position_offset_factor(
+                X(k),
+                V(k),
+                key,
+                p,
+                self.body_T_cam,
+                dt,
+                b.correctAccelerometer(self.imu.a[i]),
+                b.correctGyroscope(self.imu.w[i]),
+                self.go.gravity,
+                noise,
+            )
+        if s.provisional is not None and key == s.provisional:
+            prov_new.append((g.size(), sess, (k, t, p, q)))
+        g.add(fac)
+        stamps[key] = self.t_kf[self.k]
+        self._use("slam")
+
+    def _scale_guess(self, key: int) -> float:
+        v = self.values.get(key)
+        return float(v.scale()) if v is not None else 1.0
+
+    def _session_key(self, sess, s: _Session, t, g, stamps, remove, prov_new) -> int:
+        """The alignment variable of a pose at time ``t`` of session ``sess`` (created here)."""
+        o, go = self.options, self.go
+        t_now = self.t_kf[self.k]
+        if not s.chain:
+            if t_now >= s.next_fit and s.t[-1] - s.t[0] >= o.slam_init_window_s:
+                s.next_fit = t_now + 0.5
+                fit = self._fit(s)
+                if fit is not None:
+                    self._start_chain(sess, s, t, fit, g, stamps, remove, prov_new)
+            if not s.chain:
+                if not o.slam_provisional:
+                    return None  # held back until the fit
+                if s.provisional is None:
+                    self._start_provisional(sess, s, g, stamps)
+                return s.provisional
+        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
+        if seg in s.chain:
+            return s.chain[seg]
+        if seg < s.last_seg:
+            # An older segment than the newest (a late pose): the newest variable takes it.
+            return s.chain[s.last_seg]
+        key = S(sess * SESSION_STRIDE + seg)
+        prev = s.last_key
+        value = self.values[prev]
+        n_seg = seg - s.last_seg
+        walk = math.sqrt(go.slam_segment_s * n_seg)
+        rw = np.array([go.slam_rot_rw] * 3 + [go.slam_trans_rw_m] * 3 + [go.slam_scale_rw]) * walk
+        if self._alive(prev):
+            g.add(
+                gtsam.BetweenFactorSimilarity3(
+                    prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(rw)
+                )
+            )
+        else:
+            # The predecessor left the window (a pause longer than the lag): its last estimate,
+            # widened by the walk over the gap.
+            base = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.01])
+            g.add(
+                gtsam.PriorFactorSimilarity3(
+                    key, value, gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
+                )
+            )
+            self._drop("slam:segment-after-gap", 0)
+            self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
+        self._insert(key, value, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
+        return key
+
+    def _insert(self, key: int, value: Any, g, stamps) -> None:
+        self._queued_values.insert(key, value)
+        stamps[key] = self.t_kf[self.k]
+        self.values[key] = value
+
+    def _fit(self, s: _Session):
+        """Closed-form alignment over the session's arrived poses, or None (gates not passed)."""
+        o = self.options
+        t_all = np.asarray(s.t)
+        if not self.imu.t:
+            return None
+        # Poses the IMU history covers with the second differences' margin.
+        t_min = self.imu.t[0]
+        if len(self._att) < 2 and self._pose_hist:
+            t_min = max(t_min, self._pose_hist[min(self._pose_hist)][0])
+        keep = (t_all >= t_min + 0.6) & (t_all <= self.imu.t[-1])
+        keep &= t_all >= t_all[-1] - self.on.slam_fit_max_s
+        if keep.sum() < 8:
+            return None
+        t = t_all[keep]
+        imu = self.imu.series(t[0] - 0.6, t[-1] + 0.6)
+        if imu is None:
+            return None
+        R = self._attitude_track(imu.t)
+        if R is None:
+            return None
+        idx = np.flatnonzero(keep)
+        slam = SlamSeries(
+            t,
+            np.asarray(s.p)[idx],
+            np.asarray(s.q)[idx],
+            np.zeros(len(t), dtype=int),
+        )
+        try:
+            fit = init_slam_alignment(slam, imu, R, self.body_T_cam, self.go.gravity)
+        except FlightDataError:
+            return None
+        log.debug(
+            "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
+            self.name,
+            t[-1] - t[0],
+            fit.scale,
+            fit.excitation,
+            fit.scale_rel_se,
+        )
+        if not (
+            fit.excitation >= o.slam_init_min_excitation_m
+            and fit.scale_rel_se <= o.slam_init_max_rel_se
+        ):
+            return None
+        return fit
+
+    def _attitude_track(self, t: np.ndarray) -> np.ndarray | None:
+        """World_R_body at times ``t``: the attitude stream, else the smoother's keyframes."""
+        if (
+            len(self._att) >= 2
+            and self._att[0][0] <= t[0] + 0.1
+            and self._att[-1][0] >= t[-1] - 0.1
+        ):
+            ta = np.array([r[0] for r in self._att])
+            qa = np.array([r[1] for r in self._att])
+            return slerp_rotations(ta, quat_wxyz_to_matrix(qa), t)
+        ks = sorted(self._pose_hist)
+        if len(ks) < 2:
+            return None
+        tk = np.array([self._pose_hist[k][0] for k in ks])
+        Rk = np.array([self._pose_hist[k][1].rotation().matrix() for k in ks])
+        if tk[0] > t[0] + 0.1:
+            return None
+        return slerp_rotations(tk, Rk, np.clip(t, tk[0], tk[-1]))
+
+    def _start_chain(self, sess, s: _Session, t, fit, g, stamps, remove, prov_new) -> None:
+        o, go = self.options, self.go
+        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
+        key = S(sess * SESSION_STRIDE + seg)
+        value = make_slam_T_world(fit.scale, fit.slam_R_world, fit.slam_t_world)
+        # The fit's origin is the first camera position of the session: move it to the current
+        # world frame through the newest keyframe estimate at the session's first pose.
+        value = self._align_origin(s, value)
+        rel = max(o.slam_init_scale_sigma_rel, fit.scale_rel_se)
+        sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
+        g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        self._insert(key, value, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
+        log.info(
+            "%s: SLAM session %d aligned at t=%.2f s: scale %.4f (rel. s.e. %.3f, %d pairs)",
+            self.name,
+            sess,
+            t,
+            fit.scale,
+            fit.scale_rel_se,
+            fit.n_pairs,
+        )
+        # Re-attach the provisional factors still in the window to the new alignment.
+        held, self._held = self._held, []
+        for item in held:
+            if item[2][0] == sess and self._kf_alive(item[0]):
+                self._pending.append(item)
+            elif item[2][0] == sess:
+                self._drop("slam:before-alignment")
+            else:
+                self._held.append(item)
+        if s.provisional is not None:
+            for idx, (k, tp, p, q) in s.prov_factors:
+                if self._kf_alive(k) and self._alive(s.provisional):
+                    remove.append(idx)
+                    self._pending.append((k, "slam", (sess, -1, tp, p, q)))
+            s.prov_factors = []
+            s.provisional = None
+
+    def _align_origin(self, s: _Session, value: gtsam.Similarity3) -> gtsam.Similarity3:
+        """Translation of an alignment so that the newest SLAM pose maps onto the current
+        estimate of its keyframe (the fit placed the world origin at the first camera)."""
+        scale, R = value.scale(), value.rotation().matrix()
+        pose = self._pose_at(s.t[-1])
+        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
+        slam_t_world = s.p[-1] - scale * R @ world_t_cam
+        return make_slam_T_world(scale, R, slam_t_world)
+
+    def _pose_at(self, t: float) -> gtsam.Pose3:
+        """The newest estimate of the keyframe nearest ``t`` (the newest one for later times)."""
+        k = min(self.k, max(0, round((t - self.t0) / self.period)))
+        while k > 0 and k not in self._pose_hist:
+            k -= 1
+        return self._pose_hist[k][1] if k in self._pose_hist else self.values[X(self.k)]
+
+    def _start_provisional(self, sess, s: _Session, g, stamps) -> None:
+        o = self.options
+        pose = self._pose_at(s.t[-1])
+        slam_R_cam = quat_wxyz_to_matrix(s.q[-1])
+        world_R_cam = pose.rotation().matrix() @ self.body_T_cam[:3, :3]
+        R = slam_R_cam @ world_R_cam.T
+        scale = self._session_scale.get(sess - 1, None) or next(
+            iter(reversed(list(self._session_scale.values()))), o.slam_provisional_scale
+        )
+        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
+        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ world_t_cam)
+        key = S(PROVISIONAL_BASE + self._n_prov)
+        self._n_prov += 1
+        sig = np.r_[
+            [o.slam_provisional_rot_sigma] * 3, [10.0] * 3, [o.slam_provisional_log_scale_sigma]
+        ]
+        g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        self._insert(key, value, g, stamps)
+        s.provisional = key
+        s.prov_factors = []
+
+    # ------------------------------------------------------------------------------------------
+    # Smoother
+    # ------------------------------------------------------------------------------------------
+
+    def _new_smoother(self, factorization: str) -> TimeOrderedSmoother:
+        dims = {"s": 7, "d": 2 if self.go.drag_per_axis else 1, "g": 1}
+        return TimeOrderedSmoother(
+            self.options.lag_s,
+            _isam2_params(self.options, dims, factorization),
+            self.options.fine_levels,
+        )
+
+    def _block(self, t: float) -> float:
+        blk = self.options.marginalize_every_s
+        return math.ceil((t - self.t0) / blk - 1e-9) * blk + self.t0 if blk > 0 else t
+
+    def _update(self, g, vals, stamps, remove) -> bool:
+        vals.insert(self._queued_values)
+        self._queued_values = gtsam.Values()
+        self.stamp.update(stamps)
+        try:
+            self.smoother.update(
+                g, vals, {key: self._block(t) for key, t in stamps.items()}, remove
+            )
+            return True
+        except SOLVER_ERRORS as e:
+            msg = " ".join(str(e).split())[:200]
+            self.n_failures += 1
+            self.failure_messages.append(msg)
+            log.warning(
+                "%s: smoother update failed at t=%.3f (%s); rebuilding",
+                self.name,
+                self.t_kf[self.k],
+                msg,
+            )
+            self._rebuild(stamps)
+            return False
+
+    def _switch_factorization(self) -> None:
+        """Move the window into a Cholesky smoother (the same factors at the same point)."""
+        old = self.smoother
+        factors = old.getFactors()
+        lin = old.getLinearizationPoint()
+        graph = gtsam.NonlinearFactorGraph()
+        held: set[int] = set()
+        index: dict[int, int] = {}
+        for i in range(factors.size()):
+            f = factors.at(i)
+            if f is None:
+                continue
+            if isinstance(f, gtsam.LinearContainerFactor):
+                held.update(f.keys())
+                f = gtsam.LinearContainerFactor(f.linearize(lin), lin)
+            index[i] = graph.size()
+            graph.add(f)
+        new = self._new_smoother(self.options.factorization.upper())
+        if held:
+            new.hold_linearization(held)
+        try:
+            new.update(graph, lin, old.timestamps())
+        except SOLVER_ERRORS:
+            self.factorization = "QR-stay"
+            return
+        self.smoother = new
+        self.factorization = self.options.factorization.upper()
+        for s in self.sessions.values():
+            s.prov_factors = [(index[i], row) for i, row in s.prov_factors if i in index]
+        self.n_switches = getattr(self, "n_switches", 0) + 1
+
+    def _rebuild(self, failed_stamps: dict[int, float] | None = None) -> None:
+        """Fresh QR smoother with priors on the newest good state and the live slow variables
+        (those of the window and those the failed update created); the failed update's
+        measurements are lost (counted as ``solver-failure:measurements-lost``)."""
+        o = self.options
+        live = [
+            key
+            for key in self.values
+            if chr(gtsam.Symbol(key).chr()) in "sdg"
+            and (self._alive(key) or key in (failed_stamps or {}))
+        ]
+        self.reset_counter += 1
+        self._bad_since = self.t_kf.get(self.k, 0.0)
+        self.factorization = "QR"
+        self.smoother = self._new_smoother("QR")
+        kg = max(k for k in self.t_kf if X(k) in self.values and k < self.k) if self.k > 0 else 0
+        g = gtsam.NonlinearFactorGraph()
+        v = gtsam.Values()
+        stamps: dict[int, float] = {}
+        t = self.t_kf[kg]
+        pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
+        g.add(
+            gtsam.PriorFactorPose3(
+                X(kg), self.values[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)
+            )
+        )
+        g.add(
+            gtsam.PriorFactorVector(
+                V(kg), self.values[V(kg)], self._noise(3, o.rebuild_vel_sigma, False)
+            )
+        )
+        g.add(
+            gtsam.PriorFactorConstantBias(
+                B(kg),
+                self.values[B(kg)],
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3]
+                ),
+            )
+        )
+        for key in (X(kg), V(kg), B(kg)):
+            v.insert(key, self.values[key])
+            stamps[key] = t
+        for key in live:
+            val = self.values[key]
+            c = chr(gtsam.Symbol(key).chr())
+            if c == "s":
+                sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, o.rebuild_slow_sigma_rel])
+                g.add(gtsam.PriorFactorSimilarity3(key, val, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            else:
+                vv = np.asarray(val, float)
+                sig = (
+                    np.maximum(np.abs(vv) * o.rebuild_slow_sigma_rel, 1e-3)
+                    if c == "d"
+                    else np.full(1, self.go.range_sigma * 5)
+                )
+                g.add(gtsam.PriorFactorVector(key, vv, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            v.insert(key, val)
+            stamps[key] = self.t_kf[self.k]
+        for s in self.sessions.values():
+            s.prov_factors = []
+        # The newest keyframe (its IMU factor was in the failed update) is re-added from kg.
+        self.stamp = dict(stamps)
+        self.smoother.update(g, v, {key: self._block(ts) for key, ts in stamps.items()})
+        if kg != self.k:
+            k = self.k
+            g2 = gtsam.NonlinearFactorGraph()
+            v2 = gtsam.Values()
+            pim = self._pim
+            nav = pim.predict(
+                gtsam.NavState(self.values[X(kg)], self.values[V(kg)]), self.values[B(kg)]
+            )
+            g2.add(gtsam.CombinedImuFactor(X(kg), V(kg), X(k), V(k), B(kg), B(k), pim))
+            v2.insert(X(k), pose3=nav.pose())
+            v2.insert(V(k), vector=nav.velocity())
+            v2.insert(B(k), constant_bias=self.values[B(kg)])
+            st2 = {X(k): self.t_kf[k], V(k): self.t_kf[k], B(k): self.t_kf[k]}
+            self.stamp.update(st2)
+            self.smoother.update(g2, v2, {key: self._block(ts) for key, ts in st2.items()})
+
+    def _read(self, k: int, wall0: float) -> None:
+        sm = self.smoother
+        try:
+            pose = sm.calculateEstimatePose3(X(k))
+            vel = np.asarray(sm.calculateEstimateVector(V(k)), float)
+            bias = sm.calculateEstimateConstantBias(B(k))
+            pose_cov = vel_cov = None
+            if self.on.covariance:
+                try:
+                    pose_cov = np.asarray(sm.marginalCovariance(X(k)))
+                    vel_cov = np.asarray(sm.marginalCovariance(V(k)))
+                except SOLVER_ERRORS:
+                    # The estimate stands; only its marginal is not computable (GTSAM's
+                    # "Indeterminate" on a near-singular window): reported as missing.
+                    pose_cov = vel_cov = None
+                    self._drop("covariance:indeterminate")
+        except SOLVER_ERRORS as e:
+            self.n_failures += 1
+            self.failure_messages.append(" ".join(str(e).split())[:200])
+            self._rebuild({})
+            pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
+            pose_cov = vel_cov = None
+        # Keep only the newest keyframe state (and the slow variables).
+        for kk in [kk for kk in self.t_kf if kk < k - 1]:
+            for key in (X(kk), V(kk), B(kk)):
+                self.values.pop(key, None)
+            if kk < k - int(self.options.lag_s / self.period) - 4:
+                del self.t_kf[kk]
+        self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
+        self._pose_hist[k] = (self.t_kf[k], pose)
+        while len(self._pose_hist) > self.on.history_s * self.go.keyframe_hz:
+            del self._pose_hist[min(self._pose_hist)]
+        t = self.t_kf[k]
+        # Slow variables.
+        every = max(1, self.options.slow_read_every)
+        if k % every == 0:
+            for key in [key for key in self.values if chr(gtsam.Symbol(key).chr()) in "sdg"]:
+                if not self._alive(key):
+                    if self.stamp.get(key, t) < t - self.options.lag_s - 5.0:
+                        self.values.pop(key)
+                        self.stamp.pop(key, None)
+                    continue
+                try:
+                    c = chr(gtsam.Symbol(key).chr())
+                    if c == "s":
+                        self.values[key] = sm.calculateEstimateSimilarity3(key)
+                    else:
+                        self.values[key] = np.asarray(sm.calculateEstimateVector(key), float)
+                except SOLVER_ERRORS:
+                    continue
+            self._track_slow(t)
+        self.latency.append(time.perf_counter() - wall0)
+        self.out.append(self._state(k, pose, vel, bias, pose_cov, vel_cov))
+
+    def _track_slow(self, t: float) -> None:
+        for sess, s in self.sessions.items():
+            if s.last_key is not None and s.last_key in self.values and self._alive(s.last_key):
+                sc = float(self.values[s.last_key].scale())
+                self._session_scale[sess] = sc
+                self.track.setdefault("slam_scale", []).append((t, sc, sess))
+        for c, name in (("d", "drag_k"), ("g", "ground_height")):
+            keys = [k for k in self.values if chr(gtsam.Symbol(k).chr()) == c and self._alive(k)]
+            if keys:
+                v = np.asarray(self.values[max(keys)], float)
+                self.track.setdefault(name, []).append((t, v if len(v) > 1 else float(v[0]), 0))
+
+    def _state(self, k, pose, vel, bias, pose_cov, vel_cov) -> OnlineState:
+        t = self.t_kf[k]
+        drag = ground = None
+        d = self.track.get("drag_k")
+        if d:
+            drag = np.atleast_1d(np.asarray(d[-1][1], float))
+        gh = self.track.get("ground_height")
+        if gh:
+            ground = float(gh[-1][1])
+        aligned = any(s.chain for s in self.sessions.values())
+        provisional = any(s.provisional is not None for s in self.sessions.values())
+        q = (
+            100
+            if aligned or (self.go.use_range and ground is not None and self._scalar["yaw"])
+            else 60
+            if provisional
+            else 30
+        )
+        if t - self._bad_since < 2.0:
+            q //= 2
+        return OnlineState(
+            t=t,
+            world_T_body=pose.matrix(),
+            world_v_body=vel,
+            accel_bias=np.asarray(bias.accelerometer(), float),
+            gyro_bias=np.asarray(bias.gyroscope(), float),
+            pose_cov=pose_cov,
+            vel_cov=vel_cov,
+            slam_scale=dict(self._session_scale),
+            drag_k=drag,
+            ground_height=ground,
+            reset_counter=self.reset_counter,
+            quality=int(q),
+        )
+
+
+_STREAM = {
+    AttitudeSample: "attitude",
+    SlamPose: "slam",
+    RangeReading: "range",
+    YawReading: "yaw",
+    ImageFrame: "images",
+    FlowSample: "flow",
+}
+
+
+def run_online(
+    events,
+    calib: Calibration,
+    options: FixedLagOptions | None = None,
+    online: OnlineOptions | None = None,
+    name: str = "online",
+    progress: bool = False,
+) -> Estimate:
+    """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
+    :class:`OnlineSmoother`; the causal estimate."""
+    sm = OnlineSmoother(calib, options, online, name)
+    t_wall = time.perf_counter()
+    for ev in events:
+        sm.feed(ev)
+    return sm.result(time.perf_counter() - t_wall)
