@@ -19,13 +19,16 @@ from fgnav.datasets.simulate import SimOptions, simulate_to_folder
 
 from fgnav.cli import main
 from fgnav.fleet import (
+    COLUMN_DOC,
     COLUMNS,
     FleetError,
     content_hash,
     discover,
     flight_name,
+    hist_bin_edges,
     options_hash,
     run_flight_job,
+    write_report,
 )
 from fgnav.fleet_worker import ABORT_ENV
 
@@ -163,6 +166,46 @@ def test_cli_rejects_bad_arguments_in_one_line(tmp_path, capsys):
     assert "--workers" in err[0] and "magic" in err[1] and "missing" in err[2]
 
 
+def test_histogram_bins_are_shared_and_log_when_wide():
+    edges, log = hist_bin_edges([0.006, 0.01, 0.012, 0.04, 0.2, 0.36])
+    assert log and edges[0] == pytest.approx(0.006) and edges[-1] == pytest.approx(0.36)
+    assert len(edges) == 6  # 5 bins, the minimum
+    ratios = edges[1:] / edges[:-1]
+    assert ratios == pytest.approx([ratios[0]] * 5)
+    edges, log = hist_bin_edges([-12.8, -0.6, 0.2, 0.3] * 10)
+    assert not log and len(edges) == 21 and edges[0] == -12.8 and edges[-1] == 0.3
+    assert not hist_bin_edges([0.01, 0.02], log=None)[1]
+
+
+def test_report_counts_ranks_and_explains_columns(tmp_path):
+    def row(flight, method, status, ate=None, reason=""):
+        r = {c: None for c in COLUMNS}
+        r.update(flight=flight, input=f"in/{flight}", method=method, status=status,
+                 reason=reason, duration_s=60.0, runtime_s=1.0 + (ate or 0.0),
+                 ate_rmse_m=ate, scale_err_pct={"0": 10 * (ate or 0.0)},
+                 drag_k_per_s=[0.38, 0.4])
+        return r
+
+    rows = [row(f"f{i}", "batch", "ok" if i % 2 else "skipped", 0.01 * (i + 1))
+            for i in range(7)]
+    rows += [row("nogt", "batch", "ok"), row("bad", "batch", "error", reason="bad.ulg: x"),
+             row("f0", "fixed-lag", "crashed", reason="child interpreter killed by SIGABRT")]
+    path = write_report(rows, tmp_path, "Run today.")
+    text = path.read_text()
+    assert "Run today." in text
+    assert "9 flights, 10 runs: 4 ok, 4 skipped, 1 error, 1 crashed (`skipped`" in text
+    worst = text.split("## Worst flights by ATE: batch")[1].split("##")[0]
+    assert "1 finished run(s) without ground truth are not ranked" in worst
+    ranked = [line.split("|")[1].strip() for line in worst.splitlines()
+              if line.startswith("| f") and "flight" not in line]
+    assert ranked == ["f6", "f5", "f4", "f3", "f2"]
+    assert "SIGABRT" in text.split("## Failed runs")[1].split("## All runs")[0]
+    for c, doc in COLUMN_DOC.items():
+        assert f"- `{c}`: {doc}" in text
+    for name in ("ate", "scale_err", "drag_k", "runtime"):
+        assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 1000
+
+
 # ----------------------------------------------------------------------------------------------
 # Slow: whole fleets
 # ----------------------------------------------------------------------------------------------
@@ -219,6 +262,35 @@ def test_fleet_on_a_local_cluster_matches_batch_and_resumes(
     argv = ["fleet", one, "--out", str(out), "--workers", "1", "--force", "--no-progress"]
     assert main(argv) == 0
     assert "1 flights, 1 runs: 1 ok, 0 skipped" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_resume_survives_other_runs_and_a_lost_table(campaign, batch_ates, tmp_path, capsys):
+    a, b = (str(campaign / "day0" / "two-turns-1"), str(campaign / "day1" / "two-turns-2"))
+    out = tmp_path / "fleet"
+
+    def fleet(*inputs: str) -> dict[str, dict]:
+        argv = ["fleet", *inputs, "--out", str(out), "--workers", "1", "--no-progress"]
+        assert main(argv) == 0
+        capsys.readouterr()
+        return {r["flight"]: r for r in json.loads((out / "fleet.json").read_text())}
+
+    assert fleet(a)["two-turns-1"]["status"] == "ok"
+    assert list(fleet(b)) == ["two-turns-2"]  # fleet.json now holds the second run only
+    both = fleet(a, b)  # the first flight's result comes from the journal
+    assert [r["status"] for r in both.values()] == ["skipped", "skipped"]
+    assert abs(both["two-turns-1"]["ate_rmse_m"] - batch_ates["two-turns-1"]) < 1e-9
+    # The client lost its table (killed before writing it) and a flight's files are gone: the
+    # journal still resumes the other; the one without files runs again.
+    (out / "fleet.json").unlink()
+    shutil.rmtree(out / both["two-turns-1"]["out_dir"])
+    again = fleet(a, b)
+    assert [again[n]["status"] for n in ("two-turns-1", "two-turns-2")] == ["ok", "skipped"]
+    assert abs(again["two-turns-1"]["ate_rmse_m"] - batch_ates["two-turns-1"]) < 1e-9
+    # A torn last line of the journal (an interrupted write) is skipped with a warning.
+    with open(out / "fleet-runs.jsonl", "a") as fh:
+        fh.write('{"flight": "torn')
+    assert [r["status"] for r in fleet(a, b).values()] == ["skipped", "skipped"]
 
 
 def _free_port() -> int:
