@@ -15,9 +15,10 @@ change), which calls the registry's methods (:mod:`fgnav.methods`, the same libr
 child's ``RLIMIT_AS``) ends the child only: the task returns an error row (``crashed``,
 ``timeout``, ``error``) and the worker goes on with the next flight.
 
-Outputs under ``out``: ``flights/<flight>-<8 hex of the content hash>/<method>/`` (``estimate.tum``,
-``states.csv``, ``summary.json``, written by the child: on a cluster ``out`` must be a path every
-worker and the client share), ``fleet.csv``, ``fleet.json`` (typed rows, read back to resume),
+Outputs under ``out``: ``flights/<flight>-<8 hex of the content hash>/<method>/``
+(``estimate.tum``, ``states.csv``, ``summary.json``, written by the child: on a cluster ``out``
+must be a path every worker and the client share; the child's log beside them,
+``child-stderr.txt``), ``fleet.csv``, ``fleet.json`` (typed rows, read back to resume),
 ``fleet.parquet`` (when pyarrow is importable), ``fleet.md`` and ``figures/``, and the journal
 ``fleet-runs.jsonl`` (each ``ok`` row appended as it arrives; resume reads it with ``fleet.json``,
 so an interrupted client or a run over other flights into the same folder loses nothing).
@@ -344,9 +345,10 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
         status, reason = CRASHED, reason + (f": {last}" if last else "")
     if status is not None:
         rows = [{"method": m, "status": status, "reason": reason} for m in job["methods"]]
-        if job.get("out_dir"):
-            Path(job["out_dir"]).mkdir(parents=True, exist_ok=True)
-            (Path(job["out_dir"]) / "child-stderr.txt").write_text(err or "")
+    if job.get("out_dir"):
+        # The child's log (warnings of the readers and solvers, a crash's traceback).
+        Path(job["out_dir"]).mkdir(parents=True, exist_ok=True)
+        (Path(job["out_dir"]) / "child-stderr.txt").write_text(err or "")
     wall = time.perf_counter() - t0
     worker = _worker_address()
     for r in rows:

@@ -228,6 +228,7 @@ def _check_table(out: Path, campaign: Path, batch_ates: dict[str, float], good_s
         summary = json.loads((out / r["out_dir"] / "summary.json").read_text())
         assert summary["metrics"]["ate_rmse_m"] == r["ate_rmse_m"]
         assert (out / r["out_dir"] / "estimate.tum").is_file()
+        assert (out / r["out_dir"]).parent.joinpath("child-stderr.txt").is_file()
     csv_lines = (out / "fleet.csv").read_text().splitlines()
     assert csv_lines[0] == ",".join(COLUMNS) and len(csv_lines) == 9
     report = (out / "fleet.md").read_text()
