@@ -592,12 +592,11 @@ def run_context(opts: FleetOptions, n_run: int, timing: Mapping[str, Any]) -> st
         f"{flag} {v:g}"
         for flag, v in (("--timeout", opts.timeout_s), ("--memory-limit", opts.memory_limit_mb))
         if v
-    ]
+    ] + (["--force"] if opts.force else [])
     config = f"; config tables: {', '.join(sorted(opts.config))}" if opts.config else ""
     return (
         f"Run {when}, fgnav {__version__}; methods {', '.join(opts.methods)}; {ran}"
         + (f" ({', '.join(limits)})" if limits else "")
-        + (" (--force)" if opts.force else "")
         + config
         + "."
     )
