@@ -33,6 +33,7 @@ import json
 import logging
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -279,9 +280,36 @@ def options_hash(method: str, config: Mapping[str, Any]) -> str:
 # ----------------------------------------------------------------------------------------------
 
 
-def _tail(text: str) -> str:
-    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
-    return lines[-1] if lines else ""
+_FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+) in (?P<func>\S+)')
+
+
+def _short_path(path: str) -> str:
+    """``path`` relative to the folder holding the fgnav package when inside it."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        return str(Path(path).resolve().relative_to(root))
+    except ValueError:
+        return path
+
+
+def crash_summary(stderr: str) -> str:
+    """The informative line of a dead child's stderr: faulthandler's ``Fatal Python error``
+    with the innermost Python frame of the crashing thread (``... in estimate_homography
+    (fgnav/frontends/homography_vo.py:447)``), else the last line that is not faulthandler's
+    list of extension modules; empty when there is none."""
+    lines = [line.rstrip() for line in (stderr or "").splitlines()]
+    for i, line in enumerate(lines):
+        if line.startswith("Fatal Python error:"):
+            after = lines[i + 1 :]
+            start = next((j for j, t in enumerate(after) if t.startswith("Current thread")), 0)
+            for t in after[start:]:
+                m = _FRAME.match(t)
+                if m:
+                    where = f"{_short_path(m['file'])}:{m['line']}"
+                    return f"{line.strip()} in {m['func']} ({where})"
+            return line.strip()
+    rest = [t.strip() for t in lines if t.strip() and not t.startswith("Extension modules:")]
+    return rest[-1] if rest else ""
 
 
 def _worker_address() -> str:
@@ -327,7 +355,7 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
         try:
             rows = json.loads(out)
         except ValueError:
-            status, reason = CRASHED, f"child interpreter gave no result: {_tail(err)}"
+            status, reason = CRASHED, f"child interpreter gave no result: {crash_summary(err)}"
     elif status is None:
         rc = proc.returncode
         if rc < 0:
@@ -340,8 +368,8 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
             reason = f"child interpreter exited with code {rc}"
         limit = job.get("memory_limit_mb")
         if limit:
-            reason += f" (memory limit {limit:g} MB)"
-        last = _tail(err)
+            reason += f" (under --memory-limit {limit:g} MB)"
+        last = crash_summary(err)
         status, reason = CRASHED, reason + (f": {last}" if last else "")
     if status is not None:
         rows = [{"method": m, "status": status, "reason": reason} for m in job["methods"]]

@@ -23,6 +23,7 @@ from fgnav.fleet import (
     COLUMNS,
     FleetError,
     content_hash,
+    crash_summary,
     discover,
     flight_name,
     hist_bin_edges,
@@ -143,12 +144,34 @@ def test_child_timeout_and_crash_become_rows(tiny_flight, monkeypatch):
     rows = run_flight_job(_job(tiny_flight))
     assert rows[0]["status"] == "crashed"
     assert "SIGABRT" in rows[0]["reason"] and "\n" not in rows[0]["reason"]
+    assert "Fatal Python error: Aborted in run_job (fgnav/fleet_worker.py:" in rows[0]["reason"]
     monkeypatch.delenv(ABORT_ENV)
     rows = run_flight_job(_job(tiny_flight, methods=["batch", "ekf-vo002", "nonsense"]))
     assert [r["status"] for r in rows] == ["ok", "error", "error"]
     assert rows[0]["ate_rmse_m"] < 0.1
     assert rows[0]["duration_s"] == pytest.approx(FLIGHT_S, abs=0.02)
     assert "needs" in rows[1]["reason"] and "unknown method" in rows[2]["reason"]
+
+
+def test_crash_summary_names_the_fatal_error_and_the_crashing_frame():
+    dump = """some warning
+Fatal Python error: Segmentation fault
+
+Thread 0x00007f0000000001 (most recent call first):
+  File "/x/other.py", line 3 in wait
+
+Current thread 0x00007fd89209ab80 (most recent call first):
+  File "/x/fgnav/frontends/homography_vo.py", line 447 in estimate_homography
+  File "/x/fgnav/solvers/vision.py", line 209 in run_homography_frontend
+
+Extension modules: numpy._core._multiarray_umath, cv2 (total: 2)
+"""
+    assert crash_summary(dump) == (
+        "Fatal Python error: Segmentation fault in estimate_homography "
+        "(/x/fgnav/frontends/homography_vo.py:447)"
+    )
+    assert crash_summary("a\nMemoryError: x\n\nExtension modules: numpy\n") == "MemoryError: x"
+    assert crash_summary("") == ""
 
 
 def test_child_memory_limit_is_an_error_row(tiny_flight):
