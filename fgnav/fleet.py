@@ -15,10 +15,13 @@ change), which calls the registry's methods (:mod:`fgnav.methods`, the same libr
 child's ``RLIMIT_AS``) ends the child only: the task returns an error row (``crashed``,
 ``timeout``, ``error``) and the worker goes on with the next flight.
 
-Outputs under ``out``: ``flights/<flight>-<8 hex of the content hash>/<method>/`` (``estimate.tum``,
-``states.csv``, ``summary.json``, written by the child: on a cluster ``out`` must be a path every
-worker and the client share), ``fleet.csv``, ``fleet.json`` (typed rows, read back to resume),
-``fleet.parquet`` (when pyarrow is importable), ``fleet.md`` and ``figures/``.
+Outputs under ``out``: ``flights/<flight>-<8 hex of the content hash>/<method>/``
+(``estimate.tum``, ``states.csv``, ``summary.json``, written by the child: on a cluster ``out``
+must be a path every worker and the client share; the child's log beside them,
+``child-stderr.txt``), ``fleet.csv``, ``fleet.json`` (typed rows, read back to resume),
+``fleet.parquet`` (when pyarrow is importable), ``fleet.md`` and ``figures/``, and the journal
+``fleet-runs.jsonl`` (each ``ok`` row appended as it arrives; resume reads it with ``fleet.json``,
+so an interrupted client or a run over other flights into the same folder loses nothing).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import json
 import logging
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -45,30 +49,34 @@ from fgnav.fleet_worker import CRASHED, ERROR, OK, SKIPPED, TIMEOUT
 
 log = logging.getLogger(__name__)
 
-#: Columns of ``fleet.csv`` in order (units in the names; multi-valued cells as compact JSON).
-COLUMNS = (
-    "flight",  # flight name (the input's folder or file name)
-    "input",  # the path as given (or as found under a given folder or glob)
-    "method",  # registry name (fgnav.methods)
-    "status",  # ok, error, timeout, crashed, skipped (ok in an earlier run, figures kept)
-    "reason",  # one-line error; empty when ok or skipped
-    "duration_s",  # overlap of the flight's sensor streams [s]
-    "streams",  # JSON list of the flight's streams
-    "ate_rmse_m",  # ATE RMSE after the method's alignment [m] (ground truth only)
-    "scale_err_pct",  # JSON {session: final SLAM-scale error [%]} (ground truth only)
-    "slam_scale",  # JSON {session: SLAM units per metre}
-    "drag_k_per_s",  # JSON [kx, ky] drag coefficient [1/s]
-    "solver_failures",  # solver failures the method recovered from (fixed-lag)
-    "dropped",  # JSON {reason: count} of measurements not used
-    "runtime_s",  # the method's own run time [s]
-    "work_s",  # child time loading the flight, running, scoring and writing [s]
-    "task_wall_s",  # the Dask task's wall time: child start to result [s]
-    "n_states",  # states in the estimate
-    "input_hash",  # sha256 of the input's content (with the files a manifest names)
-    "options_hash",  # sha256 of the method, its config and fgnav's version
-    "out_dir",  # outputs of the run, relative to the fleet folder ("" with --no-flight-files)
-    "worker",  # Dask worker address
-)
+#: Columns of ``fleet.csv`` in order, each with its meaning (units in the names: ``_s`` seconds,
+#: ``_m`` metres, ``_pct`` percent, ``_per_s`` 1/s; multi-valued cells as compact JSON).
+COLUMN_DOC: dict[str, str] = {
+    "flight": "flight name (the input's folder or file name)",
+    "input": "the path as given (or as found under a given folder or glob)",
+    "method": "registry name (`fgnav.methods`)",
+    "status": "ok, error, timeout, crashed, or skipped (ok in an earlier run: figures kept)",
+    "reason": "one-line error; empty when ok or skipped",
+    "duration_s": "overlap of the flight's sensor streams [s]",
+    "streams": "JSON list of the flight's streams",
+    "ate_rmse_m": "ATE RMSE after the method's alignment [m] (ground truth only)",
+    "scale_err_pct": "JSON {SLAM session: final scale error [%]} (ground truth only)",
+    "slam_scale": "JSON {SLAM session: estimated scale [SLAM units per metre]}",
+    "drag_k_per_s": "JSON [kx, ky] rotor-drag coefficient [1/s]; empty when the drag model is off",
+    "solver_failures": "solver failures the method recovered from (fixed-lag)",
+    "dropped": "JSON {reason: count} of measurements not used",
+    "runtime_s": "the method's own run time [s]",
+    "work_s": "child time loading the flight, running, scoring and writing [s]",
+    "task_wall_s": "the Dask task's wall time, child start to result [s] (per flight)",
+    "n_states": "states in the estimate",
+    "input_hash": "sha256 of the input's content (with the files a manifest names)",
+    "options_hash": "sha256 of the method, its config and fgnav's version",
+    "out_dir": "outputs of the run, relative to the fleet folder (empty with --no-flight-files)",
+    "worker": "Dask worker address",
+}
+
+#: Columns of ``fleet.csv`` in order.
+COLUMNS = tuple(COLUMN_DOC)
 
 #: Cells holding several values, written as compact JSON.
 JSON_COLUMNS = ("streams", "scale_err_pct", "slam_scale", "drag_k_per_s", "dropped")
@@ -272,9 +280,36 @@ def options_hash(method: str, config: Mapping[str, Any]) -> str:
 # ----------------------------------------------------------------------------------------------
 
 
-def _tail(text: str) -> str:
-    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
-    return lines[-1] if lines else ""
+_FRAME = re.compile(r'^\s*File "(?P<file>[^"]+)", line (?P<line>\d+) in (?P<func>\S+)')
+
+
+def _short_path(path: str) -> str:
+    """``path`` relative to the folder holding the fgnav package when inside it."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        return str(Path(path).resolve().relative_to(root))
+    except ValueError:
+        return path
+
+
+def crash_summary(stderr: str) -> str:
+    """The informative line of a dead child's stderr: faulthandler's ``Fatal Python error``
+    with the innermost Python frame of the crashing thread (``... in estimate_homography
+    (fgnav/frontends/homography_vo.py:447)``), else the last line that is not faulthandler's
+    list of extension modules; empty when there is none."""
+    lines = [line.rstrip() for line in (stderr or "").splitlines()]
+    for i, line in enumerate(lines):
+        if line.startswith("Fatal Python error:"):
+            after = lines[i + 1 :]
+            start = next((j for j, t in enumerate(after) if t.startswith("Current thread")), 0)
+            for t in after[start:]:
+                m = _FRAME.match(t)
+                if m:
+                    where = f"{_short_path(m['file'])}:{m['line']}"
+                    return f"{line.strip()} in {m['func']} ({where})"
+            return line.strip()
+    rest = [t.strip() for t in lines if t.strip() and not t.startswith("Extension modules:")]
+    return rest[-1] if rest else ""
 
 
 def _worker_address() -> str:
@@ -320,7 +355,7 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
         try:
             rows = json.loads(out)
         except ValueError:
-            status, reason = CRASHED, f"child interpreter gave no result: {_tail(err)}"
+            status, reason = CRASHED, f"child interpreter gave no result: {crash_summary(err)}"
     elif status is None:
         rc = proc.returncode
         if rc < 0:
@@ -333,14 +368,15 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
             reason = f"child interpreter exited with code {rc}"
         limit = job.get("memory_limit_mb")
         if limit:
-            reason += f" (memory limit {limit:g} MB)"
-        last = _tail(err)
+            reason += f" (under --memory-limit {limit:g} MB)"
+        last = crash_summary(err)
         status, reason = CRASHED, reason + (f": {last}" if last else "")
     if status is not None:
         rows = [{"method": m, "status": status, "reason": reason} for m in job["methods"]]
-        if job.get("out_dir"):
-            Path(job["out_dir"]).mkdir(parents=True, exist_ok=True)
-            (Path(job["out_dir"]) / "child-stderr.txt").write_text(err or "")
+    if job.get("out_dir"):
+        # The child's log (warnings of the readers and solvers, a crash's traceback).
+        Path(job["out_dir"]).mkdir(parents=True, exist_ok=True)
+        (Path(job["out_dir"]) / "child-stderr.txt").write_text(err or "")
     wall = time.perf_counter() - t0
     worker = _worker_address()
     for r in rows:
@@ -431,22 +467,51 @@ def _check_methods(methods: Iterable[str]) -> None:
             raise FleetError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
 
 
+#: Journal of finished runs in the output folder: one JSON row a line, appended by the client as
+#: each ``ok`` result arrives, so that resume survives an interrupted client (no ``fleet.json``
+#: written) and runs over other flights into the same folder (``fleet.json`` then holds only
+#: those).
+JOURNAL = "fleet-runs.jsonl"
+
+
 def previous_rows(out: Path) -> dict[tuple[str, str, str], dict[str, Any]]:
-    """Runs an earlier fleet in ``out`` finished (``ok`` or ``skipped``), by (input hash,
-    method, options hash); empty when there is no readable ``fleet.json``."""
+    """Runs earlier fleets in ``out`` finished (``ok`` or ``skipped``), by (input hash, method,
+    options hash), from ``fleet.json`` and the journal (:data:`JOURNAL`; later lines win);
+    empty when neither is there. Unreadable files or lines (an interrupted write) are skipped
+    with a warning."""
+    rows: list[Any] = []
     path = out / "fleet.json"
-    if not path.is_file():
-        return {}
-    try:
-        rows = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        log.warning("%s: not read (%s); every flight runs", path, e)
-        return {}
+    if path.is_file():
+        try:
+            got = json.loads(path.read_text())
+            rows += got if isinstance(got, list) else []
+        except (OSError, ValueError) as e:
+            log.warning("%s: not read (%s); resuming from %s only", path, e, JOURNAL)
+    journal = out / JOURNAL
+    if journal.is_file():
+        bad = []
+        for i, line in enumerate(journal.read_text().splitlines(), 1):
+            try:
+                rows.append(json.loads(line))
+            except ValueError:
+                bad.append(i)
+        if bad:
+            log.warning("%s: %d unreadable line(s) skipped: %s", journal, len(bad), bad[:10])
     return {
         (r["input_hash"], r["method"], r["options_hash"]): r
         for r in rows
         if isinstance(r, dict) and r.get("status") in DONE and r.get("input_hash")
     }
+
+
+def _reusable(prev: Mapping[str, Any] | None, out: Path, flight_files: bool) -> bool:
+    """An earlier run can stand for this one: it exists and, when flight files are wanted, its
+    ``summary.json`` is still there."""
+    if not prev:
+        return False
+    if not flight_files:
+        return True
+    return bool(prev.get("out_dir")) and (out / prev["out_dir"] / "summary.json").is_file()
 
 
 def _dask_client(opts: FleetOptions):
@@ -507,7 +572,7 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
         todo = []
         for m in opts.methods:
             prev = old.get((h, m, o_hash[m]))
-            if prev and (prev.get("out_dir") or not opts.flight_files):
+            if _reusable(prev, out, opts.flight_files):
                 rows.append({**prev, **ident, "status": SKIPPED, "reason": ""})
             else:
                 todo.append(m)
@@ -526,15 +591,43 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
         jobs.append((job, {**ident, "input_hash": h, "out_base": rel}))
     timing = {"workers": 0, "startup_s": 0.0, "tasks_s": 0.0}
     if jobs:
-        rows += _run_jobs(jobs, opts, o_hash, timing)
+        rows += _run_jobs(jobs, opts, o_hash, timing, out / JOURNAL)
     order = {m: i for i, m in enumerate(opts.methods)}
     pos = {f.input: i for i, f in enumerate(flights)}
     rows.sort(key=lambda r: (pos.get(r["input"], 0), order.get(r["method"], 0)))
     rows = [{c: r.get(c) for c in COLUMNS} for r in rows]
     res = FleetResult(rows, out, len(flights), wall_s=time.perf_counter() - t_all, **timing)
     res.files = write_table(rows, out)
-    res.files["report"] = write_report(rows, out)
+    res.files["report"] = write_report(rows, out, run_context(opts, len(jobs), timing))
     return res
+
+
+def run_context(opts: FleetOptions, n_run: int, timing: Mapping[str, Any]) -> str:
+    """One line for the report: when, fgnav's version, the methods and where the flights ran."""
+    from datetime import UTC, datetime
+
+    from fgnav import __version__
+
+    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    where = f"scheduler {opts.scheduler}" if opts.scheduler else "a LocalCluster"
+    ran = (
+        f"{n_run} flight(s) run on {timing['workers']} Dask worker(s) of {where}"
+        f" in {timing['tasks_s']:.1f} s"
+        if n_run
+        else "no flight run (all done before)"
+    )
+    limits = [
+        f"{flag} {v:g}"
+        for flag, v in (("--timeout", opts.timeout_s), ("--memory-limit", opts.memory_limit_mb))
+        if v
+    ] + (["--force"] if opts.force else [])
+    config = f"; config tables: {', '.join(sorted(opts.config))}" if opts.config else ""
+    return (
+        f"Run {when}, fgnav {__version__}; methods {', '.join(opts.methods)}; {ran}"
+        + (f" ({', '.join(limits)})" if limits else "")
+        + config
+        + "."
+    )
 
 
 def _run_jobs(
@@ -542,9 +635,11 @@ def _run_jobs(
     opts: FleetOptions,
     o_hash: dict[str, str],
     timing: dict[str, Any],
+    journal: Path,
 ) -> list[dict[str, Any]]:
-    """Submit the jobs, gather their rows as they complete (progress bar), close the client;
-    ``timing`` gets ``workers``, ``startup_s`` and ``tasks_s``."""
+    """Submit the jobs, gather their rows as they complete (progress bar; ``ok`` rows appended to
+    ``journal`` at once), close the client; ``timing`` gets ``workers``, ``startup_s`` and
+    ``tasks_s``."""
     t0 = time.perf_counter()
     from distributed import as_completed
 
@@ -562,7 +657,7 @@ def _run_jobs(
             for i, (job, ident) in enumerate(jobs)
         }
         failed = 0
-        with _progress(len(futures), opts.progress) as bar:
+        with _progress(len(futures), opts.progress) as bar, open(journal, "a") as log_fh:
             for fut in as_completed(futures):
                 job, ident = futures[fut]
                 try:
@@ -583,6 +678,9 @@ def _run_jobs(
                         out_dir=f"{base}/{_method_dir(r['method'])}" if written else "",
                     )
                     rows.append(r)
+                    if r["status"] == OK:
+                        log_fh.write(json.dumps({c: r.get(c) for c in COLUMNS}) + "\n")
+                log_fh.flush()
                 failed += any(r["status"] in FAILED for r in got)
                 bar.set_postfix(failed=failed)
                 bar.update(1)
@@ -642,51 +740,102 @@ def _values(rows: list[dict[str, Any]], column: str) -> list[float]:
     return [float(r[column]) for r in rows if isinstance(r.get(column), int | float)]
 
 
+def hist_bin_edges(values: Sequence[float], log: bool | None = None) -> tuple[Any, bool]:
+    """Bin edges shared by every series of a histogram (so that bars of different methods have
+    the same widths and line up), and whether they are logarithmic.
+
+    Args:
+        values: every value of every series.
+        log: logarithmic bins; None: when all values are > 0 and span more than a factor 10.
+
+    Returns:
+        ``(edges, log)``: 5 to 20 bins (about two flights per bin) over the values' range.
+    """
+    import numpy as np
+
+    v = np.asarray([x for x in values if math.isfinite(x)], dtype=float)
+    n = int(min(20, max(5, len(v) // 2)))
+    lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 1.0)
+    if log is None:
+        log = bool(len(v)) and lo > 0.0 and hi > 10.0 * lo
+    if log:
+        return np.geomspace(lo, hi, n + 1), True
+    return np.histogram_bin_edges(v, bins=n), False
+
+
 def _figures(rows: list[dict[str, Any]], out: Path) -> dict[str, Path]:
-    """Distributions across flights: ATE, final scale error, drag k, run time vs duration."""
+    """Distributions across flights of the finished runs: ATE, final scale error (one value per
+    SLAM session), drag kx vs ky, run time vs flight duration; one colour per method."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     figdir = out / "figures"
     figdir.mkdir(exist_ok=True)
     done = [r for r in rows if r["status"] in DONE]
     methods = sorted({r["method"] for r in done})
+    by = {m: [r for r in done if r["method"] == m] for m in methods}
     figs: dict[str, Path] = {}
 
-    def hist(name: str, title: str, xlabel: str, series: dict[str, list[float]]) -> None:
-        if not any(series.values()):
-            return
-        fig, ax = plt.subplots(figsize=(6, 3.5))
-        for label, vals in series.items():
-            if vals:
-                ax.hist(vals, bins=min(20, max(5, len(vals))), alpha=0.6, label=label)
-        ax.set(title=title, xlabel=xlabel, ylabel="flights")
-        ax.legend(fontsize=8)
+    def save(name: str, fig: Any, ax: Any) -> None:
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
         fig.tight_layout()
         figs[name] = figdir / f"{name}.png"
         fig.savefig(figs[name], dpi=90)
         plt.close(fig)
 
-    by = {m: [r for r in done if r["method"] == m] for m in methods}
+    def hist(name: str, title: str, xlabel: str, ylabel: str, series: dict[str, list[float]]):
+        series = {m: v for m, v in series.items() if v}
+        if not series:
+            return
+        edges, log = hist_bin_edges([x for v in series.values() for x in v])
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        # One call with every series: bars side by side in shared bins.
+        ax.hist(list(series.values()), bins=edges, label=list(series), rwidth=0.9)
+        if log:
+            ax.set_xscale("log")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set(title=title, xlabel=xlabel + (" (log scale)" if log else ""), ylabel=ylabel)
+        save(name, fig, ax)
+
     hist(
         "ate",
         "ATE RMSE across flights",
         "ATE RMSE [m]",
+        "flights",
         {m: _values(v, "ate_rmse_m") for m, v in by.items()},
     )
     scale = {
         m: [e for r in v for e in (r.get("scale_err_pct") or {}).values() if e is not None]
         for m, v in by.items()
     }
-    hist("scale_err", "final SLAM-scale error across flights and sessions", "error [%]", scale)
-    drag: dict[str, list[float]] = {}
-    for m, v in by.items():
-        for r in v:
-            for ax_name, k in zip("xy", r.get("drag_k_per_s") or [], strict=False):
-                drag.setdefault(f"{m} k{ax_name}", []).append(float(k))
-    hist("drag_k", "drag coefficient across flights", "k [1/s]", drag)
+    hist(
+        "scale_err",
+        "final SLAM-scale error across flights",
+        "scale error [%]",
+        "SLAM sessions",
+        scale,
+    )
+    drag = {
+        m: [tuple(r["drag_k_per_s"][:2]) for r in v if len(r.get("drag_k_per_s") or []) >= 2]
+        for m, v in by.items()
+    }
+    if any(drag.values()):
+        fig, ax = plt.subplots(figsize=(4.5, 4))
+        hi = 1.1 * max([abs(k) for p in drag.values() for xy in p for k in xy] + [1e-3])
+        ax.plot([0, hi], [0, hi], color="0.7", lw=0.8, label="kx = ky")
+        for m, p in drag.items():
+            if p:
+                ax.scatter(*zip(*p, strict=True), label=m, s=18, alpha=0.8)
+        ax.set(title="drag coefficient per flight", xlabel="kx [1/s]", ylabel="ky [1/s]")
+        ax.set_xlim(min(0.0, ax.get_xlim()[0]), hi)
+        ax.set_ylim(min(0.0, ax.get_ylim()[0]), hi)
+        ax.set_aspect("equal", adjustable="box")
+        save("drag_k", fig, ax)
     pts = {
         m: [
             (r["duration_s"], r["runtime_s"])
@@ -705,11 +854,9 @@ def _figures(rows: list[dict[str, Any]], out: Path) -> dict[str, Path]:
             xlabel="flight duration [s]",
             ylabel="method run time [s]",
         )
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        figs["runtime"] = figdir / "runtime.png"
-        fig.savefig(figs["runtime"], dpi=90)
-        plt.close(fig)
+        ax.set_xlim(left=0)
+        ax.set_ylim(bottom=0)
+        save("runtime", fig, ax)
     return figs
 
 
@@ -756,33 +903,51 @@ def markdown_table(rows: list[dict[str, Any]], columns: Sequence[str] = REPORT_C
 N_WORST = 5
 
 
-def write_report(rows: list[dict[str, Any]], out: Path) -> Path:
-    """``fleet.md``: counts, the distribution figures, the worst flights by ATE per method, the
-    failed runs with their reasons, and the whole table."""
+def write_report(rows: list[dict[str, Any]], out: Path, context: str = "") -> Path:
+    """``fleet.md``: what ran (``context``, one line), counts, the distribution figures, the worst
+    flights by ATE per method, the failed runs with their reasons, the whole table and the
+    meaning of the columns."""
     figs = _figures(rows, out)
     counts: dict[str, int] = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
-    lines = [
-        "# Fleet report",
-        "",
+    order = [s for s in (OK, SKIPPED, ERROR, TIMEOUT, CRASHED) if counts.get(s)]
+    order += sorted(set(counts) - set(order))
+    lines = ["# Fleet report", ""]
+    if context:
+        lines += [context, ""]
+    lines += [
         f"{len({r['input'] for r in rows})} flights, {len(rows)} runs: "
-        + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-        + ". Columns of `fleet.csv`: see `fgnav.fleet.COLUMNS`.",
+        + ", ".join(f"{counts[s]} {s}" for s in order)
+        + (
+            " (`skipped`: done in an earlier run with the same input and options, figures kept)"
+            if counts.get(SKIPPED)
+            else ""
+        )
+        + ". Tables and figures are formatted from `fleet.json`; empty cells are values the"
+        " run does not have (no ground truth, drag model off, a failed run).",
         "",
     ]
     if figs:
-        lines += ["## Distributions across flights", ""]
+        lines += ["## Distributions across flights", "", "Runs with status ok or skipped.", ""]
         lines += [f"![{k}](figures/{p.name})" for k, p in figs.items()] + [""]
-    done = [r for r in rows if r["status"] in DONE and r.get("ate_rmse_m") is not None]
+    done = [r for r in rows if r["status"] in DONE]
     for m in sorted({r["method"] for r in done}):
-        worst = sorted((r for r in done if r["method"] == m), key=lambda r: -r["ate_rmse_m"])
-        lines += [f"## Worst flights by ATE: {m}", "", markdown_table(worst[:N_WORST]), ""]
+        scored = [r for r in done if r["method"] == m and r.get("ate_rmse_m") is not None]
+        unscored = sum(1 for r in done if r["method"] == m) - len(scored)
+        lines += [f"## Worst flights by ATE: {m}", ""]
+        if unscored:
+            lines += [f"{unscored} finished run(s) without ground truth are not ranked.", ""]
+        if scored:
+            worst = sorted(scored, key=lambda r: -r["ate_rmse_m"])[:N_WORST]
+            lines += [markdown_table(worst), ""]
     failed = [r for r in rows if r["status"] in FAILED]
     if failed:
         cols = ("flight", "input", "method", "status", "reason")
         lines += ["## Failed runs", "", markdown_table(failed, cols), ""]
     lines += ["## All runs", "", markdown_table(rows), ""]
+    lines += ["## Columns of `fleet.csv`", ""]
+    lines += [f"- `{c}`: {doc}" for c, doc in COLUMN_DOC.items()] + [""]
     path = out / "fleet.md"
     path.write_text("\n".join(lines))
     return path

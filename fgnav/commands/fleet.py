@@ -6,8 +6,9 @@ fgnav expands it). Without ``--scheduler`` a LocalCluster runs on this machine (
 single-threaded worker per core); with it, the same tasks run on an existing Dask cluster (``DIR``
 must then be a path shared by every worker and this client). Writes ``DIR/fleet.csv``,
 ``fleet.json``, ``fleet.parquet`` (with pyarrow), ``fleet.md`` and, per flight and method,
-``DIR/flights/<flight>-<hash>/<method>/``. A rerun skips the runs already done with the same
-input content and options (``--force`` reruns them). Failed flights are rows of the table (status
+``DIR/flights/<flight>-<hash>/<method>/``, and the journal ``DIR/fleet-runs.jsonl``. A rerun skips
+the runs already done with the same input content and options, found in ``fleet.json`` or the
+journal (``--force`` reruns them). Failed flights are rows of the table (status
 ``error``, ``timeout``, ``crashed``): the exit code is 0 once the table is written.
 """
 

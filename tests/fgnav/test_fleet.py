@@ -19,13 +19,17 @@ from fgnav.datasets.simulate import SimOptions, simulate_to_folder
 
 from fgnav.cli import main
 from fgnav.fleet import (
+    COLUMN_DOC,
     COLUMNS,
     FleetError,
     content_hash,
+    crash_summary,
     discover,
     flight_name,
+    hist_bin_edges,
     options_hash,
     run_flight_job,
+    write_report,
 )
 from fgnav.fleet_worker import ABORT_ENV
 
@@ -140,12 +144,34 @@ def test_child_timeout_and_crash_become_rows(tiny_flight, monkeypatch):
     rows = run_flight_job(_job(tiny_flight))
     assert rows[0]["status"] == "crashed"
     assert "SIGABRT" in rows[0]["reason"] and "\n" not in rows[0]["reason"]
+    assert "Fatal Python error: Aborted in run_job (fgnav/fleet_worker.py:" in rows[0]["reason"]
     monkeypatch.delenv(ABORT_ENV)
     rows = run_flight_job(_job(tiny_flight, methods=["batch", "ekf-vo002", "nonsense"]))
     assert [r["status"] for r in rows] == ["ok", "error", "error"]
     assert rows[0]["ate_rmse_m"] < 0.1
     assert rows[0]["duration_s"] == pytest.approx(FLIGHT_S, abs=0.02)
     assert "needs" in rows[1]["reason"] and "unknown method" in rows[2]["reason"]
+
+
+def test_crash_summary_names_the_fatal_error_and_the_crashing_frame():
+    dump = """some warning
+Fatal Python error: Segmentation fault
+
+Thread 0x00007f0000000001 (most recent call first):
+  File "/x/other.py", line 3 in wait
+
+Current thread 0x00007fd89209ab80 (most recent call first):
+  File "/x/fgnav/frontends/homography_vo.py", line 447 in estimate_homography
+  File "/x/fgnav/solvers/vision.py", line 209 in run_homography_frontend
+
+Extension modules: numpy._core._multiarray_umath, cv2 (total: 2)
+"""
+    assert crash_summary(dump) == (
+        "Fatal Python error: Segmentation fault in estimate_homography "
+        "(/x/fgnav/frontends/homography_vo.py:447)"
+    )
+    assert crash_summary("a\nMemoryError: x\n\nExtension modules: numpy\n") == "MemoryError: x"
+    assert crash_summary("") == ""
 
 
 def test_child_memory_limit_is_an_error_row(tiny_flight):
@@ -161,6 +187,46 @@ def test_cli_rejects_bad_arguments_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3
     assert "--workers" in err[0] and "magic" in err[1] and "missing" in err[2]
+
+
+def test_histogram_bins_are_shared_and_log_when_wide():
+    edges, log = hist_bin_edges([0.006, 0.01, 0.012, 0.04, 0.2, 0.36])
+    assert log and edges[0] == pytest.approx(0.006) and edges[-1] == pytest.approx(0.36)
+    assert len(edges) == 6  # 5 bins, the minimum
+    ratios = edges[1:] / edges[:-1]
+    assert ratios == pytest.approx([ratios[0]] * 5)
+    edges, log = hist_bin_edges([-12.8, -0.6, 0.2, 0.3] * 10)
+    assert not log and len(edges) == 21 and edges[0] == -12.8 and edges[-1] == 0.3
+    assert not hist_bin_edges([0.01, 0.02], log=None)[1]
+
+
+def test_report_counts_ranks_and_explains_columns(tmp_path):
+    def row(flight, method, status, ate=None, reason=""):
+        r = {c: None for c in COLUMNS}
+        r.update(flight=flight, input=f"in/{flight}", method=method, status=status,
+                 reason=reason, duration_s=60.0, runtime_s=1.0 + (ate or 0.0),
+                 ate_rmse_m=ate, scale_err_pct={"0": 10 * (ate or 0.0)},
+                 drag_k_per_s=[0.38, 0.4])
+        return r
+
+    rows = [row(f"f{i}", "batch", "ok" if i % 2 else "skipped", 0.01 * (i + 1))
+            for i in range(7)]
+    rows += [row("nogt", "batch", "ok"), row("bad", "batch", "error", reason="bad.ulg: x"),
+             row("f0", "fixed-lag", "crashed", reason="child interpreter killed by SIGABRT")]
+    path = write_report(rows, tmp_path, "Run today.")
+    text = path.read_text()
+    assert "Run today." in text
+    assert "9 flights, 10 runs: 4 ok, 4 skipped, 1 error, 1 crashed (`skipped`" in text
+    worst = text.split("## Worst flights by ATE: batch")[1].split("##")[0]
+    assert "1 finished run(s) without ground truth are not ranked" in worst
+    ranked = [line.split("|")[1].strip() for line in worst.splitlines()
+              if line.startswith("| f") and "flight" not in line]
+    assert ranked == ["f6", "f5", "f4", "f3", "f2"]
+    assert "SIGABRT" in text.split("## Failed runs")[1].split("## All runs")[0]
+    for c, doc in COLUMN_DOC.items():
+        assert f"- `{c}`: {doc}" in text
+    for name in ("ate", "scale_err", "drag_k", "runtime"):
+        assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 1000
 
 
 # ----------------------------------------------------------------------------------------------
@@ -185,6 +251,7 @@ def _check_table(out: Path, campaign: Path, batch_ates: dict[str, float], good_s
         summary = json.loads((out / r["out_dir"] / "summary.json").read_text())
         assert summary["metrics"]["ate_rmse_m"] == r["ate_rmse_m"]
         assert (out / r["out_dir"] / "estimate.tum").is_file()
+        assert (out / r["out_dir"]).parent.joinpath("child-stderr.txt").is_file()
     csv_lines = (out / "fleet.csv").read_text().splitlines()
     assert csv_lines[0] == ",".join(COLUMNS) and len(csv_lines) == 9
     report = (out / "fleet.md").read_text()
@@ -219,6 +286,35 @@ def test_fleet_on_a_local_cluster_matches_batch_and_resumes(
     argv = ["fleet", one, "--out", str(out), "--workers", "1", "--force", "--no-progress"]
     assert main(argv) == 0
     assert "1 flights, 1 runs: 1 ok, 0 skipped" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_resume_survives_other_runs_and_a_lost_table(campaign, batch_ates, tmp_path, capsys):
+    a, b = (str(campaign / "day0" / "two-turns-1"), str(campaign / "day1" / "two-turns-2"))
+    out = tmp_path / "fleet"
+
+    def fleet(*inputs: str) -> dict[str, dict]:
+        argv = ["fleet", *inputs, "--out", str(out), "--workers", "1", "--no-progress"]
+        assert main(argv) == 0
+        capsys.readouterr()
+        return {r["flight"]: r for r in json.loads((out / "fleet.json").read_text())}
+
+    assert fleet(a)["two-turns-1"]["status"] == "ok"
+    assert list(fleet(b)) == ["two-turns-2"]  # fleet.json now holds the second run only
+    both = fleet(a, b)  # the first flight's result comes from the journal
+    assert [r["status"] for r in both.values()] == ["skipped", "skipped"]
+    assert abs(both["two-turns-1"]["ate_rmse_m"] - batch_ates["two-turns-1"]) < 1e-9
+    # The client lost its table (killed before writing it) and a flight's files are gone: the
+    # journal still resumes the other; the one without files runs again.
+    (out / "fleet.json").unlink()
+    shutil.rmtree(out / both["two-turns-1"]["out_dir"])
+    again = fleet(a, b)
+    assert [again[n]["status"] for n in ("two-turns-1", "two-turns-2")] == ["ok", "skipped"]
+    assert abs(again["two-turns-1"]["ate_rmse_m"] - batch_ates["two-turns-1"]) < 1e-9
+    # A torn last line of the journal (an interrupted write) is skipped with a warning.
+    with open(out / "fleet-runs.jsonl", "a") as fh:
+        fh.write('{"flight": "torn')
+    assert [r["status"] for r in fleet(a, b).values()] == ["skipped", "skipped"]
 
 
 def _free_port() -> int:
