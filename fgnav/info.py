@@ -118,9 +118,14 @@ class FlightInfo:
             )
         out.append("")
         if self.overlap is None:
-            out.append("sensor overlap: none" + (
-                f" (streams {', '.join(self.overlap_streams)} do not overlap)"
-                if self.overlap_streams else " (no sensor stream)"))
+            out.append(
+                "sensor overlap: none"
+                + (
+                    f" (streams {', '.join(self.overlap_streams)} do not overlap)"
+                    if self.overlap_streams
+                    else " (no sensor stream)"
+                )
+            )
         else:
             a, b = self.overlap
             out.append(
@@ -163,18 +168,29 @@ def _stream_info(name: str, role: str, s: Any) -> StreamInfo:
 def _details(s: Any) -> str:
     if isinstance(s, SlamSeries):
         ids, counts = np.unique(s.session, return_counts=True)
-        parts = [f"sessions {len(ids)} (" + ", ".join(
-            f"{i}: {c}" for i, c in zip(ids.tolist(), counts.tolist(), strict=True)) + ")"]
+        parts = [
+            f"sessions {len(ids)} ("
+            + ", ".join(f"{i}: {c}" for i, c in zip(ids.tolist(), counts.tolist(), strict=True))
+            + ")"
+        ]
         if s.latency is not None:
             parts.append(f"latency median {float(np.median(s.latency)) * 1e3:.0f} ms")
         return "; ".join(parts)
     if isinstance(s, Trajectory):
-        extra = [f for f, a in (("velocity", s.world_v_body), ("gyro bias", s.gyro_bias),
-                                ("accel bias", s.accel_bias)) if a is not None]
+        extra = [
+            f
+            for f, a in (
+                ("velocity", s.world_v_body),
+                ("gyro bias", s.gyro_bias),
+                ("accel bias", s.accel_bias),
+            )
+            if a is not None
+        ]
         return "pose" + "".join(f" + {e}" for e in extra)
     if isinstance(s, RangeSeries):
         return f"range {float(np.min(s.range)):.2f} .. {float(np.max(s.range)):.2f} m" + (
-            "; quality" if s.quality is not None else "")
+            "; quality" if s.quality is not None else ""
+        )
     if isinstance(s, ImageSeries):
         where = "in memory" if s.frames is not None else "files"
         cam = f"{s.camera.width}x{s.camera.height} " if s.camera is not None else ""

@@ -265,10 +265,25 @@ def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
     """The online fixed-lag smoother (``fgnav online``) with ``[graph]``, ``[online]`` and
     ``[priors]``."""
     from fgnav.solvers.fixed_lag import run_fixed_lag as _run
+    from fgnav.solvers.online import replay_online, resolve_engine
 
     opts = fixed_lag_options(config)
     priors = frontend_priors(flight, config)
-    return _with_priors(_run(flight, opts, priors=priors, progress=progress), priors)
+    engine, why = resolve_engine(flight, opts, priors)
+    if engine == "push":
+        est = replay_online(flight, opts, progress=progress)
+    else:
+        if why:
+            log.warning(
+                "%s: fixed-lag runs the prepared engine (not strictly causal: keyframes, gyro "
+                "bias and attitude prepared from the whole flight) because the push engine does "
+                'not run %s yet; [online] engine = "push" forces it',
+                flight.name,
+                why,
+            )
+        est = _run(flight, opts, priors=priors, progress=progress)
+    est = _with_info(est, engine=engine, engine_reason=why)
+    return _with_priors(est, priors)
 
 
 def frontend_priors(flight: Flight, config: Mapping[str, Any]):

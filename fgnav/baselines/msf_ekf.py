@@ -150,8 +150,15 @@ class _State:
 
     def copy(self) -> _State:
         return _State(
-            self.p.copy(), self.v.copy(), self.R.copy(), self.bg.copy(), self.ba.copy(),
-            float(self.s), self.slam_R_world.copy(), self.slam_t_world.copy(), self.P.copy(),
+            self.p.copy(),
+            self.v.copy(),
+            self.R.copy(),
+            self.bg.copy(),
+            self.ba.copy(),
+            float(self.s),
+            self.slam_R_world.copy(),
+            self.slam_t_world.copy(),
+            self.P.copy(),
         )
 
 
@@ -282,9 +289,7 @@ def initial_fit(flight: Flight, max_rel_std: float = 0.05, step_s: float = 2.0) 
     )
 
 
-def _fit_from(
-    flight: Flight, t0: float, max_rel_std: float
-) -> tuple[InitFit | None, tuple | None]:
+def _fit_from(flight: Flight, t0: float, max_rel_std: float) -> tuple[InitFit | None, tuple | None]:
     """Growing windows from ``t0``; the first that determines ``s``, and the last try."""
     slam, imu = flight.slam, flight.imu
     last = None
@@ -299,8 +304,13 @@ def _fit_from(
         fit = _scale_lsq(flight, j, k, t0)
         last = (window_s, fit.scale, fit.rel_std)
         if np.isfinite(fit.scale) and fit.scale > 0 and fit.rel_std < max_rel_std:
-            log.info("initial SLAM scale %.4f (+-%.1f %%) from %.0f s of data at t=%.1f s",
-                     fit.scale, 100 * fit.rel_std, window_s, t0 - slam.t[0])
+            log.info(
+                "initial SLAM scale %.4f (+-%.1f %%) from %.0f s of data at t=%.1f s",
+                fit.scale,
+                100 * fit.rel_std,
+                window_s,
+                t0 - slam.t[0],
+            )
             return fit, last
         if slam.t[j[-1]] < t0 + window_s - 1.0:
             break
@@ -408,22 +418,31 @@ class MsfEkf:
         slam_R_world = slam_R_cam @ (world_R_body @ body_R_cam).T
         slam_t_world = slam_t_cam - scale * slam_R_world @ (p + world_R_body @ body_t_cam)
         P = np.zeros((N_ERR, N_ERR))
-        P[IP:IP + 3, IP:IP + 3] = np.eye(3) * 1e-6
-        P[IV:IV + 3, IV:IV + 3] = np.eye(3) * o.initial_velocity_sigma**2
-        P[ITH:ITH + 3, ITH:ITH + 3] = np.diag([0.02**2, 0.02**2, 1e-6])
-        P[IBG:IBG + 3, IBG:IBG + 3] = np.eye(3) * o.initial_bias_sigma_gyro**2
-        P[IBA:IBA + 3, IBA:IBA + 3] = np.eye(3) * o.initial_bias_sigma_accel**2
+        P[IP : IP + 3, IP : IP + 3] = np.eye(3) * 1e-6
+        P[IV : IV + 3, IV : IV + 3] = np.eye(3) * o.initial_velocity_sigma**2
+        P[ITH : ITH + 3, ITH : ITH + 3] = np.diag([0.02**2, 0.02**2, 1e-6])
+        P[IBG : IBG + 3, IBG : IBG + 3] = np.eye(3) * o.initial_bias_sigma_gyro**2
+        P[IBA : IBA + 3, IBA : IBA + 3] = np.eye(3) * o.initial_bias_sigma_accel**2
         self._reset_alignment_cov(P, scale)
         v = np.zeros(3) if world_v_body is None else np.asarray(world_v_body, float)
-        self.x = _State(p, v, world_R_body.copy(), np.zeros(3), np.zeros(3),
-                        float(scale), slam_R_world, slam_t_world, P)
+        self.x = _State(
+            p,
+            v,
+            world_R_body.copy(),
+            np.zeros(3),
+            np.zeros(3),
+            float(scale),
+            slam_R_world,
+            slam_t_world,
+            P,
+        )
 
     def _reset_alignment_cov(self, P: np.ndarray, scale: float) -> None:
         P[IS:, :] = 0.0
         P[:, IS:] = 0.0
         P[IS, IS] = (self._scale_rel_sigma * scale) ** 2
-        P[IPHI:IPHI + 3, IPHI:IPHI + 3] = np.eye(3) * 0.05**2
-        P[ITSW:ITSW + 3, ITSW:ITSW + 3] = np.eye(3) * (0.1 * scale) ** 2
+        P[IPHI : IPHI + 3, IPHI : IPHI + 3] = np.eye(3) * 0.05**2
+        P[ITSW : ITSW + 3, ITSW : ITSW + 3] = np.eye(3) * (0.1 * scale) ** 2
 
     def reset_session(
         self,
@@ -464,20 +483,20 @@ class MsfEkf:
         x.v = x.v + a_w * dt
         dR = so3_exp(w * dt)
         Phi = np.eye(N_ERR)
-        Phi[IP:IP + 3, IV:IV + 3] = np.eye(3) * dt
-        Phi[IV:IV + 3, ITH:ITH + 3] = -x.R @ skew(a_b) * dt
-        Phi[IV:IV + 3, IBA:IBA + 3] = -x.R * dt
-        Phi[ITH:ITH + 3, ITH:ITH + 3] = dR.T
-        Phi[ITH:ITH + 3, IBG:IBG + 3] = -np.eye(3) * dt
+        Phi[IP : IP + 3, IV : IV + 3] = np.eye(3) * dt
+        Phi[IV : IV + 3, ITH : ITH + 3] = -x.R @ skew(a_b) * dt
+        Phi[IV : IV + 3, IBA : IBA + 3] = -x.R * dt
+        Phi[ITH : ITH + 3, ITH : ITH + 3] = dR.T
+        Phi[ITH : ITH + 3, IBG : IBG + 3] = -np.eye(3) * dt
         x.R = x.R @ dR
         q = np.zeros(N_ERR)
-        q[IV:IV + 3] = n.accel_noise_density**2 * dt
-        q[ITH:ITH + 3] = n.gyro_noise_density**2 * dt
-        q[IBG:IBG + 3] = n.gyro_random_walk**2 * dt
-        q[IBA:IBA + 3] = n.accel_random_walk**2 * dt
+        q[IV : IV + 3] = n.accel_noise_density**2 * dt
+        q[ITH : ITH + 3] = n.gyro_noise_density**2 * dt
+        q[IBG : IBG + 3] = n.gyro_random_walk**2 * dt
+        q[IBA : IBA + 3] = n.accel_random_walk**2 * dt
         q[IS] = (o.scale_walk * x.s) ** 2 * dt
-        q[IPHI:IPHI + 3] = o.alignment_walk_rot**2 * dt
-        q[ITSW:ITSW + 3] = o.alignment_walk_pos**2 * dt
+        q[IPHI : IPHI + 3] = o.alignment_walk_rot**2 * dt
+        q[ITSW : ITSW + 3] = o.alignment_walk_pos**2 * dt
         P = Phi @ x.P @ Phi.T
         P[np.diag_indices(N_ERR)] += q
         x.P = 0.5 * (P + P.T)
@@ -498,14 +517,14 @@ class MsfEkf:
         dx = K @ r
         IKH = np.eye(N_ERR) - K @ H
         x.P = IKH @ x.P @ IKH.T + K @ Rm @ K.T
-        x.p = x.p + dx[IP:IP + 3]
-        x.v = x.v + dx[IV:IV + 3]
-        x.R = x.R @ so3_exp(dx[ITH:ITH + 3])
-        x.bg = x.bg + dx[IBG:IBG + 3]
-        x.ba = x.ba + dx[IBA:IBA + 3]
+        x.p = x.p + dx[IP : IP + 3]
+        x.v = x.v + dx[IV : IV + 3]
+        x.R = x.R @ so3_exp(dx[ITH : ITH + 3])
+        x.bg = x.bg + dx[IBG : IBG + 3]
+        x.ba = x.ba + dx[IBA : IBA + 3]
         x.s = float(x.s + dx[IS])
-        x.slam_R_world = x.slam_R_world @ so3_exp(dx[IPHI:IPHI + 3])
-        x.slam_t_world = x.slam_t_world + dx[ITSW:ITSW + 3]
+        x.slam_R_world = x.slam_R_world @ so3_exp(dx[IPHI : IPHI + 3])
+        x.slam_t_world = x.slam_t_world + dx[ITSW : ITSW + 3]
         return True
 
     def update_slam(self, slam_t_cam: np.ndarray, slam_R_cam: np.ndarray | None) -> bool:
@@ -517,22 +536,23 @@ class MsfEkf:
         world_t_cam = x.p + x.R @ body_t_cam
         h = x.s * x.slam_R_world @ world_t_cam + x.slam_t_world
         Hp = np.zeros((3, N_ERR))
-        Hp[:, IP:IP + 3] = x.s * x.slam_R_world
-        Hp[:, ITH:ITH + 3] = -x.s * x.slam_R_world @ x.R @ skew(body_t_cam)
+        Hp[:, IP : IP + 3] = x.s * x.slam_R_world
+        Hp[:, ITH : ITH + 3] = -x.s * x.slam_R_world @ x.R @ skew(body_t_cam)
         Hp[:, IS] = x.slam_R_world @ world_t_cam
-        Hp[:, IPHI:IPHI + 3] = -x.s * x.slam_R_world @ skew(world_t_cam)
-        Hp[:, ITSW:ITSW + 3] = np.eye(3)
+        Hp[:, IPHI : IPHI + 3] = -x.s * x.slam_R_world @ skew(world_t_cam)
+        Hp[:, ITSW : ITSW + 3] = np.eye(3)
         rp = slam_t_cam - h
         if o.use_slam_rotation and slam_R_cam is not None:
             h_R = x.slam_R_world @ x.R @ body_R_cam
             rr = so3_log(h_R.T @ slam_R_cam)
             Hr = np.zeros((3, N_ERR))
-            Hr[:, ITH:ITH + 3] = body_R_cam.T
-            Hr[:, IPHI:IPHI + 3] = body_R_cam.T @ x.R.T
+            Hr[:, ITH : ITH + 3] = body_R_cam.T
+            Hr[:, IPHI : IPHI + 3] = body_R_cam.T @ x.R.T
             H = np.vstack([Hp, Hr])
             r = np.concatenate([rp, rr])
-            Rm = np.diag([(x.s * o.slam_position_sigma_m) ** 2] * 3
-                         + [o.slam_rotation_sigma**2] * 3)
+            Rm = np.diag(
+                [(x.s * o.slam_position_sigma_m) ** 2] * 3 + [o.slam_rotation_sigma**2] * 3
+            )
             ok = self._correct(H, r, Rm, 6)
         else:
             ok = self._correct(Hp, rp, np.eye(3) * (x.s * o.slam_position_sigma_m) ** 2, 3)
@@ -557,9 +577,9 @@ class MsfEkf:
         h = num / c
         dnum = np.zeros(N_ERR)
         dnum[IP + 2] = 1.0
-        dnum[ITH:ITH + 3] = (-x.R @ skew(body_t_range))[2]
+        dnum[ITH : ITH + 3] = (-x.R @ skew(body_t_range))[2]
         dc = np.zeros(N_ERR)
-        dc[ITH:ITH + 3] = (x.R @ skew(d_body))[2]
+        dc[ITH : ITH + 3] = (x.R @ skew(d_body))[2]
         H = ((dnum * c - num * dc) / c**2)[None, :]
         ok = self._correct(H, np.array([r_meas - h]), np.array([[o.range_sigma**2]]), 1)
         if ok:
@@ -655,7 +675,8 @@ class MsfEkf:
             scale0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             R0, bg0 = fit.world_R_body_end, fit.gyro_bias
             self.counts.extra["init_window_s"] = (
-                fit.t_start - prefix.slam.t[0], fit.t_end - prefix.slam.t[0]
+                fit.t_start - prefix.slam.t[0],
+                fit.t_end - prefix.slam.t[0],
             )
             # Causal: the state at the window's last image time t_end is carried to now by
             # the IMU samples buffered since.
@@ -676,8 +697,15 @@ class MsfEkf:
         slam = prefix.slam
         j0 = min(int(np.searchsorted(slam.t, t_start)), len(slam) - 1)
         slam_R0 = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j0])
-        self.initialize(R0, slam.slam_t_cam[j0], slam_R0, scale0, self._calib.body_T_cam,
-                        self._calib.imu_noise, world_v_body=v0)
+        self.initialize(
+            R0,
+            slam.slam_t_cam[j0],
+            slam_R0,
+            scale0,
+            self._calib.body_T_cam,
+            self._calib.imu_noise,
+            world_v_body=v0,
+        )
         self.x.bg = np.asarray(bg0, float).copy()
         self._session = int(slam.session[j0])
         self.counts.extra["initial_scale"] = scale0
@@ -776,11 +804,18 @@ class MsfEkf:
         self.counts.extra["range_out_of_limits"] = self._n_range_out
         final = dict(self._final_scales)
         final[self._session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
-        return self._estimate(self._out_t, self._out_x, self._lat, self._scale_hist, final,
-                              time.perf_counter() - self._t0)
+        return self._estimate(
+            self._out_t,
+            self._out_x,
+            self._lat,
+            self._scale_hist,
+            final,
+            time.perf_counter() - self._t0,
+        )
 
-    def _reinit_guess(self, t_first: float, t_meas: float, t_now: float
-                      ) -> tuple[float, float] | None:
+    def _reinit_guess(
+        self, t_first: float, t_meas: float, t_now: float
+    ) -> tuple[float, float] | None:
         """Scale of a new SLAM map (:func:`new_map_scale_guess`) from the data that has
         arrived; None while undetermined. After ``REINIT_GIVE_UP_S`` the old scale is kept with
         a large uncertainty."""
@@ -828,8 +863,8 @@ class MsfEkf:
         later = sorted((a for a in applied if a[0] > t_meas), key=lambda a: a[0])
         applied[:] = [a for a in applied if a[0] <= t_meas]
         queue = [(t_meas, apply, True)] + [(tq, fn, False) for tq, fn in later]
-        snaps[k + 1:] = []
-        snap_times[k + 1:] = []
+        snaps[k + 1 :] = []
+        snap_times[k + 1 :] = []
         t_now = h.imu_at(idx).t
         for m in range(idx, i):
             cur, nxt = h.imu_at(m), h.imu_at(m + 1)
@@ -865,8 +900,8 @@ class MsfEkf:
         for k, x in enumerate(out_x):
             # [dtheta(body), dp(world)] -> GTSAM Pose3 tangent [rot, trans(body)].
             J = np.zeros((6, N_ERR))
-            J[0:3, ITH:ITH + 3] = np.eye(3)
-            J[3:6, IP:IP + 3] = x.R.T
+            J[0:3, ITH : ITH + 3] = np.eye(3)
+            J[3:6, IP : IP + 3] = x.R.T
             pose_cov[k] = J @ x.P @ J.T
         traj = Trajectory(
             t=np.asarray(out_t),
@@ -880,7 +915,7 @@ class MsfEkf:
             method="msf-ekf",
             trajectory=traj,
             pose_cov=pose_cov,
-            vel_cov=np.array([x.P[IV:IV + 3, IV:IV + 3] for x in out_x]),
+            vel_cov=np.array([x.P[IV : IV + 3, IV : IV + 3] for x in out_x]),
             slam_scale={k: v[0] for k, v in final_scales.items()},
             slam_scale_sigma={k: v[1] for k, v in final_scales.items()},
             series={

@@ -77,8 +77,11 @@ def check_flight(flight: Flight, options: Seed000Options | None = None) -> None:
             f"{flight.name}: the seed-000 I&I observer baseline needs the streams "
             f"{', '.join(REQUIRED_STREAMS)}; missing: {', '.join(missing)}"
         )
-    if (options.drag_k is None and options.observer.drag_k is None
-            and flight.meta.get("drag_k") is None):
+    if (
+        options.drag_k is None
+        and options.observer.drag_k is None
+        and flight.meta.get("drag_k") is None
+    ):
         raise FlightDataError(
             f"{flight.name}: the seed-000 I&I observer needs the drag coefficient mu/m "
             "(Seed000Options.drag_k or flight.meta['drag_k'])"
@@ -106,6 +109,10 @@ def run_seed000(flight: Flight, options: Seed000Options | None = None) -> Estima
     info["align_slam_axes"] = options.align_slam_axes
     info["wrapper_options"] = dataclasses.asdict(options)
     out = dataclasses.replace(est, runtime_s=time.perf_counter() - wall0, info=info).check()
-    log.info("seed 000 observer on %s: scale %s, %d rows without position", flight.name,
-             info.get("slam_scale_xy"), info.get("rows_without_position", 0))
+    log.info(
+        "seed 000 observer on %s: scale %s, %d rows without position",
+        flight.name,
+        info.get("slam_scale_xy"),
+        info.get("rows_without_position", 0),
+    )
     return out

@@ -113,8 +113,12 @@ def run_seed002(flight: Flight, options: Seed002Options | None = None) -> Estima
     if len(p) > 1:
         v[1:] = np.diff(p, axis=0) / np.diff(traj.t)[:, None]
         v[0] = v[1]
-    out = Trajectory(t=traj.t.copy(), world_t_body=p,
-                     world_q_body_wxyz=traj.world_q_body_wxyz.copy(), world_v_body=v)
+    out = Trajectory(
+        t=traj.t.copy(),
+        world_t_body=p,
+        world_q_body_wxyz=traj.world_q_body_wxyz.copy(),
+        world_v_body=v,
+    )
     series = dict(vo.estimate.series)
     series["ekf_height"] = height
     info = {
@@ -124,8 +128,13 @@ def run_seed002(flight: Flight, options: Seed002Options | None = None) -> Estima
         "rows_without_pose": int(vo.counts.get("frames", len(flight.images)) - len(traj)),
         "ekf_rows_without_height": int((~ok).sum()),
     }
-    log.info("seed 002 on %s: %d of %d frames posed; VO %s", flight.name, len(traj),
-             len(flight.images), vo.counts)
+    log.info(
+        "seed 002 on %s: %d of %d frames posed; VO %s",
+        flight.name,
+        len(traj),
+        len(flight.images),
+        vo.counts,
+    )
     return Estimate(
         method="ekf-vo002",
         trajectory=out,

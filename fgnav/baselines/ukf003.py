@@ -173,12 +173,12 @@ RESET_SCALE_REL_SIGMA = 0.5
 """Relative scale uncertainty when the old scale is kept after a reset (no fit possible)."""
 
 
-
 class CameraTrigger(NamedTuple):
     """An image was captured at ``t`` (the camera trigger); its SLAM pose arrives later."""
 
     t: float
     arrival: float
+
 
 @dataclass
 class Ukf003Options:
@@ -783,8 +783,16 @@ class Ukf003:
         if isinstance(ev, SlamPose):
             self._on_slam(ev)
             h = self._scale_hist
-            for lst, v in zip(h, (self._cur_t, self.scale, self.scale_sigma,
-                                  0 if self._session is None else int(self._session)), strict=True):
+            for lst, v in zip(
+                h,
+                (
+                    self._cur_t,
+                    self.scale,
+                    self.scale_sigma,
+                    0 if self._session is None else int(self._session),
+                ),
+                strict=True,
+            ):
                 lst.append(v)
         elif isinstance(ev, RangeReading):
             c = self._calib
@@ -896,8 +904,14 @@ class Ukf003:
         later: list[Event] = [e for e in self._pre if e.t >= t_start]
         later += [e for e in h.slam if e.t >= t_start and e.session >= 0]
         later += [e for e in h.others_from(t_start)]
-        rank = {ImuSample: 0, CameraTrigger: 1, SlamPose: 2, RangeReading: 3, YawReading: 4,
-                AttitudeSample: 5}
+        rank = {
+            ImuSample: 0,
+            CameraTrigger: 1,
+            SlamPose: 2,
+            RangeReading: 3,
+            YawReading: 4,
+            AttitudeSample: 5,
+        }
         redo = sorted(later + h.imu_from(t_start), key=lambda e: (e.arrival, rank[type(e)]))
         self._pre.clear()
         for e in redo:

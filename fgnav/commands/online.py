@@ -1,5 +1,10 @@
 """``fgnav online``: run the fixed-lag smoother over a flight as if it were live.
 
+By default (``[online] engine = "auto"``) the flight's events are replayed in arrival order into
+the push-API smoother (:mod:`fgnav.solvers.online`), which sees nothing before it arrives; flights
+that need what the push engine does not run yet (camera images, seed 000's per-axis SLAM model,
+front-end priors) run the prepared engine (:mod:`fgnav.solvers.fixed_lag`), and the run says so.
+
 Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assembles the options and
 calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
 ``[online]`` and ``[priors]`` tables of ``--config`` (fields of
@@ -51,6 +56,16 @@ def run(args: argparse.Namespace) -> int:
         f"p99 {np.percentile(lat, 99) * 1e3:.2f} ms, max {lat.max() * 1e3:.2f} ms, "
         f"{info['times_real_time']:.1f}x real time, {info['solver_failures']} solver failures"
     )
+    if info.get("engine") == "push":
+        print("engine: push (events replayed in arrival order; strictly causal)")
+    elif info.get("engine"):
+        why = info.get("engine_reason")
+        print(
+            "engine: prepared (whole-flight preparation; not strictly causal)"
+            + (f": the push engine does not run {why} yet" if why else "")
+        )
+    if info.get("reset_counter"):
+        print(f"resets: {info['reset_counter']} (state lost and re-initialised; see summary.json)")
     if info.get("factorization_fallbacks"):
         print(
             f"factorization: {info['factorization_fallbacks']} Cholesky failure(s) moved the "

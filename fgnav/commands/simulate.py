@@ -49,7 +49,11 @@ def run(args: argparse.Namespace) -> int:
         images=False if args.no_images else None,
     )
     folder = simulate_to_folder(
-        args.scenario, args.out, seed=args.seed, options=opts, progress=True,
+        args.scenario,
+        args.out,
+        seed=args.seed,
+        options=opts,
+        progress=True,
         overwrite=args.overwrite,
     )
     log.info("simulated %s (seed %d) -> %s", args.scenario, args.seed, folder)

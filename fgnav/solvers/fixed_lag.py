@@ -174,6 +174,27 @@ class FixedLagOptions:
         track_memory: record Python heap peak (tracemalloc; slows the run).
         slow_read_every: read the slow variables (SLAM alignment, drag, ground) from the smoother
             every this many updates (and at the last); the newest state is read at every update.
+        engine: how ``fgnav online`` (the ``fixed-lag`` method) runs a flight: ``"push"``, its
+            events replayed in arrival order into the push-API smoother
+            (:class:`fgnav.solvers.online.OnlineSmoother`: strictly causal, nothing prepared
+            from the whole flight); ``"prepared"``, this module's runner over a flight prepared
+            as a whole (keyframes on the SLAM and camera times, gyro bias and attitude from the
+            whole flight: not strictly causal), which the push engine does not yet replace for
+            camera images (homography factors), seed 000's per-axis SLAM model and front-end
+            priors; ``"auto"`` (default): ``"push"`` unless the flight needs one of those.
+        The push engine's own rules (see :mod:`fgnav.solvers.online`):
+        start_wait_s: wait this long after the first IMU sample for a SLAM pose to start at [s].
+        init_imu_s: IMU span averaged for the initial attitude [s].
+        still_accel_tol [m/s^2], still_gyro_tol [rad/s]: stillness test of the gyro-bias start
+            (0 switches it off).
+        clock_jump_s: a stamp older than its stream's newest by more than this is a clock jump
+            (IMU: reset), by less an out-of-order sample (rejected) [s].
+        max_imu_gap_s: an IMU gap longer than this resets the smoother [s].
+        history_s: IMU and SLAM history kept for the closed-form fits [s].
+        covariance: read the newest pose and velocity marginals at every keyframe.
+        drag_check_s: IMU span of the thrust-axis check of the drag model [s].
+        drag_scatter_n: keyframes of the running drag-noise estimate.
+        slam_fit_max_s: the closed-form SLAM fit uses the session's last this many seconds [s].
     """
 
     graph: GraphOptions = field(default_factory=GraphOptions)
@@ -203,6 +224,18 @@ class FixedLagOptions:
     fine_levels: int = 4
     track_memory: bool = False
     slow_read_every: int = 5
+    engine: str = "auto"
+    start_wait_s: float = 5.0
+    init_imu_s: float = 0.2
+    still_accel_tol: float = 0.3
+    still_gyro_tol: float = 0.05
+    clock_jump_s: float = 1.0
+    max_imu_gap_s: float = 0.5
+    history_s: float = 30.0
+    covariance: bool = True
+    drag_check_s: float = 0.5
+    drag_scatter_n: int = 200
+    slam_fit_max_s: float = 20.0
 
 
 def _isam2_params(

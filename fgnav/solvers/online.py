@@ -137,37 +137,6 @@ class OnlineState:
     quality: int
 
 
-@dataclass
-class OnlineOptions:
-    """Options of the push API beyond :class:`FixedLagOptions` (``[online]`` table).
-
-    Attributes:
-        start_wait_s: wait this long after the first IMU sample for a SLAM pose to start at [s].
-        init_imu_s: IMU span averaged for the initial attitude [s].
-        still_accel_tol [m/s^2], still_gyro_tol [rad/s]: stillness test of the gyro-bias start.
-        clock_jump_s: a stamp older than its stream's newest by more than this is a clock jump
-            (IMU: reset), by less an out-of-order sample (rejected) [s].
-        max_imu_gap_s: an IMU gap longer than this resets the smoother [s].
-        history_s: IMU and SLAM history kept for fits [s].
-        covariance: read the newest pose and velocity marginals at every keyframe.
-        drag_check_s: IMU span of the thrust-axis check of the drag model [s].
-        drag_scatter_n: keyframes of the running drag-noise estimate.
-        slam_fit_max_s: the closed-form SLAM fit uses the session's last this many seconds [s].
-    """
-
-    start_wait_s: float = 5.0
-    init_imu_s: float = 0.2
-    still_accel_tol: float = 0.3
-    still_gyro_tol: float = 0.05
-    clock_jump_s: float = 1.0
-    max_imu_gap_s: float = 0.5
-    history_s: float = 30.0
-    covariance: bool = True
-    drag_check_s: float = 2.0
-    drag_scatter_n: int = 200
-    slam_fit_max_s: float = 20.0
-
-
 class _Imu:
     """Arrived IMU samples (lists, trimmed to the history)."""
 
@@ -226,8 +195,8 @@ class OnlineSmoother:
 
     Args:
         calib: the vehicle's calibration (IMU noise, ``body_T_cam``, ``body_T_range``, limits).
-        options: smoother options (graph noise, lag, iSAM2 settings, SLAM start gates).
-        online: push-API options.
+        options: smoother options (graph noise, lag, iSAM2 settings, SLAM start gates, the
+            push API's start, time and drag rules).
         name: name used in messages.
     """
 
@@ -235,13 +204,11 @@ class OnlineSmoother:
         self,
         calib: Calibration,
         options: FixedLagOptions | None = None,
-        online: OnlineOptions | None = None,
         name: str = "online",
     ):
         self.calib = calib.check()
         self.options = options or FixedLagOptions()
         self.go = self.options.graph.check()
-        self.on = online or OnlineOptions()
         self.name = name
         if self.go.slam_model not in ("auto", "sim3"):
             raise FlightDataError(
@@ -263,6 +230,9 @@ class OnlineSmoother:
         self.latency: list[float] = []
         # Outputs (every state).
         self.out: list[OnlineState] = []
+        self._out_epoch: list[int] = []  # clock epoch of each state (a backward jump: +1)
+        self._epoch = 0
+        self._jumped_at = -math.inf
         self.track: dict[str, list[tuple[float, float, int]]] = {}
         self._session_scale: dict[int, float] = {}
         self._drag_decision: str | None = None
@@ -333,9 +303,14 @@ class OnlineSmoother:
             "dropped": dict(self.dropped),
         }
 
-    def result(self, runtime: float | None = None) -> Estimate:
-        """The causal estimate: every state output so far."""
-        st = self.out
+    def result(self, runtime: float | None = None, epoch: int = -1) -> Estimate:
+        """The causal estimate: every state output so far on one clock. A backward clock jump
+        starts a new epoch (its states' times restart); ``epoch`` picks one (default the last),
+        ``info["clock_epochs"]`` counts the states of each."""
+        ep = np.asarray(self._out_epoch, dtype=int)
+        epochs = sorted(set(ep.tolist()))
+        which = epochs[epoch] if epochs else 0
+        st = [s for s, e in zip(self.out, self._out_epoch, strict=True) if e == which]
         n = len(st)
         if n == 0:
             raise FlightDataError(
@@ -358,6 +333,7 @@ class OnlineSmoother:
             vel_cov = np.array([nan3 if s.vel_cov is None else s.vel_cov for s in st])
         series: dict[str, TimeSeries] = {}
         for name, rows in self.track.items():
+            rows = [r for r in rows if r[3] == which]
             if rows:
                 series[name] = TimeSeries(
                     np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
@@ -367,16 +343,22 @@ class OnlineSmoother:
                         series[name].t, np.array([float(r[2]) for r in rows])
                     )
         lat = np.asarray(self.latency)
-        span = st[-1].t - st[0].t
+        span = sum(
+            max(s.t for s, e in zip(self.out, ep, strict=True) if e == x)
+            - min(s.t for s, e in zip(self.out, ep, strict=True) if e == x)
+            for x in epochs
+        )
         runtime = float(lat.sum()) if runtime is None else runtime
         last = st[-1]
         info = {
             "engine": "push-api",
             "lag_s": self.options.lag_s,
             **self.counts(),
+            "skipped": self._leftovers(),
             "solver_failures": self.n_failures,
             "solver_failure_messages": self.failure_messages[:10],
             "reset_counter": self.reset_counter,
+            "clock_epochs": [int((ep == x).sum()) for x in epochs],
             "drag": self._drag_decision,
             "updates": len(lat),
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -384,7 +366,6 @@ class OnlineSmoother:
             "latency_max_s": float(lat.max()) if len(lat) else None,
             "times_real_time": float(span / runtime) if runtime > 0 else None,
             "options": asdict(self.options),
-            "online_options": asdict(self.on),
         }
         return Estimate(
             method="fixed-lag",
@@ -400,6 +381,18 @@ class OnlineSmoother:
             causal=True,
             info=info,
         ).check()
+
+    def _leftovers(self) -> dict[str, int]:
+        """Measurements that arrived but wait for a keyframe that never closed (the IMU ended
+        first) or for a SLAM alignment: ``<stream>:after-last-keyframe``,
+        ``slam:before-alignment``."""
+        out: dict[str, int] = {}
+        for k, kind, _ in self._pending:
+            key = f"{kind}:after-last-keyframe" if k > self.k else f"{kind}:pending"
+            out[key] = out.get(key, 0) + 1
+        if self._held:
+            out["slam:before-alignment"] = len(self._held)
+        return out
 
     # ------------------------------------------------------------------------------------------
     # State
@@ -427,7 +420,7 @@ class OnlineSmoother:
         self.stamp: dict[int, float] = {}
         self._n_prov = 0
         self._drag_acc: dict[int, list] = {}
-        self._drag_means: deque = deque(maxlen=self.on.drag_scatter_n)
+        self._drag_means: deque = deque(maxlen=self.options.drag_scatter_n)
         self._drag_sigma = float(self.go.drag_model_sigma)
         self._drag_on = self.go.use_drag
         self._drag_checked = False
@@ -447,7 +440,7 @@ class OnlineSmoother:
         self.dropped[reason] = self.dropped.get(reason, 0) + n
 
     def _trim(self, buf: deque) -> None:
-        horizon = self._t_imu_last - self.on.history_s
+        horizon = self._t_imu_last - self.options.history_s
         while len(buf) > 2 and buf[0][0] < horizon:
             buf.popleft()
 
@@ -456,10 +449,25 @@ class OnlineSmoother:
             self._drop(f"{stream}:non-finite-time")
             return False
         last = self._t_last.get(stream, -math.inf)
+        jump = self.options.clock_jump_s
+        if (
+            stream != "imu"
+            and t > self._t_imu_last + jump
+            and self._t_imu_last - self._jumped_at < 2.0 * jump + 1.0
+        ):
+            # Soon after an IMU clock jump, stamped far ahead of the new clock: taken before
+            # the jump (old clock).
+            self._drop(f"{stream}:stamped-before-clock-jump")
+            return False
         if t < last:
-            if last - t <= self.on.clock_jump_s or stream != "imu":
+            if last - t <= jump:
                 self._drop(f"{stream}:out-of-order")
                 return False
+            if stream != "imu":
+                # This stream's clock went back too (the IMU's jump resets the smoother).
+                self._t_last[stream] = t
+                self._drop(f"{stream}:clock-jump", 0)
+                return True
             return True  # IMU clock jump: handled by the caller
         if t == last:
             self._drop(f"{stream}:duplicate")
@@ -516,9 +524,11 @@ class OnlineSmoother:
             return None
         if t < last:
             self.reset("imu-clock-jump")
+            self._epoch += 1
+            self._jumped_at = t
             self._t_last = {}
             self._t_last["imu"] = t
-        elif self.t0 is not None and t - last > self.on.max_imu_gap_s:
+        elif self.t0 is not None and t - last > self.options.max_imu_gap_s:
             self.reset("imu-gap")
             self._t_last = {"imu": t}
         self._use("imu")
@@ -533,7 +543,7 @@ class OnlineSmoother:
             self._try_start(t)
             return self.latest() if self.t0 is not None and self.k >= 0 else None
         closed = self._integrate(prev_t, prev_a, prev_w, t)
-        self.imu.trim(t - self.on.history_s)
+        self.imu.trim(t - self.options.history_s)
         return self.latest() if closed else None
 
     def _integrate(self, ta: float | None, a: np.ndarray, w: np.ndarray, t: float) -> bool:
@@ -555,22 +565,22 @@ class OnlineSmoother:
     def _try_start(self, t: float) -> None:
         """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
         if self.go.use_slam and self._first_slam_t is None:
-            if t - self._first_imu_t < self.on.start_wait_s:
+            if t - self._first_imu_t < self.options.start_wait_s:
                 return
             t_start = t
         elif self._first_slam_t is not None:
-            t_start = max(self._first_slam_t, self.imu.t[0] + self.on.init_imu_s)
+            t_start = max(self._first_slam_t, self.imu.t[0] + self.options.init_imu_s)
             if t < t_start:
                 return
         else:
             t_start = t
-        if t_start - self.imu.t[0] < self.on.init_imu_s:
+        if t_start - self.imu.t[0] < self.options.init_imu_s - 1e-6:
             return
         self._start(t_start)
 
     def _start(self, t_start: float) -> None:
         _o, go = self.options, self.go
-        s = self.imu.span(t_start - self.on.init_imu_s, t_start)
+        s = self.imu.span(t_start - self.options.init_imu_s, t_start)
         a = np.asarray(self.imu.a[s]) if s.stop > s.start else np.asarray(self.imu.a[-1:])
         w = np.asarray(self.imu.w[s]) if s.stop > s.start else np.asarray(self.imu.w[-1:])
         yaw0 = go.initial_yaw
@@ -582,8 +592,8 @@ class OnlineSmoother:
             R0 = level_rotation_from_accel(a.mean(axis=0), yaw0)
         gyro_b = np.zeros(3)
         still = (
-            abs(float(np.linalg.norm(a.mean(axis=0))) - go.gravity) < self.on.still_accel_tol
-            and float(np.abs(w).max()) < self.on.still_gyro_tol
+            abs(float(np.linalg.norm(a.mean(axis=0))) - go.gravity) < self.options.still_accel_tol
+            and float(np.abs(w).max()) < self.options.still_gyro_tol
             and len(w) >= 10
         )
         if still:
@@ -809,7 +819,7 @@ class OnlineSmoother:
         if n > 0.5 * self.go.gravity:
             self._thrust_sum += a / n
             self._thrust_n += 1
-        if tb - self._thrust_t0 < self.on.drag_check_s or not self._thrust_n:
+        if tb - self._thrust_t0 < self.options.drag_check_s or not self._thrust_n:
             return
         self._drag_checked = True
         d = self._thrust_sum / max(float(np.linalg.norm(self._thrust_sum)), 1e-12)
@@ -818,7 +828,7 @@ class OnlineSmoother:
             self._drag_on = False
             self._drag_acc.clear()
             self._drag_decision = (
-                f"off: the mean specific force of the first {self.on.drag_check_s:g} s is "
+                f"off: the mean specific force of the first {self.options.drag_check_s:g} s is "
                 f"{ang:.0f} deg from body +z (the drag model needs the thrust along body z)"
             )
             log.warning("%s: drag factor %s", self.name, self._drag_decision)
@@ -924,7 +934,7 @@ class OnlineSmoother:
         s.t.append(float(ev.t))
         s.p.append(p)
         s.q.append(q)
-        horizon = self._t_imu_last - self.on.history_s
+        horizon = self._t_imu_last - self.options.history_s
         while len(s.t) > 2 and s.t[0] < horizon:
             del s.t[0], s.p[0], s.q[0]
         if self.t0 is None:
@@ -1087,7 +1097,7 @@ class OnlineSmoother:
         if len(self._att) < 2 and self._pose_hist:
             t_min = max(t_min, self._pose_hist[min(self._pose_hist)][0])
         keep = (t_all >= t_min + 0.6) & (t_all <= self.imu.t[-1])
-        keep &= t_all >= t_all[-1] - self.on.slam_fit_max_s
+        keep &= t_all >= t_all[-1] - self.options.slam_fit_max_s
         if keep.sum() < 8:
             return None
         t = t_all[keep]
@@ -1375,7 +1385,7 @@ class OnlineSmoother:
             vel = np.asarray(sm.calculateEstimateVector(V(k)), float)
             bias = sm.calculateEstimateConstantBias(B(k))
             pose_cov = vel_cov = None
-            if self.on.covariance:
+            if self.options.covariance:
                 try:
                     pose_cov = np.asarray(sm.marginalCovariance(X(k)))
                     vel_cov = np.asarray(sm.marginalCovariance(V(k)))
@@ -1398,7 +1408,7 @@ class OnlineSmoother:
                 del self.t_kf[kk]
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
         self._pose_hist[k] = (self.t_kf[k], pose)
-        while len(self._pose_hist) > self.on.history_s * self.go.keyframe_hz:
+        while len(self._pose_hist) > self.options.history_s * self.go.keyframe_hz:
             del self._pose_hist[min(self._pose_hist)]
         t = self.t_kf[k]
         # Slow variables.
@@ -1421,18 +1431,21 @@ class OnlineSmoother:
             self._track_slow(t)
         self.latency.append(time.perf_counter() - wall0)
         self.out.append(self._state(k, pose, vel, bias, pose_cov, vel_cov))
+        self._out_epoch.append(self._epoch)
 
     def _track_slow(self, t: float) -> None:
         for sess, s in self.sessions.items():
             if s.last_key is not None and s.last_key in self.values and self._alive(s.last_key):
                 sc = float(self.values[s.last_key].scale())
                 self._session_scale[sess] = sc
-                self.track.setdefault("slam_scale", []).append((t, sc, sess))
+                self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
         for c, name in (("d", "drag_k"), ("g", "ground_height")):
             keys = [k for k in self.values if chr(gtsam.Symbol(k).chr()) == c and self._alive(k)]
             if keys:
                 v = np.asarray(self.values[max(keys)], float)
-                self.track.setdefault(name, []).append((t, v if len(v) > 1 else float(v[0]), 0))
+                self.track.setdefault(name, []).append(
+                    (t, v if len(v) > 1 else float(v[0]), 0, self._epoch)
+                )
 
     def _state(self, k, pose, vel, bias, pose_cov, vel_cov) -> OnlineState:
         t = self.t_kf[k]
@@ -1484,14 +1497,91 @@ def run_online(
     events,
     calib: Calibration,
     options: FixedLagOptions | None = None,
-    online: OnlineOptions | None = None,
     name: str = "online",
     progress: bool = False,
+    total: int | None = None,
 ) -> Estimate:
     """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
     :class:`OnlineSmoother`; the causal estimate."""
-    sm = OnlineSmoother(calib, options, online, name)
+    sm = OnlineSmoother(calib, options, name)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc="online", unit="ev", mininterval=0.5)
     t_wall = time.perf_counter()
-    for ev in events:
+    for i, ev in enumerate(events):
         sm.feed(ev)
-    return sm.result(time.perf_counter() - t_wall)
+        if bar is not None and i % 1000 == 999:
+            bar.update(1000)
+    runtime = time.perf_counter() - t_wall
+    if bar is not None:
+        bar.close()
+    return sm.result(runtime)
+
+
+ENGINES = ("auto", "push", "prepared")
+"""Values of ``FixedLagOptions.engine``."""
+
+#: Streams the push engine replays from a flight (images and flow are counted as not used).
+PUSH_STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow")
+
+
+def push_engine_gap(flight, options: FixedLagOptions, priors: Any = None) -> str | None:
+    """What of this flight and these options the push engine does not run yet (None: nothing):
+    camera images with homography factors on, seed 000's per-axis SLAM model, front-end priors.
+    Decided from the configuration and the streams present, never from their content."""
+    from fgnav.solvers.vision import resolve_use_homography
+
+    go = options.graph
+    if go.use_homography is not False and flight.images is not None:
+        if resolve_use_homography(
+            flight, go.use_homography, go.use_range and flight.range is not None
+        ):
+            return "camera images (homography factors)"
+    model = go.slam_model
+    if model == "auto":
+        truth = flight.meta.get("truth", {}) if isinstance(flight.meta, dict) else {}
+        if isinstance(truth, dict) and truth.get("slam_axis_scale") not in (None, (), []):
+            model = "axis"  # the simulator's per-axis SLAM (seed 000): a configuration fact
+    if go.use_slam and flight.slam is not None and model == "axis":
+        return "seed 000's per-axis SLAM model"
+    if priors is not None:
+        return "front-end priors"
+    return None
+
+
+def resolve_engine(flight, options: FixedLagOptions, priors: Any = None) -> tuple[str, str | None]:
+    """``(engine, why)``: the engine that runs ``flight`` and, when ``"auto"`` falls back to
+    ``"prepared"``, the reason."""
+    if options.engine not in ENGINES:
+        raise FlightDataError(
+            f"FixedLagOptions.engine={options.engine!r}: expected one of {', '.join(ENGINES)}"
+        )
+    if options.engine != "auto":
+        return options.engine, None
+    gap = push_engine_gap(flight, options, priors)
+    return ("prepared", gap) if gap else ("push", None)
+
+
+def replay_online(
+    flight, options: FixedLagOptions | None = None, progress: bool = False
+) -> Estimate:
+    """A flight's events, in arrival order, through an :class:`OnlineSmoother` (the smoother
+    gets the calibration and the events only; ground truth and metadata are never read)."""
+    from fgnav.datasets.events import replay_flight
+
+    flight.check()
+    options = options or FixedLagOptions()
+    if flight.imu is None:
+        raise FlightDataError(f"{flight.name}: no IMU stream; the online smoother needs one")
+    if options is not None and options.graph.use_slam and flight.slam is not None:
+        # A check of the file, not an input to the estimator: SLAM stamped on another clock
+        # would only wait for keyframes that never come.
+        flight.require_overlap("imu", "slam")
+    streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
+    total = sum(len(getattr(flight, n)) for n in streams)
+    est = run_online(
+        replay_flight(flight, streams), flight.calib, options, flight.name, progress, total
+    )
+    return est
