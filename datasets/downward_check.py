@@ -1,0 +1,151 @@
+"""Downward sensors against ground truth: the rangefinder's scale/offset/noise and the flow
+sensor's pixels per radian, sign and residual correlation, from a flight's truth trajectory.
+
+Diagnostics for a reader's calibration (numpy only, no estimator): the truth supplies height,
+tilt and body velocity; the gyro supplies the angular rate over each flow interval.
+
+* :func:`range_vs_truth`: least-squares ``range = scale * z / cos(tilt) + offset`` over the
+  airborne samples (truth height above ``min_height``), ``z`` the truth height of the body origin
+  over ``ground`` (the floor at ``z = 0`` of the truth frame by default) and ``cos(tilt)`` the
+  beam's (body -z) angle from the vertical. The offset is the sensor's position below the body
+  origin plus any ranging offset; ``offset_fixed_scale`` is the mean of ``range - z / cos(tilt)``.
+* :func:`flow_vs_truth`: prediction in fgnav's flow convention (``FlowSeries``) for a sensor at
+  the body origin with ``body_T_flow = DOWNWARD_FLOW`` (per pixel-per-radian):
+  ``p = dt [-v_x / d - w_y, -v_y / d + w_x]`` in sensor axes, with ``v`` the truth velocity in
+  body axes at the interval's middle (Savitzky-Golay derivative of the truth position resampled
+  at 300 Hz, 0.1 s window), ``w`` the mean gyro rate over the interval and ``d`` the measured
+  range at the interval's middle (interpolated). Fitted per axis ``flow = k p`` through the
+  origin on samples above ``min_height``; ``k`` is the sensor's pixels per radian (positive when
+  the axes are right), the residual is in flow units, and ``lag1`` is the correlation of
+  consecutive x residuals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import FlightDataError
+from .geometry import interpolate_quat_wxyz, quat_wxyz_to_matrix
+from .types import Flight
+
+RESAMPLE_HZ = 300.0
+SAVGOL_WINDOW = 31
+"""Samples of the Savitzky-Golay derivative window at :data:`RESAMPLE_HZ` (about 0.1 s)."""
+
+
+@dataclass(frozen=True)
+class RangeFit:
+    """``range = scale * z / cos(tilt) + offset`` over ``samples`` airborne readings [m]."""
+
+    scale: float
+    offset: float
+    noise: float
+    offset_fixed_scale: float
+    noise_fixed_scale: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class FlowFit:
+    """Per-axis pixels per radian, correlation and residual of the flow against the truth."""
+
+    pixels_per_rad: tuple[float, float]
+    correlation: tuple[float, float]
+    residual_std: float
+    residual_std_after_gap: float
+    lag1: float
+    samples: int
+    samples_after_gap: int
+
+
+def _need(flight: Flight, *streams: str) -> None:
+    missing = [s for s in streams if getattr(flight, s) is None]
+    if missing:
+        raise FlightDataError(f"{flight.name}: needs the stream(s) {missing}")
+
+
+def _tilt_cos(flight: Flight, t: np.ndarray) -> np.ndarray:
+    gt = flight.ground_truth
+    R = quat_wxyz_to_matrix(interpolate_quat_wxyz(gt.t, gt.world_q_body_wxyz, t))
+    return R[:, 2, 2]
+
+
+def range_vs_truth(flight: Flight, min_height: float = 0.15, ground: float = 0.0) -> RangeFit:
+    """Fit the range stream to the truth height (module docstring)."""
+    _need(flight, "range", "ground_truth")
+    gt, rng = flight.ground_truth, flight.range
+    inside = (rng.t >= gt.t[0]) & (rng.t <= gt.t[-1])
+    t, r = rng.t[inside], rng.range[inside]
+    z = np.interp(t, gt.t, gt.world_t_body[:, 2]) - ground
+    x = z / _tilt_cos(flight, t)
+    air = z > min_height
+    if np.count_nonzero(air) < 10:
+        raise FlightDataError(f"{flight.name}: fewer than 10 range samples above {min_height} m")
+    A = np.column_stack([x[air], np.ones(np.count_nonzero(air))])
+    (scale, offset), *_ = np.linalg.lstsq(A, r[air], rcond=None)
+    d = r[air] - x[air]
+    return RangeFit(
+        scale=float(scale),
+        offset=float(offset),
+        noise=float(np.std(r[air] - A @ [scale, offset])),
+        offset_fixed_scale=float(d.mean()),
+        noise_fixed_scale=float(d.std()),
+        samples=int(np.count_nonzero(air)),
+    )
+
+
+def flow_prediction(flight: Flight, dt: np.ndarray | None = None) -> np.ndarray:
+    """(N, 2) flow per pixel-per-radian predicted from the truth, gyro and range (module doc);
+    ``dt`` replaces the stream's intervals (e.g. to test another interval convention)."""
+    _need(flight, "flow", "ground_truth", "imu", "range")
+    from scipy.signal import savgol_filter
+
+    gt, imu, flow, rng = flight.ground_truth, flight.imu, flight.flow, flight.range
+    dt = flow.dt if dt is None else np.asarray(dt, dtype=float)
+    tu = np.arange(gt.t[0], gt.t[-1], 1.0 / RESAMPLE_HZ)
+    pu = np.column_stack([np.interp(tu, gt.t, gt.world_t_body[:, i]) for i in range(3)])
+    vu = savgol_filter(pu, SAVGOL_WINDOW, 2, deriv=1, delta=1.0 / RESAMPLE_HZ, axis=0)
+    tm = flow.t - dt / 2
+    v = np.column_stack([np.interp(tm, tu, vu[:, i]) for i in range(3)])
+    R = quat_wxyz_to_matrix(interpolate_quat_wxyz(gt.t, gt.world_q_body_wxyz, tm))
+    v_body = np.einsum("nji,nj->ni", R, v)
+    # Mean gyro over [t - dt, t] from the running integral of the rate.
+    step = np.diff(imu.t, prepend=imu.t[0])
+    integral = np.cumsum(imu.body_omega * step[:, None], axis=0)
+    w = np.column_stack(
+        [np.interp(flow.t, imu.t, integral[:, i]) - np.interp(flow.t - dt, imu.t, integral[:, i])
+         for i in range(3)]
+    ) / dt[:, None]
+    d = np.interp(tm, rng.t, rng.range)
+    # Sensor axes (DOWNWARD_FLOW): x = body x, y = -body y; w_sensor = (w_x, -w_y).
+    return np.column_stack([dt * (-v_body[:, 0] / d + w[:, 1]), dt * (v_body[:, 1] / d + w[:, 0])])
+
+
+def flow_vs_truth(
+    flight: Flight, min_height: float = 0.3, dt: np.ndarray | None = None, gap_factor: float = 1.5
+) -> FlowFit:
+    """Fit the flow stream to its truth prediction (module docstring). Samples whose step from
+    the previous one exceeds ``gap_factor`` median steps are "after a gap"."""
+    p = flow_prediction(flight, dt)
+    flow, gt = flight.flow, flight.ground_truth
+    z = np.interp(flow.t, gt.t, gt.world_t_body[:, 2])
+    m = (z > min_height) & (flow.t >= gt.t[0]) & (flow.t <= gt.t[-1])
+    if np.count_nonzero(m) < 10:
+        raise FlightDataError(f"{flight.name}: fewer than 10 flow samples above {min_height} m")
+    k = [float(flow.flow[m, i] @ p[m, i] / (p[m, i] @ p[m, i])) for i in range(2)]
+    corr = [float(np.corrcoef(flow.flow[m, i], p[m, i])[0, 1]) for i in range(2)]
+    res = flow.flow - p * np.asarray(k)
+    step = np.diff(flow.t, prepend=-np.inf)
+    gap = step > gap_factor * np.median(np.diff(flow.t))
+    rx = res[m, 0]
+    return FlowFit(
+        pixels_per_rad=(k[0], k[1]),
+        correlation=(corr[0], corr[1]),
+        residual_std=float(res[m].std()),
+        residual_std_after_gap=float(res[m & gap].std()) if np.any(m & gap) else float("nan"),
+        lag1=float(np.corrcoef(rx[1:], rx[:-1])[0, 1]),
+        samples=int(np.count_nonzero(m)),
+        samples_after_gap=int(np.count_nonzero(m & gap)),
+    )
