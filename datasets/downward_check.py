@@ -15,9 +15,11 @@ tilt and body velocity; the gyro supplies the angular rate over each flow interv
   body axes at the interval's middle (Savitzky-Golay derivative of the truth position resampled
   at 300 Hz, 0.1 s window), ``w`` the mean gyro rate over the interval and ``d`` the measured
   range at the interval's middle (interpolated). Fitted per axis ``flow = k p`` through the
-  origin on samples above ``min_height``; ``k`` is the sensor's pixels per radian (positive when
-  the axes are right), the residual is in flow units, and ``lag1`` is the correlation of
-  consecutive x residuals.
+  origin on the samples above ``min_height`` that follow their predecessor within a loop (their
+  interval is known); ``k`` is the sensor's pixels per radian (positive when the axes are right),
+  the residual is in flow units, and ``lag1`` is the correlation of consecutive x residuals. The
+  samples after a gap are scored with the same ``k`` (see :func:`flow_vs_truth`). The lever arm
+  is not modelled (the sensor is taken at the body origin: 4 cm x the angular rate).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class FlowFit:
     correlation: tuple[float, float]
     residual_std: float
     residual_std_after_gap: float
+    after_gap_interval_ratio: float
     lag1: float
     samples: int
     samples_after_gap: int
@@ -114,10 +117,16 @@ def flow_prediction(flight: Flight, dt: np.ndarray | None = None) -> np.ndarray:
     # Mean gyro over [t - dt, t] from the running integral of the rate.
     step = np.diff(imu.t, prepend=imu.t[0])
     integral = np.cumsum(imu.body_omega * step[:, None], axis=0)
-    w = np.column_stack(
-        [np.interp(flow.t, imu.t, integral[:, i]) - np.interp(flow.t - dt, imu.t, integral[:, i])
-         for i in range(3)]
-    ) / dt[:, None]
+    w = (
+        np.column_stack(
+            [
+                np.interp(flow.t, imu.t, integral[:, i])
+                - np.interp(flow.t - dt, imu.t, integral[:, i])
+                for i in range(3)
+            ]
+        )
+        / dt[:, None]
+    )
     d = np.interp(tm, rng.t, rng.range)
     # Sensor axes (DOWNWARD_FLOW): x = body x, y = -body y; w_sensor = (w_x, -w_y).
     return np.column_stack([dt * (-v_body[:, 0] / d + w[:, 1]), dt * (v_body[:, 1] / d + w[:, 0])])
@@ -126,26 +135,42 @@ def flow_prediction(flight: Flight, dt: np.ndarray | None = None) -> np.ndarray:
 def flow_vs_truth(
     flight: Flight, min_height: float = 0.3, dt: np.ndarray | None = None, gap_factor: float = 1.5
 ) -> FlowFit:
-    """Fit the flow stream to its truth prediction (module docstring). Samples whose step from
-    the previous one exceeds ``gap_factor`` median steps are "after a gap"."""
+    """Fit the flow stream to its truth prediction (module docstring).
+
+    A sample whose step from the previous one exceeds ``gap_factor`` median steps is "after a
+    gap": its interval is not known from the stamps. The scale ``k`` is fitted on the other
+    (consecutive) samples above ``min_height``; the after-gap samples are scored with that ``k``
+    (``residual_std_after_gap``: a test of the interval convention ``dt``), and
+    ``after_gap_interval_ratio`` is the scale fitted on them alone over ``k`` (mean of the axes):
+    the motion they carry in units of their ``dt``.
+    """
     p = flow_prediction(flight, dt)
     flow, gt = flight.flow, flight.ground_truth
     z = np.interp(flow.t, gt.t, gt.world_t_body[:, 2])
-    m = (z > min_height) & (flow.t >= gt.t[0]) & (flow.t <= gt.t[-1])
-    if np.count_nonzero(m) < 10:
-        raise FlightDataError(f"{flight.name}: fewer than 10 flow samples above {min_height} m")
-    k = [float(flow.flow[m, i] @ p[m, i] / (p[m, i] @ p[m, i])) for i in range(2)]
-    corr = [float(np.corrcoef(flow.flow[m, i], p[m, i])[0, 1]) for i in range(2)]
-    res = flow.flow - p * np.asarray(k)
+    air = (z > min_height) & (flow.t >= gt.t[0]) & (flow.t <= gt.t[-1])
     step = np.diff(flow.t, prepend=-np.inf)
     gap = step > gap_factor * np.median(np.diff(flow.t))
+    m, g = air & ~gap, air & gap
+    if np.count_nonzero(m) < 10:
+        raise FlightDataError(f"{flight.name}: fewer than 10 flow samples above {min_height} m")
+
+    def scale(mask: np.ndarray, i: int) -> float:
+        return float(flow.flow[mask, i] @ p[mask, i] / (p[mask, i] @ p[mask, i]))
+
+    k = [scale(m, i) for i in range(2)]
+    corr = [float(np.corrcoef(flow.flow[m, i], p[m, i])[0, 1]) for i in range(2)]
+    res = flow.flow - p * np.asarray(k)
     rx = res[m, 0]
+    has_gap = np.count_nonzero(g) >= 10
     return FlowFit(
         pixels_per_rad=(k[0], k[1]),
         correlation=(corr[0], corr[1]),
         residual_std=float(res[m].std()),
-        residual_std_after_gap=float(res[m & gap].std()) if np.any(m & gap) else float("nan"),
+        residual_std_after_gap=float(res[g].std()) if has_gap else float("nan"),
+        after_gap_interval_ratio=float(np.mean([scale(g, i) / k[i] for i in range(2)]))
+        if has_gap
+        else float("nan"),
         lag1=float(np.corrcoef(rx[1:], rx[:-1])[0, 1]),
         samples=int(np.count_nonzero(m)),
-        samples_after_gap=int(np.count_nonzero(m & gap)),
+        samples_after_gap=int(np.count_nonzero(g)),
     )
