@@ -57,8 +57,11 @@ data set; field names as the README gives them):
 * ``estPose`` (``locSrv.x/y/z`` m, ``locSrv.qx/qy/qz/qw``: the Vicon pose streamed to the
   vehicle) -> ``flight.ground_truth`` (quaternion reordered to ``[w, x, y, z]`` and
   renormalised from float32). Exact repeats of the previous pose (the same values logged again)
-  are left out and counted. Poses are stamped on arrival, about 2 ms after the IMU (README:
-  -1.8 +/- 1.5 ms against the gyro); this reader does not shift them (``meta["ground_truth"]``).
+  are left out and counted. ``world_v_body`` is derived (not logged): the centred
+  Savitzky-Golay derivative of the positions over :data:`GT_VELOCITY_WINDOW_S` (the positions
+  are quantised to 1 mm; README: differentiate only after a low-pass). Poses are stamped on
+  arrival, about 2 ms after the IMU (README: -1.8 +/- 1.5 ms against the gyro); this reader does
+  not shift them (``meta["ground_truth"]``).
 * ``estBarometer`` (``baro.asl`` m): fgnav has no barometer stream; a summary goes to
   ``meta["barometer"]`` (:func:`decode_crazyflie_log` gives the samples).
 * Every other event type (UWB ``estTDOA``, ...) is counted in ``meta["crazyflie_events"]``.
@@ -100,7 +103,7 @@ from typing import Any
 import numpy as np
 
 from .errors import FlightFormatError
-from .geometry import make_pose
+from .geometry import make_pose, velocity_from_positions
 from .types import (
     DOWNWARD_FLOW,
     DOWNWARD_RANGE,
@@ -176,6 +179,11 @@ CRAZYFLIE_IMU_NOISE = ImuNoise(gyro_noise_density=1.7e-4, accel_noise_density=2.
 """BMI088 on the Crazyflie 2.1, measured on the UTIL logs' still starts (module docstring):
 gyro 1.7e-4 rad/s/sqrt(Hz) (axes 1.0, 2.0, 1.9e-4), accel 2.4e-3 m/s^2/sqrt(Hz) (2.0, 3.4,
 1.1e-3); random walks fgnav's defaults."""
+
+GT_VELOCITY_WINDOW_S = 0.1
+GT_VELOCITY_RATE_HZ = 300.0
+"""Ground-truth velocity: centred Savitzky-Golay derivative over 0.1 s on a 300 Hz resampling of
+the Vicon positions (:func:`.geometry.velocity_from_positions`)."""
 
 IMU_EVENTS = ("estGyroscope", "estAcceleration")
 GYRO_FIELDS = ("gyro.x", "gyro.y", "gyro.z")
@@ -665,7 +673,14 @@ def ground_truth_from_log(cf: CrazyflieLog) -> tuple[Trajectory | None, dict[str
         return None, notes
     q = q_xyzw[keep] / norm[keep, None]
     q_wxyz = np.column_stack([q[:, 3], q[:, :3]])
-    return Trajectory(t=t[keep], world_t_body=vals[keep, :3], world_q_body_wxyz=q_wxyz), notes
+    p = vals[keep, :3]
+    v = velocity_from_positions(t[keep], p, GT_VELOCITY_WINDOW_S, GT_VELOCITY_RATE_HZ)
+    notes["velocity"] = (
+        f"derived: Savitzky-Golay derivative of the positions ({GT_VELOCITY_WINDOW_S:g} s window "
+        f"on a {GT_VELOCITY_RATE_HZ:g} Hz resampling; Vicon positions are quantised to 1 mm)"
+    )
+    traj = Trajectory(t=t[keep], world_t_body=p, world_q_body_wxyz=q_wxyz, world_v_body=v)
+    return traj, notes
 
 
 def barometer_summary(cf: CrazyflieLog) -> dict[str, Any] | None:

@@ -12,14 +12,15 @@ tilt and body velocity; the gyro supplies the angular rate over each flow interv
 * :func:`flow_vs_truth`: prediction in fgnav's flow convention (``FlowSeries``) for a sensor at
   the body origin with ``body_T_flow = DOWNWARD_FLOW`` (per pixel-per-radian):
   ``p = dt [-v_x / d - w_y, -v_y / d + w_x]`` in sensor axes, with ``v`` the truth velocity in
-  body axes at the interval's middle (Savitzky-Golay derivative of the truth position resampled
-  at 300 Hz, 0.1 s window), ``w`` the mean gyro rate over the interval and ``d`` the measured
-  range at the interval's middle (interpolated). Fitted per axis ``flow = k p`` through the
-  origin on the samples above ``min_height`` that follow their predecessor within a loop (their
-  interval is known); ``k`` is the sensor's pixels per radian (positive when the axes are right),
-  the residual is in flow units, and ``lag1`` is the correlation of consecutive x residuals. The
-  samples after a gap are scored with the same ``k`` (see :func:`flow_vs_truth`). The lever arm
-  is not modelled (the sensor is taken at the body origin: 4 cm x the angular rate).
+  body axes at the interval's middle (the truth's velocity, or a Savitzky-Golay derivative of
+  its positions resampled at 300 Hz, 0.1 s window), ``w`` the mean gyro rate over the interval
+  and ``d`` the measured range at the interval's middle (interpolated). Fitted per axis
+  ``flow = k p`` through the origin on the samples above ``min_height`` that follow their
+  predecessor within a loop (their interval is known); ``k`` is the sensor's pixels per radian
+  (positive when the axes are right), the residual is in flow units, and ``lag1`` is the
+  correlation of consecutive x residuals. The samples after a gap are scored with the same ``k``
+  (see :func:`flow_vs_truth`). The lever arm is not modelled (the sensor is taken at the body
+  origin: 4 cm x the angular rate).
 """
 
 from __future__ import annotations
@@ -29,12 +30,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import FlightDataError
-from .geometry import interpolate_quat_wxyz, quat_wxyz_to_matrix
+from .geometry import interpolate_quat_wxyz, quat_wxyz_to_matrix, velocity_from_positions
 from .types import Flight
 
 RESAMPLE_HZ = 300.0
-SAVGOL_WINDOW = 31
-"""Samples of the Savitzky-Golay derivative window at :data:`RESAMPLE_HZ` (about 0.1 s)."""
+SAVGOL_WINDOW_S = 0.1
+"""Savitzky-Golay derivative window [s] for a truth without velocity (resampled at
+:data:`RESAMPLE_HZ`; :func:`.geometry.velocity_from_positions`)."""
 
 
 @dataclass(frozen=True)
@@ -103,15 +105,13 @@ def flow_prediction(flight: Flight, dt: np.ndarray | None = None) -> np.ndarray:
     """(N, 2) flow per pixel-per-radian predicted from the truth, gyro and range (module doc);
     ``dt`` replaces the stream's intervals (e.g. to test another interval convention)."""
     _need(flight, "flow", "ground_truth", "imu", "range")
-    from scipy.signal import savgol_filter
-
     gt, imu, flow, rng = flight.ground_truth, flight.imu, flight.flow, flight.range
     dt = flow.dt if dt is None else np.asarray(dt, dtype=float)
-    tu = np.arange(gt.t[0], gt.t[-1], 1.0 / RESAMPLE_HZ)
-    pu = np.column_stack([np.interp(tu, gt.t, gt.world_t_body[:, i]) for i in range(3)])
-    vu = savgol_filter(pu, SAVGOL_WINDOW, 2, deriv=1, delta=1.0 / RESAMPLE_HZ, axis=0)
+    v_gt = gt.world_v_body
+    if v_gt is None:
+        v_gt = velocity_from_positions(gt.t, gt.world_t_body, SAVGOL_WINDOW_S, RESAMPLE_HZ)
     tm = flow.t - dt / 2
-    v = np.column_stack([np.interp(tm, tu, vu[:, i]) for i in range(3)])
+    v = np.column_stack([np.interp(tm, gt.t, v_gt[:, i]) for i in range(3)])
     R = quat_wxyz_to_matrix(interpolate_quat_wxyz(gt.t, gt.world_q_body_wxyz, tm))
     v_body = np.einsum("nji,nj->ni", R, v)
     # Mean gyro over [t - dt, t] from the running integral of the rate.

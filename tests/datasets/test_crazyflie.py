@@ -501,6 +501,28 @@ def test_util_flow_axes_scale_and_interval(util_flights):
 
 
 @pytest.mark.realdata
+def test_util_ground_truth_velocity_integrates_to_the_positions(util_flights):
+    for name, f in util_flights.items():
+        gt = f.ground_truth
+        assert gt.world_v_body is not None and "derived" in f.meta["ground_truth"]["velocity"]
+        # Over every 1 s window the integrated velocity matches the displacement.
+        steps = np.diff(gt.t)[:, None]
+        disp = np.vstack(
+            [
+                np.zeros(3),
+                np.cumsum(0.5 * (gt.world_v_body[1:] + gt.world_v_body[:-1]) * steps, axis=0),
+            ]
+        )
+        k = np.searchsorted(gt.t, gt.t + 1.0)
+        ok = k < len(gt)
+        err = (disp[k[ok]] - disp[ok]) - (gt.world_t_body[k[ok]] - gt.world_t_body[ok])
+        assert np.sqrt(np.mean(err**2)) < 0.002, (name, np.sqrt(np.mean(err**2)))  # 0.8-1.3 mm
+        assert np.abs(err).max() < 0.04, (name, np.abs(err).max())  # 0.8-3.2 cm
+        speed = np.linalg.norm(gt.world_v_body[:, :2], axis=1)
+        assert 0.6 < speed.max() < 2.0, name  # horizontal: 0.67-1.43 m/s
+
+
+@pytest.mark.realdata
 def test_util_gyro_agrees_with_vicon_attitude(util_flights):
     """FLU body and [w, x, y, z]: the body rate of the Vicon attitude over 0.2 s follows the gyro
     with slope 1 on every axis (Vicon rates regressed on the gyro's: Vicon is the noisy one)."""
