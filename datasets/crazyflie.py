@@ -39,17 +39,18 @@ data set; field names as the README gives them):
   w_x)`` in body FLU; fgnav's flow sensor frame (``DOWNWARD_FLOW``: x forward, y right, z down)
   has ``flow = k dt [-v_x / d - w_y, -v_y / d + w_x]`` in sensor axes, i.e. ``[-NX, NY]``, so
   ``flow = 0.1 * [deltaY, -deltaX]`` and ``calib.flow_pixels_per_rad = 35 / 0.71674``.
-  Integration interval: not logged. The firmware reads the sensor every
-  ``vTaskDelay(10)`` (about 9.9 ms) and enqueues (logs) only reads with valid motion; a read
-  clears the sensor's counters, so a sample integrates over one loop, also after a gap. ``dt``
-  is the step from the previous logged sample when that step is at most
-  :data:`FLOW_GAP_FACTOR` loops, else one loop; the loop period is the median step of the file.
+  Integration interval: not logged. The firmware reads the sensor every ``vTaskDelay(10)``
+  (about 9.9 ms) and enqueues (logs) only reads with valid motion; the sensor clears its counts
+  on a read, so the current driver takes one loop as the interval of every sample (its 2021
+  version took the time since the previous valid sample). ``dt`` is the step from the previous
+  logged sample when that step is at most :data:`FLOW_GAP_FACTOR` loops, else one loop; the loop
+  period is the median step of the file.
   Samples after a gap (and the first one) are counted in ``meta["flow"]``; a sample is after a
   gap exactly when ``t[i] - t[i-1] > dt[i]``. Measured against Vicon on the seven UTIL flights
   (``downward_check.flow_vs_truth``, scale fitted on the consecutive samples): one loop predicts
   the after-gap samples better than the step since the previous logged sample (residual 0.17-0.24
   against 0.19-0.25 px on every flight), but they carry 1.28-1.46 loops of motion on average
-  (1.3 after 2-loop steps, 1.6 after 3-loop steps on traj1): some reads of the gap did not clear
+  (1.3 after 2-loop steps, 1.6 after 3-loop steps on traj1): some reads in a gap do not clear
   the counts. Their interval is therefore uncertain by about 30 %; a factor may down-weight them.
 * ``estTOF`` (``range.zrange`` mm, VL53L1x pointing down) -> ``flight.range`` in m. Readings of
   0 mm (no valid target: seen on the ground and at landing) are left out and counted; other
