@@ -5,7 +5,11 @@
 - EuRoC ``mav0`` folder (or its parent): :func:`fgnav.datasets.euroc.read_euroc_folder`;
 - ``*.ulg`` file: ``fgnav.datasets.ulog.read_ulog``;
 - ``*.bag`` file, ROS 2 bag folder (has ``metadata.yaml``) or its ``*.db3``/``*.mcap`` file:
-  ``fgnav.datasets.rosbag.read_bag`` (``topics`` maps fgnav stream names to topic names).
+  ``fgnav.datasets.rosbag.read_bag`` (``topics`` maps fgnav stream names to topic names);
+- any other file that is a Crazyflie SD-card log (recognised by its content, not its name:
+  magic byte, version, the whole header and the CRC-32 check;
+  :func:`fgnav.datasets.crazyflie.is_crazyflie_log`): ``fgnav.datasets.crazyflie.read_crazyflie``.
+  A file that starts with the log's magic byte but fails a check is an error giving the reason.
 
 The ULog and ROS readers are imported only when such a file is read (their dependencies are
 heavier). Anything else is an error naming the path and listing these formats.
@@ -26,6 +30,7 @@ SUPPORTED = (
     "PX4 ULog (*.ulg)",
     "ROS 1 bag (*.bag)",
     "ROS 2 bag folder (with metadata.yaml) or its *.db3/*.mcap file",
+    "Crazyflie SD-card log (any name; recognised by header and CRC)",
 )
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
@@ -47,6 +52,11 @@ def lazy_reader(module: str, function: str, path: Path):
 
 def _is_euroc(p: Path) -> bool:
     return (p / "imu0" / "data.csv").is_file() or (p / "mav0" / "imu0" / "data.csv").is_file()
+
+
+def _starts_with(p: Path, byte: int) -> bool:
+    with p.open("rb") as f:
+        return f.read(1) == bytes([byte])
 
 
 def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Flight:
@@ -89,6 +99,17 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
         return lazy_reader("ulog", "read_ulog", p)(p)
     elif is_bag:
         return lazy_reader("rosbag", "read_bag", p)(p, topics=topics)
+    elif p.is_file():
+        from . import crazyflie
+
+        problem = crazyflie.check_crazyflie_log(p)
+        if problem is None:
+            return crazyflie.read_crazyflie(p)
+        if _starts_with(p, crazyflie.MAGIC):
+            raise FlightFormatError(
+                p, f"starts with the Crazyflie log magic byte 0x{crazyflie.MAGIC:X} but is not "
+                f"a readable Crazyflie SD-card log: {problem}"
+            )
     raise FlightFormatError(
         p, "not a recognised flight input; supported: " + "; ".join(SUPPORTED)
     )

@@ -48,15 +48,19 @@ Keys of a stream table: ``format`` and ``path`` (required), ``time_offset_s`` (a
 stream's times to put it on the flight's clock; recorded in ``calib.time_offsets``), and per
 format: ``session`` (``tum_slam``: map id of its poses), ``time_unit`` (``tum``, ``tum_slam``:
 ``"auto"``, ``"s"``, ``"ns"``), ``stream`` (``ulog``: which stream of the log's flight to take,
-default the table's name, ``ref:<name>`` for ``[references.<name>]``, e.g. ``"ref:px4_ekf2"``) and
+default the table's name, ``ref:<name>`` for ``[references.<name>]``, e.g. ``"ref:px4_ekf2"``;
+``crazyflie`` takes the same key, e.g. ``[references.vicon] stream = "ground_truth"``) and
 ``topic`` (``rosbag``, required: the topic of this stream); ``[slam]`` also takes
 ``slam_rotation`` (``"auto"``, ``"as-is"``, ``"inverse"``) and ``slam_time_offset`` (``"report"``,
 ``"apply"`` or seconds): this file's SLAM-vs-gyro options (:mod:`.slam_gyro`), which win over a
 config's ``[graph]`` table (they go to ``flight.meta["slam_options"]``). A log read by several
-tables is read once (ULog) or once per topic (bags); ``[calib] format = "ulog"`` takes the log's
-calibration (rangefinder pose and limits from PX4 parameters). Unknown keys, tables and formats
-are errors naming the manifest, table and key and listing the valid ones; a missing file is an
-error naming the resolved path.
+tables is read once (ULog, Crazyflie) or once per topic (bags); ``[calib] format = "ulog"`` takes
+the log's calibration (rangefinder pose and limits from PX4 parameters), ``[calib] format =
+"crazyflie"`` the Crazyflie reader's (:func:`.crazyflie.crazyflie_calibration`); ``[calib] format
+= "native"`` (a ``calib.yaml``) sets every calibration value yourself, flow sensor included.
+``[flow]`` (``crazyflie`` or ``native_csv``) is the optical-flow stream. Unknown keys, tables and
+formats are errors naming the manifest, table and key and listing the valid ones; a missing file
+is an error naming the resolved path.
 Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
 """
 
@@ -88,14 +92,15 @@ from .types import Calibration, Flight
 log = logging.getLogger(__name__)
 
 TABLE_FORMATS: dict[str, tuple[str, ...]] = {
-    "imu": ("euroc", "native_csv", "ulog", "rosbag"),
+    "imu": ("euroc", "native_csv", "ulog", "rosbag", "crazyflie"),
     "attitude": ("native_csv", "ulog", "rosbag"),
-    "range": ("native_csv", "ulog", "rosbag"),
+    "range": ("native_csv", "ulog", "rosbag", "crazyflie"),
     "yaw": ("native_csv", "ulog"),
     "slam": ("tum_slam", "native_csv", "rosbag"),
     "images": ("euroc", "rosbag"),
-    "ground_truth": ("tum", "euroc", "native_csv", "ulog", "rosbag"),
-    "calib": ("orbslam3_yaml", "native", "ulog"),
+    "flow": ("native_csv", "crazyflie"),
+    "ground_truth": ("tum", "euroc", "native_csv", "ulog", "rosbag", "crazyflie"),
+    "calib": ("orbslam3_yaml", "native", "ulog", "crazyflie"),
 }
 """Stream tables and the formats each accepts (``[references.<name>]`` takes those of
 ``ground_truth``)."""
@@ -113,8 +118,11 @@ _FORMAT_KEYS: dict[str, tuple[str, ...]] = {
     "tum": ("time_unit",),
     "tum_slam": ("time_unit", "session"),
     "ulog": ("stream",),
+    "crazyflie": ("stream",),
     "rosbag": ("topic",),
 }
+LOG_FORMATS = ("ulog", "crazyflie", "rosbag")
+"""Formats whose file is a whole flight log (read once per manifest, the table's stream taken)."""
 
 
 def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]) -> str:
@@ -128,7 +136,7 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
         )
     if table == "calib":
         valid = ("format", "path")
-        if fmt == "ulog":
+        if fmt in ("ulog", "crazyflie"):
             valid += ("stream",)
     else:
         valid = _COMMON_KEYS + _FORMAT_KEYS.get(fmt, ())
@@ -230,6 +238,8 @@ class _LogCache:
         if key not in self.flights:
             if fmt == "ulog":
                 flight = lazy_reader("ulog", "read_ulog", path)(path)
+            elif fmt == "crazyflie":
+                flight = lazy_reader("crazyflie", "read_crazyflie", path)(path)
             else:
                 flight = lazy_reader("rosbag", "read_bag", path)(path, topics={stream: topic})
             self.flights[key] = flight
@@ -309,7 +319,7 @@ def read_manifest(path: str | Path) -> Flight:
         p = _resolve(manifest, root, "calib", doc["calib"]["path"])
         if fmt == "orbslam3_yaml":
             calib = read_orbslam3_yaml(p, notes=notes)
-        elif fmt == "ulog":
+        elif fmt in ("ulog", "crazyflie"):
             calib = logs.get(fmt, p, "calib", "calib", None, notes).calib
         else:
             calib = read_calib_yaml(p)
@@ -330,7 +340,7 @@ def read_manifest(path: str | Path) -> Flight:
     for table, kind, spec, formats in jobs:
         fmt = _check_table(manifest, table, spec, formats)
         p = _resolve(manifest, root, table, spec["path"])
-        if fmt in ("ulog", "rosbag"):
+        if fmt in LOG_FORMATS:
             default = f"ref:{table.split('.', 1)[1]}" if kind == "references" else kind
             series = logs.stream(
                 fmt, p, table, spec.get("stream", default), spec.get("topic"), notes

@@ -19,6 +19,7 @@ from fgnav.datasets.types import (
     STREAMS,
     Calibration,
     Flight,
+    FlowSeries,
     ImageSeries,
     RangeSeries,
     SlamSeries,
@@ -191,6 +192,11 @@ def _details(s: Any) -> str:
         return f"range {float(np.min(s.range)):.2f} .. {float(np.max(s.range)):.2f} m" + (
             "; quality" if s.quality is not None else ""
         )
+    if isinstance(s, FlowSeries):
+        return (
+            f"dt median {float(np.median(s.dt)) * 1e3:.2f} ms; |flow| max "
+            f"{float(np.abs(s.flow).max()):.2f} px" + ("; quality" if s.quality is not None else "")
+        )
     if isinstance(s, ImageSeries):
         where = "in memory" if s.frames is not None else "files"
         cam = f"{s.camera.width}x{s.camera.height} " if s.camera is not None else ""
@@ -224,6 +230,9 @@ def _calibration_lines(c: Calibration) -> list[str]:
         f"rad/s^2/sqrt(Hz), accel walk {n.accel_random_walk:.3g} m/s^3/sqrt(Hz)"
     )
     lines.append(f"range limits  {c.range_min:g} .. {c.range_max:g} m")
+    lines.append(
+        f"body_T_flow   {pose(c.body_T_flow)}; {c.flow_pixels_per_rad:.4g} px/rad"
+    )
     offsets = ", ".join(f"{k} {v:+.6f} s" for k, v in c.time_offsets.items()) or "none"
     lines.append(f"time offsets  {offsets}")
     return lines

@@ -66,3 +66,21 @@ def test_rotation_mean_of_symmetric_spread_is_centre():
     d = rng.normal(scale=0.05, size=(10, 3))
     Rs = np.concatenate([R0 @ so3_exp(d), R0 @ so3_exp(-d)])
     np.testing.assert_allclose(rotation_mean(Rs), R0, atol=1e-3)
+
+
+def test_velocity_from_quantised_irregular_positions():
+    from fgnav.datasets.geometry import velocity_from_positions
+
+    rng = np.random.default_rng(0)
+    # ~276 Hz with jitter and a 45 ms gap, positions quantised to 1 mm (Vicon-like).
+    t = np.cumsum(rng.uniform(0.002, 0.0052, 3000))
+    t = np.concatenate([t[:1500], t[1500:] + 0.045])
+    p_true = np.column_stack([np.sin(1.3 * t), 0.5 * t**2 / t[-1], 0.2 * np.cos(2.0 * t)])
+    v_true = np.column_stack([1.3 * np.cos(1.3 * t), t / t[-1], -0.4 * np.sin(2.0 * t)])
+    p = np.round(p_true, 3)
+    v = velocity_from_positions(t, p)
+    inner = (t > t[0] + 0.1) & (t < t[-1] - 0.1)
+    err = v[inner] - v_true[inner]
+    assert np.sqrt(np.mean(err**2)) < 0.01  # a plain finite difference: ~0.2 m/s
+    fd = np.gradient(p, t, axis=0)[inner] - v_true[inner]
+    assert np.sqrt(np.mean(fd**2)) > 10 * np.sqrt(np.mean(err**2))
