@@ -54,10 +54,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def format_counts(counts: dict[str, Any]) -> list[str]:
     """The counts as printed lines: one per stream, then dropped, lost and sent."""
     streams = sorted(set(counts["received"]) | set(counts["used"]) | set(counts["late"]))
-    lines = [f"{'stream':<10} {'received':>9} {'used':>9} {'late':>7}"]
+    w = max([6, *map(len, streams)])
+    lines = [f"{'stream':<{w}} {'received':>9} {'used':>9} {'late':>7}"]
     for s in streams:
         lines.append(
-            f"{s:<10} {counts['received'].get(s, 0):>9} {counts['used'].get(s, 0):>9} "
+            f"{s:<{w}} {counts['received'].get(s, 0):>9} {counts['used'].get(s, 0):>9} "
             f"{counts['late'].get(s, 0):>7}"
         )
     drop = ", ".join(f"{k} {v}" for k, v in counts["dropped"].items()) or "none"

@@ -350,3 +350,43 @@ def test_live_stops_on_sigterm_and_says_why_without_data(flight_dir, tmp_path):
     assert "live: stopped after" in live.text
     assert "error: no estimate written" in live.text
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def _shifted(flight, dt: float):
+    """The flight with every stream's clock moved by ``dt`` seconds."""
+    import dataclasses
+
+    moved = {s: dataclasses.replace(getattr(flight, s), t=getattr(flight, s).t + dt)
+             for s in ("imu", "attitude", "range", "slam", "ground_truth")}
+    return dataclasses.replace(flight, **moved)
+
+
+def test_boot_clock_offset_in_process(tmp_path):
+    """A flight whose clock starts at 1000 s: the boot clock starts at its first sample, fgnav
+    live's estimate is on the boot clock, the record on the flight's (both sides in threads)."""
+    from fgnav.live.link import UdpLink
+    from fgnav.live.replay import ReplayOptions, StandInAutopilot
+    from fgnav.live.session import LiveOptions, LiveSession
+
+    flight = _shifted(
+        simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False)), 1000.0)
+    port = free_udp_port()
+    session = LiveSession(UdpLink(f"udpin:{HOST}:{port}"), MsfLive(flight.calib), flight.calib,
+                          LiveOptions(idle_timeout_s=1.0, duration_s=60.0))
+    out = {}
+    th = threading.Thread(target=lambda: out.update(res=session.run()))
+    th.start()
+    auto = StandInAutopilot(flight, UdpLink(f"udpout:{HOST}:{port}"),
+                            ReplayOptions(speed=6.0, streams=STREAMS, wait_peer_s=10.0,
+                                          linger_s=1.0))
+    rep = auto.run()
+    th.join(timeout=30)
+    res = out["res"]
+    assert rep.boot_offset_s == 1000.0 and rep.lost == {} and res.inbound["lost"] == {}
+    assert res.exit_reason == "idle" and res.counts()["received"]["imu"] == len(flight.imu)
+    est_t = res.estimate.trajectory.t
+    assert 5.0 < est_t[0] and est_t[-1] <= 12.0 + 1e-6  # boot clock
+    rec = rep.odometry
+    assert len(rec) == res.sent["ODOMETRY"]
+    assert 1005.0 < rec.t[0] and rec.t[-1] <= 1012.0 + 1e-6  # flight clock
+    assert _ate(flight, rec) < ATE_CAP_M
