@@ -187,8 +187,7 @@ def _check_live_counts(flight, out: Path) -> dict:
     return live
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("speed", [4.0, 1.0])
+@pytest.mark.parametrize("speed", [4.0, pytest.param(1.0, marks=pytest.mark.slow)])
 def test_fgnav_replay_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed):
     flight, folder = flight_dir
     port = free_udp_port()
@@ -317,8 +316,7 @@ def _run_pymavlink_sender(flight, port: int, speed: float, monkeypatch):
     return odo
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("speed", [4.0, 1.0])
+@pytest.mark.parametrize("speed", [4.0, pytest.param(1.0, marks=pytest.mark.slow)])
 def test_plain_pymavlink_sender_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed,
                                                 monkeypatch):
     from fgnav.datasets.types import Trajectory
