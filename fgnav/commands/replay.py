@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--linger", type=float, default=2.0,
-        help="after the last message, listen S more seconds for ODOMETRY (default 2)",
+        help="after the last message, listen for ODOMETRY until none came for S seconds "
+        "(default 2)",
     )
 
 

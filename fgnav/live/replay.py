@@ -24,6 +24,7 @@ recorded, converted back to fgnav's frames and the flight's clock
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from collections.abc import Iterable
@@ -58,6 +59,9 @@ MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_AUTOPILOT1 = 1
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 
+LINGER_MAX_S = 60.0
+"""Longest wait for ODOMETRY after the last message [wall s]."""
+
 SLEEP_QUANTUM_S = 0.002
 """Longest single sleep while pacing, so timers and replies are serviced in between."""
 
@@ -71,7 +75,9 @@ class ReplayOptions:
         streams: streams to send (of :data:`SENDABLE_STREAMS`; the flight's others are skipped).
         wait_peer_s: wait up to this long [wall s] for the peer's HEARTBEAT before sending (0:
             send at once).
-        linger_s: after the last message, keep listening this long [wall s] for ODOMETRY.
+        linger_s: after the last message, keep listening for ODOMETRY until none has come for
+            this long [wall s] (at most :data:`LINGER_MAX_S`), so a peer still working through
+            its backlog is heard out.
         heartbeat_hz, timesync_hz: rates of HEARTBEAT and TIMESYNC requests [Hz, wall clock];
             0 turns TIMESYNC requests off.
         system_id: MAVLink system id of the autopilot.
@@ -144,6 +150,7 @@ class _Recorder:
         self.timesync_ms: list[float] = []
         self.peer_heartbeat = False
         self.boot_now_s = 0.0
+        self.last_odometry = -math.inf  # wall clock (monotonic) of the newest ODOMETRY
 
     def drain(self) -> None:
         while True:
@@ -175,6 +182,7 @@ class _Recorder:
                 self.rejected[e.reason] += 1
                 return
             self.rows.append((t + self.offset, p, q, v))
+            self.last_odometry = time.monotonic()
 
     def trajectory(self) -> Trajectory | None:
         if not self.rows:
@@ -297,9 +305,11 @@ class StandInAutopilot:
                     self._service(time.monotonic())
                 self._send(*self._message(ev))
             t_send_end = time.perf_counter()
-            t_linger = time.monotonic() + o.linger_s
-            while time.monotonic() < t_linger:
-                self._service(time.monotonic())
+            t_last = time.monotonic()
+            while (now := time.monotonic()) < min(
+                max(t_last, self._rec.last_odometry) + o.linger_s, t_last + LINGER_MAX_S
+            ):
+                self._service(now)
                 time.sleep(0.01)
         finally:
             link.close()

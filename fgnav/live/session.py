@@ -110,7 +110,7 @@ class LiveResult:
         - ``received``: per stream, sensor messages received (before any check);
         - ``used``, ``late``: per stream, as the estimator counts them;
         - ``dropped``: ``"stream:reason"`` -> n, at the edge (``fgnav.live.inbound``) and in
-          the estimator, together;
+          the estimator, together; ``dropped_at_link``: those of the edge alone;
         - ``lost``: ``"sysid/compid"`` -> messages missing by sequence number;
         - ``sent``: messages fgnav sent, by name.
         """
@@ -123,6 +123,7 @@ class LiveResult:
             "used": self.estimator.get("used", {}),
             "late": self.estimator.get("late", {}),
             "dropped": dict(sorted(dropped.items())),
+            "dropped_at_link": self.inbound["dropped"],
             "lost": self.inbound["lost"],
             "sent": self.sent,
         }
