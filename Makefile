@@ -1,6 +1,7 @@
 # Two commands set fgnav up on a machine with only Python >= 3.11:
 #   make demo   -> creates .venv, installs fgnav, runs the main job on a simulated flight
-#   make test   -> creates .venv, installs fgnav with test extras, runs the whole test suite
+#   make test   -> creates .venv, installs fgnav with test and live (pymavlink) extras, runs the
+#                  whole test suite
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -19,7 +20,7 @@ $(VENV)/.installed: $(PY) pyproject.toml
 	touch $@
 
 $(VENV)/.installed-test: $(PY) pyproject.toml
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,live]'
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed

@@ -24,6 +24,8 @@ COMMANDS: dict[str, str] = {
     "compare": "run the smoothers and the filter baselines on a flight and compare them",
     "demo": "simulate a flight and run the main job on it",
     "fleet": "run methods over many logged flights on Dask (local or a cluster), one table",
+    "live": "run the online estimator on a live MAVLink link (udpin:HOST:PORT)",
+    "replay": "send a flight as MAVLink messages to udpout:HOST:PORT (a stand-in autopilot)",
 }
 
 

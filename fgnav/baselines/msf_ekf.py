@@ -178,6 +178,15 @@ class MsfCounts:
     extra: dict = field(default_factory=dict)
 
 
+def pose_covariance(x: _State) -> np.ndarray:
+    """(6, 6) covariance of the pose in GTSAM's Pose3 tangent order ``[rot, trans]`` (body
+    frame, right perturbation) from the filter's ``[dtheta(body), dp(world)]`` blocks."""
+    J = np.zeros((6, N_ERR))
+    J[0:3, ITH : ITH + 3] = np.eye(3)
+    J[3:6, IP : IP + 3] = x.R.T
+    return J @ x.P @ J.T
+
+
 SCALE_INIT_WINDOWS_S = (4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
 """Windows tried, in order, by :func:`initial_scale_guess` until the scale is determined."""
 
@@ -898,11 +907,7 @@ class MsfEkf:
         R = np.array([x.R for x in out_x])
         pose_cov = np.empty((n, 6, 6))
         for k, x in enumerate(out_x):
-            # [dtheta(body), dp(world)] -> GTSAM Pose3 tangent [rot, trans(body)].
-            J = np.zeros((6, N_ERR))
-            J[0:3, ITH : ITH + 3] = np.eye(3)
-            J[3:6, IP : IP + 3] = x.R.T
-            pose_cov[k] = J @ x.P @ J.T
+            pose_cov[k] = pose_covariance(x)
         traj = Trajectory(
             t=np.asarray(out_t),
             world_t_body=np.array([x.p for x in out_x]),

@@ -1,0 +1,130 @@
+"""``fgnav live``: the online estimator fed by a MAVLink link (flight controller or
+``fgnav replay``), answering with ``ODOMETRY``.
+
+Thin layer over :class:`fgnav.live.session.LiveSession`. ``--calib`` is a native ``calib.yaml``
+(:func:`fgnav.datasets.native.read_calib_yaml`). ``--config`` tables: ``[graph]`` and
+``[online]`` (the ``online`` estimator), ``[msf-ekf]`` (the ``msf-ekf`` one), ``[live]``
+(:class:`fgnav.live.session.LiveOptions`: idle timeout, heartbeat rate, MAVLink ids).
+
+It stops on SIGINT/SIGTERM (Ctrl-C), after ``--duration`` wall seconds, or after
+``--idle-timeout`` wall seconds (default 5) without a message once the first has come; then
+writes ``estimate.tum``, ``states.csv`` and ``summary.json`` with the writers of ``fgnav online``
+(:func:`fgnav.eval.outputs.write_estimate`), the link's counts under ``summary.json``'s
+``extra.live`` (keys: :meth:`fgnav.live.session.LiveResult.counts`), and prints the counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+HELP = "run the online estimator on a live MAVLink link (udpin:HOST:PORT)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--mavlink", required=True, help="udpin:HOST:PORT to listen on (e.g. udpin:127.0.0.1:14550)"
+    )
+    parser.add_argument("--calib", required=True, help="calibration file (a flight's calib.yaml)")
+    parser.add_argument(
+        "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
+    )
+    parser.add_argument(
+        "--config", default=None, help="TOML with [graph], [online], [msf-ekf], [live] tables"
+    )
+    parser.add_argument(
+        "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"
+    )
+    parser.add_argument(
+        "--idle-timeout", type=float, default=None,
+        help="stop after S wall seconds without a message, once one came (default 5; 0: never)",
+    )
+    from fgnav.live.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
+
+    parser.add_argument(
+        "--estimator", default=DEFAULT_ESTIMATOR, choices=sorted(ESTIMATORS),
+        help=f"what runs on the stream (default {DEFAULT_ESTIMATOR}: the push-API fixed-lag "
+        "smoother; msf-ekf: the MSF-style EKF baseline)",
+    )
+
+
+def format_counts(counts: dict[str, Any]) -> list[str]:
+    """The counts as printed lines: one per stream, then dropped, lost and sent."""
+    streams = sorted(set(counts["received"]) | set(counts["used"]) | set(counts["late"]))
+    w = max([6, *map(len, streams)])
+    lines = [f"{'stream':<{w}} {'received':>9} {'used':>9} {'late':>7}"]
+    for s in streams:
+        lines.append(
+            f"{s:<{w}} {counts['received'].get(s, 0):>9} {counts['used'].get(s, 0):>9} "
+            f"{counts['late'].get(s, 0):>7}"
+        )
+    drop = ", ".join(f"{k} {v}" for k, v in counts["dropped"].items()) or "none"
+    lines.append(f"dropped: {drop}")
+    lost = ", ".join(f"{k}: {v}" for k, v in counts["lost"].items()) or "none"
+    lines.append(f"lost (MAVLink sequence numbers, by sysid/compid): {lost}")
+    lines.append("sent: " + (", ".join(f"{k} {v}" for k, v in counts["sent"].items()) or "none"))
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    from fgnav.config import check_tables, options_from
+    from fgnav.datasets.native import read_calib_yaml
+    from fgnav.eval.outputs import summary_extra, write_estimate
+    from fgnav.live.estimators import CONFIG_TABLES, make_estimator
+    from fgnav.live.link import LinkError, UdpLink, mavlink_dialect
+    from fgnav.live.session import LiveError, LiveOptions, LiveSession
+    from fgnav.methods import SOURCE_KEY, load_method_config
+
+    mavlink_dialect()  # pymavlink present, or a one-line error
+    check_tables(args.config, ["live", *sorted({t for v in CONFIG_TABLES.values() for t in v})])
+    config = load_method_config(args.config)
+    options = options_from(
+        LiveOptions, dict(config.get("live", {})), source=str(config.get(SOURCE_KEY, "config")),
+        section="live", duration_s=args.duration, idle_timeout_s=args.idle_timeout,
+    )
+    calib = read_calib_yaml(args.calib)
+    estimator = make_estimator(args.estimator, calib, config)
+    link = UdpLink(args.mavlink)
+    if link.address.mode != "udpin":
+        link.close()
+        raise LinkError(f"--mavlink {args.mavlink}: fgnav live listens: use udpin:HOST:PORT")
+    session = LiveSession(link, estimator, calib, options)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: session.stop())
+    host, port = link.local_address
+    idle = "no idle timeout"
+    if options.idle_timeout_s:
+        idle = f"idle timeout {options.idle_timeout_s:g} s"
+    print(
+        f"live: listening on udpin:{host}:{port}, estimator {args.estimator}, {idle}; "
+        "stop with Ctrl-C", flush=True,
+    )
+    result = session.run()
+    counts = result.counts()
+    print(
+        f"live: {result.exit_reason} after {result.wall_s:.1f} s wall; "
+        f"{result.link['datagrams']} datagrams, queue max {result.link['queue_max']}"
+    )
+    for line in format_counts(counts):
+        print(line)
+    if result.estimate is None:
+        raise LiveError(f"no estimate written: {result.error}")
+    est = result.estimate
+    extra = summary_extra("live", est, "live")
+    extra["live"] = {
+        "mavlink": str(link.address),
+        "estimator": args.estimator,
+        "clock": "autopilot boot clock [s] (time_usec / time_boot_ms)",
+        "exit": result.exit_reason,
+        "wall_s": result.wall_s,
+        "link": result.link,
+        "options": vars(options),
+        **counts,
+    }
+    paths = write_estimate(est, Path(args.out), extra=extra)
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    return 0

@@ -1,0 +1,160 @@
+"""Received MAVLink messages -> fgnav events, on the autopilot's boot clock, every one counted.
+
+:class:`Inbound` is the state the edge conversion needs across messages: the newest IMU time
+(which is the "now" of the boot clock, for arrival times), the SLAM session derived from
+``ODOMETRY.reset_counter``, and the counters of what was received, dropped and lost. The
+conversions themselves are :mod:`fgnav.live.convert`.
+
+Arrival time. An event's ``arrival`` is when it reached fgnav, expressed on the boot clock: the
+newest IMU time seen when it was received, or its own stamp if later (``ONLINE_API``). So a SLAM
+pose stamped at its image time ``t`` that arrives 100 ms later has ``arrival`` 100 ms after
+``t``, measured by the IMU stream, never by fgnav's wall clock.
+
+Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.session`):
+
+* ``messages``: per MAVLink message name, every message parsed (``BAD_DATA`` included);
+* ``received``: per stream (``imu``, ``attitude``, ``range``, ``slam``, ``flow``), the messages
+  of that stream, before any check;
+* ``dropped``: ``"stream:reason"`` -> n, messages of a stream that did not become events
+  (reasons: ``not_updated``, ``other_instance``, ``non_finite``, ``invalid_quaternion``,
+  ``orientation``, ``out_of_sensor_limits``, ``estimator_type``, ``vio_echo``, ``no_valid_flow``,
+  ``no_interval``);
+* ``lost``: ``"sysid/compid"`` -> messages missing from the MAVLink sequence numbers.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+from fgnav.datasets.events import Event, ImuSample
+from fgnav.live import convert
+from fgnav.live.convert import Rejected
+
+STREAM_OF_MESSAGE = {
+    "HIGHRES_IMU": "imu",
+    "ATTITUDE_QUATERNION": "attitude",
+    "DISTANCE_SENSOR": "range",
+    "ODOMETRY": "slam",
+    "OPTICAL_FLOW_RAD": "flow",
+}
+"""The sensor stream each input message feeds."""
+
+
+class SequenceCounter:
+    """Messages lost per source, from MAVLink's 8-bit sequence numbers (as pymavlink's
+    ``mavutil`` counts them: a gap of ``(seq - expected) mod 256``)."""
+
+    def __init__(self) -> None:
+        self._last: dict[tuple[int, int], int] = {}
+        self.lost: Counter[str] = Counter()
+        self.seen: Counter[str] = Counter()
+
+    def add(self, sysid: int, compid: int, seq: int) -> int:
+        """Record one message; returns how many were lost before it."""
+        key = (int(sysid), int(compid))
+        name = f"{key[0]}/{key[1]}"
+        self.seen[name] += 1
+        last = self._last.get(key)
+        self._last[key] = int(seq)
+        if last is None:
+            return 0
+        gap = (int(seq) - (last + 1)) % 256
+        if gap:
+            self.lost[name] += gap
+        return gap
+
+
+class Inbound:
+    """Turns parsed messages into events (see the module docstring).
+
+    Args:
+        flow_pixels_per_rad: ``Calibration.flow_pixels_per_rad`` (flow events are in its units).
+        imu_id: the ``HIGHRES_IMU.id`` used (others are dropped as ``imu:other_instance``).
+    """
+
+    def __init__(self, flow_pixels_per_rad: float = 1.0, imu_id: int = 0) -> None:
+        self.flow_pixels_per_rad = float(flow_pixels_per_rad)
+        self.imu_id = int(imu_id)
+        self.newest_imu_t: float | None = None
+        self.newest_stamp: float | None = None
+        self.session = 0
+        self._reset_counter: int | None = None
+        self.messages: Counter[str] = Counter()
+        self.received: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()
+        self.sequence = SequenceCounter()
+
+    def _arrival(self, t: float) -> float:
+        if self.newest_imu_t is None or t > self.newest_imu_t:
+            return t
+        return self.newest_imu_t
+
+    def count(self, msg: Any) -> str:
+        """Count a parsed message (type and sequence number); returns its type name."""
+        name = msg.get_type()
+        self.messages[name] += 1
+        if name != "BAD_DATA":
+            self.sequence.add(msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq())
+        return name
+
+    def event(self, msg: Any) -> Event | None:
+        """The event of a sensor message (None for other messages and for dropped ones, which
+        are counted). Call :meth:`count` first."""
+        name = msg.get_type()
+        stream = STREAM_OF_MESSAGE.get(name)
+        if stream is None:
+            return None
+        if name == "ODOMETRY" and int(msg.estimator_type) == convert.MAV_ESTIMATOR_TYPE_VIO:
+            self.dropped["slam:vio_echo"] += 1  # fgnav's own output, echoed back
+            return None
+        self.received[stream] += 1
+        try:
+            ev = self._convert(name, msg)
+        except Rejected as e:
+            self.dropped[e.reason] += 1
+            return None
+        if isinstance(ev, ImuSample):
+            if self.newest_imu_t is None or ev.t > self.newest_imu_t:
+                self.newest_imu_t = ev.t
+        if self.newest_stamp is None or ev.t > self.newest_stamp:
+            self.newest_stamp = ev.t
+        return ev
+
+    def _convert(self, name: str, msg: Any) -> Event:
+        if name == "HIGHRES_IMU":
+            if int(getattr(msg, "id", 0)) != self.imu_id:
+                raise Rejected("imu:other_instance")
+            ev = convert.imu_from_highres(msg)
+        elif name == "ATTITUDE_QUATERNION":
+            ev = convert.attitude_from_quaternion(msg)
+        elif name == "DISTANCE_SENSOR":
+            ev = convert.range_from_distance_sensor(msg)
+        elif name == "ODOMETRY":
+            ev = convert.slam_from_odometry(msg, self._slam_session(int(msg.reset_counter)))
+        else:
+            ev = convert.flow_from_rad(msg, self.flow_pixels_per_rad)
+        return ev._replace(arrival=self._arrival(ev.t))
+
+    def _slam_session(self, reset_counter: int) -> int:
+        """A changed ``reset_counter`` (a rise, or its wrap past 255) starts a new session."""
+        if self._reset_counter is not None and reset_counter != self._reset_counter:
+            self.session += 1
+        self._reset_counter = reset_counter
+        return self.session
+
+    def clock_ns(self) -> int | None:
+        """The boot clock's "now" as fgnav knows it (newest stamp received) [ns], or None."""
+        if self.newest_stamp is None:
+            return None
+        return int(round(self.newest_stamp * convert.NS_PER_S))
+
+    def counts(self) -> dict[str, Any]:
+        """The counters (see the module docstring), as plain dicts."""
+        return {
+            "messages": dict(sorted(self.messages.items())),
+            "received": dict(sorted(self.received.items())),
+            "dropped": dict(sorted(self.dropped.items())),
+            "lost": dict(sorted(self.sequence.lost.items())),
+            "slam_sessions": self.session + 1 if self._reset_counter is not None else 0,
+        }

@@ -1,0 +1,78 @@
+"""The estimators behind the link: the online smoother's factory, the MSF adapter's push API,
+and the command's one-line errors."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from fgnav.datasets.events import replay_flight  # noqa: E402
+from fgnav.datasets.native import calibration_to_dict  # noqa: E402
+from fgnav.datasets.simulate import SimOptions, simulate  # noqa: E402
+from fgnav.datasets.types import Calibration  # noqa: E402
+
+from fgnav.cli import main  # noqa: E402
+from fgnav.live.estimators import (  # noqa: E402
+    LiveEstimatorError,
+    MsfLive,
+    make_estimator,
+    online_smoother,
+)
+
+
+def test_online_factory_says_what_to_do_when_the_smoother_is_absent(monkeypatch):
+    monkeypatch.setitem(sys.modules, "fgnav.solvers.online", None)  # import fails
+    with pytest.raises(LiveEstimatorError, match="--estimator msf-ekf"):
+        online_smoother(Calibration(), {})
+    with pytest.raises(LiveEstimatorError, match="unknown estimator"):
+        make_estimator("kalman", Calibration(), {})
+
+
+def test_msf_adapter_push_api():
+    flight = simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False))
+    est = MsfLive(flight.calib)
+    states = [s for ev in replay_flight(flight) if (s := est.feed(ev)) is not None]
+    assert len(states) > 50
+    t = np.array([s.t for s in states])
+    assert np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(np.diff(t), 0.05, atol=0.006)  # output_rate_hz 20 on IMU time
+    last = states[-1]
+    assert est.latest() is last
+    assert last.world_T_body.shape == (4, 4) and last.pose_cov.shape == (6, 6)
+    assert 0 < last.quality <= 100 and last.reset_counter == 0
+    gt = flight.ground_truth
+    i = np.searchsorted(gt.t, last.t)
+    # not aligned: the filter's world is the truth's up to yaw and origin; speeds agree
+    assert abs(np.linalg.norm(last.world_v_body) - np.linalg.norm(gt.world_v_body[i])) < 0.3
+    c = est.counts()
+    assert c["received"] == {s: len(getattr(flight, s)) for s in
+                             ("imu", "attitude", "range", "yaw", "slam")}
+    assert c["dropped"]["yaw:not_used"] == len(flight.yaw)
+    assert 0 < c["used"]["slam"] <= len(flight.slam)
+    res = est.result()
+    assert res.causal and "live_counts" in res.info
+
+
+def test_live_command_errors_are_one_line(tmp_path, capsys):
+    import yaml
+
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(yaml.safe_dump(calibration_to_dict(Calibration())))
+    rc = main(["live", "--mavlink", "udpout:127.0.0.1:9", "--calib", str(calib),
+               "--out", str(tmp_path / "o"), "--estimator", "msf-ekf"])
+    assert rc == 1
+    assert "fgnav live listens: use udpin:HOST:PORT" in capsys.readouterr().err
+    rc = main(["live", "--mavlink", "udpin:127.0.0.1", "--calib", str(calib),
+               "--out", str(tmp_path / "o"), "--estimator", "msf-ekf"])
+    assert rc == 1
+    assert "expected udpin:HOST:PORT" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[live]\nidle_timeout = 3\n")
+    rc = main(["live", "--mavlink", "udpin:127.0.0.1:9", "--calib", str(calib),
+               "--out", str(tmp_path / "o"), "--config", str(bad), "--estimator", "msf-ekf"])
+    assert rc == 1
+    assert "unknown option(s) ['idle_timeout']" in capsys.readouterr().err
