@@ -230,9 +230,7 @@ def _calibration_lines(c: Calibration) -> list[str]:
         f"rad/s^2/sqrt(Hz), accel walk {n.accel_random_walk:.3g} m/s^3/sqrt(Hz)"
     )
     lines.append(f"range limits  {c.range_min:g} .. {c.range_max:g} m")
-    lines.append(
-        f"body_T_flow   {pose(c.body_T_flow)}; {c.flow_pixels_per_rad:.4g} px/rad"
-    )
+    lines.append(f"body_T_flow   {pose(c.body_T_flow)}; {c.flow_pixels_per_rad:.4g} px/rad")
     offsets = ", ".join(f"{k} {v:+.6f} s" for k, v in c.time_offsets.items()) or "none"
     lines.append(f"time offsets  {offsets}")
     return lines

@@ -39,13 +39,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"
     )
     parser.add_argument(
-        "--idle-timeout", type=float, default=None,
+        "--idle-timeout",
+        type=float,
+        default=None,
         help="stop after S wall seconds without a message, once one came (default 5; 0: never)",
     )
     from fgnav.live.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
 
     parser.add_argument(
-        "--estimator", default=DEFAULT_ESTIMATOR, choices=sorted(ESTIMATORS),
+        "--estimator",
+        default=DEFAULT_ESTIMATOR,
+        choices=sorted(ESTIMATORS),
         help=f"what runs on the stream (default {DEFAULT_ESTIMATOR}: the push-API fixed-lag "
         "smoother; msf-ekf: the MSF-style EKF baseline)",
     )
@@ -82,8 +86,12 @@ def run(args: argparse.Namespace) -> int:
     check_tables(args.config, ["live", *sorted({t for v in CONFIG_TABLES.values() for t in v})])
     config = load_method_config(args.config)
     options = options_from(
-        LiveOptions, dict(config.get("live", {})), source=str(config.get(SOURCE_KEY, "config")),
-        section="live", duration_s=args.duration, idle_timeout_s=args.idle_timeout,
+        LiveOptions,
+        dict(config.get("live", {})),
+        source=str(config.get(SOURCE_KEY, "config")),
+        section="live",
+        duration_s=args.duration,
+        idle_timeout_s=args.idle_timeout,
     )
     calib = read_calib_yaml(args.calib)
     estimator = make_estimator(args.estimator, calib, config)
@@ -101,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
         idle = f"idle timeout {options.idle_timeout_s:g} s"
     print(
         f"live: listening on udpin:{host}:{port}, estimator {args.estimator}, {idle}; "
-        "stop with Ctrl-C", flush=True,
+        "stop with Ctrl-C",
+        flush=True,
     )
     result = session.run()
     counts = result.counts()

@@ -20,21 +20,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mavlink", required=True, help="udpout:HOST:PORT to send to (e.g. udpout:127.0.0.1:14550)"
     )
     parser.add_argument(
-        "--speed", type=float, default=1.0,
+        "--speed",
+        type=float,
+        default=1.0,
         help="times real time (default 1; 0: as fast as possible)",
     )
     parser.add_argument("--record", default=None, help="TUM file for the ODOMETRY received back")
     parser.add_argument(
-        "--streams", default=None,
+        "--streams",
+        default=None,
         help="comma-separated streams to send (default: imu,attitude,range,slam,flow, those the "
         "flight has)",
     )
     parser.add_argument(
-        "--wait-peer", type=float, default=30.0,
+        "--wait-peer",
+        type=float,
+        default=30.0,
         help="wait up to S seconds for the peer's HEARTBEAT before sending (default 30; 0: don't)",
     )
     parser.add_argument(
-        "--linger", type=float, default=2.0,
+        "--linger",
+        type=float,
+        default=2.0,
         help="after the last message, listen for ODOMETRY until none came for S seconds "
         "(default 2)",
     )
@@ -50,8 +57,10 @@ def run(args: argparse.Namespace) -> int:
     mavlink_dialect()
     if not args.speed >= 0:
         raise LinkError(f"--speed {args.speed}: expected >= 0 (0: as fast as possible)")
-    streams = SENDABLE_STREAMS if args.streams is None else tuple(
-        s.strip() for s in args.streams.split(",") if s.strip()
+    streams = (
+        SENDABLE_STREAMS
+        if args.streams is None
+        else tuple(s.strip() for s in args.streams.split(",") if s.strip())
     )
     options = ReplayOptions(
         speed=args.speed, streams=streams, wait_peer_s=args.wait_peer, linger_s=args.linger
@@ -69,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     speed = f"{args.speed:g}x real time" if args.speed > 0 else "as fast as possible"
     print(
         f"replay: {flight.name} to {link.address}, streams {','.join(autopilot.streams)}, {speed}; "
-        f"boot clock: t_boot = t_flight - {autopilot.offset!r} s", flush=True,
+        f"boot clock: t_boot = t_flight - {autopilot.offset!r} s",
+        flush=True,
     )
     res = autopilot.run()
     sent = ", ".join(f"{k} {v}" for k, v in res.sent.items())
@@ -80,8 +90,11 @@ def run(args: argparse.Namespace) -> int:
     n_odo = 0 if res.odometry is None else len(res.odometry)
     lost = ", ".join(f"{k}: {v}" for k, v in res.lost.items()) or "none"
     ts = res.timesync
-    ts_txt = (f"{ts['replies']} TIMESYNC replies, median tc1 - ts1 "
-              f"{ts['median_tc1_minus_ts1_ms']:.1f} ms" if ts["replies"] else "no TIMESYNC reply")
+    ts_txt = (
+        f"{ts['replies']} TIMESYNC replies, median tc1 - ts1 {ts['median_tc1_minus_ts1_ms']:.1f} ms"
+        if ts["replies"]
+        else "no TIMESYNC reply"
+    )
     print(f"replay: received {n_odo} ODOMETRY, lost {lost}; {ts_txt}")
     if args.record is not None:
         if res.odometry is None:
@@ -93,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
             from fgnav.eval.metrics import evaluate
 
             m = evaluate(Estimate("live", res.odometry, causal=True), flight.ground_truth)
-            print(f"replay: recorded ODOMETRY vs truth: ATE {m.ate_rmse_m:.4f} m RMSE "
-                  f"({m.alignment} alignment)")
+            print(
+                f"replay: recorded ODOMETRY vs truth: ATE {m.ate_rmse_m:.4f} m RMSE "
+                f"({m.alignment} alignment)"
+            )
     return 0

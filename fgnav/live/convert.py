@@ -180,10 +180,18 @@ def highres_imu_fields(ev: ImuSample, boot_offset: float) -> dict[str, Any]:
     w = F @ np.asarray(ev.body_omega, float)
     return dict(
         time_usec=s_to_us(ev.t - boot_offset),
-        xacc=float(a[0]), yacc=float(a[1]), zacc=float(a[2]),
-        xgyro=float(w[0]), ygyro=float(w[1]), zgyro=float(w[2]),
-        xmag=math.nan, ymag=math.nan, zmag=math.nan,
-        abs_pressure=math.nan, diff_pressure=math.nan, pressure_alt=math.nan,
+        xacc=float(a[0]),
+        yacc=float(a[1]),
+        zacc=float(a[2]),
+        xgyro=float(w[0]),
+        ygyro=float(w[1]),
+        zgyro=float(w[2]),
+        xmag=math.nan,
+        ymag=math.nan,
+        zmag=math.nan,
+        abs_pressure=math.nan,
+        diff_pressure=math.nan,
+        pressure_alt=math.nan,
         temperature=math.nan,
         fields_updated=HIGHRES_IMU_ACCEL_GYRO,
         id=0,
@@ -208,8 +216,13 @@ def attitude_quaternion_fields(
     w = np.full(3, math.nan) if body_omega is None else F @ np.asarray(body_omega, float)
     return dict(
         time_boot_ms=s_to_ms(ev.t - boot_offset),
-        q1=float(q[0]), q2=float(q[1]), q3=float(q[2]), q4=float(q[3]),
-        rollspeed=float(w[0]), pitchspeed=float(w[1]), yawspeed=float(w[2]),
+        q1=float(q[0]),
+        q2=float(q[1]),
+        q3=float(q[2]),
+        q4=float(q[3]),
+        rollspeed=float(w[0]),
+        pitchspeed=float(w[1]),
+        yawspeed=float(w[2]),
         repr_offset_q=[1.0, 0.0, 0.0, 0.0],
     )
 
@@ -281,10 +294,16 @@ def vision_odometry_fields(ev: SlamPose, boot_offset: float, reset_counter: int)
         time_usec=s_to_us(ev.t - boot_offset),
         frame_id=MAV_FRAME_LOCAL_FRD,
         child_frame_id=MAV_FRAME_BODY_FRD,
-        x=float(ev.slam_t_cam[0]), y=float(ev.slam_t_cam[1]), z=float(ev.slam_t_cam[2]),
+        x=float(ev.slam_t_cam[0]),
+        y=float(ev.slam_t_cam[1]),
+        z=float(ev.slam_t_cam[2]),
         q=[float(v) for v in ev.slam_q_cam_wxyz],
-        vx=math.nan, vy=math.nan, vz=math.nan,
-        rollspeed=math.nan, pitchspeed=math.nan, yawspeed=math.nan,
+        vx=math.nan,
+        vy=math.nan,
+        vz=math.nan,
+        rollspeed=math.nan,
+        pitchspeed=math.nan,
+        yawspeed=math.nan,
         pose_covariance=nan21,
         velocity_covariance=list(nan21),
         reset_counter=int(reset_counter) % 256,
@@ -293,8 +312,9 @@ def vision_odometry_fields(ev: SlamPose, boot_offset: float, reset_counter: int)
     )
 
 
-def flow_from_rad(msg: Any, pixels_per_rad: float = 1.0, arrival: float | None = None
-                  ) -> FlowSample:
+def flow_from_rad(
+    msg: Any, pixels_per_rad: float = 1.0, arrival: float | None = None
+) -> FlowSample:
     """``OPTICAL_FLOW_RAD`` -> :class:`FlowSample` (fgnav's flow convention, see the module).
 
     ``t`` is ``time_usec`` (the end of the integration interval), ``dt`` the integration time.
@@ -307,12 +327,14 @@ def flow_from_rad(msg: Any, pixels_per_rad: float = 1.0, arrival: float | None =
     ix, iy = _finite((msg.integrated_x, msg.integrated_y), "flow")
     t = us_to_s(msg.time_usec)
     flow = pixels_per_rad * np.array([-iy, ix])
-    return FlowSample(t, t if arrival is None else arrival, dt, flow,
-                      int(msg.quality) / FLOW_QUALITY_MAX)
+    return FlowSample(
+        t, t if arrival is None else arrival, dt, flow, int(msg.quality) / FLOW_QUALITY_MAX
+    )
 
 
-def optical_flow_rad_fields(ev: FlowSample, boot_offset: float, pixels_per_rad: float = 1.0
-                            ) -> dict[str, Any]:
+def optical_flow_rad_fields(
+    ev: FlowSample, boot_offset: float, pixels_per_rad: float = 1.0
+) -> dict[str, Any]:
     """Fields of ``OPTICAL_FLOW_RAD`` for a flow sample (gyro integrals unknown: NaN)."""
     fx, fy = (np.asarray(ev.flow, float) / pixels_per_rad).tolist()
     q = FLOW_QUALITY_MAX if ev.quality < 0 else int(round(FLOW_QUALITY_MAX * ev.quality))
@@ -322,7 +344,9 @@ def optical_flow_rad_fields(ev: FlowSample, boot_offset: float, pixels_per_rad: 
         integration_time_us=int(round(ev.dt * US_PER_S)),
         integrated_x=float(fy),
         integrated_y=float(-fx),
-        integrated_xgyro=math.nan, integrated_ygyro=math.nan, integrated_zgyro=math.nan,
+        integrated_xgyro=math.nan,
+        integrated_ygyro=math.nan,
+        integrated_zgyro=math.nan,
         temperature=0,
         quality=max(1, min(q, FLOW_QUALITY_MAX)),
         time_delta_distance_us=0,
@@ -465,10 +489,16 @@ def odometry_fields(
         time_usec=s_to_us(state.t),
         frame_id=MAV_FRAME_LOCAL_FRD,
         child_frame_id=MAV_FRAME_BODY_FRD,
-        x=float(p_o[0]), y=float(p_o[1]), z=float(p_o[2]),
+        x=float(p_o[0]),
+        y=float(p_o[1]),
+        z=float(p_o[2]),
         q=[float(c) for c in q_o],
-        vx=float(v_o[0]), vy=float(v_o[1]), vz=float(v_o[2]),
-        rollspeed=float(w_o[0]), pitchspeed=float(w_o[1]), yawspeed=float(w_o[2]),
+        vx=float(v_o[0]),
+        vy=float(v_o[1]),
+        vz=float(v_o[2]),
+        rollspeed=float(w_o[0]),
+        pitchspeed=float(w_o[1]),
+        yawspeed=float(w_o[2]),
         pose_covariance=pc,
         velocity_covariance=vc,
         reset_counter=int(state.reset_counter) % 256,

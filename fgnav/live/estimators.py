@@ -187,7 +187,7 @@ class MsfLive:
             accel_bias=x.ba.copy(),
             gyro_bias=x.bg.copy(),
             pose_cov=pose_cov,
-            vel_cov=x.P[IV:IV + 3, IV:IV + 3].copy(),
+            vel_cov=x.P[IV : IV + 3, IV : IV + 3].copy(),
             slam_scale={self._session: float(x.s)},
             reset_counter=0,
             quality=int(round(100.0 / (1.0 + sigma / QUALITY_SIGMA_M))),
@@ -197,13 +197,15 @@ class MsfLive:
         c = self._ekf.counts
         used = {"imu": self._imu_used, "slam": c.slam_updates, "range": c.range_updates}
         dropped = Counter(self._dropped)
-        dropped.update({
-            "slam:gate": c.slam_rejected_gate,
-            "slam:waiting_new_map_scale": c.slam_waiting_reinit,
-            "range:gate": c.range_rejected_gate,
-            "range:tilt": c.range_rejected_tilt,
-            "slam_or_range:older_than_buffer": c.too_old,
-        })
+        dropped.update(
+            {
+                "slam:gate": c.slam_rejected_gate,
+                "slam:waiting_new_map_scale": c.slam_waiting_reinit,
+                "range:gate": c.range_rejected_gate,
+                "range:tilt": c.range_rejected_tilt,
+                "slam_or_range:older_than_buffer": c.too_old,
+            }
+        )
         return {
             "received": dict(sorted(self._received.items())),
             "used": {k: v for k, v in used.items() if v},

@@ -42,9 +42,7 @@ def mavlink_dialect():
     try:
         from pymavlink.dialects.v20 import common
     except ModuleNotFoundError as e:
-        raise LinkError(
-            "the live link needs pymavlink: pip install -e '.[live]'"
-        ) from e
+        raise LinkError("the live link needs pymavlink: pip install -e '.[live]'") from e
     return common
 
 

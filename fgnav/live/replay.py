@@ -130,8 +130,11 @@ class ReplayResult:
 
 def boot_offset(flight: Flight, streams: Iterable[str]) -> float:
     """Flight time of the first sample of the streams sent: boot-clock 0."""
-    firsts = [float(getattr(flight, s).t[0]) for s in streams
-              if getattr(flight, s, None) is not None and len(getattr(flight, s))]
+    firsts = [
+        float(getattr(flight, s).t[0])
+        for s in streams
+        if getattr(flight, s, None) is not None and len(getattr(flight, s))
+    ]
     if not firsts:
         raise LinkError(f"{flight.name}: none of the streams {list(streams)} to send")
     return min(firsts)
@@ -231,9 +234,11 @@ class StandInAutopilot:
         """Timers (wall clock) and the receive path."""
         o = self.options
         if o.heartbeat_hz > 0 and now >= self._next_heartbeat:
-            self._send(self.mav.heartbeat_encode(
-                MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC, 0, 0, MAV_STATE_ACTIVE
-            ))
+            self._send(
+                self.mav.heartbeat_encode(
+                    MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC, 0, 0, MAV_STATE_ACTIVE
+                )
+            )
             self._next_heartbeat = now + 1.0 / o.heartbeat_hz
         if o.timesync_hz > 0 and now >= self._next_timesync and self._rec.peer_heartbeat:
             ts1 = int(round(self._rec.boot_now_s * convert.NS_PER_S))
@@ -324,8 +329,10 @@ class StandInAutopilot:
             received=dict(sorted(rec.received.items())),
             lost=dict(rec.seq.lost),
             odometry_rejected=dict(rec.rejected),
-            timesync={"replies": len(ts),
-                      "median_tc1_minus_ts1_ms": float(np.median(ts)) if ts else None},
+            timesync={
+                "replies": len(ts),
+                "median_tc1_minus_ts1_ms": float(np.median(ts)) if ts else None,
+            },
             peer_heartbeat=rec.peer_heartbeat,
             send_errors=link.send_errors,
         )

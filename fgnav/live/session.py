@@ -172,9 +172,11 @@ class LiveSession:
         self.sent[name] = self.sent.get(name, 0) + 1
 
     def _heartbeat(self) -> None:
-        self._send(self.mav.heartbeat_encode(
-            MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
-        ))
+        self._send(
+            self.mav.heartbeat_encode(
+                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+            )
+        )
 
     def _rate_at(self, t: float) -> tuple[np.ndarray | None, np.ndarray | None]:
         """IMU angular rate nearest ``t`` and its variance (white noise at the IMU rate)."""
@@ -236,8 +238,11 @@ class LiveSession:
                 if o.duration_s > 0 and now - wall0 >= o.duration_s:
                     reason = "duration"
                     break
-                if (o.idle_timeout_s > 0 and last_datagram is not None
-                        and now - last_datagram >= o.idle_timeout_s):
+                if (
+                    o.idle_timeout_s > 0
+                    and last_datagram is not None
+                    and now - last_datagram >= o.idle_timeout_s
+                ):
                     reason = "idle"
                     break
                 item = link.get(timeout=o.poll_s)

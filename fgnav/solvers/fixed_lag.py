@@ -195,6 +195,9 @@ class FixedLagOptions:
         drag_check_s: IMU span of the thrust-axis check of the drag model [s].
         drag_scatter_n: keyframes of the running drag-noise estimate.
         slam_fit_max_s: the closed-form SLAM fit uses the session's last this many seconds [s].
+        slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
+            this much SLAM time to decide the rotation convention [s]; until it decides, the
+            SLAM orientations are not used as factors.
     """
 
     graph: GraphOptions = field(default_factory=GraphOptions)
@@ -236,6 +239,7 @@ class FixedLagOptions:
     drag_check_s: float = 0.5
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
+    slam_check_max_s: float = 300.0
 
 
 def _isam2_params(

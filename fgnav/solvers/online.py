@@ -84,6 +84,7 @@ from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
     make_slam_position_factor,
     make_slam_position_offset_factor,
+    make_slam_rotation_factor,
     make_slam_T_world,
 )
 from fgnav.factors.tilted_range import gate_range, make_range_factor
@@ -226,6 +227,7 @@ class OnlineSmoother:
         self.used: dict[str, int] = {}
         self.dropped: dict[str, int] = {}
         self.n_failures = 0
+        self.n_fallbacks = 0
         self.failure_messages: list[str] = []
         self.latency: list[float] = []
         # Outputs (every state).
@@ -356,10 +358,14 @@ class OnlineSmoother:
             **self.counts(),
             "skipped": self._leftovers(),
             "solver_failures": self.n_failures,
+            "factorization_fallbacks": self.n_fallbacks,
+            "factorization_final": self.factorization,
             "solver_failure_messages": self.failure_messages[:10],
             "reset_counter": self.reset_counter,
             "clock_epochs": [int((ep == x).sum()) for x in epochs],
             "drag": self._drag_decision,
+            "slam_gyro_check": getattr(self, "slam_check", None),
+            "slam_rotation_convention": self._slam_conv,
             "updates": len(lat),
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -430,6 +436,15 @@ class OnlineSmoother:
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
+        # SLAM rotation convention: fixed by the options, or decided causally from the gyro.
+        self._slam_conv: str | None = {"as-is": "as-is", "inverse": "inverse"}.get(
+            self.go.slam_rotation
+        )
+        self._sgc = None
+        if self.go.use_slam and self._slam_conv is None:
+            from fgnav.datasets.slam_gyro import SlamGyroCheck
+
+            self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
         self._bad_since = -math.inf
 
@@ -466,7 +481,6 @@ class OnlineSmoother:
             if stream != "imu":
                 # This stream's clock went back too (the IMU's jump resets the smoother).
                 self._t_last[stream] = t
-                self._drop(f"{stream}:clock-jump", 0)
                 return True
             return True  # IMU clock jump: handled by the caller
         if t == last:
@@ -532,6 +546,8 @@ class OnlineSmoother:
             self.reset("imu-gap")
             self._t_last = {"imu": t}
         self._use("imu")
+        if self._sgc is not None:
+            self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
             self._first_imu_t = t
         prev_t = self.imu.t[-1] if self.imu.t else None
@@ -696,9 +712,14 @@ class OnlineSmoother:
         remove: list[int] = []
         prov_new: list[tuple[int, int, Any]] = []
         self._attach_pending(g, stamps, remove, prov_new)
+        n_moves = self.n_fallbacks
         ok = self._update(g, vals, stamps, remove)
         self._cur_stamps = {}
-        if ok and prov_new:
+        # After a move of the window the new factors' indices are not this update's: such
+        # provisional factors stay on the provisional alignment (counted).
+        if prov_new and self.n_fallbacks != n_moves:
+            self._drop("slam:provisional-not-reattachable", len(prov_new))
+        elif ok and prov_new:
             idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
             for pos, sess, row in prov_new:
                 s = self.sessions.get(sess)
@@ -707,7 +728,11 @@ class OnlineSmoother:
         self._pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, self.values[B(k)])
         self._read(k, wall)
         if self.factorization == "QR" and self.options.factorization.upper() != "QR":
-            if t_k - self.t0 >= self.options.startup_qr_s and self.n_failures == 0:
+            if (
+                t_k - self.t0 >= self.options.startup_qr_s
+                and self.n_failures == 0
+                and self.n_fallbacks == 0
+            ):
                 self._switch_factorization()
 
     def _new_slow(self, k: int, g, vals, stamps) -> None:
@@ -923,7 +948,9 @@ class OnlineSmoother:
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             self._drop("slam:non-finite")
             return
-        if self.go.slam_rotation == "inverse":
+        if self._sgc is not None:
+            self._slam_check(float(ev.t), q, int(ev.session))
+        if self._slam_conv == "inverse":
             q = q * np.array([1.0, -1.0, -1.0, -1.0])
         if self._first_slam_t is None:
             self._first_slam_t = float(ev.t)
@@ -944,6 +971,57 @@ class OnlineSmoother:
             self._drop("slam:before-start")
             return
         self._pending.append((k, "slam", (sess, len(s.t) - 1, float(ev.t), p, q)))
+
+    def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
+        """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
+        ``body_T_cam`` rotation, clock offset: said in one line each and in ``info``)."""
+        sgc = self._sgc
+        sgc.add_slam(t, q, session)
+        d = sgc.decision()
+        if d is None:
+            if t - sgc._slam_t[0] > self.options.slam_check_max_s:
+                log.warning(
+                    "%s: SLAM-vs-gyro check undecided after %.0f s of SLAM (too little "
+                    "rotation): SLAM rotations taken as stated, not used as factors",
+                    self.name,
+                    self.options.slam_check_max_s,
+                )
+                self._sgc = None
+                self._slam_conv = "undecided"
+            return
+        self._sgc = None
+        self._slam_conv = d.convention
+        self.slam_check = {
+            "t": t,
+            "convention": d.convention,
+            "residual_deg": d.residual_deg,
+            "body_R_cam_ok": bool(d.body_R_cam_ok),
+            "body_R_cam_error_deg": float(d.body_R_cam_error_deg),
+            "time_offset_s": float(d.time_offset_s),
+            "gyro_bias": np.asarray(d.gyro_bias).tolist(),
+        }
+        if d.convention == "inverse":
+            log.warning(
+                "%s: SLAM rotations are the inverse of the stated slam_R_cam (gyro residual "
+                "%.2f deg inverted vs %.2f deg as stated, decided at t=%.2f s): using them "
+                "inverted",
+                self.name,
+                d.residual_deg.get("inverse", float("nan")),
+                d.residual_deg.get("as-is", float("nan")),
+                t,
+            )
+            flip = np.array([1.0, -1.0, -1.0, -1.0])
+            for s in self.sessions.values():
+                s.q = [qq * flip for qq in s.q]
+        else:
+            log.info("%s: SLAM rotation convention as stated (decided at t=%.2f s)", self.name, t)
+        if not d.body_R_cam_ok:
+            log.warning(
+                "%s: body_T_cam rotation is %.1f deg from the one the gyro fits: check the "
+                "calibration",
+                self.name,
+                d.body_R_cam_error_deg,
+            )
 
     def _attach_pending(self, g, stamps, remove, prov_new) -> None:
         keep = []
@@ -1026,6 +1104,25 @@ class OnlineSmoother:
         g.add(fac)
         stamps[key] = self.t_kf[self.k]
         self._use("slam")
+        if (
+            self.go.use_slam_rotation is not False
+            and key != s.provisional
+            and self._slam_conv in ("as-is", "inverse")
+        ):
+            # The camera orientation carried back to the keyframe with the gyro:
+            # slam_R_cam(t_k) = slam_R_cam(t) body_R_cam^T Exp(-omega dt) body_R_cam.
+            R_meas = quat_wxyz_to_matrix(q)
+            if abs(dt) >= 1e-6:
+                i = self.imu.nearest(t)
+                w = self.values[B(self.k)].correctGyroscope(self.imu.w[i])
+                bRc = self.body_T_cam[:3, :3]
+                R_meas = R_meas @ bRc.T @ gtsam.Rot3.Expmap(-w * dt).matrix() @ bRc
+            g.add(
+                make_slam_rotation_factor(
+                    X(k), key, R_meas, self.body_T_cam, self._noise(3, self.go.slam_rot_sigma)
+                )
+            )
+            self._use("slam-rotation")
 
     def _scale_guess(self, key: int) -> float:
         v = self.values.get(key)
@@ -1074,7 +1171,6 @@ class OnlineSmoother:
                     key, value, gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
                 )
             )
-            self._drop("slam:segment-after-gap", 0)
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
         self._insert(key, value, g, stamps)
         s.chain[seg] = key
@@ -1256,6 +1352,19 @@ class OnlineSmoother:
             return True
         except SOLVER_ERRORS as e:
             msg = " ".join(str(e).split())[:200]
+            fb = (self.options.fallback_factorization or "").upper()
+            if fb and fb != self.factorization and self._move_window(fb):
+                # The failed update's factors moved with the window: nothing lost.
+                self.n_fallbacks += 1
+                log.warning(
+                    "%s: %s update failed at t=%.3f (%s); the window moved to %s (nothing lost)",
+                    self.name,
+                    self.options.factorization.upper(),
+                    self.t_kf[self.k],
+                    msg,
+                    fb,
+                )
+                return True
             self.n_failures += 1
             self.failure_messages.append(msg)
             log.warning(
@@ -1267,8 +1376,11 @@ class OnlineSmoother:
             self._rebuild(stamps)
             return False
 
-    def _switch_factorization(self) -> None:
-        """Move the window into a Cholesky smoother (the same factors at the same point)."""
+    def _move_window(self, factorization: str) -> bool:
+        """Move the window into a fresh smoother with ``factorization``, losslessly: the same
+        factors (marginals anchored at their linearisation point, their variables held) at the
+        same linearisation point and stamps. Also used on a smoother whose update just failed
+        (its factors include that update's). False (smoother unchanged) when that fails too."""
         old = self.smoother
         factors = old.getFactors()
         lin = old.getLinearizationPoint()
@@ -1284,19 +1396,29 @@ class OnlineSmoother:
                 f = gtsam.LinearContainerFactor(f.linearize(lin), lin)
             index[i] = graph.size()
             graph.add(f)
-        new = self._new_smoother(self.options.factorization.upper())
+        new = self._new_smoother(factorization)
         if held:
             new.hold_linearization(held)
         try:
             new.update(graph, lin, old.timestamps())
-        except SOLVER_ERRORS:
-            self.factorization = "QR-stay"
-            return
+        except SOLVER_ERRORS as e:
+            log.warning(
+                "%s: moving the window to %s failed (%s)",
+                self.name,
+                factorization,
+                " ".join(str(e).split())[:120],
+            )
+            return False
         self.smoother = new
-        self.factorization = self.options.factorization.upper()
+        self.factorization = factorization
         for s in self.sessions.values():
             s.prov_factors = [(index[i], row) for i, row in s.prov_factors if i in index]
-        self.n_switches = getattr(self, "n_switches", 0) + 1
+        return True
+
+    def _switch_factorization(self) -> None:
+        """After the QR start: the window into a Cholesky smoother (lossless)."""
+        if not self._move_window(self.options.factorization.upper()):
+            self.factorization = "QR-stay"
 
     def _rebuild(self, failed_stamps: dict[int, float] | None = None) -> None:
         """Fresh QR smoother with priors on the newest good state and the live slow variables
