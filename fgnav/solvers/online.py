@@ -138,6 +138,11 @@ class OnlineState:
     quality: int
 
 
+def _chr(key: int) -> str:
+    """Symbol character of a GTSAM key (top 8 bits; no ``gtsam.Symbol`` per call)."""
+    return chr(key >> 56)
+
+
 class _Imu:
     """Arrived IMU samples (lists, trimmed to the history)."""
 
@@ -272,8 +277,9 @@ class OnlineSmoother:
                 self._drop("yaw:off")
         elif isinstance(ev, AttitudeSample):
             q = np.asarray(ev.world_q_body_wxyz, float)
-            if np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < 0.1:
-                self._att.append((ev.t, q / np.linalg.norm(q)))
+            n2 = float(q @ q)
+            if math.isfinite(n2) and abs(n2 - 1.0) < 0.2:
+                self._att.append((ev.t, q / math.sqrt(n2)))
                 self._trim(self._att)
                 self._use("attitude")
             else:
@@ -436,6 +442,8 @@ class OnlineSmoother:
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
+        self._state_kf: set[int] = set()  # keyframes whose X, V, B estimates are kept
+        self._kf_min = 0  # oldest keyframe in t_kf
         # SLAM rotation convention: fixed by the options, or decided causally from the gyro.
         self._slam_conv: str | None = {"as-is": "as-is", "inverse": "inverse"}.get(
             self.go.slam_rotation
@@ -530,7 +538,7 @@ class OnlineSmoother:
         t = float(ev.t)
         w = np.asarray(ev.body_omega, float)
         a = np.asarray(ev.body_accel, float)
-        if not (math.isfinite(t) and np.all(np.isfinite(w)) and np.all(np.isfinite(a))):
+        if not math.isfinite(t + float(w @ w) + float(a @ a)):
             self._drop("imu:non-finite")
             return None
         last = self._t_last.get("imu", -math.inf)
@@ -1428,7 +1436,7 @@ class OnlineSmoother:
         live = [
             key
             for key in self.values
-            if chr(gtsam.Symbol(key).chr()) in "sdg"
+            if _chr(key) in "sdg"
             and (self._alive(key) or key in (failed_stamps or {}))
         ]
         self.reset_counter += 1
@@ -1465,7 +1473,7 @@ class OnlineSmoother:
             stamps[key] = t
         for key in live:
             val = self.values[key]
-            c = chr(gtsam.Symbol(key).chr())
+            c = _chr(key)
             if c == "s":
                 sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, o.rebuild_slow_sigma_rel])
                 g.add(gtsam.PriorFactorSimilarity3(key, val, gtsam.noiseModel.Diagonal.Sigmas(sig)))
@@ -1523,11 +1531,15 @@ class OnlineSmoother:
             pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
             pose_cov = vel_cov = None
         # Keep only the newest keyframe state (and the slow variables).
-        for kk in [kk for kk in self.t_kf if kk < k - 1]:
+        keep_kf = k - int(self.options.lag_s / self.period) - 4
+        for kk in [kk for kk in self._state_kf if kk < k - 1]:
             for key in (X(kk), V(kk), B(kk)):
                 self.values.pop(key, None)
-            if kk < k - int(self.options.lag_s / self.period) - 4:
-                del self.t_kf[kk]
+            self._state_kf.discard(kk)
+        self._state_kf.add(k)
+        while self.t_kf and self._kf_min < keep_kf:
+            self.t_kf.pop(self._kf_min, None)
+            self._kf_min += 1
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
         self._pose_hist[k] = (self.t_kf[k], pose)
         while len(self._pose_hist) > self.options.history_s * self.go.keyframe_hz:
@@ -1536,14 +1548,14 @@ class OnlineSmoother:
         # Slow variables.
         every = max(1, self.options.slow_read_every)
         if k % every == 0:
-            for key in [key for key in self.values if chr(gtsam.Symbol(key).chr()) in "sdg"]:
+            for key in [key for key in self.values if _chr(key) in "sdg"]:
                 if not self._alive(key):
                     if self.stamp.get(key, t) < t - self.options.lag_s - 5.0:
                         self.values.pop(key)
                         self.stamp.pop(key, None)
                     continue
                 try:
-                    c = chr(gtsam.Symbol(key).chr())
+                    c = _chr(key)
                     if c == "s":
                         self.values[key] = sm.calculateEstimateSimilarity3(key)
                     else:
@@ -1562,7 +1574,7 @@ class OnlineSmoother:
                 self._session_scale[sess] = sc
                 self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
         for c, name in (("d", "drag_k"), ("g", "ground_height")):
-            keys = [k for k in self.values if chr(gtsam.Symbol(k).chr()) == c and self._alive(k)]
+            keys = [k for k in self.values if _chr(k) == c and self._alive(k)]
             if keys:
                 v = np.asarray(self.values[max(keys)], float)
                 self.track.setdefault(name, []).append(
