@@ -195,6 +195,9 @@ class FixedLagOptions:
         drag_check_s: IMU span of the thrust-axis check of the drag model [s].
         drag_scatter_n: keyframes of the running drag-noise estimate.
         slam_fit_max_s: the closed-form SLAM fit uses the session's last this many seconds [s].
+        image_latency_s: with a camera, a keyframe without an image closes only once the IMU is
+            this much (plus half a keyframe period) past it, so that an image taken for it
+            can still arrive and anchor it [s]: the camera's latency (0 for a replay).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -240,6 +243,7 @@ class FixedLagOptions:
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
     slam_check_max_s: float = 300.0
+    image_latency_s: float = 0.0
 
 
 def _isam2_params(

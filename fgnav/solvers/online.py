@@ -92,7 +92,11 @@ from fgnav.factors.yaw import make_yaw_factor
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.fixed_lag import SOLVER_ERRORS, FixedLagOptions, _isam2_params
 from fgnav.solvers.graph import PREINTEGRATION_INTEGRATION_COV
-from fgnav.solvers.measurements import init_slam_alignment, level_rotation_from_accel
+from fgnav.solvers.measurements import (
+    MIN_ANCHOR_GAP_PERIODS,
+    init_slam_alignment,
+    level_rotation_from_accel,
+)
 from fgnav.solvers.window import TimeOrderedSmoother
 
 log = logging.getLogger(__name__)
@@ -284,6 +288,8 @@ class OnlineSmoother:
                 self._use("attitude")
             else:
                 self._drop("attitude:non-finite")
+        elif isinstance(ev, ImageFrame):
+            self._on_image(ev)
         else:
             self._drop(f"{stream}:not-used-online")
         return None
@@ -402,6 +408,10 @@ class OnlineSmoother:
         for k, kind, _ in self._pending:
             key = f"{kind}:after-last-keyframe" if k > self.k else f"{kind}:pending"
             out[key] = out.get(key, 0) + 1
+        t_new = self.t_kf.get(self.k, -math.inf)
+        for t, _ in self._slam_wait:
+            key = "slam:after-last-keyframe" if t > t_new + 1e-9 else "slam:after-last-update"
+            out[key] = out.get(key, 0) + 1
         if self._held:
             out["slam:before-alignment"] = len(self._held)
         return out
@@ -424,26 +434,25 @@ class OnlineSmoother:
         self._first_slam_t: float | None = None
         self._att: deque = deque()
         self._scalar: dict[str, deque] = {"range": deque(), "yaw": deque()}
-        self._scalar_done: dict[str, int] = {"range": -1, "yaw": -1}
+        self._scalar_wait: dict[str, deque] = {"range": deque(), "yaw": deque()}
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
+        self._anchors: deque = deque()  # arrived image times not yet passed
+        self._anchors_on = False
+        self._slam_wait: list = []  # SLAM poses taken after the newest keyframe
         self._pending: list[tuple[int, str, Any]] = []  # (keyframe, kind, payload)
         self.sessions: dict[int, _Session] = {}
         self.values: dict[int, Any] = {}  # last good estimate of live keys
         self.stamp: dict[int, float] = {}
         self._n_prov = 0
-        self._drag_acc: dict[int, list] = {}
         self._drag_means: deque = deque(maxlen=self.options.drag_scatter_n)
         self._drag_sigma = float(self.go.drag_model_sigma)
         self._drag_on = self.go.use_drag
         self._drag_checked = False
-        self._thrust_sum = np.zeros(3)
-        self._thrust_n = 0
-        self._thrust_t0: float | None = None
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
         self._state_kf: set[int] = set()  # keyframes whose X, V, B estimates are kept
-        self._kf_min = 0  # oldest keyframe in t_kf
         # SLAM rotation convention: fixed by the options, or decided causally from the gyro.
         self._slam_conv: str | None = {"as-is": "as-is", "inverse": "inverse"}.get(
             self.go.slam_rotation
@@ -558,33 +567,81 @@ class OnlineSmoother:
             self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
             self._first_imu_t = t
-        prev_t = self.imu.t[-1] if self.imu.t else None
-        prev_w = self.imu.w[-1] if self.imu.w else None
-        prev_a = self.imu.a[-1] if self.imu.a else None
         self.imu.add(t, w, a)
         self._t_imu_last = t
         if self.t0 is None:
             self._try_start(t)
             return self.latest() if self.t0 is not None and self.k >= 0 else None
-        closed = self._integrate(prev_t, prev_a, prev_w, t)
+        closed = self._advance(t)
         self.imu.trim(t - self.options.history_s)
         return self.latest() if closed else None
 
-    def _integrate(self, ta: float | None, a: np.ndarray, w: np.ndarray, t: float) -> bool:
-        """Sample ``(a, w)`` held from ``ta`` to ``t`` (zero-order hold), split at keyframe
-        times; closes the keyframes it passes. True when one closed."""
+    def _advance(self, t_imu: float) -> bool:
+        """Close every keyframe the IMU has passed; True when one closed."""
         closed = False
-        while ta is not None and ta < t:
-            t_next = self.t0 + (self.k + 1) * self.period
-            tb = min(t, t_next)
-            if tb > ta:
-                self._pim.integrateMeasurement(a, w, tb - ta)
-                self._accumulate_drag(a, ta, tb)
-            ta = tb
-            if tb >= t_next - 1e-9:
-                self._close_keyframe(self.k + 1)
-                closed = True
-        return closed
+        while True:
+            t_next, ready = self._next_time(t_imu)
+            if not ready:
+                return closed
+            self._close_keyframe(t_next)
+            closed = True
+
+    def _next_time(self, t_imu: float) -> tuple[float, bool]:
+        """The next keyframe's time and whether it can close. Without images: the fixed grid
+        step after the newest keyframe, closed once an IMU sample after it has arrived. With
+        images: the first image (an anchor: its homography needs its keyframe) taken at least
+        ``MIN_ANCHOR_GAP_PERIODS`` after the newest keyframe and at most half a period after the
+        grid step, closed once the IMU has passed it; without such an image the grid step,
+        closed once the IMU is half a period plus ``image_latency_s`` past it (an image could
+        still arrive for it until then)."""
+        t_k = self.t_kf[self.k]
+        grid = t_k + self.period
+        if not self._anchors_on:
+            return grid, t_imu > grid + 1e-9
+        anchors = self._anchors
+        while anchors and anchors[0] <= t_k + 1e-9:
+            anchors.popleft()
+        for a in anchors:
+            if a > grid + 0.5 * self.period + 1e-9:
+                break
+            if a - t_k >= MIN_ANCHOR_GAP_PERIODS * self.period - 1e-9:
+                return a, t_imu > a + 1e-9
+        return grid, t_imu > grid + 0.5 * self.period + self.options.image_latency_s
+
+    def _preintegrate(
+        self, ta: float, tb: float, bias: gtsam.imuBias.ConstantBias
+    ) -> gtsam.PreintegratedCombinedMeasurements:
+        """The arrived IMU from ``ta`` to ``tb`` (zero-order hold: a sample holds until the
+        next)."""
+        pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
+        t, a, w = self.imu.t, self.imu.a, self.imu.w
+        n = len(t)
+        i0 = max(bisect.bisect_right(t, ta) - 1, 0)
+        i1 = bisect.bisect_left(t, tb)
+        for i in range(i0, i1):
+            s0 = t[i] if t[i] > ta else ta
+            s1 = t[i + 1] if i + 1 < n and t[i + 1] < tb else tb
+            if s1 > s0:
+                pim.integrateMeasurement(a[i], w[i], s1 - s0)
+        return pim
+
+    def _mean_accel(self, ta: float, tb: float) -> tuple[np.ndarray | None, int, float]:
+        """Time-weighted mean accelerometer over ``[ta, tb]`` (zero-order hold), the number of
+        samples and the covered time [s]."""
+        t = self.imu.t
+        i0 = max(bisect.bisect_right(t, ta) - 1, 0)
+        i1 = bisect.bisect_left(t, tb)
+        if i1 <= i0 or i0 >= len(t):
+            return None, 0, 0.0
+        ts = np.asarray(t[i0 : i1 + 1] if i1 < len(t) else [*t[i0:i1], tb])
+        s0 = np.maximum(ts[:-1], ta)
+        s1 = np.minimum(ts[1:], tb)
+        d = np.maximum(s1 - s0, 0.0)
+        dur = float(d.sum())
+        if dur <= 0:
+            return None, 0, 0.0
+        acc = np.asarray(self.imu.a[i0:i1])
+        return (d[:, None] * acc).sum(axis=0) / dur, int((d > 0).sum()), dur
 
     def _try_start(self, t: float) -> None:
         """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
@@ -661,14 +718,12 @@ class OnlineSmoother:
         self._new_slow(0, g, vals, stamps)
         wall = time.perf_counter()
         self._update(g, vals, stamps, [])
-        self._pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
         self._read(0, wall)
+        self._kf_index.append((t_start, 0))
+        self._waiting_scalar(0)
         # The IMU that arrived after the start time (the start may lie in the past: the first
         # SLAM pose's capture time) closes its keyframes now.
-        i0 = bisect.bisect_right(self.imu.t, t_start) - 1
-        ts = list(self.imu.t)
-        for j in range(max(i0, 0), len(ts) - 1):
-            self._integrate(max(ts[j], t_start), self.imu.a[j], self.imu.w[j], ts[j + 1])
+        self._advance(self._t_imu_last)
         log.info(
             "%s: started at t=%.3f s (gyro bias %s, %s)",
             self.name,
@@ -697,13 +752,15 @@ class OnlineSmoother:
     # Keyframes
     # ------------------------------------------------------------------------------------------
 
-    def _close_keyframe(self, k: int) -> None:
+    def _close_keyframe(self, t_k: float) -> None:
         wall = time.perf_counter()
-        t_k = self.t0 + k * self.period
-        self.t_kf[k] = t_k
         kp = self.k
+        k = kp + 1
+        self.t_kf[k] = t_k
+        self._kf_index.append((t_k, k))
         bias = self.values[B(kp)]
-        pim = self._pim
+        pim = self._preintegrate(self.t_kf[kp], t_k, bias)
+        self._pim = pim
         nav = pim.predict(gtsam.NavState(self.values[X(kp)], self.values[V(kp)]), bias)
         g = gtsam.NonlinearFactorGraph()
         g.add(gtsam.CombinedImuFactor(X(kp), V(kp), X(k), V(k), B(kp), B(k), pim))
@@ -717,6 +774,7 @@ class OnlineSmoother:
         self.k = k
         self._new_slow(k, g, vals, stamps)
         self._drag_factor(k - 1, g, stamps)
+        self._waiting_scalar(k)
         remove: list[int] = []
         prov_new: list[tuple[int, int, Any]] = []
         self._attach_pending(g, stamps, remove, prov_new)
@@ -733,7 +791,6 @@ class OnlineSmoother:
                 s = self.sessions.get(sess)
                 if s is not None and s.provisional is not None:
                     s.prov_factors.append((int(idx[pos]), row))
-        self._pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, self.values[B(k)])
         self._read(k, wall)
         if self.factorization == "QR" and self.options.factorization.upper() != "QR":
             if (
@@ -829,37 +886,24 @@ class OnlineSmoother:
     # Drag
     # ------------------------------------------------------------------------------------------
 
-    def _accumulate_drag(self, a: np.ndarray, ta: float, tb: float) -> None:
-        """Add a held sample to the thrust-axis check and to the mean accelerometer of the
-        keyframe window ``[t_j - T/2, t_j + T/2)`` holding its midpoint."""
-        if not self._drag_on:
+    def _thrust_check(self, t: float) -> None:
+        """Decide once, from the IMU of the first ``drag_check_s``, whether the drag model
+        applies (the mean specific force near body +z)."""
+        s = self.imu.span(self.t0, t)
+        acc = np.asarray(self.imu.a[s])
+        if len(acc) == 0:
             return
-        if not self._drag_checked:
-            self._thrust_check(a, ta, tb)
-        j = int(math.floor(((ta + tb) / 2 - self.t0) / self.period + 0.5))
-        acc = self._drag_acc.get(j)
-        if acc is None:
-            acc = self._drag_acc[j] = [np.zeros(3), 0.0, 0]
-        acc[0] += a * (tb - ta)
-        acc[1] += tb - ta
-        acc[2] += 1
-
-    def _thrust_check(self, a: np.ndarray, ta: float, tb: float) -> None:
-        """Decide once, from the first ``drag_check_s`` of IMU, whether the drag model applies."""
-        if self._thrust_t0 is None:
-            self._thrust_t0 = ta
-        n = float(np.linalg.norm(a))
-        if n > 0.5 * self.go.gravity:
-            self._thrust_sum += a / n
-            self._thrust_n += 1
-        if tb - self._thrust_t0 < self.options.drag_check_s or not self._thrust_n:
-            return
+        n = np.linalg.norm(acc, axis=1)
+        ok = n > 0.5 * self.go.gravity
         self._drag_checked = True
-        d = self._thrust_sum / max(float(np.linalg.norm(self._thrust_sum)), 1e-12)
+        if not ok.any():
+            self._drag_decision = "on (no thrust-borne sample to check)"
+            return
+        d = (acc[ok] / n[ok, None]).mean(axis=0)
+        d /= max(float(np.linalg.norm(d)), 1e-12)
         ang = math.degrees(math.acos(float(np.clip(d[2], -1.0, 1.0))))
         if self.go.drag_thrust_check and ang > self.go.drag_thrust_max_angle_deg:
             self._drag_on = False
-            self._drag_acc.clear()
             self._drag_decision = (
                 f"off: the mean specific force of the first {self.options.drag_check_s:g} s is "
                 f"{ang:.0f} deg from body +z (the drag model needs the thrust along body z)"
@@ -869,19 +913,26 @@ class OnlineSmoother:
             self._drag_decision = f"on (mean thrust {ang:.0f} deg from body +z)"
 
     def _drag_factor(self, j: int, g, stamps) -> None:
-        """The drag factor of keyframe j (its window has passed)."""
-        acc = self._drag_acc.pop(j, None)
-        for old in [jj for jj in self._drag_acc if jj < j]:
-            del self._drag_acc[old]
-        if not (self._drag_on and self._drag_checked) or j < 0:
+        """The drag factor of keyframe j over ``[t_j - h0, t_j + h1]`` (half the neighbouring
+        keyframe intervals), once keyframe j + 1 has closed."""
+        if not self._drag_on or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
             return
-        if acc is None or acc[1] <= 0:
+        t_j = self.t_kf[j]
+        if not self._drag_checked:
+            if t_j - self.t0 < self.options.drag_check_s:
+                return
+            self._thrust_check(t_j)
+            if not self._drag_on:
+                return
+        h1 = 0.5 * (self.t_kf[j + 1] - t_j)
+        h0 = 0.5 * (t_j - self.t_kf[j - 1]) if j - 1 in self.t_kf else h1
+        mean, n, dur = self._mean_accel(t_j - h0, t_j + h1)
+        if mean is None or n == 0:
             self._drop("drag:no-imu-in-interval")
             return
         if not self._kf_alive(j):
             self._drop("drag:late")
             return
-        mean, dur, n = acc[0] / acc[1], acc[1], acc[2]
         cos_tilt = mean[2] / max(float(np.linalg.norm(mean)), 1e-12)
         if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
             self._drop("drag:not-thrust-borne")
@@ -932,19 +983,42 @@ class OnlineSmoother:
             value = buf[-1][1] + wrap_angle(value - buf[-1][1])  # unwrapped
         buf.append((t, float(value)))
         self._trim(buf)
-        if self.t0 is None or len(buf) < 2:
+        wait = self._scalar_wait[kind]
+        while wait and self.t_kf.get(wait[0], math.inf) <= t:
+            self._scalar_at(kind, wait.popleft())
+
+    def _waiting_scalar(self, k: int) -> None:
+        """Range and yaw at keyframe k: now when a later sample has arrived, else when it does."""
+        for kind in ("range", "yaw"):
+            if not self.received.get(kind):
+                continue  # no such stream (yet): nothing to wait for
+            buf = self._scalar[kind]
+            if buf and buf[-1][0] >= self.t_kf[k]:
+                self._scalar_at(kind, k)
+            else:
+                wait = self._scalar_wait[kind]
+                wait.append(k)
+                while len(wait) > 4 * self.options.lag_s * self.go.keyframe_hz:
+                    wait.popleft()
+                    self._drop(f"{kind}:keyframes-without-bracketing-samples")
+
+    def _scalar_at(self, kind: str, k: int) -> None:
+        """Interpolate a range or yaw stream at keyframe k from its two bracketing samples."""
+        buf = self._scalar[kind]
+        tk = self.t_kf.get(k)
+        if tk is None:
             return
-        (t0, v0), (t1, v1) = buf[-2], buf[-1]
-        if t1 - t0 > self.go.interp_max_gap_s:
+        ts = [r[0] for r in buf]
+        i = bisect.bisect_left(ts, tk)
+        if i < len(ts) and abs(ts[i] - tk) < 1e-9:
+            self._pending.append((k, kind, buf[i][1]))
             return
-        # Keyframes in (t0, t1]: interpolate.
-        k_lo = max(math.floor((t0 - self.t0) / self.period) + 1, self._scalar_done[kind] + 1, 0)
-        k_hi = math.floor((t1 - self.t0) / self.period + 1e-9)
-        for k in range(k_lo, k_hi + 1):
-            tk = self.t0 + k * self.period
-            w = (tk - t0) / (t1 - t0)
-            self._pending.append((k, kind, (1 - w) * v0 + w * v1))
-            self._scalar_done[kind] = k
+        if i == 0 or i >= len(ts) or ts[i] - ts[i - 1] > self.go.interp_max_gap_s:
+            self._drop(f"{kind}:keyframes-without-bracketing-samples")
+            return
+        (t0, v0), (t1, v1) = buf[i - 1], buf[i]
+        w = (tk - t0) / (t1 - t0)
+        self._pending.append((k, kind, (1 - w) * v0 + w * v1))
 
     # ------------------------------------------------------------------------------------------
     # SLAM
@@ -974,11 +1048,10 @@ class OnlineSmoother:
             del s.t[0], s.p[0], s.q[0]
         if self.t0 is None:
             return
-        k = round((ev.t - self.t0) / self.period)
-        if k < 0:
+        if ev.t < self.t0 - 0.5 * self.period:
             self._drop("slam:before-start")
             return
-        self._pending.append((k, "slam", (sess, len(s.t) - 1, float(ev.t), p, q)))
+        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q)))
 
     def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
         """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
@@ -1031,7 +1104,29 @@ class OnlineSmoother:
                 d.body_R_cam_error_deg,
             )
 
+    def _on_image(self, ev: ImageFrame) -> None:
+        self._drop("images:not-used-online")
+
+    def _kf_near(self, t: float) -> int:
+        """The kept keyframe nearest ``t``."""
+        idx = self._kf_index
+        ts = [r[0] for r in idx]
+        i = bisect.bisect_left(ts, t)
+        if i >= len(ts):
+            return idx[-1][1]
+        if i > 0 and t - ts[i - 1] <= ts[i] - t:
+            return idx[i - 1][1]
+        return idx[i][1]
+
     def _attach_pending(self, g, stamps, remove, prov_new) -> None:
+        t_new = self.t_kf[self.k]
+        still = []
+        for t, payload in self._slam_wait:
+            if t > t_new + 1e-9:
+                still.append((t, payload))
+            else:
+                self._pending.append((self._kf_near(t), "slam", payload))
+        self._slam_wait = still
         keep = []
         for item in self._pending:
             k, kind, payload = item
@@ -1307,7 +1402,7 @@ class OnlineSmoother:
 
     def _pose_at(self, t: float) -> gtsam.Pose3:
         """The newest estimate of the keyframe nearest ``t`` (the newest one for later times)."""
-        k = min(self.k, max(0, round((t - self.t0) / self.period)))
+        k = self._kf_near(t) if self._kf_index else self.k
         while k > 0 and k not in self._pose_hist:
             k -= 1
         return self._pose_hist[k][1] if k in self._pose_hist else self.values[X(self.k)]
@@ -1436,8 +1531,7 @@ class OnlineSmoother:
         live = [
             key
             for key in self.values
-            if _chr(key) in "sdg"
-            and (self._alive(key) or key in (failed_stamps or {}))
+            if _chr(key) in "sdg" and (self._alive(key) or key in (failed_stamps or {}))
         ]
         self.reset_counter += 1
         self._bad_since = self.t_kf.get(self.k, 0.0)
@@ -1531,15 +1625,15 @@ class OnlineSmoother:
             pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
             pose_cov = vel_cov = None
         # Keep only the newest keyframe state (and the slow variables).
-        keep_kf = k - int(self.options.lag_s / self.period) - 4
+        horizon = self.t_kf[k] - self.options.lag_s - 4 * self.period
         for kk in [kk for kk in self._state_kf if kk < k - 1]:
             for key in (X(kk), V(kk), B(kk)):
                 self.values.pop(key, None)
             self._state_kf.discard(kk)
         self._state_kf.add(k)
-        while self.t_kf and self._kf_min < keep_kf:
-            self.t_kf.pop(self._kf_min, None)
-            self._kf_min += 1
+        while len(self._kf_index) > 2 and self._kf_index[0][0] < horizon:
+            _, kk = self._kf_index.popleft()
+            self.t_kf.pop(kk, None)
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
         self._pose_hist[k] = (self.t_kf[k], pose)
         while len(self._pose_hist) > self.options.history_s * self.go.keyframe_hz:

@@ -21,8 +21,9 @@ def test_real_euroc_yaml(real_data):
     assert calib.imu_noise.gyro_random_walk == 1.9393e-05
     assert calib.imu_noise.accel_random_walk == 3.0e-3
     T = calib.body_T_cam
-    np.testing.assert_array_equal(T[0], [0.0148655429818, -0.999880929698, 0.00414029679422,
-                                         -0.0216401454975])
+    np.testing.assert_array_equal(
+        T[0], [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975]
+    )
     np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
     # Camera optical axis (z) ~ IMU +z, camera x (right) ~ IMU +y, camera y (down) ~ IMU -x.
     assert T[2, 2] > 0.99 and T[1, 0] > 0.99 and T[0, 1] < -0.99

@@ -165,8 +165,9 @@ def test_synthetic_mav0_folder(tmp_path):
     assert flight.calib.camera.fx == 458.654 and flight.calib.camera.width == 752
     assert flight.calib.imu_noise.gyro_noise_density == 1.6968e-04
     assert flight.calib.body_T_cam[0, 3] == -0.0216401454975
-    np.testing.assert_allclose(invert_pose(flight.calib.body_T_cam)[:3, :3],
-                               flight.calib.body_T_cam[:3, :3].T)
+    np.testing.assert_allclose(
+        invert_pose(flight.calib.body_T_cam)[:3, :3], flight.calib.body_T_cam[:3, :3].T
+    )
     assert flight.images.load(1).shape == (8, 8)
     assert flight.meta["notes"] == []
     (mav0 / "cam0/data" / names[1]).unlink()

@@ -40,8 +40,9 @@ def test_replay_is_in_arrival_order_and_complete():
     for e in slam:
         i = int(np.argmin(np.abs(f.slam.t - e.t)))
         assert e.arrival == f.slam.t[i] + f.slam.latency[i]
-    assert all(isinstance(e, RangeReading) and e.arrival == e.t for e in ev if
-               isinstance(e, RangeReading))
+    assert all(
+        isinstance(e, RangeReading) and e.arrival == e.t for e in ev if isinstance(e, RangeReading)
+    )
 
 
 def test_ties_put_imu_first_and_latency_override():

@@ -23,8 +23,9 @@ def test_exp_log_round_trip_batched_and_single(scale):
     phi *= scale / np.linalg.norm(phi, axis=1, keepdims=True)
     R = so3_exp(phi)
     assert R.shape == (50, 3, 3)
-    np.testing.assert_allclose(R @ np.transpose(R, (0, 2, 1)), np.broadcast_to(np.eye(3), R.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        R @ np.transpose(R, (0, 2, 1)), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+    )
     np.testing.assert_allclose(so3_log(R), phi, atol=1e-12, rtol=1e-9)
     np.testing.assert_allclose(so3_exp(phi[3]), R[3], atol=1e-15)
     np.testing.assert_allclose(so3_log(R[3]), phi[3], atol=1e-12, rtol=1e-9)

@@ -69,8 +69,11 @@ def test_ulog_and_bags_dispatch_lazily(tmp_path, monkeypatch):
 
 def test_unknown_and_missing(tmp_path):
     (tmp_path / "x.csv").write_text("1,2\n")
-    with pytest.raises(FlightFormatError, match=r"x\.csv: not a recognised flight input; "
-                       r"supported: fgnav flight folder .*PX4 ULog \(\*\.ulg\).*ROS 2 bag"):
+    with pytest.raises(
+        FlightFormatError,
+        match=r"x\.csv: not a recognised flight input; "
+        r"supported: fgnav flight folder .*PX4 ULog \(\*\.ulg\).*ROS 2 bag",
+    ):
         load_flight(tmp_path / "x.csv")
     with pytest.raises(FlightFormatError, match="not a recognised flight input"):
         load_flight(tmp_path)

@@ -45,7 +45,8 @@ def _small_flight_files(tmp_path):
     n = 30
     t = 100.0 + np.arange(n) * 0.005
     write_stream_csv(
-        ImuSeries(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3))), tmp_path / "d/imu.csv",
+        ImuSeries(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3))),
+        tmp_path / "d/imu.csv",
         "imu",
     )
     q = np.tile([1.0, 0, 0, 0], (n, 1))
@@ -103,15 +104,23 @@ def test_native_calib_in_manifest(tmp_path):
 @pytest.mark.parametrize(
     "edit, match",
     [
-        (lambda s: s.replace('format = "tum_slam"', 'format = "bag"'),
-         r"m\.toml: \[slam\] format = 'bag' is not supported; valid: tum_slam, native_csv"),
-        (lambda s: s.replace("session = 3", "sesion = 3"),
-         r"\[slam\] unknown key\(s\) \['sesion'\] for format 'tum_slam'; valid: format, path, "
-         r"time_offset_s, time_unit, session"),
-        (lambda s: s + "[gps]\nformat = 'tum'\npath = 'gt.txt'\n",
-         r"unknown key\(s\)/table\(s\) \['gps'\]; valid: name, root"),
-        (lambda s: s.replace('path = "gt.txt"', 'path = "nothere.txt"', 1),
-         r"m\.toml: \[ground_truth\] path: .*d/nothere\.txt not found"),
+        (
+            lambda s: s.replace('format = "tum_slam"', 'format = "bag"'),
+            r"m\.toml: \[slam\] format = 'bag' is not supported; valid: tum_slam, native_csv",
+        ),
+        (
+            lambda s: s.replace("session = 3", "sesion = 3"),
+            r"\[slam\] unknown key\(s\) \['sesion'\] for format 'tum_slam'; valid: format, path, "
+            r"time_offset_s, time_unit, session",
+        ),
+        (
+            lambda s: s + "[gps]\nformat = 'tum'\npath = 'gt.txt'\n",
+            r"unknown key\(s\)/table\(s\) \['gps'\]; valid: name, root",
+        ),
+        (
+            lambda s: s.replace('path = "gt.txt"', 'path = "nothere.txt"', 1),
+            r"m\.toml: \[ground_truth\] path: .*d/nothere\.txt not found",
+        ),
         (lambda s: s.replace('root = "d"', 'root = "nowhere"'), r"root: folder .*nowhere not"),
         (lambda s: s.replace('name = "small"', ""), r"name: required"),
         (lambda s: s.replace("session = 3", "session = [3"), r"m\.toml: not valid TOML"),
@@ -158,8 +167,9 @@ def test_log_formats_read_once_and_pick_streams(tmp_path, monkeypatch):
 
     def read_bag(path, topics=None):
         calls.append(("bag", path, topics))
-        return Flight(name="bag", slam=SlamSeries(t, np.zeros((10, 3)), q,
-                                                  np.zeros(10, dtype=np.int64)))
+        return Flight(
+            name="bag", slam=SlamSeries(t, np.zeros((10, 3)), q, np.zeros(10, dtype=np.int64))
+        )
 
     for name, fn in (("ulog", read_ulog), ("rosbag", read_bag)):
         mod = types.ModuleType(f"fgnav.datasets.{name}")
@@ -180,11 +190,12 @@ def test_log_formats_read_once_and_pick_streams(tmp_path, monkeypatch):
     assert f.calib.range_max == 12.0 and len(f.imu) == 10 and len(f.slam) == 10
     assert set(f.references) == {"px4_ekf2"}
     assert f.meta["notes"] == ["[calib] log note"]
-    (tmp_path / "m.toml").write_text(
-        'name = "logs"\n[yaw]\nformat = "ulog"\npath = "a.ulg"\n'
-    )
-    with pytest.raises(FlightFormatError, match=r"\[yaw\] .*a\.ulg has no stream 'yaw'; it has: "
-                                                 r"imu, ref:px4_ekf2"):
+    (tmp_path / "m.toml").write_text('name = "logs"\n[yaw]\nformat = "ulog"\npath = "a.ulg"\n')
+    with pytest.raises(
+        FlightFormatError,
+        match=r"\[yaw\] .*a\.ulg has no stream 'yaw'; it has: "
+        r"imu, ref:px4_ekf2",
+    ):
         read_manifest(tmp_path / "m.toml")
     (tmp_path / "m.toml").write_text('name = "x"\n[slam]\nformat = "rosbag"\npath = "b.bag"\n')
     with pytest.raises(FlightFormatError, match=r"\[slam\] topic: required for format 'rosbag'"):

@@ -89,9 +89,23 @@ def make_full_flight(seed: int = 0) -> Flight:
 
 def _assert_series_equal(a, b) -> None:
     assert type(a) is type(b)
-    for f in ("t", "body_omega", "body_accel", "world_q_body_wxyz", "range", "quality", "yaw",
-              "slam_t_cam", "slam_q_cam_wxyz", "session", "latency", "world_t_body",
-              "world_v_body", "gyro_bias", "accel_bias"):
+    for f in (
+        "t",
+        "body_omega",
+        "body_accel",
+        "world_q_body_wxyz",
+        "range",
+        "quality",
+        "yaw",
+        "slam_t_cam",
+        "slam_q_cam_wxyz",
+        "session",
+        "latency",
+        "world_t_body",
+        "world_v_body",
+        "gyro_bias",
+        "accel_bias",
+    ):
         if hasattr(a, f):
             va, vb = getattr(a, f), getattr(b, f)
             if va is None:
@@ -130,8 +144,11 @@ def test_round_trip_is_exact(tmp_path):
         "count": 3,
     }
     # Header names columns and units.
-    assert (folder / "imu.csv").read_text().splitlines()[0].startswith(
-        "t [s],omega_x [rad/s],omega_y [rad/s],omega_z [rad/s],accel_x [m/s^2]"
+    assert (
+        (folder / "imu.csv")
+        .read_text()
+        .splitlines()[0]
+        .startswith("t [s],omega_x [rad/s],omega_y [rad/s],omega_z [rad/s],accel_x [m/s^2]")
     )
 
 
@@ -140,10 +157,12 @@ def test_optional_columns_absent_and_image_files_copied(tmp_path):
     minimal = Flight(
         name="min",
         range=RangeSeries(full.range.t, full.range.range),
-        slam=SlamSeries(full.slam.t, full.slam.slam_t_cam, full.slam.slam_q_cam_wxyz,
-                        full.slam.session),
-        ground_truth=Trajectory(full.ground_truth.t, full.ground_truth.world_t_body,
-                                full.ground_truth.world_q_body_wxyz),
+        slam=SlamSeries(
+            full.slam.t, full.slam.slam_t_cam, full.slam.slam_q_cam_wxyz, full.slam.session
+        ),
+        ground_truth=Trajectory(
+            full.ground_truth.t, full.ground_truth.world_t_body, full.ground_truth.world_q_body_wxyz
+        ),
         images=full.images,
     )
     first = read_flight(write_flight(minimal, tmp_path / "a"))
@@ -183,8 +202,10 @@ def test_missing_column_named(tmp_path):
     imu = folder / "imu.csv"
     _edit_line(imu, 1, lambda s: s.replace(",accel_y [m/s^2]", ""))
     lines = imu.read_text().splitlines()
-    imu.write_text("\n".join([lines[0]] + [",".join(r.split(",")[:5] + r.split(",")[6:])
-                                           for r in lines[1:]]) + "\n")
+    imu.write_text(
+        "\n".join([lines[0]] + [",".join(r.split(",")[:5] + r.split(",")[6:]) for r in lines[1:]])
+        + "\n"
+    )
     with pytest.raises(FlightFormatError, match=r"imu\.csv:1: missing column 'accel_y \[m/s\^2\]'"):
         read_flight(folder)
 
@@ -198,8 +219,9 @@ def test_unknown_column_named(tmp_path):
 
 def test_nan_and_text_named_with_line(tmp_path):
     folder = _write_min(tmp_path)
-    _edit_line(folder / "imu.csv", 5, lambda s: ",".join(s.split(",")[:3] + ["nan"]
-                                                        + s.split(",")[4:]))
+    _edit_line(
+        folder / "imu.csv", 5, lambda s: ",".join(s.split(",")[:3] + ["nan"] + s.split(",")[4:])
+    )
     with pytest.raises(FlightFormatError, match=r"imu\.csv:5: column 4 \('omega_z'\): non-finite"):
         read_flight(folder)
     folder = write_flight(Flight(name="m", imu=make_full_flight().imu), tmp_path / "n")

@@ -23,8 +23,9 @@ def two_turns():
 @pytest.fixture(scope="module")
 def figure8_clean():
     """12 s of the fast figure eight, noise-free."""
-    return simulate("figure8", seed=0, options=SimOptions(images=False, noise_free=True,
-                                                         duration=12.0))
+    return simulate(
+        "figure8", seed=0, options=SimOptions(images=False, noise_free=True, duration=12.0)
+    )
 
 
 def _body_velocity(flight):
@@ -228,8 +229,9 @@ def test_range_is_height_over_cos_tilt_on_clean_samples(two_turns):
 
 def test_range_sees_terrain_steps_and_limits():
     box = (-1.0, -1.0, 1.0, 1.0, 0.5)  # a 0.5 m platform under the start of the rectangle
-    opts = SimOptions(images=False, noise_free=True, duration=6.0, terrain_steps=(box,),
-                      range_max=1.2)
+    opts = SimOptions(
+        images=False, noise_free=True, duration=6.0, terrain_steps=(box,), range_max=1.2
+    )
     f = simulate("rectangle", seed=0, options=opts)
     gt = f.ground_truth
     idx = _at(gt.t, f.range.t)
@@ -241,8 +243,9 @@ def test_range_sees_terrain_steps_and_limits():
     assert on_box.any()
     # Over the box the range is shorter by the box height / cos(tilt); elsewhere it is ground
     # (beyond range_max = 1.2 m at 1.5 m height: not delivered, counted).
-    np.testing.assert_allclose(f.range.range[on_box],
-                               (origin[on_box, 2] - 0.5) / R[on_box, 2, 2], atol=1e-9)
+    np.testing.assert_allclose(
+        f.range.range[on_box], (origin[on_box, 2] - 0.5) / R[on_box, 2, 2], atol=1e-9
+    )
     assert np.all(on_box)
     assert f.meta["notes"]["range_out_of_limits"] > 0
 
@@ -264,8 +267,14 @@ def _slam_to_world(f):
 
 
 def test_slam_maps_back_to_ground_truth_through_the_stored_similarity():
-    opts = SimOptions(images=False, duration=20.0, slam_resets=(8.0,), slam_reset_gap_s=1.5,
-                      slam_dropouts=((14.0, 15.0),), slam_scale_drift_per_s=0.01)
+    opts = SimOptions(
+        images=False,
+        duration=20.0,
+        slam_resets=(8.0,),
+        slam_reset_gap_s=1.5,
+        slam_dropouts=((14.0, 15.0),),
+        slam_scale_drift_per_s=0.01,
+    )
     f = simulate("two-turns", seed=5, options=opts)
     gt = f.ground_truth
     sessions = f.meta["truth"]["slam_sessions"]
@@ -299,8 +308,11 @@ def test_slam_maps_back_to_ground_truth_through_the_stored_similarity():
 
 
 def test_slam_scale_option_sets_the_first_session():
-    f = simulate("vertical", seed=0, options=SimOptions(images=False, duration=2.0,
-                                                        slam_scale=3.5, slam_axis_scale=()))
+    f = simulate(
+        "vertical",
+        seed=0,
+        options=SimOptions(images=False, duration=2.0, slam_scale=3.5, slam_axis_scale=()),
+    )
     assert f.meta["truth"]["slam_sessions"]["0"]["scale"] == 3.5
 
 
@@ -312,8 +324,19 @@ def test_slam_scale_option_sets_the_first_session():
 def _assert_same_flight(a, b):
     for name, s in a.streams().items():
         other = b.streams()[name]
-        for field in ("t", "body_omega", "body_accel", "range", "world_t_body",
-                      "world_q_body_wxyz", "slam_t_cam", "session", "latency", "yaw", "frames"):
+        for field in (
+            "t",
+            "body_omega",
+            "body_accel",
+            "range",
+            "world_t_body",
+            "world_q_body_wxyz",
+            "slam_t_cam",
+            "session",
+            "latency",
+            "yaw",
+            "frames",
+        ):
             if hasattr(s, field) and getattr(s, field) is not None:
                 np.testing.assert_array_equal(getattr(s, field), getattr(other, field))
     assert json.dumps(a.meta) == json.dumps(b.meta)

@@ -13,12 +13,29 @@ def test_cli_writes_the_simulated_flight(tmp_path, capsys):
     out = tmp_path / "two-turns"
     cfg = tmp_path / "sim.toml"
     cfg.write_text("[simulate]\nslam_resets = [1.0]\nslam_reset_gap_s = 0.5\ndrag_k = [0.3, 0.5]\n")
-    argv = ["simulate", "--scenario", "two-turns", "--seed", "1", "--out", str(out),
-            "--duration", "2", "--no-images", "--config", str(cfg)]
+    argv = [
+        "simulate",
+        "--scenario",
+        "two-turns",
+        "--seed",
+        "1",
+        "--out",
+        str(out),
+        "--duration",
+        "2",
+        "--no-images",
+        "--config",
+        str(cfg),
+    ]
     assert main(argv) == 0
     f = read_flight(out)
-    expected = simulate("two-turns", seed=1, options=SimOptions(
-        duration=2.0, images=False, slam_resets=(1.0,), slam_reset_gap_s=0.5, drag_k=(0.3, 0.5)))
+    expected = simulate(
+        "two-turns",
+        seed=1,
+        options=SimOptions(
+            duration=2.0, images=False, slam_resets=(1.0,), slam_reset_gap_s=0.5, drag_k=(0.3, 0.5)
+        ),
+    )
     assert f.images is None
     np.testing.assert_array_equal(f.imu.body_accel, expected.imu.body_accel)
     np.testing.assert_array_equal(f.slam.session, expected.slam.session)
@@ -35,8 +52,9 @@ def test_cli_writes_the_simulated_flight(tmp_path, capsys):
 def test_cli_rejects_an_unknown_config_key(tmp_path, capsys):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[simulate]\nwarp_speed = 9\n")
-    rc = main(["simulate", "--scenario", "hover", "--out", str(tmp_path / "x"), "--config",
-               str(cfg)])
+    rc = main(
+        ["simulate", "--scenario", "hover", "--out", str(tmp_path / "x"), "--config", str(cfg)]
+    )
     assert rc == 1
     assert "warp_speed" in capsys.readouterr().err
 

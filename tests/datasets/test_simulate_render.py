@@ -37,8 +37,7 @@ def _transfer(H, pts):
 def _register(img_i, img_j):
     """Shi-Tomasi + pyramidal Lucas-Kanade + RANSAC homography (seed 002, Algorithm 1)."""
     p0 = cv2.goodFeaturesToTrack(img_i, maxCorners=400, qualityLevel=0.01, minDistance=7)
-    p1, status, _ = cv2.calcOpticalFlowPyrLK(img_i, img_j, p0, None, winSize=(21, 21),
-                                             maxLevel=3)
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(img_i, img_j, p0, None, winSize=(21, 21), maxLevel=3)
     ok = status.ravel() == 1
     H, inliers = cv2.findHomography(p0[ok], p1[ok], cv2.RANSAC, 1.0)
     return H, int(inliers.sum())
@@ -51,8 +50,9 @@ def test_rendered_pair_registers_to_the_true_homography(turning_flight, gap):
     i = int(np.flatnonzero(np.isclose(f.images.t, 9.0))[0])
     j = i + gap
     world_T_cam = world_T_cam_at(f, f.images.t[[i, j]])
-    H_true = inter_frame_homography(world_T_cam[0], world_T_cam[1], cam.K,
-                                    f.meta["truth"]["ground_height"])
+    H_true = inter_frame_homography(
+        world_T_cam[0], world_T_cam[1], cam.K, f.meta["truth"]["ground_height"]
+    )
     H_meas, n_inliers = _register(f.images.frames[i], f.images.frames[j])
     corners = _corners(cam.width, cam.height)
     err = np.linalg.norm(_transfer(H_meas, corners) - _transfer(H_true, corners), axis=1)
@@ -83,7 +83,8 @@ def test_camera_convention_image_up_is_body_forward():
     """Image up = body forward, image right = body right (FLU: -y)."""
     K = np.array([[250.0, 0.0, 159.5], [0.0, 250.0, 119.5], [0.0, 0.0, 1.0]])
     world_T_cam = make_pose(rpy_to_matrix(0.0, 0.0, 0.0), np.array([0.0, 0.0, 2.0])) @ make_pose(
-        BODY_R_CAM, np.zeros(3))
+        BODY_R_CAM, np.zeros(3)
+    )
     texel = np.eye(3)
     H = ground_homography(world_T_cam, K, 0.0, texel)
     forward, right = _transfer(H, np.array([[1.0, 0.0], [0.0, -1.0]]))
@@ -93,16 +94,23 @@ def test_camera_convention_image_up_is_body_forward():
 
 def test_carpet_is_textured_everywhere_and_patches_are_featureless():
     rng = np.random.default_rng(0)
-    carpet = Carpet.make(np.array([-2.0, -2.0]), np.array([2.0, 2.0]), 0.0, 0.01, rng,
-                         featureless_patches=0)
+    carpet = Carpet.make(
+        np.array([-2.0, -2.0]), np.array([2.0, 2.0]), 0.0, 0.01, rng, featureless_patches=0
+    )
     K = np.array([[256.0, 0.0, 159.5], [0.0, 256.0, 119.5], [0.0, 0.0, 1.0]])
     world_T_cam = make_pose(BODY_R_CAM, np.array([0.0, 0.0, 1.5]))
     img = carpet.render(world_T_cam, K, 320, 240)
     assert 30.0 < img.std() < 70.0
     corners = cv2.goodFeaturesToTrack(np.clip(img, 0, 255).astype(np.uint8), 500, 0.01, 7)
     assert len(corners) > 200
-    patched = Carpet.make(np.array([-2.0, -2.0]), np.array([2.0, 2.0]), 0.0, 0.01,
-                          np.random.default_rng(0), featureless_patches=6)
+    patched = Carpet.make(
+        np.array([-2.0, -2.0]),
+        np.array([2.0, 2.0]),
+        0.0,
+        0.01,
+        np.random.default_rng(0),
+        featureless_patches=6,
+    )
     flat = np.abs(patched.levels[0] - PATCH_GREY) < 1.0
     assert flat.mean() > 0.05  # several square metres of uniform white
 
@@ -110,11 +118,22 @@ def test_carpet_is_textured_everywhere_and_patches_are_featureless():
 def test_motion_blur_and_brightness_options_change_the_images():
     base = SimOptions(duration=5.0, image_rate_hz=10.0, noise_free=True)
     sharp = simulate("figure8", seed=2, options=base)
-    blurred = simulate("figure8", seed=2, options=SimOptions(
-        duration=5.0, image_rate_hz=10.0, noise_free=True, motion_blur_s=0.03))
-    bright = simulate("figure8", seed=2, options=SimOptions(
-        duration=5.0, image_rate_hz=10.0, noise_free=True, brightness_amplitude=0.3,
-        brightness_period_s=8.0))
+    blurred = simulate(
+        "figure8",
+        seed=2,
+        options=SimOptions(duration=5.0, image_rate_hz=10.0, noise_free=True, motion_blur_s=0.03),
+    )
+    bright = simulate(
+        "figure8",
+        seed=2,
+        options=SimOptions(
+            duration=5.0,
+            image_rate_hz=10.0,
+            noise_free=True,
+            brightness_amplitude=0.3,
+            brightness_period_s=8.0,
+        ),
+    )
 
     def sharpness(img):
         return cv2.Laplacian(img.astype(np.float32), cv2.CV_32F).var()

@@ -140,7 +140,7 @@ def test_options_are_checked(tmp_path, sim_flight):
     text = (MANIFESTS / "euroc_v102_orbslam2_kf1.toml").read_text()
     root = str((MANIFESTS / "../../../shared/data/real/euroc_V1_02_medium").resolve())
     text = text.replace('root = "../../../shared/data/real/euroc_V1_02_medium"', f'root = "{root}"')
-    bad = text.replace('session = 0', 'session = 0\nslam_rotation = "sideways"')
+    bad = text.replace("session = 0", 'session = 0\nslam_rotation = "sideways"')
     (tmp_path / "m.toml").write_text(bad)
     with pytest.raises(FlightFormatError, match=r"\[slam\]: slam_rotation = 'sideways'"):
         read_manifest(tmp_path / "m.toml")

@@ -34,8 +34,14 @@ from fgnav.fleet import (
 from fgnav.fleet_worker import ABORT_ENV
 
 #: The six good flights: (scenario, seed); 6 s each, no images.
-GOOD = [("two-turns", 1), ("two-turns", 2), ("circle", 3), ("two-turns", 4), ("circle", 5),
-        ("two-turns", 6)]
+GOOD = [
+    ("two-turns", 1),
+    ("two-turns", 2),
+    ("circle", 3),
+    ("two-turns", 4),
+    ("circle", 5),
+    ("two-turns", 6),
+]
 FLIGHT_S = 6.0
 CRASH_NAME = "crashme"
 
@@ -71,8 +77,18 @@ def batch_ates(campaign, tmp_path_factory) -> dict[str, float]:
     ates = {}
     for i, (scenario, seed) in enumerate(GOOD):
         name = f"{scenario}-{seed}"
-        assert main(["batch", str(campaign / f"day{i % 2}" / name), "--out", str(out / name),
-                     "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "batch",
+                    str(campaign / f"day{i % 2}" / name),
+                    "--out",
+                    str(out / name),
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         summary = json.loads((out / name / "summary.json").read_text())
         ates[name] = summary["metrics"]["ate_rmse_m"]
     return ates
@@ -132,8 +148,16 @@ def test_content_hash_follows_content_not_place(tmp_path):
 
 
 def _job(path: Path, **kw) -> dict:
-    return {"flight": kw.pop("flight", path.name), "path": str(path), "methods": ["batch"],
-            "config": {}, "out_dir": None, "timeout_s": None, "memory_limit_mb": None, **kw}
+    return {
+        "flight": kw.pop("flight", path.name),
+        "path": str(path),
+        "methods": ["batch"],
+        "config": {},
+        "out_dir": None,
+        "timeout_s": None,
+        "memory_limit_mb": None,
+        **kw,
+    }
 
 
 def test_child_timeout_and_crash_become_rows(tiny_flight, monkeypatch):
@@ -203,24 +227,37 @@ def test_histogram_bins_are_shared_and_log_when_wide():
 def test_report_counts_ranks_and_explains_columns(tmp_path):
     def row(flight, method, status, ate=None, reason=""):
         r = {c: None for c in COLUMNS}
-        r.update(flight=flight, input=f"in/{flight}", method=method, status=status,
-                 reason=reason, duration_s=60.0, runtime_s=1.0 + (ate or 0.0),
-                 ate_rmse_m=ate, scale_err_pct={"0": 10 * (ate or 0.0)},
-                 drag_k_per_s=[0.38, 0.4])
+        r.update(
+            flight=flight,
+            input=f"in/{flight}",
+            method=method,
+            status=status,
+            reason=reason,
+            duration_s=60.0,
+            runtime_s=1.0 + (ate or 0.0),
+            ate_rmse_m=ate,
+            scale_err_pct={"0": 10 * (ate or 0.0)},
+            drag_k_per_s=[0.38, 0.4],
+        )
         return r
 
-    rows = [row(f"f{i}", "batch", "ok" if i % 2 else "skipped", 0.01 * (i + 1))
-            for i in range(7)]
-    rows += [row("nogt", "batch", "ok"), row("bad", "batch", "error", reason="bad.ulg: x"),
-             row("f0", "fixed-lag", "crashed", reason="child interpreter killed by SIGABRT")]
+    rows = [row(f"f{i}", "batch", "ok" if i % 2 else "skipped", 0.01 * (i + 1)) for i in range(7)]
+    rows += [
+        row("nogt", "batch", "ok"),
+        row("bad", "batch", "error", reason="bad.ulg: x"),
+        row("f0", "fixed-lag", "crashed", reason="child interpreter killed by SIGABRT"),
+    ]
     path = write_report(rows, tmp_path, "Run today.")
     text = path.read_text()
     assert "Run today." in text
     assert "9 flights, 10 runs: 4 ok, 4 skipped, 1 error, 1 crashed (`skipped`" in text
     worst = text.split("## Worst flights by ATE: batch")[1].split("##")[0]
     assert "1 finished run(s) without ground truth are not ranked" in worst
-    ranked = [line.split("|")[1].strip() for line in worst.splitlines()
-              if line.startswith("| f") and "flight" not in line]
+    ranked = [
+        line.split("|")[1].strip()
+        for line in worst.splitlines()
+        if line.startswith("| f") and "flight" not in line
+    ]
     assert ranked == ["f6", "f5", "f4", "f3", "f2"]
     assert "SIGABRT" in text.split("## Failed runs")[1].split("## All runs")[0]
     for c, doc in COLUMN_DOC.items():
@@ -266,8 +303,17 @@ def test_fleet_on_a_local_cluster_matches_batch_and_resumes(
 ):
     monkeypatch.setenv(ABORT_ENV, CRASH_NAME)
     out = tmp_path / "fleet"
-    argv = ["fleet", str(campaign), "--out", str(out), "--workers", "2", "--timeout", "120",
-            "--no-progress"]
+    argv = [
+        "fleet",
+        str(campaign),
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+        "--timeout",
+        "120",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     summary = capsys.readouterr().out
     assert "8 flights, 8 runs: 6 ok, 0 skipped, 1 error, 0 timeout, 1 crashed" in summary
@@ -344,14 +390,43 @@ def dask_cluster(tmp_path):
     procs = []
     logs = [open(tmp_path / "scheduler.log", "w"), open(tmp_path / "worker.log", "w")]
     try:
-        procs.append(subprocess.Popen(
-            [dask_cli, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-             "--no-dashboard"], stdout=logs[0], stderr=subprocess.STDOUT, env=env,
-            start_new_session=True))
-        procs.append(subprocess.Popen(
-            [dask_cli, "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
-             "--nworkers", "2", "--no-dashboard"], stdout=logs[1], stderr=subprocess.STDOUT,
-            env=env, start_new_session=True))
+        procs.append(
+            subprocess.Popen(
+                [
+                    dask_cli,
+                    "scheduler",
+                    "--host",
+                    "127.0.0.1",
+                    "--port",
+                    str(port),
+                    "--no-dashboard",
+                ],
+                stdout=logs[0],
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+        )
+        procs.append(
+            subprocess.Popen(
+                [
+                    dask_cli,
+                    "worker",
+                    address,
+                    "--host",
+                    "127.0.0.1",
+                    "--nthreads",
+                    "1",
+                    "--nworkers",
+                    "2",
+                    "--no-dashboard",
+                ],
+                stdout=logs[1],
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+        )
         from distributed import Client
 
         deadline = time.monotonic() + 60
@@ -370,8 +445,7 @@ def dask_cluster(tmp_path):
 @pytest.mark.slow
 def test_fleet_on_a_dask_scheduler(campaign, batch_ates, dask_cluster, tmp_path, capsys):
     out = tmp_path / "fleet"
-    argv = ["fleet", str(campaign), "--out", str(out), "--scheduler", dask_cluster,
-            "--no-progress"]
+    argv = ["fleet", str(campaign), "--out", str(out), "--scheduler", dask_cluster, "--no-progress"]
     assert main(argv) == 0
     assert "6 ok, 0 skipped, 1 error, 0 timeout, 1 crashed" in capsys.readouterr().out
     rows = _check_table(out, campaign, batch_ates, "ok")

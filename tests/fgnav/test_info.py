@@ -27,11 +27,16 @@ def _flight() -> Flight:
     return Flight(
         name="constructed",
         imu=ImuSeries(t_imu, rng.normal(size=(1000, 3)), rng.normal(size=(1000, 3))),
-        slam=SlamSeries(t_slam, rng.normal(size=(n, 3)), q, np.r_[np.zeros(40), np.ones(n - 40)]
-                        .astype(np.int64)),
+        slam=SlamSeries(
+            t_slam,
+            rng.normal(size=(n, 3)),
+            q,
+            np.r_[np.zeros(40), np.ones(n - 40)].astype(np.int64),
+        ),
         range=RangeSeries(9.0 + np.arange(50) * 0.1, np.linspace(0.5, 3.0, 50)),
-        ground_truth=Trajectory(t_imu, rng.normal(size=(1000, 3)), np.tile([1.0, 0, 0, 0],
-                                                                          (1000, 1))),
+        ground_truth=Trajectory(
+            t_imu, rng.normal(size=(1000, 3)), np.tile([1.0, 0, 0, 0], (1000, 1))
+        ),
         references={"ekf": Trajectory(t_slam, rng.normal(size=(n, 3)), q)},
         meta={"notes": ["reader skipped 3 lines"], "imu": {"imu_samples_skipped_nonfinite": 2}},
     )

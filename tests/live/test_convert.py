@@ -57,8 +57,10 @@ def test_enum_values_are_pymavlink_s():
     assert convert.MAV_ESTIMATOR_TYPE_VISION == m.MAV_ESTIMATOR_TYPE_VISION
     assert convert.MAV_ESTIMATOR_TYPE_VIO == m.MAV_ESTIMATOR_TYPE_VIO
     assert convert.MAV_SENSOR_ROTATION_PITCH_270 == m.MAV_SENSOR_ROTATION_PITCH_270 == 25
-    bits = sum(getattr(m, f"HIGHRES_IMU_UPDATED_{a}") for a in
-               ("XACC", "YACC", "ZACC", "XGYRO", "YGYRO", "ZGYRO"))
+    bits = sum(
+        getattr(m, f"HIGHRES_IMU_UPDATED_{a}")
+        for a in ("XACC", "YACC", "ZACC", "XGYRO", "YGYRO", "ZGYRO")
+    )
     assert convert.HIGHRES_IMU_ACCEL_GYRO == bits
 
 
@@ -90,8 +92,9 @@ def test_attitude_hand_values():
     q_flu = matrix_to_quat_wxyz(rpy_to_matrix(0.0, 0.0, math.radians(30)))
     f = convert.attitude_quaternion_fields(AttitudeSample(0.5, 0.5, q_flu), 0.0)
     q_ned = np.array([f["q1"], f["q2"], f["q3"], f["q4"]])
-    np.testing.assert_allclose(q_ned, [math.cos(math.radians(-15)), 0, 0,
-                                       math.sin(math.radians(-15))], atol=1e-12)
+    np.testing.assert_allclose(
+        q_ned, [math.cos(math.radians(-15)), 0, 0, math.sin(math.radians(-15))], atol=1e-12
+    )
     assert f["time_boot_ms"] == 500
     # fgnav pitch +10 deg (about y-left: nose down) is NED pitch -10 deg (nose up positive).
     q_flu = matrix_to_quat_wxyz(rpy_to_matrix(0.0, math.radians(10), 0.0))
@@ -108,30 +111,69 @@ def test_attitude_agrees_with_the_accelerometer_and_round_trips(wire):
         ned_R_frd = so3_exp(rng.normal(size=3) * 0.8)
         q_ned = matrix_to_quat_wxyz(ned_R_frd)
         frd_accel = ned_R_frd.T @ np.array([0.0, 0.0, -GRAVITY])
-        msg = wire("attitude_quaternion", dict(
-            time_boot_ms=1234, q1=q_ned[0], q2=q_ned[1], q3=q_ned[2], q4=q_ned[3],
-            rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0, repr_offset_q=[1.0, 0, 0, 0],
-        ))
+        msg = wire(
+            "attitude_quaternion",
+            dict(
+                time_boot_ms=1234,
+                q1=q_ned[0],
+                q2=q_ned[1],
+                q3=q_ned[2],
+                q4=q_ned[3],
+                rollspeed=0.0,
+                pitchspeed=0.0,
+                yawspeed=0.0,
+                repr_offset_q=[1.0, 0, 0, 0],
+            ),
+        )
         att = convert.attitude_from_quaternion(msg, arrival=2.0)
         assert att.t == 1.234 and att.arrival == 2.0
-        imu = wire("highres_imu", dict(
-            time_usec=1234000, xacc=frd_accel[0], yacc=frd_accel[1], zacc=frd_accel[2],
-            xgyro=0.0, ygyro=0.0, zgyro=0.0, xmag=0.0, ymag=0.0, zmag=0.0, abs_pressure=0.0,
-            diff_pressure=0.0, pressure_alt=0.0, temperature=0.0, fields_updated=0x3F, id=0,
-        ))
+        imu = wire(
+            "highres_imu",
+            dict(
+                time_usec=1234000,
+                xacc=frd_accel[0],
+                yacc=frd_accel[1],
+                zacc=frd_accel[2],
+                xgyro=0.0,
+                ygyro=0.0,
+                zgyro=0.0,
+                xmag=0.0,
+                ymag=0.0,
+                zmag=0.0,
+                abs_pressure=0.0,
+                diff_pressure=0.0,
+                pressure_alt=0.0,
+                temperature=0.0,
+                fields_updated=0x3F,
+                id=0,
+            ),
+        )
         world_R_body = quat_wxyz_to_matrix(att.world_q_body_wxyz)
-        np.testing.assert_allclose(convert.imu_from_highres(imu).body_accel,
-                                   world_R_body.T @ [0.0, 0.0, GRAVITY], atol=2e-5)
+        np.testing.assert_allclose(
+            convert.imu_from_highres(imu).body_accel,
+            world_R_body.T @ [0.0, 0.0, GRAVITY],
+            atol=2e-5,
+        )
         # and back out: the same NED quaternion (float32)
         f = convert.attitude_quaternion_fields(att, 0.0)
         np.testing.assert_allclose([f["q1"], f["q2"], f["q3"], f["q4"]], q_ned, atol=1e-6)
 
 
 def test_attitude_non_unit_quaternion_is_rejected(wire):
-    msg = wire("attitude_quaternion", dict(
-        time_boot_ms=0, q1=0.5, q2=0.0, q3=0.0, q4=0.0, rollspeed=0.0, pitchspeed=0.0,
-        yawspeed=0.0, repr_offset_q=[0.0] * 4,
-    ))
+    msg = wire(
+        "attitude_quaternion",
+        dict(
+            time_boot_ms=0,
+            q1=0.5,
+            q2=0.0,
+            q3=0.0,
+            q4=0.0,
+            rollspeed=0.0,
+            pitchspeed=0.0,
+            yawspeed=0.0,
+            repr_offset_q=[0.0] * 4,
+        ),
+    )
     with pytest.raises(Rejected) as e:
         convert.attitude_from_quaternion(msg)
     assert e.value.reason == "attitude:invalid_quaternion"
@@ -197,18 +239,26 @@ def test_flow_signs_follow_mavlink_text(wire):
 
 def _state(R, p, v, pose_cov=None, vel_cov=None, t=4.5, quality=80, reset=3):
     return FilterState(
-        t=t, world_T_body=make_pose(R, p), world_v_body=np.asarray(v, float),
-        accel_bias=np.zeros(3), gyro_bias=np.array([0.01, 0.0, 0.0]),
-        pose_cov=pose_cov, vel_cov=vel_cov, reset_counter=reset, quality=quality,
+        t=t,
+        world_T_body=make_pose(R, p),
+        world_v_body=np.asarray(v, float),
+        accel_bias=np.zeros(3),
+        gyro_bias=np.array([0.01, 0.0, 0.0]),
+        pose_cov=pose_cov,
+        vel_cov=vel_cov,
+        reset_counter=reset,
+        quality=quality,
     )
 
 
 def test_odometry_out_hand_values_and_round_trip(wire):
     R = rpy_to_matrix(0.0, 0.0, math.radians(90))  # nose along world +y
-    st = _state(R, [1.0, 2.0, 3.0], [1.0, 0.0, 0.0], pose_cov=np.eye(6) * 1e-4,
-                vel_cov=np.eye(3) * 1e-2)
-    f = convert.odometry_fields(st, body_omega=np.array([0.11, 0.2, 0.3]),
-                                rate_var=np.full(3, 1e-6))
+    st = _state(
+        R, [1.0, 2.0, 3.0], [1.0, 0.0, 0.0], pose_cov=np.eye(6) * 1e-4, vel_cov=np.eye(3) * 1e-2
+    )
+    f = convert.odometry_fields(
+        st, body_omega=np.array([0.11, 0.2, 0.3]), rate_var=np.full(3, 1e-6)
+    )
     assert (f["frame_id"], f["child_frame_id"]) == (20, 12)
     assert f["estimator_type"] == convert.MAV_ESTIMATOR_TYPE_VIO
     assert (f["time_usec"], f["reset_counter"], f["quality"]) == (4_500_000, 3, 80)
@@ -216,8 +266,9 @@ def test_odometry_out_hand_values_and_round_trip(wire):
     # world +x velocity, nose along +y: the body moves to its right (FLU -y, FRD +y).
     np.testing.assert_allclose([f["vx"], f["vy"], f["vz"]], [0.0, 1.0, 0.0], atol=1e-12)
     # gyro bias removed, then FRD
-    np.testing.assert_allclose([f["rollspeed"], f["pitchspeed"], f["yawspeed"]],
-                               [0.1, -0.2, -0.3], atol=1e-12)
+    np.testing.assert_allclose(
+        [f["rollspeed"], f["pitchspeed"], f["yawspeed"]], [0.1, -0.2, -0.3], atol=1e-12
+    )
     # LOCAL_FRD yaw of a FLU yaw of +90 deg is -90 deg
     rpy = matrix_to_rpy(quat_wxyz_to_matrix(f["q"]))
     np.testing.assert_allclose(rpy, [0.0, 0.0, math.radians(-90)], atol=1e-12)
@@ -227,8 +278,12 @@ def test_odometry_out_hand_values_and_round_trip(wire):
     np.testing.assert_allclose(p, [1.0, 2.0, 3.0], rtol=F32)
     np.testing.assert_allclose(quat_wxyz_to_matrix(q), R, atol=1e-6)
     np.testing.assert_allclose(v, [1.0, 0.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(convert.from_upper_triangle(msg.pose_covariance),
-                               convert.odometry_pose_cov(R, st.pose_cov), rtol=F32, atol=1e-12)
+    np.testing.assert_allclose(
+        convert.from_upper_triangle(msg.pose_covariance),
+        convert.odometry_pose_cov(R, st.pose_cov),
+        rtol=F32,
+        atol=1e-12,
+    )
     # unknown covariances: NaN first
     f_unknown = convert.odometry_fields(_state(R, [0, 0, 0], [0, 0, 0]))
     assert math.isnan(f_unknown["pose_covariance"][0])

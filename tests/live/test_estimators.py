@@ -49,8 +49,9 @@ def test_msf_adapter_push_api():
     # not aligned: the filter's world is the truth's up to yaw and origin; speeds agree
     assert abs(np.linalg.norm(last.world_v_body) - np.linalg.norm(gt.world_v_body[i])) < 0.3
     c = est.counts()
-    assert c["received"] == {s: len(getattr(flight, s)) for s in
-                             ("imu", "attitude", "range", "yaw", "slam")}
+    assert c["received"] == {
+        s: len(getattr(flight, s)) for s in ("imu", "attitude", "range", "yaw", "slam")
+    }
     assert c["dropped"]["yaw:not_used"] == len(flight.yaw)
     assert 0 < c["used"]["slam"] <= len(flight.slam)
     res = est.result()
@@ -62,17 +63,52 @@ def test_live_command_errors_are_one_line(tmp_path, capsys):
 
     calib = tmp_path / "calib.yaml"
     calib.write_text(yaml.safe_dump(calibration_to_dict(Calibration())))
-    rc = main(["live", "--mavlink", "udpout:127.0.0.1:9", "--calib", str(calib),
-               "--out", str(tmp_path / "o"), "--estimator", "msf-ekf"])
+    rc = main(
+        [
+            "live",
+            "--mavlink",
+            "udpout:127.0.0.1:9",
+            "--calib",
+            str(calib),
+            "--out",
+            str(tmp_path / "o"),
+            "--estimator",
+            "msf-ekf",
+        ]
+    )
     assert rc == 1
     assert "fgnav live listens: use udpin:HOST:PORT" in capsys.readouterr().err
-    rc = main(["live", "--mavlink", "udpin:127.0.0.1", "--calib", str(calib),
-               "--out", str(tmp_path / "o"), "--estimator", "msf-ekf"])
+    rc = main(
+        [
+            "live",
+            "--mavlink",
+            "udpin:127.0.0.1",
+            "--calib",
+            str(calib),
+            "--out",
+            str(tmp_path / "o"),
+            "--estimator",
+            "msf-ekf",
+        ]
+    )
     assert rc == 1
     assert "expected udpin:HOST:PORT" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
     bad.write_text("[live]\nidle_timeout = 3\n")
-    rc = main(["live", "--mavlink", "udpin:127.0.0.1:9", "--calib", str(calib),
-               "--out", str(tmp_path / "o"), "--config", str(bad), "--estimator", "msf-ekf"])
+    rc = main(
+        [
+            "live",
+            "--mavlink",
+            "udpin:127.0.0.1:9",
+            "--calib",
+            str(calib),
+            "--out",
+            str(tmp_path / "o"),
+            "--config",
+            str(bad),
+            "--estimator",
+            "msf-ekf",
+        ]
+    )
     assert rc == 1
     assert "unknown option(s) ['idle_timeout']" in capsys.readouterr().err

@@ -64,15 +64,15 @@ def test_arrival_sessions_and_counts():
     # An upward rangefinder is dropped, by reason.
     rng = convert.distance_sensor_fields(RangeReading(0.52, 0.52, 1.0), 0, 0.1, 8.0)
     assert feed(tx, "distance_sensor", rng | {"orientation": 24}) is None
-    hb = _through(tx, rx, "heartbeat", dict(type=2, autopilot=0, base_mode=0, custom_mode=0,
-                                            system_status=4))
+    hb = _through(
+        tx, rx, "heartbeat", dict(type=2, autopilot=0, base_mode=0, custom_mode=0, system_status=4)
+    )
     inb.count(hb)
     assert inb.event(hb) is None
     c = inb.counts()
     assert c["received"] == {"imu": 3, "slam": 4, "range": 1}
     assert c["dropped"] == {"slam:vio_echo": 1, "range:orientation": 1}
-    assert c["messages"] == {"HIGHRES_IMU": 3, "ODOMETRY": 5, "DISTANCE_SENSOR": 1,
-                             "HEARTBEAT": 1}
+    assert c["messages"] == {"HIGHRES_IMU": 3, "ODOMETRY": 5, "DISTANCE_SENSOR": 1, "HEARTBEAT": 1}
     assert c["lost"] == {} and c["slam_sessions"] == 2
     assert inb.clock_ns() == 600_000_000
 
@@ -82,8 +82,9 @@ def test_lost_messages_are_counted_from_sequence_numbers():
     inb = Inbound()
     imu = ImuSample(0.0, 0.0, np.zeros(3), np.zeros(3))
     for k in range(300):
-        buf = pack(tx, tx.highres_imu_encode(**convert.highres_imu_fields(
-            imu._replace(t=0.005 * k), 0)))
+        buf = pack(
+            tx, tx.highres_imu_encode(**convert.highres_imu_fields(imu._replace(t=0.005 * k), 0))
+        )
         if k % 7 == 3:  # the network drops it
             continue
         for msg in rx.parse_buffer(buf):

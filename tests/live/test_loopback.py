@@ -130,8 +130,11 @@ class _Proc:
 
     def __init__(self, args: list[str], cwd: Path) -> None:
         self.p = subprocess.Popen(
-            [sys.executable, "-m", "fgnav.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, text=True,
+            [sys.executable, "-m", "fgnav.cli", *args],
+            cwd=cwd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         self.lines: list[str] = []
         self._t = threading.Thread(target=self._read, daemon=True)
@@ -167,9 +170,21 @@ class _Proc:
 
 def _start_live(folder: Path, out: Path, port: int, cwd: Path) -> _Proc:
     live = _Proc(
-        ["live", "--mavlink", f"udpin:{HOST}:{port}", "--calib", str(folder / "calib.yaml"),
-         "--out", str(out), "--estimator", ESTIMATOR, "--idle-timeout", str(IDLE_S),
-         "--duration", "120"],
+        [
+            "live",
+            "--mavlink",
+            f"udpin:{HOST}:{port}",
+            "--calib",
+            str(folder / "calib.yaml"),
+            "--out",
+            str(out),
+            "--estimator",
+            ESTIMATOR,
+            "--idle-timeout",
+            str(IDLE_S),
+            "--duration",
+            "120",
+        ],
         cwd,
     )
     live.wait_for("listening on", timeout=60)
@@ -196,8 +211,20 @@ def test_fgnav_replay_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed):
     record = tmp_path / "record.tum"
     live = _start_live(folder, out, port, tmp_path)
     replay = _Proc(
-        ["replay", str(folder), "--mavlink", f"udpout:{HOST}:{port}", "--speed", str(speed),
-         "--record", str(record), "--linger", "1.5", "--wait-peer", "20"],
+        [
+            "replay",
+            str(folder),
+            "--mavlink",
+            f"udpout:{HOST}:{port}",
+            "--speed",
+            str(speed),
+            "--record",
+            str(record),
+            "--linger",
+            "1.5",
+            "--wait-peer",
+            "20",
+        ],
         tmp_path,
     )
     assert replay.finish(timeout=DURATION_S / speed + 60) == 0, replay.text
@@ -224,8 +251,7 @@ def test_fgnav_replay_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed):
     # The recorded ODOMETRY are those states, to float32 and the microsecond.
     np.testing.assert_allclose(rec.t, offline_states.t, atol=1e-6)
     np.testing.assert_allclose(rec.world_t_body, offline_states.world_t_body, atol=1e-4)
-    np.testing.assert_allclose(rec.world_q_body_wxyz, offline_states.world_q_body_wxyz,
-                               atol=1e-5)
+    np.testing.assert_allclose(rec.world_q_body_wxyz, offline_states.world_q_body_wxyz, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -274,8 +300,13 @@ def _run_pymavlink_sender(flight, port: int, speed: float, monkeypatch):
     def us(t):
         return int(round((t - t0) * 1e6))
 
-    mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_QUADROTOR, mavutil.mavlink.MAV_AUTOPILOT_GENERIC,
-                       0, 0, mavutil.mavlink.MAV_STATE_ACTIVE)
+    mav.heartbeat_send(
+        mavutil.mavlink.MAV_TYPE_QUADROTOR,
+        mavutil.mavlink.MAV_AUTOPILOT_GENERIC,
+        0,
+        0,
+        mavutil.mavlink.MAV_STATE_ACTIVE,
+    )
     imu, att, rng, slam = flight.imu, flight.attitude, flight.range, flight.slam
     wall0 = time.perf_counter()
     a0 = None
@@ -293,20 +324,42 @@ def _run_pymavlink_sender(flight, port: int, speed: float, monkeypatch):
             mav.highres_imu_send(us(imu.t[i]), *a, *w, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
         elif kind == "att":
             q = _quat_frd(att.world_q_body_wxyz[i])
-            mav.attitude_quaternion_send(int(round((att.t[i] - t0) * 1e3)), *q, 0, 0, 0,
-                                         [1, 0, 0, 0])
+            mav.attitude_quaternion_send(
+                int(round((att.t[i] - t0) * 1e3)), *q, 0, 0, 0, [1, 0, 0, 0]
+            )
         elif kind == "range":
             cm = int(round(rng.range[i] * 100))
-            mav.distance_sensor_send(int(round((rng.t[i] - t0) * 1e3)), 10, 800, cm,
-                                     mavutil.mavlink.MAV_DISTANCE_SENSOR_LASER, 0,
-                                     mavutil.mavlink.MAV_SENSOR_ROTATION_PITCH_270, 255)
+            mav.distance_sensor_send(
+                int(round((rng.t[i] - t0) * 1e3)),
+                10,
+                800,
+                cm,
+                mavutil.mavlink.MAV_DISTANCE_SENSOR_LASER,
+                0,
+                mavutil.mavlink.MAV_SENSOR_ROTATION_PITCH_270,
+                255,
+            )
         else:
             p, q = slam.slam_t_cam[i], slam.slam_q_cam_wxyz[i]
             nan21 = [math.nan] + [0.0] * 20
-            mav.odometry_send(us(slam.t[i]), mavutil.mavlink.MAV_FRAME_LOCAL_FRD,
-                              mavutil.mavlink.MAV_FRAME_BODY_FRD, *map(float, p),
-                              [float(x) for x in q], 0, 0, 0, 0, 0, 0, nan21, nan21,
-                              int(slam.session[i]), mavutil.mavlink.MAV_ESTIMATOR_TYPE_VISION, 0)
+            mav.odometry_send(
+                us(slam.t[i]),
+                mavutil.mavlink.MAV_FRAME_LOCAL_FRD,
+                mavutil.mavlink.MAV_FRAME_BODY_FRD,
+                *map(float, p),
+                [float(x) for x in q],
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                nan21,
+                nan21,
+                int(slam.session[i]),
+                mavutil.mavlink.MAV_ESTIMATOR_TYPE_VISION,
+                0,
+            )
         if k % 50 == 0:
             poll()
     t_end = time.monotonic() + 1.5
@@ -318,8 +371,9 @@ def _run_pymavlink_sender(flight, port: int, speed: float, monkeypatch):
 
 
 @pytest.mark.parametrize("speed", [4.0, pytest.param(1.0, marks=pytest.mark.slow)])
-def test_plain_pymavlink_sender_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed,
-                                                monkeypatch):
+def test_plain_pymavlink_sender_into_fgnav_live(
+    flight_dir, direct_ate, tmp_path, speed, monkeypatch
+):
     from fgnav.datasets.types import Trajectory
 
     flight, folder = flight_dir
@@ -355,8 +409,10 @@ def _shifted(flight, dt: float):
     """The flight with every stream's clock moved by ``dt`` seconds."""
     import dataclasses
 
-    moved = {s: dataclasses.replace(getattr(flight, s), t=getattr(flight, s).t + dt)
-             for s in ("imu", "attitude", "range", "slam", "ground_truth")}
+    moved = {
+        s: dataclasses.replace(getattr(flight, s), t=getattr(flight, s).t + dt)
+        for s in ("imu", "attitude", "range", "slam", "ground_truth")
+    }
     return dataclasses.replace(flight, **moved)
 
 
@@ -370,16 +426,23 @@ def test_boot_clock_offset_in_process(tmp_path):
     from fgnav.live.session import LiveOptions, LiveSession
 
     flight = _shifted(
-        simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False)), 1000.0)
+        simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False)), 1000.0
+    )
     port = free_udp_port()
-    session = LiveSession(UdpLink(f"udpin:{HOST}:{port}"), MsfLive(flight.calib), flight.calib,
-                          LiveOptions(idle_timeout_s=1.0, duration_s=60.0))
+    session = LiveSession(
+        UdpLink(f"udpin:{HOST}:{port}"),
+        MsfLive(flight.calib),
+        flight.calib,
+        LiveOptions(idle_timeout_s=1.0, duration_s=60.0),
+    )
     out = {}
     th = threading.Thread(target=lambda: out.update(res=session.run()))
     th.start()
-    auto = StandInAutopilot(flight, UdpLink(f"udpout:{HOST}:{port}"),
-                            ReplayOptions(speed=4.0, streams=STREAMS, wait_peer_s=10.0,
-                                          linger_s=2.0))
+    auto = StandInAutopilot(
+        flight,
+        UdpLink(f"udpout:{HOST}:{port}"),
+        ReplayOptions(speed=4.0, streams=STREAMS, wait_peer_s=10.0, linger_s=2.0),
+    )
     rep = auto.run()
     th.join(timeout=30)
     res = out["res"]
