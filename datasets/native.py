@@ -4,9 +4,11 @@ Layout of a flight folder::
 
     meta.json                  format name and version, flight name, source, streams, flight.meta
     calib.yaml                 body_T_cam, body_T_range, camera, IMU noise, range limits, offsets
+                               [, body_T_flow, flow_pixels_per_rad]
     imu.csv                    t [s], omega_x..z [rad/s], accel_x..z [m/s^2]        (body FLU)
     attitude.csv               t [s], q_w, q_x, q_y, q_z                       (world_R_body)
     range.csv                  t [s], range [m] [, quality [-]]
+    flow.csv                   t [s], dt [s], flow_x, flow_y [px] [, quality [-]]   (FlowSeries)
     yaw.csv                    t [s], yaw [rad]                           (of world_R_body, ZYX)
     slam.csv                   t [s], x, y, z [slam], q_w..q_z, session [-] [, latency [s]]
     ground_truth.csv           t [s], x, y, z [m], q_w..q_z [, v_x..v_z [m/s]]
@@ -51,6 +53,7 @@ from .types import (
     Calibration,
     CameraIntrinsics,
     Flight,
+    FlowSeries,
     ImageSeries,
     ImuNoise,
     ImuSeries,
@@ -111,6 +114,14 @@ LAYOUTS: dict[str, tuple[type, tuple[_Group, ...]]] = {
         (_Group("range", ("range",), "m"), _Group("quality", ("quality",), "-", optional=True)),
     ),
     "yaw": (YawSeries, (_Group("yaw", ("yaw",), "rad"),)),
+    "flow": (
+        FlowSeries,
+        (
+            _Group("dt", ("dt",), "s"),
+            _Group("flow", ("flow_x", "flow_y"), "px"),
+            _Group("quality", ("quality",), "-", optional=True),
+        ),
+    ),
     "slam": (
         SlamSeries,
         (
@@ -125,7 +136,7 @@ LAYOUTS: dict[str, tuple[type, tuple[_Group, ...]]] = {
 }
 """Stream kind -> (series class, column groups after ``t [s]``)."""
 
-_SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency"}
+_SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency", "dt"}
 
 
 def _fmt(x: float) -> str:
@@ -299,7 +310,13 @@ def calibration_to_dict(calib: Calibration) -> dict[str, Any]:
         "range_min": float(calib.range_min),
         "range_max": float(calib.range_max),
         "time_offsets": {str(k): float(v) for k, v in calib.time_offsets.items()},
+        "body_T_flow": np.asarray(calib.body_T_flow, dtype=float).tolist(),
+        "flow_pixels_per_rad": float(calib.flow_pixels_per_rad),
     }
+
+
+#: Calibration keys a calib.yaml may omit (written by later versions; defaults of Calibration).
+_OPTIONAL_CALIB_KEYS = ("body_T_flow", "flow_pixels_per_rad")
 
 
 def _matrix(d: Mapping, key: str, path: Path) -> np.ndarray:
@@ -319,7 +336,7 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
     if not isinstance(d, Mapping):
         raise FlightFormatError(path, f"expected a mapping with keys {list(keys)}")
     missing = [k for k in keys if k not in d]
-    unknown = [k for k in d if k not in keys and k != "images_camera"]
+    unknown = [k for k in d if k not in keys + _OPTIONAL_CALIB_KEYS and k != "images_camera"]
     if missing or unknown:
         raise FlightFormatError(
             path, f"missing keys {missing}, unknown keys {unknown}; expected {list(keys)}"
@@ -328,8 +345,14 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
     noise = d["imu_noise"]
     if not isinstance(noise, Mapping) or sorted(noise) != sorted(noise_fields):
         raise FlightFormatError(path, f"imu_noise: expected exactly the keys {noise_fields}")
+    extra: dict[str, Any] = {}
+    if "body_T_flow" in d:
+        extra["body_T_flow"] = _matrix(d, "body_T_flow", path)
     try:
+        if "flow_pixels_per_rad" in d:
+            extra["flow_pixels_per_rad"] = float(d["flow_pixels_per_rad"])
         return Calibration(
+            **extra,
             body_T_cam=_matrix(d, "body_T_cam", path),
             body_T_range=_matrix(d, "body_T_range", path),
             camera=_camera_from_dict(d["camera"], path, "camera"),
@@ -396,6 +419,7 @@ _STREAM_FILES = {
     "range": "range.csv",
     "yaw": "yaw.csv",
     "slam": "slam.csv",
+    "flow": "flow.csv",
     "ground_truth": "ground_truth.csv",
 }
 
