@@ -8,7 +8,7 @@ imported only when a method runs, so a missing or broken module makes that one m
 or failed, with the reason, and never stops the others.
 
 Stream names are those of :data:`fgnav.datasets.types.STREAMS` (``imu``, ``attitude``, ``range``,
-``yaw``, ``slam``, ``images``); a reference trajectory recorded in a log is ``ref:<name>``
+``yaw``, ``slam``, ``images``, ``flow``); a reference trajectory recorded in a log is ``ref:<name>``
 (``ref:px4_ekf2``: the onboard EKF2 estimate of a PX4 ULog).
 
 Config tables read by each method (fields of its options dataclass, unknown keys are errors):
@@ -157,9 +157,10 @@ def _join(items: list[str]) -> str:
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
-#: The smoothers need a position source: monocular SLAM, or the downward camera's homographies
-#: made metric by the rangefinder (seed 002's sensor set).
-SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"))
+#: The smoothers need a position or velocity source: monocular SLAM, the downward camera's
+#: homographies made metric by the rangefinder (seed 002's sensor set), or optical flow made
+#: metric by the rangefinder (a flow deck: the position is dead-reckoned).
+SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"), ("flow", "range"))
 
 
 def missing_reason(missing: list[str]) -> str:
@@ -442,7 +443,7 @@ METHODS: dict[str, Method] = {
             "batch",
             "factor-graph smoother over the whole flight (Levenberg-Marquardt)",
             ("imu",),
-            ("slam", "attitude", "range", "yaw", "images"),
+            ("slam", "attitude", "range", "yaw", "images", "flow"),
             False,
             "fgnav.solvers.batch",
             run_batch,
@@ -452,7 +453,7 @@ METHODS: dict[str, Method] = {
             "fixed-lag",
             "online iSAM2 fixed-lag smoother, newest state after each update",
             ("imu",),
-            ("slam", "attitude", "range", "yaw", "images"),
+            ("slam", "attitude", "range", "yaw", "images", "flow"),
             True,
             "fgnav.solvers.fixed_lag",
             run_fixed_lag,
