@@ -23,6 +23,8 @@ ekf004          ``[ekf004]`` (:class:`~fgnav.baselines.ekf004.Ekf004Options`)
 ukf003          ``[ukf003]`` (:class:`~fgnav.baselines.ukf003.Ukf003Options`)
 ii-observer     ``[ii-observer]`` (:class:`~fgnav.baselines.seed000.Seed000Options`)
 ekf-vo002       ``[ekf-vo002]`` (:class:`~fgnav.baselines.seed002.Seed002Options`)
+ekf-flow002     ``[ekf-flow002]`` (:class:`~fgnav.baselines.seed002_flow.Seed002FlowOptions`)
+cf-ekf          ``[cf-ekf]`` (:class:`~fgnav.baselines.cf_ekf.CfEkfOptions`)
 px4-ekf2        none (the log's own estimate; nothing is run)
 ==============  =================================================================
 """
@@ -389,6 +391,21 @@ def run_ekf_vo002(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
     return run_seed002(flight, _options(Seed002Options, config, "ekf-vo002"))
 
 
+def run_ekf_flow002(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 002's attitude-height EKF + optical-flow dead reckoning with ``[ekf-flow002]``."""
+    from fgnav.baselines.seed002_flow import Seed002FlowOptions, run_seed002_flow
+
+    return run_seed002_flow(flight, _options(Seed002FlowOptions, config, "ekf-flow002"))
+
+
+def run_cf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The Crazyflie onboard EKF model (kalman_core, mm_flow, mm_tof) with ``[cf-ekf]``."""
+    from fgnav.baselines.cf_ekf import CfEkfOptions
+    from fgnav.baselines.cf_ekf import run_cf_ekf as _run
+
+    return _run(flight, _options(CfEkfOptions, config, "cf-ekf"))
+
+
 def reference_estimate(flight: Flight, ref: str, method: str) -> Estimate:
     """A trajectory recorded in the flight (``flight.references[ref]``) as an :class:`Estimate`.
 
@@ -506,6 +523,25 @@ METHODS: dict[str, Method] = {
             True,
             "fgnav.baselines.seed002",
             run_ekf_vo002,
+        ),
+        Method(
+            "ekf-flow002",
+            "seed 002 attitude-height EKF + optical-flow dead reckoning (the paper's system on a "
+            "flow deck)",
+            ("imu", "flow", "range"),
+            ("yaw",),
+            True,
+            "fgnav.baselines.seed002_flow",
+            run_ekf_flow002,
+        ),
+        Method(
+            "cf-ekf",
+            "Crazyflie onboard EKF model (kalman_core with mm_flow and mm_tof updates)",
+            ("imu", "flow", "range"),
+            (),
+            True,
+            "fgnav.baselines.cf_ekf",
+            run_cf_ekf,
         ),
         Method(
             "px4-ekf2",
