@@ -8,7 +8,7 @@ imported only when a method runs, so a missing or broken module makes that one m
 or failed, with the reason, and never stops the others.
 
 Stream names are those of :data:`fgnav.datasets.types.STREAMS` (``imu``, ``attitude``, ``range``,
-``yaw``, ``slam``, ``images``); a reference trajectory recorded in a log is ``ref:<name>``
+``yaw``, ``slam``, ``images``, ``flow``); a reference trajectory recorded in a log is ``ref:<name>``
 (``ref:px4_ekf2``: the onboard EKF2 estimate of a PX4 ULog).
 
 Config tables read by each method (fields of its options dataclass, unknown keys are errors):
@@ -23,6 +23,8 @@ ekf004          ``[ekf004]`` (:class:`~fgnav.baselines.ekf004.Ekf004Options`)
 ukf003          ``[ukf003]`` (:class:`~fgnav.baselines.ukf003.Ukf003Options`)
 ii-observer     ``[ii-observer]`` (:class:`~fgnav.baselines.seed000.Seed000Options`)
 ekf-vo002       ``[ekf-vo002]`` (:class:`~fgnav.baselines.seed002.Seed002Options`)
+ekf-flow002     ``[ekf-flow002]`` (:class:`~fgnav.baselines.seed002_flow.Seed002FlowOptions`)
+cf-ekf          ``[cf-ekf]`` (:class:`~fgnav.baselines.cf_ekf.CfEkfOptions`)
 px4-ekf2        none (the log's own estimate; nothing is run)
 ==============  =================================================================
 """
@@ -157,9 +159,10 @@ def _join(items: list[str]) -> str:
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
-#: The smoothers need a position source: monocular SLAM, or the downward camera's homographies
-#: made metric by the rangefinder (seed 002's sensor set).
-SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"))
+#: The smoothers need a position or velocity source: monocular SLAM, the downward camera's
+#: homographies made metric by the rangefinder (seed 002's sensor set), or optical flow made
+#: metric by the rangefinder (a flow deck: the position is dead-reckoned).
+SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"), ("flow", "range"))
 
 
 def missing_reason(missing: list[str]) -> str:
@@ -403,6 +406,21 @@ def run_ekf_vo002(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
     return run_seed002(flight, _options(Seed002Options, config, "ekf-vo002"))
 
 
+def run_ekf_flow002(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """Seed 002's attitude-height EKF + optical-flow dead reckoning with ``[ekf-flow002]``."""
+    from fgnav.baselines.seed002_flow import Seed002FlowOptions, run_seed002_flow
+
+    return run_seed002_flow(flight, _options(Seed002FlowOptions, config, "ekf-flow002"))
+
+
+def run_cf_ekf(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+    """The Crazyflie onboard EKF model (kalman_core, mm_flow, mm_tof) with ``[cf-ekf]``."""
+    from fgnav.baselines.cf_ekf import CfEkfOptions
+    from fgnav.baselines.cf_ekf import run_cf_ekf as _run
+
+    return _run(flight, _options(CfEkfOptions, config, "cf-ekf"))
+
+
 def reference_estimate(flight: Flight, ref: str, method: str) -> Estimate:
     """A trajectory recorded in the flight (``flight.references[ref]``) as an :class:`Estimate`.
 
@@ -457,7 +475,7 @@ METHODS: dict[str, Method] = {
             "batch",
             "factor-graph smoother over the whole flight (Levenberg-Marquardt)",
             ("imu",),
-            ("slam", "attitude", "range", "yaw", "images"),
+            ("slam", "attitude", "range", "yaw", "images", "flow"),
             False,
             "fgnav.solvers.batch",
             run_batch,
@@ -467,7 +485,7 @@ METHODS: dict[str, Method] = {
             "fixed-lag",
             "online iSAM2 fixed-lag smoother, newest state after each update",
             ("imu",),
-            ("slam", "attitude", "range", "yaw", "images"),
+            ("slam", "attitude", "range", "yaw", "images", "flow"),
             True,
             "fgnav.solvers.fixed_lag",
             run_fixed_lag,
@@ -520,6 +538,25 @@ METHODS: dict[str, Method] = {
             True,
             "fgnav.baselines.seed002",
             run_ekf_vo002,
+        ),
+        Method(
+            "ekf-flow002",
+            "seed 002 attitude-height EKF + optical-flow dead reckoning (the paper's system on a "
+            "flow deck)",
+            ("imu", "flow", "range"),
+            ("yaw",),
+            True,
+            "fgnav.baselines.seed002_flow",
+            run_ekf_flow002,
+        ),
+        Method(
+            "cf-ekf",
+            "Crazyflie onboard EKF model (kalman_core with mm_flow and mm_tof updates)",
+            ("imu", "flow", "range"),
+            (),
+            True,
+            "fgnav.baselines.cf_ekf",
+            run_cf_ekf,
         ),
         Method(
             "px4-ekf2",

@@ -2,7 +2,8 @@
 
 ``simulate(scenario, seed, options) -> Flight`` flies a rigid-body multirotor with linear rotor drag
 along one of ``SCENARIOS`` and synthesises IMU, AHRS attitude, yaw, tilted rangefinder, monocular
-SLAM (unknown scale, latency, resets) and downward-camera images of a noise carpet;
+SLAM (unknown scale, latency, resets), downward optical flow (``flowdeck``, or
+``SimOptions.flow_rate_hz``) and downward-camera images of a noise carpet;
 ``simulate_to_folder`` writes the flight in fgnav's native folder format.
 """
 

@@ -16,6 +16,8 @@ _IMU_DEFAULTS = ImuNoise()
 DEFAULT_BODY_T_CAM = (0.05, 0.0, -0.04)
 #: Default rangefinder lever arm in body [m].
 DEFAULT_BODY_T_RANGE = (0.03, 0.02, -0.05)
+#: Default optical-flow sensor lever arm in body [m] (under the body centre, as a flow deck).
+DEFAULT_BODY_T_FLOW = (0.0, 0.0, -0.02)
 
 
 class SimulationError(FgnavError, ValueError):
@@ -74,6 +76,26 @@ class SimOptions:
             brightness_amplitude: relative sinusoidal gain change, period brightness_period_s;
             featureless_patches: number of uniform white patches on the carpet (seed 003's white
             walls); texture_resolution_m: carpet texel size [m].
+        flow_rate_hz: downward optical-flow sensor (PMW3901-like) [Hz]; None: the scenario's
+            (100 Hz for ``flowdeck``, off for the others, so that their seeded
+            flights and figures stay as they were); 0: off. Each reading is the flow integrated
+            over the interval since the previous flow tick from the true velocity, rate, attitude
+            and the distance along the optical axis to the (stepped) terrain, times
+            ``flow_pixels_per_rad`` (``FlowSeries`` convention, ``sensors.simulate_flow``).
+        flow_pixels_per_rad: flow units per radian of image motion (a Crazyflie flow deck: 47.8
+            fitted on real flights, 48.8 in its firmware).
+        flow_noise_px: standard deviation of one reading's noise [px].
+        flow_noise_lag1: lag-1 correlation of consecutive readings' noise, in [-0.5, 0] (real
+            PMW3901 on a Crazyflie: about -0.3): a differenced white noise (counts carried from
+            one read to the next) plus a white noise.
+        flow_height_min, flow_height_max: readings whose sensor height above the terrain is
+            outside this interval [m] are not delivered (no valid motion; counted in ``meta``).
+        flow_dropout_prob: probability that a reading is missing (a Crazyflie logs flow only when
+            valid).
+        flow_low_quality_prob: probability that a reading has low texture: quality uniform in
+            [0, 0.3] and noise ``flow_low_quality_noise_factor`` times larger (delivered: the
+            estimator gates on quality). Other readings have quality in [0.6, 1].
+        body_t_flow: flow sensor lever arm in body [m]; optical axis along body -z.
         drag_k: rotor drag ``(kx, ky)`` [1/s].
         wind: mean wind in world [m/s] (None: the scenario's); gust_std [m/s] (None: the
             scenario's) and gust_tau_s [s]: Ornstein-Uhlenbeck gusts on the horizontal axes.
@@ -81,7 +103,8 @@ class SimOptions:
 
     #: Rates for which 0 switches the stream off (``fgnav.config`` accepts 0 for these).
     ZERO_MEANS_OFF: ClassVar[frozenset[str]] = frozenset(
-        {"attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz", "image_rate_hz"}
+        {"attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz", "image_rate_hz",
+         "flow_rate_hz"}
     )
 
     duration: float | None = None
@@ -132,6 +155,16 @@ class SimOptions:
     brightness_period_s: float = 10.0
     featureless_patches: int = 0
     texture_resolution_m: float = 0.01
+    flow_rate_hz: float | None = None
+    flow_pixels_per_rad: float = 48.0
+    flow_noise_px: float = 0.2
+    flow_noise_lag1: float = -0.3
+    flow_height_min: float = 0.08
+    flow_height_max: float = 5.0
+    flow_dropout_prob: float = 0.02
+    flow_low_quality_prob: float = 0.01
+    flow_low_quality_noise_factor: float = 10.0
+    body_t_flow: tuple[float, float, float] = DEFAULT_BODY_T_FLOW
     drag_k: tuple[float, float] = (0.38, 0.42)
     wind: tuple[float, float, float] | None = None
     gust_std: float | None = None
@@ -183,11 +216,14 @@ class SimOptions:
         if int(self.substeps) != self.substeps or self.substeps < 1:
             raise bad("substeps", "an integer >= 1")
         for name in ("attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz",
-                     "image_rate_hz"):
+                     "image_rate_hz", "flow_rate_hz"):
             rate = getattr(self, name)
+            if rate is None:
+                continue
             if rate < 0 or rate > self.imu_rate_hz:
                 raise bad(name, f"0 (off) or a rate up to imu_rate_hz={self.imu_rate_hz}")
-        for name in ("range_dropout_prob", "range_outlier_prob"):
+        for name in ("range_dropout_prob", "range_outlier_prob", "flow_dropout_prob",
+                     "flow_low_quality_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise bad(name, "a probability in [0, 1]")
         if not 0 <= self.range_min < self.range_max:
@@ -214,5 +250,14 @@ class SimOptions:
             raise bad("texture_resolution_m", "a positive texel size [m]")
         if self.motion_blur_s < 0:
             raise bad("motion_blur_s", "a non-negative exposure time [s]")
+        if not (math.isfinite(self.flow_pixels_per_rad) and self.flow_pixels_per_rad > 0):
+            raise bad("flow_pixels_per_rad", "a positive number of flow units per radian")
+        if not self.flow_noise_px >= 0 or not self.flow_low_quality_noise_factor >= 0:
+            raise bad("flow_noise_px", "a non-negative noise [px]")
+        if not -0.5 <= self.flow_noise_lag1 <= 0.0:
+            raise bad("flow_noise_lag1", "a lag-1 correlation in [-0.5, 0]")
+        if not 0 <= self.flow_height_min < self.flow_height_max:
+            raise bad("flow_height_min", f"0 <= flow_height_min < flow_height_max="
+                      f"{self.flow_height_max}")
         if not math.isfinite(self.ground_height):
             raise bad("ground_height", "a finite height [m]")

@@ -19,6 +19,10 @@ Scenarios (sources: the seed papers in ../shared/seeds/):
   two laps, stop at every corner.
 - ``figure8`` (seed 003: speeds up to 4 m/s): figure eight of 10 m x 6 m at 3 m, up to ~3.9 m/s
   and ~17 degrees of tilt.
+- ``flowdeck`` (issue 17: a Crazyflie with a flow deck, as the UTIL flights): 2 s hover at 0.5 m,
+  then a Lissajous curve in a 3 m x 2.4 m box with the height between 0.4 m and 1.3 m, speeds up
+  to ~1.4 m/s, yaw swinging +-0.5 rad; the only scenario with the optical-flow stream on by
+  default (``SimOptions.flow_rate_hz``).
 """
 
 from __future__ import annotations
@@ -82,6 +86,7 @@ class Scenario:
         slam_axis_scale: per-axis SLAM scale ``(kx, ky, kz)`` of seed 000, or None for a
             similarity (one scale, rotation and translation).
         body_t_cam: camera lever arm in body [m] replacing the default, or None.
+        flow_rate_hz: default rate of the optical-flow stream [Hz] (0: no flow sensor).
     """
 
     name: str
@@ -94,6 +99,7 @@ class Scenario:
     gust_std: float = 0.0
     slam_axis_scale: tuple[float, float, float] | None = None
     body_t_cam: tuple[float, float, float] | None = None
+    flow_rate_hz: float = 0.0
 
     def reference(self, t: np.ndarray) -> Reference:
         """Sample the reference and its derivatives at times ``t`` [s]."""
@@ -209,6 +215,40 @@ def _figure8_position(t):
     return _stack(FIG8_A_M * np.sin(th), FIG8_B_M * np.sin(2.0 * th), FIG8_ALTITUDE_M)
 
 
+# ---------------------------------------------------------------------------------------------
+# flowdeck (issue 17: Crazyflie with a flow deck, low over the floor)
+# ---------------------------------------------------------------------------------------------
+FLOWDECK_HOVER_S = 2.0
+FLOWDECK_RAMP_S = 3.0
+FLOWDECK_A_M = 1.5
+FLOWDECK_B_M = 1.2
+FLOWDECK_RATE_RAD_S = 0.6
+FLOWDECK_Z0_M = 0.85
+FLOWDECK_DZ_M = 0.45
+FLOWDECK_HOVER_Z_M = 0.5
+FLOWDECK_YAW_AMP_RAD = 0.5
+
+
+def _flowdeck_clock(t):
+    return FLOWDECK_RATE_RAD_S * ramped_time(
+        np.maximum(np.asarray(t, float) - FLOWDECK_HOVER_S, 0.0), FLOWDECK_RAMP_S
+    )
+
+
+def _flowdeck_position(t):
+    th = _flowdeck_clock(t)
+    # Height: from the hover height towards the mean over the ramp, then a slow swing.
+    blend = smoothstep5((np.asarray(t, float) - FLOWDECK_HOVER_S) / FLOWDECK_RAMP_S)
+    z = (1.0 - blend) * FLOWDECK_HOVER_Z_M + blend * (
+        FLOWDECK_Z0_M - FLOWDECK_DZ_M * np.cos(0.37 * th)
+    )
+    return _stack(FLOWDECK_A_M * np.sin(th), FLOWDECK_B_M * np.sin(1.5 * th), z)
+
+
+def _flowdeck_yaw(t):
+    return FLOWDECK_YAW_AMP_RAD * np.sin(0.5 * _flowdeck_clock(t))
+
+
 def _zero_yaw(t):
     return np.zeros_like(np.asarray(t, float))
 
@@ -262,6 +302,15 @@ SCENARIO_TABLE: dict[str, Scenario] = {
             40.0,
             _figure8_position,
             lambda t: FIG8_YAW_AMP_RAD * np.sin(_figure8_angle(t)),
+        ),
+        Scenario(
+            "flowdeck",
+            "issue 17: Crazyflie-like flight with a flow deck, 0.4-1.3 m over the floor in a "
+            "3 x 2.4 m box, up to ~1.4 m/s; optical flow on (100 Hz)",
+            40.0,
+            _flowdeck_position,
+            _flowdeck_yaw,
+            flow_rate_hz=100.0,
         ),
     )
 }

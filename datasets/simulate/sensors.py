@@ -1,4 +1,5 @@
-"""Sensor models of the simulator: IMU, AHRS attitude, yaw, tilted rangefinder, monocular SLAM.
+"""Sensor models of the simulator: IMU, AHRS attitude, yaw, tilted rangefinder, optical flow,
+monocular SLAM.
 
 Every function takes the true vehicle states (on the IMU grid), the options and its own seeded
 generator, and returns the stream plus the truth it used. All streams share the IMU clock.
@@ -13,7 +14,14 @@ from typing import Any
 
 import numpy as np
 from fgnav.datasets.geometry import matrix_to_quat_wxyz, so3_exp, wrap_angle, yaw_of
-from fgnav.datasets.types import AttitudeSeries, ImuSeries, RangeSeries, SlamSeries, YawSeries
+from fgnav.datasets.types import (
+    AttitudeSeries,
+    FlowSeries,
+    ImuSeries,
+    RangeSeries,
+    SlamSeries,
+    YawSeries,
+)
 
 from .options import SimOptions, SimulationError
 from .vehicle import VehicleLog
@@ -187,6 +195,136 @@ def simulate_range(
         log.warning("rangefinder: no reading within [%g, %g] m", opts.range_min, opts.range_max)
         return None, truth
     return RangeSeries(vehicle.t[idx][keep].copy(), r[keep]), truth
+
+
+# ---------------------------------------------------------------------------------------------
+# Optical flow
+# ---------------------------------------------------------------------------------------------
+
+#: Quality of a reading with normal texture: uniform in this interval.
+FLOW_QUALITY_OK = (0.6, 1.0)
+#: Quality of a low-texture reading: uniform in this interval.
+FLOW_QUALITY_LOW = (0.0, 0.3)
+
+
+def flow_rate_of_image_motion(
+    vehicle: VehicleLog, body_T_flow: np.ndarray, opts: SimOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Instantaneous image motion [rad/s] (N, 2) of the ground point on the flow sensor's optical
+    axis, and the sensor's height above the terrain under it [m] (N,), at every vehicle sample.
+
+    ``FlowSeries`` convention: with the sensor-frame velocity ``v`` (body velocity plus
+    ``omega x lever arm``), rate ``w`` and the distance ``d`` along the optical axis to the ground
+    or a terrain step (``beam_range``): ``[-v_x / d - w_y, -v_y / d + w_x]``. ``d`` is inf (no
+    ground seen) when the axis does not point down.
+    """
+    body_R_flow = body_T_flow[:3, :3]
+    body_t_flow = body_T_flow[:3, 3]
+    R = vehicle.world_R_body
+    omega = vehicle.body_omega
+    u = np.einsum("nji,nj->ni", R, vehicle.world_v_body) + np.cross(omega, body_t_flow)
+    v = u @ body_R_flow  # (A u) with A = body_R_flow^T
+    w = omega @ body_R_flow
+    origin = vehicle.world_t_body + R @ body_t_flow
+    axis = R @ body_R_flow[:, 2]
+    d = beam_range(origin, axis, opts.ground_height, opts.terrain_steps)
+    cos_tilt = -axis[:, 2]
+    height = np.where(np.isfinite(d), d * np.maximum(cos_tilt, 0.0), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = np.stack([-v[:, 0] / d - w[:, 1], -v[:, 1] / d + w[:, 0]], axis=1)
+    return rate, height
+
+
+def simulate_flow(
+    vehicle: VehicleLog,
+    body_T_flow: np.ndarray,
+    opts: SimOptions,
+    rate_hz: float,
+    rng: np.random.Generator,
+) -> tuple[FlowSeries | None, dict[str, Any]]:
+    """Downward optical-flow sensor (PMW3901-like): integrated flow per interval [px].
+
+    Reading ``j`` at IMU tick ``i_j`` integrates the instantaneous image motion of
+    :func:`flow_rate_of_image_motion` over ``(t[i_{j-1}], t[i_j]]`` on the vehicle grid (the
+    translational part by the trapezoid rule between samples, the rotational part with the
+    body rate held over each step, as the IMU's), times ``flow_pixels_per_rad``. Then:
+
+    1. noise ``a (e_j - e_{j-1}) + b w_j`` with white ``e, w``: standard deviation
+       ``flow_noise_px`` and lag-1 correlation ``flow_noise_lag1 = -a^2 / sigma^2`` (the
+       differenced part is what a sensor that carries unreported sub-count motion into the next
+       read gives), none beyond lag 1;
+    2. low-texture readings (``flow_low_quality_prob``): quality in ``FLOW_QUALITY_LOW``, noise
+       ``flow_low_quality_noise_factor`` times larger; the others quality in ``FLOW_QUALITY_OK``;
+    3. readings with the sensor height above the terrain outside ``[flow_height_min,
+       flow_height_max]`` (or no ground in view) are not delivered, nor dropouts
+       (``flow_dropout_prob``).
+
+    Returns:
+        The series (None when off or empty) and the truth: counts of readings not delivered by
+        reason (``flow_out_of_height``, ``flow_dropouts``), ``flow_low_quality`` (delivered
+        low-texture readings) and the noise parameters.
+    """
+    truth: dict[str, Any] = {
+        "flow_out_of_height": 0,
+        "flow_dropouts": 0,
+        "flow_low_quality": 0,
+    }
+    if rate_hz <= 0:
+        return None, truth
+    n = len(vehicle.t)
+    idx = sample_indices(opts, rate_hz, n)
+    if len(idx) < 2:
+        return None, truth
+    rate, height = flow_rate_of_image_motion(vehicle, body_T_flow, opts)
+    t = vehicle.t
+    dt_step = np.diff(t)
+    # Translational part by the trapezoid rule, rotational (rate held) by the rectangle rule:
+    # split the rate into both parts again from the vehicle's rate to integrate each correctly.
+    w = vehicle.body_omega @ body_T_flow[:3, :3]
+    rot = np.stack([-w[:, 1], w[:, 0]], axis=1)
+    trans = rate - rot
+    finite = np.all(np.isfinite(trans), axis=1)
+    trans_f = np.where(finite[:, None], trans, 0.0)
+    step = 0.5 * (trans_f[1:] + trans_f[:-1]) * dt_step[:, None] + rot[:-1] * dt_step[:, None]
+    cum = np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+    bad_cum = np.concatenate([[0], np.cumsum(~finite)])
+    j0, j1 = idx[:-1], idx[1:]
+    flow = (cum[j1] - cum[j0]) * opts.flow_pixels_per_rad
+    dt = t[j1] - t[j0]
+    saw_ground = (bad_cum[j1 + 1] - bad_cum[j0]) == 0
+    h_end = height[j1]
+    m = len(j1)
+    quality = np.full(m, 1.0)
+    keep = np.ones(m, bool)
+    low = np.zeros(m, bool)
+    if not opts.noise_free:
+        sigma = opts.flow_noise_px
+        rho = opts.flow_noise_lag1
+        a = sigma * math.sqrt(-rho)
+        b = sigma * math.sqrt(max(1.0 + 2.0 * rho, 0.0))
+        e = rng.normal(0.0, 1.0, (m + 1, 2))
+        noise = a * (e[1:] - e[:-1]) + b * rng.normal(0.0, 1.0, (m, 2))
+        low = rng.random(m) < opts.flow_low_quality_prob
+        noise = np.where(low[:, None], noise * opts.flow_low_quality_noise_factor, noise)
+        quality = np.where(
+            low, rng.uniform(*FLOW_QUALITY_LOW, m), rng.uniform(*FLOW_QUALITY_OK, m)
+        )
+        flow = flow + noise
+        dropped = rng.random(m) < opts.flow_dropout_prob
+        keep &= ~dropped
+        truth["flow_dropouts"] = int(dropped.sum())
+    in_height = saw_ground & (h_end >= opts.flow_height_min) & (h_end <= opts.flow_height_max)
+    truth["flow_out_of_height"] = int((keep & ~in_height).sum())
+    keep &= in_height
+    truth["flow_low_quality"] = int((keep & low).sum())
+    if not keep.any():
+        log.warning("optical flow: no reading with the sensor within [%g, %g] m of the ground",
+                    opts.flow_height_min, opts.flow_height_max)
+        return None, truth
+    series = FlowSeries(
+        t=t[j1][keep].copy(), dt=dt[keep], flow=flow[keep], quality=quality[keep]
+    )
+    return series, truth
 
 
 # ---------------------------------------------------------------------------------------------

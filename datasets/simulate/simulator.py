@@ -6,6 +6,8 @@ Frames: world z up (gravity ``(0, 0, -g)``), body FLU. Extrinsics (``flight.cali
   right = body right), ``cam y = body -x`` (image up = body forward); lever arm ``body_t_cam``.
 - Rangefinder ``body_T_range``: ``Rx(pi)``, beam ``range z = body -z``, ``range x = body x``;
   lever arm ``body_t_range``.
+- Optical flow ``body_T_flow``: ``Rx(pi)`` (``DOWNWARD_FLOW``: x forward, y right, optical axis
+  down), lever arm ``body_t_flow``; ``calib.flow_pixels_per_rad`` = ``flow_pixels_per_rad``.
 
 Random streams are independent: each sensor draws from its own child of
 ``SeedSequence(seed)``, so switching images off does not change the IMU noise.
@@ -38,6 +40,7 @@ from .sensors import (
     decimation,
     sample_indices,
     simulate_attitude,
+    simulate_flow,
     simulate_imu,
     simulate_range,
     simulate_slam,
@@ -52,8 +55,10 @@ log = logging.getLogger(__name__)
 BODY_R_CAM = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: ``body_R_range`` of the downward rangefinder (``Rx(pi)``).
 BODY_R_RANGE = np.diag([1.0, -1.0, -1.0])
+#: ``body_R_flow`` of the downward flow sensor (``Rx(pi)``, as ``types.DOWNWARD_FLOW``).
+BODY_R_FLOW = np.diag([1.0, -1.0, -1.0])
 #: Order of the child random streams (appending keeps earlier streams unchanged).
-_STREAMS = ("wind", "imu", "attitude", "yaw", "range", "slam", "carpet", "images")
+_STREAMS = ("wind", "imu", "attitude", "yaw", "range", "slam", "carpet", "images", "flow")
 #: Number of poses averaged over the exposure for motion blur.
 BLUR_SAMPLES = 7
 
@@ -136,9 +141,11 @@ def simulate(
 
     Returns:
         A checked :class:`Flight`: ``imu`` (IMU rate), ``attitude``, ``yaw``, ``range``, ``slam``,
-        ``images`` (when enabled), ``ground_truth`` at the IMU rate with velocity and biases,
-        ``calib``, and ``meta["truth"]`` (JSON-serialisable: drag_k, ground_height,
-        terrain_steps, slam_sessions, range_outlier_t, wind, options, scenario, seed).
+        ``images`` (when enabled), ``flow`` (when on: ``SimOptions.flow_rate_hz``),
+        ``ground_truth`` at the IMU rate with velocity and biases, ``calib``, and
+        ``meta["truth"]`` (JSON-serialisable: drag_k, ground_height, terrain_steps,
+        slam_sessions, range_outlier_t, wind, options, scenario, seed; ``flow`` with its rate
+        and noise when on).
 
     Raises:
         SimulationError: unknown scenario or invalid options.
@@ -188,6 +195,8 @@ def simulate(
         ),
         range_min=float(opts.range_min),
         range_max=float(opts.range_max),
+        body_T_flow=make_pose(BODY_R_FLOW, np.asarray(opts.body_t_flow, float)),
+        flow_pixels_per_rad=float(opts.flow_pixels_per_rad),
     )
 
     # 3. Sensors.
@@ -195,6 +204,8 @@ def simulate(
     attitude = simulate_attitude(vehicle, opts, rngs["attitude"])
     yaw = simulate_yaw(vehicle, opts, rngs["yaw"])
     range_series, range_truth = simulate_range(vehicle, body_T_range, opts, rngs["range"])
+    flow_rate = sc.flow_rate_hz if opts.flow_rate_hz is None else opts.flow_rate_hz
+    flow, flow_truth = simulate_flow(vehicle, calib.body_T_flow, opts, flow_rate, rngs["flow"])
     world_T_body = np.zeros((len(t), 4, 4))
     world_T_body[:, :3, :3] = vehicle.world_R_body
     world_T_body[:, :3, 3] = vehicle.world_t_body
@@ -240,12 +251,20 @@ def simulate(
         "wind": wind[::wind_step].tolist(),
         "gravity": GRAVITY,
     }
+    if flow_rate > 0:
+        truth["flow"] = {
+            "rate_hz": float(flow_rate),
+            "noise_px": float(opts.flow_noise_px),
+            "noise_lag1": float(opts.flow_noise_lag1),
+            "pixels_per_rad": float(opts.flow_pixels_per_rad),
+        }
     n_slam_grid = 0
     if opts.slam_rate_hz > 0:
         n_slam_grid = len(sample_indices(opts, opts.slam_rate_hz, len(t)))
     notes = {
         "range_dropouts": range_truth["range_dropouts"],
         "range_out_of_limits": range_truth["range_out_of_limits"],
+        **(dict(flow_truth) if flow_rate > 0 else {}),
         "slam_sessions": len(sessions),
         "slam_lost": n_slam_grid - (len(slam) if slam is not None else 0),
     }
@@ -261,6 +280,7 @@ def simulate(
         yaw=yaw,
         slam=slam,
         images=images,
+        flow=flow,
         ground_truth=ground_truth,
         calib=calib,
         meta={

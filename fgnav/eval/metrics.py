@@ -678,3 +678,52 @@ def slam_scale_drift(
             sid, s_all, tw_a, rel_a, np.asarray(path), skipped, slope, slope_sig, scatter
         )
     return out
+
+
+def flow_flight_figures(
+    estimate: Estimate,
+    truth: Trajectory,
+    alignment: str = "4dof",
+    velocity_average_s: float = 0.0,
+    max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+) -> dict[str, float]:
+    """Figures of a flow-and-range flight (issue 17): after one alignment of the whole trajectory
+    (``alignment``, default 4-DoF: yaw + translation), the RMSE of the horizontal velocity
+    [m/s] (the estimate's ``world_v_body`` rotated by the alignment; optionally both averaged over
+    trailing ``velocity_average_s`` windows), of the height [m] (aligned z against true z) and
+    the ATE [m]; plus the end drift: horizontal distance between the last aligned and true
+    positions [m] and as a percentage of the true horizontal path length.
+
+    Returns:
+        ``{"hvel_rmse_mps", "height_rmse_m", "ate_m", "end_drift_m", "end_drift_pct",
+        "path_m"}``.
+    """
+    estimate.check()
+    est = estimate.trajectory
+    assoc = associate(est, truth, max_gap_s=max_gap_s)
+    idx = assoc.est_index
+    gt = assoc.gt
+    al = align(est.world_t_body[idx], gt.world_t_body, alignment)
+    p = al.apply_positions(est.world_t_body[idx])
+    out: dict[str, float] = {}
+    e = np.linalg.norm(gt.world_t_body - p, axis=1)
+    out["ate_m"] = _rmse(e)
+    out["height_rmse_m"] = _rmse(gt.world_t_body[:, 2] - p[:, 2])
+    out["hvel_rmse_mps"] = float("nan")
+    if est.world_v_body is not None and gt.world_v_body is not None:
+        v = al.apply_velocities(est.world_v_body[idx])[:, :2]
+        vt = gt.world_v_body[:, :2]
+        if velocity_average_s > 0:
+            t = gt.t
+            j = np.searchsorted(t, t - velocity_average_s, side="left")
+            cv = np.vstack([np.zeros((1, 2)), np.cumsum(v, axis=0)])
+            ct = np.vstack([np.zeros((1, 2)), np.cumsum(vt, axis=0)])
+            n = (np.arange(len(t)) + 1 - j)[:, None]
+            v = (cv[1:] - cv[j]) / n
+            vt = (ct[1:] - ct[j]) / n
+        out["hvel_rmse_mps"] = _rmse(np.linalg.norm(v - vt, axis=1))
+    path = float(np.sum(np.linalg.norm(np.diff(gt.world_t_body[:, :2], axis=0), axis=1)))
+    out["path_m"] = path
+    out["end_drift_m"] = float(np.linalg.norm(p[-1, :2] - gt.world_t_body[-1, :2]))
+    out["end_drift_pct"] = 100.0 * out["end_drift_m"] / path if path > 0 else float("nan")
+    return out

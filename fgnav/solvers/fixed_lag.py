@@ -393,6 +393,10 @@ class FixedLagRunner:
         if b.vision is not None:
             # Homography pairs arrive with frame j and tie keyframes i and j (both in the window).
             rows.extend(b.vision.stream_rows())
+        if b.flow is not None:
+            # A flow window arrives with its newest reading (half a period after its keyframe).
+            for k in b.flow.keyframes():
+                rows.append((b.flow.arrival(k), int(k), "flow", int(k)))
         rows.sort(key=lambda r: (r[0], r[1]))
         return rows
 

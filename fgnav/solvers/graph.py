@@ -64,6 +64,7 @@ from fgnav.solvers.measurements import (
 )
 
 if TYPE_CHECKING:
+    from fgnav.solvers.flow import FlowFactorOptions
     from fgnav.solvers.vision import HomographyFactorOptions
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,13 @@ class GraphOptions:
             resolved value.
         homography: options of the homography factors and their VO front-end
             (``vision.HomographyFactorOptions``, or a TOML table of them; None: defaults).
+        use_flow: downward optical-flow factors (``fgnav.solvers.flow``: the readings of each
+            keyframe window summed into one factor on ``X, V, G``); None ("auto"): on when the
+            flight has a flow stream and a rangefinder the graph uses (``use_range``), else off.
+            True without a rangefinder raises ``ObservabilityError`` (flow measures ``v / h``).
+            The builder's ``options`` hold the resolved value.
+        flow: options of the flow factors (``flow.FlowFactorOptions``, or a TOML table of them;
+            None: defaults).
         use_frontend_priors: add the front-end priors given to the builder.
         slam_model: ``"sim3"`` (``Similarity3`` alignment per session) or ``"axis"`` (seed 000's
             per-axis scale, SLAM axes = world axes, with an estimated SLAM-origin offset so the
@@ -177,6 +185,8 @@ class GraphOptions:
     use_yaw: bool = True
     use_homography: bool | None = None
     homography: HomographyFactorOptions | dict[str, Any] | None = None
+    use_flow: bool | None = None
+    flow: FlowFactorOptions | dict[str, Any] | None = None
     use_frontend_priors: bool = True
     slam_model: str = "auto"
     slam_sigma_m: float = 0.01
@@ -315,10 +325,13 @@ class GraphBuilder:
         if self.drag_disabled is not None:
             log.warning("%s: drag factor off: %s", flight.name, self.drag_disabled)
             self.options = o = replace(o, use_drag=False)
+        from fgnav.solvers.flow import resolve_use_flow
         from fgnav.solvers.vision import resolve_use_homography
 
         o = self.options = replace(
-            o, use_homography=resolve_use_homography(flight, o.use_homography, o.use_range)
+            o,
+            use_homography=resolve_use_homography(flight, o.use_homography, o.use_range),
+            use_flow=resolve_use_flow(flight, o.use_flow, o.use_range),
         )
         check_observability(flight, o, self.slam_model)
         self.vision = None
@@ -365,6 +378,12 @@ class GraphBuilder:
         self.ground_segment = self._segments(o.ground_segment_s) if self.use_range else None
         if self.vision is not None:
             self.vision.associate(self.t_kf)
+        self.flow = None
+        if o.use_flow:
+            from fgnav.solvers.flow import FlowFactors, flow_options
+
+            self.flow = FlowFactors(flight, flow_options(o.flow), self._skip)
+            self.flow.associate(self.t_kf, self.R_kf)
         self.drag_segment = self._segments(o.drag_segment_s) if self.use_drag else None
 
     # ------------------------------------------------------------------------------------------
@@ -1196,7 +1215,7 @@ class GraphBuilder:
             slam_init_scale: initial scale per SLAM variable key (converts the SLAM noise in
                 metres into SLAM units).
             kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"yaw"``,
-                ``"homography"``); None: all.
+                ``"homography"``, ``"flow"``); None: all.
         """
         o = self.options
         f = self.flight
@@ -1268,6 +1287,14 @@ class GraphBuilder:
             ground_key = lambda kf: G(int(self.ground_segment[kf]))  # noqa: E731
             for arrival, fac, keys in self.vision.factors_at(k, ground_key, self._robust):
                 out.append(MeasurementFactor(arrival, k, "homography", fac, keys))
+        if self.flow is not None and want("flow") and k in self.flow.by_keyframe:
+            keys = (X(k), V(k), G(int(self.ground_segment[k])))
+            res = self.flow.factor_at(
+                k, keys, self.imu.t, self.imu.body_omega, self.gyro_bias0, self.R_kf[k],
+                self._robust,
+            )
+            if res.factor is not None:
+                out.append(MeasurementFactor(res.arrival, k, "flow", res.factor, keys))
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -1341,6 +1368,7 @@ class GraphBuilder:
             "factors": dict(self.counts),
             "skipped": dict(self.skipped),
             "homography": self.vision.report() if self.vision is not None else None,
+            "flow": self.flow.report() if self.flow is not None else None,
             "slam_gyro_check": self.flight.meta.get(SLAM_CHECK_META_KEY),
             "options": asdict(self.options),
         }
@@ -1373,16 +1401,28 @@ def check_observability(flight: Flight, options: GraphOptions, slam_model: str) 
     has_slam = o.use_slam and flight.slam is not None
     has_range = o.use_range and flight.range is not None
     has_homography = o.use_homography and flight.images is not None
+    has_flow = bool(o.use_flow) and flight.flow is not None
     if o.use_slam and flight.slam is None:
         log.warning("%s: use_slam is on but the flight has no SLAM stream", flight.name)
     if o.use_range and flight.range is None:
         log.info("%s: no rangefinder stream; range factors off", flight.name)
-    if not (has_slam or has_homography or o.use_drag):
+    if not (has_slam or has_homography or has_flow or o.use_drag):
         raise ObservabilityError(
             f"{flight.name}: horizontal velocity and position are unobservable with this sensor "
-            "set (IMU only); enable slam, homography or drag"
+            "set (IMU only); enable slam, homography, flow or drag"
         )
-    if not (has_slam or has_homography):
+    if has_flow and not has_range:
+        raise ObservabilityError(
+            f"{flight.name}: optical flow without a rangefinder measures only velocity / height: "
+            "the metric velocity is unobservable; enable range"
+        )
+    if has_flow and not (has_slam or has_homography):
+        log.info(
+            "%s: horizontal velocity from optical flow and the rangefinder; no position source, "
+            "so positions are dead-reckoned from it and drift",
+            flight.name,
+        )
+    elif not (has_slam or has_homography):
         log.warning(
             "%s: no position source (SLAM, or camera with rangefinder): positions are "
             "dead-reckoned from the IMU with drag-model velocity; drift grows without bound%s",

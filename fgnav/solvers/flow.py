@@ -1,0 +1,414 @@
+"""Downward optical flow in the smoother graph (../shared/DESIGN.md sec. 4.6): readings summed over
+a keyframe window into one factor on ``X(k), V(k), G(g_k)``.
+
+A flow sensor (PMW3901, PX4Flow, ARK Flow) reports the image motion integrated over short
+intervals (10-12 ms on a Crazyflie, ``FlowSeries``); the keyframes are 10-20 Hz. This module turns
+the readings of one keyframe window into one
+:func:`fgnav.factors.optical_flow.make_optical_flow_factor`:
+
+1. **Clean** each reading: non-finite flow or interval (``flow:non-finite``), quality below
+   ``quality_min`` (``flow:gated:quality``; quality unknown, ``< 0``, is not tested).
+2. **Gate** the window (:func:`fgnav.factors.optical_flow.gate_flow`): the flow sensor's height
+   above the ground (from the rangefinder, see below) outside ``[height_min, height_max]``
+   (``flow:gated:height``; no range reading to tell it: ``flow:no-height``), or the optical axis
+   tilted more than ``max_tilt_deg`` (``flow:gated:tilt``). Counts are of readings.
+3. **Sum**: ``flow`` and ``dt`` are the sums of the accepted readings, so the factor sees the
+   image motion over the window; the angular rate input is the mean bias-corrected gyro over the
+   union of the readings' intervals (zero-order hold on each IMU sample), so the rotational part
+   cancels exactly as the sensor integrated it.
+4. **Noise**: per reading ``sigma_rad * flow_pixels_per_rad`` [flow units] with lag-1 correlation
+   ``lag1_corr`` between consecutive readings and none beyond (real PMW3901 on a Crazyflie: 0.2 px
+   per reading at 48 px/rad, lag-1 about -0.3; ``crazyflie_util_flowdeck`` README). The sum of a
+   run of ``n`` consecutive readings has the standard deviation
+   :func:`~fgnav.factors.optical_flow.flow_sum_sigma` ``(sigma, n, rho)``; runs separated by a
+   missing reading are independent, so their variances add. The correlation of the edge readings
+   of neighbouring windows (``rho / (n + 2 (n - 1) rho)``, -0.12 for 5 readings) is neglected.
+   The graph's robust kernel (Huber by default) on top.
+
+**Windows** (batch, :meth:`FlowFactors.associate`): keyframe k owns the readings whose interval
+midpoint ``t - dt/2`` lies in ``(m_{k-1}, m_k]``, ``m_k`` the midpoint between keyframes k and
+k+1 (half a period before the first and after the last keyframe): the window is centred on
+``t_k``, so the state at ``t_k`` stands for the window with no lag. Readings outside every window
+are ``flow:outside-keyframes``.
+
+**Height for the gate**: the nearest raw range reading within ``height_max_age_s`` of the
+keyframe, through the attitude at the keyframe: ``h_flow = r cos(tilt_range) - (R t_range)_z +
+(R t_flow)_z`` (sensor lever arms ``body_T_range``, ``body_T_flow``).
+
+**Ground**: the factor's ground is the ground-height variable ``G`` of the keyframe's segment,
+the one the rangefinder measures: flow gives ``v / h``, the rangefinder ``h``; together the
+horizontal velocity is observable (the position is dead-reckoned from it and drifts). Without a
+rangefinder in the graph, flow is refused (``ObservabilityError``).
+
+Online use: :func:`flow_keyframe_factor` is the whole recipe for one group of readings; the batch
+builder calls it for every window, and an online smoother can call it with the readings it
+groups for a keyframe (e.g. those that ended in ``(t_{k-1}, t_k]``, known when keyframe k is
+closed; the state at ``t_k`` then stands for a window centred half a period earlier, which
+biases the velocity by ``a P / 2`` under an acceleration ``a``: 2.5 cm/s at 1 m/s^2 and 20 Hz).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import gtsam
+import numpy as np
+
+from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import FlowSample
+from fgnav.datasets.types import Calibration, Flight
+from fgnav.factors.optical_flow import (
+    FlowMeasurement,
+    FlowSensor,
+    flow_sum_sigma,
+    gate_flow,
+    make_optical_flow_factor,
+)
+
+log = logging.getLogger(__name__)
+
+#: A reading continues the previous one (a run of correlated readings) when its interval starts
+#: within this fraction of its length of the previous reading's end.
+CONTIGUOUS_FRAC = 0.25
+
+
+@dataclass
+class FlowFactorOptions:
+    """Options of the optical-flow factors (``GraphOptions.flow``; None there: defaults).
+
+    Attributes:
+        sigma_rad: noise of one reading [rad of image motion] (times ``flow_pixels_per_rad`` in
+            flow units): 0.2 px at 48 px/rad, the real Crazyflie's per-reading residual.
+        lag1_corr: correlation of the noise of consecutive readings (real PMW3901: about -0.3).
+        height_min, height_max: usable height of the flow sensor above the ground [m] (the
+            PMW3901 focuses from about 8 cm; its resolution of ground texture limits the top).
+        max_tilt_deg: largest tilt of the optical axis [deg].
+        quality_min: readings of lower quality (in [0, 1]) are skipped; unknown quality (< 0)
+            is not tested.
+        min_readings: fewer accepted readings in a window: no factor (``flow:few-readings``).
+        height_max_age_s: largest time between a keyframe and the range reading used for its
+            height gate [s].
+    """
+
+    sigma_rad: float = 0.2 / 48.0
+    lag1_corr: float = -0.3
+    height_min: float = 0.1
+    height_max: float = 4.0
+    max_tilt_deg: float = 35.0
+    quality_min: float = 0.5
+    min_readings: int = 2
+    height_max_age_s: float = 0.25
+
+    def check(self) -> FlowFactorOptions:
+        if not self.sigma_rad > 0:
+            raise FlightDataError(f"flow.sigma_rad={self.sigma_rad}: expected > 0")
+        if not -0.5 <= self.lag1_corr <= 0.5:
+            raise FlightDataError(f"flow.lag1_corr={self.lag1_corr}: expected in [-0.5, 0.5]")
+        if not 0 <= self.height_min < self.height_max:
+            raise FlightDataError(
+                f"flow.height_min={self.height_min}, height_max={self.height_max}: expected "
+                "0 <= height_min < height_max"
+            )
+        if not 0 < self.max_tilt_deg < 90:
+            raise FlightDataError(f"flow.max_tilt_deg={self.max_tilt_deg}: expected in (0, 90)")
+        if int(self.min_readings) != self.min_readings or self.min_readings < 1:
+            raise FlightDataError(f"flow.min_readings={self.min_readings}: expected >= 1")
+        return self
+
+
+def flow_options(value: Any) -> FlowFactorOptions:
+    """``GraphOptions.flow`` as options: None -> defaults; a dict (TOML table) by name."""
+    if value is None:
+        return FlowFactorOptions().check()
+    if isinstance(value, FlowFactorOptions):
+        return value.check()
+    if isinstance(value, dict):
+        names = {f.name for f in dataclasses.fields(FlowFactorOptions)}
+        unknown = sorted(set(value) - names)
+        if unknown:
+            raise FlightDataError(
+                f"[graph.flow]: unknown option(s) {unknown}; valid: {sorted(names)}"
+            )
+        return FlowFactorOptions(**value).check()
+    raise FlightDataError(f"GraphOptions.flow: expected a table of flow options, got {value!r}")
+
+
+def resolve_use_flow(flight: Flight, use_flow: bool | None, use_range: bool) -> bool:
+    """``GraphOptions.use_flow``: None ("auto") is on when the flight has a flow stream and a
+    rangefinder the graph uses; True without a flow stream is off (logged)."""
+    has_flow = flight.flow is not None and len(flight.flow) > 0
+    if use_flow is None:
+        return has_flow and use_range and flight.range is not None
+    if use_flow and not has_flow:
+        log.warning("%s: use_flow is on but the flight has no flow stream", flight.name)
+        return False
+    return bool(use_flow)
+
+
+class FlowFactorResult(NamedTuple):
+    """What :func:`flow_keyframe_factor` made of a group of readings.
+
+    Attributes:
+        factor: the factor on ``(X, V, G)``, or None.
+        reason: ``"ok"``, or why there is no factor (``"empty"``, ``"gated:height"``,
+            ``"gated:tilt"``, ``"no-height"``, ``"few-readings"``).
+        skipped: readings not used, by reason (``"non-finite"``, ``"gated:quality"``, and the
+            window's reason for all of its readings when it is gated).
+        n_used: readings summed into the factor.
+        arrival: arrival time of the newest reading used (or of the group) [s].
+        sigma: standard deviation of the summed flow [flow units] (NaN without a factor).
+    """
+
+    factor: gtsam.NonlinearFactor | None
+    reason: str
+    skipped: dict[str, int]
+    n_used: int
+    arrival: float
+    sigma: float
+
+
+def mean_rate_over(
+    imu_t: np.ndarray, imu_omega: np.ndarray, t0: np.ndarray, t1: np.ndarray
+) -> np.ndarray:
+    """Integral [rad] of the gyro (N, 3) over each interval ``[t0_i, t1_i]``, with each sample held
+    until the next (zero-order hold, as the preintegration); (M, 3). Times outside the IMU span
+    hold the first/last sample."""
+    t = np.asarray(imu_t, float)
+    w = np.asarray(imu_omega, float)
+    steps = np.diff(t)[:, None] * w[:-1]
+    cum = np.vstack([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+
+    def integral(x: np.ndarray) -> np.ndarray:
+        i = np.clip(np.searchsorted(t, x, side="right") - 1, 0, len(t) - 1)
+        return cum[i] + (x - t[i])[:, None] * w[i]
+
+    return integral(np.asarray(t1, float)) - integral(np.asarray(t0, float))
+
+
+def _run_sigma(ends: np.ndarray, starts: np.ndarray, dts: np.ndarray, sigma: float,
+               rho: float) -> float:
+    """Standard deviation of the sum of readings (in time order) made of runs of consecutive
+    readings (MA(1) within a run, independent runs)."""
+    var = 0.0
+    n = 1
+    for i in range(1, len(ends)):
+        if abs(starts[i] - ends[i - 1]) <= CONTIGUOUS_FRAC * dts[i]:
+            n += 1
+        else:
+            var += flow_sum_sigma(sigma, n, rho) ** 2
+            n = 1
+    var += flow_sum_sigma(sigma, n, rho) ** 2
+    return math.sqrt(var)
+
+
+def flow_keyframe_factor(
+    samples: Sequence[FlowSample],
+    imu_t: np.ndarray,
+    imu_omega: np.ndarray,
+    calib: Calibration,
+    pose_key: int,
+    velocity_key: int,
+    ground_key: int,
+    options: FlowFactorOptions | None = None,
+    *,
+    gyro_bias: np.ndarray | None = None,
+    height: float | None = None,
+    world_R_body: np.ndarray | None = None,
+    robust: Callable[[gtsam.noiseModel.Base], gtsam.noiseModel.Base] | None = None,
+) -> FlowFactorResult:
+    """One optical-flow factor from the readings of one keyframe window (module docstring).
+
+    Args:
+        samples: the readings (``FlowSample``: ``t`` end of interval, ``dt``, ``flow``,
+            ``quality``, ``arrival``), in any order.
+        imu_t, imu_omega: gyro samples (N,), (N, 3) [rad/s] covering the readings' intervals.
+        calib: ``body_T_flow`` and ``flow_pixels_per_rad`` (and nothing else is read).
+        pose_key, velocity_key, ground_key: ``X(k)``, ``V(k)``, ``G(j)`` of the keyframe.
+        options: gates and noise (defaults when None).
+        gyro_bias: (3,) gyro bias subtracted from the rate input [rad/s] (the estimate known when
+            the factor is made; zero when None).
+        height: height of the flow sensor above the ground estimate at the keyframe [m], for the
+            height gate; None: no range reading to tell it (reason ``"no-height"``, no factor).
+        world_R_body: attitude at the keyframe for the tilt gate (None: not tested).
+        robust: wraps the Gaussian noise model (e.g. the graph's Huber); None: Gaussian.
+
+    Returns:
+        :class:`FlowFactorResult` (factor or None, reason, per-reading skip counts, ...).
+    """
+    o = options or FlowFactorOptions()
+    skipped: Counter[str] = Counter()
+    arrival = max((float(s.arrival) for s in samples), default=float("nan"))
+    nan = float("nan")
+    if not samples:
+        return FlowFactorResult(None, "empty", {}, 0, arrival, nan)
+    # 1. Clean the readings.
+    kept: list[FlowSample] = []
+    for s in sorted(samples, key=lambda s: s.t):
+        f = np.asarray(s.flow, float)
+        if not (f.shape == (2,) and np.all(np.isfinite(f)) and np.isfinite(s.dt) and s.dt > 0):
+            skipped["non-finite"] += 1
+        elif s.quality >= 0 and s.quality < o.quality_min:
+            skipped["gated:quality"] += 1
+        else:
+            kept.append(s)
+    # 2. Gate the window on height and tilt.
+    body_T_flow = np.asarray(calib.body_T_flow, float)
+    if kept:
+        reason = None
+        if height is None:
+            reason = "no-height"
+        else:
+            cos_tilt = 1.0
+            if world_R_body is not None:
+                cos_tilt = -float((np.asarray(world_R_body) @ body_T_flow[:3, 2])[2])
+            ok, why = gate_flow(
+                float(height), cos_tilt, -1.0, o.height_min, o.height_max,
+                math.radians(o.max_tilt_deg), o.quality_min,
+            )
+            if not ok:
+                reason = "gated:" + ("height" if why.startswith(("height", "non-finite"))
+                                     else "tilt")
+        if reason is not None:
+            skipped[reason] += len(kept)
+            return FlowFactorResult(None, reason, dict(skipped), 0, arrival, nan)
+    if len(kept) < max(1, int(o.min_readings)):
+        if kept:
+            skipped["few-readings"] += len(kept)
+        return FlowFactorResult(None, "few-readings", dict(skipped), 0, arrival, nan)
+    # 3. Sum the readings; mean rate over their intervals.
+    ends = np.array([s.t for s in kept], float)
+    dts = np.array([s.dt for s in kept], float)
+    starts = ends - dts
+    flow = np.sum([np.asarray(s.flow, float) for s in kept], axis=0)
+    dt = float(dts.sum())
+    rot = mean_rate_over(imu_t, imu_omega, starts, ends).sum(axis=0)
+    omega = rot / dt - (np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, float))
+    # 4. Noise of the sum (correlated runs), in flow units.
+    ppr = float(calib.flow_pixels_per_rad)
+    sigma = _run_sigma(ends, starts, dts, o.sigma_rad * ppr, o.lag1_corr)
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
+    if robust is not None:
+        noise = robust(noise)
+    factor = make_optical_flow_factor(
+        pose_key, velocity_key, ground_key, FlowMeasurement(flow, dt), omega,
+        FlowSensor(body_T_flow, ppr), noise,
+    )
+    arrival = max(float(s.arrival) for s in kept)
+    return FlowFactorResult(factor, "ok", dict(skipped), len(kept), arrival, sigma)
+
+
+def flow_sensor_height(
+    range_m: float, world_R_body: np.ndarray, body_T_range: np.ndarray, body_T_flow: np.ndarray
+) -> float:
+    """Height [m] of the flow sensor above the ground seen by a range reading ``range_m`` along
+    the rangefinder's beam (its +z axis), both sensors at their lever arms, flat ground."""
+    R = np.asarray(world_R_body, float)
+    cos_range = -float((R @ body_T_range[:3, 2])[2])
+    return float(range_m * cos_range - (R @ body_T_range[:3, 3])[2] + (R @ body_T_flow[:3, 3])[2])
+
+
+class FlowFactors:
+    """The flow windows of one flight, for :class:`fgnav.solvers.graph.GraphBuilder`.
+
+    Args:
+        flight: the flight (needs ``flow``, ``imu``; ``range`` for the height gate).
+        options: flow options.
+        skip: the builder's counter of skipped measurements, ``skip(reason, n)``.
+    """
+
+    def __init__(self, flight: Flight, options: FlowFactorOptions,
+                 skip: Callable[[str, int], None]):
+        self.flight = flight
+        self.options = options
+        self._skip = skip
+        self.flow = flight.flow
+        self.window: np.ndarray = np.array([], dtype=int)
+        self.by_keyframe: dict[int, np.ndarray] = {}
+        self.height: dict[int, float | None] = {}
+        self.counts: Counter[str] = Counter()
+
+    def associate(self, t_kf: np.ndarray, R_kf: np.ndarray) -> None:
+        """Keyframe window of every reading and the flow-sensor height at each keyframe."""
+        fl = self.flow
+        K = len(t_kf)
+        if K > 1:
+            mids = 0.5 * (t_kf[1:] + t_kf[:-1])
+            edges = np.r_[t_kf[0] - 0.5 * (t_kf[1] - t_kf[0]), mids,
+                          t_kf[-1] + 0.5 * (t_kf[-1] - t_kf[-2])]
+        else:
+            edges = np.array([t_kf[0] - 0.05, t_kf[0] + 0.05])
+        centre = fl.t - 0.5 * fl.dt
+        k = np.searchsorted(edges, centre, side="left") - 1
+        outside = (k < 0) | (k >= K)
+        self._skip("flow:outside-keyframes", int(outside.sum()))
+        k = np.where(outside, -1, k)
+        self.window = k
+        order = np.argsort(k, kind="stable")
+        ks = k[order]
+        starts = np.searchsorted(ks, np.arange(K), side="left")
+        ends = np.searchsorted(ks, np.arange(K), side="right")
+        self.by_keyframe = {
+            int(j): order[a:b] for j, (a, b) in enumerate(zip(starts, ends, strict=True)) if b > a
+        }
+        self.counts["flow-samples"] = len(fl)
+        rng = self.flight.range
+        T_range = np.asarray(self.flight.calib.body_T_range, float)
+        T_flow = np.asarray(self.flight.calib.body_T_flow, float)
+        calib = self.flight.calib
+        for j in self.by_keyframe:
+            self.height[j] = None
+            if rng is None or len(rng) == 0:
+                continue
+            i = int(np.searchsorted(rng.t, t_kf[j]))
+            cand = [c for c in (i - 1, i) if 0 <= c < len(rng)]
+            c = min(cand, key=lambda c: abs(rng.t[c] - t_kf[j]))
+            r = float(rng.range[c])
+            if abs(rng.t[c] - t_kf[j]) > self.options.height_max_age_s or not (
+                calib.range_min <= r <= calib.range_max
+            ):
+                continue
+            self.height[j] = flow_sensor_height(r, R_kf[j], T_range, T_flow)
+
+    def keyframes(self) -> list[int]:
+        """Keyframes that own at least one reading."""
+        return sorted(self.by_keyframe)
+
+    def samples_at(self, k: int) -> list[FlowSample]:
+        """The readings of keyframe k's window as events (arrival = measurement time)."""
+        fl = self.flow
+        q = fl.quality
+        return [
+            FlowSample(float(fl.t[i]), float(fl.t[i]), float(fl.dt[i]), fl.flow[i],
+                       float(q[i]) if q is not None else -1.0)
+            for i in self.by_keyframe.get(k, ())
+        ]
+
+    def arrival(self, k: int) -> float:
+        """Arrival of keyframe k's window: its newest reading [s]."""
+        idx = self.by_keyframe.get(k)
+        return float(self.flow.t[idx].max()) if idx is not None and len(idx) else float("nan")
+
+    def factor_at(
+        self, k: int, keys: tuple[int, int, int], imu_t: np.ndarray, imu_omega: np.ndarray,
+        gyro_bias: np.ndarray, R_k: np.ndarray,
+        robust: Callable[[gtsam.noiseModel.Base], gtsam.noiseModel.Base] | None,
+    ) -> FlowFactorResult:
+        """The factor of keyframe k's window (skips counted on the builder)."""
+        res = flow_keyframe_factor(
+            self.samples_at(k), imu_t, imu_omega, self.flight.calib, *keys, self.options,
+            gyro_bias=gyro_bias, height=self.height.get(k), world_R_body=R_k, robust=robust,
+        )
+        for reason, n in res.skipped.items():
+            self._skip(f"flow:{reason}", n)
+        if res.factor is not None:
+            self.counts["flow-readings-used"] += res.n_used
+        return res
+
+    def report(self) -> dict[str, Any]:
+        return {"options": dataclasses.asdict(self.options), **dict(self.counts)}
