@@ -290,6 +290,13 @@ class OnlineSmoother:
                 self._drop("attitude:non-finite")
         elif isinstance(ev, ImageFrame):
             self._on_image(ev)
+        elif isinstance(ev, FlowSample):
+            if self.go.use_flow is not False and self.go.use_range:
+                self._flow.append(ev)
+                while len(self._flow) > 2 and self._flow[0].t < self._t_imu_last - 5.0:
+                    self._flow.popleft()
+            else:
+                self._drop("flow:off")
         else:
             self._drop(f"{stream}:not-used-online")
         return None
@@ -440,6 +447,8 @@ class OnlineSmoother:
         self._anchors: deque = deque()  # arrived image times not yet passed
         self._anchors_on = False
         self._slam_wait: list = []  # SLAM poses taken after the newest keyframe
+        self._flow: deque = deque()  # arrived optical-flow readings (last 5 s)
+        self._flow_done_t = -math.inf  # end of the last flow window made into a factor
         self._pending: list[tuple[int, str, Any]] = []  # (keyframe, kind, payload)
         self.sessions: dict[int, _Session] = {}
         self.values: dict[int, Any] = {}  # last good estimate of live keys
@@ -774,6 +783,7 @@ class OnlineSmoother:
         self.k = k
         self._new_slow(k, g, vals, stamps)
         self._drag_factor(k - 1, g, stamps)
+        self._flow_factor(k - 1, g, stamps)
         self._waiting_scalar(k)
         remove: list[int] = []
         prov_new: list[tuple[int, int, Any]] = []
@@ -955,6 +965,66 @@ class OnlineSmoother:
         g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, mean[:2], noise))
         stamps[dk] = self.t_kf[self.k]
         self._use("drag")
+
+    def _flow_factor(self, j: int, g, stamps) -> None:
+        """The optical-flow factor of keyframe j: the readings ending in its window
+        ``(t_j - h0, t_j + h1]`` (half the neighbouring keyframe intervals) summed
+        (:func:`fgnav.solvers.flow.flow_keyframe_factor`), once keyframe j + 1 has closed; a
+        reading arriving after its window was made is counted as ``flow:late``."""
+        if not self._flow or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+            return
+        from fgnav.solvers.flow import flow_keyframe_factor, flow_options, flow_sensor_height
+
+        t_j = self.t_kf[j]
+        h1 = 0.5 * (self.t_kf[j + 1] - t_j)
+        h0 = 0.5 * (t_j - self.t_kf[j - 1]) if j - 1 in self.t_kf else h1
+        lo, hi = max(t_j - h0, self._flow_done_t), t_j + h1
+        samples = [r for r in self._flow if lo < r.t <= hi]
+        # Readings older than the window just made arrived too late for theirs.
+        n_late = sum(1 for r in self._flow if r.t <= lo)
+        if n_late:
+            self._drop("flow:late", n_late)
+        while self._flow and self._flow[0].t <= hi:
+            self._flow.popleft()
+        self._flow_done_t = hi
+        if not samples:
+            return
+        if not self._kf_alive(j):
+            self._drop("flow:late", len(samples))
+            return
+        gk = self._slow_key_at("g", self.go.ground_segment_s, j)
+        pose = self._pose_at(t_j)
+        R = pose.rotation().matrix()
+        height = None
+        rng = self._scalar["range"]
+        if rng and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s:
+            height = flow_sensor_height(
+                rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
+            )
+        s = self.imu.span(lo - 0.05, hi + 0.05)
+        res = flow_keyframe_factor(
+            samples,
+            np.asarray(self.imu.t[s]),
+            np.asarray(self.imu.w[s]),
+            self.calib,
+            X(j),
+            V(j),
+            gk,
+            flow_options(self.go.flow),
+            gyro_bias=np.asarray(self.values[B(self.k)].gyroscope()),
+            height=height,
+            world_R_body=R,
+            robust=self._robust,
+        )
+        for reason, n in res.skipped.items():
+            self._drop(f"flow:{reason}", n)
+        if res.factor is None or gk not in self.values or not self._alive(gk):
+            if res.factor is not None:
+                self._drop("flow:late", res.n_used)
+            return
+        g.add(res.factor)
+        stamps[gk] = self.t_kf[self.k]
+        self._use("flow", res.n_used)
 
     def _drag_scatter(self) -> float:
         x = np.asarray(self._drag_means)
