@@ -52,10 +52,12 @@ Reference: Paz & Nesmachnow, "Doble acoplamiento entre sensores inerciales y odo
 
 from __future__ import annotations
 
+import bisect
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
+from operator import attrgetter
 from typing import Literal
 
 import cv2
@@ -63,9 +65,18 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, wrap_angle, yaw_of
+from fgnav.datasets.events import AttitudeSample, Event, ImageFrame, RangeReading, stream_events
+from fgnav.datasets.geometry import (
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
+    so3_exp,
+    so3_log,
+    wrap_angle,
+    yaw_of,
+)
 from fgnav.datasets.types import (
     AttitudeSeries,
+    Calibration,
     CameraIntrinsics,
     Flight,
     ImageSeries,
@@ -78,6 +89,9 @@ logger = logging.getLogger(__name__)
 
 #: Ground normal in the world frame, pointing from a camera above the ground down to it.
 WORLD_DOWN = np.array([0.0, 0.0, -1.0])
+
+#: Seconds of attitude and height history the event-fed stage keeps before its newest event.
+BUFFER_S = 2.0
 
 #: Reasons a pair can be rejected (keys of :attr:`VOResult.counts`).
 REJECT_REASONS = (
@@ -822,7 +836,8 @@ class HomographyVO:
         height: TimeSeries | None = None,
         initial_world_T_body: np.ndarray | None = None,
     ) -> VOResult:
-        """Homography VO over all images of ``flight``.
+        """Homography VO over all images of ``flight``: the attitude and height interpolated to
+        each image time, then every frame through one :class:`HomographyVoStage` in time order.
 
         Args:
             flight: a flight with ``images`` (downward camera) and ``calib.body_T_cam``.
@@ -845,9 +860,7 @@ class HomographyVO:
         images = _require_images(flight)
         cam = images.camera if images.camera is not None else flight.calib.camera
         attitude = attitude if attitude is not None else flight.attitude
-        tilt_source = (
-            o.tilt_source if o.tilt_source != "auto" else ("attitude" if o.rectify else "vo")
-        )
+        tilt_source = _tilt_source(o)
         if attitude is None and (o.rectify or tilt_source == "attitude"):
             raise FlightDataError(
                 f"{flight.name}: homography VO with rectify={o.rectify}, tilt_source="
@@ -868,181 +881,374 @@ class HomographyVO:
                 f"{flight.name}: VO height series: expected finite (N,) values at (N,) times, "
                 f"got t {h_t.shape}, value {h_v.shape}"
             )
-
-        n = len(images)
-        K = cam.K
-        body_T_cam = np.asarray(flight.calib.body_T_cam, float)
-        body_R_cam, body_t_cam = body_T_cam[:3, :3], body_T_cam[:3, 3]
-        undistort = _undistorter(cam)
-
-        # Attitude and height at image times (flagged where unavailable).
+        # Attitude and height at image times (None where unavailable).
         if attitude is not None:
             world_R_body_all, att_ok = interpolate_attitude(attitude, images.t, o.max_interp_gap_s)
         else:
-            world_R_body_all, att_ok = None, np.ones(n, bool)
+            world_R_body_all, att_ok = None, np.ones(len(images), bool)
         h_ok = _interp_valid(h_t, images.t, o.max_interp_gap_s)
         body_h = np.interp(images.t, h_t, h_v)
-        lever_z = (
-            np.einsum("nij,j->ni", world_R_body_all, body_t_cam)[:, 2]
-            if world_R_body_all is not None
-            else np.full(n, body_t_cam[2])
+
+        stage = HomographyVoStage(
+            flight.calib,
+            cam,
+            o,
+            uses_attitude=attitude is not None,
+            initial_world_T_body=initial_world_T_body,
+            name=flight.name,
         )
-        cam_h = body_h + lever_z
-        h_ok &= cam_h > 0
+        for frame in stream_events(flight, "images"):
+            k = frame.index
+            R = world_R_body_all[k] if world_R_body_all is not None and att_ok[k] else None
+            stage.process(frame, R, float(body_h[k]) if h_ok[k] else None)
+        return stage.result(runtime_s=time.perf_counter() - t_start)
 
-        measurements: list[HomographyMeasurement] = []
-        posed_idx: list[int] = []
-        world_R_body_list: list[np.ndarray] = []
-        world_t_body_list: list[np.ndarray] = []
-        yaw_list: list[float] = []
-        counts: Counter[str] = Counter()
 
-        def att(k: int) -> np.ndarray | None:
-            return None if world_R_body_all is None else world_R_body_all[k]
+class HomographyVoStage:
+    """The homography VO as an incremental stage: fed one camera frame at a time, it emits the
+    measurement of the pair (reference frame -> this frame) at once and dead-reckons the pose.
 
-        height_ref = None
-        ref = None  # index of the reference frame
-        ref_prep = None
-        failures = 0
-        world_R_cam = world_t_cam = None
-        psi = 0.0
-        for k in range(n):
-            if not (att_ok[k] and h_ok[k]):
-                reason = "no_attitude" if not att_ok[k] else "no_height"
-                counts[reason] += 1
-                if ref is not None:
-                    measurements.append(
-                        HomographyMeasurement(
-                            index_i=ref,
-                            index_j=k,
-                            t_i=float(images.t[ref]),
-                            t_j=float(images.t[k]),
-                            valid=False,
-                            reason=reason,
-                        )
-                    )
-                    counts["pairs"] += 1
-                continue
+    Two ways to feed it (DESIGN.md sec. 7: "front-ends are stages"):
+
+    * :meth:`process` (``frame``, attitude and body height at the frame's time, given by the
+      caller): the batch path (:meth:`HomographyVO.run`) interpolates its whole series and calls
+      this for every frame;
+    * :meth:`feed` (any event in arrival order): attitude samples and range readings are kept in a
+      short buffer, and an image waits until the attitude and the height at its time can be
+      interpolated from what has arrived (or until ``max_interp_gap_s`` has passed on the event
+      clock, then it uses the newest values within that gap). The height is the tilted range
+      (seed 002 eq. 21) with a trailing running median of ``range_median_window`` readings: only
+      past readings, unlike the batch path's centred median. :meth:`flush` processes what still
+      waits at the end of a stream.
+
+    Nothing here reads the future or a whole flight; the state is the reference frame (its
+    prepared image, pyramid and tracked points), the dead-reckoned pose and counters.
+
+    Args:
+        calib: calibration (``body_T_cam``; ``body_T_range`` and the range limits for :meth:`feed`).
+        camera: camera intrinsics (default: ``calib.camera``, else the first frame's ``camera``).
+        options: VO options.
+        uses_attitude: an attitude comes with every frame (None at a frame then means missing:
+            ``no_attitude``); False: no attitude at all (camera assumed level, no rectification).
+        initial_world_T_body: (4, 4) pose of the first posed frame (default: the attitude at
+            that frame at ``(0, 0, height)``).
+        name: name used in log messages.
+        keep_history: keep every measurement and posed frame for :meth:`result` (False: only
+            counts and the newest ones, for unbounded live runs).
+    """
+
+    def __init__(
+        self,
+        calib: Calibration,
+        camera: CameraIntrinsics | None = None,
+        options: HomographyVOOptions | None = None,
+        *,
+        uses_attitude: bool = True,
+        initial_world_T_body: np.ndarray | None = None,
+        name: str = "vo",
+        keep_history: bool = True,
+    ) -> None:
+        self._vo = HomographyVO(options)
+        o = self.options = self._vo.options
+        self.tilt_source = _tilt_source(o)
+        if not uses_attitude and (o.rectify or self.tilt_source == "attitude"):
+            raise FlightDataError(
+                f"{name}: homography VO with rectify={o.rectify}, tilt_source="
+                f"{self.tilt_source!r} needs an attitude"
+            )
+        self.calib = calib
+        self.camera = camera if camera is not None else calib.camera
+        self.uses_attitude = bool(uses_attitude)
+        self.name = name
+        self.keep_history = bool(keep_history)
+        body_T_cam = np.asarray(calib.body_T_cam, float)
+        self.body_R_cam, self.body_t_cam = body_T_cam[:3, :3], body_T_cam[:3, 3]
+        self._initial_world_T_body = initial_world_T_body
+        self._undistort = None if self.camera is None else _undistorter(self.camera)
+        # Odometry state.
+        self._ref: _RefFrame | None = None
+        self._failures = 0
+        self._height_ref: float | None = None
+        self._world_R_cam: np.ndarray | None = None
+        self._world_t_cam: np.ndarray | None = None
+        self._world_R_body: np.ndarray | None = None
+        self._psi = 0.0
+        # Outputs.
+        self.counts: Counter[str] = Counter()
+        self.measurements: list[HomographyMeasurement] = []
+        self._posed: list[tuple[float, np.ndarray, np.ndarray, float]] = []
+        self.latest_measurement: HomographyMeasurement | None = None
+        self.busy_s = 0.0
+        # Event mode (feed): short input buffers and frames waiting for their inputs.
+        self._att_t: deque[float] = deque()
+        self._att_R: deque[np.ndarray] = deque()
+        self._h_t: deque[float] = deque()
+        self._h_v: deque[float] = deque()
+        self._raw_h: deque[float] = deque(maxlen=max(1, o.range_median_window))
+        self._pending: list[ImageFrame] = []
+        self._clock = -np.inf
+        self._last_t = -np.inf
+
+    # -- one frame -------------------------------------------------------------------------------
+
+    def process(
+        self,
+        frame: ImageFrame,
+        world_R_body: np.ndarray | None,
+        body_height: float | None,
+    ) -> HomographyMeasurement | None:
+        """One frame with the attitude ``world_R_body`` (3, 3) and body height above the ground
+        ``body_height`` [m] at its time (None: unavailable).
+
+        Returns:
+            the measurement of the pair (reference -> this frame), valid or flagged with a
+            reason; None when the frame starts the odometry (first usable frame) or is rejected
+            before any reference exists.
+        """
+        t0 = time.perf_counter()
+        try:
+            return self._process(frame, world_R_body, body_height)
+        finally:
+            self.busy_s += time.perf_counter() - t0
+
+    def _process(self, frame, world_R_body, body_height):
+        o = self.options
+        k, t = int(frame.index), float(frame.t)
+        self.counts["frames"] += 1
+        self._last_t = max(self._last_t, t)
+        if self.camera is None:
+            if frame.camera is None:
+                raise FlightDataError(f"{self.name}: image {k}: camera intrinsics missing")
+            self.camera = frame.camera
+            self._undistort = _undistorter(self.camera)
+        R = None
+        if self.uses_attitude:
+            R = None if world_R_body is None else np.asarray(world_R_body, float)
+        reason = ""
+        if self.uses_attitude and R is None:
+            reason = "no_attitude"
+        elif body_height is None or not np.isfinite(body_height):
+            reason = "no_height"
+        else:
+            lever_z = (R @ self.body_t_cam)[2] if R is not None else self.body_t_cam[2]
+            cam_h = float(body_height) + float(lever_z)
+            if not cam_h > 0:
+                reason = "no_height"
+        if not reason:
             try:
-                image = images.load(k)
+                image = frame.load()
             except FlightDataError as e:
                 # An unreadable file (corrupt, truncated, missing): the frame is skipped and
                 # counted; the reference stays, so the next readable frame pairs with it.
-                if counts["unreadable_image"] == 0:
-                    logger.warning("%s: %s; skipped, counted as unreadable_image", flight.name, e)
-                counts["unreadable_image"] += 1
-                if ref is not None:
-                    measurements.append(
-                        HomographyMeasurement(
-                            index_i=ref,
-                            index_j=k,
-                            t_i=float(images.t[ref]),
-                            t_j=float(images.t[k]),
-                            valid=False,
-                            reason="unreadable_image",
-                        )
-                    )
-                    counts["pairs"] += 1
-                continue
-            if height_ref is None:
-                height_ref = float(cam_h[k])
-            scale = cam_h[k] / height_ref if o.normalize_scale else 1.0
-            prep = self._prepare(undistort(image), K, att(k), body_R_cam, scale)
-            if ref is None:
-                # First usable frame: the initial pose.
-                ref, ref_prep = k, prep
-                world_T_body0 = _initial_pose(initial_world_T_body, att(k), body_h[k])
-                world_R_body = world_T_body0[:3, :3]
-                world_R_cam = world_R_body @ body_R_cam
-                world_t_cam = world_T_body0[:3, 3] + world_R_body @ body_t_cam
-                psi = float(yaw_of(world_R_body))
-                self._append_pose(
-                    posed_idx,
-                    world_R_body_list,
-                    world_t_body_list,
-                    yaw_list,
+                if self.counts["unreadable_image"] == 0:
+                    logger.warning("%s: %s; skipped, counted as unreadable_image", self.name, e)
+                self.counts["unreadable_image"] += 1
+                return self._reject_frame(k, t, "unreadable_image", count=False)
+        else:
+            return self._reject_frame(k, t, reason)
+        if self._height_ref is None:
+            self._height_ref = cam_h
+        scale = cam_h / self._height_ref if o.normalize_scale else 1.0
+        K = self.camera.K
+        prep = self._vo._prepare(self._undistort(image), K, R, self.body_R_cam, scale)
+        cur = _RefFrame(k, t, prep, R, cam_h)
+        if self._ref is None:
+            # First usable frame: the initial pose.
+            self._ref = cur
+            world_T_body0 = _initial_pose(self._initial_world_T_body, R, float(body_height))
+            self._world_R_body = world_T_body0[:3, :3]
+            self._world_R_cam = self._world_R_body @ self.body_R_cam
+            self._world_t_cam = world_T_body0[:3, 3] + self._world_R_body @ self.body_t_cam
+            self._psi = float(yaw_of(self._world_R_body))
+            self._append_pose(t)
+            return None
+        ref = self._ref
+        base = dict(index_i=ref.index, index_j=k, t_i=ref.t, t_j=t)
+        m = self._vo._measure_prepared(
+            ref.prep, prep, K, self.body_R_cam, ref.world_R_body, ref.cam_h, base
+        )
+        self._emit(m)
+        if not m.valid:
+            self.counts[m.reason] += 1
+            self._failures += 1
+            # A reference without corners can never match: move on at once.
+            if self._failures >= o.max_reference_failures or m.reason == "few_corners":
+                self.counts["gaps"] += 1
+                logger.warning(
+                    "%s: VO lost track from frame %d to %d (%s); reference moves to %d, "
+                    "position held across the gap",
+                    self.name,
+                    ref.index,
                     k,
-                    world_R_body,
-                    world_t_cam - world_R_body @ body_t_cam,
-                    psi,
+                    m.reason,
+                    k,
                 )
-                continue
-            base = dict(index_i=ref, index_j=k, t_i=float(images.t[ref]), t_j=float(images.t[k]))
-            m = self._measure_prepared(ref_prep, prep, K, body_R_cam, att(ref), cam_h[ref], base)
-            measurements.append(m)
-            counts["pairs"] += 1
-            if not m.valid:
-                counts[m.reason] += 1
-                failures += 1
-                # A reference without corners can never match: move on at once.
-                if failures >= o.max_reference_failures or m.reason == "few_corners":
-                    counts["gaps"] += 1
-                    logger.warning(
-                        "%s: VO lost track from frame %d to %d (%s); reference moves to %d, "
-                        "position held across the gap",
-                        flight.name,
-                        ref,
-                        k,
-                        m.reason,
-                        k,
-                    )
-                    ref, ref_prep, failures = k, prep, 0
-                    if tilt_source == "attitude":
-                        world_R_body = rot_z(psi) @ remove_yaw(att(k))
-                        world_R_cam = world_R_body @ body_R_cam
-                continue
-            counts["valid_pairs"] += 1
-            failures = 0
-            # Dead reckoning (seed 002 Alg. 1, eqs. 9-10).
-            psi = psi + m.yaw_increment
-            if tilt_source == "attitude":
-                world_R_body = rot_z(psi) @ remove_yaw(att(k))
-                world_R_cam = world_R_body @ body_R_cam
-            else:
-                world_R_cam = world_R_cam @ m.cam_j_R_cam_i.T
-                world_R_body = world_R_cam @ body_R_cam.T
-                psi = float(yaw_of(world_R_body))
-            world_t_cam = world_t_cam - world_R_cam @ m.cam_j_t_cam_i
-            self._append_pose(
-                posed_idx,
-                world_R_body_list,
-                world_t_body_list,
-                yaw_list,
-                k,
-                world_R_body,
-                world_t_cam - world_R_body @ body_t_cam,
-                psi,
-            )
-            ref, ref_prep = k, prep
+                self._ref, self._failures = cur, 0
+                if self.tilt_source == "attitude":
+                    self._world_R_body = rot_z(self._psi) @ remove_yaw(R)
+                    self._world_R_cam = self._world_R_body @ self.body_R_cam
+            return m
+        self.counts["valid_pairs"] += 1
+        self._failures = 0
+        # Dead reckoning (seed 002 Alg. 1, eqs. 9-10).
+        self._psi = self._psi + m.yaw_increment
+        if self.tilt_source == "attitude":
+            self._world_R_body = rot_z(self._psi) @ remove_yaw(R)
+            self._world_R_cam = self._world_R_body @ self.body_R_cam
+        else:
+            self._world_R_cam = self._world_R_cam @ m.cam_j_R_cam_i.T
+            self._world_R_body = self._world_R_cam @ self.body_R_cam.T
+            self._psi = float(yaw_of(self._world_R_body))
+        self._world_t_cam = self._world_t_cam - self._world_R_cam @ m.cam_j_t_cam_i
+        self._append_pose(t)
+        self._ref = cur
+        return m
 
-        if not posed_idx:
-            raise FlightDataError(
-                f"{flight.name}: homography VO posed no frame of {n} (no attitude/height at any "
-                f"image time: {dict(counts)})"
+    def _reject_frame(self, k: int, t: float, reason: str, count: bool = True):
+        if count:
+            self.counts[reason] += 1
+        if self._ref is None:
+            return None
+        m = HomographyMeasurement(
+            index_i=self._ref.index, index_j=k, t_i=self._ref.t, t_j=t, valid=False, reason=reason
+        )
+        self._emit(m)
+        return m
+
+    def _emit(self, m: HomographyMeasurement) -> None:
+        self.counts["pairs"] += 1
+        self.latest_measurement = m
+        if self.keep_history:
+            self.measurements.append(m)
+
+    def _append_pose(self, t: float) -> None:
+        world_t_body = self._world_t_cam - self._world_R_body @ self.body_t_cam
+        pose = (t, self._world_R_body.copy(), world_t_body, self._psi)
+        if self.keep_history or not self._posed:
+            self._posed.append(pose)
+        else:
+            self._posed[-1] = pose
+
+    def latest_pose(self) -> tuple[float, np.ndarray, float] | None:
+        """``(t, world_T_body (4, 4), yaw)`` of the newest posed frame, or None."""
+        if not self._posed:
+            return None
+        t, R, p, psi = self._posed[-1]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p
+        return t, T, psi
+
+    # -- events ----------------------------------------------------------------------------------
+
+    def feed(self, event: Event) -> list[HomographyMeasurement]:
+        """One event in arrival order (attitude sample, range reading or image frame; others are
+        ignored). Returns the pair measurements of the frames processed because of it."""
+        if isinstance(event, AttitudeSample):
+            t = float(event.t)
+            if not self._att_t or t > self._att_t[-1]:
+                self._att_t.append(t)
+                self._att_R.append(quat_wxyz_to_matrix(np.asarray(event.world_q_body_wxyz)))
+            else:
+                self.counts["attitude_out_of_order"] += 1
+        elif isinstance(event, RangeReading):
+            self._add_range(event)
+        elif isinstance(event, ImageFrame):
+            if event.t <= self._last_t:
+                self.counts["image_out_of_order"] += 1
+            else:
+                bisect.insort(self._pending, event, key=attrgetter("t"))
+        else:
+            return []
+        self._clock = max(self._clock, float(event.arrival))
+        out = self._drain(final=False)
+        self._trim()
+        return out
+
+    def flush(self) -> list[HomographyMeasurement]:
+        """Process every waiting frame with what has arrived (end of the stream)."""
+        return self._drain(final=True)
+
+    def _add_range(self, ev: RangeReading) -> None:
+        c = self.calib
+        R = _value_at(self._att_t, self._att_R, ev.t, self.options.max_interp_gap_s, _slerp2)
+        if R is None or not (c.range_min <= ev.range <= c.range_max):
+            self.counts["range_unusable"] += 1
+            return
+        body_T_range = np.asarray(c.body_T_range, float)
+        cos_tilt = -(R @ body_T_range[:3, 2])[2]
+        if not cos_tilt > 0 or (self._h_t and ev.t <= self._h_t[-1]):
+            self.counts["range_unusable"] += 1
+            return
+        self._raw_h.append(ev.range * cos_tilt - (R @ body_T_range[:3, 3])[2])
+        self._h_t.append(float(ev.t))
+        self._h_v.append(float(np.median(self._raw_h)))
+
+    def _drain(self, final: bool) -> list[HomographyMeasurement]:
+        out = []
+        gap = self.options.max_interp_gap_s
+        while self._pending:
+            f = self._pending[0]
+            att_ready = not self.uses_attitude or (self._att_t and self._att_t[-1] >= f.t)
+            h_ready = bool(self._h_t) and self._h_t[-1] >= f.t
+            if not (att_ready and h_ready) and not final and self._clock <= f.t + gap:
+                break
+            self._pending.pop(0)
+            R = (
+                _value_at(self._att_t, self._att_R, f.t, gap, _slerp2)
+                if self.uses_attitude
+                else None
             )
-        counts["frames"] = n
-        counts["posed_frames"] = len(posed_idx)
-        for key in ("pairs", "valid_pairs", "gaps", *REJECT_REASONS):
+            h = _value_at(self._h_t, self._h_v, f.t, gap, _lerp2)
+            m = self.process(f, R, h)
+            if m is not None:
+                out.append(m)
+        return out
+
+    def _trim(self) -> None:
+        """Drop inputs older than ``BUFFER_S`` before the event clock or the oldest waiting frame
+        (a frame arriving later than that finds no attitude or height)."""
+        keep_from = min([self._clock, *(f.t for f in self._pending[:1])]) - BUFFER_S
+        for ts, vs in ((self._att_t, self._att_R), (self._h_t, self._h_v)):
+            while len(ts) > 2 and ts[1] < keep_from:
+                ts.popleft()
+                vs.popleft()
+
+    # -- result ----------------------------------------------------------------------------------
+
+    def result(self, runtime_s: float | None = None) -> VOResult:
+        """Everything measured so far as a :class:`VOResult` (needs ``keep_history``).
+
+        Raises:
+            FlightDataError: no frame was posed.
+        """
+        counts = self.counts
+        if not self._posed:
+            raise FlightDataError(
+                f"{self.name}: homography VO posed no frame of {counts['frames']} (no "
+                f"attitude/height at any image time: {dict(counts)})"
+            )
+        counts["posed_frames"] = len(self._posed)
+        for key in ("frames", "pairs", "valid_pairs", "gaps", *REJECT_REASONS):
             counts.setdefault(key, 0)
         rejected = {r: counts[r] for r in REJECT_REASONS if counts[r]}
         if rejected:
             logger.warning(
                 "%s: homography VO rejected %d of %d pairs (%s); %d of %d frames posed",
-                flight.name,
+                self.name,
                 counts["pairs"] - counts["valid_pairs"],
                 counts["pairs"],
                 rejected,
                 counts["posed_frames"],
-                n,
+                counts["frames"],
             )
-        t = images.t[posed_idx]
+        t = np.array([p[0] for p in self._posed])
         traj = Trajectory(
             t=t,
-            world_t_body=np.array(world_t_body_list),
-            world_q_body_wxyz=matrix_to_quat_wxyz(np.array(world_R_body_list)),
+            world_t_body=np.array([p[2] for p in self._posed]),
+            world_q_body_wxyz=matrix_to_quat_wxyz(np.array([p[1] for p in self._posed])),
         )
-        yaw = YawSeries(t=t, yaw=wrap_angle(np.array(yaw_list)))
-        valid = [m for m in measurements if m.valid]
+        yaw = YawSeries(t=t, yaw=wrap_angle(np.array([p[3] for p in self._posed])))
+        valid = [m for m in self.measurements if m.valid]
         series = {
             "vo_yaw": TimeSeries(t=t, value=yaw.yaw),
             "vo_inliers": TimeSeries(
@@ -1054,18 +1260,56 @@ class HomographyVO:
             method="homography-vo",
             trajectory=traj,
             series=series,
-            runtime_s=time.perf_counter() - t_start,
+            runtime_s=self.busy_s if runtime_s is None else runtime_s,
             causal=True,
-            info={"counts": dict(counts), "options": asdict(o), "tilt_source": tilt_source},
+            info={
+                "counts": dict(counts),
+                "options": asdict(self.options),
+                "tilt_source": self.tilt_source,
+            },
         )
-        return VOResult(measurements=measurements, estimate=estimate, yaw=yaw, counts=dict(counts))
+        return VOResult(
+            measurements=list(self.measurements), estimate=estimate, yaw=yaw, counts=dict(counts)
+        )
 
-    @staticmethod
-    def _append_pose(idx, Rs, ts, yaws, k, world_R_body, world_t_body, psi):
-        idx.append(k)
-        Rs.append(world_R_body)
-        ts.append(world_t_body)
-        yaws.append(psi)
+
+@dataclass(frozen=True)
+class _RefFrame:
+    """A prepared frame kept as the reference of the next pair."""
+
+    index: int
+    t: float
+    prep: tuple
+    world_R_body: np.ndarray | None
+    cam_h: float
+
+
+def _tilt_source(o: HomographyVOOptions) -> str:
+    return o.tilt_source if o.tilt_source != "auto" else ("attitude" if o.rectify else "vo")
+
+
+def _slerp2(R0: np.ndarray, R1: np.ndarray, a: float) -> np.ndarray:
+    return R0 @ so3_exp(a * so3_log(R0.T @ R1))
+
+
+def _lerp2(v0: float, v1: float, a: float) -> float:
+    return v0 + a * (v1 - v0)
+
+
+def _value_at(ts: deque, vs: deque, t: float, max_gap: float, interp):
+    """A buffered series at ``t``: interpolated between the samples around it when they are at
+    most ``max_gap`` apart, else the nearest end sample within ``max_gap`` (held); else None."""
+    if not ts:
+        return None
+    if t >= ts[-1]:
+        return vs[-1] if t - ts[-1] <= max_gap else None
+    if t <= ts[0]:
+        return vs[0] if ts[0] - t <= max_gap else None
+    n = bisect.bisect_right(ts, t)
+    t0, t1 = ts[n - 1], ts[n]
+    if t1 - t0 > max_gap:
+        return None
+    return interp(vs[n - 1], vs[n], (t - t0) / (t1 - t0))
 
 
 def run(

@@ -15,11 +15,13 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.simulate import SimOptions, simulate
 
 from fgnav.eval.metrics import evaluate
+from fgnav.frontends.homography_vo import HomographyMeasurement
 from fgnav.solvers.batch import BatchOptions, solve_batch
 from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 from fgnav.solvers.graph import GraphBuilder, GraphOptions, ObservabilityError
 from fgnav.solvers.vision import (
     HomographyFactorOptions,
+    gate_measurement,
     gate_pair,
     homography_options,
     run_homography_frontend,
@@ -212,6 +214,10 @@ def test_gate_pair_reasons():
     behind[2, 0] = -0.01  # w < 0 at the right-hand corners
     assert gate_pair(behind, 100, 0.1, size, o) == "corner-at-infinity"
     assert gate_pair(np.full((3, 3), np.nan), 100, 0.1, size, o) == "non-finite"
+    rejected = HomographyMeasurement(0, 1, 0.0, 0.1, valid=False, reason="few_tracked")
+    assert gate_measurement(rejected, size, o) == "vo-few-tracked"
+    ok = HomographyMeasurement(0, 1, 0.0, 0.1, valid=True, H=shift, num_inliers=100)
+    assert gate_measurement(dataclasses.replace(ok, inlier_rms_px=0.1), size, o) == ""
 
 
 def test_homography_options_from_a_table():
