@@ -53,6 +53,7 @@ Reference: Paz & Nesmachnow, "Doble acoplamiento entre sensores inerciales y odo
 from __future__ import annotations
 
 import bisect
+import functools
 import logging
 import time
 from collections import Counter, deque
@@ -138,9 +139,14 @@ class HomographyVOOptions:
         min_corners: fewer Shi-Tomasi corners than this rejects the pair (``few_corners``).
         min_tracked: fewer forward-backward-consistent tracks rejects it (``few_tracked``).
         min_inliers: fewer RANSAC inliers rejects it (``few_inliers``).
-        mask_margin_px: corners closer than this to the border of the valid (non-black) area of a
-            rectified image are not used [px]; keep it above half the LK window so no tracking
-            window sees the black fill.
+        mask_margin_px: corners and tracks closer than this to the image edge or to the border
+            of the valid (non-black) area of a rectified image are not used [px] (None: half the
+            LK window plus 4 px, 14 px for the default window). No LK window of a kept track then
+            reaches the mirrored image border or the black fill: such tracks are biased towards
+            zero motion, and since those moving out of the image are lost and those moving in are
+            kept, they expanded the homography at the image corners (measured on two-turns against
+            the true homographies: a mean radial corner error of +0.0066 px per pair without
+            rectification, +0.0052 px with it, -0.0005 and -0.0001 px with the margin).
         rectify_interpolation: OpenCV interpolation flag of the rectifying warp.
         max_reference_failures: after this many consecutive rejected pairs against the same
             reference frame (at once when the reference itself has too few corners), the
@@ -174,12 +180,19 @@ class HomographyVOOptions:
     min_corners: int = 20
     min_tracked: int = 15
     min_inliers: int = 12
-    mask_margin_px: int = 14
+    mask_margin_px: int | None = None
     rectify_interpolation: int = cv2.INTER_LINEAR
     max_reference_failures: int = 3
     tilt_source: Literal["auto", "attitude", "vo"] = "auto"
     range_median_window: int = 5
     max_interp_gap_s: float = 0.25
+
+    @property
+    def margin_px(self) -> int:
+        """The effective ``mask_margin_px`` [px]."""
+        if self.mask_margin_px is not None:
+            return int(self.mask_margin_px)
+        return self.lk_window_px // 2 + 4
 
     def check(self) -> HomographyVOOptions:
         """Raise ``ValueError`` on an inconsistent option."""
@@ -359,6 +372,30 @@ def transfer_error_px(H_a: np.ndarray, H_b: np.ndarray, width: int, height: int)
     return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
 
 
+def corner_transfer_components(
+    H_meas: np.ndarray, H_true: np.ndarray, width: int, height: int, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Radial and tangential parts [px] of the corner transfer error ``H_meas c - H_true c`` at
+    the four image corners ``c`` (pixel centres), along and across the direction from ``centre``
+    (the principal point, (2,)) to ``H_true c``. A positive mean radial part is an expansion of the
+    measured homography (a spurious approach to the ground), a non-zero mean tangential part a
+    spurious rotation.
+
+    Returns:
+        ``(radial, tangential)``, each (4,).
+    """
+    corners = np.array(
+        [[0, 0, 1], [width - 1, 0, 1], [width - 1, height - 1, 1], [0, height - 1, 1]], dtype=float
+    ).T
+    a = H_meas @ corners
+    b = H_true @ corners
+    a, b = a[:2] / a[2], b[:2] / b[2]
+    e = a - b
+    r = b - np.asarray(centre, float).reshape(2, 1)
+    r /= np.linalg.norm(r, axis=0)
+    return np.sum(e * r, axis=0), r[0] * e[1] - r[1] * e[0]
+
+
 def yaw_increment(
     world_R_body_i: np.ndarray, body_R_cam: np.ndarray, cam_j_R_cam_i: np.ndarray
 ) -> float:
@@ -399,12 +436,13 @@ def track_features(
         ``(pts_i, pts_j, num_corners)``: (M, 2) float32 pixel positions of the kept tracks and the
         number of corners found in ``img_i``.
     """
+    margin = options.margin_px
     corners = cv2.goodFeaturesToTrack(
         img_i,
         maxCorners=options.max_corners,
         qualityLevel=options.corner_quality,
         minDistance=options.min_corner_distance_px,
-        mask=mask_i,
+        mask=mask_i if mask_i is not None else border_mask(img_i.shape[:2], margin),
         blockSize=options.corner_block_size_px,
     )
     if corners is None:
@@ -426,7 +464,15 @@ def track_features(
     keep = (st_f.ravel() == 1) & (st_b.ravel() == 1) & (fb < options.fb_max_error_px)
     pj = p_j.reshape(-1, 2)
     h, w = img_j.shape[:2]
-    inside = (pj[:, 0] >= 0) & (pj[:, 0] <= w - 1) & (pj[:, 1] >= 0) & (pj[:, 1] <= h - 1)
+    # The LK window of a point near the image edge reaches the mirrored border: such tracks are
+    # biased towards zero motion, and the ones kept are mostly those moving inwards (those moving
+    # out leave the image), which expands the homography at the image corners.
+    inside = (
+        (pj[:, 0] >= margin)
+        & (pj[:, 0] <= w - 1 - margin)
+        & (pj[:, 1] >= margin)
+        & (pj[:, 1] <= h - 1 - margin)
+    )
     keep &= inside
     if mask_j is not None:
         ij = np.round(pj[keep]).astype(int)
@@ -434,6 +480,16 @@ def track_features(
         idx = np.flatnonzero(keep)
         keep[idx[~ok]] = False
     return p_i.reshape(-1, 2)[keep], pj[keep], int(p_i.shape[0])
+
+
+@functools.lru_cache(maxsize=8)
+def border_mask(shape: tuple[int, int], margin: int) -> np.ndarray:
+    """uint8 mask (255 inside) of an image of ``shape`` without a ``margin``-pixel border."""
+    mask = np.zeros(shape, np.uint8)
+    if 2 * margin < min(shape):
+        mask[margin : shape[0] - margin, margin : shape[1] - margin] = 255
+    mask.setflags(write=False)
+    return mask
 
 
 def estimate_homography(
@@ -697,9 +753,15 @@ class HomographyVO:
         mask = cv2.warpPerspective(
             np.full((h, w), 255, np.uint8), W, (w, h), flags=cv2.INTER_NEAREST
         )
-        m = self.options.mask_margin_px
+        m = self.options.margin_px
         if m > 0:
-            mask = cv2.erode(mask, np.ones((2 * m + 1, 2 * m + 1), np.uint8))
+            # Eroded from the image edges too (a constant 0 border), not only from the black fill.
+            mask = cv2.erode(
+                mask,
+                np.ones((2 * m + 1, 2 * m + 1), np.uint8),
+                borderType=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
         return warped, mask, W, virt_R_cam, Kv, level_R_cam
 
     def measure_pair(
