@@ -226,8 +226,12 @@ def test_pure_rotation_gives_zero_translation(texture, decomposition):
         d,
     )
     assert m.valid, m.reason
-    # The lever arm makes the camera move 2.5 mm; allow 1 mm of error on top.
-    assert np.linalg.norm(m.cam_j_t_cam_i - cam_j_T_cam_i[:3, 3]) < 1e-3
+    # The lever arm makes the camera move 2.5 mm. Measured error: free (OpenCV) decomposition
+    # 1.09 mm with the default tracking (0.86 mm with window 21, 3 levels and the
+    # forward-backward check; the free decomposition trades tilt for translation near a pure
+    # rotation), attitude decomposition 0.10 mm.
+    bound = 1.5e-3 if decomposition == "opencv" else 0.5e-3
+    assert np.linalg.norm(m.cam_j_t_cam_i - cam_j_T_cam_i[:3, 3]) < bound
     assert abs(np.degrees(m.yaw_increment - 0.05)) < 0.1
 
 
@@ -378,7 +382,10 @@ def test_vo_on_simulated_two_turns_start():
     assert np.abs(h.value - h_true).max() < 0.03  # measured 1.5 cm (1 cm range noise)
 
 
-def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
+@pytest.mark.parametrize(
+    ("forward_backward", "reason"), [(True, "few_tracked"), (False, "few_inliers")]
+)
+def test_lost_track_moves_the_reference_and_counts_a_gap(texture, forward_backward, reason):
     flight, height = rendered_flight(texture, n=14, blank=(5, 6, 7))
     truth = flight.ground_truth
     T0 = make_pose(truth.world_R_body()[0], truth.world_t_body[0])
@@ -386,15 +393,17 @@ def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
         flight,
         height=height,
         initial_world_T_body=T0,
-        options=HomographyVOOptions(max_reference_failures=3),
+        options=HomographyVOOptions(max_reference_failures=3, forward_backward=forward_backward),
     )
     pairs = [(m.index_i, m.index_j, m.valid, m.reason) for m in res.measurements]
     # 4->5, 4->6, 4->7 fail on tracking (blank j): gap, the reference moves to 7; blank 7 has no
-    # corners: gap at once, the reference moves to 8; 8->9 onwards are valid.
+    # corners: gap at once, the reference moves to 8; 8->9 onwards are valid. The round-trip
+    # check drops the tracks into a blank frame; without it LK "converges" there and RANSAC
+    # finds no consistent model.
     assert pairs[4:9] == [
-        (4, 5, False, "few_tracked"),
-        (4, 6, False, "few_tracked"),
-        (4, 7, False, "few_tracked"),
+        (4, 5, False, reason),
+        (4, 6, False, reason),
+        (4, 7, False, reason),
         (7, 8, False, "few_corners"),
         (8, 9, True, ""),
     ]
@@ -548,9 +557,9 @@ def sim_moving():
 
 # Measured mean radial / tangential corner error [px] over the 133 moving pairs (corner
 # displacement > 2 px), standard error of the radial mean 0.0007-0.0013 px: before the border
-# margin +0.0100 / -0.0109 without rectification and +0.0078 / -0.0074 rectified (median of the
-# largest corner error 0.044 and 0.041 px); with it +0.0001 / -0.0011 and +0.0006 / -0.0012
-# (median 0.022 and 0.023 px).
+# margin (window 21) +0.0100 / -0.0109 without rectification and +0.0078 / -0.0074 rectified
+# (median of the largest corner error 0.044 and 0.041 px); with it and the default tracking
+# +0.0008 / -0.0020 and +0.0004 / -0.0020 (median 0.021 and 0.023 px).
 @pytest.mark.parametrize("rectify", [False, True])
 def test_corner_transfer_error_has_no_radial_bias(sim_moving, rectify):
     from fgnav.datasets.simulate.render import inter_frame_homography
