@@ -2,8 +2,10 @@
 graph; ../shared/DESIGN.md sec. 4.5 and 5).
 
 The homography visual odometry (:mod:`fgnav.frontends.homography_vo`, seed 002 Algorithms 1-2) is
-the front-end: it runs once per flight (cached per flight object and VO options, so the batch and
-the fixed-lag smoother of the same flight share it) and gives, per pair of consecutive usable
+the front-end, an incremental stage (``HomographyVoStage``) fed frame by frame. Here, on the batch
+path, it runs over a flight's frames once (cached per flight object and VO options, so the batch
+and the replayed fixed-lag smoother of the same flight share it; an online caller feeds the stage
+itself and gates each pair with :func:`gate_measurement`) and gives, per pair of consecutive usable
 frames ``(i, j)``, the homography ``H`` (original pixels, ``p_j ~ H p_i``), its inlier count and
 inlier RMS. This module turns those pairs into corner-transfer factors
 (:func:`fgnav.factors.homography_motion.make_homography_factor`) on ``X(k_i), X(k_j), G(g_i)``:
@@ -67,7 +69,7 @@ import numpy as np
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.types import Flight
 from fgnav.factors.homography_motion import image_corners, make_homography_factor
-from fgnav.frontends.homography_vo import HomographyVOOptions, VOResult
+from fgnav.frontends.homography_vo import HomographyMeasurement, HomographyVOOptions, VOResult
 from fgnav.keys import X
 
 log = logging.getLogger(__name__)
@@ -265,6 +267,16 @@ def gate_pair(
     return ""
 
 
+def gate_measurement(
+    m: HomographyMeasurement, image_size: tuple[int, int], options: HomographyFactorOptions
+) -> str:
+    """Reason one VO pair measurement (e.g. from :class:`HomographyVoStage`, frame by frame) is
+    not used: ``vo-<reason>`` when the VO rejected it, else :func:`gate_pair`'s; ``""``: use it."""
+    if not m.valid:
+        return "vo-" + m.reason.replace("_", "-")
+    return gate_pair(m.H, m.num_inliers, m.inlier_rms_px, image_size, options)
+
+
 @dataclass(frozen=True)
 class HomographyPair:
     """One homography factor's measurement: frames ``frame_i -> frame_j`` on keyframes
@@ -299,6 +311,8 @@ class HomographyFactors:
         options: factor options (None: defaults).
         skip: ``skip(reason, n)`` records unused measurements (the builder's ``_skip``); reasons
             are prefixed ``homography:``.
+        vo: the VO output to use (e.g. ``HomographyVoStage.result()`` of frames fed one at a
+            time); None: :func:`run_homography_frontend` over the flight.
     """
 
     def __init__(
@@ -306,10 +320,14 @@ class HomographyFactors:
         flight: Flight,
         options: HomographyFactorOptions | None = None,
         skip: Callable[[str, int], None] | None = None,
+        vo: VOResult | None = None,
     ) -> None:
         self.options = (options or HomographyFactorOptions()).check()
         self._skip = skip or (lambda reason, n=1: None)
-        self.vo, self.vo_time_s = run_homography_frontend(flight, self.options)
+        if vo is None:
+            self.vo, self.vo_time_s = run_homography_frontend(flight, self.options)
+        else:
+            self.vo, self.vo_time_s = vo, float(vo.estimate.runtime_s)
         images = flight.images
         cam = images.camera if images.camera is not None else flight.calib.camera
         self.K = np.asarray(cam.K, float)
@@ -320,12 +338,7 @@ class HomographyFactors:
         # 1. Gate every VO pair; keep (frame_i, frame_j, H, inliers, rms) of the good ones.
         self.links: list[tuple[int, int, np.ndarray, int, float]] = []
         for m in self.vo.measurements:
-            if not m.valid:
-                reason = "vo-" + m.reason.replace("_", "-")
-            else:
-                reason = gate_pair(
-                    m.H, m.num_inliers, m.inlier_rms_px, self.image_size, self.options
-                )
+            reason = gate_measurement(m, self.image_size, self.options)
             if reason:
                 self.counts[reason] += 1
                 self._skip(f"homography:{reason}", 1)

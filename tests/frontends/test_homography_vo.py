@@ -10,6 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from fgnav.datasets.events import ImageFrame, replay_flight
 from fgnav.datasets.geometry import make_pose, matrix_to_quat_wxyz, rpy_to_matrix, yaw_of
 from fgnav.datasets.types import (
     AttitudeSeries,
@@ -24,9 +25,12 @@ from fgnav.estimate import TimeSeries
 from fgnav.frontends.homography_vo import (
     HomographyVO,
     HomographyVOOptions,
+    HomographyVoStage,
+    corner_transfer_components,
     decompose_level_homography,
     estimate_homography,
     height_from_range,
+    interpolate_attitude,
     rectifying_homography,
     rot_z,
     run,
@@ -222,8 +226,12 @@ def test_pure_rotation_gives_zero_translation(texture, decomposition):
         d,
     )
     assert m.valid, m.reason
-    # The lever arm makes the camera move 2.5 mm; allow 1 mm of error on top.
-    assert np.linalg.norm(m.cam_j_t_cam_i - cam_j_T_cam_i[:3, 3]) < 1e-3
+    # The lever arm makes the camera move 2.5 mm. Measured error: free (OpenCV) decomposition
+    # 1.09 mm with the default tracking (0.86 mm with window 21, 3 levels and the
+    # forward-backward check; the free decomposition trades tilt for translation near a pure
+    # rotation), attitude decomposition 0.10 mm.
+    bound = 1.5e-3 if decomposition == "opencv" else 0.5e-3
+    assert np.linalg.norm(m.cam_j_t_cam_i - cam_j_T_cam_i[:3, 3]) < bound
     assert abs(np.degrees(m.yaw_increment - 0.05)) < 0.1
 
 
@@ -374,7 +382,10 @@ def test_vo_on_simulated_two_turns_start():
     assert np.abs(h.value - h_true).max() < 0.03  # measured 1.5 cm (1 cm range noise)
 
 
-def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
+@pytest.mark.parametrize(
+    ("forward_backward", "reason"), [(True, "few_tracked"), (False, "few_inliers")]
+)
+def test_lost_track_moves_the_reference_and_counts_a_gap(texture, forward_backward, reason):
     flight, height = rendered_flight(texture, n=14, blank=(5, 6, 7))
     truth = flight.ground_truth
     T0 = make_pose(truth.world_R_body()[0], truth.world_t_body[0])
@@ -382,15 +393,17 @@ def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
         flight,
         height=height,
         initial_world_T_body=T0,
-        options=HomographyVOOptions(max_reference_failures=3),
+        options=HomographyVOOptions(max_reference_failures=3, forward_backward=forward_backward),
     )
     pairs = [(m.index_i, m.index_j, m.valid, m.reason) for m in res.measurements]
     # 4->5, 4->6, 4->7 fail on tracking (blank j): gap, the reference moves to 7; blank 7 has no
-    # corners: gap at once, the reference moves to 8; 8->9 onwards are valid.
+    # corners: gap at once, the reference moves to 8; 8->9 onwards are valid. The round-trip
+    # check drops the tracks into a blank frame; without it LK "converges" there and RANSAC
+    # finds no consistent model.
     assert pairs[4:9] == [
-        (4, 5, False, "few_tracked"),
-        (4, 6, False, "few_tracked"),
-        (4, 7, False, "few_tracked"),
+        (4, 5, False, reason),
+        (4, 6, False, reason),
+        (4, 7, False, reason),
         (7, 8, False, "few_corners"),
         (8, 9, True, ""),
     ]
@@ -399,3 +412,178 @@ def test_lost_track_moves_the_reference_and_counts_a_gap(texture):
     assert res.counts["valid_pairs"] == 9
     posed = np.searchsorted(flight.images.t, res.estimate.trajectory.t)
     assert posed.tolist() == [0, 1, 2, 3, 4, 9, 10, 11, 12, 13]
+
+
+# ----------------------------------------------------------------------------------------------
+# The incremental stage (frame by frame, and fed events in arrival order)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_stage_frame_by_frame_equals_the_batch_path(texture):
+    """Frames pushed one at a time with their attitude and height give, at each frame, the pair
+    ending there, the same as the batch run over the whole sequence."""
+    flight, height = rendered_flight(texture, n=12, blank=(5,))
+    truth = flight.ground_truth
+    T0 = make_pose(truth.world_R_body()[0], truth.world_t_body[0])
+    batch = run(flight, height=height, initial_world_T_body=T0)
+    stage = HomographyVoStage(flight.calib, CAM, initial_world_T_body=T0)
+    # The batch path's inputs at the image times (its slerp of the attitude series).
+    world_R_body, _ = interpolate_attitude(flight.attitude, flight.images.t, 0.25)
+    emitted = []
+    for k in range(len(flight.images)):
+        frame = ImageFrame(
+            float(flight.images.t[k]),
+            float(flight.images.t[k]),
+            k,
+            CAM,
+            image=flight.images.frames[k],
+        )
+        m = stage.process(frame, world_R_body[k], float(height.value[k]))
+        assert (m is None) == (k == 0)
+        if m is not None:
+            assert m.index_j == k
+            emitted.append(m)
+    assert len(emitted) == len(batch.measurements) == 11
+    for a, b in zip(emitted, batch.measurements, strict=True):
+        assert (a.index_i, a.index_j, a.valid, a.reason) == (
+            b.index_i,
+            b.index_j,
+            b.valid,
+            b.reason,
+        )
+        np.testing.assert_array_equal(a.H, b.H)
+    res = stage.result()
+    np.testing.assert_array_equal(
+        res.estimate.trajectory.world_t_body, batch.estimate.trajectory.world_t_body
+    )
+    assert res.counts == batch.counts
+    t, T, _ = stage.latest_pose()
+    assert t == flight.images.t[-1]
+    np.testing.assert_array_equal(T[:3, 3], batch.estimate.trajectory.world_t_body[-1])
+
+
+@pytest.fixture(scope="module")
+def sim_start():
+    """The first 9 s of two-turns (hover, then 1.8 m of path) with 10 Hz images."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    return simulate(
+        "two-turns",
+        seed=2,
+        options=SimOptions(duration=9.0, slam_rate_hz=0.0, image_rate_hz=10.0),
+    )
+
+
+def _feed_all(stage, events):
+    out = []
+    for ev in events:
+        out += stage.feed(ev)
+    return out + stage.flush()
+
+
+def test_stage_fed_events_matches_the_batch_path_and_is_causal(sim_start):
+    """Attitude samples, range readings and images in arrival order: each frame is processed
+    once the attitude and height at its time have arrived (the attitude 50 ms late here), and
+    the pairs equal the batch path's (same interpolation; median window 1 because the event path's
+    median is trailing, the batch path's centred). A run cut at time T emits exactly the pairs
+    of the full run that ended before T."""
+    flight = sim_start
+    o = HomographyVOOptions(range_median_window=1)
+    batch = run(flight, options=o)
+    streams = ["attitude", "range", "images"]
+    full = _feed_all(
+        HomographyVoStage(flight.calib, options=o),
+        replay_flight(flight, streams, latency={"attitude": 0.05}),
+    )
+    assert len(full) == len(batch.measurements) == len(flight.images) - 1
+    for a, b in zip(full, batch.measurements, strict=True):
+        assert (a.index_i, a.index_j, a.valid) == (b.index_i, b.index_j, True)
+        np.testing.assert_allclose(a.H, b.H, rtol=0, atol=1e-9)
+    t_cut = 5.0
+    stage = HomographyVoStage(flight.calib, options=o)
+    cut = []
+    for ev in replay_flight(flight, streams, latency={"attitude": 0.05}):
+        if ev.arrival > t_cut:
+            break
+        cut += stage.feed(ev)
+    # Frames up to 4.9 s are out (the attitude of the 5.0 s frame arrives at 5.05 s).
+    assert [m.index_j for m in cut] == [m.index_j for m in full if m.t_j < t_cut - 1e-9]
+    for a, b in zip(cut, full, strict=False):
+        np.testing.assert_array_equal(a.H, b.H)
+
+
+def test_stage_without_attitude_at_an_image_counts_it(sim_start):
+    """Attitude stops after 3 s: later frames wait until the gap passes on the event clock,
+    then are rejected as no_attitude (counted); the attitude is held at most max_interp_gap_s."""
+    import dataclasses
+
+    flight = sim_start
+    att = flight.attitude
+    keep = att.t <= 3.0
+    cut = dataclasses.replace(
+        flight,
+        attitude=dataclasses.replace(
+            att, t=att.t[keep], world_q_body_wxyz=att.world_q_body_wxyz[keep]
+        ),
+    )
+    stage = HomographyVoStage(cut.calib)
+    out = _feed_all(stage, replay_flight(cut, ["attitude", "range", "images"]))
+    gap = stage.options.max_interp_gap_s
+    late = [m for m in out if m.t_j > 3.0 + gap]
+    assert late and all(m.reason == "no_attitude" for m in late)
+    assert all(m.valid for m in out if m.t_j <= 3.0)
+    assert stage.counts["no_attitude"] == len(late)
+
+
+# ----------------------------------------------------------------------------------------------
+# No systematic radial error at the image corners against the simulator's true homographies
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sim_moving():
+    """12 s of two-turns (3 s hover, then the first turn) with 20 Hz images, true inputs."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    flight = simulate(
+        "two-turns", seed=1, options=SimOptions(duration=12.0, slam_rate_hz=0.0, image_rate_hz=20.0)
+    )
+    gt = flight.ground_truth
+    attitude = AttitudeSeries(t=gt.t, world_q_body_wxyz=gt.world_q_body_wxyz)
+    ground = float(flight.meta["truth"]["ground_height"])
+    height = TimeSeries(t=gt.t, value=gt.world_t_body[:, 2] - ground)
+    return flight, attitude, height, ground
+
+
+# Measured mean radial / tangential corner error [px] over the 133 moving pairs (corner
+# displacement > 2 px), standard error of the radial mean 0.0007-0.0013 px: before the border
+# margin (window 21) +0.0100 / -0.0109 without rectification and +0.0078 / -0.0074 rectified
+# (median of the largest corner error 0.044 and 0.041 px); with it and the default tracking
+# +0.0008 / -0.0020 and +0.0004 / -0.0020 (median 0.021 and 0.023 px).
+@pytest.mark.parametrize("rectify", [False, True])
+def test_corner_transfer_error_has_no_radial_bias(sim_moving, rectify):
+    from fgnav.datasets.simulate.render import inter_frame_homography
+    from fgnav.datasets.simulate.simulator import world_T_cam_at
+
+    flight, attitude, height, ground = sim_moving
+    cam = flight.images.camera
+    res = run(
+        flight, attitude=attitude, height=height, options=HomographyVOOptions(rectify=rectify)
+    )
+    assert res.counts["valid_pairs"] == len(flight.images) - 1
+    radial, tangential, rms = [], [], []
+    for m in res.measurements:
+        T_i, T_j = world_T_cam_at(flight, [m.t_i, m.t_j])
+        H_true = inter_frame_homography(T_i, T_j, cam.K, ground)
+        if transfer_error_px(H_true, np.eye(3), cam.width, cam.height) < 2.0:
+            continue  # hover: nothing to bias
+        r, t = corner_transfer_components(m.H, H_true, cam.width, cam.height, cam.K[:2, 2])
+        radial.append(r)
+        tangential.append(t)
+        rms.append(transfer_error_px(m.H, H_true, cam.width, cam.height))
+    radial, tangential = np.array(radial), np.array(tangential)
+    assert len(radial) > 100
+    sem = radial.std() / np.sqrt(radial.size)
+    assert abs(radial.mean()) < 0.002 and abs(radial.mean()) < 4 * sem + 0.0005
+    assert abs(tangential.mean()) < 0.004
+    assert np.median(rms) < 0.035
