@@ -45,8 +45,17 @@ iSAM2 update adds it with every measurement that has arrived for a keyframe stil
   on a fresh QR smoother rebuilt from the last good newest state and slow variables with priors
   (``solver_failures``, ``reset_counter`` += 1): the smoother never crashes on a solver failure.
 
-Not handled yet on this path (counted as ``<stream>:not-used-online``): camera images (homography
-factors), optical flow, seed 000's per-axis SLAM model, front-end priors.
+- **Camera** (downward, with the rangefinder): every image anchors the keyframe at its time
+  (keyframes at least ``MIN_ANCHOR_GAP_PERIODS`` apart; a keyframe without an image waits half a
+  period plus ``image_latency_s`` for one) and goes through the homography VO stage
+  (:class:`fgnav.frontends.homography_vo.HomographyVoStage`, inside this loop: its time counts)
+  with the attitude and height known when it arrives; each gated pair becomes a homography factor
+  between the keyframes of its frames (pairs across frames without a keyframe composed).
+- **Optical flow**: the readings ending in each keyframe's window summed into one factor
+  (:func:`fgnav.solvers.flow.flow_keyframe_factor`) once the next keyframe has closed.
+
+Not handled on this path (the ``prepared`` engine of :mod:`fgnav.solvers.fixed_lag` runs them):
+seed 000's per-axis SLAM model, front-end priors.
 """
 
 from __future__ import annotations
@@ -384,6 +393,8 @@ class OnlineSmoother:
             "clock_epochs": [int((ep == x).sum()) for x in epochs],
             "drag": self._drag_decision,
             "slam_gyro_check": getattr(self, "slam_check", None),
+            "vo_time_s": getattr(self, "vo_busy_s", None),
+            "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "slam_rotation_convention": self._slam_conv,
             "updates": len(lat),
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -448,6 +459,10 @@ class OnlineSmoother:
         self._anchors_on = False
         self._slam_wait: list = []  # SLAM poses taken after the newest keyframe
         self._flow: deque = deque()  # arrived optical-flow readings (last 5 s)
+        self._vo = None  # the homography VO stage (made at the first image)
+        self._vo_off: str | None = None
+        self._vo_links: deque = deque()  # (t_i, t_j, H or None, inliers, rms) of the VO pairs
+        self._hchain: list | None = None  # [keyframe, t end, H, inliers, sum rms^2, links]
         self._flow_done_t = -math.inf  # end of the last flow window made into a factor
         self._pending: list[tuple[int, str, Any]] = []  # (keyframe, kind, payload)
         self.sessions: dict[int, _Session] = {}
@@ -1174,8 +1189,153 @@ class OnlineSmoother:
                 d.body_R_cam_error_deg,
             )
 
+    def _camera_ready(self, ev: ImageFrame) -> bool:
+        """Set up the homography VO stage at the first image (False: images not used, counted).
+        On when ``graph.use_homography`` is not False, the rangefinder is used (the metric
+        height), and intrinsics are known (calibration or the frame)."""
+        if self._vo is not None:
+            return True
+        if self._vo_off:
+            return False
+        go = self.go
+        cam = self.calib.camera if self.calib.camera is not None else ev.camera
+        why = None
+        if go.use_homography is False:
+            why = "images:off"
+        elif not go.use_range:
+            why = "images:no-range-for-height"
+        elif cam is None:
+            why = "images:no-intrinsics"
+        if why:
+            self._vo_off = why
+            return False
+        from fgnav.frontends.homography_vo import HomographyVoStage
+        from fgnav.solvers.vision import homography_options
+
+        self._hopts = homography_options(go.homography)
+        self._vo = HomographyVoStage(
+            self.calib, cam, self._hopts.vo, uses_attitude=True, name=self.name, keep_history=False
+        )
+        self._cam_K = np.asarray(cam.K, float)
+        self._image_size = (int(cam.width), int(cam.height))
+        self._anchors_on = True
+        return True
+
     def _on_image(self, ev: ImageFrame) -> None:
-        self._drop("images:not-used-online")
+        """A camera frame: an anchor for the keyframe at its time, and a frame for the
+        homography VO stage (run here, inside the online loop), whose gated pairs become
+        homography factors between the keyframes at their frames' times (chains across frames
+        without a keyframe composed)."""
+        if not self._camera_ready(ev):
+            self._drop(self._vo_off)
+            return
+        self._anchors.append(float(ev.t))
+        if self.t0 is None:
+            self._drop("images:before-start")
+            return
+        R, h = self._frame_inputs(float(ev.t))
+        m = self._vo.process(ev, R, h)
+        self.vo_busy_s = self._vo.busy_s
+        if m is None:
+            return
+        from fgnav.solvers.vision import gate_measurement
+
+        reason = gate_measurement(m, self._image_size, self._hopts)
+        if reason:
+            self._drop(f"homography:{reason}")
+            self._vo_links.append((m.t_i, m.t_j, None, 0, 0.0))
+            return
+        self._vo_links.append(
+            (m.t_i, m.t_j, np.asarray(m.H, float), int(m.num_inliers), float(m.inlier_rms_px))
+        )
+
+    def _frame_inputs(self, t: float) -> tuple[np.ndarray, float | None]:
+        """Attitude and body height above the ground at ``t`` for the VO's rectification and
+        metric scale, from what has arrived: the attitude stream, else the newest keyframe
+        estimate carried by the gyro; the newest range reading (tilted, with the lever arm),
+        else the newest estimate's height over the ground estimate."""
+        R = self._attitude_at(t)
+        if R is None:
+            pose = self.values[X(self.k)]
+            dt = t - self.t_kf[self.k]
+            i = self.imu.nearest(t)
+            w = self.values[B(self.k)].correctGyroscope(self.imu.w[i])
+            R = pose.rotation().matrix() @ gtsam.Rot3.Expmap(w * dt).matrix()
+        h = None
+        rng = self._scalar["range"]
+        if rng and abs(rng[-1][0] - t) <= 0.2:
+            Tr = self.body_T_range
+            cos_beam = -float((R @ Tr[:3, 2])[2])
+            h = float(rng[-1][1] * cos_beam - (R @ Tr[:3, 3])[2])
+        else:
+            gkeys = [k for k in self.values if _chr(k) == "g"]
+            if gkeys:
+                z = float(self.values[X(self.k)].translation()[2])
+                h = z - float(np.asarray(self.values[max(gkeys)])[0])
+        return R, h
+
+    def _kf_at(self, t: float) -> int | None:
+        """The kept keyframe at ``t`` (within the homography options' frame tolerance)."""
+        if not self._kf_index:
+            return None
+        k = self._kf_near(t)
+        return k if abs(self.t_kf[k] - t) <= self._hopts.frame_tolerance_s else None
+
+    def _homography_factors(self, g, stamps) -> None:
+        """Turn the VO links whose frames have keyframes into factors (see :meth:`_on_image`)."""
+        from fgnav.factors.homography_motion import make_homography_factor
+
+        t_new = self.t_kf[self.k]
+        tol = self._hopts.frame_tolerance_s
+        o = self._hopts
+        while self._vo_links and self._vo_links[0][1] <= t_new + tol:
+            t_i, t_j, H, n_in, rms = self._vo_links.popleft()
+            ch = self._hchain
+            if H is None:
+                self._hchain = None
+                continue
+            if ch is None or abs(ch[1] - t_i) > tol:
+                ki = self._kf_at(t_i)
+                if ki is None:
+                    self._drop("homography:no-keyframe")
+                    self._hchain = None
+                    continue
+                ch = [ki, t_i, np.eye(3), 10**9, 0.0, 0]
+            ch[1], ch[2] = t_j, H @ ch[2]
+            ch[3], ch[4], ch[5] = min(ch[3], n_in), ch[4] + rms**2, ch[5] + 1
+            self._hchain = ch
+            kj = self._kf_at(t_j)
+            if kj is None or kj == ch[0]:
+                continue
+            ki = ch[0]
+            self._hchain = [kj, t_j, np.eye(3), 10**9, 0.0, 0]
+            if not (self._kf_alive(ki) and self._kf_alive(kj)):
+                self._drop("homography:late")
+                continue
+            gk = self._slow_key_at("g", self.go.ground_segment_s, ki)
+            if gk not in self.values or not self._alive(gk):
+                self._drop("homography:late")
+                continue
+            sigma = (
+                float(o.corner_sigma_px)
+                if o.corner_sigma_px is not None
+                else max(o.corner_sigma_floor_px, o.corner_sigma_per_rms * math.sqrt(ch[4]))
+            )
+            Hc = ch[2] / ch[2][2, 2]
+            g.add(
+                make_homography_factor(
+                    X(ki),
+                    X(kj),
+                    gk,
+                    Hc,
+                    self._cam_K,
+                    self.body_T_cam,
+                    self._image_size,
+                    self._robust(gtsam.noiseModel.Isotropic.Sigma(8, sigma)),
+                )
+            )
+            stamps[gk] = t_new
+            self._use("homography")
 
     def _kf_near(self, t: float) -> int:
         """The kept keyframe nearest ``t``."""
@@ -1197,6 +1357,8 @@ class OnlineSmoother:
             else:
                 self._pending.append((self._kf_near(t), "slam", payload))
         self._slam_wait = still
+        if self._vo is not None:
+            self._homography_factors(g, stamps)
         keep = []
         for item in self._pending:
             k, kind, payload = item
@@ -1829,14 +1991,7 @@ def push_engine_gap(flight, options: FixedLagOptions, priors: Any = None) -> str
     """What of this flight and these options the push engine does not run yet (None: nothing):
     camera images with homography factors on, seed 000's per-axis SLAM model, front-end priors.
     Decided from the configuration and the streams present, never from their content."""
-    from fgnav.solvers.vision import resolve_use_homography
-
     go = options.graph
-    if go.use_homography is not False and flight.images is not None:
-        if resolve_use_homography(
-            flight, go.use_homography, go.use_range and flight.range is not None
-        ):
-            return "camera images (homography factors)"
     model = go.slam_model
     if model == "auto":
         truth = flight.meta.get("truth", {}) if isinstance(flight.meta, dict) else {}
