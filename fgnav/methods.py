@@ -127,7 +127,8 @@ class Method:
         if problem:
             raise MethodUnavailableError(f"{self.name}: {problem}")
         config = dict(config or {})
-        if "slam" in self.requires + self.optional:
+        if "slam" in self.requires + self.optional and self.name != "fixed-lag":
+            # (the fixed-lag smoother checks the SLAM file itself: causally on the push engine)
             flight = slam_checked(flight, config)
         est = self.entry(flight, config, progress)
         if est.method != self.name:

@@ -147,12 +147,14 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a (x) b`` of ``[w, x, y, z]`` quaternions."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def _quat_exp(v: np.ndarray) -> np.ndarray:
@@ -164,11 +166,13 @@ def _quat_exp(v: np.ndarray) -> np.ndarray:
 def _att_rotation(d: np.ndarray) -> np.ndarray:
     """Second-order ``exp(-[d]x)`` of the firmware for half-angles ``d`` (3x3)."""
     d0, d1, d2 = d
-    return np.array([
-        [1 - d1 * d1 / 2 - d2 * d2 / 2, d2 + d0 * d1 / 2, -d1 + d0 * d2 / 2],
-        [-d2 + d0 * d1 / 2, 1 - d0 * d0 / 2 - d2 * d2 / 2, d0 + d1 * d2 / 2],
-        [d1 + d0 * d2 / 2, -d0 + d1 * d2 / 2, 1 - d0 * d0 / 2 - d1 * d1 / 2],
-    ])
+    return np.array(
+        [
+            [1 - d1 * d1 / 2 - d2 * d2 / 2, d2 + d0 * d1 / 2, -d1 + d0 * d2 / 2],
+            [-d2 + d0 * d1 / 2, 1 - d0 * d0 / 2 - d2 * d2 / 2, d0 + d1 * d2 / 2],
+            [d1 + d0 * d2 / 2, -d0 + d1 * d2 / 2, 1 - d0 * d0 / 2 - d1 * d1 / 2],
+        ]
+    )
 
 
 def tof_sigma(distance_m: float) -> float:
@@ -202,7 +206,9 @@ class CfEkf:
         self.q = matrix_to_quat_wxyz(np.asarray(world_R_body, float)[None])[0]
         self.R = quat_wxyz_to_matrix(self.q)
         self.P = np.diag(
-            [o.init_pos_xy_sigma**2] * 2 + [o.init_pos_z_sigma**2] + [o.init_vel_sigma**2] * 3
+            [o.init_pos_xy_sigma**2] * 2
+            + [o.init_pos_z_sigma**2]
+            + [o.init_vel_sigma**2] * 3
             + [o.init_att_sigma**2] * 3
         )
 
@@ -213,18 +219,18 @@ class CfEkf:
             return
         o, S, R = self.opt, self.S, self.R
         g = GRAVITY
-        u = S[IU:IU + 3].copy()
+        u = S[IU : IU + 3].copy()
         w = np.asarray(omega, float)
         A = np.eye(N_STATE)
-        A[IP:IP + 3, IU:IU + 3] = R * dt
+        A[IP : IP + 3, IU : IU + 3] = R * dt
         # Position from attitude error: d(R (I + [d]x) u)/dd = -R [u]x.
         ux, uy, uz = u
-        A[IP:IP + 3, ID] = (uy * R[:, 2] - uz * R[:, 1]) * dt
-        A[IP:IP + 3, ID + 1] = (-ux * R[:, 2] + uz * R[:, 0]) * dt
-        A[IP:IP + 3, ID + 2] = (ux * R[:, 1] - uy * R[:, 0]) * dt
+        A[IP : IP + 3, ID] = (uy * R[:, 2] - uz * R[:, 1]) * dt
+        A[IP : IP + 3, ID + 1] = (-ux * R[:, 2] + uz * R[:, 0]) * dt
+        A[IP : IP + 3, ID + 2] = (ux * R[:, 1] - uy * R[:, 0]) * dt
         # Body velocity from body velocity (gyro cross terms) and attitude error (gravity).
         wx, wy, wz = w
-        A[IU:IU + 3, IU:IU + 3] = np.array(
+        A[IU : IU + 3, IU : IU + 3] = np.array(
             [[1.0, wz * dt, -wy * dt], [-wz * dt, 1.0, wx * dt], [wy * dt, -wx * dt, 1.0]]
         )
         A[IU, ID + 1] = g * R[2, 2] * dt
@@ -233,13 +239,13 @@ class CfEkf:
         A[IU + 1, ID + 2] = g * R[2, 0] * dt
         A[IU + 2, ID] = g * R[2, 1] * dt
         A[IU + 2, ID + 1] = -g * R[2, 0] * dt
-        A[ID:ID + 3, ID:ID + 3] = _att_rotation(w * dt / 2.0)
+        A[ID : ID + 3, ID : ID + 3] = _att_rotation(w * dt / 2.0)
         self.P = A @ self.P @ A.T
         # State.
         f = np.asarray(accel, float) if not o.flying else np.array([0.0, 0.0, accel[2]])
         dp_body = u * dt + f * dt * dt / 2.0
-        S[IP:IP + 3] += R @ dp_body - np.array([0.0, 0.0, g * dt * dt / 2.0])
-        S[IU:IU + 3] = u + dt * (f - np.cross(w, u) - g * R[2])
+        S[IP : IP + 3] += R @ dp_body - np.array([0.0, 0.0, g * dt * dt / 2.0])
+        S[IU : IU + 3] = u + dt * (f - np.cross(w, u) - g * R[2])
         q = _quat_mul(self.q, _quat_exp(w * dt))
         self.q = q / np.linalg.norm(q)
         self.R = quat_wxyz_to_matrix(self.q)
@@ -248,8 +254,11 @@ class CfEkf:
         for i, a in ((0, o.proc_noise_acc_xy), (1, o.proc_noise_acc_xy), (2, o.proc_noise_acc_z)):
             P[IP + i, IP + i] += (a * dt * dt) ** 2
             P[IU + i, IU + i] += (a * dt) ** 2
-        for i, s in ((0, o.proc_noise_gyro_rollpitch), (1, o.proc_noise_gyro_rollpitch),
-                     (2, o.proc_noise_gyro_yaw)):
+        for i, s in (
+            (0, o.proc_noise_gyro_rollpitch),
+            (1, o.proc_noise_gyro_rollpitch),
+            (2, o.proc_noise_gyro_yaw),
+        ):
             P[ID + i, ID + i] += (s * dt) ** 2
         self._bound()
         self.counts.predictions += 1
@@ -275,24 +284,25 @@ class CfEkf:
     def finalize(self) -> None:
         """Move the attitude error into the quaternion and rotate the covariance
         (``kalmanCoreFinalize``)."""
-        v = self.S[ID:ID + 3]
+        v = self.S[ID : ID + 3]
         if np.any(np.abs(v) > 0.1e-3) and np.all(np.abs(v) < 10):
             q = _quat_mul(self.q, _quat_exp(v))
             self.q = q / np.linalg.norm(q)
             A = np.eye(N_STATE)
-            A[ID:ID + 3, ID:ID + 3] = _att_rotation(v / 2.0)
+            A[ID : ID + 3, ID : ID + 3] = _att_rotation(v / 2.0)
             self.P = A @ self.P @ A.T
         self.R = quat_wxyz_to_matrix(self.q)
-        self.S[ID:ID + 3] = 0.0
+        self.S[ID : ID + 3] = 0.0
         self._bound()
 
-    def update_flow(self, flow: np.ndarray, dt: float, omega: np.ndarray, ppr: float,
-                    body_R_flow: np.ndarray) -> None:
+    def update_flow(
+        self, flow: np.ndarray, dt: float, omega: np.ndarray, ppr: float, body_R_flow: np.ndarray
+    ) -> None:
         """Two scalar flow updates (``mm_flow``), the rate ``omega`` [rad/s] in body."""
         o, S, R = self.opt, self.S, self.R
         z = max(float(S[IP + 2]), MIN_FLOW_HEIGHT)
         c = float(R[2, 2])
-        u = body_R_flow.T @ S[IU:IU + 3]  # sensor-frame velocity (firmware: body, rotated)
+        u = body_R_flow.T @ S[IU : IU + 3]  # sensor-frame velocity (firmware: body, rotated)
         w = body_R_flow.T @ np.asarray(omega, float)
         k = ppr * dt
         sigma = o.sigma_rad * ppr
@@ -300,7 +310,7 @@ class CfEkf:
         for axis, (sgn, w_term) in enumerate(((-1.0, -w[1]), (-1.0, w[0]))):
             pred = k * (sgn * u[axis] * c / z + w_term)
             H = np.zeros(N_STATE)
-            H[IU:IU + 3] = k * sgn * c / z * A[axis]
+            H[IU : IU + 3] = k * sgn * c / z * A[axis]
             H[IP + 2] = -k * sgn * u[axis] * c / (z * z)
             self._scalar_update(H, float(flow[axis]) - pred, sigma)
         self.counts.flow_updates += 1
@@ -311,8 +321,7 @@ class CfEkf:
         if not (abs(R22) > 0.1 and R22 > 0):
             self.counts.tof_tilted += 1
             return False
-        angle = max(abs(math.acos(min(R22, 1.0))) - math.radians(self.opt.tof_cone_deg / 2.0),
-                    0.0)
+        angle = max(abs(math.acos(min(R22, 1.0))) - math.radians(self.opt.tof_cone_deg / 2.0), 0.0)
         H = np.zeros(N_STATE)
         H[IP + 2] = 1.0 / math.cos(angle)
         pred = float(self.S[IP + 2]) / math.cos(angle)
@@ -354,7 +363,7 @@ class CfEkf:
         """``(world_t_body, world_q_body_wxyz, world_v_body)`` now (None before the start)."""
         if self.S is None:
             return None
-        return self.S[IP:IP + 3].copy(), self.q.copy(), self.R @ self.S[IU:IU + 3]
+        return self.S[IP : IP + 3].copy(), self.q.copy(), self.R @ self.S[IU : IU + 3]
 
     def _imu(self, ev: ImuSample) -> None:
         self._last_imu = ev
@@ -439,17 +448,21 @@ class CfEkf:
         S = np.array([s for s, _, _ in self._out])
         q = np.array([q for _, q, _ in self._out])
         Rs = quat_wxyz_to_matrix(q)
-        v = np.einsum("nij,nj->ni", Rs, S[:, IU:IU + 3])
+        v = np.einsum("nij,nj->ni", Rs, S[:, IU : IU + 3])
         pose_cov = np.empty((len(S), 6, 6))
         vel_cov = np.empty((len(S), 3, 3))
         for k, (_, _, P) in enumerate(self._out):
             J = np.zeros((6, N_STATE))
-            J[0:3, ID:ID + 3] = np.eye(3)
-            J[3:6, IP:IP + 3] = Rs[k].T
+            J[0:3, ID : ID + 3] = np.eye(3)
+            J[3:6, IP : IP + 3] = Rs[k].T
             pose_cov[k] = J @ P @ J.T
-            vel_cov[k] = Rs[k] @ P[IU:IU + 3, IU:IU + 3] @ Rs[k].T
-        traj = Trajectory(t=np.asarray(self._out_t), world_t_body=S[:, IP:IP + 3].copy(),
-                          world_q_body_wxyz=q, world_v_body=v)
+            vel_cov[k] = Rs[k] @ P[IU : IU + 3, IU : IU + 3] @ Rs[k].T
+        traj = Trajectory(
+            t=np.asarray(self._out_t),
+            world_t_body=S[:, IP : IP + 3].copy(),
+            world_q_body_wxyz=q,
+            world_v_body=v,
+        )
         return Estimate(
             method="cf-ekf",
             trajectory=traj,
@@ -458,8 +471,10 @@ class CfEkf:
             update_latency=np.asarray(self._lat),
             runtime_s=time.perf_counter() - self._t0,
             causal=True,
-            info={"options": dataclasses.asdict(self.opt),
-                  "counts": dataclasses.asdict(self.counts)},
+            info={
+                "options": dataclasses.asdict(self.opt),
+                "counts": dataclasses.asdict(self.counts),
+            },
         ).check()
 
 

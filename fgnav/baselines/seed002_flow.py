@@ -96,8 +96,13 @@ class Seed002Flow:
     def __init__(self, options: Seed002FlowOptions | None = None) -> None:
         self.opt = options or Seed002FlowOptions()
         self.counts: dict[str, int] = {
-            "flow_used": 0, "flow_low_quality": 0, "flow_no_height": 0, "flow_low": 0,
-            "flow_tilted": 0, "flow_before_start": 0, "range_out_of_limits": 0,
+            "flow_used": 0,
+            "flow_low_quality": 0,
+            "flow_no_height": 0,
+            "flow_low": 0,
+            "flow_tilted": 0,
+            "flow_before_start": 0,
+            "range_out_of_limits": 0,
         }
 
     def start(self, calib: Calibration, name: str = "flight") -> None:
@@ -153,11 +158,14 @@ class Seed002Flow:
                 self._t_first = ev.t
             self._init_acc.append(np.asarray(ev.body_accel, float))
             if ev.t - self._t_first >= INIT_ACCEL_WINDOW_S:
-                q0 = initial_attitude_from_accel(np.mean(self._init_acc, axis=0),
-                                                 self._yaw0 or 0.0)
+                q0 = initial_attitude_from_accel(np.mean(self._init_acc, axis=0), self._yaw0 or 0.0)
                 T = np.asarray(self._calib.body_T_range, float)
                 self._ekf = AttitudeHeightEkf(
-                    self.opt.ekf, q0, 0.0, beam_body=T[:3, 2], body_t_range=T[:3, 3],
+                    self.opt.ekf,
+                    q0,
+                    0.0,
+                    beam_body=T[:3, 2],
+                    body_t_range=T[:3, 3],
                     gyro_noise_density=self.opt.ekf.gyro_noise_density
                     or self._calib.imu_noise.gyro_noise_density,
                 )
@@ -270,8 +278,9 @@ class Seed002Flow:
         ok = span > 0
         v[ok] = (p[ok] - p[j[ok]]) / span[ok, None]
         v[~ok] = v[ok][0] if ok.any() else 0.0
-        traj = Trajectory(t=t, world_t_body=p, world_q_body_wxyz=np.array(self._out_q),
-                          world_v_body=v)
+        traj = Trajectory(
+            t=t, world_t_body=p, world_q_body_wxyz=np.array(self._out_q), world_v_body=v
+        )
         return Estimate(
             method="ekf-flow002",
             trajectory=traj,
@@ -279,8 +288,11 @@ class Seed002Flow:
             update_latency=np.asarray(self._lat),
             runtime_s=time.perf_counter() - self._t0,
             causal=True,
-            info={"options": dataclasses.asdict(self.opt), "counts": dict(self.counts),
-                  "ekf_counts": dict(self._ekf.counts) if self._ekf is not None else {}},
+            info={
+                "options": dataclasses.asdict(self.opt),
+                "counts": dict(self.counts),
+                "ekf_counts": dict(self._ekf.counts) if self._ekf is not None else {},
+            },
         ).check()
 
 

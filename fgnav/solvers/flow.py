@@ -191,8 +191,9 @@ def mean_rate_over(
     return integral(np.asarray(t1, float)) - integral(np.asarray(t0, float))
 
 
-def _run_sigma(ends: np.ndarray, starts: np.ndarray, dts: np.ndarray, sigma: float,
-               rho: float) -> float:
+def _run_sigma(
+    ends: np.ndarray, starts: np.ndarray, dts: np.ndarray, sigma: float, rho: float
+) -> float:
     """Standard deviation of the sum of readings (in time order) made of runs of consecutive
     readings (MA(1) within a run, independent runs)."""
     var = 0.0
@@ -268,12 +269,18 @@ def flow_keyframe_factor(
             if world_R_body is not None:
                 cos_tilt = -float((np.asarray(world_R_body) @ body_T_flow[:3, 2])[2])
             ok, why = gate_flow(
-                float(height), cos_tilt, -1.0, o.height_min, o.height_max,
-                math.radians(o.max_tilt_deg), o.quality_min,
+                float(height),
+                cos_tilt,
+                -1.0,
+                o.height_min,
+                o.height_max,
+                math.radians(o.max_tilt_deg),
+                o.quality_min,
             )
             if not ok:
-                reason = "gated:" + ("height" if why.startswith(("height", "non-finite"))
-                                     else "tilt")
+                reason = "gated:" + (
+                    "height" if why.startswith(("height", "non-finite")) else "tilt"
+                )
         if reason is not None:
             skipped[reason] += len(kept)
             return FlowFactorResult(None, reason, dict(skipped), 0, arrival, nan)
@@ -296,8 +303,13 @@ def flow_keyframe_factor(
     if robust is not None:
         noise = robust(noise)
     factor = make_optical_flow_factor(
-        pose_key, velocity_key, ground_key, FlowMeasurement(flow, dt), omega,
-        FlowSensor(body_T_flow, ppr), noise,
+        pose_key,
+        velocity_key,
+        ground_key,
+        FlowMeasurement(flow, dt),
+        omega,
+        FlowSensor(body_T_flow, ppr),
+        noise,
     )
     arrival = max(float(s.arrival) for s in kept)
     return FlowFactorResult(factor, "ok", dict(skipped), len(kept), arrival, sigma)
@@ -322,8 +334,9 @@ class FlowFactors:
         skip: the builder's counter of skipped measurements, ``skip(reason, n)``.
     """
 
-    def __init__(self, flight: Flight, options: FlowFactorOptions,
-                 skip: Callable[[str, int], None]):
+    def __init__(
+        self, flight: Flight, options: FlowFactorOptions, skip: Callable[[str, int], None]
+    ):
         self.flight = flight
         self.options = options
         self._skip = skip
@@ -339,8 +352,9 @@ class FlowFactors:
         K = len(t_kf)
         if K > 1:
             mids = 0.5 * (t_kf[1:] + t_kf[:-1])
-            edges = np.r_[t_kf[0] - 0.5 * (t_kf[1] - t_kf[0]), mids,
-                          t_kf[-1] + 0.5 * (t_kf[-1] - t_kf[-2])]
+            edges = np.r_[
+                t_kf[0] - 0.5 * (t_kf[1] - t_kf[0]), mids, t_kf[-1] + 0.5 * (t_kf[-1] - t_kf[-2])
+            ]
         else:
             edges = np.array([t_kf[0] - 0.05, t_kf[0] + 0.05])
         centre = fl.t - 0.5 * fl.dt
@@ -384,8 +398,13 @@ class FlowFactors:
         fl = self.flow
         q = fl.quality
         return [
-            FlowSample(float(fl.t[i]), float(fl.t[i]), float(fl.dt[i]), fl.flow[i],
-                       float(q[i]) if q is not None else -1.0)
+            FlowSample(
+                float(fl.t[i]),
+                float(fl.t[i]),
+                float(fl.dt[i]),
+                fl.flow[i],
+                float(q[i]) if q is not None else -1.0,
+            )
             for i in self.by_keyframe.get(k, ())
         ]
 
@@ -395,14 +414,27 @@ class FlowFactors:
         return float(self.flow.t[idx].max()) if idx is not None and len(idx) else float("nan")
 
     def factor_at(
-        self, k: int, keys: tuple[int, int, int], imu_t: np.ndarray, imu_omega: np.ndarray,
-        gyro_bias: np.ndarray, R_k: np.ndarray,
+        self,
+        k: int,
+        keys: tuple[int, int, int],
+        imu_t: np.ndarray,
+        imu_omega: np.ndarray,
+        gyro_bias: np.ndarray,
+        R_k: np.ndarray,
         robust: Callable[[gtsam.noiseModel.Base], gtsam.noiseModel.Base] | None,
     ) -> FlowFactorResult:
         """The factor of keyframe k's window (skips counted on the builder)."""
         res = flow_keyframe_factor(
-            self.samples_at(k), imu_t, imu_omega, self.flight.calib, *keys, self.options,
-            gyro_bias=gyro_bias, height=self.height.get(k), world_R_body=R_k, robust=robust,
+            self.samples_at(k),
+            imu_t,
+            imu_omega,
+            self.flight.calib,
+            *keys,
+            self.options,
+            gyro_bias=gyro_bias,
+            height=self.height.get(k),
+            world_R_body=R_k,
+            robust=robust,
         )
         for reason, n in res.skipped.items():
             self._skip(f"flow:{reason}", n)

@@ -1290,7 +1290,12 @@ class GraphBuilder:
         if self.flow is not None and want("flow") and k in self.flow.by_keyframe:
             keys = (X(k), V(k), G(int(self.ground_segment[k])))
             res = self.flow.factor_at(
-                k, keys, self.imu.t, self.imu.body_omega, self.gyro_bias0, self.R_kf[k],
+                k,
+                keys,
+                self.imu.t,
+                self.imu.body_omega,
+                self.gyro_bias0,
+                self.R_kf[k],
                 self._robust,
             )
             if res.factor is not None:

@@ -477,12 +477,15 @@ class OnlineSmoother:
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
         self._state_kf: set[int] = set()  # keyframes whose X, V, B estimates are kept
+        # SLAM clock offset: given (seconds) or, with "apply", the check's once it has decided.
+        off = self.go.slam_time_offset
+        self._slam_offset = float(off) if not isinstance(off, str) else 0.0
         # SLAM rotation convention: fixed by the options, or decided causally from the gyro.
         self._slam_conv: str | None = {"as-is": "as-is", "inverse": "inverse"}.get(
             self.go.slam_rotation
         )
         self._sgc = None
-        if self.go.use_slam and self._slam_conv is None:
+        if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
 
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
@@ -1110,6 +1113,8 @@ class OnlineSmoother:
     # ------------------------------------------------------------------------------------------
 
     def _on_slam(self, ev: SlamPose) -> None:
+        if self._slam_offset:
+            ev = ev._replace(t=ev.t + self._slam_offset)
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
@@ -1156,7 +1161,14 @@ class OnlineSmoother:
                 self._slam_conv = "undecided"
             return
         self._sgc = None
-        self._slam_conv = d.convention
+        adopt = self._slam_conv is None
+        if adopt:
+            self._slam_conv = d.convention
+        if self.go.slam_time_offset == "apply" and math.isfinite(d.time_offset_s):
+            self._slam_offset = float(d.time_offset_s)
+            log.info(
+                "%s: SLAM clock offset %+.4f s applied from t=%.2f s", self.name, d.time_offset_s, t
+            )
         self.slam_check = {
             "t": t,
             "convention": d.convention,
@@ -1166,7 +1178,7 @@ class OnlineSmoother:
             "time_offset_s": float(d.time_offset_s),
             "gyro_bias": np.asarray(d.gyro_bias).tolist(),
         }
-        if d.convention == "inverse":
+        if adopt and d.convention == "inverse":
             log.warning(
                 "%s: SLAM rotations are the inverse of the stated slam_R_cam (gyro residual "
                 "%.2f deg inverted vs %.2f deg as stated, decided at t=%.2f s): using them "
@@ -2032,6 +2044,16 @@ def replay_online(
         # A check of the file, not an input to the estimator: SLAM stamped on another clock
         # would only wait for keyframes that never come.
         flight.require_overlap("imu", "slam")
+    per_file = flight.meta.get("slam_options") if isinstance(flight.meta, dict) else None
+    if per_file:
+        # A manifest's [slam] options for this file win over the config (configuration only).
+        import dataclasses
+
+        g = dataclasses.replace(
+            options.graph,
+            **{k: v for k, v in per_file.items() if k in ("slam_rotation", "slam_time_offset")},
+        )
+        options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
     total = sum(len(getattr(flight, n)) for n in streams)
     est = run_online(
