@@ -55,6 +55,7 @@ from __future__ import annotations
 import bisect
 import functools
 import logging
+import math
 import time
 from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
@@ -127,15 +128,17 @@ class HomographyVOOptions:
             (``cv2.pyrDown``; distance and block size scaled alike) and scale them back: a quarter
             of the detection cost per level (0: full resolution).
 
-            Tracking defaults (window 11, 2 levels, one LK pass, corners at level 1) were chosen
-            on the corner transfer error against the simulator's true homographies (RMS over the
-            four corners and all pairs, px; ``scripts/bench_vo.py``), against OpenCV's usual
-            window 21, 3 levels and a forward-backward check: two-turns 20 s at 20 Hz 0.0173 vs
-            0.0196 (rectified 0.0205 vs 0.0234); the same with motion blur 10 ms, featureless
-            patches and a 20 % brightness wave 0.0224 vs 0.0318 (0.0259 vs 0.0372); figure8 30 s
-            at 30 Hz 0.0142 vs 0.0142 (0.0225 vs 0.0202). The forward-backward check changed no
-            figure (to 4 digits) and costs a second LK pass; with 100 instead of 200 corners the
-            error grew by half.
+            Tracking defaults (window 21, 2 levels, one LK pass, corners at level 1) were chosen
+            on the trajectory, the 180 s figure8 with the 30 Hz camera of
+            ``scripts/bench_online.py`` (fixed-lag / batch ATE [cm]; without the camera 2.46 /
+            1.71): OpenCV's usual window 21, 3 levels, a forward-backward check and corners at
+            full resolution 1.28 / 1.07 (236 frames/s); the defaults 1.26 / 1.07; window 21 at 3
+            levels without the check 1.29 / 1.10; window 15 1.50 / 1.22; window 11 1.48 / 1.21
+            (1.82 / 1.53 with corners at level 1). The forward-backward check changed no figure
+            and costs a second LK pass. The per-pair corner transfer error against the true
+            homographies did not predict these (window 11: 0.0142-0.0173 px against 0.0142-0.0196
+            px for window 21 with the check, on two-turns and figure8); with 100 instead of 200
+            corners it grew by half.
         lk_window_px: Lucas-Kanade window side [px] (OpenCV's default 21; see below).
         lk_pyramid_levels: LK pyramid levels above the base image (OpenCV's lk_track.py: 3).
         lk_max_iterations, lk_epsilon_px: LK stopping criteria per pyramid level (iterations,
@@ -195,7 +198,7 @@ class HomographyVOOptions:
     min_corner_distance_px: float = 7.0
     corner_block_size_px: int = 7
     corner_pyramid_level: int = 1
-    lk_window_px: int = 11
+    lk_window_px: int = 21
     lk_pyramid_levels: int = 2
     lk_max_iterations: int = 30
     lk_epsilon_px: float = 0.01
@@ -450,7 +453,9 @@ def yaw_increment(
     """
     tilt_i = remove_yaw(world_R_body_i)
     world_R_body_j = tilt_i @ body_R_cam @ cam_j_R_cam_i.T @ body_R_cam.T
-    return float(wrap_angle(yaw_of(world_R_body_j)))
+    # yaw_of is atan2, already in [-pi, pi]; only -pi maps to pi (wrap_angle's convention).
+    psi = math.atan2(world_R_body_j[1, 0], world_R_body_j[0, 0])
+    return math.pi if psi == -math.pi else psi
 
 
 # ----------------------------------------------------------------------------------------------
@@ -963,7 +968,7 @@ class HomographyVO:
     ):
         o = self.options
         Wi, vRc_i, Kv_i, L_i = prep_i.W, prep_i.virt_R_cam, prep_i.K_virt, prep_i.level_R_cam
-        Wj, vRc_j, Kv_j, L_j = prep_j.W, prep_j.virt_R_cam, prep_j.K_virt, prep_j.level_R_cam
+        vRc_j, Kv_j, L_j = prep_j.virt_R_cam, prep_j.K_virt, prep_j.level_R_cam
         # 1. Track the points of i into j (in rectified images when rectifying): the inlier tracks
         # of the pair that ended at i while enough remain, else fresh Shi-Tomasi corners.
         corners = prep_i.points
@@ -984,11 +989,14 @@ class HomographyVO:
         if inl.sum() < o.min_inliers:
             return HomographyMeasurement(valid=False, reason="few_inliers", **base, **counts)
         # 3. Back to original pixels: p_j ~ Wj^-1 Hv Wi p_i; inlier residual in original pixels.
-        H = np.linalg.solve(Wj, Hv @ Wi)
-        H /= H[2, 2]
-        counts["inlier_rms_px"] = _transfer_rms(
-            H, _warp_points(prep_i.W_inv, p_i[inl]), _warp_points(prep_j.W_inv, p_j[inl])
-        )
+        if o.rectify:
+            H = prep_j.W_inv @ Hv @ Wi
+            H /= H[2, 2]
+            orig_i = _warp_points(prep_i.W_inv, p_i[inl])
+            orig_j = _warp_points(prep_j.W_inv, p_j[inl])
+        else:
+            H, orig_i, orig_j = Hv, p_i[inl], p_j[inl]
+        counts["inlier_rms_px"] = _transfer_rms(H, orig_i, orig_j)
         if o.redetect_below > 0:
             # The inliers carry over as the points of the next pair (from j).
             prep_j.points = p_j[inl].reshape(-1, 1, 2)
@@ -1547,7 +1555,7 @@ def run(
 
 def _warp_points(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """(M, 2) pixels mapped by a homography."""
-    h = np.column_stack([pts, np.ones(len(pts))]) @ H.T
+    h = pts @ H[:, :2].T + H[:, 2]
     return h[:, :2] / h[:, 2:3]
 
 
