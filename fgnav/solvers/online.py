@@ -1572,6 +1572,7 @@ class OnlineSmoother:
         if not (
             fit.excitation >= o.slam_init_min_excitation_m
             and fit.scale_rel_se <= o.slam_init_max_rel_se
+            and fit.n_pairs >= o.slam_init_min_pairs
         ):
             return None
         return fit
