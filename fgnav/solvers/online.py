@@ -110,6 +110,8 @@ from fgnav.solvers.window import TimeOrderedSmoother
 
 log = logging.getLogger(__name__)
 
+#: Quaternion conjugation (w, -x, -y, -z): the inverse rotation.
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
 PROVISIONAL_BASE = 1_000_000
 #: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
@@ -1551,15 +1553,21 @@ class OnlineSmoother:
         if R is None:
             return None
         idx = np.flatnonzero(keep)
-        slam = SlamSeries(
-            t,
-            np.asarray(s.p)[idx],
-            np.asarray(s.q)[idx],
-            np.zeros(len(t), dtype=int),
-        )
-        try:
-            fit = init_slam_alignment(slam, imu, R, self.body_T_cam, self.go.gravity)
-        except FlightDataError:
+        q = np.asarray(s.q)[idx]
+        # The fit's SLAM-frame rotation comes from the SLAM orientations: while the convention
+        # check has not decided, try both conventions and keep the better fit (the wrong one
+        # rotates the accelerations away from the SLAM motion: a poor fit).
+        convs = [q] if self._slam_conv in ("as-is", "inverse") else [q, q * _CONJ]
+        fit = None
+        for qq in convs:
+            slam = SlamSeries(t, np.asarray(s.p)[idx], qq, np.zeros(len(t), dtype=int))
+            try:
+                f = init_slam_alignment(slam, imu, R, self.body_T_cam, self.go.gravity)
+            except FlightDataError:
+                continue
+            if fit is None or f.scale_rel_se < fit.scale_rel_se:
+                fit = f
+        if fit is None:
             return None
         log.debug(
             "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
