@@ -69,7 +69,7 @@ from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.graph import GraphBuilder, GraphOptions, MeasurementFactor
-from fgnav.solvers.window import TimeOrderedSmoother
+from fgnav.solvers.window import TimeOrderedSmoother, move_window
 
 log = logging.getLogger(__name__)
 
@@ -266,6 +266,31 @@ def _isam2_params(
     p.setFactorization((factorization or o.factorization).upper())
     p.findUnusedFactorSlots = True
     return p
+
+
+def rebuild_state_priors(
+    k: int, pose: gtsam.Pose3, vel: np.ndarray, bias: Any, o: FixedLagOptions
+) -> gtsam.NonlinearFactorGraph:
+    """Priors of a rebuilt smoother on the last good keyframe state ``X(k), V(k), B(k)`` (sigmas
+    ``o.rebuild_*``)."""
+    g = gtsam.NonlinearFactorGraph()
+    pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
+    g.add(gtsam.PriorFactorPose3(X(k), pose, gtsam.noiseModel.Diagonal.Sigmas(pose_sig)))
+    g.add(
+        gtsam.PriorFactorVector(
+            V(k), np.asarray(vel, float), gtsam.noiseModel.Isotropic.Sigma(3, o.rebuild_vel_sigma)
+        )
+    )
+    g.add(
+        gtsam.PriorFactorConstantBias(
+            B(k),
+            bias,
+            gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3]
+            ),
+        )
+    )
+    return g
 
 
 class FixedLagRunner:
@@ -790,31 +815,9 @@ class FixedLagRunner:
         smoother whose update just failed (its factors and values include that update's; the
         provisional factors that update added are found by identity in ``step``). Returns False
         (smoother unchanged) when the fresh smoother fails too."""
-        old = self.smoother
-        factors = old.getFactors()
-        lin_point = old.getLinearizationPoint()
-        graph = gtsam.NonlinearFactorGraph()
-        new_index: dict[int, int] = {}
-        held: set[int] = set()
-        for i in range(factors.size()):
-            f = factors.at(i)
-            if f is None:
-                continue
-            if isinstance(f, gtsam.LinearContainerFactor):
-                # A marginal: the old iSAM2 keeps its variables at their linearisation point
-                # (its "fixed variables"), which a fresh smoother does not know. Anchor the factor
-                # there (it then follows a relinearisation to first order) and ask the
-                # time-ordered window to hold those variables as the old one did.
-                held.update(f.keys())
-                f = gtsam.LinearContainerFactor(f.linearize(lin_point), lin_point)
-            new_index[i] = graph.size()
-            graph.add(f)
-        stamps = old.timestamps()
         smoother = self._new_smoother(factorization)
-        if held and isinstance(smoother, TimeOrderedSmoother):
-            smoother.hold_linearization(held)
         try:
-            smoother.update(graph, lin_point, stamps)
+            new_index = move_window(self.smoother, smoother)
         except SOLVER_ERRORS as e:
             log.warning(
                 "fixed-lag: moving the window to %s failed (%s); staying with %s",
@@ -850,26 +853,9 @@ class FixedLagRunner:
         v = gtsam.Values()
         stamps: dict[int, float] = {}
         t = float(self.builder.t_kf[kg])
-        pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
-        g.add(
-            gtsam.PriorFactorPose3(
-                X(kg), self.last_good[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)
-            )
-        )
-        g.add(
-            gtsam.PriorFactorVector(
-                V(kg),
-                self.last_good[V(kg)],
-                gtsam.noiseModel.Isotropic.Sigma(3, o.rebuild_vel_sigma),
-            )
-        )
-        g.add(
-            gtsam.PriorFactorConstantBias(
-                B(kg),
-                self.last_good[B(kg)],
-                gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3]
-                ),
+        g.push_back(
+            rebuild_state_priors(
+                kg, self.last_good[X(kg)], self.last_good[V(kg)], self.last_good[B(kg)], o
             )
         )
         for key in (X(kg), V(kg), B(kg)):

@@ -288,6 +288,21 @@ def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
 
 
+def pim_params(
+    noise: Any, gravity: float, gyro_noise_floor: float = 0.0
+) -> gtsam.PreintegrationCombinedParams:
+    """IMU preintegration parameters (world z up) from the calibration's noise densities and
+    random walks (``ImuNoise``); ``gyro_noise_floor``: least gyro noise density."""
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity)
+    gyro_nd = max(noise.gyro_noise_density, gyro_noise_floor)
+    p.setGyroscopeCovariance(gyro_nd**2 * np.eye(3))
+    p.setAccelerometerCovariance(noise.accel_noise_density**2 * np.eye(3))
+    p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
+    p.setBiasOmegaCovariance(noise.gyro_random_walk**2 * np.eye(3))
+    p.setBiasAccCovariance(noise.accel_random_walk**2 * np.eye(3))
+    return p
+
+
 class GraphBuilder:
     """Factor graph of one flight, built keyframe by keyframe.
 
@@ -444,18 +459,9 @@ class GraphBuilder:
         return ImuSeries(f.imu.t, omega_from_attitude(f.attitude, f.imu.t), f.imu.body_accel)
 
     def _pim_params(self) -> gtsam.PreintegrationCombinedParams:
-        n = self.flight.calib.imu_noise
-        p = gtsam.PreintegrationCombinedParams.MakeSharedU(self.options.gravity)
-        gyro_nd = n.gyro_noise_density
-        if not self.options.use_gyro:
-            # Rates differentiated from the attitude stream are much noisier than a gyro.
-            gyro_nd = max(gyro_nd, 1e-2)
-        p.setGyroscopeCovariance(gyro_nd**2 * np.eye(3))
-        p.setAccelerometerCovariance(n.accel_noise_density**2 * np.eye(3))
-        p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
-        p.setBiasOmegaCovariance(n.gyro_random_walk**2 * np.eye(3))
-        p.setBiasAccCovariance(n.accel_random_walk**2 * np.eye(3))
-        return p
+        # Rates differentiated from the attitude stream are much noisier than a gyro.
+        floor = 0.0 if self.options.use_gyro else 1e-2
+        return pim_params(self.flight.calib.imu_noise, self.options.gravity, floor)
 
     def _segments(self, seg_s: float | None) -> np.ndarray:
         if seg_s is None or seg_s <= 0:

@@ -99,14 +99,19 @@ from fgnav.factors.slam_scale import (
 from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.keys import B, S, V, X
-from fgnav.solvers.fixed_lag import SOLVER_ERRORS, FixedLagOptions, _isam2_params
-from fgnav.solvers.graph import PREINTEGRATION_INTEGRATION_COV
+from fgnav.solvers.fixed_lag import (
+    SOLVER_ERRORS,
+    FixedLagOptions,
+    _isam2_params,
+    rebuild_state_priors,
+)
+from fgnav.solvers.graph import pim_params
 from fgnav.solvers.measurements import (
     MIN_ANCHOR_GAP_PERIODS,
     init_slam_alignment,
     level_rotation_from_accel,
 )
-from fgnav.solvers.window import TimeOrderedSmoother
+from fgnav.solvers.window import TimeOrderedSmoother, move_window
 
 log = logging.getLogger(__name__)
 
@@ -241,7 +246,7 @@ class OnlineSmoother:
         self.period = 1.0 / self.go.keyframe_hz
         self.body_T_cam = np.asarray(calib.body_T_cam, float)
         self.body_T_range = np.asarray(calib.body_T_range, float)
-        self.pim_params = self._pim_params()
+        self.pim_params = pim_params(self.calib.imu_noise, self.go.gravity)
         self.reset_counter = 0
         self.received: dict[str, int] = {}
         self.used: dict[str, int] = {}
@@ -534,16 +539,6 @@ class OnlineSmoother:
             return False
         self._t_last[stream] = t
         return True
-
-    def _pim_params(self) -> gtsam.PreintegrationCombinedParams:
-        n = self.calib.imu_noise
-        p = gtsam.PreintegrationCombinedParams.MakeSharedU(self.go.gravity)
-        p.setGyroscopeCovariance(n.gyro_noise_density**2 * np.eye(3))
-        p.setAccelerometerCovariance(n.accel_noise_density**2 * np.eye(3))
-        p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
-        p.setBiasOmegaCovariance(n.gyro_random_walk**2 * np.eye(3))
-        p.setBiasAccCovariance(n.accel_random_walk**2 * np.eye(3))
-        return p
 
     def _noise(self, dim: int, sigma: float, robust: bool = True) -> Any:
         key = (dim, float(sigma), robust)
@@ -1737,26 +1732,9 @@ class OnlineSmoother:
         factors (marginals anchored at their linearisation point, their variables held) at the
         same linearisation point and stamps. Also used on a smoother whose update just failed
         (its factors include that update's). False (smoother unchanged) when that fails too."""
-        old = self.smoother
-        factors = old.getFactors()
-        lin = old.getLinearizationPoint()
-        graph = gtsam.NonlinearFactorGraph()
-        held: set[int] = set()
-        index: dict[int, int] = {}
-        for i in range(factors.size()):
-            f = factors.at(i)
-            if f is None:
-                continue
-            if isinstance(f, gtsam.LinearContainerFactor):
-                held.update(f.keys())
-                f = gtsam.LinearContainerFactor(f.linearize(lin), lin)
-            index[i] = graph.size()
-            graph.add(f)
         new = self._new_smoother(factorization)
-        if held:
-            new.hold_linearization(held)
         try:
-            new.update(graph, lin, old.timestamps())
+            index = move_window(self.smoother, new)
         except SOLVER_ERRORS as e:
             log.warning(
                 "%s: moving the window to %s failed (%s)",
@@ -1795,25 +1773,8 @@ class OnlineSmoother:
         v = gtsam.Values()
         stamps: dict[int, float] = {}
         t = self.t_kf[kg]
-        pose_sig = np.r_[[o.rebuild_rot_sigma] * 3, [o.rebuild_pos_sigma] * 3]
-        g.add(
-            gtsam.PriorFactorPose3(
-                X(kg), self.values[X(kg)], gtsam.noiseModel.Diagonal.Sigmas(pose_sig)
-            )
-        )
-        g.add(
-            gtsam.PriorFactorVector(
-                V(kg), self.values[V(kg)], self._noise(3, o.rebuild_vel_sigma, False)
-            )
-        )
-        g.add(
-            gtsam.PriorFactorConstantBias(
-                B(kg),
-                self.values[B(kg)],
-                gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[[o.rebuild_accel_bias_sigma] * 3, [o.rebuild_gyro_bias_sigma] * 3]
-                ),
-            )
+        g.push_back(
+            rebuild_state_priors(kg, self.values[X(kg)], self.values[V(kg)], self.values[B(kg)], o)
         )
         for key in (X(kg), V(kg), B(kg)):
             v.insert(key, self.values[key])

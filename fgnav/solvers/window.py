@@ -358,3 +358,36 @@ class TimeOrderedSmoother:
         self.isam.update(empty, gtsam.Values(), [], self._groups, None, _key_list(self._stamp))
         self._in_order = True
         self.reorders += 1
+
+
+def move_window(old: Any, new: Any) -> dict[int, int]:
+    """Move a fixed-lag window into a fresh smoother ``new`` (``TimeOrderedSmoother`` or
+    ``IncrementalFixedLagSmoother``) losslessly: the same factors at the same linearisation point
+    and stamps. Marginals (``LinearContainerFactor``) are anchored at their linearisation point and
+    their variables held there, as the old iSAM2 held them. Works on a smoother whose update just
+    failed (its factors include that update's).
+
+    Returns:
+        factor index in ``old`` -> index in ``new``.
+
+    Raises:
+        RuntimeError, IndexError, ValueError from GTSAM when ``new`` fails too.
+    """
+    factors = old.getFactors()
+    lin_point = old.getLinearizationPoint()
+    graph = gtsam.NonlinearFactorGraph()
+    index: dict[int, int] = {}
+    held: set[int] = set()
+    for i in range(factors.size()):
+        f = factors.at(i)
+        if f is None:
+            continue
+        if isinstance(f, gtsam.LinearContainerFactor):
+            held.update(f.keys())
+            f = gtsam.LinearContainerFactor(f.linearize(lin_point), lin_point)
+        index[i] = graph.size()
+        graph.add(f)
+    if held and isinstance(new, TimeOrderedSmoother):
+        new.hold_linearization(held)
+    new.update(graph, lin_point, old.timestamps())
+    return index
