@@ -757,18 +757,16 @@ class OnlineSmoother:
         )
 
     def _attitude_at(self, t: float) -> np.ndarray | None:
+        """The attitude sample nearest ``t`` (within 0.2 s), or None."""
         att = self._att
         if not att:
             return None
-        ts = [r[0] for r in att]
-        i = bisect.bisect_left(ts, t)
-        if i == 0:
-            j = 0
-        elif i >= len(ts):
-            j = len(ts) - 1
-        else:
-            j = i if ts[i] - t < t - ts[i - 1] else i - 1
-        if abs(ts[j] - t) > 0.2:
+        i = len(att)
+        while i > 0 and att[i - 1][0] > t:  # newest first: ``t`` is usually recent
+            i -= 1
+        cand = [j for j in (i - 1, i) if 0 <= j < len(att)]
+        j = min(cand, key=lambda j: abs(att[j][0] - t))
+        if abs(att[j][0] - t) > 0.2:
             return None
         return quat_wxyz_to_matrix(att[j][1])
 
@@ -1067,7 +1065,8 @@ class OnlineSmoother:
         if kind == "yaw" and buf:
             value = buf[-1][1] + wrap_angle(value - buf[-1][1])  # unwrapped
         buf.append((t, float(value)))
-        self._trim(buf)
+        while len(buf) > 2 and buf[0][0] < self._t_imu_last - 5.0:
+            buf.popleft()  # interpolation and heights need the newest seconds only
         wait = self._scalar_wait[kind]
         while wait and self.t_kf.get(wait[0], math.inf) <= t:
             self._scalar_at(kind, wait.popleft())
@@ -1093,12 +1092,14 @@ class OnlineSmoother:
         tk = self.t_kf.get(k)
         if tk is None:
             return
-        ts = [r[0] for r in buf]
-        i = bisect.bisect_left(ts, tk)
-        if i < len(ts) and abs(ts[i] - tk) < 1e-9:
+        # The bracket is near the newest samples: search from the end.
+        i = len(buf)
+        while i > 0 and buf[i - 1][0] >= tk:
+            i -= 1
+        if i < len(buf) and abs(buf[i][0] - tk) < 1e-9:
             self._pending.append((k, kind, buf[i][1]))
             return
-        if i == 0 or i >= len(ts) or ts[i] - ts[i - 1] > self.go.interp_max_gap_s:
+        if i == 0 or i >= len(buf) or buf[i][0] - buf[i - 1][0] > self.go.interp_max_gap_s:
             self._drop(f"{kind}:keyframes-without-bracketing-samples")
             return
         (t0, v0), (t1, v1) = buf[i - 1], buf[i]
