@@ -39,7 +39,7 @@ from fgnav.methods import METHODS, Method, available_methods, get_method, slam_c
 
 log = logging.getLogger(__name__)
 
-CAUSAL_SLAM_CHECK = ("fixed-lag",)
+CAUSAL_SLAM_CHECK = ("fixed-lag", "fixed-lag@lag")
 """Methods that check the SLAM rotation convention and clock themselves, causally (the push-API
 smoother's SLAM-vs-gyro check; the prepared runner applies the whole-flight check itself)."""
 

@@ -127,7 +127,7 @@ class Method:
         if problem:
             raise MethodUnavailableError(f"{self.name}: {problem}")
         config = dict(config or {})
-        if "slam" in self.requires + self.optional and self.name != "fixed-lag":
+        if "slam" in self.requires + self.optional and not self.name.startswith("fixed-lag"):
             # (the fixed-lag smoother checks the SLAM file itself: causally on the push engine)
             flight = slam_checked(flight, config)
         est = self.entry(flight, config, progress)
@@ -288,6 +288,20 @@ def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
         est = _run(flight, opts, priors=priors, progress=progress)
     est = _with_info(est, engine=engine, engine_reason=why)
     return _with_priors(est, priors)
+
+
+def run_fixed_lag_lagged(
+    flight: Flight, config: Mapping[str, Any], progress: bool = False
+) -> Estimate:
+    """The push-API smoother's second output, ``fixed-lag@lag``: each keyframe's state as smoothed
+    just before it leaves the window (delayed by the lag; ``[graph]`` and ``[online]``)."""
+    from fgnav.solvers.online import push_engine_gap, replay_online
+
+    opts = fixed_lag_options(config)
+    gap = push_engine_gap(flight, opts, frontend_priors(flight, config))
+    if gap:
+        raise MethodUnavailableError(f"fixed-lag@lag: the push engine does not run {gap} yet")
+    return replay_online(flight, opts, progress=progress, lagged=True)
 
 
 def frontend_priors(flight: Flight, config: Mapping[str, Any]):
@@ -490,6 +504,17 @@ METHODS: dict[str, Method] = {
             True,
             "fgnav.solvers.fixed_lag",
             run_fixed_lag,
+            any_of=SMOOTHER_ALTERNATIVES,
+        ),
+        Method(
+            "fixed-lag@lag",
+            "the online smoother's states as smoothed when they leave the window (delayed by "
+            "the lag)",
+            ("imu",),
+            ("slam", "attitude", "range", "yaw", "images", "flow"),
+            False,
+            "fgnav.solvers.online",
+            run_fixed_lag_lagged,
             any_of=SMOOTHER_ALTERNATIVES,
         ),
         Method(

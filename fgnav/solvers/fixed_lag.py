@@ -201,6 +201,9 @@ class FixedLagOptions:
         image_latency_s: with a camera, a keyframe without an image closes only once the IMU is
             this much (plus half a keyframe period) past it, so that an image taken for it
             can still arrive and anchor it [s]: the camera's latency (0 for a replay).
+        lagged_output: also keep each keyframe's state as smoothed just before it leaves the
+            window (``OnlineSmoother.lagged_result``: the ``fixed-lag@lag`` row of
+            ``fgnav compare``, delayed by the lag).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -248,6 +251,7 @@ class FixedLagOptions:
     slam_fit_max_s: float = 20.0
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
+    lagged_output: bool = True
 
 
 def _isam2_params(

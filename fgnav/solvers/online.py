@@ -257,6 +257,7 @@ class OnlineSmoother:
         self.latency: list[float] = []
         # Outputs (every state).
         self.out: list[OnlineState] = []
+        self.out_lag: list[tuple] = []  # (epoch, t, world_T_body, velocity, bias): fixed-lag@lag
         self._out_epoch: list[int] = []  # clock epoch of each state (a backward jump: +1)
         self._epoch = 0
         self._jumped_at = -math.inf
@@ -385,6 +386,8 @@ class OnlineSmoother:
             - min(s.t for s, e in zip(self.out, ep, strict=True) if e == x)
             for x in epochs
         )
+        if runtime is None:
+            runtime = getattr(self, "runtime_s", None)
         runtime = float(lat.sum()) if runtime is None else runtime
         last = st[-1]
         info = {
@@ -484,6 +487,7 @@ class OnlineSmoother:
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
         self._state_kf: set[int] = set()  # keyframes whose X, V, B estimates are kept
+        self._lag_done = -1  # newest keyframe read for the lagged output
         # SLAM clock offset: given (seconds) or, with "apply", the check's once it has decided.
         off = self.go.slam_time_offset
         self._slam_offset = float(off) if not isinstance(off, str) else 0.0
@@ -1874,7 +1878,63 @@ class OnlineSmoother:
             self._track_slow(t)
         self.latency.append(time.perf_counter() - wall0)
         self.out.append(self._state(k, pose, vel, bias, pose_cov, vel_cov))
+        if self.options.lagged_output:
+            self._read_lagged(k)
         self._out_epoch.append(self._epoch)
+
+    def _read_lagged(self, k: int) -> None:
+        """The smoothed states the next update will marginalise, once each: the
+        ``fixed-lag@lag`` output (delayed by the lag and up to one marginalisation block, with
+        every measurement of the window)."""
+        # Keys leave in marginalisation blocks: read those the next update will marginalise.
+        cut = self._block(self.t_kf[k] + self.period) - self.options.lag_s
+        sm = self.smoother
+        for t_j, j in list(self._kf_index):
+            if self._block(t_j) > cut + 1e-6:
+                break
+            if j <= self._lag_done:
+                continue
+            self._lag_done = j
+            if X(j) not in sm:
+                continue
+            try:
+                pose = sm.calculateEstimatePose3(X(j))
+                vel = np.asarray(sm.calculateEstimateVector(V(j)), float)
+                bias = sm.calculateEstimateConstantBias(B(j))
+            except SOLVER_ERRORS:
+                continue
+            self.out_lag.append((self._epoch, t_j, pose.matrix(), vel, bias))
+
+    def lagged_result(self, epoch: int = -1) -> Estimate:
+        """The ``fixed-lag@lag`` output: each keyframe's state as smoothed just before it leaves
+        the window (``FixedLagOptions.lagged_output``), delayed by the lag."""
+        eps = sorted({r[0] for r in self.out_lag})
+        if not eps:
+            raise FlightDataError(f"{self.name}: no lagged state (run shorter than the lag?)")
+        rows = [r for r in self.out_lag if r[0] == eps[epoch]]
+        T = np.array([r[2] for r in rows])
+        traj = Trajectory(
+            np.array([r[1] for r in rows]),
+            T[:, :3, 3],
+            matrix_to_quat_wxyz(T[:, :3, :3]),
+            np.array([r[3] for r in rows]),
+            np.array([r[4].gyroscope() for r in rows]),
+            np.array([r[4].accelerometer() for r in rows]),
+        )
+        est = self.result(epoch=epoch)
+        info = dict(est.info, delay_s=self.options.lag_s)
+        return Estimate(
+            method="fixed-lag@lag",
+            trajectory=traj,
+            slam_scale=est.slam_scale,
+            drag_k=est.drag_k,
+            ground_height=est.ground_height,
+            series=est.series,
+            update_latency=est.update_latency,
+            runtime_s=est.runtime_s,
+            causal=False,
+            info=info,
+        ).check()
 
     def _track_slow(self, t: float) -> None:
         for sess, s in self.sessions.items():
@@ -1946,6 +2006,19 @@ def run_online(
 ) -> Estimate:
     """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
     :class:`OnlineSmoother`; the causal estimate."""
+    return feed_all(events, calib, options, name, progress, total).result()
+
+
+def feed_all(
+    events,
+    calib: Calibration,
+    options: FixedLagOptions | None = None,
+    name: str = "online",
+    progress: bool = False,
+    total: int | None = None,
+) -> OnlineSmoother:
+    """The :class:`OnlineSmoother` after feeding it ``events`` (its ``runtime_s`` set: the wall
+    time of the loop)."""
     sm = OnlineSmoother(calib, options, name)
     bar = None
     if progress:
@@ -1957,10 +2030,10 @@ def run_online(
         sm.feed(ev)
         if bar is not None and i % 1000 == 999:
             bar.update(1000)
-    runtime = time.perf_counter() - t_wall
+    sm.runtime_s = time.perf_counter() - t_wall
     if bar is not None:
         bar.close()
-    return sm.result(runtime)
+    return sm
 
 
 ENGINES = ("auto", "push", "prepared")
@@ -2001,10 +2074,11 @@ def resolve_engine(flight, options: FixedLagOptions, priors: Any = None) -> tupl
 
 
 def replay_online(
-    flight, options: FixedLagOptions | None = None, progress: bool = False
+    flight, options: FixedLagOptions | None = None, progress: bool = False, lagged: bool = False
 ) -> Estimate:
     """A flight's events, in arrival order, through an :class:`OnlineSmoother` (the smoother
-    gets the calibration and the events only; ground truth and metadata are never read)."""
+    gets the calibration and the events only; ground truth and metadata are never read); the
+    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one."""
     from fgnav.datasets.events import replay_flight
 
     flight.check()
@@ -2027,7 +2101,7 @@ def replay_online(
         options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
     total = sum(len(getattr(flight, n)) for n in streams)
-    est = run_online(
+    sm = feed_all(
         replay_flight(flight, streams), flight.calib, options, flight.name, progress, total
     )
-    return est
+    return sm.lagged_result() if lagged else sm.result()

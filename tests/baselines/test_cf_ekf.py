@@ -17,8 +17,14 @@ from fgnav.eval.metrics import flow_flight_figures
 from fgnav.methods import METHODS, available_methods
 
 #: The rangefinder as measured on the real flow-deck flights: 8 mm noise, no airborne outliers.
-CRAZYFLIE_LIKE = dict(images=False, slam_rate_hz=0.0, attitude_rate_hz=0.0, yaw_rate_hz=0.0,
-                      range_noise_m=0.008, range_outlier_prob=0.0)
+CRAZYFLIE_LIKE = dict(
+    images=False,
+    slam_rate_hz=0.0,
+    attitude_rate_hz=0.0,
+    yaw_rate_hz=0.0,
+    range_noise_m=0.008,
+    range_outlier_prob=0.0,
+)
 
 
 @pytest.fixture(scope="module")
@@ -31,12 +37,13 @@ def test_flow_update_has_zero_innovation_where_the_factor_model_predicts_the_rea
     R = rpy_to_matrix(0.05, -0.08, 0.7)
     ekf.initialize(R, 0.9)
     u = np.array([0.6, -0.4, 0.05])
-    ekf.S[IU:IU + 3] = u
+    ekf.S[IU : IU + 3] = u
     omega = np.array([0.2, -0.1, 0.3])
     ppr, dt = 48.0, 0.01
     # The factor's model with no lever arm and the ground at z = 0, body velocity u.
-    reading = predict_flow(make_pose(R, [0.0, 0.0, 0.9]), R @ u, 0.0, dt, omega,
-                           FlowSensor(DOWNWARD_FLOW, ppr))
+    reading = predict_flow(
+        make_pose(R, [0.0, 0.0, 0.9]), R @ u, 0.0, dt, omega, FlowSensor(DOWNWARD_FLOW, ppr)
+    )
     before = ekf.S.copy()
     ekf.update_flow(reading, dt, omega, ppr, DOWNWARD_FLOW[:3, :3])
     # The firmware's model uses R22 / z, exactly the factor's cos(tilt) / h at zero lever arm.
@@ -70,8 +77,9 @@ def test_figures_on_the_simulated_flow_deck_flight(flight):
     assert c["flow_updates"] > 0.95 * len(flight.flow) and c["tof_updates"] > 450
     assert est.causal and abs(est.trajectory.t[1] - est.trajectory.t[0] - 0.01) < 1e-6
     # Noise-free, the remaining error is the model's (drag, lever arms): still < 0.1 m/s.
-    clean = simulate("flowdeck", seed=0, options=SimOptions(duration=20.0, noise_free=True,
-                                                            **CRAZYFLIE_LIKE))
+    clean = simulate(
+        "flowdeck", seed=0, options=SimOptions(duration=20.0, noise_free=True, **CRAZYFLIE_LIKE)
+    )
     fig0 = flow_flight_figures(run_cf_ekf(clean), clean.ground_truth)
     assert fig0["hvel_rmse_mps"] < 0.1 and fig0["hvel_rmse_mps"] < fig["hvel_rmse_mps"]
 
@@ -87,9 +95,8 @@ def test_causal_a_run_cut_at_t_gives_the_same_states_before_t(flight):
     part = ekf.result()
     n = len(part.trajectory)
     assert n > 700
-    np.testing.assert_array_equal(part.trajectory.world_t_body,
-                                  full.trajectory.world_t_body[:n])
-    assert ekf.latest() is not None and np.allclose(ekf.latest()[0], ekf.S[IP:IP + 3])
+    np.testing.assert_array_equal(part.trajectory.world_t_body, full.trajectory.world_t_body[:n])
+    assert ekf.latest() is not None and np.allclose(ekf.latest()[0], ekf.S[IP : IP + 3])
 
 
 def test_registry_row_and_missing_streams(flight):

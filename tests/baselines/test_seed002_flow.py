@@ -12,8 +12,14 @@ from fgnav.baselines.seed002_flow import Seed002Flow, run_seed002_flow
 from fgnav.eval.metrics import flow_flight_figures
 from fgnav.methods import METHODS
 
-CRAZYFLIE_LIKE = dict(images=False, slam_rate_hz=0.0, attitude_rate_hz=0.0, yaw_rate_hz=0.0,
-                      range_noise_m=0.008, range_outlier_prob=0.0)
+CRAZYFLIE_LIKE = dict(
+    images=False,
+    slam_rate_hz=0.0,
+    attitude_rate_hz=0.0,
+    yaw_rate_hz=0.0,
+    range_noise_m=0.008,
+    range_outlier_prob=0.0,
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +44,9 @@ def test_figures_on_the_simulated_flow_deck_flight(flight):
     n_low = flight.meta["notes"]["flow_low_quality"]
     assert c["flow_low_quality"] == n_low > 0
     assert c["flow_used"] + n_low + c["flow_before_start"] + c["flow_no_height"] == len(flight.flow)
-    clean = simulate("flowdeck", seed=0, options=SimOptions(duration=20.0, noise_free=True,
-                                                            **CRAZYFLIE_LIKE))
+    clean = simulate(
+        "flowdeck", seed=0, options=SimOptions(duration=20.0, noise_free=True, **CRAZYFLIE_LIKE)
+    )
     fig0 = flow_flight_figures(run_seed002_flow(clean), clean.ground_truth)
     assert fig0["ate_m"] < 0.02 and fig0["hvel_rmse_mps"] < 0.05
 

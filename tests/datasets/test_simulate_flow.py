@@ -89,8 +89,14 @@ def test_noise_has_the_requested_std_and_negative_lag1_correlation():
 
 def test_height_gate_dropouts_and_low_quality_are_counted():
     # vertical: 1 m .. 3 m; a 1.8 m minimum height drops the low part of every cycle.
-    opts = SimOptions(images=False, duration=12.0, flow_rate_hz=50.0, flow_height_min=1.8,
-                      flow_dropout_prob=0.1, flow_low_quality_prob=0.2)
+    opts = SimOptions(
+        images=False,
+        duration=12.0,
+        flow_rate_hz=50.0,
+        flow_height_min=1.8,
+        flow_dropout_prob=0.1,
+        flow_low_quality_prob=0.2,
+    )
     f = simulate("vertical", seed=1, options=opts)
     notes = f.meta["notes"]
     gt = f.ground_truth
@@ -108,8 +114,9 @@ def test_height_gate_dropouts_and_low_quality_are_counted():
 def test_flow_is_off_by_default_except_on_flowdeck_and_other_streams_unchanged():
     base = SimOptions(images=False, duration=3.0)
     off = simulate("two-turns", seed=4, options=base)
-    on = simulate("two-turns", seed=4, options=SimOptions(images=False, duration=3.0,
-                                                          flow_rate_hz=100.0))
+    on = simulate(
+        "two-turns", seed=4, options=SimOptions(images=False, duration=3.0, flow_rate_hz=100.0)
+    )
     assert off.flow is None and "flow" not in off.meta["truth"]
     assert on.flow is not None and len(on.flow) > 250
     for s in ("imu", "range", "slam", "yaw", "attitude"):
@@ -119,23 +126,27 @@ def test_flow_is_off_by_default_except_on_flowdeck_and_other_streams_unchanged()
     np.testing.assert_array_equal(off.range.range, on.range.range)
     np.testing.assert_array_equal(off.slam.slam_t_cam, on.slam.slam_t_cam)
     assert simulate("flowdeck", seed=0, options=base).flow is not None
-    assert simulate("flowdeck", seed=0, options=SimOptions(
-        images=False, duration=3.0, flow_rate_hz=0.0)).flow is None
+    assert (
+        simulate(
+            "flowdeck", seed=0, options=SimOptions(images=False, duration=3.0, flow_rate_hz=0.0)
+        ).flow
+        is None
+    )
 
 
 def test_terrain_step_under_the_sensor_raises_the_flow():
     box = ((-10.0, -10.0, 10.0, 10.0, 0.3),)  # the whole floor raised by 0.3 m
     plain = simulate("flowdeck", seed=0, options=_flow_only(noise_free=True, duration=4.0))
-    raised = simulate("flowdeck", seed=0, options=_flow_only(noise_free=True, duration=4.0,
-                                                             terrain_steps=box))
+    raised = simulate(
+        "flowdeck", seed=0, options=_flow_only(noise_free=True, duration=4.0, terrain_steps=box)
+    )
     gt = plain.ground_truth
     idx = np.searchsorted(gt.t, plain.flow.t - 1e-9)
     h = gt.world_t_body[idx, 2] - 0.02
     moving = np.abs(plain.flow.flow[:, 0]) > 0.05
     ratio = raised.flow.flow[moving, 0] / plain.flow.flow[moving, 0]
     # Pure translation scales with 1 / height (rotation parts are small in this hover ramp).
-    np.testing.assert_allclose(np.median(ratio / (h[moving] / (h[moving] - 0.3))), 1.0,
-                               atol=0.05)
+    np.testing.assert_allclose(np.median(ratio / (h[moving] / (h[moving] - 0.3))), 1.0, atol=0.05)
 
 
 def test_flow_round_trips_through_the_native_folder(tmp_path):
@@ -145,8 +156,10 @@ def test_flow_round_trips_through_the_native_folder(tmp_path):
         np.testing.assert_array_equal(getattr(back.flow, a), getattr(f.flow, a))
     np.testing.assert_array_equal(back.calib.body_T_flow, f.calib.body_T_flow)
     assert back.calib.flow_pixels_per_rad == 48.0
-    assert (tmp_path / "fl" / "flow.csv").read_text().startswith(
-        "t [s],dt [s],flow_x [px],flow_y [px],quality [-]"
+    assert (
+        (tmp_path / "fl" / "flow.csv")
+        .read_text()
+        .startswith("t [s],dt [s],flow_x [px],flow_y [px],quality [-]")
     )
     # A calib.yaml written before the flow fields existed still reads (defaults).
     path = tmp_path / "fl" / "calib.yaml"
@@ -159,8 +172,14 @@ def test_flow_round_trips_through_the_native_folder(tmp_path):
 
 @pytest.mark.parametrize(
     "field,value",
-    [("flow_noise_lag1", -0.7), ("flow_noise_lag1", 0.2), ("flow_pixels_per_rad", 0.0),
-     ("flow_height_min", 6.0), ("flow_rate_hz", 500.0), ("flow_dropout_prob", 1.5)],
+    [
+        ("flow_noise_lag1", -0.7),
+        ("flow_noise_lag1", 0.2),
+        ("flow_pixels_per_rad", 0.0),
+        ("flow_height_min", 6.0),
+        ("flow_rate_hz", 500.0),
+        ("flow_dropout_prob", 1.5),
+    ],
 )
 def test_bad_flow_options_are_named(field, value):
     with pytest.raises(SimulationError, match=field):

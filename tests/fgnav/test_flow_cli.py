@@ -15,8 +15,20 @@ def test_simulate_batch_and_compare_a_flow_deck_flight(tmp_path, capsys):
         "range_noise_m = 0.008\nrange_outlier_prob = 0.0\n"
     )
     folder = tmp_path / "flight"
-    rc = main(["simulate", "--scenario", "flowdeck", "--out", str(folder), "--duration", "12",
-               "--no-images", "--config", str(cfg)])
+    rc = main(
+        [
+            "simulate",
+            "--scenario",
+            "flowdeck",
+            "--out",
+            str(folder),
+            "--duration",
+            "12",
+            "--no-images",
+            "--config",
+            str(cfg),
+        ]
+    )
     assert rc == 0 and (folder / "flow.csv").is_file()
     out = tmp_path / "batch"
     assert main(["batch", str(folder), "--out", str(out)]) == 0
@@ -26,8 +38,18 @@ def test_simulate_batch_and_compare_a_flow_deck_flight(tmp_path, capsys):
     assert info["factors"]["flow"] > 0.95 * info["keyframes"]
     assert info["flow"]["flow-readings-used"] > 1100
     cmp_out = tmp_path / "cmp"
-    rc = main(["compare", str(folder), "--out", str(cmp_out), "--methods",
-               "batch,cf-ekf,ekf-flow002,ekf-vo002", "--no-figures", "--no-progress"])
+    rc = main(
+        [
+            "compare",
+            str(folder),
+            "--out",
+            str(cmp_out),
+            "--methods",
+            "batch,cf-ekf,ekf-flow002,ekf-vo002",
+            "--no-figures",
+            "--no-progress",
+        ]
+    )
     printed = capsys.readouterr().out
     assert rc == 0
     data = json.loads((cmp_out / "compare.json").read_text())

@@ -30,8 +30,9 @@ FLOW_ONLY = dict(images=False, slam_rate_hz=0.0, attitude_rate_hz=0.0, yaw_rate_
 
 @pytest.fixture(scope="module")
 def clean_flight():
-    return simulate("flowdeck", seed=0, options=SimOptions(noise_free=True, duration=8.0,
-                                                           **FLOW_ONLY))
+    return simulate(
+        "flowdeck", seed=0, options=SimOptions(noise_free=True, duration=8.0, **FLOW_ONLY)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +42,12 @@ def noisy_flight():
 
 def _samples(flight, i0: int, n: int) -> list[FlowSample]:
     fl = flight.flow
-    return [FlowSample(float(fl.t[i]), float(fl.t[i]), float(fl.dt[i]), fl.flow[i],
-                       float(fl.quality[i])) for i in range(i0, i0 + n)]
+    return [
+        FlowSample(
+            float(fl.t[i]), float(fl.t[i]), float(fl.dt[i]), fl.flow[i], float(fl.quality[i])
+        )
+        for i in range(i0, i0 + n)
+    ]
 
 
 def _true_values(flight, t: float) -> gtsam.Values:
@@ -62,8 +67,9 @@ def test_mean_rate_over_integrates_the_held_gyro():
     # Zero-order hold: sum of w_i * dt over the steps (partial steps at the ends).
     i0, i1 = 20, 40
     np.testing.assert_allclose(got[0], w[i0:i1].sum(axis=0) * 0.005, atol=1e-12)
-    np.testing.assert_allclose(got[1], w[100] * 0.005 + w[101] * 0.005 + w[102] * 0.0025,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        got[1], w[100] * 0.005 + w[101] * 0.005 + w[102] * 0.0025, atol=1e-12
+    )
 
 
 def test_window_factor_is_zero_at_the_true_state_and_sums_correlated_noise(clean_flight):
@@ -72,8 +78,18 @@ def test_window_factor_is_zero_at_the_true_state_and_sums_correlated_noise(clean
     i0 = 400  # t = 4 s: moving
     s = _samples(f, i0, 5)
     t_mid = 0.5 * (s[0].t - s[0].dt + s[-1].t)
-    res = flow_keyframe_factor(s, f.imu.t, f.imu.body_omega, f.calib, X(0), V(0), G(0), o,
-                               height=0.7, world_R_body=np.eye(3))
+    res = flow_keyframe_factor(
+        s,
+        f.imu.t,
+        f.imu.body_omega,
+        f.calib,
+        X(0),
+        V(0),
+        G(0),
+        o,
+        height=0.7,
+        world_R_body=np.eye(3),
+    )
     assert res.reason == "ok" and res.n_used == 5 and res.factor is not None
     ppr = f.calib.flow_pixels_per_rad
     assert res.sigma == pytest.approx(flow_sum_sigma(o.sigma_rad * ppr, 5, -0.3))
@@ -84,8 +100,9 @@ def test_window_factor_is_zero_at_the_true_state_and_sums_correlated_noise(clean
     assert np.linalg.norm(e) < 0.02 * signal and np.linalg.norm(e) < 0.1 * res.sigma
     # A missing reading splits the window into two independent runs.
     gap = s[:2] + s[3:]
-    res2 = flow_keyframe_factor(gap, f.imu.t, f.imu.body_omega, f.calib, X(0), V(0), G(0), o,
-                                height=0.7)
+    res2 = flow_keyframe_factor(
+        gap, f.imu.t, f.imu.body_omega, f.calib, X(0), V(0), G(0), o, height=0.7
+    )
     expected = math.sqrt(2 * flow_sum_sigma(o.sigma_rad * ppr, 2, -0.3) ** 2)
     assert res2.sigma == pytest.approx(expected) and res2.n_used == 4
 
