@@ -86,6 +86,10 @@ ACCEL_HORIZONTAL_MODES = ("auto", "measured", "thrust-only")
 #: enter the accelerometer check (in flight the Crazyflie's vibration offsets alone tilt it by up
 #: to 30 deg; the drag factor's own gate is ``drag_max_tilt_deg``).
 ACCEL_CHECK_MAX_TILT_DEG = 60.0
+#: Centred moving average [s] of the velocity hint before the accelerometer check: velocities
+#: differenced from 20 Hz SLAM positions or read from one flow window are noisy (0.1-0.2 m/s),
+#: which would attenuate the fitted drag (errors in the regressor); drag is a slow signal.
+ACCEL_CHECK_SMOOTH_S = 0.5
 
 
 class ObservabilityError(FgnavError, ValueError):
@@ -580,7 +584,8 @@ class GraphBuilder:
         )
         n_med = float(np.median(counts[ok])) if ok.any() else 1.0
         white = self.imu_accel_sigma() / math.sqrt(max(n_med, 1.0))
-        chk = check_horizontal_accel(means[ok, :2], u[ok, :2], white)
+        u = _moving_average(u[:, :2], max(1, int(round(ACCEL_CHECK_SMOOTH_S * o.keyframe_hz))))
+        chk = check_horizontal_accel(means[ok, :2], u[ok], white)
         self.accel_check = chk
         if chk.decision == "undecided":
             return
@@ -1674,3 +1679,21 @@ def thrust_only_noise(
         max(accel_nd, sigma / math.sqrt(keyframe_hz)),
         max(accel_rw, sigma / math.sqrt(tau_s)),
     )
+
+
+def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving average of (K, d) over ``n`` samples, NaN-aware (NaN where the window has
+    no finite sample)."""
+    x = np.asarray(x, float)
+    if n <= 1 or len(x) == 0:
+        return x.copy()
+    ok = np.isfinite(x)
+    num = np.where(ok, x, 0.0)
+    kernel = np.ones(n)
+    out = np.empty_like(x)
+    for a in range(x.shape[1]):
+        s = np.convolve(num[:, a], kernel, mode="same")
+        c = np.convolve(ok[:, a].astype(float), kernel, mode="same")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, a] = np.where(c > 0, s / c, np.nan)
+    return out

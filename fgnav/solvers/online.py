@@ -90,7 +90,6 @@ from fgnav.factors.slam_scale import (
 from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.keys import B, S, V, X
-from fgnav.solvers.accel_check import MIN_KEYFRAMES as ACCEL_CHECK_MIN_KEYFRAMES
 from fgnav.solvers.fixed_lag import SOLVER_ERRORS, FixedLagOptions, _isam2_params
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
@@ -110,6 +109,10 @@ log = logging.getLogger(__name__)
 #: thrust-only [m/s^3/sqrt(Hz)]: the bias may jump by the measured offsets (1-5 m/s^2 on the
 #: Crazyflie) within one 50 ms interval.
 BIAS_RELEASE_WALK = 30.0
+#: Keyframes of the first accelerometer check (0.5 s at 20 Hz; then every 5 keyframes over the
+#: last ``drag_scatter_n``): the IMU prediction uses the measured horizontal specific force until
+#: it has decided, so it decides early (the Crazyflie: ratio 7-40 already on the first 0.5 s).
+ONLINE_ACCEL_CHECK_MIN_KEYFRAMES = 10
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
 PROVISIONAL_BASE = 1_000_000
 #: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
@@ -979,9 +982,15 @@ class OnlineSmoother:
             R = self.values[X(j)].rotation().matrix()
             u = R.T @ np.asarray(self.values[V(j)], float)
             self._accel_rows.append((mean[:2].copy(), u[:2], sigma_a / math.sqrt(n)))
-            if len(self._accel_rows) >= ACCEL_CHECK_MIN_KEYFRAMES and j % 5 == 0:
+            first = self._accel_check is None or self._accel_check.decision == "undecided"
+            if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
         if not self._drag_on:
+            return
+        if self.go.drag_accel_check and (
+            self._accel_check is None or self._accel_check.decision == "undecided"
+        ):
+            self._drop("drag:accelerometer-not-checked-yet")  # drag stays out until checked
             return
         if not self._kf_alive(j):
             self._drop("drag:late")
@@ -1026,7 +1035,7 @@ class OnlineSmoother:
         f = np.array([r[0] for r in rows])
         u = np.array([r[1] for r in rows])
         white = float(np.sqrt(np.mean([r[2] ** 2 for r in rows])))
-        chk = check_horizontal_accel(f, u, white)
+        chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
             return

@@ -224,7 +224,7 @@ def test_synthetic_flight_in_fgnav_units_and_frames(tmp_path, version):
     )
     assert f.meta["flow"]["dt_one_loop_after_gap"] == 1
     assert f.meta["flow"]["loop_period_s"] == pytest.approx(0.010, abs=1e-9)
-    assert f.calib.flow_pixels_per_rad == pytest.approx(35 / 0.71674)
+    assert f.calib.flow_pixels_per_rad == FLOW_PIXELS_PER_RAD  # fitted (firmware: 35 / 0.71674)
     # Range: mm -> m, the 0 mm reading left out and counted.
     np.testing.assert_allclose(f.range.range, [0.512, 0.530, 1.600])
     np.testing.assert_allclose(f.range.t, truth["t_tof"][[0, 2, 3]], atol=1e-12)
@@ -586,7 +586,7 @@ def test_cli_info_on_a_raw_log(tmp_path):
     assert out.startswith("flight  0425-traj1")
     for row in ("imu ", "range ", "flow ", "ground_truth "):
         assert any(line.startswith(row) for line in out.splitlines()), (row, out)
-    assert "body_T_flow   t = [+0.0000, +0.0000, -0.0390] m, rotation 180.00 deg; 48.83 px/rad" in (
+    assert "body_T_flow   t = [+0.0000, +0.0000, -0.0390] m, rotation 180.00 deg; 47.8 px/rad" in (
         out
     )
     assert "range.skipped_zero = 14" in out
