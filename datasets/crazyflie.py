@@ -81,13 +81,18 @@ Calibration (``flight.calib``):
   variable absorbs any remainder. Limits :data:`TOF_RANGE_MIN_M` .. :data:`TOF_RANGE_MAX_M`.
 * ``body_T_flow``: ``DOWNWARD_FLOW`` rotation at the same point (the PMW3901 and the VL53L1x sit
   side by side on the flow deck, under the body centre).
-* ``imu_noise``: :data:`CRAZYFLIE_IMU_NOISE`, white-noise densities measured on the still
-  starts of the seven UTIL logs (before the motors spin: 50-100 ms each, 50 blocks pooled), as the
-  std of 10 ms block means times sqrt(10 ms) (blocks longer than the correlation of the
-  firmware's 80 Hz / 30 Hz low-pass filters); random walks are fgnav's defaults (nothing in a
-  45 s log measures them). The same estimate on the file's own still start (5-10 blocks, so
-  +/- 30-50 %) is in ``meta["imu_noise"]``. In flight the accelerometer is dominated by
-  vibration (README: std 1.2-4 m/s^2 on the horizontal axes), far above these densities.
+* ``imu_noise``: :data:`CRAZYFLIE_IMU_NOISE`, the IMU's noise **in flight** (rotor vibration,
+  measured against Vicon on the airborne parts of the seven UTIL flights), the figures an
+  estimator must assume. The sensor's own densities, with the motors off (:data:`STILL_IMU_NOISE`,
+  10-25x lower), are measured on the still starts (50-100 ms each, 50 blocks pooled) as the std
+  of 10 ms block means times sqrt(10 ms) (blocks longer than the correlation of the firmware's
+  80 Hz / 30 Hz low-pass filters); the same estimate on the file's own still start (5-10 blocks,
+  so +/- 30-50 %) is in ``meta["imu_noise"]``. In flight the horizontal accelerometer channels
+  are dominated by vibration offsets (README: std 1.2-4 m/s^2, offsets of 1-5 m/s^2 that are
+  absent on the ground), which no white-noise density describes: the graph's accelerometer check
+  (``fgnav.solvers.accel_check``) finds them and predicts with the thrust axis only.
+* ``flow_pixels_per_rad``: :data:`FLOW_PIXELS_PER_RAD` = 47.8, measured against Vicon (README),
+  not the firmware's 48.83 (:data:`FIRMWARE_FLOW_PIXELS_PER_RAD`).
 """
 
 from __future__ import annotations
@@ -155,8 +160,12 @@ FLOW_RESOLUTION = 0.1
 FIRMWARE_FLOW_NPIX = 35.0
 FIRMWARE_FLOW_THETAPIX = 0.71674
 """``Npix`` [px] and ``thetapix`` [rad] of ``mm_flow.c``: 35 pixels across ``2 sin(42 deg / 2)``."""
-FLOW_PIXELS_PER_RAD = FIRMWARE_FLOW_NPIX / FIRMWARE_FLOW_THETAPIX
-"""48.83 px/rad (the README fits 47.8 +/- 0.3 on these flights)."""
+FIRMWARE_FLOW_PIXELS_PER_RAD = FIRMWARE_FLOW_NPIX / FIRMWARE_FLOW_THETAPIX
+"""48.83 px/rad: the firmware's flow scale."""
+FLOW_PIXELS_PER_RAD = 47.8
+"""Pixels per radian of image motion of the UTIL flow decks, fitted against Vicon (README of
+``crazyflie_util_flowdeck``: 47.8 +/- 0.3 pooled over the seven flights; per flight and axis 42-50,
+lower on the faster flights); the firmware's 48.83 reads every velocity 2.2 % too small."""
 FLOW_GAP_FACTOR = 1.5
 """A flow step longer than this many loop periods has dropped reads: ``dt`` is one loop."""
 IMU_PAIR_TOLERANCE_S = 0.5e-3
@@ -176,10 +185,25 @@ STILL_GYRO_STD_DEG_S = 1.0
 motors spinning on the ground: 3-20)."""
 NOISE_BLOCK_S = 0.01
 """Block length of the noise-density estimate [s]."""
-CRAZYFLIE_IMU_NOISE = ImuNoise(gyro_noise_density=1.7e-4, accel_noise_density=2.4e-3)
-"""BMI088 on the Crazyflie 2.1, measured on the UTIL logs' still starts (module docstring):
-gyro 1.7e-4 rad/s/sqrt(Hz) (axes 1.0, 2.0, 1.9e-4), accel 2.4e-3 m/s^2/sqrt(Hz) (2.0, 3.4,
-1.1e-3); random walks fgnav's defaults."""
+STILL_IMU_NOISE = ImuNoise(gyro_noise_density=1.7e-4, accel_noise_density=2.4e-3)
+"""BMI088 on the Crazyflie 2.1 with the motors off, measured on the UTIL logs' still starts
+(module docstring): gyro 1.7e-4 rad/s/sqrt(Hz) (axes 1.0, 2.0, 1.9e-4), accel 2.4e-3
+m/s^2/sqrt(Hz) (2.0, 3.4, 1.1e-3)."""
+CRAZYFLIE_IMU_NOISE = ImuNoise(
+    gyro_noise_density=2.0e-3,
+    accel_noise_density=0.06,
+    gyro_random_walk=STILL_IMU_NOISE.gyro_random_walk,
+    accel_random_walk=0.02,
+)
+"""The same IMU **in flight** (``calib.imu_noise``; the estimator's noise model), measured on the
+airborne parts of the seven UTIL flights (above 0.3 m): white densities from the differences of
+consecutive 10 ms block means (removes the motion): gyro 1.9-2.1e-3 rad/s/sqrt(Hz) on x, y
+(0.8e-3 on z), accelerometer z 0.033-0.045 at 10 ms and, against the Vicon specific force,
+0.055-0.069 m/s^2/sqrt(Hz) at 50 ms-1 s: rotor vibration, 10-25x the still figures. The z
+accelerometer's error against Vicon wanders by about 0.1 m/s^2 over 10 s (random walk 0.02
+m/s^3/sqrt(Hz)); the gyro's walk is fgnav's default (the flights are too short to measure it).
+The horizontal channels are far worse (offsets of 1-5 m/s^2 in flight): see
+``fgnav.solvers.accel_check``."""
 
 GT_VELOCITY_WINDOW_S = 0.1
 GT_VELOCITY_RATE_HZ = 300.0
@@ -739,7 +763,7 @@ def imu_noise_from_still(imu: ImuSeries) -> tuple[ImuNoise | None, dict[str, Any
     return noise, {
         "source": f"still window at the start of the log: {n / rate * 1e3:.0f} ms ({n} samples), "
         f"std of {nb} block means of {t_block * 1e3:.0f} ms x sqrt(block)",
-        "used": "no: calib.imu_noise is CRAZYFLIE_IMU_NOISE (pooled over the UTIL logs)",
+        "used": "no: calib.imu_noise is CRAZYFLIE_IMU_NOISE (in flight, pooled over the UTIL logs)",
         "blocks": nb,
         "gyro_noise_density": noise.gyro_noise_density,
         "accel_noise_density": noise.accel_noise_density,

@@ -131,6 +131,7 @@ class CompareResult:
     timings: dict[str, float] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
     rpe_delta_m: float = DEFAULT_RPE_DELTA_M
+    flow_figures: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def estimates(self) -> list[Estimate]:
@@ -199,6 +200,7 @@ class CompareResult:
             },
             "rpe_delta_m": self.rpe_delta_m,
             "table": self.rows(),
+            "flow_table": self.flow_table(),
             "methods": methods,
             "skipped": dict(self.skipped),
             "timings": dict(self.timings),
@@ -206,6 +208,21 @@ class CompareResult:
             "figures": dict(figures or {}),
         }
         return to_jsonable(data)
+
+    def flow_table(self) -> dict[str, Any] | None:
+        """The flow-and-range figures per method, their markdown table and the goal checks
+        (``fgnav.eval.flow_table``); None for a flight without optical flow or truth."""
+        if not self.flow_figures:
+            return None
+        from fgnav.eval.flow_table import check_goals, goals_markdown, markdown_table
+
+        goals = check_goals(self.flow_figures)
+        return {
+            "figures": self.flow_figures,
+            "markdown": markdown_table(self.flow_figures),
+            "goals": goals,
+            "goals_markdown": goals_markdown(goals),
+        }
 
     def write(self, out_dir: str | Path, figures: bool = True) -> dict[str, Path]:
         """Write ``compare.json``, ``report.md``, the figures and ``<method>/`` outputs.
@@ -502,6 +519,13 @@ def compare(
             except Exception as e:  # scoring problems are reported per method
                 run.evaluation_error = f"{type(e).__name__}: {one_line(str(e))}"
                 log.warning("%s: not scored: %s", name, run.evaluation_error)
+        if run.ok and flight.ground_truth is not None and flight.flow is not None:
+            from fgnav.eval.flow_table import flow_figures
+
+            try:
+                res.flow_figures[name] = flow_figures(run.estimate, flight.ground_truth)
+            except Exception as e:  # scoring problems are reported per method
+                log.warning("%s: no flow figures: %s", name, one_line(str(e)))
         run.wall_s = time.perf_counter() - t0
         res.timings[name] = run.wall_s
         res.runs[name] = run

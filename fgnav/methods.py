@@ -35,7 +35,7 @@ import importlib
 import importlib.util
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -275,6 +275,10 @@ def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
     priors = frontend_priors(flight, config)
     engine, why = resolve_engine(flight, opts, priors)
     if engine == "push":
+        if opts.graph.use_slam and flight.slam is None:
+            # The replay knows the log has no SLAM stream (a live link knows its configured
+            # streams): the smoother must not wait start_wait_s for a first SLAM pose.
+            opts = replace(opts, graph=replace(opts.graph, use_slam=False))
         est = replay_online(flight, opts, progress=progress)
     else:
         if why:

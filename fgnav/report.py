@@ -150,6 +150,22 @@ def render_report(data: Mapping[str, Any]) -> str:
         "duration / run time. `-`: not available for that method.",
         "",
     ]
+    ft = data.get("flow_table")
+    if ft:
+        lines += [
+            "## Flow-and-range figures (issue 17)",
+            "",
+            ft["markdown"],
+            "",
+            "One 4-DoF (yaw + translation) alignment per trajectory for the velocity (100 ms "
+            "trailing averages), height and ATE; end drift: horizontal distance at the end with "
+            "the start pose known (first yaw and position from the truth), as a percentage of the "
+            "truth's horizontal path. Goals: velocity <= 0.08 m/s, height <= 1.5 cm, end drift "
+            "<= 1 %, smoothers better than cf-ekf and ekf-flow002 on every figure:",
+            "",
+            ft["goals_markdown"],
+            "",
+        ]
     skipped = data.get("skipped") or {}
     failed = {n: m for n, m in data["methods"].items() if m["status"] == "failed"}
     if skipped or failed:

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import wrap_angle, yaw_of
+from fgnav.datasets.geometry import quat_wxyz_to_matrix, wrap_angle, yaw_of
 from fgnav.datasets.types import SlamSeries, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.eval.align import (
@@ -692,11 +692,13 @@ def flow_flight_figures(
     [m/s] (the estimate's ``world_v_body`` rotated by the alignment; optionally both averaged over
     trailing ``velocity_average_s`` windows), of the height [m] (aligned z against true z) and
     the ATE [m]; plus the end drift: horizontal distance between the last aligned and true
-    positions [m] and as a percentage of the true horizontal path length.
+    positions [m] and as a percentage of the true horizontal path length; and the end drift with
+    the start pose known (``start_drift_m``, ``start_drift_pct``): the estimate rotated about z and
+    moved so that its first pose has the truth's first yaw and position, no other alignment.
 
     Returns:
         ``{"hvel_rmse_mps", "height_rmse_m", "ate_m", "end_drift_m", "end_drift_pct",
-        "path_m"}``.
+        "start_drift_m", "start_drift_pct", "path_m"}``.
     """
     estimate.check()
     est = estimate.trajectory
@@ -726,4 +728,14 @@ def flow_flight_figures(
     out["path_m"] = path
     out["end_drift_m"] = float(np.linalg.norm(p[-1, :2] - gt.world_t_body[-1, :2]))
     out["end_drift_pct"] = 100.0 * out["end_drift_m"] / path if path > 0 else float("nan")
+    # Start pose known: the estimate placed at the truth's first pose (yaw and position) only.
+    q0 = est.world_q_body_wxyz[idx[0]]
+    dyaw = float(yaw_of(quat_wxyz_to_matrix(gt.world_q_body_wxyz[0]))) - float(
+        yaw_of(quat_wxyz_to_matrix(q0))
+    )
+    c, s_ = math.cos(dyaw), math.sin(dyaw)
+    Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    e_end = Rz @ (est.world_t_body[idx[-1]] - est.world_t_body[idx[0]]) + gt.world_t_body[0]
+    out["start_drift_m"] = float(np.linalg.norm(e_end[:2] - gt.world_t_body[-1, :2]))
+    out["start_drift_pct"] = 100.0 * out["start_drift_m"] / path if path > 0 else float("nan")
     return out

@@ -417,6 +417,8 @@ class FixedLagRunner:
         if b.use_range:
             for n, k in enumerate(b.range_kf):
                 rows.append((float(b.range_arrival[n]), int(k), "range", n))
+        for n, k in enumerate(b.contact_kf):
+            rows.append((float(b.contact_arrival[n]), int(k), "contact", n))
         if b.use_yaw:
             for n, k in enumerate(b.yaw_kf):
                 rows.append((float(b.yaw_arrival[n]), int(k), "yaw", n))

@@ -315,6 +315,33 @@ def flow_keyframe_factor(
     return FlowFactorResult(factor, "ok", dict(skipped), len(kept), arrival, sigma)
 
 
+def flow_body_velocity(
+    flow: np.ndarray,
+    dt: float,
+    body_omega: np.ndarray,
+    height: float,
+    world_R_body: np.ndarray,
+    body_T_flow: np.ndarray,
+    pixels_per_rad: float,
+) -> np.ndarray:
+    """Horizontal body velocity [m/s] (3,) that explains a (summed) flow reading: the flow model
+    of ``factors/optical_flow.py`` solved for the sensor's x, y velocity with no velocity along the
+    optical axis, moved to the body origin (lever arm) and expressed in body axes (z = 0 for a
+    level sensor). A dead-reckoning velocity for initial values and checks; NaN when the sensor's
+    distance to the ground is not positive."""
+    A = np.asarray(body_T_flow, float)[:3, :3].T
+    lever = np.asarray(body_T_flow, float)[:3, 3]
+    R = np.asarray(world_R_body, float)
+    c = -float((R @ np.asarray(body_T_flow, float)[:3, 2])[2])
+    if not (height > 0 and c > 0 and dt > 0):
+        return np.full(3, np.nan)
+    q = c / height
+    w = A @ np.asarray(body_omega, float)
+    rate = np.asarray(flow, float) / (pixels_per_rad * dt)
+    v_sensor = np.array([-(rate[0] + w[1]) / q, -(rate[1] - w[0]) / q, 0.0])
+    return A.T @ v_sensor - np.cross(body_omega, lever)
+
+
 def flow_sensor_height(
     range_m: float, world_R_body: np.ndarray, body_T_range: np.ndarray, body_T_flow: np.ndarray
 ) -> float:
@@ -441,6 +468,35 @@ class FlowFactors:
         if res.factor is not None:
             self.counts["flow-readings-used"] += res.n_used
         return res
+
+    def velocity_hint(
+        self, R_kf: np.ndarray, imu_t: np.ndarray, imu_omega: np.ndarray, gyro_bias: np.ndarray
+    ) -> np.ndarray:
+        """(K, 3) body velocity at each keyframe from its window's readings alone
+        (:func:`flow_body_velocity`; quality-gated readings out); NaN where the window has no
+        reading or no height. Initial values and the accelerometer check use it."""
+        K = len(R_kf)
+        out = np.full((K, 3), np.nan)
+        fl = self.flow
+        q = fl.quality
+        T_flow = np.asarray(self.flight.calib.body_T_flow, float)
+        ppr = float(self.flight.calib.flow_pixels_per_rad)
+        for k, idx in self.by_keyframe.items():
+            h = self.height.get(k)
+            if h is None or not self.options.height_min <= h <= self.options.height_max:
+                continue
+            if q is not None:
+                idx = idx[~(q[idx] < self.options.quality_min) | (q[idx] < 0)]
+            if len(idx) == 0:
+                continue
+            ends, dts = fl.t[idx], fl.dt[idx]
+            dt = float(dts.sum())
+            rot = mean_rate_over(imu_t, imu_omega, ends - dts, ends).sum(axis=0)
+            omega = rot / dt - np.asarray(gyro_bias, float)
+            out[k] = flow_body_velocity(
+                fl.flow[idx].sum(axis=0), dt, omega, float(h), R_kf[k], T_flow, ppr
+            )
+        return out
 
     def report(self) -> dict[str, Any]:
         return {"options": dataclasses.asdict(self.options), **dict(self.counts)}

@@ -80,6 +80,18 @@ PREINTEGRATION_INTEGRATION_COV = 1e-8
 BIAS_ACC_OMEGA_INIT_COV = 1e-5
 
 
+ACCEL_HORIZONTAL_MODES = ("auto", "measured", "thrust-only")
+"""Values of ``GraphOptions.accel_horizontal``."""
+#: Keyframes whose mean specific force is within this angle of body +z (and above half of g)
+#: enter the accelerometer check (in flight the Crazyflie's vibration offsets alone tilt it by up
+#: to 30 deg; the drag factor's own gate is ``drag_max_tilt_deg``).
+ACCEL_CHECK_MAX_TILT_DEG = 60.0
+#: Centred moving average [s] of the velocity hint before the accelerometer check: velocities
+#: differenced from 20 Hz SLAM positions or read from one flow window are noisy (0.1-0.2 m/s),
+#: which would attenuate the fitted drag (errors in the regressor); drag is a slow signal.
+ACCEL_CHECK_SMOOTH_S = 0.5
+
+
 class ObservabilityError(FgnavError, ValueError):
     """The chosen sensor subset leaves part of the state unobservable."""
 
@@ -174,6 +186,33 @@ class GraphOptions:
             whenever ``use_drag`` is on.
         drag_thrust_max_angle_deg: largest angle between the mean normalised specific force and
             body +z for the drag model [deg].
+        drag_accel_check: check that the accelerometer's horizontal channels can carry the
+            drag model (``fgnav.solvers.accel_check``: the scatter of the keyframe-mean
+            horizontal specific force about its best drag fit against what drag could explain at
+            the flight's speeds, from the flow or SLAM initial velocities); "unusable": the drag
+            factor stays out (``Estimate.info["drag_disabled"]``), "noisy": its noise floor is
+            raised to that scatter. The decision is logged in one line and kept in
+            ``info["accel_check"]``.
+        accel_horizontal: horizontal specific force in the IMU prediction: ``"measured"`` (the
+            accelerometer), ``"thrust-only"`` (body x, y replaced by 0: thrust along body z,
+            rotor drag neglected, as the Crazyflie firmware's in-flight prediction) or ``"auto"``
+            (thrust-only when the accelerometer check finds the horizontal channels unusable).
+        thrust_only_sigma: the neglected horizontal specific force of the thrust-only prediction
+            [m/s^2] (rotor drag: about 0.2-0.4 m/s^2 RMS on the Crazyflie flights, from Vicon):
+            white noise of that size per keyframe mean plus an accelerometer-bias random walk on
+            body x, y reaching it in ``thrust_only_tau_s``.
+        thrust_only_tau_s: time over which the neglected drag changes [s].
+        contact_height_m: ground contact: when the rangefinder puts its sensor within this
+            height of the ground on the two readings around a keyframe (a vehicle standing on
+            the floor before take-off and after landing: the flow deck's time-of-flight reads
+            12-25 mm there, below its 40 mm limit, and the flow is gated), the keyframe gets a
+            zero-velocity factor (``contact_velocity_sigma``, robust), counted as ``contact``.
+            None: off.
+        contact_velocity_sigma: noise of the ground-contact zero velocity [m/s] (covers the
+            first centimetres of a take-off).
+        contact_range_sigma: at a ground-contact keyframe the range sensor also stands on the
+            ground: a range factor of 0 m with this noise [m] (the vehicle's resting height; the
+            flow deck's model height on the floor is -1 cm, against Vicon); None: none.
     """
 
     keyframe_hz: float = 20.0
@@ -227,6 +266,13 @@ class GraphOptions:
     gyro_bias_from_slam: bool = True
     drag_thrust_check: bool = True
     drag_thrust_max_angle_deg: float = 30.0
+    drag_accel_check: bool = True
+    accel_horizontal: str = "auto"
+    thrust_only_sigma: float = 0.3
+    thrust_only_tau_s: float = 1.0
+    contact_height_m: float | None = 0.03
+    contact_velocity_sigma: float = 0.1
+    contact_range_sigma: float | None = 0.015
 
     def check(self) -> GraphOptions:
         if self.robust not in ("huber", "cauchy", "none"):
@@ -246,6 +292,16 @@ class GraphOptions:
         check_modes(self.slam_rotation, self.slam_time_offset, "GraphOptions")
         if not self.keyframe_hz > 0:
             raise FlightDataError(f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0")
+        if self.accel_horizontal not in ACCEL_HORIZONTAL_MODES:
+            raise FlightDataError(
+                f"GraphOptions.accel_horizontal={self.accel_horizontal!r}: expected one of "
+                + ", ".join(ACCEL_HORIZONTAL_MODES)
+            )
+        if not (self.thrust_only_sigma > 0 and self.thrust_only_tau_s > 0):
+            raise FlightDataError(
+                f"GraphOptions.thrust_only_sigma={self.thrust_only_sigma}, thrust_only_tau_s="
+                f"{self.thrust_only_tau_s}: expected > 0"
+            )
         return self
 
 
@@ -289,17 +345,25 @@ def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
 
 
 def pim_params(
-    noise: Any, gravity: float, gyro_noise_floor: float = 0.0
+    noise: Any,
+    gravity: float,
+    gyro_noise_floor: float = 0.0,
+    accel_nd: np.ndarray | None = None,
+    accel_rw: np.ndarray | None = None,
 ) -> gtsam.PreintegrationCombinedParams:
     """IMU preintegration parameters (world z up) from the calibration's noise densities and
-    random walks (``ImuNoise``); ``gyro_noise_floor``: least gyro noise density."""
+    random walks (``ImuNoise``); ``gyro_noise_floor``: least gyro noise density; ``accel_nd``,
+    ``accel_rw``: per-axis accelerometer noise density and bias walk (e.g. the thrust-only
+    prediction's, :func:`thrust_only_noise`) instead of the calibration's."""
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity)
     gyro_nd = max(noise.gyro_noise_density, gyro_noise_floor)
+    nd = np.full(3, noise.accel_noise_density) if accel_nd is None else np.asarray(accel_nd)
+    rw = np.full(3, noise.accel_random_walk) if accel_rw is None else np.asarray(accel_rw)
     p.setGyroscopeCovariance(gyro_nd**2 * np.eye(3))
-    p.setAccelerometerCovariance(noise.accel_noise_density**2 * np.eye(3))
+    p.setAccelerometerCovariance(np.diag(nd**2))
     p.setIntegrationCovariance(PREINTEGRATION_INTEGRATION_COV * np.eye(3))
     p.setBiasOmegaCovariance(noise.gyro_random_walk**2 * np.eye(3))
-    p.setBiasAccCovariance(noise.accel_random_walk**2 * np.eye(3))
+    p.setBiasAccCovariance(np.diag(rw**2))
     return p
 
 
@@ -388,6 +452,7 @@ class GraphBuilder:
         self.R_kf = slerp_rotations(self.imu.t, self.R_imu, self.t_kf)
         self._prepare_slam()
         self._prepare_range()
+        self._prepare_contact()
         self._prepare_yaw()
         self._prepare_drag()
         self.ground_segment = self._segments(o.ground_segment_s) if self.use_range else None
@@ -399,6 +464,16 @@ class GraphBuilder:
 
             self.flow = FlowFactors(flight, flow_options(o.flow), self._skip)
             self.flow.associate(self.t_kf, self.R_kf)
+        self._flow_velocity: np.ndarray | None = None
+        self.accel_check = None
+        self.thrust_only = o.accel_horizontal == "thrust-only"
+        if (o.use_drag and o.drag_accel_check) or o.accel_horizontal == "auto":
+            self._decide_accel()
+        if self.thrust_only:
+            a = np.array(self.imu.body_accel, float)
+            a[:, :2] = 0.0
+            self.imu = ImuSeries(self.imu.t, self.imu.body_omega, a)
+            self.pim_params = self._pim_params()
         self.drag_segment = self._segments(o.drag_segment_s) if self.use_drag else None
 
     # ------------------------------------------------------------------------------------------
@@ -411,21 +486,26 @@ class GraphBuilder:
         o = self.options
         if not (o.use_drag and o.drag_thrust_check):
             return None
-        a = np.asarray(self.flight.imu.body_accel, float)
-        norm = np.linalg.norm(a, axis=1)
-        ok = norm > 0.5 * o.gravity
-        if not ok.any():
-            return None
-        mean_dir = (a[ok] / norm[ok, None]).mean(axis=0)
-        mean_dir /= max(float(np.linalg.norm(mean_dir)), 1e-12)
-        angle = math.degrees(math.acos(float(np.clip(mean_dir[2], -1.0, 1.0))))
-        if angle <= o.drag_thrust_max_angle_deg:
+        angle, mean_dir = self._thrust_angle()
+        if angle is None or angle <= o.drag_thrust_max_angle_deg:
             return None
         return (
             f"the mean specific force is {angle:.0f} deg from body +z (direction "
             f"{np.round(mean_dir, 2).tolist()}); the drag model needs the thrust along body z "
             "(FLU body frame); set graph.drag_thrust_check = false to force it"
         )
+
+    def _thrust_angle(self) -> tuple[float | None, np.ndarray]:
+        """Angle [deg] between the flight's mean normalised specific force and body +z, and that
+        direction (None when no sample is thrust-borne)."""
+        a = np.asarray(self.flight.imu.body_accel, float)
+        norm = np.linalg.norm(a, axis=1)
+        ok = norm > 0.5 * self.options.gravity
+        if not ok.any():
+            return None, np.zeros(3)
+        mean_dir = (a[ok] / norm[ok, None]).mean(axis=0)
+        mean_dir /= max(float(np.linalg.norm(mean_dir)), 1e-12)
+        return math.degrees(math.acos(float(np.clip(mean_dir[2], -1.0, 1.0)))), mean_dir
 
     def _choose_slam_model(self) -> str:
         o = self.options
@@ -459,9 +539,88 @@ class GraphBuilder:
         return ImuSeries(f.imu.t, omega_from_attitude(f.attitude, f.imu.t), f.imu.body_accel)
 
     def _pim_params(self) -> gtsam.PreintegrationCombinedParams:
+        n = self.flight.calib.imu_noise
         # Rates differentiated from the attitude stream are much noisier than a gyro.
         floor = 0.0 if self.options.use_gyro else 1e-2
-        return pim_params(self.flight.calib.imu_noise, self.options.gravity, floor)
+        acc_nd = np.full(3, n.accel_noise_density)
+        acc_rw = np.full(3, n.accel_random_walk)
+        if getattr(self, "thrust_only", False):
+            acc_nd[:2], acc_rw[:2] = thrust_only_noise(
+                self.options.thrust_only_sigma,
+                self.options.thrust_only_tau_s,
+                self.options.keyframe_hz,
+                n.accel_noise_density,
+                n.accel_random_walk,
+            )
+        return pim_params(n, self.options.gravity, floor, acc_nd, acc_rw)
+
+    def _kf_accel_means(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean measured specific force (K, 3) over each keyframe's window (half the
+        neighbouring intervals) and the sample counts (K,)."""
+        period = np.diff(self.t_kf)
+        half = (
+            0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]])
+            if self.K > 1
+            else np.array([0.5 / self.options.keyframe_hz])
+        )
+        return mean_in_windows(self.imu.t, self.imu.body_accel, self.t_kf, half)
+
+    def _velocity_hint(self) -> np.ndarray | None:
+        """(K, 3) body velocity from the flow windows (dead reckoning) or the SLAM initial
+        values; None without either."""
+        if self.flow is not None:
+            if self._flow_velocity is None:
+                self._flow_velocity = self.flow.velocity_hint(
+                    self.R_kf, self.imu.t, self.imu.body_omega, self.gyro_bias0
+                )
+            return self._flow_velocity
+        if self.use_slam:
+            g = self.initial_guess()
+            return np.einsum("nji,nj->ni", g.world_R_body, g.world_v_body)
+        return None
+
+    def _decide_accel(self) -> None:
+        """The accelerometer check (``drag_accel_check``, ``accel_horizontal``): drag off or
+        down-weighted, thrust-only prediction; one log line."""
+        from fgnav.solvers.accel_check import check_horizontal_accel
+
+        o = self.options
+        angle, _ = self._thrust_angle()
+        if angle is None or angle > o.drag_thrust_max_angle_deg:
+            return  # thrust not along body z: neither model applies (see _drag_model_invalid)
+        u = self._velocity_hint()
+        if u is None:
+            return
+        means, counts = self._kf_accel_means()
+        norm = np.linalg.norm(means, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos_tilt = means[:, 2] / norm
+        ok = (
+            (counts > 0)
+            & (norm > 0.5 * o.gravity)
+            & (cos_tilt >= math.cos(math.radians(ACCEL_CHECK_MAX_TILT_DEG)))
+        )
+        n_med = float(np.median(counts[ok])) if ok.any() else 1.0
+        white = self.imu_accel_sigma() / math.sqrt(max(n_med, 1.0))
+        u = _moving_average(u[:, :2], max(1, int(round(ACCEL_CHECK_SMOOTH_S * o.keyframe_hz))))
+        chk = check_horizontal_accel(means[ok, :2], u[ok], white)
+        self.accel_check = chk
+        if chk.decision == "undecided":
+            return
+        if o.accel_horizontal == "auto" and chk.decision == "unusable":
+            self.thrust_only = True
+        if o.use_drag and o.drag_accel_check:
+            if chk.decision == "unusable":
+                self.drag_disabled = "accelerometer check: " + chk.line()
+                self.options = replace(self.options, use_drag=False)
+            elif chk.decision == "noisy":
+                self.drag_sigma = max(self.drag_sigma, chk.residual)
+        log.warning(
+            "%s: %s%s",
+            self.flight.name,
+            chk.line(),
+            "; IMU prediction thrust-only (body x, y specific force 0)" if self.thrust_only else "",
+        )
 
     def _segments(self, seg_s: float | None) -> np.ndarray:
         if seg_s is None or seg_s <= 0:
@@ -585,6 +744,29 @@ class GraphBuilder:
         keep = np.asarray(keep, dtype=bool)
         self.range_kf, self.range_val, self.range_arrival = kf[keep], vals[keep], arr[keep]
         self._count("range-samples", len(rng))
+
+    def _prepare_contact(self) -> None:
+        """Keyframes on the ground (``contact_height_m``): both raw range readings around the
+        keyframe put the range sensor that close to the ground (attitude at the keyframe)."""
+        self.contact_kf = np.array([], dtype=int)
+        self.contact_arrival = np.array([])
+        h_max = self.options.contact_height_m
+        if not self.use_range or h_max is None:
+            return
+        rng = self.flight.range
+        if len(rng) < 2:
+            return
+        T = np.asarray(self.flight.calib.body_T_range, float)
+        j = np.clip(np.searchsorted(rng.t, self.t_kf, side="left"), 1, len(rng) - 1)
+        gap_ok = (rng.t[j] - rng.t[j - 1]) <= self.options.interp_max_gap_s
+        cos_beam = -np.einsum("nij,j->ni", self.R_kf, T[:3, 2])[:, 2]
+        low = np.ones(self.K, bool)
+        for i in (j - 1, j):
+            low &= rng.range[i] * cos_beam <= h_max
+        inside = (self.t_kf >= rng.t[0]) & (self.t_kf <= rng.t[-1])
+        kf = np.flatnonzero(low & gap_ok & inside)
+        self.contact_kf = kf
+        self.contact_arrival = rng.t[j[kf]]
 
     def _prepare_yaw(self) -> None:
         self.yaw_kf = np.array([], dtype=int)
@@ -726,17 +908,57 @@ class GraphBuilder:
             pos = self.vision.initial_positions(self.t_kf)
             if pos is None:
                 pos = np.full((K, 3), np.nan)
+        flow_dr = None
+        if not np.isfinite(pos).any() and self.flow is not None:
+            flow_dr = self._flow_dead_reckoning()
+            if flow_dr is not None:
+                pos = flow_dr[0]
         if not np.isfinite(pos).any():
             pos[0] = 0.0
         pos = _fill_positions(pos, self.t_kf)
         guess.world_t_body = pos
         if K > 2:
             guess.world_v_body = np.gradient(pos, self.t_kf, axis=0)
+        if flow_dr is not None:
+            guess.world_v_body[:, :2] = flow_dr[1][:, :2]
         if self.use_drag:
             guess.drag_k = self.init_drag_k(guess)
         if self.use_range and len(self.range_kf):
             guess.ground_height = self.init_ground(guess)
         return guess
+
+    def _flow_dead_reckoning(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Initial positions and world velocities (K, 3) from the flow windows' velocities
+        (``FlowFactors.velocity_hint``, gaps interpolated, zero before the first and after the
+        last) through the attitude track, the height from the gated range readings (the first at
+        z = 0); None without a flow velocity."""
+        u = self._velocity_hint()
+        if u is None:
+            return None
+        ok = np.all(np.isfinite(u[:, :2]), axis=1)
+        if not ok.any():
+            return None
+        t = self.t_kf
+        ub = np.zeros((self.K, 3))
+        for a in range(2):
+            ub[:, a] = np.interp(t, t[ok], u[ok, a], left=0.0, right=0.0)
+        v = np.einsum("nij,nj->ni", self.R_kf, ub)
+        v[:, 2] = 0.0
+        pos = np.zeros((self.K, 3))
+        if self.K > 1:
+            dt = np.diff(t)[:, None]
+            pos[1:] = np.cumsum(0.5 * (v[1:] + v[:-1]) * dt, axis=0)
+        if self.use_range and len(self.range_kf):
+            T = np.asarray(self.flight.calib.body_T_range, float)
+            R = self.R_kf[self.range_kf]
+            beam_z = np.einsum("nij,j->ni", R, T[:3, :3] @ np.array([0.0, 0.0, 1.0]))[:, 2]
+            lever_z = np.einsum("nij,j->ni", R, T[:3, 3])[:, 2]
+            z = -self.range_val * beam_z - lever_z
+            z = np.interp(t, t[self.range_kf], z)
+            pos[:, 2] = z - z[0]
+            if self.K > 2:
+                v[:, 2] = np.gradient(pos[:, 2], t)
+        return pos, v
 
     def init_session(self, session: int, t_limit: float | None = None) -> SlamAlignmentInit:
         """Closed-form alignment of one SLAM session from the poses that have arrived by
@@ -1220,8 +1442,8 @@ class GraphBuilder:
             k: keyframe index.
             slam_init_scale: initial scale per SLAM variable key (converts the SLAM noise in
                 metres into SLAM units).
-            kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"yaw"``,
-                ``"homography"``, ``"flow"``); None: all.
+            kinds: only these kinds (``"drag"``, ``"slam"``, ``"range"``, ``"contact"``,
+                ``"yaw"``, ``"homography"``, ``"flow"``); None: all.
         """
         o = self.options
         f = self.flight
@@ -1284,6 +1506,18 @@ class GraphBuilder:
                 out.append(
                     MeasurementFactor(float(self.range_arrival[n]), k, "range", fac, (X(k), gk))
                 )
+        if len(self.contact_kf) and want("contact"):
+            for n in self._rows_at("contact", self.contact_kf, k):
+                noise = self._noise(3, o.contact_velocity_sigma)
+                fac = gtsam.PriorFactorVector(V(k), np.zeros(3), noise)
+                arrival = float(self.contact_arrival[n])
+                out.append(MeasurementFactor(arrival, k, "contact", fac, (V(k),)))
+                if o.contact_range_sigma is not None:
+                    gk = G(int(self.ground_segment[k]))
+                    fac = make_range_factor(
+                        X(k), gk, 0.0, self.body_T_range, self._noise(1, o.contact_range_sigma)
+                    )
+                    out.append(MeasurementFactor(arrival, k, "contact", fac, (X(k), gk)))
         if self.use_yaw and want("yaw"):
             for n in self._rows_at("yaw", self.yaw_kf, k):
                 noise = self._noise(1, o.yaw_sigma)
@@ -1376,6 +1610,8 @@ class GraphBuilder:
             "keyframes": int(self.K),
             "slam_model": self.slam_model if self.use_slam else None,
             "drag_disabled": self.drag_disabled,
+            "accel_check": self.accel_check.as_dict() if self.accel_check is not None else None,
+            "accel_horizontal": "thrust-only" if self.thrust_only else "measured",
             "factors": dict(self.counts),
             "skipped": dict(self.skipped),
             "homography": self.vision.report() if self.vision is not None else None,
@@ -1454,3 +1690,35 @@ def check_observability(flight: Flight, options: GraphOptions, slam_model: str) 
             "%s: no yaw stream and no SLAM: world yaw is held by the first-pose prior only",
             flight.name,
         )
+
+
+def thrust_only_noise(
+    sigma: float, tau_s: float, keyframe_hz: float, accel_nd: float, accel_rw: float
+) -> tuple[float, float]:
+    """(noise density [m/s^2/sqrt(Hz)], bias random walk [m/s^3/sqrt(Hz)]) of the body x, y
+    specific force in a thrust-only IMU prediction (``GraphOptions.accel_horizontal``): the
+    neglected drag ``sigma`` as white noise of a keyframe mean (``sigma / sqrt(keyframe_hz)``) and
+    as a bias walk reaching ``sigma`` in ``tau_s`` (``sigma / sqrt(tau_s)``); never below the
+    accelerometer's own figures."""
+    return (
+        max(accel_nd, sigma / math.sqrt(keyframe_hz)),
+        max(accel_rw, sigma / math.sqrt(tau_s)),
+    )
+
+
+def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving average of (K, d) over ``n`` samples, NaN-aware (NaN where the window has
+    no finite sample)."""
+    x = np.asarray(x, float)
+    if n <= 1 or len(x) == 0:
+        return x.copy()
+    ok = np.isfinite(x)
+    num = np.where(ok, x, 0.0)
+    kernel = np.ones(n)
+    out = np.empty_like(x)
+    for a in range(x.shape[1]):
+        s = np.convolve(num[:, a], kernel, mode="same")
+        c = np.convolve(ok[:, a].astype(float), kernel, mode="same")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, a] = np.where(c > 0, s / c, np.nan)
+    return out

@@ -105,7 +105,7 @@ from fgnav.solvers.fixed_lag import (
     _isam2_params,
     rebuild_state_priors,
 )
-from fgnav.solvers.graph import pim_params
+from fgnav.solvers.graph import ACCEL_CHECK_MAX_TILT_DEG, pim_params, thrust_only_noise
 from fgnav.solvers.measurements import (
     MIN_ANCHOR_GAP_PERIODS,
     init_slam_alignment,
@@ -117,6 +117,14 @@ log = logging.getLogger(__name__)
 
 #: Quaternion conjugation (w, -x, -y, -z): the inverse rotation.
 _CONJ = np.array([1.0, -1.0, -1.0, -1.0])
+#: Accelerometer-bias walk on body x, y over the keyframe interval where the prediction turns
+#: thrust-only [m/s^3/sqrt(Hz)]: the bias may jump by the measured offsets (1-5 m/s^2 on the
+#: Crazyflie) within one 50 ms interval.
+BIAS_RELEASE_WALK = 30.0
+#: Keyframes of the first accelerometer check (0.5 s at 20 Hz; then every 5 keyframes over the
+#: last ``drag_scatter_n``): the IMU prediction uses the measured horizontal specific force until
+#: it has decided, so it decides early (the Crazyflie: ratio 7-40 already on the first 0.5 s).
+ONLINE_ACCEL_CHECK_MIN_KEYFRAMES = 10
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
 PROVISIONAL_BASE = 1_000_000
 #: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
@@ -402,6 +410,8 @@ class OnlineSmoother:
             "reset_counter": self.reset_counter,
             "clock_epochs": [int((ep == x).sum()) for x in epochs],
             "drag": self._drag_decision,
+            "accel_check": self._accel_check.as_dict() if self._accel_check is not None else None,
+            "accel_horizontal": "thrust-only" if self._thrust_only else "measured",
             "slam_gyro_check": getattr(self, "slam_check", None),
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
@@ -483,6 +493,12 @@ class OnlineSmoother:
         self._drag_sigma = float(self.go.drag_model_sigma)
         self._drag_on = self.go.use_drag
         self._drag_checked = False
+        self._thrust_axis_ok = True
+        # Accelerometer check (fgnav.solvers.accel_check): keyframe-mean horizontal specific
+        # force and the smoother's body velocity; thrust-only prediction once it is unusable.
+        self._accel_rows: deque = deque(maxlen=self.options.drag_scatter_n)
+        self._accel_check = None
+        self._thrust_only = self.go.accel_horizontal == "thrust-only"
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
@@ -641,16 +657,18 @@ class OnlineSmoother:
     ) -> gtsam.PreintegratedCombinedMeasurements:
         """The arrived IMU from ``ta`` to ``tb`` (zero-order hold: a sample holds until the
         next)."""
-        pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
+        pim = gtsam.PreintegratedCombinedMeasurements(self._accel_params(), bias)
         t, a, w = self.imu.t, self.imu.a, self.imu.w
         n = len(t)
         i0 = max(bisect.bisect_right(t, ta) - 1, 0)
         i1 = bisect.bisect_left(t, tb)
+        thrust_only = self._thrust_only
         for i in range(i0, i1):
             s0 = t[i] if t[i] > ta else ta
             s1 = t[i + 1] if i + 1 < n and t[i + 1] < tb else tb
             if s1 > s0:
-                pim.integrateMeasurement(a[i], w[i], s1 - s0)
+                ai = np.array([0.0, 0.0, a[i][2]]) if thrust_only else a[i]
+                pim.integrateMeasurement(ai, w[i], s1 - s0)
         return pim
 
     def _mean_accel(self, ta: float, tb: float) -> tuple[np.ndarray | None, int, float]:
@@ -914,8 +932,9 @@ class OnlineSmoother:
     # ------------------------------------------------------------------------------------------
 
     def _thrust_check(self, t: float) -> None:
-        """Decide once, from the IMU of the first ``drag_check_s``, whether the drag model
-        applies (the mean specific force near body +z)."""
+        """Decide once, from the IMU of the first ``drag_check_s``, whether the thrust is along
+        body +z (the mean specific force near it): else neither the drag model nor the
+        accelerometer check applies."""
         s = self.imu.span(self.t0, t)
         acc = np.asarray(self.imu.a[s])
         if len(acc) == 0:
@@ -923,51 +942,84 @@ class OnlineSmoother:
         n = np.linalg.norm(acc, axis=1)
         ok = n > 0.5 * self.go.gravity
         self._drag_checked = True
+        self._thrust_axis_ok = True
         if not ok.any():
-            self._drag_decision = "on (no thrust-borne sample to check)"
+            if self._drag_on:
+                self._drag_decision = "on (no thrust-borne sample to check)"
             return
         d = (acc[ok] / n[ok, None]).mean(axis=0)
         d /= max(float(np.linalg.norm(d)), 1e-12)
         ang = math.degrees(math.acos(float(np.clip(d[2], -1.0, 1.0))))
         if self.go.drag_thrust_check and ang > self.go.drag_thrust_max_angle_deg:
-            self._drag_on = False
-            self._drag_decision = (
-                f"off: the mean specific force of the first {self.options.drag_check_s:g} s is "
-                f"{ang:.0f} deg from body +z (the drag model needs the thrust along body z)"
-            )
-            log.warning("%s: drag factor %s", self.name, self._drag_decision)
-        else:
+            self._thrust_axis_ok = False
+            if self._drag_on:
+                self._drag_on = False
+                self._drag_decision = (
+                    f"off: the mean specific force of the first {self.options.drag_check_s:g} s "
+                    f"is {ang:.0f} deg from body +z (the drag model needs the thrust along body "
+                    "z)"
+                )
+                log.warning("%s: drag factor %s", self.name, self._drag_decision)
+        elif self._drag_on:
             self._drag_decision = f"on (mean thrust {ang:.0f} deg from body +z)"
 
     def _drag_factor(self, j: int, g, stamps) -> None:
         """The drag factor of keyframe j over ``[t_j - h0, t_j + h1]`` (half the neighbouring
-        keyframe intervals), once keyframe j + 1 has closed."""
-        if not self._drag_on or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+        keyframe intervals), once keyframe j + 1 has closed; the keyframe's mean horizontal
+        specific force also feeds the accelerometer check (:meth:`_accel_decide`)."""
+        check = self.go.accel_horizontal == "auto" or (self._drag_on and self.go.drag_accel_check)
+        if not (self._drag_on or check) or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
             return
         t_j = self.t_kf[j]
         if not self._drag_checked:
             if t_j - self.t0 < self.options.drag_check_s:
                 return
             self._thrust_check(t_j)
-            if not self._drag_on:
-                return
+        if not getattr(self, "_thrust_axis_ok", True):
+            return  # thrust not along body z: no drag model, no accelerometer check
         h1 = 0.5 * (self.t_kf[j + 1] - t_j)
         h0 = 0.5 * (t_j - self.t_kf[j - 1]) if j - 1 in self.t_kf else h1
         mean, n, dur = self._mean_accel(t_j - h0, t_j + h1)
         if mean is None or n == 0:
             self._drop("drag:no-imu-in-interval")
             return
+        cos_tilt = mean[2] / max(float(np.linalg.norm(mean)), 1e-12)
+        sigma_a = self.calib.imu_noise.accel_noise_density * math.sqrt(max(n / dur, 1.0))
+        if (
+            check
+            and self._accel_check_open()
+            and (
+                float(np.linalg.norm(mean)) > 0.5 * self.go.gravity
+                and cos_tilt >= math.cos(math.radians(ACCEL_CHECK_MAX_TILT_DEG))
+                and X(j) in self.values
+                and V(j) in self.values
+            )
+        ):
+            R = self.values[X(j)].rotation().matrix()
+            u = R.T @ np.asarray(self.values[V(j)], float)
+            self._accel_rows.append((mean[:2].copy(), u[:2], sigma_a / math.sqrt(n)))
+            first = self._accel_check is None or self._accel_check.decision == "undecided"
+            if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
+                self._accel_decide(t_j)
+        if not self._drag_on:
+            return
+        if self.go.drag_accel_check and (
+            self._accel_check is None or self._accel_check.decision == "undecided"
+        ):
+            self._drop("drag:accelerometer-not-checked-yet")  # drag stays out until checked
+            return
         if not self._kf_alive(j):
             self._drop("drag:late")
             return
-        cos_tilt = mean[2] / max(float(np.linalg.norm(mean)), 1e-12)
         if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
             self._drop("drag:not-thrust-borne")
             return
         self._drag_means.append(mean[:2].copy())
         if self.go.drag_sigma_from_data and len(self._drag_means) >= 20 and j % 20 == 0:
             self._drag_sigma = max(self.go.drag_model_sigma, self._drag_scatter())
-        sigma_a = self.calib.imu_noise.accel_noise_density * math.sqrt(max(n / dur, 1.0))
+            chk = self._accel_check
+            if chk is not None and chk.decision == "noisy":
+                self._drag_sigma = max(self._drag_sigma, chk.residual)
         key = ("drag", n, round(self._drag_sigma, 4))
         noise = self._noise_cache.get(key)
         if noise is None:
@@ -983,12 +1035,91 @@ class OnlineSmoother:
         stamps[dk] = self.t_kf[self.k]
         self._use("drag")
 
+    def _accel_check_open(self) -> bool:
+        """The accelerometer check still collects keyframes (it stops once it has found the
+        horizontal channels unusable: the decision is kept)."""
+        return self._accel_check is None or self._accel_check.decision != "unusable"
+
+    def _accel_decide(self, t: float) -> None:
+        """Run the accelerometer check on the last ``drag_scatter_n`` keyframes (means of the
+        horizontal specific force against the smoother's body velocities at them): unusable ->
+        drag off and (``accel_horizontal = "auto"``) thrust-only IMU prediction from the next
+        keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
+        from fgnav.solvers.accel_check import check_horizontal_accel
+
+        rows = list(self._accel_rows)
+        f = np.array([r[0] for r in rows])
+        u = np.array([r[1] for r in rows])
+        white = float(np.sqrt(np.mean([r[2] ** 2 for r in rows])))
+        chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
+        self._accel_check = chk
+        if chk.decision != "unusable":
+            return
+        if self.go.drag_accel_check and self._drag_on:
+            self._drag_on = False
+        if self.go.accel_horizontal == "auto":
+            self._thrust_only = True
+            # The accelerometer bias has absorbed the measured x, y offsets: it may jump to the
+            # thrust-only model's over the next interval.
+            self._bias_release = True
+        self._drag_decision = (
+            f"off at t={t - self.t0:.2f} s after the start: "
+            + chk.line()
+            + (
+                "; IMU prediction thrust-only (body x, y specific force 0)"
+                if self._thrust_only
+                else ""
+            )
+        )
+        log.warning("%s: %s", self.name, self._drag_decision)
+
+    def _accel_params(self) -> gtsam.PreintegrationCombinedParams:
+        """Preintegration parameters of the current accelerometer model: the calibration's, or
+        with the body x, y noise and bias walk of the thrust-only prediction
+        (:func:`fgnav.solvers.graph.thrust_only_noise`)."""
+        if not self._thrust_only:
+            return self.pim_params
+        if getattr(self, "_bias_release", False):
+            self._bias_release = False
+            p = pim_params(self.calib.imu_noise, self.go.gravity)
+            n = self.calib.imu_noise
+            nd, _ = thrust_only_noise(
+                self.go.thrust_only_sigma,
+                self.go.thrust_only_tau_s,
+                self.go.keyframe_hz,
+                n.accel_noise_density,
+                n.accel_random_walk,
+            )
+            p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
+            p.setBiasAccCovariance(
+                np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
+            )
+            return p
+        p = getattr(self, "_pim_thrust", None)
+        if p is None:
+            n = self.calib.imu_noise
+            nd, rw = thrust_only_noise(
+                self.go.thrust_only_sigma,
+                self.go.thrust_only_tau_s,
+                self.go.keyframe_hz,
+                n.accel_noise_density,
+                n.accel_random_walk,
+            )
+            p = pim_params(self.calib.imu_noise, self.go.gravity)
+            p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
+            p.setBiasAccCovariance(np.diag([rw**2, rw**2, n.accel_random_walk**2]))
+            self._pim_thrust = p
+        return p
+
     def _flow_factor(self, j: int, g, stamps) -> None:
         """The optical-flow factor of keyframe j: the readings ending in its window
         ``(t_j - h0, t_j + h1]`` (half the neighbouring keyframe intervals) summed
         (:func:`fgnav.solvers.flow.flow_keyframe_factor`), once keyframe j + 1 has closed; a
         reading arriving after its window was made is counted as ``flow:late``."""
-        if not self._flow or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+        if j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+            return
+        self._contact_factor(j, g, stamps)
+        if not self._flow:
             return
         from fgnav.solvers.flow import flow_keyframe_factor, flow_options, flow_sensor_height
 
@@ -1042,6 +1173,38 @@ class OnlineSmoother:
         g.add(res.factor)
         stamps[gk] = self.t_kf[self.k]
         self._use("flow", res.n_used)
+
+    def _contact_factor(self, j: int, g, stamps) -> None:
+        """Ground contact at keyframe j (``graph.contact_height_m``, as the batch graph): the two
+        range readings around ``t_j`` (or the two newest, within ``interp_max_gap_s``) put the
+        range sensor within ``contact_height_m`` of the ground -> zero velocity and (with
+        ``contact_range_sigma``) a range of 0 m at keyframe j."""
+        go = self.go
+        rng = self._scalar["range"]
+        if go.contact_height_m is None or not go.use_range or len(rng) < 2:
+            return
+        t_j = self.t_kf[j]
+        ts = [r[0] for r in rng]
+        i = bisect.bisect_right(ts, t_j)
+        pair = (i - 1, i) if 1 <= i < len(ts) else (len(ts) - 2, len(ts) - 1)
+        if pair[0] < 0 or any(abs(ts[p] - t_j) > go.interp_max_gap_s for p in pair):
+            return
+        if not self._kf_alive(j) or X(j) not in self.values:
+            return
+        R = self.values[X(j)].rotation().matrix()
+        cos_beam = -float((R @ self.body_T_range[:3, 2])[2])
+        if any(rng[p][1] * cos_beam > go.contact_height_m for p in pair):
+            return
+        g.add(gtsam.PriorFactorVector(V(j), np.zeros(3), self._noise(3, go.contact_velocity_sigma)))
+        self._use("contact")
+        gk = self._slow_key_at("g", go.ground_segment_s, j)
+        if go.contact_range_sigma is not None and gk in self.values and self._alive(gk):
+            g.add(
+                make_range_factor(
+                    X(j), gk, 0.0, self.body_T_range, self._noise(1, go.contact_range_sigma)
+                )
+            )
+            stamps[gk] = self.t_kf[self.k]
 
     def _drag_scatter(self) -> float:
         x = np.asarray(self._drag_means)

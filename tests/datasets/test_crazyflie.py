@@ -14,8 +14,10 @@ import numpy as np
 import pytest
 from fgnav.datasets.crazyflie import (
     CRAZYFLIE_IMU_NOISE,
+    FIRMWARE_FLOW_PIXELS_PER_RAD,
     FIRMWARE_GRAVITY,
     FLOW_PIXELS_PER_RAD,
+    STILL_IMU_NOISE,
     TOF_LEVER_Z,
     decode_crazyflie_log,
     is_crazyflie_log,
@@ -222,7 +224,7 @@ def test_synthetic_flight_in_fgnav_units_and_frames(tmp_path, version):
     )
     assert f.meta["flow"]["dt_one_loop_after_gap"] == 1
     assert f.meta["flow"]["loop_period_s"] == pytest.approx(0.010, abs=1e-9)
-    assert f.calib.flow_pixels_per_rad == pytest.approx(35 / 0.71674)
+    assert f.calib.flow_pixels_per_rad == FLOW_PIXELS_PER_RAD  # fitted (firmware: 35 / 0.71674)
     # Range: mm -> m, the 0 mm reading left out and counted.
     np.testing.assert_allclose(f.range.range, [0.512, 0.530, 1.600])
     np.testing.assert_allclose(f.range.t, truth["t_tof"][[0, 2, 3]], atol=1e-12)
@@ -497,7 +499,8 @@ def test_util_flow_axes_scale_and_interval(util_flights):
         # ... though they carry 1.2-1.45 loops of motion on average (documented in the reader).
         assert 1.15 < fit.after_gap_interval_ratio < 1.5, (name, fit)
         assert alt.after_gap_interval_ratio < 0.75, (name, alt)
-    assert FLOW_PIXELS_PER_RAD == pytest.approx(48.83, abs=0.01)
+    assert FIRMWARE_FLOW_PIXELS_PER_RAD == pytest.approx(48.83, abs=0.01)
+    assert FLOW_PIXELS_PER_RAD == pytest.approx(47.8)  # README: fitted, pooled
 
 
 @pytest.mark.realdata
@@ -552,7 +555,7 @@ def test_util_gyro_agrees_with_vicon_attitude(util_flights):
 
 
 @pytest.mark.realdata
-def test_util_imu_noise_constant_is_the_pooled_still_estimate(util_flights):
+def test_util_still_imu_noise_constant_is_the_pooled_still_estimate(util_flights):
     g2 = a2 = n = 0.0
     for f in util_flights.values():
         m = f.meta["imu_noise"]
@@ -560,8 +563,8 @@ def test_util_imu_noise_constant_is_the_pooled_still_estimate(util_flights):
         a2 += m["blocks"] * m["accel_noise_density"] ** 2
         n += m["blocks"]
     assert n >= 40
-    assert np.sqrt(g2 / n) == pytest.approx(CRAZYFLIE_IMU_NOISE.gyro_noise_density, rel=0.2)
-    assert np.sqrt(a2 / n) == pytest.approx(CRAZYFLIE_IMU_NOISE.accel_noise_density, rel=0.2)
+    assert np.sqrt(g2 / n) == pytest.approx(STILL_IMU_NOISE.gyro_noise_density, rel=0.2)
+    assert np.sqrt(a2 / n) == pytest.approx(STILL_IMU_NOISE.accel_noise_density, rel=0.2)
 
 
 @pytest.mark.realdata
@@ -583,7 +586,7 @@ def test_cli_info_on_a_raw_log(tmp_path):
     assert out.startswith("flight  0425-traj1")
     for row in ("imu ", "range ", "flow ", "ground_truth "):
         assert any(line.startswith(row) for line in out.splitlines()), (row, out)
-    assert "body_T_flow   t = [+0.0000, +0.0000, -0.0390] m, rotation 180.00 deg; 48.83 px/rad" in (
+    assert "body_T_flow   t = [+0.0000, +0.0000, -0.0390] m, rotation 180.00 deg; 47.8 px/rad" in (
         out
     )
     assert "range.skipped_zero = 14" in out

@@ -1,0 +1,172 @@
+"""Is the accelerometer's horizontal specific force usable for the rotor-drag model?
+
+The drag model (``factors/accel_drag.py``) reads the keyframe mean of the horizontal specific
+force ``f_xy`` as ``-k u_xy + b`` (``u`` the body velocity). On many small quadrotors the
+horizontal channels are dominated by rotor vibration: on the Crazyflie flow-deck flights of
+``../shared/data/real/crazyflie_util_flowdeck`` (README: measured facts) their keyframe means
+wander by 1-5 m/s^2 in flight, offsets that are absent on the ground, while drag there is about
+0.2 m/s^2; a linear drag fit on the Vicon velocity explains < 2 % of their variance. Such an
+accelerometer makes a drag factor (and the horizontal part of the IMU prediction) wrong, not
+merely noisy.
+
+:func:`check_horizontal_accel` compares the **scatter the drag model cannot explain** with **what
+drag could explain**:
+
+1. Fit ``f_a = -k_a u_a + b_a`` per horizontal axis ``a`` by least squares over the keyframes,
+   ``k_a`` clipped to ``[0, k_max]`` (a negative or huge drag coefficient explains nothing
+   physical), ``b_a`` the mean of ``f_a + k_a u_a`` (accelerometer bias).
+2. ``residual`` = RMS over keyframes and axes of ``f - (-k u + b)`` [m/s^2], minus (in quadrature)
+   the white accelerometer noise of a keyframe mean (``white_sigma``, from the noise density).
+3. ``signal`` = ``k_max`` times the RMS horizontal body speed [m/s^2] (the largest drag signal a
+   plausible coefficient gives at this flight's speeds), at least ``signal_floor``.
+4. ``ratio = residual / signal``. Decisions:
+
+   - ``ratio > unusable_ratio``: **unusable**: the drag factor stays out; an IMU prediction may
+     then use the thrust axis only (``GraphOptions.accel_horizontal``).
+   - ``weigh_ratio < ratio <= unusable_ratio``: **noisy**: drag stays in with its noise floor
+     raised to ``residual`` (it weighs itself by its own misfit).
+   - else **usable**.
+
+Measured (keyframes at 20 Hz whose mean specific force is within 60 deg of body +z and above
+g / 2; true body velocities): simulated two-turns, flowdeck, figure8, circle, rectangle (seed 1):
+ratio 0.01-0.03; the seven Crazyflie flights: 3.2-10 (residual 1.5-3 m/s^2 against at most
+0.3-0.5 m/s^2 of drag). The batch graph runs it on its velocity hint (flow dead reckoning or SLAM
+initial values, 0.5 s moving average), the push engine on its own states (first on 0.5 s, then
+every 5 keyframes). Tests: ``tests/solvers/test_accel_check.py``,
+``tests/solvers/test_crazyflie_real.py``.
+
+Not a test of the vertical channel (height comes from the rangefinder on these vehicles), nor of
+the gyro.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+#: Largest plausible linear drag coefficient [1/s] (multirotors: 0.1-0.6; DESIGN.md 4.1: k = 0.4
+#: tilts the specific force by 9 deg at 4 m/s).
+K_MAX = 0.6
+#: Smallest drag signal the ratio is taken against [m/s^2] (a hover: any scatter above this
+#: counts against the accelerometer).
+SIGNAL_FLOOR = 0.05
+UNUSABLE_RATIO = 1.0
+WEIGH_RATIO = 0.25
+#: Fewest keyframes for a decision.
+MIN_KEYFRAMES = 20
+
+
+@dataclass(frozen=True)
+class AccelCheck:
+    """Outcome of :func:`check_horizontal_accel`.
+
+    Attributes:
+        decision: ``"usable"``, ``"noisy"``, ``"unusable"`` or ``"undecided"`` (too few keyframes).
+        ratio: unexplained scatter over the drag signal a plausible coefficient could give.
+        residual: RMS [m/s^2] of the horizontal specific force about its best drag fit (white
+            noise of the keyframe means removed).
+        signal: ``k_max`` x RMS horizontal body speed [m/s^2] (at least the floor).
+        k: fitted drag coefficients per axis [1/s] (clipped to ``[0, k_max]``).
+        bias: fitted offsets per axis [m/s^2].
+        rms_f: RMS horizontal specific force [m/s^2].
+        rms_u: RMS horizontal body speed [m/s].
+        n: keyframes used.
+    """
+
+    decision: str
+    ratio: float
+    residual: float
+    signal: float
+    k: tuple[float, float]
+    bias: tuple[float, float]
+    rms_f: float
+    rms_u: float
+    n: int
+
+    @property
+    def drag_on(self) -> bool:
+        """The drag factor may be used (usable or noisy; undecided counts as usable)."""
+        return self.decision != "unusable"
+
+    def line(self) -> str:
+        """One line stating the decision and its figures."""
+        what = {
+            "usable": "drag on",
+            "noisy": f"drag on, noise floor raised to {self.residual:.2f} m/s^2",
+            "unusable": "drag off (accelerometer unusable for drag)",
+            "undecided": "drag on (too few keyframes to check)",
+        }[self.decision]
+        return (
+            f"{what}: horizontal specific force scatter about its best drag fit "
+            f"{self.residual:.2f} m/s^2 vs at most {self.signal:.2f} m/s^2 drag could explain "
+            f"(k <= {K_MAX:g} 1/s at {self.rms_u:.2f} m/s RMS): ratio {self.ratio:.2f} "
+            f"(fit k {self.k[0]:.2f}, {self.k[1]:.2f} 1/s, offsets {self.bias[0]:+.2f}, "
+            f"{self.bias[1]:+.2f} m/s^2; {self.n} keyframes)"
+        )
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "line": self.line()}
+
+
+def check_horizontal_accel(
+    f_xy: np.ndarray,
+    u_xy: np.ndarray,
+    white_sigma: float = 0.0,
+    k_max: float = K_MAX,
+    signal_floor: float = SIGNAL_FLOOR,
+    unusable_ratio: float = UNUSABLE_RATIO,
+    weigh_ratio: float = WEIGH_RATIO,
+    min_keyframes: int = MIN_KEYFRAMES,
+) -> AccelCheck:
+    """Decide whether the horizontal specific force can feed the drag model (module docstring).
+
+    Args:
+        f_xy: (N, 2) keyframe means of the horizontal specific force (body x, y) [m/s^2].
+        u_xy: (N, 2) horizontal body velocity at those keyframes [m/s] (an estimate: initial
+            values, flow dead reckoning, or the online smoother's states).
+        white_sigma: white-noise standard deviation of one keyframe mean [m/s^2].
+        k_max, signal_floor, unusable_ratio, weigh_ratio, min_keyframes: see module docstring.
+    """
+    f = np.asarray(f_xy, float).reshape(-1, 2)
+    u = np.asarray(u_xy, float).reshape(-1, 2)
+    ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(u), axis=1)
+    f, u = f[ok], u[ok]
+    n = len(f)
+    nan2 = (math.nan, math.nan)
+    if n < min_keyframes:
+        return AccelCheck(
+            "undecided", math.nan, math.nan, math.nan, nan2, nan2, math.nan, math.nan, n
+        )
+    k = np.zeros(2)
+    b = np.zeros(2)
+    for a in range(2):
+        uc = u[:, a] - u[:, a].mean()
+        fc = f[:, a] - f[:, a].mean()
+        den = float(uc @ uc)
+        k[a] = float(np.clip(-(fc @ uc) / den, 0.0, k_max)) if den > 1e-12 else 0.0
+        b[a] = float(np.mean(f[:, a] + k[a] * u[:, a]))
+    res = f + k * u - b
+    res_ms = float(np.mean(np.sum(res**2, axis=1)))
+    residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
+    rms_u = math.sqrt(float(np.mean(np.sum(u**2, axis=1))))
+    signal = max(k_max * rms_u, signal_floor)
+    ratio = residual / signal
+    if ratio > unusable_ratio:
+        decision = "unusable"
+    elif ratio > weigh_ratio:
+        decision = "noisy"
+    else:
+        decision = "usable"
+    return AccelCheck(
+        decision=decision,
+        ratio=ratio,
+        residual=residual,
+        signal=signal,
+        k=(float(k[0]), float(k[1])),
+        bias=(float(b[0]), float(b[1])),
+        rms_f=math.sqrt(float(np.mean(np.sum(f**2, axis=1)))),
+        rms_u=rms_u,
+        n=n,
+    )
