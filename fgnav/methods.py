@@ -258,11 +258,38 @@ def fixed_lag_options(config: Mapping[str, Any]):
 def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` and
     ``[priors]`` tables."""
+    from fgnav.health import check_batch, fixed_flight
     from fgnav.solvers.batch import solve_batch
 
     opts = batch_options(config)
     priors = frontend_priors(flight, config)
-    return _with_priors(solve_batch(flight, opts, priors=priors, progress=progress), priors)
+    est = solve_batch(flight, opts, priors=priors, progress=progress)
+    health = check_batch(flight, est)
+    fixed = fixed_flight(flight, health.pop("_fixes"))
+    if fixed is not None:
+        # The detectors' fixes (SLAM jumps as new sessions, stuck range readings and frozen
+        # images dropped): solved once more, the first solve's report kept.
+        try:
+            est2 = solve_batch(fixed, opts, priors=priors, progress=progress)
+        except FgnavError as e:
+            log.warning(
+                "%s: batch with the detectors' fixes failed (%s): the first solve kept",
+                flight.name,
+                e,
+            )
+            health["resolved"] = f"failed: {e}"
+        else:
+            log.warning("%s: batch solved again with the detectors' fixes", flight.name)
+            second = check_batch(fixed, est2)
+            second.pop("_fixes")
+            est = est2
+            health = {
+                **health,
+                "status": second["status"],
+                "resolved": True,
+                "error_per_factor": second["error_per_factor"],
+            }
+    return _with_priors(_with_info(est, health=health), priors)
 
 
 def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:

@@ -44,7 +44,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="marginal covariances to compute (default all)",
     )
     add_priors_argument(parser)
+    parser.add_argument(
+        "--write-anyway",
+        action="store_true",
+        help="write the estimate (exit 0) even when the solver did not converge",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+class NotConvergedError(FgnavError, RuntimeError):
+    """The batch solve did not converge (``info["health"]["status"] == "not-converged"``)."""
 
 
 def add_priors_argument(parser: argparse.ArgumentParser) -> None:
@@ -80,6 +89,7 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
     from fgnav.compare import score_estimate
     from fgnav.coverage import coverage, coverage_lines
     from fgnav.eval.outputs import write_estimate
+    from fgnav.health import health_line
 
     metrics = None
     try:
@@ -106,9 +116,33 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
         print(f"drag k: {est.drag_k} 1/s")
     for line in coverage_lines(flight, est):
         print(line)
+    line = health_line(est.info.get("health"))
+    if line:
+        print(line)
     extra = {**extra, "coverage": coverage(flight, est)}
     paths = write_estimate(est, out, metrics=metrics, extra=extra)
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
+
+
+def not_converged_message(est: Estimate) -> str | None:
+    """One line saying why the batch solve is not trusted (None: it converged)."""
+    info = est.info
+    health = info.get("health") or {}
+    if health.get("status") != "not-converged":
+        return None
+    errors = info.get("lm_errors") or [float("nan")]
+    per = health.get("error_per_factor")
+    why = (
+        f"LM stopped at the iteration limit ({info.get('lm_iterations')} iterations)"
+        if info.get("lm_converged") is False
+        else "LM stopped at a poor minimum"
+    )
+    det = health.get("detectors") or {}
+    return (
+        f"batch did not converge: {why}, error {errors[0]:.4g} -> {errors[-1]:.4g}"
+        + (f" ({per:.1f} per factor)" if per is not None else "")
+        + (f"; detectors: {', '.join(f'{k} {v}' for k, v in det.items())}" if det else "")
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -123,5 +157,12 @@ def run(args: argparse.Namespace) -> int:
         f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "
         f"{est.runtime_s:.2f} s"
     )
+    verdict = not_converged_message(est)
+    if verdict and not args.write_anyway:
+        raise NotConvergedError(
+            f"{flight.name}: {verdict}; nothing written (--write-anyway writes it)"
+        )
+    if verdict:
+        log.warning("%s: %s; written anyway (--write-anyway)", flight.name, verdict)
     score_and_write(flight, est, Path(args.out), summary_extra(flight.name, est, "batch"))
     return 0

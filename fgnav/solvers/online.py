@@ -61,6 +61,7 @@ seed 000's per-axis SLAM model, front-end priors.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 import time
@@ -98,6 +99,7 @@ from fgnav.factors.slam_scale import (
 )
 from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
+from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
@@ -239,6 +241,7 @@ class OnlineSmoother:
         calib: Calibration,
         options: FixedLagOptions | None = None,
         name: str = "online",
+        health: HealthOptions | None = None,
     ):
         self.calib = calib.check()
         self.options = options or FixedLagOptions()
@@ -273,6 +276,7 @@ class OnlineSmoother:
         self._session_scale: dict[int, float] = {}
         self._drag_decision: str | None = None
         self._noise_cache: dict[tuple, Any] = {}
+        self._health_init(health)
         self._clear()
 
     # ------------------------------------------------------------------------------------------
@@ -281,6 +285,9 @@ class OnlineSmoother:
 
     def feed(self, ev: Any) -> OnlineState | None:
         """Take one event (arrival order); the newest state when keyframes closed, else None."""
+        ev = self._health_feed(ev)
+        if ev is None:
+            return None
         if isinstance(ev, ImuSample):
             return self._feed_imu(ev)
         stream = _STREAM.get(type(ev))
@@ -416,6 +423,7 @@ class OnlineSmoother:
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "slam_rotation_convention": self._slam_conv,
+            "health": self._health_report(),
             "updates": len(lat),
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -837,6 +845,7 @@ class OnlineSmoother:
                 if s is not None and s.provisional is not None:
                     s.prov_factors.append((int(idx[pos]), row))
         self._read(k, wall)
+        self._health_keyframe(k, g)
         if self.factorization == "QR" and self.options.factorization.upper() != "QR":
             if (
                 t_k - self.t0 >= self.options.startup_qr_s
@@ -1843,6 +1852,98 @@ class OnlineSmoother:
         self._insert(key, value, g, stamps)
         s.provisional = key
         s.prov_factors = []
+
+    # ------------------------------------------------------------------------------------------
+    # Health (fgnav.health): sensor fault detectors on the events, the monitor after keyframes
+    # ------------------------------------------------------------------------------------------
+
+    def _health_init(self, options: HealthOptions | None) -> None:
+        self._health = HealthMonitor(options, f"{self.name}: health")
+        self._health.detectors.context = Context(
+            speed=lambda t: (
+                float(np.linalg.norm(self.out[-1].world_v_body)) if self.latest() else None
+            ),
+            height=lambda t: float(self.out[-1].world_T_body[2, 3]) if self.latest() else None,
+            scale=lambda s: self._session_scale.get(s),
+        )
+        self._health_checked = False
+
+    def _health_feed(self, ev: Any) -> Any:
+        """The event through the fault detectors: None when dropped (counted as received and
+        dropped by reason), else the event to use (a SLAM pose after a jump in a new session)."""
+        if not self._health.options.enabled:
+            return ev
+        out = self._health.detectors.feed(ev)
+        if out is None:
+            stream = _STREAM.get(type(ev), "imu")
+            self.received[stream] = self.received.get(stream, 0) + 1
+            reason = {"range": "range:stuck", "images": "images:frozen"}.get(stream, stream)
+            self._drop(reason)
+        return out
+
+    def _health_keyframe(self, k: int, g: gtsam.NonlinearFactorGraph) -> None:
+        """Whitened errors of the update's SLAM and range factors at the newest linearisation
+        point into the monitor, then its verdict on the newest state: quality lowered while it
+        diverges, a rebuild from the last healthy state when it says so."""
+        hm = self._health
+        if not hm.options.enabled or not self.out or self.out[-1].t != self.t_kf.get(k):
+            return
+        if not self._health_checked and getattr(self, "slam_check", None):
+            self._health_checked = True
+            hm.detectors.slam_check(self.slam_check)
+        t = self.t_kf[k]
+        lin = self.smoother.getLinearizationPoint()
+        for i in range(g.size()):
+            f = g.at(i)
+            sensor = sensor_of(f.keys()) if f is not None else None
+            if sensor is None:
+                continue
+            try:
+                e = np.asarray(f.whitenedError(lin), float)
+            except (RuntimeError, IndexError, ValueError):
+                continue  # a key not in the window (the update failed and was rebuilt)
+            hm.innovations(sensor, t, float(e @ e), int(e.size))
+        snap = hm.after_keyframe(self.out[-1], lambda: self._health_snapshot(k))
+        q = hm.quality(self.out[-1].quality)
+        if q != self.out[-1].quality:
+            self.out[-1] = dataclasses.replace(self.out[-1], quality=q)
+        if snap is not None:
+            self._health_recover(snap)
+
+    def _health_snapshot(self, k: int) -> Snapshot:
+        keys = [X(k), V(k), B(k)] + [
+            key for key in self.values if _chr(key) in "sdg" and self._alive(key)
+        ]
+        vals = {key: self.values[key] for key in keys if key in self.values}
+        return Snapshot(k, self.t_kf[k], vals)
+
+    def _health_recover(self, snap: Snapshot) -> None:
+        """Rebuild the window from a healthy snapshot: its state carried by the arrived IMU to
+        the keyframe before the newest, its slow variables, then :meth:`_rebuild` (priors there
+        and the newest IMU factor)."""
+        kp = self.k - 1
+        if kp < 0 or kp not in self.t_kf or X(kp) not in self.values:
+            return
+        bias = snap.values[B(snap.k)]
+        pim = self._preintegrate(snap.t, self.t_kf[kp], bias)
+        nav = pim.predict(gtsam.NavState(snap.values[X(snap.k)], snap.values[V(snap.k)]), bias)
+        self.values[X(kp)], self.values[V(kp)], self.values[B(kp)] = (
+            nav.pose(),
+            nav.velocity(),
+            bias,
+        )
+        for key, val in snap.values.items():
+            if _chr(key) in "sdg" and key in self.values:
+                self.values[key] = val
+        self._drop("health:recovered")
+        self._rebuild({})
+
+    def _health_report(self) -> dict[str, Any]:
+        rep = self._health.report()
+        rep["dropped"] = {
+            r: n for r, n in self.dropped.items() if r in ("range:stuck", "images:frozen")
+        }
+        return rep
 
     # ------------------------------------------------------------------------------------------
     # Smoother

@@ -1,0 +1,646 @@
+"""Sensor fault detectors and a health monitor for the smoothers (issue 18 Build 1-2).
+
+Two parts, both fed in arrival order and knowing nothing of a flight:
+
+:class:`FaultDetectors` sees every measurement event (``feed(event)``) and names sensor faults,
+each counted by name in :meth:`FaultDetectors.report`:
+
+- ``imu-saturation``: a sample whose value on one axis equals (to 1e-9 relative) the largest
+  ``|value|`` that axis has shown so far, once that value has come ``saturation_run`` times (a
+  quantised sensor's extreme recurs a few times by chance: EuRoC MH_01's accelerometer 3 times
+  in a row while carried), above
+  ``saturation_min_gyro`` [rad/s] / ``saturation_min_accel`` [m/s^2], on an axis whose readings
+  have spanned at least ``saturation_spread_gyro`` / ``saturation_spread_accel`` (max - min): a
+  sensor pinned at its rail after moving up to it (a noisy sensor never repeats its extreme
+  value; a quantised one at rest repeats it but has not spanned the range). Counted per axis
+  (``gyro x`` ...); the samples are used (their factors are not re-weighted: the name is what
+  changes).
+- ``imu-gap``: an IMU interval longer than ``imu_gap_factor`` times the median interval and
+  ``imu_gap_min_s``; those past the online smoother's ``max_imu_gap_s`` reset it (the chain is not
+  integrated blindly; counted there as ``reset:imu-gap``).
+- ``slam-jump``: a SLAM displacement between two poses of one session (``dt <=
+  slam_jump_max_dt_s``) that, converted to metres with the newest scale estimate of the session,
+  exceeds the motion the IMU-propagated estimate allows, ``|v| dt + slam_jump_min_m + a_max
+  dt^2 / 2``: a relocalisation. The poses after a jump continue as a new SLAM session (a new
+  alignment, its scale started from the previous one's), so the jump is not fitted as motion.
+- ``range-stuck``: ``range_stuck_s`` of readings with identical values while the estimate says
+  the sensor's height changed by more than ``range_stuck_motion_m``; further identical readings
+  are dropped (``range:stuck``) until the value changes.
+- ``camera-frozen``: an image identical (byte for byte) to the previous one; dropped
+  (``images:frozen``).
+- ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
+  offset above ``slam_offset_tol_s`` (reported; ``[graph] slam_time_offset = "apply"`` applies it
+  in batch).
+- ``body_T_cam-rotation``: the same check found the calibration's camera rotation wrong.
+
+The detectors need a little of the estimate (speed, height, SLAM scale): a :class:`Context` the
+caller fills (the online smoother with its newest state, causally; the batch check with the
+solved trajectory).
+
+:class:`HealthMonitor` watches the online smoother after each keyframe: the whitened errors of the
+new SLAM and range factors at the newest linearisation point (innovations: the new states are at
+their IMU prediction there) give a normalised chi-squared per sensor over a sliding window of
+``window_s``; state sanity checks speed (``max_speed_mps``), position sigma (``max_pos_sigma_m``)
+and bias bounds. A sanity violation, or a chi-squared above ``chi2_alarm`` for
+``diverge_after_s``, is a divergence: reported (a warning line, ``status`` and counts in
+``info["health"]``, ``quality`` lowered to at most ``DIVERGED_QUALITY`` until healthy again) and
+recovered from the last healthy snapshot (at least ``diverge_after_s`` before the alarm began)
+by the smoother's rebuild, at most ``max_recoveries`` times and ``recovery_gap_s`` apart.
+
+Batch: :func:`check_batch` replays the flight through the detectors with the solved trajectory as
+context and judges the solve itself (LM stopped at ``max_iterations`` while its last iteration
+still lowered the error by more than ``batch_stall_rel``, or ``2 error / factors`` above
+``batch_error_per_factor_max``: 0.9 on the nominal two-turns and MH_01, 25-210 on runs that
+did not converge); :func:`fixed_flight` drops / re-sessions what
+the detectors flagged so that :func:`fgnav.methods.run_batch` can solve once more.
+
+Not modelled: a rail that moves (auto-ranging), stuck values that wander by one quantum, SLAM
+jumps smaller than ``slam_jump_min_m``, a camera that repeats a frame with new noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import math
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Session ids given to SLAM poses after a detected jump: ``session + JUMP_SESSION_BASE * n``.
+JUMP_SESSION_BASE = 1000
+#: Quality (0-100) of the online states while the monitor says the estimate diverges.
+DIVERGED_QUALITY = 10
+#: Detector names, in report order.
+DETECTORS = (
+    "imu-saturation",
+    "imu-gap",
+    "slam-jump",
+    "range-stuck",
+    "camera-frozen",
+    "slam-clock-offset",
+    "body_T_cam-rotation",
+    "divergence",
+)
+
+
+@dataclass
+class HealthOptions:
+    """Thresholds of the detectors and the monitor (see the module docstring)."""
+
+    enabled: bool = True
+    saturation_run: int = 10
+    saturation_min_gyro: float = 0.2
+    saturation_min_accel: float = 5.0
+    saturation_spread_gyro: float = 0.2
+    saturation_spread_accel: float = 2.0
+    imu_gap_factor: float = 5.0
+    imu_gap_min_s: float = 0.02
+    slam_jump_min_m: float = 0.5
+    slam_jump_max_dt_s: float = 1.0
+    slam_jump_accel_max: float = 5.0
+    range_stuck_s: float = 1.0
+    range_stuck_motion_m: float = 0.15
+    slam_offset_tol_s: float = 0.1
+    window_s: float = 2.0
+    window_min_factors: int = 10
+    chi2_alarm: float = 100.0
+    max_speed_mps: float = 30.0
+    max_pos_sigma_m: float = 100.0
+    max_accel_bias: float = 2.0
+    max_gyro_bias: float = 0.5
+    diverge_after_s: float = 1.0
+    max_recoveries: int = 3
+    recovery_gap_s: float = 5.0
+    batch_error_per_factor_max: float = 50.0
+    batch_stall_rel: float = 1e-3
+
+    def check(self) -> HealthOptions:
+        from fgnav.datasets.errors import FlightDataError
+
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise FlightDataError(f"HealthOptions.{f.name} = {v}: expected a number > 0")
+        return self
+
+
+@dataclass
+class Context:
+    """What the detectors know of the estimate: callables of time (None: not known yet).
+
+    Attributes:
+        speed: ``speed(t) -> |world_v_body|`` [m/s].
+        height: ``height(t) -> z of the body`` [m].
+        scale: ``scale(session) -> SLAM units per metre`` or None.
+    """
+
+    speed: Callable[[float], float | None] = lambda t: None
+    height: Callable[[float], float | None] = lambda t: None
+    scale: Callable[[int], float | None] = lambda s: None
+
+
+@dataclass
+class _Episode:
+    t: float
+    detail: str
+
+
+@dataclass
+class FaultDetectors:
+    """The sensor fault detectors of the module docstring, fed events in arrival order."""
+
+    options: HealthOptions = field(default_factory=HealthOptions)
+    context: Context = field(default_factory=Context)
+    name: str = "health"
+
+    def __post_init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.details: dict[str, list[str]] = {}
+        self.dropped: dict[str, int] = {}
+        self._imu_last: float | None = None
+        self._imu_dts: deque = deque(maxlen=200)
+        self._rail = {"gyro": np.zeros(3), "accel": np.zeros(3)}
+        self._lo = {"gyro": np.full(3, np.inf), "accel": np.full(3, np.inf)}
+        self._hi = {"gyro": np.full(3, -np.inf), "accel": np.full(3, -np.inf)}
+        self._run = {"gyro": np.zeros(3, int), "accel": np.zeros(3, int)}
+        self._slam_prev: dict[int, tuple[float, np.ndarray]] = {}
+        self._slam_jumps: dict[int, int] = {}
+        self._range_val: float | None = None
+        self._range_t0: float | None = None
+        self._range_stuck = False
+        self._image_hash: bytes | None = None
+        self._frozen = False
+        self._said: set[str] = set()
+
+    # -- bookkeeping ---------------------------------------------------------------------------
+
+    def _count(self, det: str, detail: str | None = None, n: int = 1) -> None:
+        self.counts[det] = self.counts.get(det, 0) + n
+        if detail is not None:
+            d = self.details.setdefault(det, [])
+            if len(d) < 10:
+                d.append(detail)
+            if det not in self._said:
+                self._said.add(det)
+                log.warning("%s: %s: %s", self.name, det, detail)
+
+    def _drop(self, reason: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+
+    def report(self) -> dict[str, Any]:
+        """``{"detectors": {name: count}, "details": {name: [first lines]}}``."""
+        return {
+            "detectors": {k: self.counts[k] for k in DETECTORS if self.counts.get(k)},
+            "details": {k: v for k, v in self.details.items() if v},
+        }
+
+    # -- events --------------------------------------------------------------------------------
+
+    def feed(self, ev: Any) -> Any:
+        """Look at one event; returns the event to use (maybe with a new SLAM session) or None
+        when the event is dropped (counted in ``dropped`` by reason)."""
+        from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose
+
+        if isinstance(ev, ImuSample):
+            self._imu(ev)
+            return ev
+        if isinstance(ev, SlamPose):
+            return self._slam(ev)
+        if isinstance(ev, RangeReading):
+            return self._range(ev)
+        if isinstance(ev, ImageFrame):
+            return self._image(ev)
+        return ev
+
+    def _imu(self, ev) -> None:
+        t = float(ev.t)
+        if self._imu_last is not None and t > self._imu_last:
+            dt = t - self._imu_last
+            if len(self._imu_dts) >= 20:
+                med = float(np.median(self._imu_dts))
+                if dt > max(self.options.imu_gap_factor * med, self.options.imu_gap_min_s):
+                    self._count(
+                        "imu-gap", f"no IMU sample for {dt:.3f} s after t={self._imu_last:.3f}"
+                    )
+                    self._imu_last = t
+                    return
+            self._imu_dts.append(dt)
+        if self._imu_last is None or t > self._imu_last:
+            self._imu_last = t
+        o = self.options
+        for kind, v, floor, spread in (
+            ("gyro", ev.body_omega, o.saturation_min_gyro, o.saturation_spread_gyro),
+            ("accel", ev.body_accel, o.saturation_min_accel, o.saturation_spread_accel),
+        ):
+            sv = np.asarray(v, float)
+            a = np.abs(sv)
+            if not np.all(np.isfinite(a)):
+                continue
+            lo, hi = self._lo[kind], self._hi[kind]
+            np.minimum(lo, sv, out=lo)
+            np.maximum(hi, sv, out=hi)
+            rail = self._rail[kind]
+            run = self._run[kind]  # samples at exactly the current largest |value|
+            hit = np.abs(a - rail) <= 1e-9 * rail
+            run[:] = np.where(a > rail * (1 + 1e-9), 1, np.where(hit, run + 1, run))
+            at_rail = hit & (a >= floor) & (hi - lo >= spread)
+            run_at = np.where(at_rail, run, 0)
+            for i in np.flatnonzero(run_at == self.options.saturation_run):
+                self._count(
+                    "imu-saturation",
+                    f"{kind} {'xyz'[i]} pinned at |{a[i]:.4g}| from t={t:.3f}",
+                    self.options.saturation_run,
+                )
+            n_more = int(np.count_nonzero(run_at > self.options.saturation_run))
+            if n_more:
+                self._count("imu-saturation", n=n_more)
+            np.maximum(rail, a, out=rail)
+
+    def _slam(self, ev) -> Any:
+        o = self.options
+        p = np.asarray(ev.slam_t_cam, float)
+        if not np.all(np.isfinite(p)):
+            return ev
+        sess = int(ev.session)
+        n = self._slam_jumps.get(sess, 0)
+        virtual = sess + JUMP_SESSION_BASE * n
+        prev = self._slam_prev.get(sess)
+        t = float(ev.t)
+        if prev is not None and 0 < t - prev[0] <= o.slam_jump_max_dt_s:
+            dt = t - prev[0]
+            scale = self.context.scale(virtual)
+            if scale is None and n:
+                scale = self.context.scale(
+                    sess + JUMP_SESSION_BASE * (n - 1)
+                ) or self.context.scale(sess)
+            speed = self.context.speed(t)
+            if scale and speed is not None and scale > 0:
+                d = float(np.linalg.norm(p - prev[1])) / scale
+                allowed = speed * dt + o.slam_jump_min_m + 0.5 * o.slam_jump_accel_max * dt**2
+                if d > allowed:
+                    n += 1
+                    self._slam_jumps[sess] = n
+                    virtual = sess + JUMP_SESSION_BASE * n
+                    self._count(
+                        "slam-jump",
+                        f"SLAM session {sess} moved {d:.2f} m in {dt * 1e3:.0f} ms at t={t:.2f} "
+                        f"(the estimate allows {allowed:.2f} m): a new alignment from here",
+                    )
+        self._slam_prev[sess] = (t, p)
+        return ev if virtual == sess else ev._replace(session=virtual)
+
+    def _range(self, ev) -> Any:
+        o = self.options
+        r = float(ev.range)
+        t = float(ev.t)
+        if not math.isfinite(r):
+            return ev
+        if self._range_val is None or r != self._range_val:
+            self._range_val, self._range_t0 = r, t
+            self._range_h0 = self.context.height(t)
+            self._range_stuck = False
+            return ev
+        if self._range_stuck:
+            self._drop("range:stuck")
+            return None
+        if t - self._range_t0 >= o.range_stuck_s:
+            h0, h1 = self._range_h0, self.context.height(t)
+            if h0 is not None and h1 is not None and abs(h1 - h0) > o.range_stuck_motion_m:
+                self._range_stuck = True
+                self._count(
+                    "range-stuck",
+                    f"rangefinder constant at {r:.3f} m since t={self._range_t0:.2f} while the "
+                    f"estimated height changed by {h1 - h0:+.2f} m: readings dropped",
+                )
+                self._drop("range:stuck")
+                return None
+        return ev
+
+    def _image(self, ev) -> Any:
+        h = _image_digest(ev)
+        if h is None:
+            return ev
+        if h == self._image_hash:
+            if not self._frozen:
+                self._frozen = True
+                self._count("camera-frozen", f"image at t={ev.t:.3f} identical to the previous one")
+            else:
+                self._count("camera-frozen")
+            self._drop("images:frozen")
+            return None
+        self._frozen = False
+        self._image_hash = h
+        return ev
+
+    def slam_check(self, decision: dict[str, Any] | None) -> None:
+        """The SLAM-vs-gyro check's decision (``time_offset_s``, ``body_R_cam_ok``)."""
+        if not decision or "slam-check" in self._said:
+            return
+        self._said.add("slam-check")
+        off = decision.get("time_offset_s")
+        applied = decision.get("applied_time_offset_s") or 0.0
+        if off is not None and abs(off) > self.options.slam_offset_tol_s:
+            self._count(
+                "slam-clock-offset",
+                f"SLAM clock offset {off:+.3f} s (t_imu = t_slam + offset) from the "
+                "SLAM-vs-gyro check"
+                + (", applied" if applied else '; [graph] slam_time_offset = "apply" applies it'),
+            )
+        if decision.get("body_R_cam_ok") is False:
+            self._count(
+                "body_T_cam-rotation",
+                f"body_T_cam rotation {decision.get('body_R_cam_error_deg', float('nan')):.1f} deg "
+                "from the one the gyro fits",
+            )
+
+
+def _image_digest(ev: Any) -> bytes | None:
+    img = getattr(ev, "image", None)
+    if img is not None:
+        return hashlib.blake2b(np.ascontiguousarray(img).tobytes(), digest_size=16).digest()
+    path = getattr(ev, "path", None)
+    if path is None:
+        return None
+    try:
+        return hashlib.blake2b(path.read_bytes(), digest_size=16).digest()
+    except OSError:
+        return None  # unreadable: the VO stage counts it
+
+
+# ----------------------------------------------------------------------------------------------
+# Online health monitor
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Snapshot:
+    """A healthy state of the online smoother (values of the live keys at keyframe ``k``)."""
+
+    k: int
+    t: float
+    values: dict[int, Any]
+
+
+class HealthMonitor:
+    """Normalised innovations per sensor and state sanity after each keyframe (see the module
+    docstring); decides when the estimate diverges and when to recover."""
+
+    def __init__(self, options: HealthOptions | None = None, name: str = "health"):
+        self.options = (options or HealthOptions()).check()
+        self.name = name
+        self.detectors = FaultDetectors(self.options, Context(), name)
+        self._win: dict[str, deque] = {}
+        self.status = "ok"
+        self.n_diverged = 0
+        self.n_recovered = 0
+        self.n_keyframes = 0
+        self.n_alarm_keyframes = 0
+        self.chi2_max: dict[str, float] = {}
+        self._alarm_since: float | None = None
+        self._last_recovery = -math.inf
+        self._snapshots: deque = deque(maxlen=16)
+        self._last_snapshot_t = -math.inf
+        self.events: list[dict[str, Any]] = []
+
+    def innovations(self, sensor: str, t: float, chi2: float, dof: int) -> None:
+        """Whitened squared error ``chi2`` of a factor with ``dof`` rows at time ``t``."""
+        w = self._win.setdefault(sensor, deque())
+        w.append((t, chi2, dof))
+        while w and w[0][0] < t - self.options.window_s:
+            w.popleft()
+
+    def chi2(self) -> dict[str, float]:
+        """Normalised chi-squared (sum of whitened squares / dof) per sensor over the window."""
+        out = {}
+        for s, w in self._win.items():
+            if len(w) >= self.options.window_min_factors:
+                out[s] = sum(x[1] for x in w) / max(sum(x[2] for x in w), 1)
+        return out
+
+    def sanity(self, state: Any) -> list[str]:
+        """Reasons the state is not sane (empty: sane)."""
+        o = self.options
+        bad = []
+        v = np.asarray(state.world_v_body, float)
+        p = np.asarray(state.world_T_body, float)[:3, 3]
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(p))):
+            return ["non-finite state"]
+        sp = float(np.linalg.norm(v))
+        if sp > o.max_speed_mps:
+            bad.append(f"speed {sp:.1f} m/s > {o.max_speed_mps:g}")
+        if state.pose_cov is not None and np.all(np.isfinite(state.pose_cov)):
+            sig = float(np.sqrt(max(np.trace(state.pose_cov[3:, 3:]), 0.0)))
+            if sig > o.max_pos_sigma_m:
+                bad.append(f"position sigma {sig:.1f} m > {o.max_pos_sigma_m:g}")
+        ba = float(np.abs(state.accel_bias).max())
+        bg = float(np.abs(state.gyro_bias).max())
+        if ba > o.max_accel_bias:
+            bad.append(f"accelerometer bias {ba:.2f} m/s^2 > {o.max_accel_bias:g}")
+        if bg > o.max_gyro_bias:
+            bad.append(f"gyro bias {bg:.3f} rad/s > {o.max_gyro_bias:g}")
+        return bad
+
+    def after_keyframe(self, state: Any, snapshot: Callable[[], Snapshot]) -> Snapshot | None:
+        """Judge the newest state; returns the healthy snapshot to recover from when the
+        estimate diverges and a recovery is allowed (else None)."""
+        o = self.options
+        t = float(state.t)
+        self.n_keyframes += 1
+        chi = self.chi2()
+        for s, c in chi.items():
+            self.chi2_max[s] = max(self.chi2_max.get(s, 0.0), c)
+        reasons = self.sanity(state)
+        high = {s: c for s, c in chi.items() if c > o.chi2_alarm}
+        alarm = bool(reasons or high)
+        if not alarm:
+            self._alarm_since = None
+            if self.status != "ok" and self.status != "ok-after-recovery":
+                self.status = "ok-after-recovery" if self.n_recovered else "ok"
+            if t - self._last_snapshot_t >= 0.25:
+                self._snapshots.append(snapshot())
+                self._last_snapshot_t = t
+            return None
+        self.n_alarm_keyframes += 1
+        if self._alarm_since is None:
+            self._alarm_since = t
+        diverged = bool(reasons) or t - self._alarm_since >= o.diverge_after_s
+        if not diverged:
+            return None
+        why = reasons + [f"{s} chi2/dof {c:.0f} > {o.chi2_alarm:g}" for s, c in high.items()]
+        first = self.status != "diverged"
+        self.status = "diverged"
+        if first:
+            self.n_diverged += 1
+            self.detectors._count(
+                "divergence", f"estimate diverging at t={t:.2f}: {', '.join(why)}"
+            )
+        can = self.n_recovered < o.max_recoveries and t - self._last_recovery >= o.recovery_gap_s
+        snap = None
+        for s in reversed(self._snapshots):
+            if s.t <= self._alarm_since - o.diverge_after_s:
+                snap = s
+                break
+        if snap is None and self._snapshots:
+            snap = self._snapshots[0]
+        if not can or snap is None:
+            if first:
+                self.events.append({"t": t, "reasons": why, "recovered_from": None})
+                log.warning(
+                    "%s: not recovering (%s)",
+                    self.name,
+                    "no healthy state kept" if snap is None else "recovery limit reached",
+                )
+            return None
+        self.n_recovered += 1
+        self._last_recovery = t
+        self._alarm_since = None
+        self._win.clear()
+        self._snapshots.clear()
+        self.events.append({"t": t, "reasons": why, "recovered_from": snap.t})
+        log.warning(
+            "%s: recovering from the healthy state at t=%.2f s (rebuild)", self.name, snap.t
+        )
+        return snap
+
+    def quality(self, q: int) -> int:
+        return min(q, DIVERGED_QUALITY) if self.status == "diverged" else q
+
+    def report(self) -> dict[str, Any]:
+        rep = self.detectors.report()
+        return {
+            "status": self.status,
+            **rep,
+            "dropped": dict(self.detectors.dropped),
+            "diverged": self.n_diverged,
+            "recovered": self.n_recovered,
+            "alarm_keyframes": self.n_alarm_keyframes,
+            "keyframes": self.n_keyframes,
+            "chi2_max": {k: round(v, 2) for k, v in self.chi2_max.items()},
+            "episodes": self.events[:10],
+            "options": dataclasses.asdict(self.options),
+        }
+
+
+def sensor_of(keys: Iterable[int]) -> str | None:
+    """The sensor of a factor from its keys' symbol characters (None: not monitored): ``slam``
+    (``X`` and ``S`` keys), ``range`` (``X`` and ``G`` only)."""
+    chars = {chr(k >> 56) for k in keys}
+    if "s" in chars and "x" in chars:
+        return "slam"
+    if chars == {"x", "g"}:
+        return "range"
+    return None
+
+
+def health_line(health: dict[str, Any] | None) -> str | None:
+    """The ``health:`` line the commands print (None without a report)."""
+    if not health:
+        return None
+    det = health.get("detectors") or {}
+    parts = [f"health: {health.get('status', 'ok')}"]
+    if health.get("diverged"):
+        parts.append(f"diverged {health['diverged']}x, recovered {health.get('recovered', 0)}x")
+    if det:
+        parts.append("detectors: " + ", ".join(f"{k} {v}" for k, v in det.items()))
+    dropped = health.get("dropped") or {}
+    if dropped:
+        parts.append("dropped: " + ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())))
+    return "; ".join(parts)
+
+
+# ----------------------------------------------------------------------------------------------
+# Batch
+# ----------------------------------------------------------------------------------------------
+
+
+def _interp(t_ref: np.ndarray, y: np.ndarray) -> Callable[[float], float | None]:
+    def f(t: float) -> float | None:
+        if t < t_ref[0] - 0.5 or t > t_ref[-1] + 0.5:
+            return None
+        return float(np.interp(t, t_ref, y))
+
+    return f
+
+
+def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> dict[str, Any]:
+    """Health of a batch solve: the detectors replayed over the flight with the solved trajectory
+    as context, and the solve's own verdict. Returns the ``info["health"]`` dict plus the private
+    ``_fixes`` (what :func:`fixed_flight` would change)."""
+    from fgnav.datasets.events import replay_flight
+
+    o = (options or HealthOptions()).check()
+    tr = est.trajectory
+    speed = np.linalg.norm(tr.world_v_body, axis=1) if tr.world_v_body is not None else None
+    scales = {int(k): float(v) for k, v in (est.slam_scale or {}).items()}
+
+    def scale(s: int) -> float | None:
+        return scales.get(s) or scales.get(s % JUMP_SESSION_BASE)
+
+    ctx = Context(
+        speed=_interp(tr.t, speed) if speed is not None else (lambda t: None),
+        height=_interp(tr.t, tr.world_t_body[:, 2]),
+        scale=scale,
+    )
+    det = FaultDetectors(o, ctx, f"{est.method}: health")
+    jumps: list[tuple[float, int, int]] = []
+    stuck: list[float] = []
+    frozen: list[float] = []
+    streams = [s for s in ("imu", "slam", "range", "images") if getattr(flight, s) is not None]
+    for ev in replay_flight(flight, streams):
+        out = det.feed(ev)
+        name = type(ev).__name__
+        if name == "SlamPose" and out is not None and out.session != ev.session:
+            jumps.append((float(ev.t), int(ev.session), int(out.session)))
+        elif name == "RangeReading" and out is None:
+            stuck.append(float(ev.t))
+        elif name == "ImageFrame" and out is None:
+            frozen.append(float(ev.t))
+    info = est.info or {}
+    det.slam_check(info.get("slam_gyro_check"))
+    rep = det.report()
+    status = "ok"
+    errors = info.get("lm_errors") or []
+    n_f = info.get("n_factors") or 0
+    per_factor = 2.0 * errors[-1] / n_f if errors and n_f else None
+    last_rel = (errors[-2] - errors[-1]) / max(errors[-2], 1e-300) if len(errors) > 1 else 1.0
+    if info.get("lm_converged") is False and last_rel > o.batch_stall_rel:
+        status = "not-converged"
+    elif per_factor is not None and per_factor > o.batch_error_per_factor_max:
+        status = "not-converged"
+    return {
+        "status": status,
+        **rep,
+        "dropped": dict(det.dropped),
+        "error_per_factor": per_factor,
+        "_fixes": {"jumps": jumps, "stuck_range_t": stuck, "frozen_image_t": frozen},
+    }
+
+
+def fixed_flight(flight: Any, fixes: dict[str, Any]) -> Any | None:
+    """The flight with the detectors' fixes applied (SLAM poses after a jump in a new session,
+    stuck range readings and frozen images removed), or None when there is nothing to fix."""
+    jumps, stuck, frozen = fixes["jumps"], fixes["stuck_range_t"], fixes["frozen_image_t"]
+    if not (jumps or stuck or frozen):
+        return None
+    changes: dict[str, Any] = {}
+    if jumps and flight.slam is not None:
+        s = flight.slam
+        sess = s.session.copy()
+        for t, orig, virtual in jumps:
+            m = (s.t >= t - 1e-9) & (s.session == orig)
+            sess[m] = np.maximum(sess[m], virtual)
+        changes["slam"] = dataclasses.replace(s, session=sess)
+    if stuck and flight.range is not None:
+        changes["range"] = flight.range.select(~np.isin(flight.range.t, np.asarray(stuck)))
+    if frozen and flight.images is not None:
+        changes["images"] = flight.images.select(~np.isin(flight.images.t, np.asarray(frozen)))
+    return dataclasses.replace(flight, **changes)

@@ -1,0 +1,280 @@
+"""Sensor fault detectors and the health monitor (fgnav.health) on hand-made event streams, the
+push-API smoother with its monitor on simulated faults, and the batch verdict through the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose, replay_flight
+from fgnav.datasets.simulate.options import SimOptions
+from fgnav.datasets.simulate.simulator import simulate, simulate_to_folder
+
+from fgnav.cli import main
+from fgnav.compare import score_estimate
+from fgnav.health import (
+    JUMP_SESSION_BASE,
+    Context,
+    FaultDetectors,
+    HealthMonitor,
+    HealthOptions,
+    Snapshot,
+    health_line,
+)
+from fgnav.solvers.fixed_lag import FixedLagOptions
+from fgnav.solvers.online import PUSH_STREAMS, OnlineSmoother
+
+RNG_SEED = 0
+
+
+def _imu(t, w, a):
+    return ImuSample(t, t, np.asarray(w, float), np.asarray(a, float))
+
+
+def test_saturation_counted_per_axis_and_noise_never_fires():
+    rng = np.random.default_rng(RNG_SEED)
+    det = FaultDetectors()
+    for i in range(400):
+        w = rng.normal(0.0, 0.1, 3)  # below the 0.5 rad/s rail
+        a = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.5, 3)
+        det.feed(_imu(i * 0.005, w, a))
+    assert det.counts == {}
+    # The gyro z rail at 0.5 rad/s: 20 samples pinned in a row.
+    for i in range(400, 420):
+        det.feed(
+            _imu(i * 0.005, [0.01 * (i % 3), 0.02, 0.5], [0.1 * (i % 2), 0.0, 9.81 + 0.01 * i])
+        )
+    # Counted from the first sample at the rail: all 20.
+    assert det.counts == {"imu-saturation": 20}
+    assert "gyro z pinned at |0.5|" in det.details["imu-saturation"][0]
+
+
+def test_accelerometer_clipped_on_vibration_peaks():
+    rng = np.random.default_rng(RNG_SEED)
+    det = FaultDetectors()
+    rail = 9.81 + 3.0
+    for i in range(2000):  # vibration of +-4 m/s^2 on z, clipped at the rail
+        a = np.array([0.0, 0.0, 9.81 + 4.0 * np.sin(0.9 * i)]) + rng.normal(0.0, 0.05, 3)
+        det.feed(_imu(i * 0.005, rng.normal(0, 0.01, 3), np.clip(a, -rail, rail)))
+    assert det.counts["imu-saturation"] > 100
+    assert det.details["imu-saturation"][0].startswith("accel z pinned at |12.81|")
+
+
+def test_quantised_rest_below_the_floors_is_not_saturation():
+    det = FaultDetectors()
+    for i in range(1000):  # a resting IMU quantised to a few levels: repeats, small values
+        det.feed(_imu(i * 0.005, [0.0014 * (i % 2), 0.0, 0.0], [0.0, 0.0, 9.81]))
+    assert det.counts == {}
+
+
+def test_imu_gap():
+    det = FaultDetectors()
+    t = list(np.arange(0, 1, 0.005)) + list(np.arange(1.3, 2, 0.005))
+    for x in t:
+        det.feed(_imu(float(x), [0, 0, 0], [0, 0, 9.81]))
+    assert det.counts == {"imu-gap": 1}
+    assert "no IMU sample for 0.305 s" in det.details["imu-gap"][0]
+
+
+def _slam_track(det, jump_at=None, jump_m=1.0, scale=2.0, speed=1.0):
+    out = []
+    for i in range(60):
+        t = i * 0.05
+        p = scale * np.array([speed * t, 0.0, 0.0])
+        if jump_at is not None and t >= jump_at:
+            p = p + scale * np.array([0.0, jump_m, 0.0])
+        out.append(det.feed(SlamPose(t, t, p, np.array([1.0, 0, 0, 0]), 0)))
+    return out
+
+
+def test_slam_jump_starts_a_new_session_and_motion_does_not():
+    ctx = Context(speed=lambda t: 1.0, scale=lambda s: 2.0)
+    det = FaultDetectors(context=ctx)
+    out = _slam_track(det)
+    assert det.counts == {} and all(ev.session == 0 for ev in out)
+    det = FaultDetectors(context=ctx)
+    out = _slam_track(det, jump_at=1.5)
+    assert det.counts == {"slam-jump": 1}
+    assert [ev.session for ev in out] == [0] * 30 + [JUMP_SESSION_BASE] * 30
+    # The jump of 1 m, 50 ms after the previous pose at 1 m/s: 1.0 m moved sideways.
+    assert "moved 1.00 m in 50 ms" in det.details["slam-jump"][0]
+    # Without a scale estimate (no aligned session yet) nothing can be judged.
+    det = FaultDetectors(context=Context(speed=lambda t: 1.0))
+    _slam_track(det, jump_at=1.5)
+    assert det.counts == {}
+
+
+def test_range_stuck_while_height_changes_and_hover_is_fine():
+    height = {"z": 0.0}
+    det = FaultDetectors(context=Context(height=lambda t: height["z"]))
+    kept = 0
+    for i in range(100):
+        t = i * 0.04
+        height["z"] = 0.2 * t  # climbing at 0.2 m/s
+        r = 3.0 + 0.2 * t if t < 1.0 else 3.2  # stuck from 1 s
+        kept += det.feed(RangeReading(t, t, r, -1.0)) is not None
+    assert det.counts == {"range-stuck": 1}
+    stuck_n = det.dropped["range:stuck"]
+    # Stuck declared once 1 s of identical readings (from t = 1.0 s) spans > 0.15 m of climb,
+    # at t = 2.0 s (0.2 m): that reading and the 49 after it dropped.
+    assert 100 - kept == stuck_n == 50
+    det = FaultDetectors(context=Context(height=lambda t: 1.0))
+    for i in range(100):  # hover: a quantised rangefinder repeats its reading
+        assert det.feed(RangeReading(i * 0.04, i * 0.04, 1.0, -1.0)) is not None
+    assert det.counts == {}
+
+
+def test_frozen_camera_frames_dropped():
+    det = FaultDetectors()
+    rng = np.random.default_rng(RNG_SEED)
+    frames = [rng.integers(0, 255, (8, 8), dtype=np.uint8) for _ in range(5)]
+    seq = [frames[0], frames[1], frames[1], frames[1], frames[2], frames[2], frames[3]]
+    out = [det.feed(ImageFrame(i * 0.1, i * 0.1, i, None, image=f)) for i, f in enumerate(seq)]
+    assert [o is None for o in out] == [False, False, True, True, False, True, False]
+    assert det.counts == {"camera-frozen": 3} and det.dropped == {"images:frozen": 3}
+
+
+def test_slam_check_offset_and_extrinsic():
+    det = FaultDetectors()
+    det.slam_check({"time_offset_s": -0.3, "body_R_cam_ok": False, "body_R_cam_error_deg": 90})
+    assert det.counts == {"slam-clock-offset": 1, "body_T_cam-rotation": 1}
+    det = FaultDetectors()
+    det.slam_check({"time_offset_s": 0.01, "body_R_cam_ok": True})
+    assert det.counts == {}
+
+
+@dataclasses.dataclass
+class _State:
+    t: float
+    world_v_body: np.ndarray
+    world_T_body: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias: np.ndarray
+    pose_cov: np.ndarray | None = None
+
+
+def _state(t, speed=1.0, gyro_bias=0.0):
+    return _State(t, np.array([speed, 0, 0]), np.eye(4), np.zeros(3), np.full(3, gyro_bias))
+
+
+def test_monitor_chi2_window_divergence_and_recovery_snapshot():
+    hm = HealthMonitor(HealthOptions(window_min_factors=5))
+    snaps = []
+
+    def snap(t):
+        s = Snapshot(int(t * 10), t, {})
+        snaps.append(s)
+        return s
+
+    t = 0.0
+    for _ in range(40):  # 4 s healthy at 10 Hz, chi2/dof ~ 1
+        hm.innovations("slam", t, 3.0, 3)
+        assert hm.after_keyframe(_state(t), lambda t=t: snap(t)) is None
+        t = round(t + 0.1, 6)
+    assert hm.status == "ok" and abs(hm.chi2()["slam"] - 1.0) < 1e-9
+    got = None
+    t_bad = t
+    while got is None and t < 10:  # innovations 300x: alarm, diverged after diverge_after_s
+        hm.innovations("slam", t, 900.0, 3)
+        got = hm.after_keyframe(_state(t), lambda t=t: snap(t))
+        t = round(t + 0.1, 6)
+    assert got is not None and hm.status == "diverged"
+    # Detected within the window plus diverge_after_s; recovered from a state before the alarm.
+    assert t - t_bad <= hm.options.window_s + hm.options.diverge_after_s
+    assert got.t < t_bad  # the snapshot predates the first bad innovation
+    assert hm.report()["detectors"] == {"divergence": 1}
+    assert hm.quality(100) == 10
+    # Sanity: a 100 m/s state diverges at once (but no recovery within recovery_gap_s).
+    assert hm.sanity(_state(t, speed=100.0)) == ["speed 100.0 m/s > 30"]
+    assert hm.sanity(_state(t, gyro_bias=1.0)) == ["gyro bias 1.000 rad/s > 0.5"]
+    assert "health: diverged" in health_line(hm.report())
+
+
+# ----------------------------------------------------------------------------------------------
+# The push-API smoother with its monitor
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_turns():
+    return simulate("two-turns", 1, SimOptions(duration=20.0, images=False))
+
+
+def _online(flight):
+    sm = OnlineSmoother(flight.calib, FixedLagOptions(), flight.name)
+    for ev in replay_flight(flight, [n for n in PUSH_STREAMS if getattr(flight, n) is not None]):
+        sm.feed(ev)
+    est = sm.result()
+    return est, score_estimate(flight, est).ate_rmse_m
+
+
+def test_online_nominal_is_healthy(two_turns):
+    est, ate = _online(two_turns)
+    h = est.info["health"]
+    assert h["status"] == "ok" and h["detectors"] == {} and h["diverged"] == 0
+    assert h["chi2_max"]["slam"] < 5 and ate < 0.05
+    assert h["keyframes"] == len(est.trajectory) - 1  # every keyframe after the start
+
+
+def test_online_slam_jump_named_and_recovered(two_turns):
+    f = two_turns
+    scale = float(f.meta["truth"]["slam_sessions"]["0"]["scale"])
+    p = f.slam.slam_t_cam.copy()
+    p[f.slam.t >= 10.0] += scale * np.array([1.0, 0.0, 0.0])
+    bad = dataclasses.replace(f, slam=dataclasses.replace(f.slam, slam_t_cam=p))
+    _, ate0 = _online(f)
+    est, ate = _online(bad)
+    h = est.info["health"]
+    assert h["detectors"]["slam-jump"] == 1
+    assert ate < 2 * ate0, (ate, ate0)
+
+
+def test_online_gyro_saturation_named_and_divergence_detected(two_turns):
+    f = two_turns
+    imu = dataclasses.replace(f.imu, body_omega=np.clip(f.imu.body_omega, -0.5, 0.5))
+    est, ate = _online(dataclasses.replace(f, imu=imu))
+    h = est.info["health"]
+    assert h["detectors"]["imu-saturation"] > 1000
+    assert h["detectors"].get("divergence", 0) >= 1 and h["recovered"] >= 1
+    assert est.info["reset_counter"] >= 1
+    assert min(s for s in est.info["health"]["episodes"][0]["reasons"]) != ""
+
+
+# ----------------------------------------------------------------------------------------------
+# Batch verdict through the CLI
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    out = tmp_path_factory.mktemp("flight") / "two_turns"
+    simulate_to_folder("two-turns", out, seed=4, options=SimOptions(duration=8.0, images=False))
+    return out
+
+
+def test_batch_not_converged_exits_1_unless_write_anyway(folder, tmp_path, capsys):
+    cfg = tmp_path / "lm.toml"
+    cfg.write_text("[lm]\nmax_iterations = 1\n")
+    out = tmp_path / "o"
+    assert (
+        main(["batch", str(folder), "--out", str(out), "--config", str(cfg), "--no-progress"]) == 1
+    )
+    cap = capsys.readouterr()
+    err = cap.err.strip().splitlines()[-1]
+    assert "batch did not converge: LM stopped at the iteration limit (1 iterations)" in err
+    assert "nothing written (--write-anyway writes it)" in err and not out.exists()
+    argv = ["batch", str(folder), "--out", str(out), "--config", str(cfg), "--no-progress"]
+    assert main([*argv, "--write-anyway"]) == 0
+    cap = capsys.readouterr()
+    assert "health: not-converged" in cap.out
+    s = json.loads((out / "summary.json").read_text())
+    assert s["info"]["health"]["status"] == "not-converged" and s["info"]["lm_converged"] is False
+
+
+def test_batch_nominal_prints_health_ok(folder, tmp_path, capsys):
+    assert main(["batch", str(folder), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    assert "health: ok" in capsys.readouterr().out
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["info"]["health"]["status"] == "ok" and s["info"]["health"]["detectors"] == {}

@@ -1,0 +1,55 @@
+"""scripts/fault_matrix.py --quick: every row ends as its expected outcome (issue 18's "done
+when": no traceback; each run recovers within 2x the nominal ATE, names the fault on screen and in
+summary.json, or stops with a one-line error; no ATE above 1 m with exit 0 and no warning)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from testutil import PROJECT_ROOT
+
+
+@pytest.mark.slow
+def test_quick_fault_matrix(tmp_path):
+    out = tmp_path / "runs.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(PROJECT_ROOT / "scripts" / "fault_matrix.py"),
+            "--quick",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
+    runs = json.loads(out.read_text())
+    by = {(r["row"], r["command"]): r for r in runs}
+    bad = [(k, r["outcome"], r["expected"], r["error"]) for k, r in by.items() if not r["ok"]]
+    assert not bad, bad
+    assert proc.returncode == 0
+    assert all(r["outcome"] != "FAIL" for r in runs)
+    for r in runs:
+        if r["outcome"] == "recovered":
+            assert r["ate_m"] <= 2.0 * r["nominal_ate_m"] + 1e-12
+        if r["exit_code"] == 0 and r["ate_m"] is not None and r["ate_m"] > 1.0:
+            assert r["warnings"], r
+    # The detectors the quick rows exercise fire where they should, and only there.
+    det = {k: " ".join(r["detectors"]) for k, r in by.items()}
+    assert det[("nominal", "batch")] == "" and det[("nominal", "online")] == ""
+    assert "slam-jump 1" in det[("slam-jump-1m", "online")]
+    assert "slam-jump 1" in det[("slam-jump-1m", "batch")]
+    assert "imu-saturation" in det[("gyro-saturated-0.5", "online")]
+    assert "divergence" in det[("gyro-saturated-0.5", "online")]
+    assert "imu-gap 1" in det[("imu-gap-2s", "online")]
+    assert "imu-gap 1" in det[("imu-gap-2s", "batch")]
+    assert "slam-clock-offset 1" in det[("slam-offset-0.3s", "online")]
+    assert "slam-clock-offset 1" in det[("slam-offset-0.3s", "batch")]
+    assert "range-stuck 1" in det[("range-stuck-8s", "online")]
+    assert by[("slam-jump-1m", "batch")]["outcome"] == "recovered"
+    assert by[("file:imu-duplicate", "online")]["error"].startswith("fgnav online: error: ")
