@@ -398,6 +398,8 @@ class HealthMonitor:
         self.options = (options or HealthOptions()).check()
         self.name = name
         self.detectors = FaultDetectors(self.options, Context(), name)
+        #: set by the smoother when its horizontal prediction is thrust-only (see ``sanity``)
+        self.horizontal_accel_free = False
         self._win: dict[str, deque] = {}
         self.status = "ok"
         self.n_diverged = 0
@@ -441,7 +443,10 @@ class HealthMonitor:
             sig = float(np.sqrt(max(np.trace(state.pose_cov[3:, 3:]), 0.0)))
             if sig > o.max_pos_sigma_m:
                 bad.append(f"position sigma {sig:.1f} m > {o.max_pos_sigma_m:g}")
-        ba = float(np.abs(state.accel_bias).max())
+        ab = np.abs(np.asarray(state.accel_bias, float))
+        # With a thrust-only horizontal prediction (the smoother's accelerometer check found the
+        # horizontal channels unusable) the x, y "bias" absorbs their offsets: only z is a bias.
+        ba = float(ab[2] if self.horizontal_accel_free else ab.max())
         bg = float(np.abs(state.gyro_bias).max())
         if ba > o.max_accel_bias:
             bad.append(f"accelerometer bias {ba:.2f} m/s^2 > {o.max_accel_bias:g}")

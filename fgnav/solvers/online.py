@@ -1068,6 +1068,8 @@ class OnlineSmoother:
             self._drag_on = False
         if self.go.accel_horizontal == "auto":
             self._thrust_only = True
+            if getattr(self, "_health", None) is not None:
+                self._health.horizontal_accel_free = True
             # The accelerometer bias has absorbed the measured x, y offsets: it may jump to the
             # thrust-only model's over the next interval.
             self._bias_release = True
