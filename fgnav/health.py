@@ -168,10 +168,12 @@ class FaultDetectors:
         self.dropped: dict[str, int] = {}
         self._imu_last: float | None = None
         self._imu_dts: deque = deque(maxlen=200)
-        self._rail = {"gyro": np.zeros(3), "accel": np.zeros(3)}
-        self._lo = {"gyro": np.full(3, np.inf), "accel": np.full(3, np.inf)}
-        self._hi = {"gyro": np.full(3, -np.inf), "accel": np.full(3, -np.inf)}
-        self._run = {"gyro": np.zeros(3, int), "accel": np.zeros(3, int)}
+        self._rail = {"gyro": [0.0] * 3, "accel": [0.0] * 3}
+        self._lo = {"gyro": [math.inf] * 3, "accel": [math.inf] * 3}
+        self._hi = {"gyro": [-math.inf] * 3, "accel": [-math.inf] * 3}
+        self._run = {"gyro": [0] * 3, "accel": [0] * 3}
+        self._imu_med: float | None = None
+        self._n_imu = 0
         self._slam_prev: dict[int, tuple[float, np.ndarray]] = {}
         self._slam_jumps: dict[int, int] = {}
         self._range_val: float | None = None
@@ -222,18 +224,23 @@ class FaultDetectors:
         return ev
 
     def _imu(self, ev) -> None:
+        # Plain Python floats: this runs for every IMU sample (up to 1 kHz).
         t = float(ev.t)
         if self._imu_last is not None and t > self._imu_last:
             dt = t - self._imu_last
             if len(self._imu_dts) >= 20:
-                med = float(np.median(self._imu_dts))
-                if dt > max(self.options.imu_gap_factor * med, self.options.imu_gap_min_s):
+                if self._imu_med is None or self._n_imu % 50 == 0:
+                    self._imu_med = float(np.median(self._imu_dts))
+                if dt > max(
+                    self.options.imu_gap_factor * self._imu_med, self.options.imu_gap_min_s
+                ):
                     self._count(
                         "imu-gap", f"no IMU sample for {dt:.3f} s after t={self._imu_last:.3f}"
                     )
                     self._imu_last = t
                     return
             self._imu_dts.append(dt)
+        self._n_imu += 1
         if self._imu_last is None or t > self._imu_last:
             self._imu_last = t
         o = self.options
@@ -241,29 +248,33 @@ class FaultDetectors:
             ("gyro", ev.body_omega, o.saturation_min_gyro, o.saturation_spread_gyro),
             ("accel", ev.body_accel, o.saturation_min_accel, o.saturation_spread_accel),
         ):
-            sv = np.asarray(v, float)
-            a = np.abs(sv)
-            if not np.all(np.isfinite(a)):
-                continue
             lo, hi = self._lo[kind], self._hi[kind]
-            np.minimum(lo, sv, out=lo)
-            np.maximum(hi, sv, out=hi)
-            rail = self._rail[kind]
-            run = self._run[kind]  # samples at exactly the current largest |value|
-            hit = np.abs(a - rail) <= 1e-9 * rail
-            run[:] = np.where(a > rail * (1 + 1e-9), 1, np.where(hit, run + 1, run))
-            at_rail = hit & (a >= floor) & (hi - lo >= spread)
-            run_at = np.where(at_rail, run, 0)
-            for i in np.flatnonzero(run_at == self.options.saturation_run):
-                self._count(
-                    "imu-saturation",
-                    f"{kind} {'xyz'[i]} pinned at |{a[i]:.4g}| from t={t:.3f}",
-                    self.options.saturation_run,
-                )
-            n_more = int(np.count_nonzero(run_at > self.options.saturation_run))
-            if n_more:
-                self._count("imu-saturation", n=n_more)
-            np.maximum(rail, a, out=rail)
+            rail, run = self._rail[kind], self._run[kind]
+            for i, x in enumerate(v.tolist() if hasattr(v, "tolist") else v):
+                if not math.isfinite(x):
+                    continue
+                if x < lo[i]:
+                    lo[i] = x
+                if x > hi[i]:
+                    hi[i] = x
+                a = abs(x)
+                r = rail[i]
+                if a > r * (1 + 1e-9):
+                    run[i] = 1  # a new largest |value|: the run of samples at it restarts
+                    rail[i] = a
+                    continue
+                if abs(a - r) > 1e-9 * r:
+                    continue
+                run[i] += 1  # samples at exactly the current largest |value|
+                if a >= floor and hi[i] - lo[i] >= spread:
+                    if run[i] == o.saturation_run:
+                        self._count(
+                            "imu-saturation",
+                            f"{kind} {'xyz'[i]} pinned at |{a:.4g}| from t={t:.3f}",
+                            o.saturation_run,
+                        )
+                    elif run[i] > o.saturation_run:
+                        self._count("imu-saturation")
 
     def _slam(self, ev) -> Any:
         o = self.options
