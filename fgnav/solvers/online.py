@@ -1894,7 +1894,8 @@ class OnlineSmoother:
             self._health_checked = True
             hm.detectors.slam_check(self.slam_check)
         t = self.t_kf[k]
-        lin = self.smoother.getLinearizationPoint()
+        # iSAM2's live linearisation point (a view: getLinearizationPoint() copies the window)
+        lin = getattr(self.smoother, "_theta_view", None) or self.smoother.getLinearizationPoint()
         for i in range(g.size()):
             f = g.at(i)
             sensor = sensor_of(f.keys()) if f is not None else None
