@@ -173,6 +173,101 @@ def _chr(key: int) -> str:
     return chr(key >> 56)
 
 
+#: Layout of a packed output state (:class:`_States`).
+_ROW = {
+    "t": 0,
+    "T": slice(1, 17),
+    "v": slice(17, 20),
+    "ba": slice(20, 23),
+    "bg": slice(23, 26),
+    "P": slice(26, 62),
+    "Pv": slice(62, 71),
+    "reset": 71,
+    "quality": 72,
+    "drag": slice(73, 75),
+    "ground": 75,
+}
+_ROW_LEN = 76
+
+
+class _States:
+    """The output states, packed one float row each (a list of ``OnlineState`` objects costs
+    about 1.6 kB a state: 115 MB for a 1-hour flight at 20 Hz; a row 0.6 kB); the newest is kept
+    whole (its SLAM scales included). Indexable like a list; ``[-1]`` may be replaced."""
+
+    def __init__(self) -> None:
+        self._rows: list[np.ndarray] = []
+        self._last: OnlineState | None = None
+
+    @staticmethod
+    def _pack(st: OnlineState) -> np.ndarray:
+        r = np.full(_ROW_LEN, np.nan)
+        r[0] = st.t
+        r[_ROW["T"]] = np.asarray(st.world_T_body, float).ravel()
+        r[_ROW["v"]], r[_ROW["ba"]], r[_ROW["bg"]] = st.world_v_body, st.accel_bias, st.gyro_bias
+        if st.pose_cov is not None:
+            r[_ROW["P"]] = np.asarray(st.pose_cov, float).ravel()
+        if st.vel_cov is not None:
+            r[_ROW["Pv"]] = np.asarray(st.vel_cov, float).ravel()
+        r[71], r[72] = st.reset_counter, st.quality
+        if st.drag_k is not None:
+            d = np.atleast_1d(np.asarray(st.drag_k, float))[:2]
+            r[73 : 73 + len(d)] = d
+        if st.ground_height is not None:
+            r[75] = st.ground_height
+        return r
+
+    @staticmethod
+    def _unpack(r: np.ndarray) -> OnlineState:
+        P, Pv = r[_ROW["P"]].reshape(6, 6), r[_ROW["Pv"]].reshape(3, 3)
+        drag = r[_ROW["drag"]]
+        drag = drag[np.isfinite(drag)]
+        return OnlineState(
+            t=float(r[0]),
+            world_T_body=r[_ROW["T"]].reshape(4, 4).copy(),
+            world_v_body=r[_ROW["v"]].copy(),
+            accel_bias=r[_ROW["ba"]].copy(),
+            gyro_bias=r[_ROW["bg"]].copy(),
+            pose_cov=None if np.isnan(P).all() else P.copy(),
+            vel_cov=None if np.isnan(Pv).all() else Pv.copy(),
+            slam_scale={},
+            drag_k=drag.copy() if len(drag) else None,
+            ground_height=None if np.isnan(r[75]) else float(r[75]),
+            reset_counter=int(r[71]),
+            quality=int(r[72]),
+        )
+
+    def append(self, st: OnlineState) -> None:
+        self._rows.append(self._pack(st))
+        self._last = st
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def __bool__(self) -> bool:
+        return bool(self._rows)
+
+    def __getitem__(self, i: int) -> OnlineState:
+        n = len(self._rows)
+        if i == -1 or i == n - 1:
+            return self._last
+        return self._unpack(self._rows[i])
+
+    def __setitem__(self, i: int, st: OnlineState) -> None:
+        if not (i == -1 or i == len(self._rows) - 1):
+            raise IndexError("only the newest state may be replaced")
+        self._rows[-1] = self._pack(st)
+        self._last = st
+
+    def __iter__(self):
+        for i in range(len(self._rows)):
+            yield self[i]
+
+    def array(self) -> np.ndarray:
+        """(N, 76) packed rows."""
+        return np.array(self._rows) if self._rows else np.empty((0, _ROW_LEN))
+
+
 class _Imu:
     """Arrived IMU samples (lists, trimmed to the history)."""
 
@@ -267,8 +362,9 @@ class OnlineSmoother:
         self.failure_messages: list[str] = []
         self.latency: list[float] = []
         # Outputs (every state).
-        self.out: list[OnlineState] = []
-        self.out_lag: list[tuple] = []  # (epoch, t, world_T_body, velocity, bias): fixed-lag@lag
+        self.out = _States()
+        # fixed-lag@lag rows: epoch, t, world_T_body (16), velocity, gyro bias, accel bias
+        self.out_lag: list[np.ndarray] = []
         self._out_epoch: list[int] = []  # clock epoch of each state (a backward jump: +1)
         self._epoch = 0
         self._jumped_at = -math.inf
@@ -363,30 +459,30 @@ class OnlineSmoother:
         ep = np.asarray(self._out_epoch, dtype=int)
         epochs = sorted(set(ep.tolist()))
         which = epochs[epoch] if epochs else 0
-        st = [s for s, e in zip(self.out, self._out_epoch, strict=True) if e == which]
-        n = len(st)
+        rows = self.out.array()[ep == which] if len(ep) else np.empty((0, _ROW_LEN))
+        n = len(rows)
         if n == 0:
             raise FlightDataError(
                 f"{self.name}: the online smoother produced no state (no IMU, or no keyframe "
                 "closed)"
             )
-        T = np.array([s.world_T_body for s in st])
+        T = rows[:, _ROW["T"]].reshape(n, 4, 4)
         traj = Trajectory(
-            np.array([s.t for s in st]),
-            T[:, :3, 3],
+            rows[:, 0].copy(),
+            T[:, :3, 3].copy(),
             matrix_to_quat_wxyz(T[:, :3, :3]),
-            np.array([s.world_v_body for s in st]),
-            np.array([s.gyro_bias for s in st]),
-            np.array([s.accel_bias for s in st]),
+            rows[:, _ROW["v"]].copy(),
+            rows[:, _ROW["bg"]].copy(),
+            rows[:, _ROW["ba"]].copy(),
         )
         pose_cov = vel_cov = None
-        if any(s.pose_cov is not None for s in st):
-            nan6, nan3 = np.full((6, 6), np.nan), np.full((3, 3), np.nan)
-            pose_cov = np.array([nan6 if s.pose_cov is None else s.pose_cov for s in st])
-            vel_cov = np.array([nan3 if s.vel_cov is None else s.vel_cov for s in st])
+        if np.isfinite(rows[:, _ROW["P"]]).any():
+            pose_cov = rows[:, _ROW["P"]].reshape(n, 6, 6).copy()
+            vel_cov = rows[:, _ROW["Pv"]].reshape(n, 3, 3).copy()
+        last = self.out._unpack(rows[-1])
         series: dict[str, TimeSeries] = {}
-        for name, rows in self.track.items():
-            rows = [r for r in rows if r[3] == which]
+        for name, track in self.track.items():
+            rows = [r for r in track if r[3] == which]
             if rows:
                 series[name] = TimeSeries(
                     np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
@@ -396,15 +492,11 @@ class OnlineSmoother:
                         series[name].t, np.array([float(r[2]) for r in rows])
                     )
         lat = np.asarray(self.latency)
-        span = sum(
-            max(s.t for s, e in zip(self.out, ep, strict=True) if e == x)
-            - min(s.t for s, e in zip(self.out, ep, strict=True) if e == x)
-            for x in epochs
-        )
+        t_all = self.out.array()[:, 0]
+        span = sum(float(np.ptp(t_all[ep == x])) for x in epochs if (ep == x).any())
         if runtime is None:
             runtime = getattr(self, "runtime_s", None)
         runtime = float(lat.sum()) if runtime is None else runtime
-        last = st[-1]
         info = {
             "engine": "push-api",
             "lag_s": self.options.lag_s,
@@ -2170,23 +2262,33 @@ class OnlineSmoother:
                 bias = sm.calculateEstimateConstantBias(B(j))
             except SOLVER_ERRORS:
                 continue
-            self.out_lag.append((self._epoch, t_j, pose.matrix(), vel, bias))
+            self.out_lag.append(
+                np.r_[
+                    self._epoch,
+                    t_j,
+                    pose.matrix().ravel(),
+                    vel,
+                    bias.gyroscope(),
+                    bias.accelerometer(),
+                ]
+            )
 
     def lagged_result(self, epoch: int = -1) -> Estimate:
         """The ``fixed-lag@lag`` output: each keyframe's state as smoothed just before it leaves
         the window (``FixedLagOptions.lagged_output``), delayed by the lag."""
-        eps = sorted({r[0] for r in self.out_lag})
+        lag = np.array(self.out_lag)
+        eps = sorted(set(lag[:, 0].astype(int).tolist())) if len(lag) else []
         if not eps:
             raise FlightDataError(f"{self.name}: no lagged state (run shorter than the lag?)")
-        rows = [r for r in self.out_lag if r[0] == eps[epoch]]
-        T = np.array([r[2] for r in rows])
+        rows = lag[lag[:, 0] == eps[epoch]]
+        T = rows[:, 2:18].reshape(-1, 4, 4)
         traj = Trajectory(
-            np.array([r[1] for r in rows]),
-            T[:, :3, 3],
+            rows[:, 1].copy(),
+            T[:, :3, 3].copy(),
             matrix_to_quat_wxyz(T[:, :3, :3]),
-            np.array([r[3] for r in rows]),
-            np.array([r[4].gyroscope() for r in rows]),
-            np.array([r[4].accelerometer() for r in rows]),
+            rows[:, 18:21].copy(),
+            rows[:, 21:24].copy(),
+            rows[:, 24:27].copy(),
         )
         est = self.result(epoch=epoch)
         info = dict(est.info, delay_s=self.options.lag_s)
