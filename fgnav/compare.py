@@ -35,7 +35,14 @@ from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.eval.metrics import DEFAULT_RPE_DELTA_M, Metrics, evaluate, to_jsonable
-from fgnav.methods import METHODS, Method, available_methods, get_method, slam_checked
+from fgnav.methods import (
+    METHODS,
+    Method,
+    MethodUnavailableError,
+    available_methods,
+    get_method,
+    slam_checked,
+)
 
 log = logging.getLogger(__name__)
 
@@ -507,6 +514,10 @@ def compare(
                 run.estimate = method.run(
                     raw if name in CAUSAL_SLAM_CHECK else flight, cfg, progress
                 )
+            except MethodUnavailableError as e:  # known only once it looks at its options
+                res.skipped[name] = one_line(str(e))
+                log.info("%s: skipped: %s", name, res.skipped[name])
+                continue
             except Exception as e:  # one method's failure must not stop the comparison
                 run.error = f"{type(e).__name__}: {one_line(str(e))}"
                 run.traceback = traceback.format_exc()
