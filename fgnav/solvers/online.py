@@ -5,10 +5,13 @@ time, in arrival order (a replayed log or a live link: the smoother cannot tell 
 keeps an iSAM2 fixed-lag window (:class:`fgnav.solvers.window.TimeOrderedSmoother`). It never sees
 a flight: every decision uses only what has arrived.
 
-Keyframes lie on a fixed grid ``t0 + k / keyframe_hz``; keyframe k *closes* when an IMU sample at
-or after ``t_k`` arrives: the IMU preintegrated since k-1 (zero-order hold, the bias estimate of
-the interval's start) gives a ``CombinedImuFactor`` and the predicted initial values, and one
-iSAM2 update adds it with every measurement that has arrived for a keyframe still in the window.
+Keyframes follow a grid step of ``1 / keyframe_hz`` after the newest one (or the next camera
+image, see *Camera*); keyframe k *closes* when an IMU sample after ``t_k`` arrives: the arrived
+IMU preintegrated since k-1 (zero-order hold, the bias estimate of k-1) gives a
+``CombinedImuFactor`` and the predicted initial values, and one iSAM2 update adds it with every
+measurement that has arrived for a keyframe still in the window. The newest state is the causal
+output (``latest()``, ``result()``); each keyframe's state as smoothed when the next update
+marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
 
 - **Start**: at the first SLAM pose's capture time when a SLAM pose arrives within ``start_wait_s``
   of the first IMU sample (``FixedLagOptions.graph.use_slam``), else at the IMU. Attitude from the
@@ -24,27 +27,36 @@ iSAM2 update adds it with every measurement that has arrived for a keyframe stil
   than the lag) starts from the predecessor's last estimate under a prior widened by the walk over
   the gap, never from a fresh fit. A session's chain starts from the closed-form fit
   (:func:`fgnav.solvers.measurements.init_slam_alignment`) over its poses so far once they span
-  ``slam_init_window_s`` and the fit passes the excitation and standard-error gates; before that
+  ``slam_init_window_s`` and the fit passes the excitation, standard-error and pair-count gates
+  (both rotation conventions tried until the SLAM-vs-gyro check decides); before that
   its poses attach to a *provisional* alignment (rotation from the SLAM orientation and the current
   attitude, scale from the previous session or ``slam_provisional_scale``, origin at the newest
   pose, wide log-scale prior). When the chain starts, the provisional factors still in the window
-  are removed and re-attached to it. A new session id (a map reset) starts a new chain.
+  are removed and re-attached to it. A new session id (a map reset) starts a new chain. The causal
+  SLAM-vs-gyro check (:class:`fgnav.datasets.slam_gyro.SlamGyroCheck`) decides the file's rotation
+  convention (an inverted file is named and used inverted), names a wrong ``body_T_cam`` rotation
+  and estimates the clock offset; once decided, the SLAM orientations become factors.
 - **Range** and **yaw**: interpolated to the keyframe time once the sample after it has arrived
   (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt.
-- **Drag**: mean accelerometer over the keyframe's interval once the IMU has passed it; off when
-  the mean specific force of the first ``drag_check_s`` is more than
-  ``graph.drag_thrust_max_angle_deg`` from body +z (said once); its noise floor follows the running
-  scatter of the keyframe means (last ``drag_scatter_n`` keyframes).
+- **Drag**: mean accelerometer over the keyframe's window once the next keyframe has closed; off
+  when the mean specific force of the first ``drag_check_s`` is more than
+  ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
+  (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
+  ``graph.accel_horizontal = "auto"``, the IMU prediction is thrust-only); said once; its noise
+  floor follows the running scatter of the keyframe means.
 - **Time rules**: a sample older than its stream's newest by less than ``clock_jump_s`` is
   rejected and counted (``<stream>:out-of-order``; equal stamps ``<stream>:duplicate``); an IMU
   stamp that goes back by more than that is a clock jump and resets the smoother
   (``reset_counter`` += 1). An IMU gap longer than ``max_imu_gap_s`` also resets it (the chain is
   not integrated blindly). A measurement whose keyframe has left the window is counted as
   ``<stream>:late``.
-- **Factorization**: QR for the first ``startup_qr_s``, then Cholesky; a failed update is retried
-  on a fresh QR smoother rebuilt from the last good newest state and slow variables with priors
+- **Factorization**: QR for the first ``startup_qr_s``, then Cholesky; a failed Cholesky update
+  moves the window, that update's factors included, into a QR smoother (nothing lost); a failure
+  under QR rebuilds it from the last good newest state and slow variables with priors
   (``solver_failures``, ``reset_counter`` += 1): the smoother never crashes on a solver failure.
-
+- **Health** (:mod:`fgnav.health`): fault detectors on the events and a monitor of the whitened
+  errors and the state; a diverging estimate lowers ``quality`` and is rebuilt from the last
+  healthy state.
 - **Camera** (downward, with the rangefinder): every image anchors the keyframe at its time
   (keyframes at least ``MIN_ANCHOR_GAP_PERIODS`` apart; a keyframe without an image waits half a
   period plus ``image_latency_s`` for one) and goes through the homography VO stage
