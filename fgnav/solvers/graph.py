@@ -344,6 +344,20 @@ def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
 
 
+def robust_noise(base: gtsam.noiseModel.Base, o: GraphOptions) -> gtsam.noiseModel.Base:
+    """``base`` wrapped in the graph's robust kernel (``o.robust``: huber, cauchy or none, with
+    ``o.robust_k``)."""
+    if o.robust == "huber":
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base
+        )
+    if o.robust == "cauchy":
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base
+        )
+    return base
+
+
 def pim_params(
     noise: Any,
     gravity: float,
@@ -840,16 +854,7 @@ class GraphBuilder:
         return model
 
     def _robust(self, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
-        o = self.options
-        if o.robust == "huber":
-            return gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base
-            )
-        if o.robust == "cauchy":
-            return gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base
-            )
-        return base
+        return robust_noise(base, self.options)
 
     def imu_accel_sigma(self) -> float:
         """Discrete-time standard deviation of one accelerometer sample [m/s^2]."""

@@ -86,6 +86,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
+    STREAM_OF_EVENT,
     AttitudeSample,
     FlowSample,
     ImageFrame,
@@ -119,7 +120,12 @@ from fgnav.solvers.fixed_lag import (
     _isam2_params,
     rebuild_state_priors,
 )
-from fgnav.solvers.graph import ACCEL_CHECK_MAX_TILT_DEG, pim_params, thrust_only_noise
+from fgnav.solvers.graph import (
+    ACCEL_CHECK_MAX_TILT_DEG,
+    pim_params,
+    robust_noise,
+    thrust_only_noise,
+)
 from fgnav.solvers.measurements import (
     MIN_ANCHOR_GAP_PERIODS,
     init_slam_alignment,
@@ -683,16 +689,7 @@ class OnlineSmoother:
         return m
 
     def _robust(self, base: Any) -> Any:
-        o = self.go
-        if o.robust == "huber":
-            return gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(o.robust_k), base
-            )
-        if o.robust == "cauchy":
-            return gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(o.robust_k), base
-            )
-        return base
+        return robust_noise(base, self.go)
 
     # ------------------------------------------------------------------------------------------
     # IMU: keyframes close here
@@ -2367,14 +2364,8 @@ class OnlineSmoother:
         )
 
 
-_STREAM = {
-    AttitudeSample: "attitude",
-    SlamPose: "slam",
-    RangeReading: "range",
-    YawReading: "yaw",
-    ImageFrame: "images",
-    FlowSample: "flow",
-}
+#: Stream name of each non-IMU event type.
+_STREAM = {cls: name for cls, name in STREAM_OF_EVENT.items() if cls is not ImuSample}
 
 
 def run_online(
