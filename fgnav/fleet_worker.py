@@ -53,8 +53,11 @@ def error_reason(e: BaseException, memory_limit_mb: float | None = None) -> str:
     from fgnav.datasets.errors import FgnavError
 
     text = one_line(e)
+    # Under RLIMIT_AS an extension whose allocation fails may return NULL without setting
+    # MemoryError: CPython then raises SystemError "error return without exception set".
+    alloc_failed = isinstance(e, SystemError) and "without exception set" in text
     if isinstance(e, MemoryError) or (
-        memory_limit_mb and any(h in text.lower() for h in MEMORY_HINTS)
+        memory_limit_mb and (alloc_failed or any(h in text.lower() for h in MEMORY_HINTS))
     ):
         limit = f" (--memory-limit {memory_limit_mb:g} MB)" if memory_limit_mb else ""
         return f"out of memory{limit}: {type(e).__name__}: {text}"

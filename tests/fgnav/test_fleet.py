@@ -31,7 +31,7 @@ from fgnav.fleet import (
     run_flight_job,
     write_report,
 )
-from fgnav.fleet_worker import ABORT_ENV
+from fgnav.fleet_worker import ABORT_ENV, error_reason
 
 #: The six good flights: (scenario, seed); 6 s each, no images.
 GOOD = [
@@ -450,3 +450,12 @@ def test_fleet_on_a_dask_scheduler(campaign, batch_ates, dask_cluster, tmp_path,
     assert "6 ok, 0 skipped, 1 error, 0 timeout, 1 crashed" in capsys.readouterr().out
     rows = _check_table(out, campaign, batch_ates, "ok")
     assert len({r["worker"] for r in rows if r["status"] == "ok"}) == 2
+
+
+def test_allocation_failure_without_memory_error_is_named_under_a_limit():
+    """Under RLIMIT_AS a C extension may fail an allocation without setting MemoryError (seen in
+    a clean-clone CI run: ``SystemError: error return without exception set``)."""
+    e = SystemError("error return without exception set")
+    assert error_reason(e, 150).startswith("out of memory (--memory-limit 150 MB): SystemError")
+    assert error_reason(e, None) == "SystemError: error return without exception set"
+    assert error_reason(MemoryError(), 150).startswith("out of memory (--memory-limit 150 MB)")
