@@ -88,8 +88,11 @@ def _first(d: dict[str, Any], keys: tuple[str, ...], path: Path, required: bool 
         if k in d:
             return d[k]
     if required:
-        raise FlightFormatError(path, f"missing key {keys[0]!r}" + (
-            f" (or {', '.join(repr(k) for k in keys[1:])})" if len(keys) > 1 else ""))
+        raise FlightFormatError(
+            path,
+            f"missing key {keys[0]!r}"
+            + (f" (or {', '.join(repr(k) for k in keys[1:])})" if len(keys) > 1 else ""),
+        )
     return None
 
 
@@ -164,8 +167,11 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
     present = {k: v for k, v in _NOISE_KEYS.items() if v in d}
     if not present:
         imu_noise = ImuNoise()
-        _note(notes, f"{p}: no IMU noise keys ({', '.join(_NOISE_KEYS.values())}); "
-                     f"using fgnav's defaults {imu_noise}")
+        _note(
+            notes,
+            f"{p}: no IMU noise keys ({', '.join(_NOISE_KEYS.values())}); "
+            f"using fgnav's defaults {imu_noise}",
+        )
     elif len(present) < len(_NOISE_KEYS):
         missing = [v for v in _NOISE_KEYS.values() if v not in d]
         raise FlightFormatError(p, f"missing IMU noise key(s) {missing} (all four or none)")
@@ -196,8 +202,10 @@ def _repair_rotation(T: np.ndarray, path: Path, notes: list[str] | None) -> np.n
     U, _, Vt = np.linalg.svd(R)
     out = T.copy()
     out[:3, :3] = U @ Vt
-    msg = (f"{path}: IMU.T_b_c1 rotation orthonormal only to {err:.1e} (printed digits); "
-           f"projected onto SO(3)")
+    msg = (
+        f"{path}: IMU.T_b_c1 rotation orthonormal only to {err:.1e} (printed digits); "
+        f"projected onto SO(3)"
+    )
     log.info(msg)
     if notes is not None:
         notes.append(msg)

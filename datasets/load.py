@@ -107,9 +107,8 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
             return crazyflie.read_crazyflie(p)
         if _starts_with(p, crazyflie.MAGIC):
             raise FlightFormatError(
-                p, f"starts with the Crazyflie log magic byte 0x{crazyflie.MAGIC:X} but is not "
-                f"a readable Crazyflie SD-card log: {problem}"
+                p,
+                f"starts with the Crazyflie log magic byte 0x{crazyflie.MAGIC:X} but is not "
+                f"a readable Crazyflie SD-card log: {problem}",
             )
-    raise FlightFormatError(
-        p, "not a recognised flight input; supported: " + "; ".join(SUPPORTED)
-    )
+    raise FlightFormatError(p, "not a recognised flight input; supported: " + "; ".join(SUPPORTED))

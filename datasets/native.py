@@ -385,8 +385,15 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
     """Inverse of :func:`calibration_to_dict`; errors name the file and key. The flow keys
     (``body_T_flow``, ``flow_pixels_per_rad``) are optional (files written before the flow
     stream lack them; the defaults of :class:`Calibration` apply)."""
-    keys = ("body_T_cam", "body_T_range", "camera", "imu_noise", "range_min", "range_max",
-            "time_offsets")
+    keys = (
+        "body_T_cam",
+        "body_T_range",
+        "camera",
+        "imu_noise",
+        "range_min",
+        "range_max",
+        "time_offsets",
+    )
     optional = ("body_T_flow", "flow_pixels_per_rad", "images_camera")
     if not isinstance(d, Mapping):
         raise FlightFormatError(path, f"expected a mapping with keys {list(keys)}")

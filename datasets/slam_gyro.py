@@ -563,6 +563,13 @@ def invert_slam_rotations(slam: SlamSeries) -> SlamSeries:
 META_KEY = "slam_gyro_check"
 
 
+def file_modes(flight: Flight, rotation: str, time_offset: str | float) -> tuple[str, str | float]:
+    """``(slam_rotation, slam_time_offset)`` for this flight: a manifest's ``[slam]`` options
+    (``flight.meta["slam_options"]``) win over the given ones."""
+    per_file = (flight.meta.get("slam_options") if isinstance(flight.meta, dict) else None) or {}
+    return per_file.get("slam_rotation", rotation), per_file.get("slam_time_offset", time_offset)
+
+
 def apply_slam_check(
     flight: Flight, rotation: str = "auto", time_offset: str | float = "report"
 ) -> Flight:
@@ -577,9 +584,7 @@ def apply_slam_check(
     """
     if flight.slam is None or flight.imu is None or META_KEY in flight.meta:
         return flight
-    per_file = flight.meta.get("slam_options") or {}
-    rotation = per_file.get("slam_rotation", rotation)
-    time_offset = per_file.get("slam_time_offset", time_offset)
+    rotation, time_offset = file_modes(flight, rotation, time_offset)
     check_modes(rotation, time_offset, "slam options")
     d = None
     if rotation == "auto" or isinstance(time_offset, str):

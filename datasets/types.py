@@ -53,9 +53,7 @@ def _check_column(
         raise FlightDataError(f"{name}.{field_name}: missing")
     expected = (n,) if width is None else (n, width)
     if a.shape != expected:
-        raise FlightDataError(
-            f"{name}.{field_name}: expected shape {expected}, got {a.shape}"
-        )
+        raise FlightDataError(f"{name}.{field_name}: expected shape {expected}, got {a.shape}")
     if a.dtype.kind in "fc":
         bad = np.argwhere(~np.isfinite(a))
         if bad.size:

@@ -103,8 +103,14 @@ class SimOptions:
 
     #: Rates for which 0 switches the stream off (``fgnav.config`` accepts 0 for these).
     ZERO_MEANS_OFF: ClassVar[frozenset[str]] = frozenset(
-        {"attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz", "image_rate_hz",
-         "flow_rate_hz"}
+        {
+            "attitude_rate_hz",
+            "yaw_rate_hz",
+            "range_rate_hz",
+            "slam_rate_hz",
+            "image_rate_hz",
+            "flow_rate_hz",
+        }
     )
 
     duration: float | None = None
@@ -215,15 +221,25 @@ class SimOptions:
             raise bad("imu_rate_hz", "a positive rate")
         if int(self.substeps) != self.substeps or self.substeps < 1:
             raise bad("substeps", "an integer >= 1")
-        for name in ("attitude_rate_hz", "yaw_rate_hz", "range_rate_hz", "slam_rate_hz",
-                     "image_rate_hz", "flow_rate_hz"):
+        for name in (
+            "attitude_rate_hz",
+            "yaw_rate_hz",
+            "range_rate_hz",
+            "slam_rate_hz",
+            "image_rate_hz",
+            "flow_rate_hz",
+        ):
             rate = getattr(self, name)
             if rate is None:
                 continue
             if rate < 0 or rate > self.imu_rate_hz:
                 raise bad(name, f"0 (off) or a rate up to imu_rate_hz={self.imu_rate_hz}")
-        for name in ("range_dropout_prob", "range_outlier_prob", "flow_dropout_prob",
-                     "flow_low_quality_prob"):
+        for name in (
+            "range_dropout_prob",
+            "range_outlier_prob",
+            "flow_dropout_prob",
+            "flow_low_quality_prob",
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise bad(name, "a probability in [0, 1]")
         if not 0 <= self.range_min < self.range_max:
@@ -257,7 +273,8 @@ class SimOptions:
         if not -0.5 <= self.flow_noise_lag1 <= 0.0:
             raise bad("flow_noise_lag1", "a lag-1 correlation in [-0.5, 0]")
         if not 0 <= self.flow_height_min < self.flow_height_max:
-            raise bad("flow_height_min", f"0 <= flow_height_min < flow_height_max="
-                      f"{self.flow_height_max}")
+            raise bad(
+                "flow_height_min", f"0 <= flow_height_min < flow_height_max={self.flow_height_max}"
+            )
         if not math.isfinite(self.ground_height):
             raise bad("ground_height", "a finite height [m]")

@@ -94,8 +94,12 @@ def inter_frame_homography(
 def image_corner_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
     """(4, 3) camera-frame rays through the corner pixel centres."""
     corners = np.array(
-        [[0.0, 0.0, 1.0], [width - 1.0, 0.0, 1.0], [width - 1.0, height - 1.0, 1.0],
-         [0.0, height - 1.0, 1.0]]
+        [
+            [0.0, 0.0, 1.0],
+            [width - 1.0, 0.0, 1.0],
+            [width - 1.0, height - 1.0, 1.0],
+            [0.0, height - 1.0, 1.0],
+        ]
     )
     return corners @ np.linalg.inv(K).T
 
@@ -198,11 +202,19 @@ class Carpet:
         depth = world_T_cam[2, 3] - self.ground_height
         optical_down = max(-world_T_cam[2, 2], 1e-3)
         pixel_m = depth / optical_down / K[0, 0]
-        level = int(np.clip(math.floor(math.log2(max(pixel_m / (2.0 * self.resolution_m), 1.0))),
-                            0, len(self.levels) - 1))
+        level = int(
+            np.clip(
+                math.floor(math.log2(max(pixel_m / (2.0 * self.resolution_m), 1.0))),
+                0,
+                len(self.levels) - 1,
+            )
+        )
         H = ground_homography(world_T_cam, K, self.ground_height, self.world_xy1_from_texel(level))
         return cv2.warpPerspective(
-            self.levels[level], H, (width, height), flags=cv2.INTER_LINEAR,
+            self.levels[level],
+            H,
+            (width, height),
+            flags=cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REFLECT_101,
         )
 

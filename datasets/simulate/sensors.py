@@ -77,18 +77,21 @@ def simulate_imu(
     dt = 1.0 / opts.imu_rate_hz
     if opts.noise_free:
         zeros = np.zeros((n, 3))
-        imu = ImuSeries(vehicle.t.copy(), vehicle.body_omega.copy(),
-                        vehicle.body_specific_force.copy())
+        imu = ImuSeries(
+            vehicle.t.copy(), vehicle.body_omega.copy(), vehicle.body_specific_force.copy()
+        )
         return imu, ImuTruth(zeros, zeros.copy())
     gyro_bias = _random_walk(rng, n, opts.gyro_bias0_std, opts.gyro_random_walk * math.sqrt(dt))
-    accel_bias = _random_walk(
-        rng, n, opts.accel_bias0_std, opts.accel_random_walk * math.sqrt(dt)
+    accel_bias = _random_walk(rng, n, opts.accel_bias0_std, opts.accel_random_walk * math.sqrt(dt))
+    gyro = (
+        vehicle.body_omega
+        + gyro_bias
+        + rng.normal(0.0, opts.gyro_noise_density / math.sqrt(dt), (n, 3))
     )
-    gyro = vehicle.body_omega + gyro_bias + rng.normal(
-        0.0, opts.gyro_noise_density / math.sqrt(dt), (n, 3)
-    )
-    accel = vehicle.body_specific_force + accel_bias + rng.normal(
-        0.0, opts.accel_noise_density / math.sqrt(dt), (n, 3)
+    accel = (
+        vehicle.body_specific_force
+        + accel_bias
+        + rng.normal(0.0, opts.accel_noise_density / math.sqrt(dt), (n, 3))
     )
     return ImuSeries(vehicle.t.copy(), gyro, accel), ImuTruth(gyro_bias, accel_bias)
 
@@ -147,8 +150,11 @@ def beam_range(
             rb = np.where(down > 0, (world_t_sensor[:, 2] - ground_height - height) / down, np.inf)
             hit = world_t_sensor[:, :2] + rb[:, None] * world_d_beam[:, :2]
             inside = (
-                (rb > 0) & (hit[:, 0] >= x0) & (hit[:, 0] <= x1)
-                & (hit[:, 1] >= y0) & (hit[:, 1] <= y1)
+                (rb > 0)
+                & (hit[:, 0] >= x0)
+                & (hit[:, 0] <= x1)
+                & (hit[:, 1] >= y0)
+                & (hit[:, 1] <= y1)
             )
             r = np.where(inside & (rb < r), rb, r)
     return np.where(r > 0, r, np.inf)
@@ -306,9 +312,7 @@ def simulate_flow(
         noise = a * (e[1:] - e[:-1]) + b * rng.normal(0.0, 1.0, (m, 2))
         low = rng.random(m) < opts.flow_low_quality_prob
         noise = np.where(low[:, None], noise * opts.flow_low_quality_noise_factor, noise)
-        quality = np.where(
-            low, rng.uniform(*FLOW_QUALITY_LOW, m), rng.uniform(*FLOW_QUALITY_OK, m)
-        )
+        quality = np.where(low, rng.uniform(*FLOW_QUALITY_LOW, m), rng.uniform(*FLOW_QUALITY_OK, m))
         flow = flow + noise
         dropped = rng.random(m) < opts.flow_dropout_prob
         keep &= ~dropped
@@ -318,12 +322,13 @@ def simulate_flow(
     keep &= in_height
     truth["flow_low_quality"] = int((keep & low).sum())
     if not keep.any():
-        log.warning("optical flow: no reading with the sensor within [%g, %g] m of the ground",
-                    opts.flow_height_min, opts.flow_height_max)
+        log.warning(
+            "optical flow: no reading with the sensor within [%g, %g] m of the ground",
+            opts.flow_height_min,
+            opts.flow_height_max,
+        )
         return None, truth
-    series = FlowSeries(
-        t=t[j1][keep].copy(), dt=dt[keep], flow=flow[keep], quality=quality[keep]
-    )
+    series = FlowSeries(t=t[j1][keep].copy(), dt=dt[keep], flow=flow[keep], quality=quality[keep])
     return series, truth
 
 
@@ -438,10 +443,9 @@ def simulate_slam(
         if axis_scale:
             slam_t[idx] = drift[:, None] * world_t_cam * np.asarray(axis_scale)
         else:
-            slam_t[idx] = (
-                (truth.scale * drift)[:, None] * (world_t_cam @ truth.slam_R_world.T)
-                + truth.slam_t_world
-            )
+            slam_t[idx] = (truth.scale * drift)[:, None] * (
+                world_t_cam @ truth.slam_R_world.T
+            ) + truth.slam_t_world
         slam_R[idx] = truth.slam_R_world @ world_R_cam
     keep = session >= 0
     if not keep.any():

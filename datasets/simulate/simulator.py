@@ -119,7 +119,8 @@ def _render_images(
         img /= len(poses[k])
         if opts.brightness_amplitude:
             img = img * (
-                1.0 + opts.brightness_amplitude
+                1.0
+                + opts.brightness_amplitude
                 * math.sin(2.0 * math.pi * times[k] / opts.brightness_period_s)
             )
         if noise_std > 0:
@@ -173,8 +174,16 @@ def simulate(
         v0 = ref.world_v[0] + R0_yaw @ np.asarray(sc.body_v0, float)
     params = VehicleParams(drag_k=tuple(float(k) for k in opts.drag_k))
     vehicle = simulate_vehicle(
-        t, ref.world_p, ref.world_v, ref.world_a, ref.yaw, ref.yaw_rate, wind, params,
-        int(opts.substeps), world_v_body0=v0,
+        t,
+        ref.world_p,
+        ref.world_v,
+        ref.world_a,
+        ref.yaw,
+        ref.yaw_rate,
+        wind,
+        params,
+        int(opts.substeps),
+        world_v_body0=v0,
     )
 
     # 2. Calibration.
@@ -190,8 +199,10 @@ def simulate(
         body_T_range=body_T_range,
         camera=camera,
         imu_noise=ImuNoise(
-            opts.gyro_noise_density, opts.accel_noise_density,
-            opts.gyro_random_walk, opts.accel_random_walk,
+            opts.gyro_noise_density,
+            opts.accel_noise_density,
+            opts.gyro_random_walk,
+            opts.accel_random_walk,
         ),
         range_min=float(opts.range_min),
         range_max=float(opts.range_max),
@@ -269,8 +280,12 @@ def simulate(
         "slam_lost": n_slam_grid - (len(slam) if slam is not None else 0),
     }
     if range_truth["range_out_of_limits"]:
-        log.info("rangefinder: %d readings outside [%g, %g] m not delivered",
-                 range_truth["range_out_of_limits"], opts.range_min, opts.range_max)
+        log.info(
+            "rangefinder: %d readings outside [%g, %g] m not delivered",
+            range_truth["range_out_of_limits"],
+            opts.range_min,
+            opts.range_max,
+        )
     flight = Flight(
         name=f"sim-{scenario}-seed{seed}",
         source="simulator",
@@ -296,8 +311,13 @@ def simulate(
     log.info(
         "simulated %s seed %d: %.1f s, %s; range: %d dropouts, %d out of limits; SLAM: %d "
         "session(s), %d poses lost",
-        scenario, seed, duration, ", ".join(f"{k} {len(v)}" for k, v in flight.streams().items()),
-        notes["range_dropouts"], notes["range_out_of_limits"], notes["slam_sessions"],
+        scenario,
+        seed,
+        duration,
+        ", ".join(f"{k} {len(v)}" for k, v in flight.streams().items()),
+        notes["range_dropouts"],
+        notes["range_out_of_limits"],
+        notes["slam_sessions"],
         notes["slam_lost"],
     )
     return flight
@@ -324,8 +344,12 @@ def world_T_cam_at(flight: Flight, t: np.ndarray) -> np.ndarray:
 
 
 def simulate_to_folder(
-    scenario: str, out: str | Path, seed: int = 0, options: SimOptions | None = None,
-    progress: bool = False, overwrite: bool = False,
+    scenario: str,
+    out: str | Path,
+    seed: int = 0,
+    options: SimOptions | None = None,
+    progress: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Simulate a flight and write it with ``fgnav.datasets.native.write_flight``.
 

@@ -344,6 +344,16 @@ def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
 
 
+def choose_slam_model(flight: Flight, slam_model: str) -> str:
+    """``GraphOptions.slam_model`` resolved: ``"auto"`` is ``"axis"`` when the flight's metadata
+    says its SLAM stream is per-axis (the simulator's seed 000 scenarios), else ``"sim3"``."""
+    if slam_model != "auto":
+        return slam_model
+    truth = flight.meta.get("truth", {}) if isinstance(flight.meta, dict) else {}
+    axis = truth.get("slam_axis_scale") if isinstance(truth, dict) else None
+    return "axis" if axis not in (None, (), []) else "sim3"
+
+
 def robust_noise(base: gtsam.noiseModel.Base, o: GraphOptions) -> gtsam.noiseModel.Base:
     """``base`` wrapped in the graph's robust kernel (``o.robust``: huber, cauchy or none, with
     ``o.robust_k``)."""
@@ -522,12 +532,7 @@ class GraphBuilder:
         return math.degrees(math.acos(float(np.clip(mean_dir[2], -1.0, 1.0)))), mean_dir
 
     def _choose_slam_model(self) -> str:
-        o = self.options
-        if o.slam_model != "auto":
-            return o.slam_model
-        truth = self.flight.meta.get("truth", {}) if isinstance(self.flight.meta, dict) else {}
-        axis = truth.get("slam_axis_scale") if isinstance(truth, dict) else None
-        return "axis" if axis not in (None, (), []) else "sim3"
+        return choose_slam_model(self.flight, self.options.slam_model)
 
     def _skip(self, reason: str, n: int = 1) -> None:
         if n:

@@ -120,8 +120,10 @@ from fgnav.solvers.fixed_lag import (
     _isam2_params,
     rebuild_state_priors,
 )
+from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
+    choose_slam_model,
     pim_params,
     robust_noise,
     thrust_only_noise,
@@ -135,6 +137,7 @@ from fgnav.solvers.window import TimeOrderedSmoother, move_window
 
 log = logging.getLogger(__name__)
 
+_EYE4 = np.eye(4)
 #: Quaternion conjugation (w, -x, -y, -z): the inverse rotation.
 _CONJ = np.array([1.0, -1.0, -1.0, -1.0])
 #: Accelerometer-bias walk on body x, y over the keyframe interval where the prediction turns
@@ -206,6 +209,21 @@ _ROW = {
     "ground": 75,
 }
 _ROW_LEN = 76
+#: Layout of a packed fixed-lag@lag row: epoch, then the trajectory columns.
+_LAG_ROW = {"t": 1, "T": slice(2, 18), "v": slice(18, 21), "bg": slice(21, 24), "ba": slice(24, 27)}
+
+
+def _trajectory(rows: np.ndarray, layout: dict) -> Trajectory:
+    """The trajectory of packed state rows (``_ROW`` or ``_LAG_ROW`` layout)."""
+    T = rows[:, layout["T"]].reshape(-1, 4, 4)
+    return Trajectory(
+        rows[:, layout["t"]].copy(),
+        T[:, :3, 3].copy(),
+        matrix_to_quat_wxyz(T[:, :3, :3]),
+        rows[:, layout["v"]].copy(),
+        rows[:, layout["bg"]].copy(),
+        rows[:, layout["ba"]].copy(),
+    )
 
 
 class _States:
@@ -277,10 +295,6 @@ class _States:
         self._rows[-1] = self._pack(st)
         self._last = st
 
-    def __iter__(self):
-        for i in range(len(self._rows)):
-            yield self[i]
-
     def array(self) -> np.ndarray:
         """(N, 76) packed rows."""
         return np.array(self._rows) if self._rows else np.empty((0, _ROW_LEN))
@@ -336,7 +350,6 @@ class _Session:
     provisional: int | None = None  # key of the provisional alignment
     prov_factors: list = None  # [(factor index, k, row)] still in the smoother
     next_fit: float = -math.inf
-    scale: float | None = None
 
 
 class OnlineSmoother:
@@ -484,15 +497,7 @@ class OnlineSmoother:
                 f"{self.name}: the online smoother produced no state (no IMU, or no keyframe "
                 "closed)"
             )
-        T = rows[:, _ROW["T"]].reshape(n, 4, 4)
-        traj = Trajectory(
-            rows[:, 0].copy(),
-            T[:, :3, 3].copy(),
-            matrix_to_quat_wxyz(T[:, :3, :3]),
-            rows[:, _ROW["v"]].copy(),
-            rows[:, _ROW["bg"]].copy(),
-            rows[:, _ROW["ba"]].copy(),
-        )
+        traj = _trajectory(rows, _ROW)
         pose_cov = vel_cov = None
         if np.isfinite(rows[:, _ROW["P"]]).any():
             pose_cov = rows[:, _ROW["P"]].reshape(n, 6, 6).copy()
@@ -1018,10 +1023,13 @@ class OnlineSmoother:
         pose = self.values.get(X(k))
         if not rng or pose is None:
             return 0.0
-        R = pose.rotation().matrix()
-        z = pose.translation()[2] + (R @ self.body_T_range[:3, 3])[2]
-        beam = R @ self.body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
-        return float(z + rng[-1][1] * beam[2])
+        h = self._body_height(rng[-1][1], pose.rotation().matrix())
+        return float(pose.translation()[2] - h)
+
+    def _body_height(self, range_m: float, world_R_body: np.ndarray) -> float:
+        """Height of the body origin above the ground a range reading sees (tilted beam, lever
+        arm, flat ground)."""
+        return flow_sensor_height(range_m, world_R_body, self.body_T_range, _EYE4)
 
     def _alive(self, key: int) -> bool:
         """In the window (or added by the update being built), and measured within the lag (a
@@ -1233,7 +1241,7 @@ class OnlineSmoother:
         self._contact_factor(j, g, stamps)
         if not self._flow:
             return
-        from fgnav.solvers.flow import flow_keyframe_factor, flow_options, flow_sensor_height
+        from fgnav.solvers.flow import flow_keyframe_factor, flow_options
 
         t_j = self.t_kf[j]
         h1 = 0.5 * (self.t_kf[j + 1] - t_j)
@@ -1553,9 +1561,7 @@ class OnlineSmoother:
         h = None
         rng = self._scalar["range"]
         if rng and abs(rng[-1][0] - t) <= 0.2:
-            Tr = self.body_T_range
-            cos_beam = -float((R @ Tr[:3, 2])[2])
-            h = float(rng[-1][1] * cos_beam - (R @ Tr[:3, 3])[2])
+            h = self._body_height(rng[-1][1], R)
         else:
             gkeys = [k for k in self.values if _chr(k) == "g"]
             if gkeys:
@@ -2289,16 +2295,7 @@ class OnlineSmoother:
         eps = sorted(set(lag[:, 0].astype(int).tolist())) if len(lag) else []
         if not eps:
             raise FlightDataError(f"{self.name}: no lagged state (run shorter than the lag?)")
-        rows = lag[lag[:, 0] == eps[epoch]]
-        T = rows[:, 2:18].reshape(-1, 4, 4)
-        traj = Trajectory(
-            rows[:, 1].copy(),
-            T[:, :3, 3].copy(),
-            matrix_to_quat_wxyz(T[:, :3, :3]),
-            rows[:, 18:21].copy(),
-            rows[:, 21:24].copy(),
-            rows[:, 24:27].copy(),
-        )
+        traj = _trajectory(lag[lag[:, 0] == eps[epoch]], _LAG_ROW)
         est = self.result(epoch=epoch)
         info = dict(est.info, delay_s=self.options.lag_s)
         return Estimate(
@@ -2420,11 +2417,7 @@ def push_engine_gap(flight, options: FixedLagOptions, priors: Any = None) -> str
     camera images with homography factors on, seed 000's per-axis SLAM model, front-end priors.
     Decided from the configuration and the streams present, never from their content."""
     go = options.graph
-    model = go.slam_model
-    if model == "auto":
-        truth = flight.meta.get("truth", {}) if isinstance(flight.meta, dict) else {}
-        if isinstance(truth, dict) and truth.get("slam_axis_scale") not in (None, (), []):
-            model = "axis"  # the simulator's per-axis SLAM (seed 000): a configuration fact
+    model = choose_slam_model(flight, go.slam_model)  # a configuration fact of the flight
     if go.use_slam and flight.slam is not None and model == "axis":
         return "seed 000's per-axis SLAM model"
     if priors is not None:
@@ -2457,20 +2450,18 @@ def replay_online(
     options = options or FixedLagOptions()
     if flight.imu is None:
         raise FlightDataError(f"{flight.name}: no IMU stream; the online smoother needs one")
-    if options is not None and options.graph.use_slam and flight.slam is not None:
+    if options.graph.use_slam and flight.slam is not None:
         # A check of the file, not an input to the estimator: SLAM stamped on another clock
         # would only wait for keyframes that never come.
         flight.require_overlap("imu", "slam")
-    per_file = flight.meta.get("slam_options") if isinstance(flight.meta, dict) else None
-    if per_file:
-        # A manifest's [slam] options for this file win over the config (configuration only).
-        import dataclasses
+    # A manifest's [slam] options for this file win over the config (configuration only).
+    from fgnav.datasets.slam_gyro import file_modes
 
-        g = dataclasses.replace(
-            options.graph,
-            **{k: v for k, v in per_file.items() if k in ("slam_rotation", "slam_time_offset")},
-        )
-        options = dataclasses.replace(options, graph=g)
+    rotation, offset = file_modes(
+        flight, options.graph.slam_rotation, options.graph.slam_time_offset
+    )
+    g = dataclasses.replace(options.graph, slam_rotation=rotation, slam_time_offset=offset)
+    options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
     total = sum(len(getattr(flight, n)) for n in streams)
     sm = feed_all(
