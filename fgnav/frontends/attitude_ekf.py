@@ -46,12 +46,23 @@ acceleration in the accelerometer update (gated instead), terrain slope (flat gr
 
 from __future__ import annotations
 
+import bisect
 import logging
+import math
+from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import (
+    ImuSample,
+    RangeReading,
+    YawReading,
+    flight_streams,
+    replay,
+)
 from fgnav.datasets.geometry import (
     GRAVITY,
     interpolate_quat_wxyz,
@@ -59,7 +70,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
     yaw_of,
 )
-from fgnav.datasets.types import AttitudeSeries, Flight
+from fgnav.datasets.types import AttitudeSeries, Calibration, Flight
 
 log = logging.getLogger(__name__)
 
@@ -455,6 +466,178 @@ def initial_attitude_from_accel(body_accel: np.ndarray, yaw: float = 0.0) -> np.
 INIT_ACCEL_WINDOW_S = 0.2
 
 
+YAW_HISTORY_SAMPLES = 2048
+"""IMU-rate yaw estimates the stage keeps for late yaw readings (about 2 s at 1 kHz)."""
+
+
+class AttitudeEstimate(NamedTuple):
+    """The stage's output at one IMU sample: the filter after that sample's updates."""
+
+    t: float
+    arrival: float
+    world_q_body_wxyz: np.ndarray
+    height: float
+    covariance: np.ndarray
+    gyro_bias: np.ndarray
+    rotation_cov: np.ndarray
+
+
+class AttitudeEkfStage:
+    """:class:`AttitudeHeightEkf` as an event-fed stage (no whole-flight pass).
+
+    Fed IMU samples, yaw and range readings in arrival order (``feed``), it predicts on every IMU
+    sample, applies the accelerometer update there and the yaw and range updates at their own
+    times, and returns one :class:`AttitudeEstimate` per IMU sample processed. Without ``q0_wxyz``
+    it waits for ``INIT_ACCEL_WINDOW_S`` of IMU data and starts with roll and pitch from their mean
+    specific force and the yaw of the first yaw reading that has arrived by then (0 without one);
+    the events of that wait are then processed in order, so the outputs lag by the window only at
+    the start. Readings taken before the first IMU sample are skipped; a yaw or range reading
+    older than the filter's time is applied at the filter's time (counted ``late``; a late yaw
+    reading keeps its innovation against the filter's yaw at its own time, from a short history,
+    so the vehicle's turn since then is not taken for an error); range
+    readings out of ``[range_min, range_max]`` are skipped and counted (``range_out_of_limits``).
+    """
+
+    def __init__(
+        self,
+        calib: Calibration,
+        options: AttitudeEkfOptions | None = None,
+        q0_wxyz: np.ndarray | None = None,
+        use_yaw: bool = True,
+        use_range: bool = True,
+        name: str = "flight",
+    ) -> None:
+        self.options = options or AttitudeEkfOptions()
+        self.calib = calib
+        self.name = name
+        self.use_yaw, self.use_range = use_yaw, use_range
+        T = np.asarray(calib.body_T_range, dtype=float)
+        self._beam_body = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        self._body_t_range = T[:3, 3]
+        self._checked_beam = False
+        self._q0 = None if q0_wxyz is None else np.asarray(q0_wxyz, dtype=float)
+        self.ekf: AttitudeHeightEkf | None = None
+        self._wait: list = []  # events held until the initial attitude is known
+        self._t_prev = math.nan
+        self._omega_prev = np.zeros(3)
+        self._height_init = False
+        self._n_late = 0
+        self._yaw_hist: deque[tuple[float, float]] = deque(maxlen=YAW_HISTORY_SAMPLES)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Updates applied and skipped, by kind (the EKF's counts and ``late``)."""
+        c = dict(self.ekf.counts) if self.ekf is not None else {}
+        c["late"] = self._n_late
+        return c
+
+    def feed(self, ev) -> list[AttitudeEstimate]:
+        """One event (IMU sample, yaw or range reading; others are ignored); returns the
+        estimates at the IMU samples it completed (none while waiting for the start)."""
+        if not isinstance(ev, (ImuSample, YawReading, RangeReading)):
+            return []
+        if isinstance(ev, YawReading) and not self.use_yaw:
+            return []
+        if isinstance(ev, RangeReading):
+            if not self.use_range:
+                return []
+            self._check_beam()
+        if self.ekf is None:
+            self._wait.append(ev)
+            if not self._try_start():
+                return []
+            held, self._wait = self._wait, []
+            out: list[AttitudeEstimate] = []
+            for e in held:
+                out += self._process(e)
+            return out
+        return self._process(ev)
+
+    def _check_beam(self) -> None:
+        if self._checked_beam:
+            return
+        self._checked_beam = True
+        if self._beam_body[2] > 0:
+            raise FlightDataError(
+                f"{self.name}.calib.body_T_range: the rangefinder beam (its z axis) points up in "
+                f"body ({self._beam_body.round(3).tolist()}); expected a downward sensor (beam "
+                "near body -z)"
+            )
+
+    def _try_start(self) -> bool:
+        imu = [e for e in self._wait if isinstance(e, ImuSample)]
+        if not imu:
+            return False
+        q0 = self._q0
+        if q0 is None:
+            if imu[-1].t < imu[0].t + INIT_ACCEL_WINDOW_S:
+                return False
+            first = [e for e in imu if e.t < imu[0].t + INIT_ACCEL_WINDOW_S] or imu[:1]
+            yaws = [e.yaw for e in self._wait if isinstance(e, YawReading)]
+            q0 = initial_attitude_from_accel(
+                np.mean([e.body_accel for e in first], axis=0), float(yaws[0]) if yaws else 0.0
+            )
+        o = self.options
+        self.ekf = AttitudeHeightEkf(
+            o,
+            q0,
+            0.0,
+            beam_body=self._beam_body,
+            body_t_range=self._body_t_range,
+            gyro_noise_density=o.gyro_noise_density or self.calib.imu_noise.gyro_noise_density,
+        )
+        self._t_prev = float(imu[0].t)
+        self._omega_prev = np.asarray(imu[0].body_omega, dtype=float)
+        return True
+
+    def _process(self, ev) -> list[AttitudeEstimate]:
+        ekf = self.ekf
+        t = float(ev.t)
+        late = t < self._t_prev
+        if late:
+            if isinstance(ev, ImuSample) or not math.isfinite(self._t_prev):
+                return []
+            self._n_late += 1
+            t_meas, t = t, self._t_prev
+        ekf.predict(self._omega_prev, t - self._t_prev)
+        self._t_prev = t
+        if isinstance(ev, ImuSample):
+            self._omega_prev = np.asarray(ev.body_omega, dtype=float)
+            ekf.update_accel(ev.body_accel)
+            self._yaw_hist.append((t, yaw_of(quat_wxyz_to_matrix(ekf.x[:4]))))
+            return [
+                AttitudeEstimate(
+                    t,
+                    float(ev.arrival),
+                    ekf.world_q_body_wxyz,
+                    ekf.height if self._height_init else math.nan,
+                    ekf.P.copy(),
+                    ekf.gyro_bias,
+                    ekf.rotation_cov(),
+                )
+            ]
+        if isinstance(ev, YawReading):
+            yaw = float(ev.yaw)
+            if late and self._yaw_hist:
+                # The innovation at the reading's own time, carried to now.
+                ts = [h[0] for h in self._yaw_hist]
+                k = min(bisect.bisect_left(ts, t_meas), len(ts) - 1)
+                yaw_then, yaw_now = self._yaw_hist[k][1], self._yaw_hist[-1][1]
+                yaw = yaw_now + wrap_angle(yaw - yaw_then)
+            ekf.update_yaw(yaw)
+            return []
+        c = self.calib
+        r = float(ev.range)
+        if not (math.isfinite(r) and c.range_min <= r <= c.range_max):
+            ekf.counts["range_out_of_limits"] += 1
+        elif not self._height_init:
+            ekf.reset_height(r)
+            self._height_init = True
+        else:
+            ekf.update_range(r)
+        return []
+
+
 def run_attitude_ekf(
     flight: Flight,
     options: AttitudeEkfOptions | None = None,
@@ -462,8 +645,9 @@ def run_attitude_ekf(
     use_yaw: bool = True,
     use_range: bool = True,
 ) -> AttitudeHeightResult:
-    """Run the EKF over a flight: predict on every IMU sample, accelerometer update on every IMU
-    sample, yaw and range updates at their own times (prediction to the exact time first).
+    """Replay a flight into :class:`AttitudeEkfStage`: predict on every IMU sample, accelerometer
+    update on every IMU sample, yaw and range updates at their own times (prediction to the exact
+    time first).
 
     Args:
         flight: needs ``imu``; uses ``yaw`` and ``range`` when present (and enabled); the range beam
@@ -471,94 +655,36 @@ def run_attitude_ekf(
             of ``[range_min, range_max]`` are skipped and counted.
         options: EKF options (defaults when None).
         q0_wxyz: initial attitude; default roll/pitch from the first ``INIT_ACCEL_WINDOW_S`` of
-            accelerometer data and yaw from the first yaw reading (0 without one).
+            accelerometer data and yaw from the first yaw reading that has arrived by then.
         use_yaw, use_range: switch the yaw / range updates off.
 
     Returns:
         :class:`AttitudeHeightResult` at the IMU times. Counts of applied/skipped updates are
         logged and returned in ``counts``.
     """
-    options = options or AttitudeEkfOptions()
     imu = flight.imu
     if imu is None:
         raise FlightDataError(f"{flight.name}: the attitude EKF needs an IMU stream (flight.imu)")
-    yaw_s = flight.yaw if use_yaw else None
-    rng = flight.range if use_range else None
-    if q0_wxyz is None:
-        n0 = max(1, int(np.searchsorted(imu.t, imu.t[0] + INIT_ACCEL_WINDOW_S)))
-        psi0 = float(yaw_s.yaw[0]) if yaw_s is not None and len(yaw_s) else 0.0
-        q0_wxyz = initial_attitude_from_accel(imu.body_accel[:n0].mean(axis=0), psi0)
-    T = np.asarray(flight.calib.body_T_range, dtype=float)
-    beam_body = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    if rng is not None and beam_body[2] > 0:
-        raise FlightDataError(
-            f"{flight.name}.calib.body_T_range: the rangefinder beam (its z axis) points up in "
-            f"body ({beam_body.round(3).tolist()}); expected a downward sensor (beam near body -z)"
-        )
-    ekf = AttitudeHeightEkf(
-        options,
-        q0_wxyz,
-        0.0,
-        beam_body=beam_body,
-        body_t_range=T[:3, 3],
-        gyro_noise_density=options.gyro_noise_density or flight.calib.imu_noise.gyro_noise_density,
-    )
-
-    # Events: (time, kind, index); kind 0 = IMU, 1 = yaw, 2 = range. Sorted stably by time.
-    events = [(imu.t, np.zeros(len(imu), int))]
-    if yaw_s is not None:
-        events.append((yaw_s.t, np.ones(len(yaw_s), int)))
-    valid_range = None
-    if rng is not None:
-        lo, hi = flight.calib.range_min, flight.calib.range_max
-        valid_range = (rng.range >= lo) & (rng.range <= hi) & np.isfinite(rng.range)
-        ekf.counts["range_out_of_limits"] = int((~valid_range).sum())
-        events.append((rng.t, np.full(len(rng), 2, int)))
-    t_all = np.concatenate([e[0] for e in events])
-    k_all = np.concatenate([e[1] for e in events])
-    i_all = np.concatenate([np.arange(len(e[0])) for e in events])
-    order = np.lexsort((k_all, t_all))
-
-    n = len(imu)
-    q_out = np.empty((n, 4))
-    h_out = np.full(n, np.nan)
-    P_out = np.empty((n, ekf.n, ekf.n))
-    b_out = np.zeros((n, 3))
-    Rc_out = np.empty((n, 3, 3))
-    t_prev = float(imu.t[0])
-    omega_prev = imu.body_omega[0]
-    height_init = False
-    for j in order:
-        t, kind, i = float(t_all[j]), int(k_all[j]), int(i_all[j])
-        if t < imu.t[0]:
-            continue
-        ekf.predict(omega_prev, t - t_prev)
-        t_prev = t
-        if kind == 0:
-            omega_prev = imu.body_omega[i]
-            ekf.update_accel(imu.body_accel[i])
-            q_out[i] = ekf.world_q_body_wxyz
-            h_out[i] = ekf.height if height_init else np.nan
-            P_out[i] = ekf.P
-            b_out[i] = ekf.gyro_bias
-            Rc_out[i] = ekf.rotation_cov()
-        elif kind == 1:
-            ekf.update_yaw(float(yaw_s.yaw[i]))
-        elif valid_range[i]:
-            if not height_init:
-                ekf.reset_height(float(rng.range[i]))
-                height_init = True
-            else:
-                ekf.update_range(float(rng.range[i]))
-    log.info("attitude EKF on %s: %s", flight.name, ekf.counts)
+    use_range = use_range and flight.range is not None
+    stage = AttitudeEkfStage(flight.calib, options, q0_wxyz, use_yaw, use_range, flight.name)
+    if use_range:
+        stage._check_beam()
+    # Ties in arrival: the IMU sample first, then yaw, then range.
+    streams = flight_streams(flight, ("imu", "yaw", "range"))
+    out: list[AttitudeEstimate] = []
+    for ev in replay([streams[k] for k in ("imu", "yaw", "range") if k in streams]):
+        out += stage.feed(ev)
+    counts = stage.counts
+    log.info("attitude EKF on %s: %s", flight.name, counts)
+    n = stage.ekf.n if stage.ekf is not None else 5
     return AttitudeHeightResult(
-        t=imu.t.copy(),
-        world_q_body_wxyz=q_out,
-        height=h_out,
-        covariance=P_out,
-        gyro_bias=b_out if ekf.n == 8 else None,
-        rotation_cov=Rc_out,
-        counts=dict(ekf.counts),
+        t=np.array([o.t for o in out]),
+        world_q_body_wxyz=np.array([o.world_q_body_wxyz for o in out]).reshape(-1, 4),
+        height=np.array([o.height for o in out]),
+        covariance=np.array([o.covariance for o in out]).reshape(-1, n, n),
+        gyro_bias=np.array([o.gyro_bias for o in out]).reshape(-1, 3) if n == 8 else None,
+        rotation_cov=np.array([o.rotation_cov for o in out]).reshape(-1, 3, 3),
+        counts=counts,
     )
 
 
