@@ -48,7 +48,8 @@ causal: the state the filter had at each attitude sample, before later correctio
 
 Without an attitude stream (``attitude_source``: ``"auto"`` picks ``"imu"`` when the flight has
 none; EuRoC): the paper's vehicle logged its onboard attitude, so roll and pitch are *estimated*,
-causally, from the IMU by seed 002's attitude EKF (:func:`imu_attitude`, reported in
+causally, from the IMU by seed 002's attitude EKF run as a stage on the arriving IMU, yaw and
+range events (:class:`~fgnav.frontends.attitude_ekf.AttitudeEkfStage`, reported in
 ``Estimate.info["attitude_source"]``) and fused with ``imu_attitude_sigma``. On a multirotor that
 gravity-referenced tilt is the rotor-drag tilt ``k v / g`` at low frequencies (the accelerometer
 reads thrust and drag, not gravity), which turns the drag-model odometry of the scale pairs into a
@@ -70,7 +71,8 @@ than ``fgnav.datasets.frames.MAX_THRUST_TILT_DEG`` from the thrust axis (EuRoC's
 :func:`run_ekf004` runs the filter in a body with z along it
 (:func:`fgnav.datasets.frames.thrust_body_rotation`; EuRoC's manifest records the Firefly's thrust
 axis) and maps the estimate back. On EuRoC MH_01 (FLU body, no attitude stream, default drag
-0.4 1/s): ATE 0.070 m, scale -0.26 %, NEES 4.2 (msf-ekf 0.081 m).
+0.4 1/s): ATE 0.068 m fed events (2026-12-02); before, from its own merger, 0.070 m, scale
+-0.26 %, NEES 4.2 (msf-ekf 0.081 m).
 
 A filter whose every SLAM pose has been gated for ``slam_reset_s`` has diverged (its prediction
 left the SLAM track, e.g. the drag model on the ground): the next pose restarts position and
@@ -90,14 +92,26 @@ import dataclasses
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
 
+from fgnav.baselines._arrived import Arrived
 from fgnav.baselines.msf_ekf import SCALE_INIT_WINDOWS_S, initial_fit
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import (
+    AttitudeSample,
+    Event,
+    ImuSample,
+    RangeReading,
+    SlamPose,
+    YawReading,
+    flight_streams,
+    replay,
+)
 from fgnav.datasets.geometry import (
     GRAVITY,
     matrix_to_quat_wxyz,
@@ -107,12 +121,9 @@ from fgnav.datasets.geometry import (
     rpy_to_matrix,
     wrap_angle,
 )
-from fgnav.datasets.types import AttitudeSeries, Flight, Trajectory
+from fgnav.datasets.types import Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.frontends.attitude_ekf import (
-    AttitudeEkfOptions,
-    run_attitude_ekf,
-)
+from fgnav.frontends.attitude_ekf import AttitudeEkfOptions, AttitudeEkfStage
 from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions
 
 log = logging.getLogger(__name__)
@@ -176,7 +187,7 @@ class Ekf004Options:
         initial_position_sigma: [m]; initial_velocity_sigma: [m/s]; initial_angle_sigma [rad];
         initial_yaw_rate_sigma [rad/s].
         attitude_source: ``"stream"`` (the flight's attitude), ``"imu"`` (estimated from the IMU,
-            :func:`imu_attitude`) or ``"auto"`` (the stream when present).
+            the attitude EKF stage) or ``"auto"`` (the stream when present).
         imu_attitude_rate_hz: rate of the estimated attitude samples (the EKF's output rate).
         imu_attitude_sigma: roll/pitch noise of the estimated attitude [rad].
         imu_attitude_accel_sigma: ``accel_sigma`` of the attitude EKF [m/s^2].
@@ -333,27 +344,35 @@ def drag_model_velocity(
     ``1/k``, so this metric velocity needs neither SLAM nor an initial velocity.
     """
     rpy = matrix_to_rpy(world_R_body)
-    kx, ky = drag_k
     out = np.zeros((t.size, 2))
-    x = np.zeros(N_STATE)
-    vx = vy = 0.0
+    v = (0.0, 0.0)
     for i in range(1, t.size):
-        dt = float(t[i] - t[i - 1])
-        x[IR : IY + 1] = rpy[i - 1]
-        thrust, _ = horizontal_accel(x, drag_k, g)
-        cy, sy = math.cos(rpy[i - 1, 2]), math.sin(rpy[i - 1, 2])
-        # Drag along body-yaw axes is diagonal: solve (I + dt K) v = v + dt a in those axes.
-        bx = cy * (vx + dt * thrust[0]) + sy * (vy + dt * thrust[1])
-        by = -sy * (vx + dt * thrust[0]) + cy * (vy + dt * thrust[1])
-        bx /= 1.0 + dt * kx
-        by /= 1.0 + dt * ky
-        vx, vy = cy * bx - sy * by, sy * bx + cy * by
-        out[i] = (vx, vy)
+        v = drag_model_step(v, rpy[i - 1], float(t[i] - t[i - 1]), drag_k, g)
+        out[i] = v
     return out
 
 
+def drag_model_step(
+    v_xy: tuple[float, float], rpy: np.ndarray, dt: float, drag_k: tuple[float, float], g: float
+) -> tuple[float, float]:
+    """One semi-implicit Euler step [s] of :func:`drag_model_velocity` from ``v_xy`` [m/s] with
+    the attitude ``rpy`` [rad] at the start of the step."""
+    x = np.zeros(N_STATE)
+    x[IR : IY + 1] = rpy
+    thrust, _ = horizontal_accel(x, drag_k, g)
+    kx, ky = drag_k
+    vx, vy = v_xy
+    cy, sy = math.cos(rpy[2]), math.sin(rpy[2])
+    # Drag along body-yaw axes is diagonal: solve (I + dt K) v = v + dt a in those axes.
+    bx = cy * (vx + dt * thrust[0]) + sy * (vy + dt * thrust[1])
+    by = -sy * (vx + dt * thrust[0]) + cy * (vy + dt * thrust[1])
+    bx /= 1.0 + dt * kx
+    by /= 1.0 + dt * ky
+    return cy * bx - sy * by, sy * bx + cy * by
+
+
 def attitude_source(flight: Flight, opt: Ekf004Options) -> str:
-    """``"stream"`` (the flight's attitude) or ``"imu"`` (:func:`imu_attitude`) for
+    """``"stream"`` (the flight's attitude) or ``"imu"`` (the attitude EKF stage) for
     ``opt.attitude_source``; raises :class:`FlightDataError` when the needed stream is missing."""
     src = opt.attitude_source
     if src == "auto":
@@ -365,22 +384,6 @@ def attitude_source(flight: Flight, opt: Ekf004Options) -> str:
             f"{flight.name}: ekf004 needs an attitude stream (roll, pitch) or an IMU to estimate it"
         )
     return src
-
-
-def imu_attitude(flight: Flight, opt: Ekf004Options) -> AttitudeSeries:
-    """Attitude estimated causally from the IMU by seed 002's attitude EKF
-    (:func:`fgnav.frontends.attitude_ekf.run_attitude_ekf`: gyro prediction, gravity update from
-    the accelerometer; the yaw and range streams when present), sampled every IMU sample closest
-    to ``imu_attitude_rate_hz``: each sample is the filter's output at that time (causal)."""
-    ao = AttitudeEkfOptions(
-        accel_sigma=opt.imu_attitude_accel_sigma, estimate_gyro_bias=opt.imu_attitude_gyro_bias
-    )
-    res = run_attitude_ekf(flight, ao, use_range=flight.range is not None)
-    imu_rate = (len(res.t) - 1) / max(float(res.t[-1] - res.t[0]), 1e-9)
-    stride = max(1, int(round(imu_rate / opt.imu_attitude_rate_hz)))
-    return AttitudeSeries(
-        t=res.t[::stride].copy(), world_q_body_wxyz=res.world_q_body_wxyz[::stride].copy()
-    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -656,107 +659,149 @@ class _Session:
     fits: list[tuple[float, float]] = field(default_factory=list)
 
 
-class _MetricOdometry:
-    """Metric camera displacements between two times, independent of SLAM: horizontal from the
-    drag-model velocity driven by measured attitude, vertical from rangefinder heights."""
+ODOMETRY_HISTORY_S = 30.0
+"""Seconds of attitude-driven odometry and range heights kept for the scale pairs."""
 
-    def __init__(self, flight: Flight, opt: Ekf004Options, body_t_cam: np.ndarray, counts):
-        att = flight.attitude
-        self.t = att.t
-        self.R = quat_wxyz_to_matrix(att.world_q_body_wxyz)
-        v = drag_model_velocity(att.t, self.R, opt.drag_k, opt.gravity)
-        steps = 0.5 * (v[1:] + v[:-1]) * np.diff(self.t)[:, None]
-        self.xy = np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+START_WAIT_S = 1.0
+"""Longest wait [s] from the first attitude sample for the first yaw reading and range height."""
+
+IMU_FIT_HISTORY_S = 120.0
+"""Seconds of arrived IMU and SLAM data kept for the closed-form scale fits."""
+
+
+class _MetricOdometry:
+    """Metric camera displacements between two past times, independent of SLAM: horizontal from
+    the drag-model velocity driven by the attitude samples as they arrive
+    (:func:`drag_model_velocity`, one step per sample), vertical from the rangefinder heights
+    (:meth:`add_range`). Keeps the last ``ODOMETRY_HISTORY_S``."""
+
+    def __init__(self, opt: Ekf004Options, body_t_cam: np.ndarray, calib, counts) -> None:
+        self.opt = opt
         self.body_t_cam = body_t_cam
-        self.h_t, self.h = np.zeros(0), np.zeros(0)
-        if flight.range is not None:
-            self.h_t, self.h = range_heights(flight, opt, counts)
+        self.counts = counts
+        body_T_range = np.asarray(calib.body_T_range, dtype=float)
+        self._beam = body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        self._lever = body_T_range[:3, 3]
+        self._range_limits = (calib.range_min, calib.range_max)
+        self._att: deque[tuple[float, float, float, np.ndarray]] = deque()  # t, x, y, R
+        self._v = (0.0, 0.0)
+        self._rpy_prev: np.ndarray | None = None
+        self._h: deque[tuple[float, float]] = deque()
+        self._h_window: list[float] = []
+        self.range_total = self.range_skipped = 0
+
+    @property
+    def R_latest(self) -> np.ndarray | None:
+        return self._att[-1][3] if self._att else None
+
+    def add_attitude(self, t: float, R: np.ndarray, rpy: np.ndarray) -> None:
+        """One attitude sample: a semi-implicit Euler step of the drag-model velocity from the
+        previous sample (attitude of the previous sample; the drag term implicit)."""
+        if not self._att:
+            self._att.append((t, 0.0, 0.0, R))
+            self._rpy_prev = rpy
+            return
+        t_prev, px, py, _ = self._att[-1]
+        dt = t - t_prev
+        if dt <= 0.0:
+            return
+        vx0, vy0 = self._v
+        vx, vy = drag_model_step(self._v, self._rpy_prev, dt, self.opt.drag_k, self.opt.gravity)
+        self._att.append((t, px + 0.5 * (vx + vx0) * dt, py + 0.5 * (vy + vy0) * dt, R))
+        self._v = (vx, vy)
+        self._rpy_prev = rpy
+        while self._att and self._att[0][0] < t - ODOMETRY_HISTORY_S:
+            self._att.popleft()
+
+    def add_range(self, t: float, r: float) -> float | None:
+        """Tilt-corrected body height [m] above the ground of one reading (the latest attitude
+        that has arrived), or None when skipped: tilt, limits, or a spike (more than
+        ``range_outlier_m`` from the median of the last kept readings); counted ``range``.
+
+        The beam is the sensor's +z axis: ``h_sensor = -range (world_R_body body_R_range e3)_z``;
+        the body height subtracts the lever arm ``(world_R_body body_t_range)_z``.
+        """
+        o = self.opt
+        self.range_total += 1
+        R = self.R_latest
+        h = None
+        if R is not None and math.isfinite(r):
+            cos_tilt = -float(R[2] @ self._beam)
+            lo, hi = self._range_limits
+            if cos_tilt > math.cos(o.range_max_tilt_rad) and lo <= r <= hi:
+                h = r * cos_tilt - float(R[2] @ self._lever)
+        w = self._h_window
+        if h is not None and len(w) >= 3 and abs(h - float(np.median(w))) > o.range_outlier_m:
+            h = None
+        if h is None:
+            self.range_skipped += 1
+            self.counts.add("skipped", "range")
+            return None
+        self._h_window = (w + [h])[-5:]
+        self._h.append((t, h))
+        while self._h and self._h[0][0] < t - ODOMETRY_HISTORY_S:
+            self._h.popleft()
+        return h
 
     def camera_displacement(self, t0: float, t1: float) -> np.ndarray | None:
         """World displacement [m] of the camera from ``t0`` to ``t1`` (z NaN without heights)."""
-        if t0 < self.t[0] or t1 > self.t[-1]:
+        if len(self._att) < 2 or t0 < self._att[0][0] or t1 > self._att[-1][0]:
             return None
-        dxy = np.array(
-            [
-                np.interp(t1, self.t, self.xy[:, k]) - np.interp(t0, self.t, self.xy[:, k])
-                for k in range(2)
-            ]
-        )
-        if self.h.size >= 2 and self.h_t[0] <= t0 and t1 <= self.h_t[-1]:
-            dz = float(np.interp(t1, self.h_t, self.h) - np.interp(t0, self.h_t, self.h))
-        else:
-            dz = math.nan
-        i0 = min(int(np.searchsorted(self.t, t0)), self.t.size - 1)
-        i1 = min(int(np.searchsorted(self.t, t1)), self.t.size - 1)
-        lever = (self.R[i1] - self.R[i0]) @ self.body_t_cam
+        t = np.array([a[0] for a in self._att])
+        xy = np.array([(a[1], a[2]) for a in self._att])
+        dxy = [np.interp(t1, t, xy[:, k]) - np.interp(t0, t, xy[:, k]) for k in range(2)]
+        dz = math.nan
+        if len(self._h) >= 2 and self._h[0][0] <= t0 and t1 <= self._h[-1][0]:
+            ht = np.array([h[0] for h in self._h])
+            hv = np.array([h[1] for h in self._h])
+            dz = float(np.interp(t1, ht, hv) - np.interp(t0, ht, hv))
+        i0 = min(int(np.searchsorted(t, t0)), t.size - 1)
+        i1 = min(int(np.searchsorted(t, t1)), t.size - 1)
+        lever = (self._att[i1][3] - self._att[i0][3]) @ self.body_t_cam
         return np.array([dxy[0], dxy[1], dz]) + lever
-
-
-def range_heights(
-    flight: Flight, opt: Ekf004Options, counts: Ekf004Counts
-) -> tuple[np.ndarray, np.ndarray]:
-    """Tilt-corrected body heights [m] above the ground from the rangefinder, obstacle spikes
-    removed (counted as skipped ``range``).
-
-    The beam is the sensor's +z axis: ``h_sensor = -range (world_R_body body_R_range e3)_z``;
-    the body height subtracts the lever arm ``(world_R_body body_t_range)_z``.
-    """
-    rng = flight.range
-    att = flight.attitude
-    R = quat_wxyz_to_matrix(att.world_q_body_wxyz)
-    idx = np.clip(np.searchsorted(att.t, rng.t), 0, att.t.size - 1)
-    Rb = R[idx]
-    body_T_range = np.asarray(flight.calib.body_T_range, dtype=float)
-    beam = np.einsum("nij,j->ni", Rb, body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0]))
-    lever_z = np.einsum("nij,j->ni", Rb, body_T_range[:3, 3])[:, 2]
-    cos_tilt = -beam[:, 2]
-    ok = (cos_tilt > math.cos(opt.range_max_tilt_rad)) & np.isfinite(rng.range)
-    ok &= (rng.range >= flight.calib.range_min) & (rng.range <= flight.calib.range_max)
-    h = rng.range * cos_tilt - lever_z
-    keep = np.zeros(h.size, dtype=bool)
-    window: list[float] = []
-    for i in np.flatnonzero(ok):
-        if len(window) >= 3 and abs(h[i] - float(np.median(window))) > opt.range_outlier_m:
-            continue
-        keep[i] = True
-        window = (window + [float(h[i])])[-5:]
-    n_skip = int(h.size - keep.sum())
-    if n_skip:
-        counts.add("skipped", "range", n_skip)
-        log.info("ekf004: %d of %d range readings skipped (tilt, limits or spikes)", n_skip, h.size)
-    return rng.t[keep], h[keep]
 
 
 @dataclass
 class _Entry:
-    """One processed measurement in the history: the state before it, and its payload."""
+    """One processed measurement in the history: the state before it, and its data."""
 
     t: float
     seq: int
     kind: str
-    index: int
+    data: Any
     snap: tuple[float, np.ndarray, np.ndarray, float | None] | None = None
     payload: Any = None
 
 
 class Ekf004Runner:
-    """Feeds a flight's measurements to :class:`Ekf004` in arrival order with delay compensation.
+    """Seed 004's EKF fed events in arrival order (``feed``), with delay compensation.
 
-    ``Ekf004Runner(flight, options).run()`` returns the :class:`Estimate`; afterwards ``ekf`` holds
-    the filter after the last measurement (all late ones applied), ``sessions`` the SLAM sessions.
+    The runner never sees a flight: ``Ekf004Runner(flight, options).run()`` replays the flight's
+    events (:func:`fgnav.datasets.events.replay_flight`) into :meth:`feed` and returns the
+    :class:`Estimate`; a live source calls ``start``-free :meth:`feed` the same way (the runner
+    is built from the calibration and the names of the streams that will come). Afterwards
+    ``ekf`` holds the filter after the last measurement (all late ones applied), ``sessions`` the
+    SLAM sessions.
+
+    What the events become: attitude samples (the stream, or seed 002's attitude EKF run as a
+    stage on the IMU, yaw and range events, sampled at ``imu_attitude_rate_hz``) give roll and
+    pitch and drive the drag-model odometry; every ``gyro_decimation`` IMU samples give one
+    yaw-rate measurement, stamped at the last of them (a delay of half the averaging window);
+    consecutive tilt-corrected range heights give the vertical speed; SLAM poses are applied at
+    their capture time (rolled back and replayed when late). The filter starts at the first
+    attitude sample by which the first yaw reading and range height (of the streams the flight
+    has) have arrived, or ``START_WAIT_S`` after the first attitude sample without them.
     """
 
     def __init__(self, flight: Flight, opt: Ekf004Options) -> None:
         self.attitude_source = attitude_source(flight, opt)
-        # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): an IMU-only
-        # attitude's tilt error would enter their double integration.
-        self.imu_fit_flight = flight
         if self.attitude_source == "imu":
             log.info(
                 "ekf004: %s has no attitude stream; attitude estimated from the IMU", flight.name
             )
-            flight = dataclasses.replace(flight, attitude=imu_attitude(flight, opt))
-        self.flight = flight
+        self.flight = flight  # replayed by run(); feed() never reads it
+        self.name = flight.name
+        self.calib = flight.calib
         self.opt = opt
         self.scale_source = opt.scale_source
         if self.scale_source == "auto":
@@ -764,12 +809,33 @@ class Ekf004Runner:
         self.attitude_sigma = (
             opt.attitude_sigma if self.attitude_source == "stream" else opt.imu_attitude_sigma
         )
+        self.expect_yaw = flight.yaw is not None and opt.use_yaw
         body_T_cam = np.asarray(flight.calib.body_T_cam, dtype=float)
         self.body_R_cam = body_T_cam[:3, :3]
         self.ekf = Ekf004(opt, body_T_cam[:3, 3])
         self.counts = self.ekf.counts
-        self.odo = _MetricOdometry(flight, opt, body_T_cam[:3, 3], self.counts)
-        self.att_rpy = matrix_to_rpy(quat_wxyz_to_matrix(flight.attitude.world_q_body_wxyz))
+        self.odo = _MetricOdometry(opt, body_T_cam[:3, 3], flight.calib, self.counts)
+        self.att_stage: AttitudeEkfStage | None = None
+        if self.attitude_source == "imu":
+            ao = AttitudeEkfOptions(
+                accel_sigma=opt.imu_attitude_accel_sigma,
+                estimate_gyro_bias=opt.imu_attitude_gyro_bias,
+            )
+            self.att_stage = AttitudeEkfStage(
+                flight.calib, ao, use_range=flight.range is not None, name=flight.name
+            )
+        self._att_next_t = -math.inf
+        # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): they get
+        # the arrived IMU and SLAM (and a logged attitude), never the IMU-estimated attitude.
+        self._arrived = Arrived() if self.scale_source == "imu_fit" else None
+        self._gyro_buf: list[np.ndarray] = []
+        self._h_prev: tuple[float, float] | None = None
+        self._yaw_first: float | None = None
+        self.expect_range = flight.range is not None
+        self._pending_attitude: tuple[float, np.ndarray] | None = None
+        self._t_first_attitude = math.nan
+        self._started = False
+        self._seq = 0
         self.sessions: dict[int, _Session] = {}
         self.history: list[_Entry] = []
         self.out_t: list[float] = []
@@ -779,104 +845,167 @@ class Ekf004Runner:
         self.scale_t: list[float] = []
         self.scale_v: list[float] = []
         self.scale_sid: list[int] = []
+        self.latencies: list[float] = []
         # imu_fit scale: outputs from the first scale on (as the MSF and UKF baselines whose
         # closed-form start it shares); the seed's ML path reports from the first sample.
         self.t_first_output: float | None = None if self.scale_source == "ml" else np.inf
-        self._gyro = self._decimated_gyro()
-        self._vz = self._vertical_speeds()
 
-    # -- measurement preparation -----------------------------------------------------------------
+    # -- events ----------------------------------------------------------------------------------
 
-    def _decimated_gyro(self) -> tuple[np.ndarray, np.ndarray]:
-        imu = self.flight.imu
-        if imu is None:
-            return np.zeros(0), np.zeros((0, 3))
-        n = self.opt.gyro_decimation
-        m = len(imu) // n
-        if len(imu) % n:
-            self.counts.add("skipped", "gyro", len(imu) % n)
-        t = imu.t[: m * n].reshape(m, n).mean(axis=1)
-        w = imu.body_omega[: m * n].reshape(m, n, 3).mean(axis=1)
-        return t, w
+    def feed(self, ev: Event) -> None:
+        """One measurement event, in arrival order (IMU, attitude, yaw, range, SLAM pose)."""
+        w0 = time.perf_counter()
+        if isinstance(ev, ImuSample):
+            self._on_imu(ev)
+        elif isinstance(ev, AttitudeSample):
+            if self.attitude_source == "stream":
+                if self._arrived is not None:
+                    self._arrived.add(ev)
+                self._on_attitude(ev.t, ev.world_q_body_wxyz)
+        elif isinstance(ev, YawReading):
+            if self.att_stage is not None:
+                self._on_stage(self.att_stage.feed(ev))
+            if self.opt.use_yaw:
+                if self._yaw_first is None:
+                    self._yaw_first = float(ev.yaw)
+                    self._try_start()
+                self._entry(ev.t, "yaw", float(ev.yaw))
+        elif isinstance(ev, RangeReading):
+            if self.att_stage is not None:
+                self._on_stage(self.att_stage.feed(ev))
+            self._on_range(ev)
+        elif isinstance(ev, SlamPose):
+            if self._arrived is not None:
+                self._arrived.add(ev)
+            t_meas = ev.t if self.opt.delay_compensation else max(ev.t, ev.arrival)
+            self._entry(t_meas, "slam", ev)
+        else:
+            return
+        self.latencies.append(time.perf_counter() - w0)
 
-    def _vertical_speeds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ht, h = self.odo.h_t, self.odo.h
-        if h.size < 2:
-            return np.zeros(0), np.zeros(0), np.zeros(0)
-        dt = np.diff(ht)
-        ok = dt <= self.opt.range_max_dt_s
-        if (~ok).sum():
-            self.counts.add("skipped", "vertical_speed", int((~ok).sum()))
-        vz = np.diff(h)[ok] / dt[ok]
-        sigma = math.sqrt(2.0) * self.opt.range_sigma / dt[ok]
-        return ht[1:][ok], vz, sigma
+    def _on_imu(self, ev: ImuSample) -> None:
+        if self._arrived is not None:
+            self._arrived.add(ev)
+            self._arrived.trim(ev.t - IMU_FIT_HISTORY_S)
+        if self.att_stage is not None:
+            self._on_stage(self.att_stage.feed(ev))
+        self._gyro_buf.append(ev.body_omega)
+        if len(self._gyro_buf) == self.opt.gyro_decimation:
+            omega = np.mean(self._gyro_buf, axis=0)
+            self._gyro_buf = []
+            self._entry(ev.t, "gyro", omega)
 
-    def _events(self) -> list[tuple[float, float, int, str, int]]:
-        f = self.flight
-        ev: list[tuple[float, float, int, str, int]] = []
-        ev += [(t, t, 0, "attitude", i) for i, t in enumerate(f.attitude.t)]
-        ev += [(t, t, 1, "gyro", i) for i, t in enumerate(self._gyro[0])]
-        if f.yaw is not None and self.opt.use_yaw:
-            ev += [(t, t, 2, "yaw", i) for i, t in enumerate(f.yaw.t)]
-        ev += [(t, t, 3, "vertical_speed", i) for i, t in enumerate(self._vz[0])]
-        if f.slam is not None:
-            lat = f.slam.latency if f.slam.latency is not None else np.zeros(len(f.slam))
-            for i, t in enumerate(f.slam.t):
-                arrival = t + max(0.0, float(lat[i]))
-                t_meas = t if self.opt.delay_compensation else arrival
-                ev.append((arrival, t_meas, 4, "slam", i))
-        ev.sort()
-        return ev
+    def _on_stage(self, estimates) -> None:
+        """The attitude EKF's estimates, sampled at ``imu_attitude_rate_hz``."""
+        period = 1.0 / self.opt.imu_attitude_rate_hz
+        for a in estimates:
+            # A quarter period of tolerance for the IMU's time-stamp jitter.
+            if a.t >= self._att_next_t - 0.25 * period:
+                self._att_next_t = a.t + period
+                self._on_attitude(a.t, a.world_q_body_wxyz)
+
+    def _on_attitude(self, t: float, q_wxyz: np.ndarray) -> None:
+        R = quat_wxyz_to_matrix(np.asarray(q_wxyz, dtype=float))
+        rpy = matrix_to_rpy(R)
+        self.odo.add_attitude(t, R, rpy)
+        if not self._started:
+            if self._pending_attitude is not None:
+                self.counts.add("skipped", "attitude_before_start")
+            else:
+                self._t_first_attitude = t
+            self._pending_attitude = (t, rpy)
+            self._try_start()
+            return
+        self._entry(t, "attitude", rpy)
+
+    def _try_start(self) -> None:
+        """Start at the newest attitude sample once the first yaw reading and range height have
+        arrived (those the flight's streams promise; after ``START_WAIT_S`` without them, start
+        anyway)."""
+        if self._started or self._pending_attitude is None:
+            return
+        t, rpy = self._pending_attitude
+        waiting = (self.expect_yaw and self._yaw_first is None) or (
+            self.expect_range and self._h_prev is None
+        )
+        if waiting and t - self._t_first_attitude < START_WAIT_S:
+            return
+        self._initialize(t, rpy)
+        self._entry(t, "attitude", rpy)
+
+    def _on_range(self, ev: RangeReading) -> None:
+        h = self.odo.add_range(ev.t, float(ev.range))
+        if h is None:
+            return
+        prev, self._h_prev = self._h_prev, (float(ev.t), h)
+        if not self._started:
+            self._try_start()
+            return
+        if prev is None:
+            return
+        dt = float(ev.t) - prev[0]
+        if not 0.0 < dt <= self.opt.range_max_dt_s:
+            self.counts.add("skipped", "vertical_speed")
+            return
+        sigma = math.sqrt(2.0) * self.opt.range_sigma / dt
+        self._entry(ev.t, "vertical_speed", ((h - prev[1]) / dt, sigma))
+
+    def _entry(self, t: float, kind: str, data: Any) -> None:
+        if not self._started:
+            self.counts.add("skipped", f"{kind}_before_start")
+            return
+        self._arrive(_Entry(float(t), self._seq, kind, data))
+        self._seq += 1
 
     # -- initialisation --------------------------------------------------------------------------
 
-    def initialize(self) -> None:
-        o, f = self.opt, self.flight
+    def _initialize(self, t: float, rpy: np.ndarray) -> None:
+        o = self.opt
         x0 = np.zeros(N_STATE)
-        x0[IR : IY + 1] = self.att_rpy[0]
-        if f.yaw is not None and o.use_yaw:
-            x0[IY] = f.yaw.yaw[0]
-        if self.odo.h.size:
-            x0[IP + 2] = self.odo.h[0]
+        x0[IR : IY + 1] = rpy
+        if self._yaw_first is not None:
+            x0[IY] = self._yaw_first
+        if self._h_prev is not None:
+            x0[IP + 2] = self._h_prev[1]
         sig = np.array(
             [o.initial_position_sigma] * 3
             + [o.initial_velocity_sigma] * 3
             + [o.initial_angle_sigma] * 3
             + [o.initial_yaw_rate_sigma]
         )
-        self.ekf.initialize(float(f.attitude.t[0]), x0, np.diag(sig**2))
+        self.ekf.initialize(float(t), x0, np.diag(sig**2))
+        self._started = True
 
     # -- processing ------------------------------------------------------------------------------
 
     def _apply(self, e: _Entry, first_pass: bool) -> None:
-        ekf, f = self.ekf, self.flight
+        ekf = self.ekf
         self.counts.active = first_pass
         ekf.predict(e.t)
-        i = e.index
         if e.kind == "attitude":
-            ekf.update_attitude(self.att_rpy[i, 0], self.att_rpy[i, 1], self.attitude_sigma)
+            ekf.update_attitude(e.data[0], e.data[1], self.attitude_sigma)
             if first_pass and (self.t_first_output is None or e.t >= self.t_first_output):
                 self.out_t.append(e.t)
                 self.out_x.append(ekf.x.copy())
                 self.out_pose_cov.append(ekf.pose_cov())
                 self.out_vel_cov.append(ekf.P[IV : IV + 3, IV : IV + 3].copy())
         elif e.kind == "gyro":
-            ekf.update_body_rates(self._gyro[1][i])
+            ekf.update_body_rates(e.data)
         elif e.kind == "yaw":
-            ekf.update_yaw(f.yaw.yaw[i])
+            ekf.update_yaw(e.data)
         elif e.kind == "vertical_speed":
-            ekf.update_vertical_speed(self._vz[1][i], self._vz[2][i])
+            ekf.update_vertical_speed(*e.data)
         elif e.kind == "slam":
             if first_pass:
-                e.payload = self._slam_measurement(i)
+                e.payload = self._slam_measurement(e.data)
             if e.payload is not None:
                 ekf.update_slam_pose(*e.payload)
 
-    def _slam_measurement(self, i: int) -> tuple[np.ndarray, np.ndarray | None] | None:
-        """First pass of SLAM pose ``i``: session bookkeeping, then the world measurement."""
-        o, slam, ekf = self.opt, self.flight.slam, self.ekf
-        t = float(slam.t[i])
-        sid = int(slam.session[i])
+    def _slam_measurement(self, ev: SlamPose) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """First pass of a SLAM pose: session bookkeeping, then the world measurement."""
+        o, ekf = self.opt, self.ekf
+        t = float(ev.t)
+        sid = int(ev.session)
         if sid < 0:
             self.counts.add("skipped", "slam_tracking_lost")
             return None
@@ -884,12 +1013,12 @@ class Ekf004Runner:
         if sess is None:
             sess = self.sessions[sid] = _Session(sid, estimator=MLScaleEstimator(o.scale))
             log.info("ekf004: SLAM session %d starts at t=%.3f s", sid, t)
-        p_sc = slam.slam_t_cam[i]
+        p_sc = np.asarray(ev.slam_t_cam, dtype=float)
         if sess.anchor_slam is None:
             # The map's origin: the filter's camera position at the session's first pose.
             sess.anchor_slam = p_sc.copy()
             sess.anchor_world = ekf.camera_position()
-        slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[i])
+        slam_R_cam = quat_wxyz_to_matrix(np.asarray(ev.slam_q_cam_wxyz, dtype=float))
         if len(sess.rotations) < o.align_poses:
             world_R_cam = ekf.world_R_body() @ self.body_R_cam
             sess.rotations.append(world_R_cam @ slam_R_cam.T)
@@ -910,8 +1039,9 @@ class Ekf004Runner:
 
     def _scale_imu_fit(self, sess: _Session, t: float, p_sc: np.ndarray) -> None:
         """Scale from closed-form IMU-SLAM fits (:func:`fgnav.baselines.msf_ekf.initial_fit`) over
-        consecutive windows of the session, SLAM up to ``t``: each accepted fit starts the next
-        window at its end; the session's scale is their inverse-variance weighted mean."""
+        consecutive windows of the session, on what has arrived up to ``t``: each accepted fit
+        starts the next window at its end; the session's scale is their inverse-variance weighted
+        mean."""
         o = self.opt
         if sess.fit_from is None:
             sess.fit_from = sess.last_fit_try = t
@@ -921,7 +1051,7 @@ class Ekf004Runner:
         ):
             return
         sess.last_fit_try = t
-        f = self.imu_fit_flight
+        f = self._arrived.flight(self.calib, self.name)
         slam = f.slam.between(sess.fit_from, t)
         slam = slam.select(np.flatnonzero(slam.session == sess.sid))
         sub = dataclasses.replace(f, imu=f.imu.between(sess.fit_from, t), slam=slam)
@@ -988,14 +1118,17 @@ class Ekf004Runner:
         self._set_scale(sess, t, p_sc, s_new, s_sigma)
 
     def run(self) -> Estimate:
+        """Replay the flight's events into :meth:`feed`; the estimate."""
         wall0 = time.perf_counter()
-        self.initialize()
-        latencies: list[float] = []
-        for seq, (_, t_meas, _, kind, i) in enumerate(self._events()):
-            w0 = time.perf_counter()
-            self._arrive(_Entry(float(t_meas), seq, kind, i))
-            latencies.append(time.perf_counter() - w0)
-        return self._estimate(np.asarray(latencies), time.perf_counter() - wall0)
+        names = ["imu", "yaw", "attitude", "range", "slam"]
+        if self.attitude_source != "stream":
+            names.remove("attitude")
+        # Ties in arrival: a yaw reading before the attitude sample taken with it (the filter
+        # starts at the first attitude sample by which a yaw reading has arrived).
+        streams = flight_streams(self.flight, names)
+        for ev in replay([streams[n] for n in names if n in streams]):
+            self.feed(ev)
+        return self._estimate(np.asarray(self.latencies), time.perf_counter() - wall0)
 
     def _arrive(self, e: _Entry) -> None:
         hist = self.history
