@@ -2439,11 +2439,19 @@ def resolve_engine(flight, options: FixedLagOptions, priors: Any = None) -> tupl
 
 
 def replay_online(
-    flight, options: FixedLagOptions | None = None, progress: bool = False, lagged: bool = False
+    flight,
+    options: FixedLagOptions | None = None,
+    progress: bool = False,
+    lagged: bool = False,
+    source: Any = None,
 ) -> Estimate:
     """A flight's events, in arrival order, through an :class:`OnlineSmoother` (the smoother
     gets the calibration and the events only; ground truth and metadata are never read); the
-    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one."""
+    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one.
+
+    ``source``: a :class:`fgnav.datasets.native.FlightStreams` whose events are read from its
+    files in chunks (bounded memory); ``flight`` is then its outline (checks only).
+    """
     from fgnav.datasets.events import replay_flight
 
     flight.check()
@@ -2463,8 +2471,11 @@ def replay_online(
     g = dataclasses.replace(options.graph, slam_rotation=rotation, slam_time_offset=offset)
     options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
-    total = sum(len(getattr(flight, n)) for n in streams)
-    sm = feed_all(
-        replay_flight(flight, streams), flight.calib, options, flight.name, progress, total
-    )
+    if source is not None:
+        events = source.events(streams)
+        total = sum(source.counts.get(n, 0) for n in streams)
+    else:
+        events = replay_flight(flight, streams)
+        total = sum(len(getattr(flight, n)) for n in streams)
+    sm = feed_all(events, flight.calib, options, flight.name, progress, total)
     return sm.lagged_result() if lagged else sm.result()
