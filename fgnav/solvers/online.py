@@ -126,6 +126,7 @@ from fgnav.solvers.graph import (
     choose_slam_model,
     pim_params,
     robust_noise,
+    saturated_pim_params,
     thrust_only_noise,
 )
 from fgnav.solvers.measurements import (
@@ -307,16 +308,18 @@ class _Imu:
         self.t: list[float] = []
         self.w: list[np.ndarray] = []
         self.a: list[np.ndarray] = []
+        self.sat: list[int] = []  # saturation flags (fgnav.health.SAT_GYRO_BITS, ...)
 
-    def add(self, t: float, w: np.ndarray, a: np.ndarray) -> None:
+    def add(self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0) -> None:
         self.t.append(t)
         self.w.append(w)
         self.a.append(a)
+        self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
         i = bisect.bisect_left(self.t, t_keep)
         if i > 1000:
-            del self.t[:i], self.w[:i], self.a[:i]
+            del self.t[:i], self.w[:i], self.a[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -725,7 +728,7 @@ class OnlineSmoother:
             self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
             self._first_imu_t = t
-        self.imu.add(t, w, a)
+        self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
         self._t_imu_last = t
         if self.t0 is None:
             self._try_start(t)
@@ -767,15 +770,32 @@ class OnlineSmoother:
         return grid, t_imu > grid + 0.5 * self.period + self.options.image_latency_s
 
     def _preintegrate(
-        self, ta: float, tb: float, bias: gtsam.imuBias.ConstantBias
+        self, ta: float, tb: float, bias: gtsam.imuBias.ConstantBias, count: bool = True
     ) -> gtsam.PreintegratedCombinedMeasurements:
         """The arrived IMU from ``ta`` to ``tb`` (zero-order hold: a sample holds until the
-        next)."""
-        pim = gtsam.PreintegratedCombinedMeasurements(self._accel_params(), bias)
+        next); an interval holding samples pinned at a rail (the health detectors' flags) has
+        its noise inflated on those axes (:func:`fgnav.solvers.graph.saturated_pim_params`)."""
+        params = self._accel_params()
         t, a, w = self.imu.t, self.imu.a, self.imu.w
         n = len(t)
         i0 = max(bisect.bisect_right(t, ta) - 1, 0)
         i1 = bisect.bisect_left(t, tb)
+        if any(self.imu.sat[i0:i1]):
+            dts = [
+                max(min(t[i + 1], tb) if i + 1 < n else tb, ta) - max(t[i], ta)
+                for i in range(i0, i1)
+            ]
+            params = saturated_pim_params(
+                params,
+                np.asarray(w[i0:i1]),
+                np.asarray(a[i0:i1]),
+                np.asarray(self.imu.sat[i0:i1]),
+                np.maximum(dts, 0.0),
+                self._health.options.saturation_sigma_rel,
+            )
+            if count:
+                self._use("imu:saturated-intervals")
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
         thrust_only = self._thrust_only
         for i in range(i0, i1):
             s0 = t[i] if t[i] > ta else ta
@@ -1976,6 +1996,7 @@ class OnlineSmoother:
             scale=lambda s: self._session_scale.get(s),
         )
         self._health_checked = False
+        self._health_on = self._health.options.enabled
 
     def _health_feed(self, ev: Any) -> Any:
         """The event through the fault detectors: None when dropped (counted as received and
@@ -2035,7 +2056,7 @@ class OnlineSmoother:
         if kp < 0 or kp not in self.t_kf or X(kp) not in self.values:
             return
         bias = snap.values[B(snap.k)]
-        pim = self._preintegrate(snap.t, self.t_kf[kp], bias)
+        pim = self._preintegrate(snap.t, self.t_kf[kp], bias, count=False)
         nav = pim.predict(gtsam.NavState(snap.values[X(snap.k)], snap.values[V(snap.k)]), bias)
         self.values[X(kp)], self.values[V(kp)], self.values[B(kp)] = (
             nav.pose(),
@@ -2053,6 +2074,8 @@ class OnlineSmoother:
         rep["dropped"] = {
             r: n for r, n in self.dropped.items() if r in ("range:stuck", "images:frozen")
         }
+        n_sat = self.used.get("imu:saturated-intervals", 0)
+        rep["downweighted"] = {"imu-saturated-intervals": n_sat} if n_sat else {}
         return rep
 
     # ------------------------------------------------------------------------------------------
