@@ -573,6 +573,24 @@ class HealthMonitor:
         )
         return snap
 
+    def healthy_snapshot(self) -> Snapshot | None:
+        """The newest healthy snapshot from before the current alarm (None: none kept)."""
+        lim = (self._alarm_since if self._alarm_since is not None else math.inf) - (
+            self.options.diverge_after_s
+        )
+        for s in reversed(self._snapshots):
+            if s.t <= lim:
+                return s
+        return None
+
+    def restart(self) -> None:
+        """The smoother restarted from nothing (its keyframe numbers start again): the
+        snapshots, windows and alarm of the old chain are dropped; counts and status stay."""
+        self._snapshots.clear()
+        self._win.clear()
+        self._alarm_since = None
+        self._last_snapshot_t = -math.inf
+
     def quality(self, q: int) -> int:
         return min(q, DIVERGED_QUALITY) if self.status == "diverged" else q
 
