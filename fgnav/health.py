@@ -188,6 +188,8 @@ class FaultDetectors:
         self._range_val: float | None = None
         self._range_t0: float | None = None
         self._range_stuck = False
+        #: (start time, value) of each stuck range run declared
+        self.stuck_runs: list[tuple[float, float]] = []
         self._image_hash: bytes | None = None
         self._frozen = False
         self._said: set[str] = set()
@@ -350,6 +352,7 @@ class FaultDetectors:
             h0, h1 = self._range_h0, self.context.height(t)
             if h0 is not None and h1 is not None and abs(h1 - h0) > o.range_stuck_motion_m:
                 self._range_stuck = True
+                self.stuck_runs.append((self._range_t0, r))
                 self._count(
                     "range-stuck",
                     f"rangefinder constant at {r:.3f} m since t={self._range_t0:.2f} while the "
@@ -687,6 +690,18 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
             stuck.append(float(ev.t))
         elif name == "ImageFrame" and out is None:
             frozen.append(float(ev.t))
+    # Batch sees the whole flight: a stuck run is dropped from its first reading (the readings
+    # before the detector could tell pull the height too: 10x nominal ATE on two-turns).
+    if det.stuck_runs and flight.range is not None:
+        rt, rv = np.asarray(flight.range.t, float), np.asarray(flight.range.range, float)
+        for t0, value in det.stuck_runs:
+            i = int(np.searchsorted(rt, t0 - 1e-9))
+            j = i
+            while j < len(rt) and rv[j] == value:
+                j += 1
+            stuck.extend(rt[i:j].tolist())
+        stuck = sorted(set(stuck))
+        det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
     det.slam_check(info.get("slam_gyro_check"))
     rep = det.report()

@@ -335,3 +335,22 @@ def test_batch_nominal_prints_health_ok(folder, tmp_path, capsys):
     assert "health: ok" in capsys.readouterr().out
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert s["info"]["health"]["status"] == "ok" and s["info"]["health"]["detectors"] == {}
+
+
+def test_batch_stuck_range_run_dropped_from_its_first_reading():
+    """The rangefinder repeats its 8 s reading to the end. Batch drops the whole stuck run,
+    including the second of readings before the detector could tell (those alone put the ATE at
+    10x nominal on the 24 s matrix flight), and solves again."""
+    from fgnav.methods import run_batch
+
+    f = simulate("two-turns", 1, SimOptions(duration=24.0, images=False))  # the matrix flight
+    rng = f.range.range.copy()
+    i8 = int(np.searchsorted(f.range.t, 8.0))
+    rng[i8:] = rng[i8]
+    bad = dataclasses.replace(f, range=dataclasses.replace(f.range, range=rng))
+    ate0 = score_estimate(f, run_batch(f, {})).ate_rmse_m
+    est = run_batch(bad, {})
+    h = est.info["health"]
+    assert h["detectors"]["range-stuck"] == 1 and h["resolved"] is True
+    assert h["dropped"]["range:stuck"] == len(rng) - i8
+    assert score_estimate(bad, est).ate_rmse_m < 1.5 * ate0
