@@ -17,8 +17,9 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   of the first IMU sample (``FixedLagOptions.graph.use_slam``), else at the IMU. Attitude from the
   attitude stream when one has arrived, else level from the mean specific force of the last
   ``init_imu_s``; yaw from the yaw stream or ``graph.initial_yaw``. Gyro bias: the mean rate of
-  the IMU before the start when the vehicle was still over it (specific force within
-  ``still_accel_tol`` of g, rates below ``still_gyro_tol``), else zero (its prior sigma covers it).
+  the newest still stretch of the arrived IMU before the start (specific force within
+  ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
+  takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one.
 - **SLAM** (``graph.slam_model`` must be ``sim3``): a pose taken at ``t`` attaches to the keyframe
   nearest ``t`` through :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body
   carried over ``t - t_k`` by the IMU reading at ``t``). Each session has a chain of
@@ -161,6 +162,13 @@ GAP_YAW_RATE_SIGMA = 0.5
 CARRY_SIGMA_FACTOR = 2.0
 #: Oldest SLAM pose that places the vehicle at a restart after an IMU gap [s before the start].
 GAP_PLACE_MAX_S = 0.5
+#: Window of the stillness test of the gyro-bias start [s] (see ``_still_gyro_bias``).
+STILL_WINDOW_S = 0.5
+#: Longest still stretch averaged for the gyro-bias start [s].
+STILL_MAX_S = 2.0
+#: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
+#: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
+STILL_MAX_GYRO_BIAS = 0.2
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
 PROVISIONAL_BASE = 1_000_000
 #: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
@@ -861,22 +869,17 @@ class OnlineSmoother:
         _o, go = self.options, self.go
         s = self.imu.span(t_start - self.options.init_imu_s, t_start)
         a = np.asarray(self.imu.a[s]) if s.stop > s.start else np.asarray(self.imu.a[-1:])
-        w = np.asarray(self.imu.w[s]) if s.stop > s.start else np.asarray(self.imu.w[-1:])
         yaw0 = go.initial_yaw
         yaws = self._scalar["yaw"]
         if go.use_yaw and yaws:
             yaw0 = float(yaws[-1][1])
-        R0 = self._attitude_at(t_start)
+        R0 = R_att = self._attitude_at(t_start)
         if R0 is None:
             R0 = level_rotation_from_accel(a.mean(axis=0), yaw0)
-        gyro_b = np.zeros(3)
-        still = (
-            abs(float(np.linalg.norm(a.mean(axis=0))) - go.gravity) < self.options.still_accel_tol
-            and float(np.abs(w).max()) < self.options.still_gyro_tol
-            and len(w) >= 10
-        )
-        if still:
-            gyro_b = w.mean(axis=0)
+        gyro_b, still_age = self._still_gyro_bias(t_start)
+        still = gyro_b is not None
+        if not still:
+            gyro_b = np.zeros(3)
         self.t0 = t_start
         self.k = 0
         self.t_kf = {0: t_start}
@@ -911,7 +914,11 @@ class OnlineSmoother:
                 if not still
                 else gtsam.imuBias.ConstantBias(carry["bias"].accelerometer(), gyro_b)
             )
-        self.smoother = self._new_smoother(self.factorization)
+        # Without an attitude stream the start's attitude is one specific-force mean (tilted
+        # by any acceleration, EuRoC V1_02: 2-3 deg): the QR start relinearises more often.
+        self.smoother = self._new_smoother(
+            self.factorization, startup=self.factorization == "QR" and R_att is None
+        )
         g = gtsam.NonlinearFactorGraph()
         # Gauge: yaw about *world* z and the position; roll and pitch only as well as the initial
         # attitude knows them. The Pose3 tangent is in body axes, so the world-frame rotation
@@ -952,8 +959,55 @@ class OnlineSmoother:
             self.name,
             t_start,
             np.round(gyro_b, 4).tolist(),
-            "still" if still else "moving",
+            f"from the IMU still {still_age:.2f} s before" if still else "moving: zero",
         )
+
+    def _still_gyro_bias(self, t_start: float) -> tuple[np.ndarray | None, float]:
+        """The mean gyro rate over the newest still stretch of the arrived IMU before
+        ``t_start`` and how long before ``t_start`` it ended [s]; ``(None, nan)`` without one.
+
+        Windows of ``STILL_WINDOW_S`` are tested backwards from ``t_start`` over the IMU
+        history: still when the mean specific force is within ``still_accel_tol`` of g, the
+        rate's scatter (per-axis standard deviation) below ``still_gyro_tol`` and its mean below
+        ``STILL_MAX_GYRO_BIAS``. The rate itself is not tested against a bound: a MEMS gyro's
+        bias (0.08 rad/s on EuRoC's) is larger than any stillness tolerance. The newest run of
+        still windows (at most ``STILL_MAX_S``) is averaged: a vehicle standing with its rotors
+        on before a take-off (EuRoC V1_02: 4 s before the first SLAM pose) gives its bias
+        before it moves."""
+        o, go = self.options, self.go
+        if not (o.still_accel_tol > 0 and o.still_gyro_tol > 0) or len(self.imu.t) < 10:
+            return None, math.nan
+        t = np.asarray(self.imu.t)
+        w = np.asarray(self.imu.w)
+        a = np.asarray(self.imu.a)
+        # A start soon after the first IMU sample tests what there is (at least init_imu_s).
+        win = max(o.init_imu_s, min(STILL_WINDOW_S, t_start - t[0]))
+        end = t_start
+        sums: list[np.ndarray] = []
+        newest = math.nan
+        while end - win >= t[0] - 1e-9 and t_start - end < o.history_s:
+            i0, i1 = np.searchsorted(t, end - win), np.searchsorted(t, end, side="right")
+            ok = False
+            if i1 - i0 >= 10:
+                ww, aa = w[i0:i1], a[i0:i1]
+                mean_w = ww.mean(axis=0)
+                ok = bool(
+                    abs(float(np.linalg.norm(aa.mean(axis=0))) - go.gravity) < o.still_accel_tol
+                    and float(ww.std(axis=0).max()) < o.still_gyro_tol
+                    and float(np.abs(mean_w).max()) < STILL_MAX_GYRO_BIAS
+                )
+            if ok:
+                if not sums:
+                    newest = t_start - end
+                sums.append(mean_w)
+                if len(sums) * win >= STILL_MAX_S - 1e-9:
+                    break
+            elif sums:
+                break  # the newest still stretch ended
+            end -= win
+        if not sums:
+            return None, math.nan
+        return np.mean(sums, axis=0), newest
 
     def _attitude_at(self, t: float) -> np.ndarray | None:
         """The attitude sample nearest ``t`` (within 0.2 s), or None."""
@@ -1470,8 +1524,11 @@ class OnlineSmoother:
             return
         if self._sgc is not None:
             self._slam_check(float(ev.t), q, int(ev.session))
+        # The payload keeps the orientation as stored: a convention decided while it waits
+        # (the early SLAM-vs-gyro decision) applies when its factor is made (``_slam_factor``).
+        q_stored = q
         if self._slam_conv == "inverse":
-            q = q * np.array([1.0, -1.0, -1.0, -1.0])
+            q = q * _CONJ
         if self._first_slam_t is None:
             self._first_slam_t = float(ev.t)
         sess = int(ev.session)
@@ -1489,7 +1546,7 @@ class OnlineSmoother:
         if ev.t < self.t0 - 0.5 * self.period:
             self._drop("slam:before-start")
             return
-        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q)))
+        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q_stored)))
 
     def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
         """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
@@ -1536,9 +1593,8 @@ class OnlineSmoother:
                 d.residual_deg.get("as-is", float("nan")),
                 t,
             )
-            flip = np.array([1.0, -1.0, -1.0, -1.0])
             for s in self.sessions.values():
-                s.q = [qq * flip for qq in s.q]
+                s.q = [qq * _CONJ for qq in s.q]
         else:
             log.info("%s: SLAM rotation convention as stated (decided at t=%.2f s)", self.name, t)
         if not d.body_R_cam_ok:
@@ -1804,7 +1860,7 @@ class OnlineSmoother:
         ):
             # The camera orientation carried back to the keyframe with the gyro:
             # slam_R_cam(t_k) = slam_R_cam(t) body_R_cam^T Exp(-omega dt) body_R_cam.
-            R_meas = quat_wxyz_to_matrix(q)
+            R_meas = quat_wxyz_to_matrix(q * _CONJ if self._slam_conv == "inverse" else q)
             if abs(dt) >= 1e-6:
                 i = self.imu.nearest(t)
                 w = self.values[B(self.k)].correctGyroscope(self.imu.w[i])
@@ -2198,13 +2254,18 @@ class OnlineSmoother:
     # Smoother
     # ------------------------------------------------------------------------------------------
 
-    def _new_smoother(self, factorization: str) -> TimeOrderedSmoother:
+    def _new_smoother(self, factorization: str, startup: bool = False) -> TimeOrderedSmoother:
+        """A fresh window; ``startup``: with the start's relinearisation
+        (``FixedLagOptions.startup_relinearize_*``) for the QR start."""
+        o = self.options
         dims = {"s": 7, "d": 2 if self.go.drag_per_axis else 1, "g": 1}
-        return TimeOrderedSmoother(
-            self.options.lag_s,
-            _isam2_params(self.options, dims, factorization),
-            self.options.fine_levels,
-        )
+        if startup and o.startup_relinearize_threshold is not None:
+            o = dataclasses.replace(
+                o,
+                relinearize_threshold=o.startup_relinearize_threshold,
+                relinearize_skip=o.startup_relinearize_skip,
+            )
+        return TimeOrderedSmoother(o.lag_s, _isam2_params(o, dims, factorization), o.fine_levels)
 
     def _block(self, t: float) -> float:
         blk = self.options.marginalize_every_s
@@ -2268,8 +2329,10 @@ class OnlineSmoother:
         return True
 
     def _switch_factorization(self) -> None:
-        """After the QR start: the window into a Cholesky smoother (lossless)."""
+        """After the QR start: the window into a Cholesky smoother (lossless), or, when that
+        fails, into a QR one (the start's relinearisation ends either way)."""
         if not self._move_window(self.options.factorization.upper()):
+            self._move_window("QR")
             self.factorization = "QR-stay"
 
     def _rebuild(self, failed_stamps: dict[int, float] | None = None) -> None:
