@@ -150,11 +150,15 @@ class Context:
         speed: ``speed(t) -> |world_v_body|`` [m/s].
         height: ``height(t) -> z of the body`` [m].
         scale: ``scale(session) -> SLAM units per metre`` or None.
+        slam_height: ``slam_height(session, slam_t_cam) -> world z of the camera`` [m] through
+            the session's current alignment (None without one): a height that no range
+            reading went into, for the stuck-rangefinder test.
     """
 
     speed: Callable[[float], float | None] = lambda t: None
     height: Callable[[float], float | None] = lambda t: None
     scale: Callable[[int], float | None] = lambda s: None
+    slam_height: Callable[[int, np.ndarray], float | None] = lambda s, p: None
 
 
 @dataclass
@@ -177,6 +181,7 @@ class FaultDetectors:
         self.dropped: dict[str, int] = {}
         self._imu_last: float | None = None
         self._imu_dts: deque = deque(maxlen=200)
+        self._slam_last: tuple[int, np.ndarray] | None = None
         self._rail = {"gyro": [0.0] * 3, "accel": [0.0] * 3}
         self._lo = {"gyro": [math.inf] * 3, "accel": [math.inf] * 3}
         self._hi = {"gyro": [-math.inf] * 3, "accel": [-math.inf] * 3}
@@ -332,7 +337,17 @@ class FaultDetectors:
                         f"(the estimate allows {allowed:.2f} m): a new alignment from here",
                     )
         self._slam_prev[sess] = (t, p)
+        self._slam_last = (virtual, p)
         return ev if virtual == sess else ev._replace(session=virtual)
+
+    def _height(self, t: float) -> float | None:
+        """The height the stuck-rangefinder test compares: from the newest SLAM pose through its
+        alignment when there is one (no range reading in it), else the estimate's."""
+        if self._slam_last is not None:
+            h = self.context.slam_height(*self._slam_last)
+            if h is not None:
+                return h
+        return self.context.height(t)
 
     def _range(self, ev) -> Any:
         o = self.options
@@ -342,14 +357,14 @@ class FaultDetectors:
             return ev
         if self._range_val is None or r != self._range_val:
             self._range_val, self._range_t0 = r, t
-            self._range_h0 = self.context.height(t)
+            self._range_h0 = self._height(t)
             self._range_stuck = False
             return ev
         if self._range_stuck:
             self._drop("range:stuck")
             return None
         if t - self._range_t0 >= o.range_stuck_s:
-            h0, h1 = self._range_h0, self.context.height(t)
+            h0, h1 = self._range_h0, self._height(t)
             if h0 is not None and h1 is not None and abs(h1 - h0) > o.range_stuck_motion_m:
                 self._range_stuck = True
                 self.stuck_runs.append((self._range_t0, r))

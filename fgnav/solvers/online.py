@@ -110,6 +110,7 @@ from fgnav.factors.slam_scale import (
     make_slam_position_offset_factor,
     make_slam_rotation_factor,
     make_slam_T_world,
+    slam_alignment_parts,
 )
 from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
@@ -2095,9 +2096,19 @@ class OnlineSmoother:
             ),
             height=lambda t: float(self.out[-1].world_T_body[2, 3]) if self.latest() else None,
             scale=lambda s: self._session_scale.get(s),
+            slam_height=self._slam_height,
         )
         self._health_checked = False
         self._health_on = self._health.options.enabled
+
+    def _slam_height(self, session: int, slam_t_cam: np.ndarray) -> float | None:
+        """World z [m] of a SLAM camera position through its session's newest alignment."""
+        s = self.sessions.get(session)
+        S = self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+        if not isinstance(S, gtsam.Similarity3):
+            return None
+        scale, slam_R_world, slam_t_world = slam_alignment_parts(S)
+        return float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
 
     def _health_feed(self, ev: Any) -> Any:
         """The event through the fault detectors: None when dropped (counted as received and
