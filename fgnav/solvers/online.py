@@ -124,6 +124,7 @@ from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
     choose_slam_model,
+    gyro_bias_prior_sigma,
     pim_params,
     robust_noise,
     thrust_only_noise,
@@ -622,6 +623,9 @@ class OnlineSmoother:
         self._accel_rows: deque = deque(maxlen=self.options.drag_scatter_n)
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
+        self._thrust_provisional = False  # thrust-only until the accelerometer check decides
+        self._bias_release = False
+        self._last_contact_t = -math.inf  # newest ground-contact keyframe
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
@@ -839,6 +843,7 @@ class OnlineSmoother:
         )
         if still:
             gyro_b = w.mean(axis=0)
+        self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
         self.t_kf = {0: t_start}
@@ -865,7 +870,9 @@ class OnlineSmoother:
                 B(0),
                 bias,
                 gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[[go.prior_accel_bias_sigma] * 3, [go.prior_gyro_bias_sigma] * 3]
+                    np.r_[
+                        [go.prior_accel_bias_sigma] * 3, [gyro_bias_prior_sigma(go, self.calib)] * 3
+                    ]
                 ),
             )
         )
@@ -965,7 +972,7 @@ class OnlineSmoother:
         go = self.go
         t_k = self.t_kf[k]
         for c, seg_s, on in (
-            ("d", go.drag_segment_s, self._drag_on),
+            ("d", go.drag_segment_s, self._drag_on or self._drag_dynamics()),
             ("g", go.ground_segment_s, go.use_range),
         ):
             if not on:
@@ -1070,6 +1077,8 @@ class OnlineSmoother:
         ang = math.degrees(math.acos(float(np.clip(d[2], -1.0, 1.0))))
         if self.go.drag_thrust_check and ang > self.go.drag_thrust_max_angle_deg:
             self._thrust_axis_ok = False
+            if self._thrust_provisional:
+                self._end_provisional_thrust_only(f"mean thrust {ang:.0f} deg from body +z")
             if self._drag_on:
                 self._drag_on = False
                 self._drag_decision = (
@@ -1119,11 +1128,13 @@ class OnlineSmoother:
             first = self._accel_check is None or self._accel_check.decision == "undecided"
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
+        undecided = self._accel_check is None or self._accel_check.decision == "undecided"
+        if self._drag_dynamics() and (not self._drag_on or undecided):
+            self._drag_dynamics_factor(j, g, stamps)
+            return
         if not self._drag_on:
             return
-        if self.go.drag_accel_check and (
-            self._accel_check is None or self._accel_check.decision == "undecided"
-        ):
+        if self.go.drag_accel_check and undecided:
             self._drop("drag:accelerometer-not-checked-yet")  # drag stays out until checked
             return
         if not self._kf_alive(j):
@@ -1153,6 +1164,29 @@ class OnlineSmoother:
         stamps[dk] = self.t_kf[self.k]
         self._use("drag")
 
+    def _drag_dynamics(self) -> bool:
+        """The thrust-only prediction models the neglected body x, y specific force as rotor
+        drag (``graph.thrust_only_drag_sigma``)."""
+        return (
+            self._thrust_only
+            and self.go.thrust_only_drag_sigma is not None
+            and getattr(self, "_thrust_axis_ok", True)
+        )
+
+    def _drag_dynamics_factor(self, j: int, g, stamps) -> None:
+        """Thrust-only prediction: the body x, y accelerometer bias (the negated specific force
+        the prediction integrates) is the rotor drag ``k u_xy`` at keyframe j: the drag factor
+        with a zero measurement."""
+        if not self._kf_alive(j):
+            return
+        dk = self._slow_key_at("d", self.go.drag_segment_s, j)
+        if dk not in self.values or not self._alive(dk):
+            return
+        noise = self._noise(2, self.go.thrust_only_drag_sigma, False)
+        g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, np.zeros(2), noise))
+        stamps[dk] = self.t_kf[self.k]
+        self._use("drag-dynamics")
+
     def _accel_check_open(self) -> bool:
         """The accelerometer check still collects keyframes (it stops once it has found the
         horizontal channels unusable: the decision is kept)."""
@@ -1172,10 +1206,23 @@ class OnlineSmoother:
         chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
+            # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
+            # turn "unusable": the provisional thrust-only prediction ends on "usable" in the
+            # air, or on "noisy" over a full check window.
+            # The ground says little about the accelerometer in flight: "usable" counts once
+            # the check's keyframes are all off the ground (no ground contact among them).
+            airborne = t - self._last_contact_t > len(rows) * self.period
+            if self._thrust_provisional and (
+                (chk.decision == "usable" and airborne)
+                or (chk.decision == "noisy" and len(rows) >= self.options.drag_scatter_n)
+            ):
+                self._end_provisional_thrust_only(f"the accelerometer check: {chk.decision}")
             return
+        was_thrust_only = self._thrust_only
+        self._thrust_provisional = False
         if self.go.drag_accel_check and self._drag_on:
             self._drag_on = False
-        if self.go.accel_horizontal == "auto":
+        if self.go.accel_horizontal == "auto" and not was_thrust_only:
             self._thrust_only = True
             if getattr(self, "_health", None) is not None:
                 self._health.horizontal_accel_free = True
@@ -1193,13 +1240,54 @@ class OnlineSmoother:
         )
         log.warning("%s: %s", self.name, self._drag_decision)
 
+    def _provisional_thrust_only(self, accel: np.ndarray) -> None:
+        """``accel_horizontal = "auto"``: predict thrust-only from the start until the
+        accelerometer check decides, when the specific force of the start window lies within
+        ``drag_thrust_max_angle_deg`` of body +z. A vibrating horizontal accelerometer (the
+        Crazyflie's offsets of 1-4 m/s^2 once the motors spin, on the ground) integrated for the
+        0.5-1.5 s the check needs tilts the attitude by up to 13 deg against the ground-contact
+        zero velocity, and nothing in a thrust-only prediction observes that tilt afterwards."""
+        if self.go.accel_horizontal != "auto" or self._thrust_only or len(accel) == 0:
+            return
+        d = np.asarray(accel, float).mean(axis=0)
+        n = float(np.linalg.norm(d))
+        if not n > 0.5 * self.go.gravity:
+            return
+        ang = math.degrees(math.acos(float(np.clip(d[2] / n, -1.0, 1.0))))
+        if ang > self.go.drag_thrust_max_angle_deg:
+            return
+        self._thrust_only = True
+        self._thrust_provisional = True
+        if getattr(self, "_health", None) is not None:
+            self._health.horizontal_accel_free = True
+
+    def _end_provisional_thrust_only(self, why: str) -> None:
+        """Back to the measured horizontal specific force (the check found it usable, or the
+        thrust is not along body z): the x, y accelerometer bias, which stood for the negated
+        neglected force, may jump to the sensor's over the next interval."""
+        self._thrust_only = False
+        self._thrust_provisional = False
+        self._bias_release = True
+        if getattr(self, "_health", None) is not None:
+            self._health.horizontal_accel_free = False
+        log.info("%s: IMU prediction with the measured horizontal specific force (%s)",
+                 self.name, why)
+
     def _accel_params(self) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the current accelerometer model: the calibration's, or
         with the body x, y noise and bias walk of the thrust-only prediction
         (:func:`fgnav.solvers.graph.thrust_only_noise`)."""
         if not self._thrust_only:
+            if self._bias_release:
+                self._bias_release = False
+                n = self.calib.imu_noise
+                p = pim_params(n, self.go.gravity)
+                p.setBiasAccCovariance(
+                    np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
+                )
+                return p
             return self.pim_params
-        if getattr(self, "_bias_release", False):
+        if self._bias_release:
             self._bias_release = False
             p = pim_params(self.calib.imu_noise, self.go.gravity)
             n = self.calib.imu_noise
@@ -1317,6 +1405,7 @@ class OnlineSmoother:
             return
         g.add(gtsam.PriorFactorVector(V(j), np.zeros(3), self._noise(3, go.contact_velocity_sigma)))
         self._use("contact")
+        self._last_contact_t = max(self._last_contact_t, t_j)
         gk = self._slow_key_at("g", go.ground_segment_s, j)
         if go.contact_range_sigma is not None and gk in self.values and self._alive(gk):
             g.add(
