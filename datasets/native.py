@@ -142,6 +142,7 @@ _SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency", "dt"}
 #: ``imu_noise`` keys a calibration file may leave out (their ``ImuNoise`` defaults).
 OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma"})
 
+
 def _fmt(x: float) -> str:
     return repr(float(x))
 

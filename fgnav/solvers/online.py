@@ -1095,7 +1095,8 @@ class OnlineSmoother:
         keyframe intervals), once keyframe j + 1 has closed; the keyframe's mean horizontal
         specific force also feeds the accelerometer check (:meth:`_accel_decide`)."""
         check = self.go.accel_horizontal == "auto" or (self._drag_on and self.go.drag_accel_check)
-        if not (self._drag_on or check) or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+        on = self._drag_on or check or self._drag_dynamics()
+        if not on or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
             return
         t_j = self.t_kf[j]
         if not self._drag_checked:
@@ -1270,8 +1271,9 @@ class OnlineSmoother:
         self._bias_release = True
         if getattr(self, "_health", None) is not None:
             self._health.horizontal_accel_free = False
-        log.info("%s: IMU prediction with the measured horizontal specific force (%s)",
-                 self.name, why)
+        log.info(
+            "%s: IMU prediction with the measured horizontal specific force (%s)", self.name, why
+        )
 
     def _accel_params(self) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the current accelerometer model: the calibration's, or
