@@ -22,7 +22,7 @@ import heapq
 from collections.abc import Iterable, Iterator, Mapping
 from operator import attrgetter
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -157,15 +157,44 @@ def stream_events(
     s = getattr(flight, name)
     if s is None:
         return iter(())
+    return series_events(s, name, latency)
+
+
+def series_events(s: Any, name: str, latency: float | np.ndarray | None = None) -> Iterator[Event]:
+    """The events of one stream's series (``name`` of :data:`EVENT_STREAMS`; ``latency`` as in
+    :func:`stream_events`), in arrival order."""
     t = np.asarray(s.t, dtype=float)
     if latency is None and name == "slam" and s.latency is not None:
         latency = s.latency
     arr = _arrival(t, latency)
     order = np.argsort(arr, kind="stable")
-    return _make_events(flight, name, s, t, arr, order)
+    return _make_events(name, s, t, arr, order)
 
 
-def _make_events(flight, name, s, t, arr, order) -> Iterator[Event]:
+def chunked_events(chunks: Iterable[Any], name: str) -> Iterator[Event]:
+    """The events of a stream read in chunks (consecutive series, e.g.
+    :func:`fgnav.datasets.native.iter_stream_csv`), in arrival order across the chunks too.
+
+    Every sample of a later chunk is taken after this chunk's last one and arrives no earlier
+    than it is taken, so the events of this chunk (and those held from before) that arrive by
+    its last capture time go out now, merged in arrival order; the others (the latency's tail)
+    are held for the next chunk.
+    """
+    held: list[Event] = []
+    key = attrgetter("arrival")
+    for chunk in chunks:
+        bound = float(chunk.t[-1])
+        keep: list[Event] = []
+        for ev in heapq.merge(held, series_events(chunk, name), key=key):
+            if ev.arrival <= bound:
+                yield ev
+            else:
+                keep.append(ev)
+        held = keep
+    yield from held
+
+
+def _make_events(name, s, t, arr, order) -> Iterator[Event]:
     tl, al = t.tolist(), arr.tolist()
     if name == "imu":
         w, a = s.body_omega, s.body_accel

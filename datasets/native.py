@@ -38,7 +38,7 @@ import dataclasses
 import json
 import logging
 import shutil
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -248,30 +248,39 @@ def read_stream_csv(path: str | Path, kind: str) -> Any:
     return series
 
 
-def _read_stream_fast(path: str | Path, kind: str) -> Any | None:
-    """The common case of :func:`read_stream_csv` in bounded memory: a well-formed file parsed
-    by NumPy's C reader (a 1-hour 200 Hz IMU file: tens of MB instead of a Python string per
-    value). None when anything is unusual (comments, blank or ragged lines, a non-number, NaN,
-    non-increasing time, an unknown or missing column, a non-integer session): the careful
-    reader then parses the file and names the line and column in its error."""
-    cls, groups = LAYOUTS[kind]
-    p = Path(path)
-    try:
-        with p.open(encoding="utf-8-sig") as fh:
-            first = fh.readline()
-        header = [_tables.strip_unit(h) for h in _tables.split_line(first.strip(), ",")]
-        index = {name: j for j, name in enumerate(header)}
-        known = {"t"} | {c for g in groups for c in g.columns}
-        if "t" not in index or any(h not in known for h in header):
-            return None
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # an empty file or odd lines: the careful reader
-            a = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2, dtype=float, comments=None)
-    except (OSError, ValueError, UnicodeDecodeError, UserWarning):
+def _fast_header(first: str, kind: str) -> dict[str, int] | None:
+    """Column index of a header line that the fast path reads (None: the careful reader)."""
+    _, groups = LAYOUTS[kind]
+    header = [_tables.strip_unit(h) for h in _tables.split_line(first.strip(), ",")]
+    index = {name: j for j, name in enumerate(header)}
+    known = {"t"} | {c for g in groups for c in g.columns}
+    if "t" not in index or any(h not in known for h in header):
         return None
-    if a.shape[0] == 0 or a.shape[1] != len(header) or not np.all(np.isfinite(a)):
+    return index
+
+
+def _loadtxt(source: Any, max_rows: int | None = None) -> np.ndarray:
+    """NumPy's C reader on a path or an open file; warnings (an empty file, odd lines) raise."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return np.loadtxt(
+            source,
+            delimiter=",",
+            skiprows=0 if max_rows is not None else 1,
+            ndmin=2,
+            dtype=float,
+            comments=None,
+            max_rows=max_rows,
+        )
+
+
+def _fast_series(a: np.ndarray, index: dict[str, int], kind: str) -> Any | None:
+    """The series of a parsed block (None when anything is unusual: see
+    :func:`_read_stream_fast`)."""
+    cls, groups = LAYOUTS[kind]
+    if a.shape[0] == 0 or a.shape[1] != len(index) or not np.all(np.isfinite(a)):
         return None
     t = a[:, index["t"]]
     if np.any(np.diff(t) <= 0):
@@ -299,6 +308,76 @@ def _read_stream_fast(path: str | Path, kind: str) -> Any | None:
     except FlightDataError:
         return None
     return series
+
+
+def _read_stream_fast(path: str | Path, kind: str) -> Any | None:
+    """The common case of :func:`read_stream_csv` in bounded memory: a well-formed file parsed
+    by NumPy's C reader (a 1-hour 200 Hz IMU file: tens of MB instead of a Python string per
+    value). None when anything is unusual (comments, blank or ragged lines, a non-number, NaN,
+    non-increasing time, an unknown or missing column, a non-integer session): the careful
+    reader then parses the file and names the line and column in its error."""
+    p = Path(path)
+    try:
+        with p.open(encoding="utf-8-sig") as fh:
+            index = _fast_header(fh.readline(), kind)
+        if index is None:
+            return None
+        a = _loadtxt(p)
+    except (OSError, ValueError, UnicodeDecodeError, UserWarning):
+        return None
+    return _fast_series(a, index, kind)
+
+
+CHUNK_ROWS = 50_000
+"""Rows per chunk of :func:`iter_stream_csv` (a 200 Hz IMU: about 4 minutes, 2.8 MB)."""
+
+
+def iter_stream_csv(path: str | Path, kind: str, chunk_rows: int = CHUNK_ROWS) -> Iterator[Any]:
+    """A native csv as consecutive series of at most ``chunk_rows`` samples, read as they are
+    consumed (bounded memory for a long flight). A well-formed file is parsed block by block by
+    NumPy's C reader, time checked to increase across blocks too; at the first block that is not,
+    the careful reader (:func:`read_stream_csv`) reads the whole file: it raises the
+    :class:`FlightFormatError` that names the line and column, or (a file that is only unusual:
+    comments, blank lines) its series is yielded in chunks, then in memory whole.
+    """
+    p = Path(path)
+    done = 0  # rows yielded so far
+    t_last = -np.inf
+    try:
+        fh = p.open(encoding="utf-8-sig")
+    except OSError as e:
+        raise FlightFormatError(p, f"cannot read: {e.strerror or e}") from e
+    with fh:
+        index = _fast_header(fh.readline(), kind)
+        while index is not None:
+            try:
+                a = _loadtxt(fh, max_rows=chunk_rows)
+            except (ValueError, UnicodeDecodeError, UserWarning):
+                break
+            if a.shape[0] == 0:
+                return
+            s = _fast_series(a, index, kind)
+            if s is None or s.t[0] <= t_last:
+                break
+            t_last = float(s.t[-1])
+            done += len(s)
+            yield s
+            if a.shape[0] < chunk_rows:
+                return
+    whole = read_stream_csv(p, kind)  # raises for a bad file, naming the line
+    for i in range(done, len(whole), chunk_rows):
+        yield whole.select(np.arange(i, min(i + chunk_rows, len(whole))))
+
+
+def count_rows(path: str | Path) -> int:
+    """Data lines of a csv with a header line (newlines counted, no parsing)."""
+    n = 0
+    last = b"\n"
+    with Path(path).open("rb") as fh:
+        while block := fh.read(1 << 20):
+            n += block.count(b"\n")
+            last = block[-1:]
+    return max(0, n - 1 + (last != b"\n"))
 
 
 def _read_int_column(raw: _tables.RawTable, j: int) -> np.ndarray:
@@ -602,14 +681,8 @@ def is_native_folder(path: str | Path) -> bool:
     return p.is_dir() and (p / META_FILE).is_file()
 
 
-def read_flight(folder: str | Path) -> Flight:
-    """Read a native flight folder written by :func:`write_flight`.
-
-    Raises:
-        FlightFormatError: naming the file (and line/column) of the first problem found.
-        FlightDataError: the assembled flight fails ``flight.check()``.
-    """
-    root = Path(folder)
+def _read_header(root: Path) -> tuple[dict[str, Any], Any, Calibration]:
+    """``meta.json`` and ``calib.yaml`` of a native folder, checked: (meta, calib dict, calib)."""
     meta_path = root / META_FILE
     if not meta_path.is_file():
         raise FlightFormatError(root, f"not an fgnav flight folder ({META_FILE} not found)")
@@ -642,6 +715,19 @@ def read_flight(folder: str | Path) -> Flight:
     except yaml.YAMLError as e:
         raise FlightFormatError(calib_path, f"not valid YAML: {e}") from e
     calib = calibration_from_dict(calib_dict, calib_path)
+    return meta, calib_dict, calib
+
+
+def read_flight(folder: str | Path) -> Flight:
+    """Read a native flight folder written by :func:`write_flight`.
+
+    Raises:
+        FlightFormatError: naming the file (and line/column) of the first problem found.
+        FlightDataError: the assembled flight fails ``flight.check()``.
+    """
+    root = Path(folder)
+    meta, calib_dict, calib = _read_header(root)
+    calib_path = root / CALIB_FILE
     streams: dict[str, Any] = {}
     for s in meta["streams"]:
         if s == "images":
@@ -662,3 +748,115 @@ def read_flight(folder: str | Path) -> Flight:
         **streams,
     )
     return flight.check()
+
+
+@dataclass
+class FlightStreams:
+    """A native flight folder opened as streams, for a run in bounded memory.
+
+    ``outline`` is the flight with each sample stream cut to its first and last sample: the
+    calibration, metadata, which streams there are and their time spans, for the checks before a
+    run (never an estimator's input; no ground truth nor references). ``events(names)`` reads the
+    named streams' files in chunks (:func:`iter_stream_csv`) and merges their events in arrival
+    order; ``counts`` has the samples per stream (newlines counted).
+    """
+
+    outline: Flight
+    files: dict[str, Path]
+    counts: dict[str, int]
+    chunk_rows: int = CHUNK_ROWS
+    root: Path | None = None
+
+    def scoring_flight(self) -> Flight:
+        """The outline with the ground truth and the references read (whole): what scoring
+        and the coverage lines read, after the run."""
+        meta = json.loads((self.root / META_FILE).read_text())
+        gt = None
+        if "ground_truth" in meta["streams"]:
+            gt = read_stream_csv(self.root / _STREAM_FILES["ground_truth"], "ground_truth")
+        references = {
+            name: read_stream_csv(self.root / REFERENCES_DIR / f"{name}.csv", "trajectory")
+            for name in meta["references"]
+        }
+        return dataclasses.replace(self.outline, ground_truth=gt, references=references)
+
+    def events(self, names: Any = None) -> Iterator[Any]:
+        from .events import EVENT_STREAMS, chunked_events, replay
+
+        names = [n for n in (names or EVENT_STREAMS) if n in self.files]
+        return replay(
+            {
+                n: chunked_events(iter_stream_csv(self.files[n], n, self.chunk_rows), n)
+                for n in names
+            }
+        )
+
+
+#: Streams :func:`open_flight_streams` reads in chunks (a folder with images is read whole).
+STREAMED = ("imu", "attitude", "range", "yaw", "slam", "flow")
+
+
+def open_flight_streams(folder: str | Path, chunk_rows: int = CHUNK_ROWS) -> FlightStreams:
+    """Open a native folder without reading its samples (see :class:`FlightStreams`).
+
+    Raises:
+        FlightFormatError: a bad ``meta.json``/``calib.yaml``, a stream file missing or unreadable,
+            or a folder with images (read those with :func:`read_flight`).
+    """
+    root = Path(folder)
+    meta, _, calib = _read_header(root)
+    if "images" in meta["streams"]:
+        raise FlightFormatError(root, "has images: it cannot be opened as streams; read it whole")
+    files: dict[str, Path] = {}
+    outline: dict[str, Any] = {}
+    counts: dict[str, int] = {}
+    for name in meta["streams"]:
+        if name not in STREAMED:
+            continue
+        path = root / _STREAM_FILES[name]
+        if not path.is_file():
+            raise FlightFormatError(path, "file not found")
+        first = next(iter_stream_csv(path, name, chunk_rows), None)
+        if first is None:
+            raise FlightFormatError(path, "no samples")
+        counts[name] = count_rows(path)
+        last = _last_sample(path, name) or first
+        outline[name] = _ends(first, last)
+        files[name] = path
+    flight = Flight(
+        name=meta["name"], source=meta["source"], calib=calib, meta=meta["meta"], **outline
+    )
+    return FlightStreams(flight.check(), files, counts, chunk_rows, root)
+
+
+def _last_sample(path: Path, kind: str) -> Any | None:
+    """The series of the file's last line alone (None when it does not parse on its own)."""
+    with path.open("rb") as fh:
+        header = fh.readline().decode("utf-8-sig")
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - 4096))
+        tail = fh.read().decode("utf-8", errors="replace").strip().splitlines()
+    index = _fast_header(header, kind)
+    if not tail or index is None:
+        return None
+    import io
+
+    try:
+        a = _loadtxt(io.StringIO(tail[-1]), max_rows=1)
+    except (ValueError, UserWarning):
+        return None
+    return _fast_series(a, index, kind)
+
+
+def _ends(first: Any, last: Any) -> Any:
+    """A series of ``first``'s first sample and ``last``'s last one."""
+    a = first.select(np.array([0]))
+    b = last.select(np.array([len(last) - 1]))
+    if b.t[0] <= a.t[0]:
+        return a
+    fields = {f.name: getattr(a, f.name) for f in dataclasses.fields(a)}
+    for k, v in fields.items():
+        if isinstance(v, np.ndarray):
+            fields[k] = np.concatenate([v, getattr(b, k)])
+    return type(a)(**fields)

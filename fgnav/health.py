@@ -13,8 +13,11 @@ each counted by name in :meth:`FaultDetectors.report`:
   have spanned at least ``saturation_spread_gyro`` / ``saturation_spread_accel`` (max - min): a
   sensor pinned at its rail after moving up to it (a noisy sensor never repeats its extreme
   value; a quantised one at rest repeats it but has not spanned the range). Counted per axis
-  (``gyro x`` ...); the samples are used (their factors are not re-weighted: the name is what
-  changes).
+  (``gyro x`` ...). Each sample gets saturation flags (:data:`SAT_GYRO_BITS`,
+  :data:`SAT_ACCEL_BITS`; :func:`imu_saturation_flags` for a whole series) and the smoothers
+  down-weight the IMU factor of every keyframe interval holding flagged samples
+  (:func:`fgnav.solvers.graph.saturated_pim_params`: the true value lies beyond the rail by an
+  unknown amount, taken as ``saturation_sigma_rel`` x the rail, the same over the interval).
 - ``imu-gap``: an IMU interval longer than ``imu_gap_factor`` times the median interval and
   ``imu_gap_min_s``; those past the online smoother's ``max_imu_gap_s`` reset it (the chain is not
   integrated blindly; counted there as ``reset:imu-gap``).
@@ -77,6 +80,10 @@ log = logging.getLogger(__name__)
 JUMP_SESSION_BASE = 1000
 #: Quality (0-100) of the online states while the monitor says the estimate diverges.
 DIVERGED_QUALITY = 10
+#: Saturation flag bits of an IMU sample: gyro axis i is ``1 << i``, accelerometer axis i is
+#: ``1 << (3 + i)``.
+SAT_GYRO_BITS = (1, 2, 4)
+SAT_ACCEL_BITS = (8, 16, 32)
 #: Detector names, in report order.
 DETECTORS = (
     "imu-saturation",
@@ -100,6 +107,8 @@ class HealthOptions:
     saturation_min_accel: float = 5.0
     saturation_spread_gyro: float = 0.2
     saturation_spread_accel: float = 2.0
+    #: sigma of a pinned sample's unknown excess over its rail, relative to the rail value
+    saturation_sigma_rel: float = 1.0
     imu_gap_factor: float = 5.0
     imu_gap_min_s: float = 0.02
     slam_jump_min_m: float = 0.5
@@ -179,9 +188,13 @@ class FaultDetectors:
         self._range_val: float | None = None
         self._range_t0: float | None = None
         self._range_stuck = False
+        #: (start time, value) of each stuck range run declared
+        self.stuck_runs: list[tuple[float, float]] = []
         self._image_hash: bytes | None = None
         self._frozen = False
         self._said: set[str] = set()
+        #: saturation flags of the last IMU sample fed (:data:`SAT_GYRO_BITS`, ...)
+        self.imu_flags = 0
 
     # -- bookkeeping ---------------------------------------------------------------------------
 
@@ -224,8 +237,17 @@ class FaultDetectors:
         return ev
 
     def _imu(self, ev) -> None:
-        # Plain Python floats: this runs for every IMU sample (up to 1 kHz).
-        t = float(ev.t)
+        w, a = ev.body_omega, ev.body_accel
+        self.imu_flags = self._imu_values(
+            float(ev.t),
+            w.tolist() if hasattr(w, "tolist") else w,
+            a.tolist() if hasattr(a, "tolist") else a,
+        )
+
+    def _imu_values(self, t: float, w: list[float], a: list[float]) -> int:
+        """One IMU sample (plain Python floats: this runs for every sample, up to 1 kHz);
+        returns its saturation flags."""
+        flags = 0
         if self._imu_last is not None and t > self._imu_last:
             dt = t - self._imu_last
             if len(self._imu_dts) >= 20:
@@ -238,43 +260,46 @@ class FaultDetectors:
                         "imu-gap", f"no IMU sample for {dt:.3f} s after t={self._imu_last:.3f}"
                     )
                     self._imu_last = t
-                    return
+                    return flags
             self._imu_dts.append(dt)
         self._n_imu += 1
         if self._imu_last is None or t > self._imu_last:
             self._imu_last = t
         o = self.options
-        for kind, v, floor, spread in (
-            ("gyro", ev.body_omega, o.saturation_min_gyro, o.saturation_spread_gyro),
-            ("accel", ev.body_accel, o.saturation_min_accel, o.saturation_spread_accel),
+        for kind, v, floor, spread, bits in (
+            ("gyro", w, o.saturation_min_gyro, o.saturation_spread_gyro, SAT_GYRO_BITS),
+            ("accel", a, o.saturation_min_accel, o.saturation_spread_accel, SAT_ACCEL_BITS),
         ):
             lo, hi = self._lo[kind], self._hi[kind]
             rail, run = self._rail[kind], self._run[kind]
-            for i, x in enumerate(v.tolist() if hasattr(v, "tolist") else v):
+            for i, x in enumerate(v):
                 if not math.isfinite(x):
                     continue
                 if x < lo[i]:
                     lo[i] = x
                 if x > hi[i]:
                     hi[i] = x
-                a = abs(x)
+                ax = abs(x)
                 r = rail[i]
-                if a > r * (1 + 1e-9):
+                if ax > r * (1 + 1e-9):
                     run[i] = 1  # a new largest |value|: the run of samples at it restarts
-                    rail[i] = a
+                    rail[i] = ax
                     continue
-                if abs(a - r) > 1e-9 * r:
+                if abs(ax - r) > 1e-9 * r:
                     continue
                 run[i] += 1  # samples at exactly the current largest |value|
-                if a >= floor and hi[i] - lo[i] >= spread:
+                if ax >= floor and hi[i] - lo[i] >= spread:
                     if run[i] == o.saturation_run:
                         self._count(
                             "imu-saturation",
-                            f"{kind} {'xyz'[i]} pinned at |{a:.4g}| from t={t:.3f}",
+                            f"{kind} {'xyz'[i]} pinned at |{ax:.4g}| from t={t:.3f}",
                             o.saturation_run,
                         )
                     elif run[i] > o.saturation_run:
                         self._count("imu-saturation")
+                    if run[i] >= o.saturation_run:
+                        flags |= bits[i]
+        return flags
 
     def _slam(self, ev) -> Any:
         o = self.options
@@ -327,6 +352,7 @@ class FaultDetectors:
             h0, h1 = self._range_h0, self.context.height(t)
             if h0 is not None and h1 is not None and abs(h1 - h0) > o.range_stuck_motion_m:
                 self._range_stuck = True
+                self.stuck_runs.append((self._range_t0, r))
                 self._count(
                     "range-stuck",
                     f"rangefinder constant at {r:.3f} m since t={self._range_t0:.2f} while the "
@@ -372,6 +398,24 @@ class FaultDetectors:
                 f"body_T_cam rotation {decision.get('body_R_cam_error_deg', float('nan')):.1f} deg "
                 "from the one the gyro fits",
             )
+
+
+def imu_saturation_flags(
+    t: np.ndarray,
+    body_omega: np.ndarray,
+    body_accel: np.ndarray,
+    options: HealthOptions | None = None,
+) -> np.ndarray:
+    """Saturation flags (:data:`SAT_GYRO_BITS`, :data:`SAT_ACCEL_BITS`) of each sample of an
+    IMU series, as the ``imu-saturation`` detector gives them sample by sample in time order
+    (causal: the first ``saturation_run - 1`` samples at a rail are not flagged)."""
+    det = FaultDetectors(options or HealthOptions())
+    out = np.zeros(len(t), dtype=np.uint8)
+    feed = det._imu_values
+    ts, ws, accs = np.asarray(t, float).tolist(), body_omega.tolist(), body_accel.tolist()
+    for i, (ti, w, a) in enumerate(zip(ts, ws, accs, strict=True)):
+        out[i] = feed(ti, w, a)
+    return out
 
 
 def _image_digest(ev: Any) -> bytes | None:
@@ -532,6 +576,24 @@ class HealthMonitor:
         )
         return snap
 
+    def healthy_snapshot(self) -> Snapshot | None:
+        """The newest healthy snapshot from before the current alarm (None: none kept)."""
+        lim = (self._alarm_since if self._alarm_since is not None else math.inf) - (
+            self.options.diverge_after_s
+        )
+        for s in reversed(self._snapshots):
+            if s.t <= lim:
+                return s
+        return None
+
+    def restart(self) -> None:
+        """The smoother restarted from nothing (its keyframe numbers start again): the
+        snapshots, windows and alarm of the old chain are dropped; counts and status stay."""
+        self._snapshots.clear()
+        self._win.clear()
+        self._alarm_since = None
+        self._last_snapshot_t = -math.inf
+
     def quality(self, q: int) -> int:
         return min(q, DIVERGED_QUALITY) if self.status == "diverged" else q
 
@@ -575,6 +637,9 @@ def health_line(health: dict[str, Any] | None) -> str | None:
     dropped = health.get("dropped") or {}
     if dropped:
         parts.append("dropped: " + ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())))
+    weighted = health.get("downweighted") or {}
+    if weighted:
+        parts.append("down-weighted: " + ", ".join(f"{k} {v}" for k, v in weighted.items()))
     return "; ".join(parts)
 
 
@@ -625,9 +690,22 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
             stuck.append(float(ev.t))
         elif name == "ImageFrame" and out is None:
             frozen.append(float(ev.t))
+    # Batch sees the whole flight: a stuck run is dropped from its first reading (the readings
+    # before the detector could tell pull the height too: 10x nominal ATE on two-turns).
+    if det.stuck_runs and flight.range is not None:
+        rt, rv = np.asarray(flight.range.t, float), np.asarray(flight.range.range, float)
+        for t0, value in det.stuck_runs:
+            i = int(np.searchsorted(rt, t0 - 1e-9))
+            j = i
+            while j < len(rt) and rv[j] == value:
+                j += 1
+            stuck.extend(rt[i:j].tolist())
+        stuck = sorted(set(stuck))
+        det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
     det.slam_check(info.get("slam_gyro_check"))
     rep = det.report()
+    n_sat = (info.get("factors") or {}).get("imu-saturated-intervals", 0)
     status = "ok"
     errors = info.get("lm_errors") or []
     n_f = info.get("n_factors") or 0
@@ -641,6 +719,7 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         "status": status,
         **rep,
         "dropped": dict(det.dropped),
+        "downweighted": {"imu-saturated-intervals": n_sat} if n_sat else {},
         "error_per_factor": per_factor,
         "_fixes": {"jumps": jumps, "stuck_range_t": stuck, "frozen_image_t": frozen},
     }

@@ -292,9 +292,13 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
     return _with_priors(_with_info(est, health=health), priors)
 
 
-def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
+def run_fixed_lag(
+    flight: Flight, config: Mapping[str, Any], progress: bool = False, source: Any = None
+) -> Estimate:
     """The online fixed-lag smoother (``fgnav online``) with ``[graph]``, ``[online]`` and
-    ``[priors]``."""
+    ``[priors]``. ``source``: the flight opened as streams
+    (:func:`fgnav.datasets.native.open_flight_streams`, ``flight`` its outline), for the push
+    engine only."""
     from fgnav.solvers.fixed_lag import run_fixed_lag as _run
     from fgnav.solvers.online import replay_online, resolve_engine
 
@@ -306,8 +310,12 @@ def run_fixed_lag(flight: Flight, config: Mapping[str, Any], progress: bool = Fa
             # The replay knows the log has no SLAM stream (a live link knows its configured
             # streams): the smoother must not wait start_wait_s for a first SLAM pose.
             opts = replace(opts, graph=replace(opts.graph, use_slam=False))
-        est = replay_online(flight, opts, progress=progress)
+        est = replay_online(flight, opts, progress=progress, source=source)
     else:
+        if source is not None:
+            raise MethodUnavailableError(
+                f"fixed-lag: the {engine} engine needs the whole flight ({why or 'configured'})"
+            )
         if why:
             log.warning(
                 "%s: fixed-lag runs the prepared engine (not strictly causal: keyframes, gyro "

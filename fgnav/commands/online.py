@@ -9,7 +9,9 @@ Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assemble
 calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
 ``[online]`` and ``[priors]`` tables of ``--config`` (fields of
 :class:`~fgnav.solvers.graph.GraphOptions` and :class:`~fgnav.solvers.fixed_lag.FixedLagOptions`);
-``--lag`` overrides. Prints the update latency
+``--lag`` overrides. A native flight folder without images that the push engine runs is read in
+chunks as it is replayed (:func:`fgnav.datasets.native.open_flight_streams`: bounded memory on
+a long flight; the ground truth is read after the run, for scoring). Prints the update latency
 (p50/p99) and how many times faster than real time the run was; scores the causal trajectory when
 the flight has ground truth.
 """
@@ -17,6 +19,7 @@ the flight has ground truth.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -41,14 +44,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _streams(path: str, config, opts):
+    """The flight opened as streams (:func:`fgnav.datasets.native.open_flight_streams`) when it
+    is a native folder without images that the push engine runs without front-end priors (the
+    prepared engine and the priors read the whole flight); else None (read whole)."""
+    from fgnav.datasets.native import META_FILE, is_native_folder, open_flight_streams
+    from fgnav.solvers.online import resolve_engine
+
+    if not is_native_folder(path) or config.get("priors", {}).get("sources"):
+        return None
+    try:
+        streams = json.loads((Path(path) / META_FILE).read_text()).get("streams", [])
+    except (OSError, ValueError, AttributeError):
+        return None  # the whole read names the problem
+    if "images" in streams:
+        return None
+    source = open_flight_streams(path)
+    engine, _ = resolve_engine(source.outline, opts)
+    return source if engine == "push" else None
+
+
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
     check_tables(args.config, ["graph", "online", "priors"])
     config = method_config(args, online={"lag_s": args.lag})
-    fixed_lag_options(config)  # option values checked before the flight is read
-    flight = load_flight(args.flight)
-    est = run_fixed_lag(flight, config, progress=not args.no_progress)
+    opts = fixed_lag_options(config)  # option values checked before the flight is read
+    source = _streams(args.flight, config, opts)
+    if source is not None:
+        print("input: native folder read in chunks as it is replayed (bounded memory)")
+        est = run_fixed_lag(source.outline, config, not args.no_progress, source=source)
+        flight = source.scoring_flight()
+    else:
+        flight = load_flight(args.flight)
+        est = run_fixed_lag(flight, config, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info
     print(

@@ -406,6 +406,60 @@ def pim_params(
     return p
 
 
+def saturated_pim_params(
+    base: gtsam.PreintegrationCombinedParams,
+    body_omega: np.ndarray,
+    body_accel: np.ndarray,
+    flags: np.ndarray,
+    dt: np.ndarray,
+    sigma_rel: float,
+) -> gtsam.PreintegrationCombinedParams:
+    """Preintegration parameters of a keyframe interval holding saturated IMU samples (issue 18).
+
+    A sample pinned at its rail (``flags``: :data:`fgnav.health.SAT_GYRO_BITS`,
+    :data:`~fgnav.health.SAT_ACCEL_BITS`) under-reports the true value by an unknown amount,
+    taken as ``sigma_rel`` x the rail (the sample's ``|value|``) and the same over the interval
+    (a manoeuvre beyond the rail lasts longer than a sample): the preintegrated rotation
+    (velocity) of that axis gets the variance ``e^2`` with ``e = sigma_rel sum |value_i| dt_i``
+    over its pinned samples, added to the white-noise density as ``e^2 / T`` over the interval's
+    length ``T`` (GTSAM integrates a density ``Q`` to the variance ``Q T``). The interval's IMU
+    factor is thereby down-weighted on the pinned axes only; the others keep the calibration's
+    noise.
+
+    Args:
+        base: the interval's parameters without saturation (not changed).
+        body_omega, body_accel: (n, 3) the samples integrated over the interval.
+        flags: (n,) their saturation bits.
+        dt: (n,) the time each sample holds within the interval [s].
+        sigma_rel: the excess's sigma relative to the rail.
+
+    Returns:
+        ``base`` itself when no sample is flagged, else a copy with the inflated covariances.
+    """
+    flags = np.asarray(flags)
+    if not flags.any():
+        return base
+    from fgnav.health import SAT_ACCEL_BITS, SAT_GYRO_BITS
+
+    dt = np.asarray(dt, float)
+    span = float(dt.sum())
+    if span <= 0:
+        return base
+    extra = []
+    for bits, v in ((SAT_GYRO_BITS, body_omega), (SAT_ACCEL_BITS, body_accel)):
+        v = np.abs(np.asarray(v, float))
+        e = [
+            sigma_rel * float((v[(flags & b) != 0, i] * dt[(flags & b) != 0]).sum())
+            for i, b in enumerate(bits)
+        ]
+        extra.append(np.square(e) / span)
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(-float(base.n_gravity[2]))
+    p.deserialize(base.serialize())
+    p.setGyroscopeCovariance(base.getGyroscopeCovariance() + np.diag(extra[0]))
+    p.setAccelerometerCovariance(base.getAccelerometerCovariance() + np.diag(extra[1]))
+    return p
+
+
 class GraphBuilder:
     """Factor graph of one flight, built keyframe by keyframe.
 
@@ -475,6 +529,25 @@ class GraphBuilder:
         self.t_kf = keyframe_times(t0, t1, o.keyframe_hz, anchors)
         self.K = len(self.t_kf)
         self.pim_params = self._pim_params()
+        # IMU samples pinned at a rail (the imu-saturation detector, sample by sample): their
+        # keyframe intervals' IMU factors are down-weighted (saturated_pim_params).
+        from fgnav.health import HealthOptions, imu_saturation_flags
+
+        self._sat_sigma_rel = HealthOptions().saturation_sigma_rel
+        self.imu_saturation = imu_saturation_flags(
+            self.imu.t, self.imu.body_omega, self.imu.body_accel
+        )
+        if self.imu_saturation.any():
+            n_flagged = np.r_[0, np.cumsum(self.imu_saturation != 0)]
+            i0 = np.maximum(np.searchsorted(self.imu.t, self.t_kf[:-1], side="right") - 1, 0)
+            i1 = np.searchsorted(self.imu.t, self.t_kf[1:], side="left")
+            n_sat = int((n_flagged[np.maximum(i1, i0)] > n_flagged[i0]).sum())
+            self._count("imu-saturated-intervals", n_sat)
+            log.warning(
+                "%s: IMU factors of %d keyframe intervals down-weighted (samples pinned at a rail)",
+                flight.name,
+                n_sat,
+            )
         body_T_cam = np.asarray(flight.calib.body_T_cam, float)
         self.gyro_bias0 = np.zeros(3)
         if self.use_slam and o.gyro_bias_from_slam:
@@ -1135,7 +1208,6 @@ class GraphBuilder:
     ) -> gtsam.PreintegratedCombinedMeasurements:
         """Preintegrated IMU from keyframe ``k_from`` (default k-1) to k (zero-order hold on each
         sample), with the bias estimate ``bias``."""
-        pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
         ta, tb = self.t_kf[k - 1 if k_from is None else k_from], self.t_kf[k]
         t = self.imu.t
         n = len(t)
@@ -1144,11 +1216,16 @@ class GraphBuilder:
         i0 = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
         i1 = max(int(np.searchsorted(t, tb, side="left")), i0)
         if i1 <= i0:
-            return pim
+            return gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias)
         s0 = np.maximum(t[i0:i1], ta)
         s1 = np.minimum(t[i0 + 1 : i1 + 1], tb) if i1 < n else np.r_[t[i0 + 1 : i1], tb]
-        dt = (s1 - s0).tolist()
         w, a = self.imu.body_omega[i0:i1], self.imu.body_accel[i0:i1]
+        params = self.pim_params
+        flags = self.imu_saturation[i0:i1]
+        if flags.any():
+            params = saturated_pim_params(params, w, a, flags, s1 - s0, self._sat_sigma_rel)
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+        dt = (s1 - s0).tolist()
         for j, d in enumerate(dt):
             if d > 0:
                 pim.integrateMeasurement(a[j], w[j], d)

@@ -17,8 +17,9 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   of the first IMU sample (``FixedLagOptions.graph.use_slam``), else at the IMU. Attitude from the
   attitude stream when one has arrived, else level from the mean specific force of the last
   ``init_imu_s``; yaw from the yaw stream or ``graph.initial_yaw``. Gyro bias: the mean rate of
-  the IMU before the start when the vehicle was still over it (specific force within
-  ``still_accel_tol`` of g, rates below ``still_gyro_tol``), else zero (its prior sigma covers it).
+  the newest still stretch of the arrived IMU before the start (specific force within
+  ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
+  takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one.
 - **SLAM** (``graph.slam_model`` must be ``sim3``): a pose taken at ``t`` attaches to the keyframe
   nearest ``t`` through :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body
   carried over ``t - t_k`` by the IMU reading at ``t``). Each session has a chain of
@@ -132,6 +133,7 @@ from fgnav.solvers.graph import (
     gyro_bias_prior_sigma,
     pim_params,
     robust_noise,
+    saturated_pim_params,
     thrust_only_noise,
 )
 from fgnav.solvers.measurements import (
@@ -154,6 +156,25 @@ BIAS_RELEASE_WALK = 30.0
 #: last ``drag_scatter_n``): the IMU prediction uses the measured horizontal specific force until
 #: it has decided, so it decides early (the Crazyflie: ratio 7-40 already on the first 0.5 s).
 ONLINE_ACCEL_CHECK_MIN_KEYFRAMES = 10
+#: Restart after an IMU gap longer than ``max_imu_gap_s`` (issue 18): the chain is broken, not
+#: integrated blindly, and the smoother starts again from the newest state before the gap. The
+#: mean acceleration over the gap is unknown, with this sigma [m/s^2]: the carried velocity's
+#: prior sigma grows by it times the gap, the position's by half of it times the gap squared
+#: (the carried SLAM alignment then places the vehicle at the first pose after the gap).
+GAP_ACCEL_SIGMA = 1.0
+#: Sigma of the unknown mean yaw rate over an IMU gap [rad/s] (the carried yaw's prior).
+GAP_YAW_RATE_SIGMA = 0.5
+#: A slow variable carried over a restart keeps its marginal covariance, sigmas times this.
+CARRY_SIGMA_FACTOR = 2.0
+#: Oldest SLAM pose that places the vehicle at a restart after an IMU gap [s before the start].
+GAP_PLACE_MAX_S = 0.5
+#: Window of the stillness test of the gyro-bias start [s] (see ``_still_gyro_bias``).
+STILL_WINDOW_S = 0.5
+#: Longest still stretch averaged for the gyro-bias start [s].
+STILL_MAX_S = 2.0
+#: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
+#: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
+STILL_MAX_GYRO_BIAS = 0.2
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
 PROVISIONAL_BASE = 1_000_000
 #: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
@@ -313,16 +334,18 @@ class _Imu:
         self.t: list[float] = []
         self.w: list[np.ndarray] = []
         self.a: list[np.ndarray] = []
+        self.sat: list[int] = []  # saturation flags (fgnav.health.SAT_GYRO_BITS, ...)
 
-    def add(self, t: float, w: np.ndarray, a: np.ndarray) -> None:
+    def add(self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0) -> None:
         self.t.append(t)
         self.w.append(w)
         self.a.append(a)
+        self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
         i = bisect.bisect_left(self.t, t_keep)
         if i > 1000:
-            del self.t[:i], self.w[:i], self.a[:i]
+            del self.t[:i], self.w[:i], self.a[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -477,6 +500,7 @@ class OnlineSmoother:
         self.reset_counter += 1
         self._drop(f"reset:{reason}")
         log.warning("%s: reset (%s) at t=%.3f", self.name, reason, self._t_imu_last)
+        self._health.restart()
         self._clear()
 
     def counts(self) -> dict[str, dict[str, int]]:
@@ -650,6 +674,9 @@ class OnlineSmoother:
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
         self._bad_since = -math.inf
+        # The state carried over a restart after an IMU gap (see _carry_state).
+        self._carry: dict[str, Any] | None = None
+        self._carried_align: dict[int, tuple[gtsam.Similarity3, np.ndarray | None]] = {}
 
     def _use(self, kind: str, n: int = 1) -> None:
         self.used[kind] = self.used.get(kind, 0) + n
@@ -727,14 +754,16 @@ class OnlineSmoother:
             self._t_last = {}
             self._t_last["imu"] = t
         elif self.t0 is not None and t - last > self.options.max_imu_gap_s:
+            carry = self._carry_state()
             self.reset("imu-gap")
+            self._carry = carry
             self._t_last = {"imu": t}
         self._use("imu")
         if self._sgc is not None:
             self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
             self._first_imu_t = t
-        self.imu.add(t, w, a)
+        self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
         self._t_imu_last = t
         if self.t0 is None:
             self._try_start(t)
@@ -776,15 +805,32 @@ class OnlineSmoother:
         return grid, t_imu > grid + 0.5 * self.period + self.options.image_latency_s
 
     def _preintegrate(
-        self, ta: float, tb: float, bias: gtsam.imuBias.ConstantBias
+        self, ta: float, tb: float, bias: gtsam.imuBias.ConstantBias, count: bool = True
     ) -> gtsam.PreintegratedCombinedMeasurements:
         """The arrived IMU from ``ta`` to ``tb`` (zero-order hold: a sample holds until the
-        next)."""
-        pim = gtsam.PreintegratedCombinedMeasurements(self._accel_params(), bias)
+        next); an interval holding samples pinned at a rail (the health detectors' flags) has
+        its noise inflated on those axes (:func:`fgnav.solvers.graph.saturated_pim_params`)."""
+        params = self._accel_params()
         t, a, w = self.imu.t, self.imu.a, self.imu.w
         n = len(t)
         i0 = max(bisect.bisect_right(t, ta) - 1, 0)
         i1 = bisect.bisect_left(t, tb)
+        if any(self.imu.sat[i0:i1]):
+            dts = [
+                max(min(t[i + 1], tb) if i + 1 < n else tb, ta) - max(t[i], ta)
+                for i in range(i0, i1)
+            ]
+            params = saturated_pim_params(
+                params,
+                np.asarray(w[i0:i1]),
+                np.asarray(a[i0:i1]),
+                np.asarray(self.imu.sat[i0:i1]),
+                np.maximum(dts, 0.0),
+                self._health.options.saturation_sigma_rel,
+            )
+            if count:
+                self._use("imu:saturated-intervals")
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
         thrust_only = self._thrust_only
         for i in range(i0, i1):
             s0 = t[i] if t[i] > ta else ta
@@ -832,22 +878,17 @@ class OnlineSmoother:
         _o, go = self.options, self.go
         s = self.imu.span(t_start - self.options.init_imu_s, t_start)
         a = np.asarray(self.imu.a[s]) if s.stop > s.start else np.asarray(self.imu.a[-1:])
-        w = np.asarray(self.imu.w[s]) if s.stop > s.start else np.asarray(self.imu.w[-1:])
         yaw0 = go.initial_yaw
         yaws = self._scalar["yaw"]
         if go.use_yaw and yaws:
             yaw0 = float(yaws[-1][1])
-        R0 = self._attitude_at(t_start)
+        R0 = R_att = self._attitude_at(t_start)
         if R0 is None:
             R0 = level_rotation_from_accel(a.mean(axis=0), yaw0)
-        gyro_b = np.zeros(3)
-        still = (
-            abs(float(np.linalg.norm(a.mean(axis=0))) - go.gravity) < self.options.still_accel_tol
-            and float(np.abs(w).max()) < self.options.still_gyro_tol
-            and len(w) >= 10
-        )
-        if still:
-            gyro_b = w.mean(axis=0)
+        gyro_b, still_age = self._still_gyro_bias(t_start)
+        still = gyro_b is not None
+        if not still:
+            gyro_b = np.zeros(3)
         self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
@@ -855,11 +896,40 @@ class OnlineSmoother:
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
         pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
         vel = np.zeros(3)
-        self.smoother = self._new_smoother(self.factorization)
-        g = gtsam.NonlinearFactorGraph()
         yaw_sigma = (
             go.prior_yaw_sigma if not (go.use_yaw and yaws) else max(go.prior_yaw_sigma, 1.0)
         )
+        pos_sigma, vel_sigma = go.prior_position_sigma, go.prior_velocity_sigma
+        carry, self._carry = self._carry, None
+        if carry is not None:
+            # Restart after an IMU gap: the newest state before it, its priors widened by the gap.
+            gap = max(t_start - carry["t"], 0.0)
+            self._bad_since = t_start  # quality halved for the first 2 s
+            if self._attitude_at(t_start) is None and not (go.use_yaw and yaws):
+                yaw_c = float(np.arctan2(carry["R"][1, 0], carry["R"][0, 0]))
+                R0 = level_rotation_from_accel(a.mean(axis=0), yaw_c)
+                yaw_sigma = max(yaw_sigma, min(math.pi, GAP_YAW_RATE_SIGMA * gap))
+            vel = carry["v"]
+            self._carried_align = dict(carry["align"])
+            placed = self._slam_place(t_start, R0)
+            if placed is None:
+                pose = gtsam.Pose3(gtsam.Rot3(R0), carry["p"] + vel * gap)
+            else:
+                pose = gtsam.Pose3(gtsam.Rot3(R0), placed[0])
+                vel = vel if placed[1] is None else placed[1]
+            pos_sigma += 0.5 * GAP_ACCEL_SIGMA * gap**2 + go.prior_velocity_sigma * gap
+            vel_sigma += GAP_ACCEL_SIGMA * gap
+            bias = (
+                carry["bias"]
+                if not still
+                else gtsam.imuBias.ConstantBias(carry["bias"].accelerometer(), gyro_b)
+            )
+        # Without an attitude stream the start's attitude is one specific-force mean (tilted
+        # by any acceleration, EuRoC V1_02: 2-3 deg): the QR start relinearises more often.
+        self.smoother = self._new_smoother(
+            self.factorization, startup=self.factorization == "QR" and R_att is None
+        )
+        g = gtsam.NonlinearFactorGraph()
         # Gauge: yaw about *world* z and the position; roll and pitch only as well as the initial
         # attitude knows them. The Pose3 tangent is in body axes, so the world-frame rotation
         # covariance is rotated into the body (a body whose z is not up, EuRoC's x-up IMU, would
@@ -867,9 +937,9 @@ class OnlineSmoother:
         cov = np.zeros((6, 6))
         cov_w = np.diag([go.prior_rollpitch_sigma**2] * 2 + [yaw_sigma**2])
         cov[:3, :3] = R0.T @ cov_w @ R0
-        cov[3:, 3:] = np.eye(3) * go.prior_position_sigma**2
+        cov[3:, 3:] = np.eye(3) * pos_sigma**2
         g.add(gtsam.PriorFactorPose3(X(0), pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
-        g.add(gtsam.PriorFactorVector(V(0), vel, self._noise(3, go.prior_velocity_sigma, False)))
+        g.add(gtsam.PriorFactorVector(V(0), vel, self._noise(3, vel_sigma, False)))
         g.add(
             gtsam.PriorFactorConstantBias(
                 B(0),
@@ -901,8 +971,55 @@ class OnlineSmoother:
             self.name,
             t_start,
             np.round(gyro_b, 4).tolist(),
-            "still" if still else "moving",
+            f"from the IMU still {still_age:.2f} s before" if still else "moving: zero",
         )
+
+    def _still_gyro_bias(self, t_start: float) -> tuple[np.ndarray | None, float]:
+        """The mean gyro rate over the newest still stretch of the arrived IMU before
+        ``t_start`` and how long before ``t_start`` it ended [s]; ``(None, nan)`` without one.
+
+        Windows of ``STILL_WINDOW_S`` are tested backwards from ``t_start`` over the IMU
+        history: still when the mean specific force is within ``still_accel_tol`` of g, the
+        rate's scatter (per-axis standard deviation) below ``still_gyro_tol`` and its mean below
+        ``STILL_MAX_GYRO_BIAS``. The rate itself is not tested against a bound: a MEMS gyro's
+        bias (0.08 rad/s on EuRoC's) is larger than any stillness tolerance. The newest run of
+        still windows (at most ``STILL_MAX_S``) is averaged: a vehicle standing with its rotors
+        on before a take-off (EuRoC V1_02: 4 s before the first SLAM pose) gives its bias
+        before it moves."""
+        o, go = self.options, self.go
+        if not (o.still_accel_tol > 0 and o.still_gyro_tol > 0) or len(self.imu.t) < 10:
+            return None, math.nan
+        t = np.asarray(self.imu.t)
+        w = np.asarray(self.imu.w)
+        a = np.asarray(self.imu.a)
+        # A start soon after the first IMU sample tests what there is (at least init_imu_s).
+        win = max(o.init_imu_s, min(STILL_WINDOW_S, t_start - t[0]))
+        end = t_start
+        sums: list[np.ndarray] = []
+        newest = math.nan
+        while end - win >= t[0] - 1e-9 and t_start - end < o.history_s:
+            i0, i1 = np.searchsorted(t, end - win), np.searchsorted(t, end, side="right")
+            ok = False
+            if i1 - i0 >= 10:
+                ww, aa = w[i0:i1], a[i0:i1]
+                mean_w = ww.mean(axis=0)
+                ok = bool(
+                    abs(float(np.linalg.norm(aa.mean(axis=0))) - go.gravity) < o.still_accel_tol
+                    and float(ww.std(axis=0).max()) < o.still_gyro_tol
+                    and float(np.abs(mean_w).max()) < STILL_MAX_GYRO_BIAS
+                )
+            if ok:
+                if not sums:
+                    newest = t_start - end
+                sums.append(mean_w)
+                if len(sums) * win >= STILL_MAX_S - 1e-9:
+                    break
+            elif sums:
+                break  # the newest still stretch ended
+            end -= win
+        if not sums:
+            return None, math.nan
+        return np.mean(sums, axis=0), newest
 
     def _attitude_at(self, t: float) -> np.ndarray | None:
         """The attitude sample nearest ``t`` (within 0.2 s), or None."""
@@ -1503,8 +1620,11 @@ class OnlineSmoother:
             return
         if self._sgc is not None:
             self._slam_check(float(ev.t), q, int(ev.session))
+        # The payload keeps the orientation as stored: a convention decided while it waits
+        # (the early SLAM-vs-gyro decision) applies when its factor is made (``_slam_factor``).
+        q_stored = q
         if self._slam_conv == "inverse":
-            q = q * np.array([1.0, -1.0, -1.0, -1.0])
+            q = q * _CONJ
         if self._first_slam_t is None:
             self._first_slam_t = float(ev.t)
         sess = int(ev.session)
@@ -1522,7 +1642,7 @@ class OnlineSmoother:
         if ev.t < self.t0 - 0.5 * self.period:
             self._drop("slam:before-start")
             return
-        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q)))
+        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q_stored)))
 
     def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
         """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
@@ -1569,9 +1689,8 @@ class OnlineSmoother:
                 d.residual_deg.get("as-is", float("nan")),
                 t,
             )
-            flip = np.array([1.0, -1.0, -1.0, -1.0])
             for s in self.sessions.values():
-                s.q = [qq * flip for qq in s.q]
+                s.q = [qq * _CONJ for qq in s.q]
         else:
             log.info("%s: SLAM rotation convention as stated (decided at t=%.2f s)", self.name, t)
         if not d.body_R_cam_ok:
@@ -1837,7 +1956,7 @@ class OnlineSmoother:
         ):
             # The camera orientation carried back to the keyframe with the gyro:
             # slam_R_cam(t_k) = slam_R_cam(t) body_R_cam^T Exp(-omega dt) body_R_cam.
-            R_meas = quat_wxyz_to_matrix(q)
+            R_meas = quat_wxyz_to_matrix(q * _CONJ if self._slam_conv == "inverse" else q)
             if abs(dt) >= 1e-6:
                 i = self.imu.nearest(t)
                 w = self.values[B(self.k)].correctGyroscope(self.imu.w[i])
@@ -1858,6 +1977,8 @@ class OnlineSmoother:
         """The alignment variable of a pose at time ``t`` of session ``sess`` (created here)."""
         o, go = self.options, self.go
         t_now = self.t_kf[self.k]
+        if not s.chain and sess in self._carried_align:
+            return self._carried_chain(sess, s, t, g, stamps)
         if not s.chain:
             if t_now >= s.next_fit and s.t[-1] - s.t[0] >= o.slam_init_window_s:
                 s.next_fit = t_now + 0.5
@@ -2072,6 +2193,7 @@ class OnlineSmoother:
             scale=lambda s: self._session_scale.get(s),
         )
         self._health_checked = False
+        self._health_on = self._health.options.enabled
 
     def _health_feed(self, ev: Any) -> Any:
         """The event through the fault detectors: None when dropped (counted as received and
@@ -2131,7 +2253,7 @@ class OnlineSmoother:
         if kp < 0 or kp not in self.t_kf or X(kp) not in self.values:
             return
         bias = snap.values[B(snap.k)]
-        pim = self._preintegrate(snap.t, self.t_kf[kp], bias)
+        pim = self._preintegrate(snap.t, self.t_kf[kp], bias, count=False)
         nav = pim.predict(gtsam.NavState(snap.values[X(snap.k)], snap.values[V(snap.k)]), bias)
         self.values[X(kp)], self.values[V(kp)], self.values[B(kp)] = (
             nav.pose(),
@@ -2144,24 +2266,102 @@ class OnlineSmoother:
         self._drop("health:recovered")
         self._rebuild({})
 
+    def _carry_state(self) -> dict[str, Any] | None:
+        """The newest state and SLAM alignments, to restart from after an IMU gap (None before
+        the first keyframe). While the monitor says the estimate diverges, its last healthy
+        snapshot instead."""
+        if self.k < 0 or X(self.k) not in self.values:
+            return None
+        snap = self._health.healthy_snapshot() if self._health.status == "diverged" else None
+        vals = snap.values if snap is not None else self.values
+        k = snap.k if snap is not None else self.k
+        t = snap.t if snap is not None else self.t_kf[self.k]
+        align = {}
+        for sess, sn in self.sessions.items():
+            if sn.last_key is not None and sn.last_key in vals:
+                cov = None
+                if self.smoother is not None and self._alive(sn.last_key):
+                    try:
+                        cov = np.asarray(self.smoother.marginalCovariance(sn.last_key))
+                    except SOLVER_ERRORS:
+                        cov = None
+                align[sess] = (vals[sn.last_key], cov)
+        pose = vals[X(k)]
+        return {
+            "t": t,
+            "R": pose.rotation().matrix(),
+            "p": np.asarray(pose.translation(), float),
+            "v": np.asarray(vals[V(k)], float),
+            "bias": vals[B(k)],
+            "align": align,
+        }
+
+    def _slam_place(
+        self, t: float, world_R_body: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """``world_t_body`` at ``t`` and ``world_v_body`` from the SLAM poses arrived since the
+        restart and their session's carried alignment (the newest pose within
+        ``GAP_PLACE_MAX_S`` of ``t``, carried to ``t`` with the mean velocity of the poses of
+        the ``GAP_PLACE_MAX_S`` before it), or None."""
+        for sess, (value, _) in self._carried_align.items():
+            sn = self.sessions.get(sess)
+            if sn is None or not sn.t or abs(sn.t[-1] - t) > GAP_PLACE_MAX_S:
+                continue
+            # slam_t_cam = s slam_R_world world_t_cam + slam_t_world
+            R, scale = value.rotation().matrix(), value.scale()
+            world_t_cam = R.T @ (sn.p[-1] - value.translation()) / scale
+            vel = None
+            j = bisect.bisect_left(sn.t, sn.t[-1] - GAP_PLACE_MAX_S)
+            if sn.t[-1] - sn.t[j] > 0:
+                vel = R.T @ (sn.p[-1] - sn.p[j]) / scale / (sn.t[-1] - sn.t[j])
+            p = world_t_cam - world_R_body @ self.body_T_cam[:3, 3]
+            return p + (vel if vel is not None else 0.0) * (t - sn.t[-1]), vel
+        return None
+
+    def _carried_chain(self, sess, s: _Session, t, g, stamps) -> int:
+        """The alignment chain of a session that was aligned before an IMU gap: its first
+        segment after the restart starts from the carried alignment (the SLAM map did not
+        change) under the rebuild's priors on slow variables."""
+        value, cov = self._carried_align.pop(sess)
+        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+        key = S(sess * SESSION_STRIDE + seg)
+        if cov is not None and np.all(np.isfinite(cov)):
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov * CARRY_SIGMA_FACTOR**2)
+        else:
+            sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, self.options.rebuild_slow_sigma_rel])
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+        g.add(gtsam.PriorFactorSimilarity3(key, value, noise))
+        self._insert(key, value, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
+        self._use("slam:alignment-carried")
+        return key
+
     def _health_report(self) -> dict[str, Any]:
         rep = self._health.report()
         rep["dropped"] = {
             r: n for r, n in self.dropped.items() if r in ("range:stuck", "images:frozen")
         }
+        n_sat = self.used.get("imu:saturated-intervals", 0)
+        rep["downweighted"] = {"imu-saturated-intervals": n_sat} if n_sat else {}
         return rep
 
     # ------------------------------------------------------------------------------------------
     # Smoother
     # ------------------------------------------------------------------------------------------
 
-    def _new_smoother(self, factorization: str) -> TimeOrderedSmoother:
+    def _new_smoother(self, factorization: str, startup: bool = False) -> TimeOrderedSmoother:
+        """A fresh window; ``startup``: with the start's relinearisation
+        (``FixedLagOptions.startup_relinearize_*``) for the QR start."""
+        o = self.options
         dims = {"s": 7, "d": 2 if self.go.drag_per_axis else 1, "g": 1}
-        return TimeOrderedSmoother(
-            self.options.lag_s,
-            _isam2_params(self.options, dims, factorization),
-            self.options.fine_levels,
-        )
+        if startup and o.startup_relinearize_threshold is not None:
+            o = dataclasses.replace(
+                o,
+                relinearize_threshold=o.startup_relinearize_threshold,
+                relinearize_skip=o.startup_relinearize_skip,
+            )
+        return TimeOrderedSmoother(o.lag_s, _isam2_params(o, dims, factorization), o.fine_levels)
 
     def _block(self, t: float) -> float:
         blk = self.options.marginalize_every_s
@@ -2225,8 +2425,10 @@ class OnlineSmoother:
         return True
 
     def _switch_factorization(self) -> None:
-        """After the QR start: the window into a Cholesky smoother (lossless)."""
+        """After the QR start: the window into a Cholesky smoother (lossless), or, when that
+        fails, into a QR one (the start's relinearisation ends either way)."""
         if not self._move_window(self.options.factorization.upper()):
+            self._move_window("QR")
             self.factorization = "QR-stay"
 
     def _rebuild(self, failed_stamps: dict[int, float] | None = None) -> None:
@@ -2535,11 +2737,19 @@ def resolve_engine(flight, options: FixedLagOptions, priors: Any = None) -> tupl
 
 
 def replay_online(
-    flight, options: FixedLagOptions | None = None, progress: bool = False, lagged: bool = False
+    flight,
+    options: FixedLagOptions | None = None,
+    progress: bool = False,
+    lagged: bool = False,
+    source: Any = None,
 ) -> Estimate:
     """A flight's events, in arrival order, through an :class:`OnlineSmoother` (the smoother
     gets the calibration and the events only; ground truth and metadata are never read); the
-    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one."""
+    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one.
+
+    ``source``: a :class:`fgnav.datasets.native.FlightStreams` whose events are read from its
+    files in chunks (bounded memory); ``flight`` is then its outline (checks only).
+    """
     from fgnav.datasets.events import replay_flight
 
     flight.check()
@@ -2559,8 +2769,11 @@ def replay_online(
     g = dataclasses.replace(options.graph, slam_rotation=rotation, slam_time_offset=offset)
     options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
-    total = sum(len(getattr(flight, n)) for n in streams)
-    sm = feed_all(
-        replay_flight(flight, streams), flight.calib, options, flight.name, progress, total
-    )
+    if source is not None:
+        events = source.events(streams)
+        total = sum(source.counts.get(n, 0) for n in streams)
+    else:
+        events = replay_flight(flight, streams)
+        total = sum(len(getattr(flight, n)) for n in streams)
+    sm = feed_all(events, flight.calib, options, flight.name, progress, total)
     return sm.lagged_result() if lagged else sm.result()

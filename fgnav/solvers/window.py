@@ -61,19 +61,22 @@ _EDGE = re.compile(r"^(\d+)->(\d+)$")
 
 def bayes_tree(
     isam: gtsam.ISAM2,
-) -> tuple[dict[str, list[str]], dict[str, list[str]], dict[str, list[str]]]:
+) -> tuple[dict[str, list[int]], dict[str, list[int]], dict[str, list[str]]]:
     """The Bayes tree of ``isam`` from ``ISAM2.dot()`` (the Python wrapper has no clique
-    access): per clique id, its frontal key names (elimination order), its separator key names
-    and its children's ids. Key names are ``gtsam.DefaultKeyFormatter``'s."""
-    frontals: dict[str, list[str]] = {}
-    separators: dict[str, list[str]] = {}
+    access): per clique id, its frontal keys (elimination order), its separator keys and its
+    children's ids. Keys are read as integers (``dot(str)``): ``gtsam.DefaultKeyFormatter``
+    cuts a symbol's name to 9 characters, so ``S(100000000)`` and ``S(100000001)`` (the first
+    segments of a SLAM session numbered 1000, as after a relocalisation jump) both print as
+    ``s10000000`` and could not be told apart."""
+    frontals: dict[str, list[int]] = {}
+    separators: dict[str, list[int]] = {}
     children: dict[str, list[str]] = {}
-    for line in isam.dot().splitlines():
+    for line in isam.dot(str).splitlines():
         line = line.strip()
         if m := _CLIQUE.match(line):
             parts = m.group(2).split(":")
-            frontals[m.group(1)] = [k.strip() for k in parts[0].split(",")]
-            separators[m.group(1)] = [k.strip() for k in parts[1].split(",")] if parts[1:] else []
+            frontals[m.group(1)] = [int(k) for k in parts[0].split(",")]
+            separators[m.group(1)] = [int(k) for k in parts[1].split(",")] if parts[1:] else []
         elif m := _EDGE.match(line):
             children.setdefault(m.group(1), []).append(m.group(2))
     return frontals, separators, children
@@ -325,7 +328,7 @@ class TimeOrderedSmoother:
             RuntimeError: keys to marginalise that do not lead their clique (the time order is
                 broken: iSAM2 would corrupt its tree).
         """
-        names = {gtsam.DefaultKeyFormatter(k): k for k in gone}
+        names = set(gone)
         frontals, separators, children = bayes_tree(self.isam)
         first: set[int] = set()
         for c, fr in frontals.items():
@@ -335,16 +338,17 @@ class TimeOrderedSmoother:
             n_lead = mine.index(False)
             if any(mine[n_lead:]):
                 raise RuntimeError(
-                    f"TimeOrderedSmoother: keys to marginalise do not lead clique {fr}"
+                    "TimeOrderedSmoother: keys to marginalise do not lead clique "
+                    f"{[gtsam.DefaultKeyFormatter(f) for f in fr]}"
                 )
             lead = set(fr[:n_lead])
-            first.update(names[f] for f in lead)
+            first.update(lead)
             for child in children.get(c, []):
                 if lead & set(separators[child]):
                     stack = [child]
                     while stack:
                         x = stack.pop()
-                        first.update(names[f] for f in frontals[x] if f in names)
+                        first.update(f for f in frontals[x] if f in names)
                         stack.extend(children.get(x, []))
         return first
 

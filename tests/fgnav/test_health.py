@@ -14,6 +14,7 @@ from fgnav.datasets.simulate.simulator import simulate, simulate_to_folder
 
 from fgnav.cli import main
 from fgnav.compare import score_estimate
+from fgnav.eval.align import interpolate_trajectory
 from fgnav.health import (
     JUMP_SESSION_BASE,
     Context,
@@ -229,17 +230,73 @@ def test_online_slam_jump_named_and_recovered(two_turns):
     h = est.info["health"]
     assert h["detectors"]["slam-jump"] == 1
     assert ate < 2 * ate0, (ate, ate0)
+    # The new alignment segment after the jump costs no rebuild (its keys S(1000 * stride + j)
+    # were once mistaken for each other when the window marginalised: rebuilt at every block).
+    assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
+    assert sorted(est.slam_scale) == [0, JUMP_SESSION_BASE]
 
 
-def test_online_gyro_saturation_named_and_divergence_detected(two_turns):
+@pytest.mark.parametrize("gap, factor", [((10.0, 12.0), 2.0), ((6.0, 14.0), 2.5)])
+def test_online_imu_gap_restarts_from_the_state_before_it(two_turns, gap, factor):
+    """Past ``max_imu_gap_s`` the chain is broken and the smoother restarts from the newest
+    state before the gap: its world frame, biases and SLAM alignment carried (priors widened
+    by the gap), the vehicle placed by the first SLAM pose after it (before: a blank start at
+    the origin, ATE 25x / 21x nominal on the 24 s matrix flight). Measured: 1.5x for 2 s;
+    2.1x for 8 s right after the hover (the alignment carried from 1 s of motion)."""
     f = two_turns
-    imu = dataclasses.replace(f.imu, body_omega=np.clip(f.imu.body_omega, -0.5, 0.5))
-    est, ate = _online(dataclasses.replace(f, imu=imu))
+    keep = (f.imu.t < gap[0]) | (f.imu.t >= gap[1])
+    bad = dataclasses.replace(f, imu=f.imu.select(keep))
+    _, ate0 = _online(f)
+    est, ate = _online(bad)
+    assert est.info["health"]["detectors"]["imu-gap"] == 1
+    assert est.info["dropped"]["reset:imu-gap"] == 1 and est.info["reset_counter"] == 1
+    assert est.info["used"]["slam:alignment-carried"] == 1
+    assert ate < factor * ate0, (ate, ate0)
+    # One trajectory in one world frame: the first state after the gap is where the truth is
+    # (the alignment of the whole run is fixed by the part before the gap).
+    tr = est.trajectory
+    t_after = tr.t[tr.t >= gap[1]][0]
+    gt = interpolate_trajectory(f.ground_truth, np.array([tr.t[0], t_after]))
+    i = int(np.searchsorted(tr.t, t_after))
+    err = (tr.world_t_body[i] - tr.world_t_body[0]) - (gt.world_t_body[1] - gt.world_t_body[0])
+    assert np.linalg.norm(err) < 0.3, err
+
+
+def _gyro_clipped(f, rail=0.5):
+    return dataclasses.replace(
+        f, imu=dataclasses.replace(f.imu, body_omega=np.clip(f.imu.body_omega, -rail, rail))
+    )
+
+
+def test_online_gyro_saturation_named_and_downweighted(two_turns):
+    """The yaw rate of two-turns reaches 1.06 rad/s; clipped at 0.5 rad/s for half the flight.
+    The IMU factors of the pinned intervals are down-weighted on gyro z: the yaw comes from the
+    SLAM and yaw factors instead (before: divergence, two rebuilds, ATE 7.3 m on 24 s)."""
+    f = two_turns
+    _, ate0 = _online(f)
+    est, ate = _online(_gyro_clipped(f))
     h = est.info["health"]
     assert h["detectors"]["imu-saturation"] > 1000
-    assert h["detectors"].get("divergence", 0) >= 1 and h["recovered"] >= 1
-    assert est.info["reset_counter"] >= 1
-    assert min(s for s in est.info["health"]["episodes"][0]["reasons"]) != ""
+    n = h["downweighted"]["imu-saturated-intervals"]
+    assert n == est.info["used"]["imu:saturated-intervals"]
+    # about half of the 400 keyframe intervals hold pinned samples
+    assert 150 < n < 250
+    assert h["diverged"] == 0 and est.info["reset_counter"] == 0
+    assert ate < 1.5 * ate0, (ate, ate0)
+    assert "down-weighted: imu-saturated-intervals" in health_line(h)
+
+
+def test_online_gyro_saturation_without_downweighting_diverges(two_turns):
+    """The same flight with the down-weighting off (an excess sigma of ~0): what the
+    down-weighting buys (the monitor then sees the divergence)."""
+    f = _gyro_clipped(two_turns)
+    sm = OnlineSmoother(
+        f.calib, FixedLagOptions(), f.name, HealthOptions(saturation_sigma_rel=1e-9)
+    )
+    for ev in replay_flight(f, [n for n in PUSH_STREAMS if getattr(f, n) is not None]):
+        sm.feed(ev)
+    est = sm.result()
+    assert score_estimate(f, est).ate_rmse_m > 0.3
 
 
 # ----------------------------------------------------------------------------------------------
@@ -278,3 +335,22 @@ def test_batch_nominal_prints_health_ok(folder, tmp_path, capsys):
     assert "health: ok" in capsys.readouterr().out
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert s["info"]["health"]["status"] == "ok" and s["info"]["health"]["detectors"] == {}
+
+
+def test_batch_stuck_range_run_dropped_from_its_first_reading():
+    """The rangefinder repeats its 8 s reading to the end. Batch drops the whole stuck run,
+    including the second of readings before the detector could tell (those alone put the ATE at
+    10x nominal on the 24 s matrix flight), and solves again."""
+    from fgnav.methods import run_batch
+
+    f = simulate("two-turns", 1, SimOptions(duration=24.0, images=False))  # the matrix flight
+    rng = f.range.range.copy()
+    i8 = int(np.searchsorted(f.range.t, 8.0))
+    rng[i8:] = rng[i8]
+    bad = dataclasses.replace(f, range=dataclasses.replace(f.range, range=rng))
+    ate0 = score_estimate(f, run_batch(f, {})).ate_rmse_m
+    est = run_batch(bad, {})
+    h = est.info["health"]
+    assert h["detectors"]["range-stuck"] == 1 and h["resolved"] is True
+    assert h["dropped"]["range:stuck"] == len(rng) - i8
+    assert score_estimate(bad, est).ate_rmse_m < 1.5 * ate0
