@@ -44,12 +44,14 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
   (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
   ``graph.accel_horizontal = "auto"``, the IMU prediction is thrust-only); said once; its noise
-  floor follows the running scatter of the keyframe means. With ``"auto"`` the prediction is
-  thrust-only from the start (when the start's specific force is along body +z) until the check
-  finds the accelerometer usable in the air (no ground contact among its keyframes) or noisy over
-  a full window: a vibrating accelerometer integrated while the check decides tilted the
-  Crazyflie's attitude by up to 14 deg on the ground. A thrust-only prediction carries the drag
-  dynamics (``graph.thrust_only_drag_sigma``: the x, y bias tied to ``k u_xy``).
+  floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
+  the prediction is thrust-only from the start (when the start's specific force is along body
+  +z) until the check finds the accelerometer usable in the air (no ground contact among its
+  keyframes) or noisy over a full window: a vibrating accelerometer integrated while the check
+  decides tilted the Crazyflie's attitude by up to 14 deg on the ground. Without SLAM a
+  thrust-only prediction carries the drag dynamics (``graph.thrust_only_drag_sigma``: the x, y
+  bias tied to ``k u_xy``); with SLAM the bias walks freely, so that the health monitor's
+  accelerometer-bias judgement still names a wrong ``body_T_cam`` (fault matrix).
 - **Time rules**: a sample older than its stream's newest by less than ``clock_jump_s`` is
   rejected and counted (``<stream>:out-of-order``; equal stamps ``<stream>:duplicate``); an IMU
   stamp that goes back by more than that is a clock jump and resets the smoother
@@ -1289,9 +1291,10 @@ class OnlineSmoother:
 
     def _drag_dynamics(self) -> bool:
         """The thrust-only prediction models the neglected body x, y specific force as rotor
-        drag (``graph.thrust_only_drag_sigma``)."""
+        drag (``graph.thrust_only_drag_sigma``); not with SLAM in use (module docstring)."""
         return (
             self._thrust_only
+            and not self.go.use_slam
             and self.go.thrust_only_drag_sigma is not None
             and getattr(self, "_thrust_axis_ok", True)
         )
@@ -1368,9 +1371,17 @@ class OnlineSmoother:
         accelerometer check decides, when the specific force of the start window lies within
         ``drag_thrust_max_angle_deg`` of body +z. A vibrating horizontal accelerometer (the
         Crazyflie's offsets of 1-4 m/s^2 once the motors spin, on the ground) integrated for the
-        0.5-1.5 s the check needs tilts the attitude by up to 13 deg against the ground-contact
-        zero velocity, and nothing in a thrust-only prediction observes that tilt afterwards."""
-        if self.go.accel_horizontal != "auto" or self._thrust_only or len(accel) == 0:
+        0.5-1.5 s the check needs tilts the attitude by up to 14 deg against the ground-contact
+        zero velocity, and nothing in a thrust-only prediction observes that tilt afterwards.
+        Not with SLAM in use (``graph.use_slam``): its positions observe a tilt error through the
+        measured accelerometer, and the health monitor's accelerometer-bias judgement (which
+        names a wrong ``body_T_cam`` in the fault matrix) needs the measured prediction."""
+        if (
+            self.go.accel_horizontal != "auto"
+            or self.go.use_slam
+            or self._thrust_only
+            or len(accel) == 0
+        ):
             return
         d = np.asarray(accel, float).mean(axis=0)
         n = float(np.linalg.norm(d))
