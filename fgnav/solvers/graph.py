@@ -213,7 +213,7 @@ class GraphOptions:
             velocities), so the prediction decelerates as drag does and the tilt is observed
             through the velocity, as in the Crazyflie firmware's model; None: off (the bias walk
             alone absorbs the drag). Crazyflie flights (with the calibration's gyro-bias prior):
-            velocity RMSE batch 0.045-0.104 -> 0.032-0.086, fixed-lag 0.082-0.116 -> 0.055-0.088
+            velocity RMSE batch 0.045-0.104 -> 0.032-0.086, fixed-lag 0.082-0.116 -> 0.056-0.090
             m/s; simulated flowdeck (forced thrust-only) batch 0.033 -> 0.024, push 0.094 ->
             0.050 m/s. Independent of ``use_drag`` (that is the factor on the measured force).
         contact_height_m: ground contact: when the rangefinder puts its sensor within this

@@ -1254,7 +1254,9 @@ class OnlineSmoother:
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
         undecided = self._accel_check is None or self._accel_check.decision == "undecided"
-        if self._drag_dynamics() and (not self._drag_on or undecided):
+        # While the prediction is (provisionally) thrust-only the x, y bias stands for the
+        # negated drag, not for the sensor's bias the measured-force factor needs.
+        if self._drag_dynamics() and (not self._drag_on or undecided or self._thrust_only):
             self._drag_dynamics_factor(j, g, stamps)
             return
         if not self._drag_on:
