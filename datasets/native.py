@@ -139,6 +139,10 @@ LAYOUTS: dict[str, tuple[type, tuple[_Group, ...]]] = {
 _SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency", "dt"}
 
 
+#: ``imu_noise`` keys a calibration file may leave out (their ``ImuNoise`` defaults).
+OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma"})
+
+
 def _fmt(x: float) -> str:
     return repr(float(x))
 
@@ -484,8 +488,14 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
         )
     noise_fields = [f.name for f in dataclasses.fields(ImuNoise)]
     noise = d["imu_noise"]
-    if not isinstance(noise, Mapping) or sorted(noise) != sorted(noise_fields):
-        raise FlightFormatError(path, f"imu_noise: expected exactly the keys {noise_fields}")
+    if not isinstance(noise, Mapping) or not (
+        set(noise) <= set(noise_fields) and set(noise_fields) - set(noise) <= OPTIONAL_NOISE_KEYS
+    ):
+        raise FlightFormatError(
+            path,
+            f"imu_noise: expected the keys {noise_fields} "
+            f"({', '.join(sorted(OPTIONAL_NOISE_KEYS))} optional)",
+        )
     flow: dict[str, Any] = {}
     if "body_T_flow" in d:
         flow["body_T_flow"] = _matrix(d, "body_T_flow", path)

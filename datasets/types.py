@@ -427,12 +427,17 @@ class ImuNoise:
         accel_noise_density: [m/s^2/sqrt(Hz)].
         gyro_random_walk: [rad/s^2/sqrt(Hz)].
         accel_random_walk: [m/s^3/sqrt(Hz)].
+        gyro_bias_sigma: 1-sigma of the gyro bias left in the stream at the start [rad/s] (the
+            smoothers' prior on the first gyro bias unless ``GraphOptions.prior_gyro_bias_sigma``
+            is set): small for an autopilot that removes the bias measured at rest before it
+            logs the rates (the Crazyflie firmware).
     """
 
     gyro_noise_density: float = 1.7e-4
     accel_noise_density: float = 2.0e-3
     gyro_random_walk: float = 1.94e-5
     accel_random_walk: float = 3.0e-3
+    gyro_bias_sigma: float = 0.01
 
 
 @dataclass(frozen=True, eq=False)

@@ -447,7 +447,7 @@ def _with_slow(
                 series["slam_scale"] = TimeSeries(np.asarray(ts), np.asarray(vs), np.asarray(ss))
                 series["slam_session"] = TimeSeries(np.asarray(ts), np.asarray(sess_ids, float))
     drag_k = drag_sig = None
-    if builder.use_drag:
+    if builder.drag_vars:
         segs = np.unique(builder.drag_segment)
         vals = np.array([values.atVector(D(int(j))) for j in segs])
         sg = [sigma.get(D(int(j))) for j in segs]

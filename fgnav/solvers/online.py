@@ -44,7 +44,14 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
   (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
   ``graph.accel_horizontal = "auto"``, the IMU prediction is thrust-only); said once; its noise
-  floor follows the running scatter of the keyframe means.
+  floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
+  the prediction is thrust-only from the start (when the start's specific force is along body
+  +z) until the check finds the accelerometer usable in the air (no ground contact among its
+  keyframes) or noisy over a full window: a vibrating accelerometer integrated while the check
+  decides tilted the Crazyflie's attitude by up to 14 deg on the ground. Without SLAM a
+  thrust-only prediction carries the drag dynamics (``graph.thrust_only_drag_sigma``: the x, y
+  bias tied to ``k u_xy``); with SLAM the bias walks freely, so that the health monitor's
+  accelerometer-bias judgement still names a wrong ``body_T_cam`` (fault matrix).
 - **Time rules**: a sample older than its stream's newest by less than ``clock_jump_s`` is
   rejected and counted (``<stream>:out-of-order``; equal stamps ``<stream>:duplicate``); an IMU
   stamp that goes back by more than that is a clock jump and resets the smoother
@@ -126,6 +133,7 @@ from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
     choose_slam_model,
+    gyro_bias_prior_sigma,
     pim_params,
     robust_noise,
     saturated_pim_params,
@@ -647,6 +655,9 @@ class OnlineSmoother:
         self._accel_rows: deque = deque(maxlen=self.options.drag_scatter_n)
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
+        self._thrust_provisional = False  # thrust-only until the accelerometer check decides
+        self._bias_release = False
+        self._last_contact_t = -math.inf  # newest ground-contact keyframe
         self._queued_values = gtsam.Values()
         self._cur_stamps: dict[int, float] = {}
         self._held: list = []
@@ -881,6 +892,7 @@ class OnlineSmoother:
         still = gyro_b is not None
         if not still:
             gyro_b = np.zeros(3)
+        self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
         self.t_kf = {0: t_start}
@@ -936,7 +948,9 @@ class OnlineSmoother:
                 B(0),
                 bias,
                 gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[[go.prior_accel_bias_sigma] * 3, [go.prior_gyro_bias_sigma] * 3]
+                    np.r_[
+                        [go.prior_accel_bias_sigma] * 3, [gyro_bias_prior_sigma(go, self.calib)] * 3
+                    ]
                 ),
             )
         )
@@ -1083,7 +1097,7 @@ class OnlineSmoother:
         go = self.go
         t_k = self.t_kf[k]
         for c, seg_s, on in (
-            ("d", go.drag_segment_s, self._drag_on),
+            ("d", go.drag_segment_s, self._drag_on or self._drag_dynamics()),
             ("g", go.ground_segment_s, go.use_range),
         ):
             if not on:
@@ -1188,6 +1202,8 @@ class OnlineSmoother:
         ang = math.degrees(math.acos(float(np.clip(d[2], -1.0, 1.0))))
         if self.go.drag_thrust_check and ang > self.go.drag_thrust_max_angle_deg:
             self._thrust_axis_ok = False
+            if self._thrust_provisional:
+                self._end_provisional_thrust_only(f"mean thrust {ang:.0f} deg from body +z")
             if self._drag_on:
                 self._drag_on = False
                 self._drag_decision = (
@@ -1204,7 +1220,8 @@ class OnlineSmoother:
         keyframe intervals), once keyframe j + 1 has closed; the keyframe's mean horizontal
         specific force also feeds the accelerometer check (:meth:`_accel_decide`)."""
         check = self.go.accel_horizontal == "auto" or (self._drag_on and self.go.drag_accel_check)
-        if not (self._drag_on or check) or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
+        on = self._drag_on or check or self._drag_dynamics()
+        if not on or j < 0 or j not in self.t_kf or j + 1 not in self.t_kf:
             return
         t_j = self.t_kf[j]
         if not self._drag_checked:
@@ -1237,11 +1254,15 @@ class OnlineSmoother:
             first = self._accel_check is None or self._accel_check.decision == "undecided"
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
+        undecided = self._accel_check is None or self._accel_check.decision == "undecided"
+        # While the prediction is (provisionally) thrust-only the x, y bias stands for the
+        # negated drag, not for the sensor's bias the measured-force factor needs.
+        if self._drag_dynamics() and (not self._drag_on or undecided or self._thrust_only):
+            self._drag_dynamics_factor(j, g, stamps)
+            return
         if not self._drag_on:
             return
-        if self.go.drag_accel_check and (
-            self._accel_check is None or self._accel_check.decision == "undecided"
-        ):
+        if self.go.drag_accel_check and undecided:
             self._drop("drag:accelerometer-not-checked-yet")  # drag stays out until checked
             return
         if not self._kf_alive(j):
@@ -1271,6 +1292,30 @@ class OnlineSmoother:
         stamps[dk] = self.t_kf[self.k]
         self._use("drag")
 
+    def _drag_dynamics(self) -> bool:
+        """The thrust-only prediction models the neglected body x, y specific force as rotor
+        drag (``graph.thrust_only_drag_sigma``); not with SLAM in use (module docstring)."""
+        return (
+            self._thrust_only
+            and not self.go.use_slam
+            and self.go.thrust_only_drag_sigma is not None
+            and getattr(self, "_thrust_axis_ok", True)
+        )
+
+    def _drag_dynamics_factor(self, j: int, g, stamps) -> None:
+        """Thrust-only prediction: the body x, y accelerometer bias (the negated specific force
+        the prediction integrates) is the rotor drag ``k u_xy`` at keyframe j: the drag factor
+        with a zero measurement."""
+        if not self._kf_alive(j):
+            return
+        dk = self._slow_key_at("d", self.go.drag_segment_s, j)
+        if dk not in self.values or not self._alive(dk):
+            return
+        noise = self._noise(2, self.go.thrust_only_drag_sigma, False)
+        g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, np.zeros(2), noise))
+        stamps[dk] = self.t_kf[self.k]
+        self._use("drag-dynamics")
+
     def _accel_check_open(self) -> bool:
         """The accelerometer check still collects keyframes (it stops once it has found the
         horizontal channels unusable: the decision is kept)."""
@@ -1290,10 +1335,23 @@ class OnlineSmoother:
         chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
+            # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
+            # turn "unusable": the provisional thrust-only prediction ends on "usable" in the
+            # air, or on "noisy" over a full check window.
+            # The ground says little about the accelerometer in flight: "usable" counts once
+            # the check's keyframes are all off the ground (no ground contact among them).
+            airborne = t - self._last_contact_t > len(rows) * self.period
+            if self._thrust_provisional and (
+                (chk.decision == "usable" and airborne)
+                or (chk.decision == "noisy" and len(rows) >= self.options.drag_scatter_n)
+            ):
+                self._end_provisional_thrust_only(f"the accelerometer check: {chk.decision}")
             return
+        was_thrust_only = self._thrust_only
+        self._thrust_provisional = False
         if self.go.drag_accel_check and self._drag_on:
             self._drag_on = False
-        if self.go.accel_horizontal == "auto":
+        if self.go.accel_horizontal == "auto" and not was_thrust_only:
             self._thrust_only = True
             if getattr(self, "_health", None) is not None:
                 self._health.horizontal_accel_free = True
@@ -1311,13 +1369,63 @@ class OnlineSmoother:
         )
         log.warning("%s: %s", self.name, self._drag_decision)
 
+    def _provisional_thrust_only(self, accel: np.ndarray) -> None:
+        """``accel_horizontal = "auto"``: predict thrust-only from the start until the
+        accelerometer check decides, when the specific force of the start window lies within
+        ``drag_thrust_max_angle_deg`` of body +z. A vibrating horizontal accelerometer (the
+        Crazyflie's offsets of 1-4 m/s^2 once the motors spin, on the ground) integrated for the
+        0.5-1.5 s the check needs tilts the attitude by up to 14 deg against the ground-contact
+        zero velocity, and nothing in a thrust-only prediction observes that tilt afterwards.
+        Not with SLAM in use (``graph.use_slam``): its positions observe a tilt error through the
+        measured accelerometer, and the health monitor's accelerometer-bias judgement (which
+        names a wrong ``body_T_cam`` in the fault matrix) needs the measured prediction."""
+        if (
+            self.go.accel_horizontal != "auto"
+            or self.go.use_slam
+            or self._thrust_only
+            or len(accel) == 0
+        ):
+            return
+        d = np.asarray(accel, float).mean(axis=0)
+        n = float(np.linalg.norm(d))
+        if not n > 0.5 * self.go.gravity:
+            return
+        ang = math.degrees(math.acos(float(np.clip(d[2] / n, -1.0, 1.0))))
+        if ang > self.go.drag_thrust_max_angle_deg:
+            return
+        self._thrust_only = True
+        self._thrust_provisional = True
+        if getattr(self, "_health", None) is not None:
+            self._health.horizontal_accel_free = True
+
+    def _end_provisional_thrust_only(self, why: str) -> None:
+        """Back to the measured horizontal specific force (the check found it usable, or the
+        thrust is not along body z): the x, y accelerometer bias, which stood for the negated
+        neglected force, may jump to the sensor's over the next interval."""
+        self._thrust_only = False
+        self._thrust_provisional = False
+        self._bias_release = True
+        if getattr(self, "_health", None) is not None:
+            self._health.horizontal_accel_free = False
+        log.info(
+            "%s: IMU prediction with the measured horizontal specific force (%s)", self.name, why
+        )
+
     def _accel_params(self) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the current accelerometer model: the calibration's, or
         with the body x, y noise and bias walk of the thrust-only prediction
         (:func:`fgnav.solvers.graph.thrust_only_noise`)."""
         if not self._thrust_only:
+            if self._bias_release:
+                self._bias_release = False
+                n = self.calib.imu_noise
+                p = pim_params(n, self.go.gravity)
+                p.setBiasAccCovariance(
+                    np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
+                )
+                return p
             return self.pim_params
-        if getattr(self, "_bias_release", False):
+        if self._bias_release:
             self._bias_release = False
             p = pim_params(self.calib.imu_noise, self.go.gravity)
             n = self.calib.imu_noise
@@ -1435,6 +1543,7 @@ class OnlineSmoother:
             return
         g.add(gtsam.PriorFactorVector(V(j), np.zeros(3), self._noise(3, go.contact_velocity_sigma)))
         self._use("contact")
+        self._last_contact_t = max(self._last_contact_t, t_j)
         gk = self._slow_key_at("g", go.ground_segment_s, j)
         if go.contact_range_sigma is not None and gk in self.values and self._alive(gk):
             g.add(
