@@ -259,8 +259,9 @@ def _fast_header(first: str, kind: str) -> dict[str, int] | None:
     return index
 
 
-def _loadtxt(source: Any, max_rows: int | None = None) -> np.ndarray:
-    """NumPy's C reader on a path or an open file; warnings (an empty file, odd lines) raise."""
+def _loadtxt(source: Any, max_rows: int | None = None, header: bool = False) -> np.ndarray:
+    """NumPy's C reader on a path or an open file (``header``: skip its first line); warnings
+    (an empty file, odd lines) raise."""
     import warnings
 
     with warnings.catch_warnings():
@@ -268,7 +269,7 @@ def _loadtxt(source: Any, max_rows: int | None = None) -> np.ndarray:
         return np.loadtxt(
             source,
             delimiter=",",
-            skiprows=0 if max_rows is not None else 1,
+            skiprows=1 if header else 0,
             ndmin=2,
             dtype=float,
             comments=None,
@@ -322,7 +323,7 @@ def _read_stream_fast(path: str | Path, kind: str) -> Any | None:
             index = _fast_header(fh.readline(), kind)
         if index is None:
             return None
-        a = _loadtxt(p)
+        a = _loadtxt(p, header=True)
     except (OSError, ValueError, UnicodeDecodeError, UserWarning):
         return None
     return _fast_series(a, index, kind)
@@ -766,11 +767,12 @@ class FlightStreams:
     counts: dict[str, int]
     chunk_rows: int = CHUNK_ROWS
     root: Path | None = None
+    meta: dict[str, Any] = dataclasses.field(default_factory=dict)  # the folder's meta.json
 
     def scoring_flight(self) -> Flight:
         """The outline with the ground truth and the references read (whole): what scoring
         and the coverage lines read, after the run."""
-        meta = json.loads((self.root / META_FILE).read_text())
+        meta = self.meta
         gt = None
         if "ground_truth" in meta["streams"]:
             gt = read_stream_csv(self.root / _STREAM_FILES["ground_truth"], "ground_truth")
@@ -816,7 +818,7 @@ def open_flight_streams(folder: str | Path, chunk_rows: int = CHUNK_ROWS) -> Fli
         path = root / _STREAM_FILES[name]
         if not path.is_file():
             raise FlightFormatError(path, "file not found")
-        first = next(iter_stream_csv(path, name, chunk_rows), None)
+        first = next(iter_stream_csv(path, name, chunk_rows=1), None)
         if first is None:
             raise FlightFormatError(path, "no samples")
         counts[name] = count_rows(path)
@@ -826,7 +828,7 @@ def open_flight_streams(folder: str | Path, chunk_rows: int = CHUNK_ROWS) -> Fli
     flight = Flight(
         name=meta["name"], source=meta["source"], calib=calib, meta=meta["meta"], **outline
     )
-    return FlightStreams(flight.check(), files, counts, chunk_rows, root)
+    return FlightStreams(flight.check(), files, counts, chunk_rows, root, meta)
 
 
 def _last_sample(path: Path, kind: str) -> Any | None:

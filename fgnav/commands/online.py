@@ -19,7 +19,6 @@ the flight has ground truth.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -48,18 +47,16 @@ def _streams(path: str, config, opts):
     """The flight opened as streams (:func:`fgnav.datasets.native.open_flight_streams`) when it
     is a native folder without images that the push engine runs without front-end priors (the
     prepared engine and the priors read the whole flight); else None (read whole)."""
-    from fgnav.datasets.native import META_FILE, is_native_folder, open_flight_streams
+    from fgnav.datasets.errors import FlightFormatError
+    from fgnav.datasets.native import is_native_folder, open_flight_streams
     from fgnav.solvers.online import resolve_engine
 
     if not is_native_folder(path) or config.get("priors", {}).get("sources"):
         return None
     try:
-        streams = json.loads((Path(path) / META_FILE).read_text()).get("streams", [])
-    except (OSError, ValueError, AttributeError):
-        return None  # the whole read names the problem
-    if "images" in streams:
-        return None
-    source = open_flight_streams(path)
+        source = open_flight_streams(path)
+    except FlightFormatError:
+        return None  # images, or a bad file: the whole read names the problem
     engine, _ = resolve_engine(source.outline, opts)
     return source if engine == "push" else None
 

@@ -514,7 +514,8 @@ class AttitudeEkfStage:
         T = np.asarray(calib.body_T_range, dtype=float)
         self._beam_body = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
         self._body_t_range = T[:3, 3]
-        self._checked_beam = False
+        if use_range:
+            self._check_beam()  # a wrong calibration is said before any event
         self._q0 = None if q0_wxyz is None else np.asarray(q0_wxyz, dtype=float)
         self.ekf: AttitudeHeightEkf | None = None
         self._wait: list = []  # events held until the initial attitude is known
@@ -538,10 +539,8 @@ class AttitudeEkfStage:
             return []
         if isinstance(ev, YawReading) and not self.use_yaw:
             return []
-        if isinstance(ev, RangeReading):
-            if not self.use_range:
-                return []
-            self._check_beam()
+        if isinstance(ev, RangeReading) and not self.use_range:
+            return []
         if self.ekf is None:
             self._wait.append(ev)
             if not self._try_start():
@@ -554,9 +553,6 @@ class AttitudeEkfStage:
         return self._process(ev)
 
     def _check_beam(self) -> None:
-        if self._checked_beam:
-            return
-        self._checked_beam = True
         if self._beam_body[2] > 0:
             raise FlightDataError(
                 f"{self.name}.calib.body_T_range: the rangefinder beam (its z axis) points up in "
@@ -667,8 +663,6 @@ def run_attitude_ekf(
         raise FlightDataError(f"{flight.name}: the attitude EKF needs an IMU stream (flight.imu)")
     use_range = use_range and flight.range is not None
     stage = AttitudeEkfStage(flight.calib, options, q0_wxyz, use_yaw, use_range, flight.name)
-    if use_range:
-        stage._check_beam()
     # Ties in arrival: the IMU sample first, then yaw, then range.
     streams = flight_streams(flight, ("imu", "yaw", "range"))
     out: list[AttitudeEstimate] = []
