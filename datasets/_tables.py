@@ -118,23 +118,20 @@ def column_name(header: list[str] | None, j: int) -> str:
     return f"column {j + 1}"
 
 
+def cell_error(raw: RawTable, k: int, j: int, what: str) -> FlightFormatError:
+    """The error for row k, column j: ``FILE:LINE: column N ('name'): <what>``."""
+    return FlightFormatError(raw.path, f"{column_name(raw.header, j)}: {what}", line=raw.lines[k])
+
+
 def parse_float(raw: RawTable, k: int, j: int) -> float:
     """Value of row k, column j as a finite float, or an error naming file, line and column."""
     tok = raw.rows[k][j]
     try:
         v = float(tok)
     except ValueError:
-        raise FlightFormatError(
-            raw.path,
-            f"{column_name(raw.header, j)}: expected a number, found {tok!r}",
-            line=raw.lines[k],
-        ) from None
+        raise cell_error(raw, k, j, f"expected a number, found {tok!r}") from None
     if not math.isfinite(v):
-        raise FlightFormatError(
-            raw.path,
-            f"{column_name(raw.header, j)}: non-finite value {tok!r} (NaN/inf are not allowed)",
-            line=raw.lines[k],
-        )
+        raise cell_error(raw, k, j, f"non-finite value {tok!r} (NaN/inf are not allowed)")
     return v
 
 
@@ -206,17 +203,9 @@ def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
             try:
                 d = Decimal(tok)
             except InvalidOperation:
-                raise FlightFormatError(
-                    raw.path,
-                    f"{column_name(raw.header, j)}: expected a time stamp in ns, found {tok!r}",
-                    line=raw.lines[k],
-                ) from None
+                raise cell_error(raw, k, j, f"expected a time stamp in ns, found {tok!r}") from None
             if not d.is_finite():
-                raise FlightFormatError(
-                    raw.path,
-                    f"{column_name(raw.header, j)}: non-finite time stamp {tok!r}",
-                    line=raw.lines[k],
-                )
+                raise cell_error(raw, k, j, f"non-finite time stamp {tok!r}")
             exponent = int(d.normalize().as_tuple().exponent) if d != 0 else 0
             resolution = 10**exponent
         if resolution > worst:

@@ -68,12 +68,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ._files import read_toml
 from .calib_yaml import read_orbslam3_yaml
 from .errors import FlightDataError, FlightFormatError
 from .euroc import (
@@ -292,12 +292,7 @@ def read_manifest(path: str | Path) -> Flight:
         FlightDataError: the assembled flight fails ``flight.check()``.
     """
     manifest = Path(path).resolve()
-    if not manifest.is_file():
-        raise FlightFormatError(manifest, "manifest file not found")
-    try:
-        doc = tomllib.loads(manifest.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise FlightFormatError(manifest, f"not valid TOML: {e}") from e
+    doc = read_toml(manifest, "manifest file")
     unknown = [k for k in doc if k not in TOP_LEVEL_KEYS]
     if unknown:
         raise FlightFormatError(

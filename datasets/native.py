@@ -47,6 +47,7 @@ import numpy as np
 import yaml
 
 from . import _tables
+from ._files import read_yaml
 from .errors import FlightDataError, FlightFormatError
 from .types import (
     AttitudeSeries,
@@ -387,11 +388,7 @@ def _read_int_column(raw: _tables.RawTable, j: int) -> np.ndarray:
         try:
             out[k] = int(row[j])
         except ValueError:
-            raise FlightFormatError(
-                raw.path,
-                f"{_tables.column_name(raw.header, j)}: expected an integer, found {row[j]!r}",
-                line=raw.lines[k],
-            ) from None
+            raise _tables.cell_error(raw, k, j, f"expected an integer, found {row[j]!r}") from None
     return out
 
 
@@ -520,13 +517,7 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
 def read_calib_yaml(path: str | Path) -> Calibration:
     """Read a native ``calib.yaml`` (as written by :func:`write_flight`)."""
     p = Path(path)
-    if not p.is_file():
-        raise FlightFormatError(p, "file not found")
-    try:
-        d = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        raise FlightFormatError(p, f"not valid YAML: {e}") from e
-    return calibration_from_dict(d, p)
+    return calibration_from_dict(read_yaml(p), p)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -709,12 +700,7 @@ def _read_header(root: Path) -> tuple[dict[str, Any], Any, Calibration]:
     if unknown:
         raise FlightFormatError(meta_path, f"unknown streams {unknown}; valid: {list(valid)}")
     calib_path = root / CALIB_FILE
-    if not calib_path.is_file():
-        raise FlightFormatError(calib_path, "file not found")
-    try:
-        calib_dict = yaml.safe_load(calib_path.read_text())
-    except yaml.YAMLError as e:
-        raise FlightFormatError(calib_path, f"not valid YAML: {e}") from e
+    calib_dict = read_yaml(calib_path)
     calib = calibration_from_dict(calib_dict, calib_path)
     return meta, calib_dict, calib
 

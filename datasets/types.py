@@ -532,6 +532,16 @@ class Flight:
         self.calib.check(f"{self.name}.calib")
         return self
 
+    def require_streams(self, streams: tuple[str, ...], who: str) -> None:
+        """A one-line error naming every one of ``streams`` the flight lacks, and ``who`` (the
+        method that needs them)."""
+        missing = [s for s in streams if getattr(self, s) is None]
+        if missing:
+            raise FlightDataError(
+                f"{self.name}: {who} needs the streams {', '.join(streams)}; "
+                f"missing: {', '.join(missing)}"
+            )
+
     def require_overlap(self, a: str, b: str) -> tuple[float, float]:
         """Time overlap ``(t0, t1)`` of streams ``a`` and ``b``; a one-line error naming both
         streams and their spans when they do not overlap (or one of them is empty)."""

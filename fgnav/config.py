@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
+from fgnav.datasets._files import read_toml
 from fgnav.datasets.errors import FgnavError, FlightFormatError
 
 T = TypeVar("T")
@@ -18,12 +18,7 @@ def load_config(path: str | Path | None, section: str | None = None) -> dict[str
     if path is None:
         return {}
     p = Path(path)
-    if not p.is_file():
-        raise FlightFormatError(p, "config file not found")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise FlightFormatError(p, f"not valid TOML: {e}") from e
+    data = read_toml(p, "config file")
     if section is None:
         return data
     table = data.get(section, {})

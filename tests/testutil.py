@@ -15,3 +15,46 @@ def require_real_data() -> Path:
     if not REAL_DATA.is_dir():
         pytest.skip(f"real data folder {REAL_DATA} is absent (CI has ../shared beside the clone)")
     return REAL_DATA
+
+
+#: Simulator options of a Crazyflie-like flow-deck flight: no camera, SLAM, attitude or yaw
+#: stream; the rangefinder as measured on the real flow-deck flights (8 mm noise, no airborne
+#: outliers).
+CRAZYFLIE_LIKE = dict(
+    images=False,
+    slam_rate_hz=0.0,
+    attitude_rate_hz=0.0,
+    yaw_rate_hz=0.0,
+    range_noise_m=0.008,
+    range_outlier_prob=0.0,
+)
+
+
+def truth_scale(flight) -> dict[int, float]:
+    """The simulator's SLAM scale of each session at its start (``meta["truth"]``)."""
+    return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
+
+
+def feed_until(filt, events, t_cut: float):
+    """Feed ``events`` (arrival order) to ``filt`` until one arrives after ``t_cut``; the
+    filter's result then."""
+    for ev in events:
+        if ev.arrival > t_cut:
+            break
+        filt.feed(ev)
+    return filt.result()
+
+
+def assert_same_prefix(part, full, min_states: int = 100, t_cut: float | None = None) -> None:
+    """``part``'s trajectory is the first states of ``full``'s, to 1e-12 m (a causality check:
+    the run cut at ``t_cut`` gives the same states before it)."""
+    import numpy as np
+
+    n = len(part.trajectory)
+    assert n > min_states, n
+    if t_cut is not None:
+        assert part.trajectory.t[-1] <= t_cut
+    np.testing.assert_array_equal(part.trajectory.t, full.trajectory.t[:n])
+    np.testing.assert_allclose(
+        part.trajectory.world_t_body, full.trajectory.world_t_body[:n], rtol=0, atol=1e-12
+    )

@@ -480,12 +480,7 @@ class CfEkf:
 
 def check_flight(flight: Flight) -> None:
     """Raise :class:`FlightDataError` naming every missing input of the Crazyflie EKF."""
-    missing = [s for s in REQUIRED_STREAMS if getattr(flight, s) is None]
-    if missing:
-        raise FlightDataError(
-            f"{flight.name}: the Crazyflie EKF needs the streams {', '.join(REQUIRED_STREAMS)}; "
-            f"missing: {', '.join(missing)}"
-        )
+    flight.require_streams(REQUIRED_STREAMS, "the Crazyflie EKF")
 
 
 def run_cf_ekf(flight: Flight, options: CfEkfOptions | None = None) -> Estimate:

@@ -71,12 +71,7 @@ REQUIRED_STREAMS = ("imu", "slam", "attitude", "range")
 def check_flight(flight: Flight, options: Seed000Options | None = None) -> None:
     """Raise :class:`FlightDataError` naming every missing input of the seed 000 baseline."""
     options = options or Seed000Options()
-    missing = [s for s in REQUIRED_STREAMS if getattr(flight, s) is None]
-    if missing:
-        raise FlightDataError(
-            f"{flight.name}: the seed-000 I&I observer baseline needs the streams "
-            f"{', '.join(REQUIRED_STREAMS)}; missing: {', '.join(missing)}"
-        )
+    flight.require_streams(REQUIRED_STREAMS, "the seed-000 I&I observer baseline")
     if (
         options.drag_k is None
         and options.observer.drag_k is None

@@ -80,12 +80,7 @@ images (VO)."""
 
 def check_flight(flight: Flight) -> None:
     """Raise :class:`FlightDataError` naming every missing input of the seed 002 baseline."""
-    missing = [s for s in REQUIRED_STREAMS if getattr(flight, s) is None]
-    if missing:
-        raise FlightDataError(
-            f"{flight.name}: the seed-002 EKF + homography VO baseline needs the streams "
-            f"{', '.join(REQUIRED_STREAMS)}; missing: {', '.join(missing)}"
-        )
+    flight.require_streams(REQUIRED_STREAMS, "the seed-002 EKF + homography VO baseline")
     if flight.images.camera is None and flight.calib.camera is None:
         raise FlightDataError(f"{flight.name}.images.camera: camera intrinsics missing")
 

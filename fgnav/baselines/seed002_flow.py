@@ -298,12 +298,7 @@ class Seed002Flow:
 
 def check_flight(flight: Flight) -> None:
     """Raise :class:`FlightDataError` naming every missing input of the baseline."""
-    missing = [s for s in REQUIRED_STREAMS if getattr(flight, s) is None]
-    if missing:
-        raise FlightDataError(
-            f"{flight.name}: the seed-002 EKF + flow dead reckoning needs the streams "
-            f"{', '.join(REQUIRED_STREAMS)}; missing: {', '.join(missing)}"
-        )
+    flight.require_streams(REQUIRED_STREAMS, "the seed-002 EKF + flow dead reckoning")
 
 
 def run_seed002_flow(flight: Flight, options: Seed002FlowOptions | None = None) -> Estimate:

@@ -38,6 +38,17 @@ def _save(fig: Figure, path: str | Path) -> Path:
     return path
 
 
+def _finish_over_time(ax, fig: Figure, t0: float, ylabel: str, title: str, path) -> Path:
+    """Labels, grid, legend (when anything is labelled) and title of a plot over time; saved."""
+    ax.set_xlabel(f"time [s] (t0 = {t0:.3f})")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize="small")
+    ax.set_title(title)
+    return _save(fig, path)
+
+
 def aligned_to_truth(
     estimate: Estimate,
     truth: Trajectory,
@@ -172,13 +183,9 @@ def plot_scale(
             _plot_series(ax, ts, f"{est.method} session {sid}", t0)
     for sid, s in sorted((truth_scale or {}).items()):
         ax.axhline(s, color="k", ls="--", lw=1, label=f"truth session {sid}")
-    ax.set_xlabel(f"time [s] (t0 = {t0:.3f})")
-    ax.set_ylabel("SLAM scale s [SLAM units / m]")
-    ax.grid(True, alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize="small")
-    ax.set_title("SLAM scale estimate")
-    return _save(fig, path)
+    return _finish_over_time(
+        ax, fig, t0, "SLAM scale s [SLAM units / m]", "SLAM scale estimate", path
+    )
 
 
 def plot_drag(
@@ -198,13 +205,7 @@ def plot_drag(
         for j, k in enumerate(np.atleast_1d(np.asarray(truth_k, dtype=float))):
             ls = ("--", ":", "-.")[j % 3]
             ax.axhline(k, color="k", ls=ls, lw=1, label=f"truth k[{j}] = {k:g}")
-    ax.set_xlabel(f"time [s] (t0 = {t0:.3f})")
-    ax.set_ylabel("drag k [1/s]")
-    ax.grid(True, alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize="small")
-    ax.set_title("Rotor-drag coefficient estimate")
-    return _save(fig, path)
+    return _finish_over_time(ax, fig, t0, "drag k [1/s]", "Rotor-drag coefficient estimate", path)
 
 
 def plot_latency(estimates: Sequence[Estimate], path: str | Path) -> Path:

@@ -17,7 +17,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -264,17 +264,11 @@ def solve_batch(
             "lm_options": asdict(o.lm),
         }
     )
-    return Estimate(
+    return replace(
+        est,
         method="batch",
-        trajectory=est.trajectory,
         pose_cov=pose_cov,
         vel_cov=vel_cov,
-        slam_scale=est.slam_scale,
-        slam_scale_sigma=est.slam_scale_sigma,
-        drag_k=est.drag_k,
-        drag_k_sigma=est.drag_k_sigma,
-        ground_height=est.ground_height,
-        series=est.series,
         runtime_s=time.perf_counter() - t_start,
         causal=False,
         info=info,
@@ -469,16 +463,14 @@ def _with_slow(
             series["ground_height"] = TimeSeries(
                 t_seg, vals, None if any(x is None for x in sg) else np.array([x[0] for x in sg])
             )
-    return Estimate(
-        method=est.method,
-        trajectory=est.trajectory,
+    return replace(
+        est,
         slam_scale=scale,
         slam_scale_sigma=scale_sigma,
         drag_k=drag_k,
         drag_k_sigma=drag_sig,
         ground_height=ground,
         series=series,
-        info=est.info,
     )
 
 

@@ -11,20 +11,11 @@ from fgnav.datasets.geometry import make_pose, rpy_to_matrix
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import DOWNWARD_FLOW
 from fgnav.factors.optical_flow import FlowSensor, predict_flow
+from testutil import CRAZYFLIE_LIKE
 
 from fgnav.baselines.cf_ekf import IP, IU, CfEkf, CfEkfOptions, run_cf_ekf, tof_sigma
 from fgnav.eval.metrics import flow_flight_figures
 from fgnav.methods import METHODS, available_methods
-
-#: The rangefinder as measured on the real flow-deck flights: 8 mm noise, no airborne outliers.
-CRAZYFLIE_LIKE = dict(
-    images=False,
-    slam_rate_hz=0.0,
-    attitude_rate_hz=0.0,
-    yaw_rate_hz=0.0,
-    range_noise_m=0.008,
-    range_outlier_prob=0.0,
-)
 
 
 @pytest.fixture(scope="module")

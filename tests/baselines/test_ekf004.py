@@ -18,6 +18,7 @@ from fgnav.datasets.geometry import (
 )
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import Flight
+from testutil import truth_scale
 
 from fgnav.baselines.ekf004 import (
     IR,
@@ -34,10 +35,6 @@ from fgnav.baselines.ekf004 import (
 )
 from fgnav.eval.metrics import evaluate
 from fgnav.eval.outputs import write_estimate
-
-
-def _truth_scale(flight) -> dict[int, float]:
-    return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
 
 
 def _options(flight, **kw) -> Ekf004Options:
@@ -168,8 +165,8 @@ def test_rectangle_accuracy(rectangle, rectangle_estimate, tmp_path):
     est = rectangle_estimate
     assert est.method == "ekf004" and est.causal
     assert est.pose_cov is not None and est.vel_cov is not None
-    truth_scale = _truth_scale(rectangle)
-    m = evaluate(est, rectangle.ground_truth, alignment="none", truth_scale=truth_scale)
+    true_scale = truth_scale(rectangle)
+    m = evaluate(est, rectangle.ground_truth, alignment="none", truth_scale=true_scale)
     assert m.n_matched == len(est.trajectory) == len(rectangle.attitude)
     assert m.ate_rmse_m < 0.13
     assert m.scale_final_abs_err_pct < 2.5
@@ -188,7 +185,7 @@ def test_rectangle_accuracy(rectangle, rectangle_estimate, tmp_path):
     assert counts.used["attitude"] + counts.gated.get("attitude", 0) == len(rectangle.attitude)
     # The scale history ends near the truth.
     s_hist = est.series["slam_scale"].value
-    assert abs(s_hist[-1] / truth_scale[0] - 1.0) < 0.025
+    assert abs(s_hist[-1] / true_scale[0] - 1.0) < 0.025
     # The estimate and its diagnostics are written as files (options and counts in JSON).
     paths = write_estimate(est, tmp_path, metrics=m)
     summary = json.loads(paths["summary"].read_text())
@@ -201,10 +198,10 @@ def test_map_reset_starts_a_new_scale():
     """A SLAM map reset at 18 s (new frame and scale, 1 s without tracking): both sessions get
     their own scale. Measured (seed 1): scale errors 0.9 % and 0.8 %, ATE 0.10 m."""
     f = simulate("rectangle", seed=1, options=SimOptions(images=False, slam_resets=(18.0,)))
-    truth_scale = _truth_scale(f)
-    assert sorted(truth_scale) == [0, 1]
+    true_scale = truth_scale(f)
+    assert sorted(true_scale) == [0, 1]
     est = run_ekf004(f, _options(f))
-    m = evaluate(est, f.ground_truth, alignment="none", truth_scale=truth_scale)
+    m = evaluate(est, f.ground_truth, alignment="none", truth_scale=true_scale)
     assert sorted(est.slam_scale) == [0, 1]
     assert all(abs(e) < 2.5 for e in m.scale_final_err_pct.values())
     assert m.ate_rmse_m < 0.2
@@ -269,7 +266,7 @@ def test_without_attitude_stream_estimates_it_from_the_imu():
     est = run_ekf004(dataclasses.replace(f, attitude=None), _options(f))
     assert "estimated from the IMU" in est.info["attitude_source"]
     assert est.info["scale_source"] == "imu_fit"
-    m = evaluate(est, f.ground_truth, alignment="se3", truth_scale=_truth_scale(f))
+    m = evaluate(est, f.ground_truth, alignment="se3", truth_scale=truth_scale(f))
     assert m.ate_rmse_m < 0.16
     assert abs(m.scale_final_err_pct[0]) < 3.0
     assert 1.0 < m.nees_pos < 7.0

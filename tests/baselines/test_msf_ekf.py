@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.simulate import SimOptions, simulate
+from testutil import assert_same_prefix, feed_until
 
 from fgnav.baselines.msf_ekf import MsfOptions, initial_scale_guess, run_msf
 
@@ -125,15 +126,6 @@ def test_event_fed_filter_is_causal(rectangle):
     t_cut = 15.0
     filt = MsfEkf()
     filt.start(rectangle.calib, rectangle.name)
-    for ev in replay_flight(rectangle, ("imu", "attitude", "slam", "range")):
-        if ev.arrival > t_cut:
-            break
-        filt.feed(ev)
-    part = filt.result()
-    n = len(part.trajectory)
-    assert n > 100 and part.trajectory.t[-1] <= t_cut
-    np.testing.assert_array_equal(part.trajectory.t, full.trajectory.t[:n])
-    np.testing.assert_allclose(
-        part.trajectory.world_t_body, full.trajectory.world_t_body[:n], rtol=0, atol=1e-12
-    )
+    events = replay_flight(rectangle, ("imu", "attitude", "slam", "range"))
+    assert_same_prefix(feed_until(filt, events, t_cut), full, t_cut=t_cut)
     assert dataclasses.is_dataclass(filt.latest())

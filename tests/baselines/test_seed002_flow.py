@@ -7,19 +7,11 @@ import numpy as np
 import pytest
 from fgnav.datasets.events import replay_flight
 from fgnav.datasets.simulate import SimOptions, simulate
+from testutil import CRAZYFLIE_LIKE
 
 from fgnav.baselines.seed002_flow import Seed002Flow, run_seed002_flow
 from fgnav.eval.metrics import flow_flight_figures
 from fgnav.methods import METHODS
-
-CRAZYFLIE_LIKE = dict(
-    images=False,
-    slam_rate_hz=0.0,
-    attitude_rate_hz=0.0,
-    yaw_rate_hz=0.0,
-    range_noise_m=0.008,
-    range_outlier_prob=0.0,
-)
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import pytest
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import quat_wxyz_to_matrix, rpy_to_matrix, so3_exp, so3_log
 from fgnav.datasets.simulate import SimOptions, simulate
+from testutil import assert_same_prefix, feed_until, truth_scale
 
 from fgnav.baselines.ukf003 import (
     N_MAIN,
@@ -23,10 +24,6 @@ from fgnav.baselines.ukf003 import (
     run_ukf003,
 )
 from fgnav.eval.metrics import evaluate
-
-
-def _truth_scale(flight) -> dict[int, float]:
-    return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
 
 
 def test_euler_helpers_round_trip_and_rates():
@@ -55,7 +52,7 @@ def test_noise_free_flight_with_true_scale_is_exact():
     image times and the delayed fusion (0.1 s latency) are consistent. Measured: ATE 4.8 mm,
     velocity 5.4 mm/s (IMU integration at 200 Hz and the unmodelled 0.05 %/s scale drift)."""
     flight = simulate("rectangle", 1, SimOptions(images=False, duration=10.0, noise_free=True))
-    s_true = _truth_scale(flight)[0]
+    s_true = truth_scale(flight)[0]
     est = run_ukf003(flight, Ukf003Options(initial_scale=s_true, initial_scale_rel_sigma=0.01))
     m = evaluate(est, flight.ground_truth, "se3")
     assert m.ate_rmse_m < 0.01
@@ -71,7 +68,7 @@ def test_rectangle_against_truth():
     flight = simulate("rectangle", 1, SimOptions(images=False, duration=20.0))
     est = run_ukf003(flight)
     assert est.method == "ukf003" and est.causal
-    m = evaluate(est, flight.ground_truth, "se3", truth_scale=_truth_scale(flight))
+    m = evaluate(est, flight.ground_truth, "se3", truth_scale=truth_scale(flight))
     assert m.ate_rmse_m < 0.08
     assert m.vel_rmse_mps < 0.08
     assert m.yaw_rmse_deg < 1.0
@@ -105,17 +102,8 @@ def test_event_fed_filter_is_causal():
     filt.start(flight.calib, flight.name)
     streams = flight_streams(flight, ("imu", "slam", "range", "yaw", "attitude"))
     trig = (CameraTrigger(float(t), float(t)) for t in flight.slam.t)
-    for ev in replay([streams.pop("imu"), trig, *streams.values()]):
-        if ev.arrival > t_cut:
-            break
-        filt.feed(ev)
-    part = filt.result()
-    n = len(part.trajectory)
-    assert n > 100 and part.trajectory.t[-1] <= t_cut
-    np.testing.assert_array_equal(part.trajectory.t, full.trajectory.t[:n])
-    np.testing.assert_allclose(
-        part.trajectory.world_t_body, full.trajectory.world_t_body[:n], rtol=0, atol=1e-12
-    )
+    events = replay([streams.pop("imu"), trig, *streams.values()])
+    assert_same_prefix(feed_until(filt, events, t_cut), full, t_cut=t_cut)
     assert filt.latest().shape == (N_MAIN,)
 
 
@@ -128,7 +116,7 @@ def test_map_reset_restarts_the_scale():
     c = est.info["counts"]
     assert c["session_resets"] == 1
     assert c["slam_waiting_reinit"] > 0
-    truth = _truth_scale(flight)
+    truth = truth_scale(flight)
     assert set(est.slam_scale) == {0, 1}
     assert abs(est.slam_scale[1] / truth[1] - 1) < 0.05
     m = evaluate(est, flight.ground_truth, "se3")
@@ -160,7 +148,7 @@ def test_position_nees_is_consistent(scenario, seed, ate, nees):
     is underconfident on figure8 (NEES 0.55, ATE 2.0 cm; two-turns 1.9, 4.4 cm)."""
     flight = simulate(scenario, seed, SimOptions(images=False, slam_scale_drift_per_s=5e-4))
     est = run_ukf003(flight)
-    m = evaluate(est, flight.ground_truth, "se3", truth_scale=_truth_scale(flight))
+    m = evaluate(est, flight.ground_truth, "se3", truth_scale=truth_scale(flight))
     assert m.ate_rmse_m < 1.6 * ate
     assert 0.8 < m.nees_pos < 1.6 * nees
     assert abs(m.scale_final_err_pct[0]) < 3.0

@@ -1,0 +1,37 @@
+"""Reading a whole TOML or YAML file with the one-line errors of :mod:`fgnav.datasets.errors`."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import FlightFormatError
+
+
+def _existing(path: str | Path, what: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise FlightFormatError(p, f"{what} not found")
+    return p
+
+
+def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
+    """The TOML document at ``path``; a missing ``what`` or bad TOML is a one-line
+    :class:`FlightFormatError` naming the file (and, from tomllib, the line and column)."""
+    p = _existing(path, what)
+    try:
+        return tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise FlightFormatError(p, f"not valid TOML: {e}") from e
+
+
+def read_yaml(path: str | Path, what: str = "file") -> Any:
+    """The YAML document at ``path`` (``yaml.safe_load``), with the errors of :func:`read_toml`."""
+    p = _existing(path, what)
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise FlightFormatError(p, f"not valid YAML: {e}") from e
