@@ -221,14 +221,7 @@ class SimOptions:
             raise bad("imu_rate_hz", "a positive rate")
         if int(self.substeps) != self.substeps or self.substeps < 1:
             raise bad("substeps", "an integer >= 1")
-        for name in (
-            "attitude_rate_hz",
-            "yaw_rate_hz",
-            "range_rate_hz",
-            "slam_rate_hz",
-            "image_rate_hz",
-            "flow_rate_hz",
-        ):
+        for name in sorted(self.ZERO_MEANS_OFF):
             rate = getattr(self, name)
             if rate is None:
                 continue

@@ -277,15 +277,22 @@ def _one_line(exc: pytest.ExceptionInfo, path: Path) -> str:
     return msg
 
 
+def _rejected(path: Path, needle: str, load_match: str) -> None:
+    """The decoder names ``needle`` in one line, the file is not taken for a Crazyflie log, and
+    ``load_flight`` says ``load_match``."""
+    with pytest.raises(FlightFormatError) as e:
+        decode_crazyflie_log(path)
+    assert needle in _one_line(e, path)
+    assert not is_crazyflie_log(path)
+    with pytest.raises(FlightFormatError, match=load_match):
+        load_flight(path)
+
+
 def test_bad_magic(tmp_path):
     recs, _ = flight_records(2)
     path = write_log(tmp_path / "log", 2, recs, magic=0xAB)
-    with pytest.raises(FlightFormatError) as e:
-        decode_crazyflie_log(path)
-    assert "bad header: byte 0 is 0xAB, not the Crazyflie log magic 0xBC" in _one_line(e, path)
-    assert not is_crazyflie_log(path)
-    with pytest.raises(FlightFormatError, match="not a recognised flight input"):
-        load_flight(path)
+    needle = "bad header: byte 0 is 0xAB, not the Crazyflie log magic 0xBC"
+    _rejected(path, needle, "not a recognised flight input")
 
 
 def test_unknown_version(tmp_path):
@@ -307,12 +314,7 @@ def test_crc_mismatch_and_cut_off_file(tmp_path):
     data[-40] ^= 0x01  # one flipped bit in a record
     bad = tmp_path / "flipped"
     bad.write_bytes(bytes(data))
-    with pytest.raises(FlightFormatError) as e:
-        decode_crazyflie_log(bad)
-    assert "CRC-32 mismatch" in _one_line(e, bad)
-    assert not is_crazyflie_log(bad)
-    with pytest.raises(FlightFormatError, match="not a readable Crazyflie SD-card log: CRC-32"):
-        load_flight(bad)
+    _rejected(bad, "CRC-32 mismatch", "not a readable Crazyflie SD-card log: CRC-32")
     # A file cut in the middle of a record: the CRC fails first; without the check, the record.
     cut = tmp_path / "cut"
     cut.write_bytes(good.read_bytes()[:-11])

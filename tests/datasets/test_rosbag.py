@@ -150,18 +150,23 @@ def _messages(ts, d, ros1: bool, compressed: bool):
     return out
 
 
+def _write_messages(w, ts, msgs, serialize) -> None:
+    """One connection per topic, then every message received RECEIVE_LAG_NS after its stamp."""
+    conns = {}
+    for topic, mt, _, _ in msgs:
+        if topic not in conns:
+            conns[topic] = w.add_connection(topic, mt, typestore=ts)
+    for topic, mt, ns, msg in msgs:
+        w.write(conns[topic], ns + RECEIVE_LAG_NS, serialize(msg, mt))
+
+
 def write_ros1(path: Path, d, compressed: bool = False) -> Path:
     from rosbags.rosbag1 import Writer
 
     ts = get_typestore(Stores.ROS1_NOETIC)
     msgs = _messages(ts, d, ros1=True, compressed=compressed)
     with Writer(path) as w:
-        conns = {}
-        for topic, mt, _, _ in msgs:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, mt, typestore=ts)
-        for topic, mt, ns, msg in msgs:
-            w.write(conns[topic], ns + RECEIVE_LAG_NS, ts.serialize_ros1(msg, mt))
+        _write_messages(w, ts, msgs, ts.serialize_ros1)
     return path
 
 
@@ -172,12 +177,7 @@ def write_ros2(path: Path, d, storage: str, compressed: bool = True) -> Path:
     msgs = _messages(ts, d, ros1=False, compressed=compressed)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        conns = {}
-        for topic, mt, _, _ in msgs:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, mt, typestore=ts)
-        for topic, mt, ns, msg in msgs:
-            w.write(conns[topic], ns + RECEIVE_LAG_NS, ts.serialize_cdr(msg, mt))
+        _write_messages(w, ts, msgs, ts.serialize_cdr)
     return path
 
 

@@ -173,6 +173,13 @@ def test_decomposition_picks_true_motion(texture, rectify, estimator, decomposit
         assert 0.0 < m.inlier_rms_px < 1.0  # RANSAC keeps < 1.5 px; measured 0.1-0.6
 
 
+def _measure_rendered(vo, texture, Ti, Tj, *heights, **kw):
+    """``vo.measure_pair`` on the frames rendered at body poses Ti, Tj, with their true
+    attitudes."""
+    img_i, img_j = render(texture, Ti @ BODY_T_CAM), render(texture, Tj @ BODY_T_CAM)
+    return vo.measure_pair(img_i, img_j, CAM.K, BODY_R_CAM, Ti[:3, :3], Tj[:3, :3], *heights, **kw)
+
+
 def test_rectification_with_true_attitude_gives_planar_translation_and_yaw(texture):
     """Tilted frames at different heights, rectified and scale-normalised by the true attitude and
     height, differ by a 2-D rotation (the yaw increment) and a translation only."""
@@ -182,17 +189,7 @@ def test_rectification_with_true_attitude_gives_planar_translation_and_yaw(textu
     vo = HomographyVO(opts)
     _, _, d_i = true_relative(Ti, Tj)
     d_j = (Tj @ BODY_T_CAM)[2, 3]
-    m = vo.measure_pair(
-        render(texture, Ti @ BODY_T_CAM),
-        render(texture, Tj @ BODY_T_CAM),
-        CAM.K,
-        BODY_R_CAM,
-        Ti[:3, :3],
-        Tj[:3, :3],
-        d_i,
-        d_j,
-        height_ref=d_i,
-    )
+    m = _measure_rendered(vo, texture, Ti, Tj, d_i, d_j, height_ref=d_i)
     assert m.valid, m.reason
     Wi, _, _ = rectifying_homography(CAM.K, Ti[:3, :3], BODY_R_CAM, 1.0)
     Wj, _, _ = rectifying_homography(CAM.K, Tj[:3, :3], BODY_R_CAM, d_j / d_i)
@@ -216,15 +213,7 @@ def test_pure_rotation_gives_zero_translation(texture, decomposition):
     Tj = body_pose(0.2, 0.1, 3.0, 0.03, -0.02, 0.35)
     vo = HomographyVO(HomographyVOOptions(decomposition=decomposition))
     cam_j_T_cam_i, _, d = true_relative(Ti, Tj)
-    m = vo.measure_pair(
-        render(texture, Ti @ BODY_T_CAM),
-        render(texture, Tj @ BODY_T_CAM),
-        CAM.K,
-        BODY_R_CAM,
-        Ti[:3, :3],
-        Tj[:3, :3],
-        d,
-    )
+    m = _measure_rendered(vo, texture, Ti, Tj, d)
     assert m.valid, m.reason
     # The lever arm makes the camera move 2.5 mm. Measured error: free (OpenCV) decomposition
     # 0.93 mm with the default tracking (0.86 mm with 3 levels and the forward-backward check,

@@ -58,57 +58,23 @@ def test_msf_adapter_push_api():
     assert res.causal and "live_counts" in res.info
 
 
-def test_live_command_errors_are_one_line(tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("link", "config", "needle"),
+    [
+        ("udpout:127.0.0.1:9", None, "fgnav live listens: use udpin:HOST:PORT"),
+        ("udpin:127.0.0.1", None, "expected udpin:HOST:PORT"),
+        ("udpin:127.0.0.1:9", "[live]\nidle_timeout = 3\n", "unknown option(s) ['idle_timeout']"),
+    ],
+)
+def test_live_command_errors_are_one_line(tmp_path, capsys, link, config, needle):
     import yaml
 
     calib = tmp_path / "calib.yaml"
     calib.write_text(yaml.safe_dump(calibration_to_dict(Calibration())))
-    rc = main(
-        [
-            "live",
-            "--mavlink",
-            "udpout:127.0.0.1:9",
-            "--calib",
-            str(calib),
-            "--out",
-            str(tmp_path / "o"),
-            "--estimator",
-            "msf-ekf",
-        ]
-    )
-    assert rc == 1
-    assert "fgnav live listens: use udpin:HOST:PORT" in capsys.readouterr().err
-    rc = main(
-        [
-            "live",
-            "--mavlink",
-            "udpin:127.0.0.1",
-            "--calib",
-            str(calib),
-            "--out",
-            str(tmp_path / "o"),
-            "--estimator",
-            "msf-ekf",
-        ]
-    )
-    assert rc == 1
-    assert "expected udpin:HOST:PORT" in capsys.readouterr().err
-    bad = tmp_path / "bad.toml"
-    bad.write_text("[live]\nidle_timeout = 3\n")
-    rc = main(
-        [
-            "live",
-            "--mavlink",
-            "udpin:127.0.0.1:9",
-            "--calib",
-            str(calib),
-            "--out",
-            str(tmp_path / "o"),
-            "--config",
-            str(bad),
-            "--estimator",
-            "msf-ekf",
-        ]
-    )
-    assert rc == 1
-    assert "unknown option(s) ['idle_timeout']" in capsys.readouterr().err
+    args = ["live", "--mavlink", link, "--calib", str(calib), "--out", str(tmp_path / "o")]
+    if config is not None:
+        bad = tmp_path / "bad.toml"
+        bad.write_text(config)
+        args += ["--config", str(bad)]
+    assert main([*args, "--estimator", "msf-ekf"]) == 1
+    assert needle in capsys.readouterr().err
