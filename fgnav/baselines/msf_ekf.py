@@ -33,11 +33,12 @@ import bisect
 import dataclasses
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from fgnav.baselines._arrived import Arrived
+from fgnav.baselines._counts import SlamRangeCounts
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     AttitudeSample,
@@ -163,19 +164,12 @@ class _State:
 
 
 @dataclass
-class MsfCounts:
-    """What the filter did with its measurements (reported, never silent)."""
+class MsfCounts(SlamRangeCounts):
+    """What the filter did with its measurements (reported, never silent): the shared counts
+    and measurements too old for the history / replayed after a delayed one."""
 
-    slam_updates: int = 0
-    slam_rejected_gate: int = 0
     too_old: int = 0
     replayed: int = 0
-    range_updates: int = 0
-    range_rejected_gate: int = 0
-    range_rejected_tilt: int = 0
-    session_resets: int = 0
-    slam_waiting_reinit: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 def pose_covariance(x: _State) -> np.ndarray:

@@ -108,13 +108,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_solve
 
 from fgnav.baselines._arrived import Arrived
+from fgnav.baselines._counts import SlamRangeCounts
 from fgnav.baselines.msf_ekf import (
     FIT_RETRY_S,
     HISTORY_BEFORE_START_S,
@@ -254,29 +255,21 @@ class Ukf003Options:
 
 
 @dataclass
-class Ukf003Counts:
+class Ukf003Counts(SlamRangeCounts):
     """What the filter did with its measurements (reported in ``Estimate.info``)."""
 
-    slam_updates: int = 0
-    slam_rejected_gate: int = 0
     slam_lost: int = 0
     slam_out_of_order: int = 0
     slam_first_of_map: int = 0
-    slam_waiting_reinit: int = 0
     slam_no_clone: int = 0
-    session_resets: int = 0
     keyframes: int = 0
     slam_scale_considered: int = 0
-    range_updates: int = 0
-    range_rejected_gate: int = 0
-    range_rejected_tilt: int = 0
     range_out_of_limits: int = 0
     yaw_updates: int = 0
     yaw_rejected_gate: int = 0
     attitude_updates: int = 0
     attitude_rejected_gate: int = 0
     cholesky_jitter: int = 0
-    extra: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,28 @@
+"""Counts the SLAM-and-range filters share (reported in ``Estimate.info``, never silent)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class SlamRangeCounts:
+    """What a filter with SLAM and range updates did with them.
+
+    Attributes:
+        slam_updates, slam_rejected_gate: SLAM poses used / rejected by the innovation gate.
+        slam_waiting_reinit: SLAM poses of a new map held while its scale is re-initialised.
+        session_resets: SLAM sessions (map resets) that restarted the alignment.
+        range_updates, range_rejected_gate, range_rejected_tilt: range readings used / gated /
+            rejected for the tilt of the beam.
+        extra: filter-specific counts.
+    """
+
+    slam_updates: int = 0
+    slam_rejected_gate: int = 0
+    slam_waiting_reinit: int = 0
+    session_resets: int = 0
+    range_updates: int = 0
+    range_rejected_gate: int = 0
+    range_rejected_tilt: int = 0
+    extra: dict = field(default_factory=dict)
