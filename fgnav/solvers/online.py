@@ -178,9 +178,11 @@ STILL_MAX_S = 2.0
 #: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
 #: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
 STILL_MAX_GYRO_BIAS = 0.2
-#: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``.
-PROVISIONAL_BASE = 1_000_000
-#: Index stride of a session's alignment chain: ``S(session * SESSION_STRIDE + segment)``.
+#: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``, above every
+#: chain key (2^40: 11 million sessions of 100 000 segments).
+PROVISIONAL_BASE = 1 << 40
+#: Index stride of a session's alignment chain: ``S(index * SESSION_STRIDE + segment)``, with
+#: ``index`` the session's order of arrival (0, 1, ...), whatever id the SLAM gives it.
 SESSION_STRIDE = 100_000
 
 
@@ -382,6 +384,7 @@ class _Session:
     provisional: int | None = None  # key of the provisional alignment
     prov_factors: list = None  # [(factor index, k, row)] still in the smoother
     next_fit: float = -math.inf
+    index: int = 0  # order of arrival: the chain's keys are S(index * SESSION_STRIDE + segment)
 
 
 class OnlineSmoother:
@@ -1644,7 +1647,9 @@ class OnlineSmoother:
         sess = int(ev.session)
         s = self.sessions.get(sess)
         if s is None:
-            s = self.sessions[sess] = _Session([], [], [], float(ev.t), {}, prov_factors=[])
+            s = self.sessions[sess] = _Session(
+                [], [], [], float(ev.t), {}, prov_factors=[], index=len(self.sessions)
+            )
         s.t.append(float(ev.t))
         s.p.append(p)
         s.q.append(q)
@@ -2011,7 +2016,7 @@ class OnlineSmoother:
         if seg < s.last_seg:
             # An older segment than the newest (a late pose): the newest variable takes it.
             return s.chain[s.last_seg]
-        key = S(sess * SESSION_STRIDE + seg)
+        key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         value = self.values[prev]
         n_seg = seg - s.last_seg
@@ -2119,7 +2124,7 @@ class OnlineSmoother:
     def _start_chain(self, sess, s: _Session, t, fit, g, stamps, remove, prov_new) -> None:
         o, go = self.options, self.go
         seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        key = S(sess * SESSION_STRIDE + seg)
+        key = S(s.index * SESSION_STRIDE + seg)
         value = make_slam_T_world(fit.scale, fit.slam_R_world, fit.slam_t_world)
         # The fit's origin is the first camera position of the session: move it to the current
         # world frame through the newest keyframe estimate at the session's first pose.
@@ -2348,7 +2353,7 @@ class OnlineSmoother:
         change) under the rebuild's priors on slow variables."""
         value, cov = self._carried_align.pop(sess)
         seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
-        key = S(sess * SESSION_STRIDE + seg)
+        key = S(s.index * SESSION_STRIDE + seg)
         if cov is not None and np.all(np.isfinite(cov)):
             noise = gtsam.noiseModel.Gaussian.Covariance(cov * CARRY_SIGMA_FACTOR**2)
         else:
