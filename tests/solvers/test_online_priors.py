@@ -88,3 +88,19 @@ def test_smoother_with_priors_is_causal(vertical):
     np.testing.assert_array_equal(a.t, b.t[:n])
     np.testing.assert_allclose(a.world_t_body, b.world_t_body[:n], atol=1e-12)
     assert part.used.get("prior:observer-velocity", 0) > 0
+
+
+def test_live_estimator_takes_the_priors_table(vertical):
+    """``fgnav live --config`` with ``[priors]``: the online estimator runs the stage on the
+    link's events (drag_k from the table)."""
+    from fgnav.live.estimators import CONFIG_TABLES, make_estimator
+
+    assert "priors" in CONFIG_TABLES["online"]
+    cfg = {"priors": {"sources": ["observer"], "drag_k": _drag(vertical)}}
+    sm = make_estimator("online", vertical.calib, cfg)
+    assert sm.prior_options.sources == ("observer",)
+    for ev in replay_flight(vertical, STREAMS):
+        if ev.arrival > 8.0:
+            break
+        sm.feed(ev)
+    assert sm.used.get("prior:observer-velocity", 0) > 0
