@@ -303,28 +303,30 @@ def run_fixed_lag(
     from fgnav.solvers.online import replay_online, resolve_engine
 
     opts = fixed_lag_options(config)
-    priors = frontend_priors(flight, config)
-    engine, why = resolve_engine(flight, opts, priors)
+    engine, why = resolve_engine(flight, opts)
     if engine == "push":
         if opts.graph.use_slam and flight.slam is None:
             # The replay knows the log has no SLAM stream (a live link knows its configured
             # streams): the smoother must not wait start_wait_s for a first SLAM pose.
             opts = replace(opts, graph=replace(opts.graph, use_slam=False))
-        est = replay_online(flight, opts, progress=progress, source=source)
-    else:
-        if source is not None:
-            raise MethodUnavailableError(
-                f"fixed-lag: the {engine} engine needs the whole flight ({why or 'configured'})"
-            )
-        if why:
-            log.warning(
-                "%s: fixed-lag runs the prepared engine (not strictly causal: keyframes, gyro "
-                "bias and attitude prepared from the whole flight) because the push engine does "
-                'not run %s yet; [online] engine = "push" forces it',
-                flight.name,
-                why,
-            )
-        est = _run(flight, opts, priors=priors, progress=progress)
+        popts = online_prior_options(flight, config)
+        est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
+        est = _with_info(est, engine=engine, engine_reason=why)
+        return _with_stage_priors(est)
+    if source is not None:
+        raise MethodUnavailableError(
+            f"fixed-lag: the {engine} engine needs the whole flight ({why or 'configured'})"
+        )
+    if why:
+        log.warning(
+            "%s: fixed-lag runs the prepared engine (not strictly causal: keyframes, gyro "
+            "bias and attitude prepared from the whole flight) because the push engine does "
+            'not run %s yet; [online] engine = "push" forces it',
+            flight.name,
+            why,
+        )
+    priors = frontend_priors(flight, config)
+    est = _run(flight, opts, priors=priors, progress=progress)
     est = _with_info(est, engine=engine, engine_reason=why)
     return _with_priors(est, priors)
 
@@ -337,10 +339,60 @@ def run_fixed_lag_lagged(
     from fgnav.solvers.online import push_engine_gap, replay_online
 
     opts = fixed_lag_options(config)
-    gap = push_engine_gap(flight, opts, frontend_priors(flight, config))
+    gap = push_engine_gap(flight, opts)
     if gap:
         raise MethodUnavailableError(f"fixed-lag@lag: the push engine does not run {gap} yet")
-    return replay_online(flight, opts, progress=progress, lagged=True)
+    popts = online_prior_options(flight, config)
+    return replay_online(flight, opts, progress=progress, lagged=True, priors=popts)
+
+
+def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
+    """The ``[priors]`` table as :class:`fgnav.frontends.prior_stages.PriorOptions` for the
+    push engine and the live link (None without sources). ``drag_k`` when the table has none:
+    the flight's calibration ``flight.meta["drag_k"]`` (never its ground truth)."""
+    from fgnav.datasets.errors import FlightDataError
+    from fgnav.frontends.prior_stages import prior_options
+
+    table = _priors_table(config)
+    meta = getattr(flight, "meta", None)
+    k = meta.get("drag_k") if isinstance(meta, dict) else None
+    opts = prior_options(table, drag_k=k)
+    if opts is not None and flight is not None:
+        # A configuration fact (which streams the log has), as the whole-flight front-ends say.
+        for source in opts.sources:
+            missing = [n for n in ("imu", "slam", "range") if getattr(flight, n, None) is None]
+            if missing:
+                raise FlightDataError(
+                    f"{flight.name}: front-end prior '{source}' needs the {', '.join(missing)} "
+                    "stream(s)"
+                )
+    return opts
+
+
+def _priors_table(config: Mapping[str, Any]) -> dict[str, Any]:
+    table = dict(config.get("priors", {}))
+    unknown = sorted(set(table) - {"sources", "drag_k"})
+    if unknown:
+        raise FlightFormatError(
+            str(config.get(SOURCE_KEY, "config")),
+            f"[priors]: unknown option(s) {unknown}; valid: ['drag_k', 'sources']",
+        )
+    return table
+
+
+def _with_stage_priors(est: Estimate) -> Estimate:
+    """``info["frontend_priors"]`` of the push engine: the stage's sources and the ML scale it
+    had at the end (causal: fed in arrival order)."""
+    rep = est.info.get("frontend_prior_stage")
+    if not rep:
+        return est
+    return _with_info(
+        est,
+        frontend_priors={
+            "sources": {s: "stage fed in arrival order (causal)" for s in rep["sources"]},
+            "slam_scale": {int(k): v["scale"] for k, v in rep["ml_scale"].items()},
+        },
+    )
 
 
 def frontend_priors(flight: Flight, config: Mapping[str, Any]):
@@ -348,13 +400,7 @@ def frontend_priors(flight: Flight, config: Mapping[str, Any]):
     None when no source is named."""
     from fgnav.frontends.pipeline import frontend_priors as _priors
 
-    table = config.get("priors", {})
-    unknown = sorted(set(table) - {"sources", "drag_k"})
-    if unknown:
-        raise FlightFormatError(
-            str(config.get(SOURCE_KEY, "config")),
-            f"[priors]: unknown option(s) {unknown}; valid: ['drag_k', 'sources']",
-        )
+    table = _priors_table(config)
     return _priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
 
 

@@ -2,9 +2,11 @@
 ``fgnav replay``), answering with ``ODOMETRY``.
 
 Thin layer over :class:`fgnav.live.session.LiveSession`. ``--calib`` is a native ``calib.yaml``
-(:func:`fgnav.datasets.native.read_calib_yaml`). ``--config`` tables: ``[graph]`` and
-``[online]`` (the ``online`` estimator), ``[msf-ekf]`` (the ``msf-ekf`` one), ``[live]``
-(:class:`fgnav.live.session.LiveOptions`: idle timeout, heartbeat rate, MAVLink ids).
+(:func:`fgnav.datasets.native.read_calib_yaml`). ``--config`` tables: ``[graph]``, ``[online]``
+and ``[priors]`` (the ``online`` estimator; ``[priors] sources``, ``drag_k`` as for ``fgnav
+online``: the front-end prior stage is fed the link's events), ``[msf-ekf]`` (the ``msf-ekf``
+one), ``[live]`` (:class:`fgnav.live.session.LiveOptions`: idle timeout, heartbeat rate, MAVLink
+ids).
 
 It stops on SIGINT/SIGTERM (Ctrl-C), after ``--duration`` wall seconds, or after
 ``--idle-timeout`` wall seconds (default 5) without a message once the first has come; then
@@ -33,7 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
     )
     parser.add_argument(
-        "--config", default=None, help="TOML with [graph], [online], [msf-ekf], [live] tables"
+        "--config",
+        default=None,
+        help="TOML with [graph], [online], [priors], [msf-ekf], [live] tables",
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"

@@ -1,9 +1,10 @@
 """``fgnav online``: run the fixed-lag smoother over a flight as if it were live.
 
 By default (``[online] engine = "auto"``) the flight's events are replayed in arrival order into
-the push-API smoother (:mod:`fgnav.solvers.online`), which sees nothing before it arrives; flights
-that need what the push engine does not run yet (camera images, seed 000's per-axis SLAM model,
-front-end priors) run the prepared engine (:mod:`fgnav.solvers.fixed_lag`), and the run says so.
+the push-API smoother (:mod:`fgnav.solvers.online`), which sees nothing before it arrives (the
+front-end priors of ``--priors`` / ``[priors]`` run inside it as a stage fed the same events);
+flights that need what the push engine does not run yet (seed 000's per-axis SLAM model) run the
+prepared engine (:mod:`fgnav.solvers.fixed_lag`), and the run says so.
 
 Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assembles the options and
 calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
@@ -45,13 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _streams(path: str, config, opts):
     """The flight opened as streams (:func:`fgnav.datasets.native.open_flight_streams`) when it
-    is a native folder without images that the push engine runs without front-end priors (the
-    prepared engine and the priors read the whole flight); else None (read whole)."""
+    is a native folder without images that the push engine runs (the prepared engine reads the
+    whole flight); else None (read whole)."""
     from fgnav.datasets.errors import FlightFormatError
     from fgnav.datasets.native import is_native_folder, open_flight_streams
     from fgnav.solvers.online import resolve_engine
 
-    if not is_native_folder(path) or config.get("priors", {}).get("sources"):
+    if not is_native_folder(path):
         return None
     try:
         source = open_flight_streams(path)

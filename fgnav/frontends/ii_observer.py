@@ -67,8 +67,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -369,6 +370,75 @@ class VerticalVelocity:
     counts: dict[str, int] = field(default_factory=dict)
 
 
+class VerticalFilter:
+    """The 2-state (height, vertical velocity) Kalman filter of
+    :func:`vertical_velocity_from_range`, one step at a time (the whole-flight function and the
+    event-fed :class:`fgnav.frontends.prior_stages.FrontendPriorStage` both run it).
+
+    ``update_range(r, world_R_body)`` applies a reading [m] with the attitude at the current
+    sample; ``predict(dt, world_R_body, body_accel)`` moves to the next sample with the vertical
+    specific force of this one. ``world_vz`` is 0 and ``height`` NaN before the first reading.
+    """
+
+    def __init__(
+        self,
+        body_T_range: np.ndarray,
+        range_min: float,
+        range_max: float,
+        options: VerticalFilterOptions | None = None,
+    ) -> None:
+        self.options = options or VerticalFilterOptions()
+        T = np.asarray(body_T_range, dtype=float)
+        self._beam, self._lever = T[:3, 2], T[:3, 3]
+        self._lo, self._hi = float(range_min), float(range_max)
+        self.x = np.zeros(2)
+        self.P = np.diag([1e6, 1.0])
+        self.started = False
+        self.counts = {"used": 0, "out_of_limits": 0, "tilt": 0, "outlier": 0}
+
+    @property
+    def world_vz(self) -> float:
+        return float(self.x[1]) if self.started else 0.0
+
+    @property
+    def height(self) -> float:
+        return float(self.x[0]) if self.started else float("nan")
+
+    def update_range(self, r: float, R: np.ndarray) -> None:
+        options, counts = self.options, self.counts
+        if not (self._lo <= r <= self._hi):
+            counts["out_of_limits"] += 1
+            return
+        cos_tilt = -float(R[2] @ self._beam)
+        if cos_tilt < np.cos(options.max_tilt):
+            counts["tilt"] += 1
+            return
+        z = r * cos_tilt - float(R[2] @ self._lever)
+        if not self.started:
+            self.x = np.array([z, 0.0])
+            self.P = np.diag([options.range_sigma**2, 0.25])
+            self.started = True
+            counts["used"] += 1
+            return
+        P = self.P
+        S = P[0, 0] + options.range_sigma**2
+        y = z - self.x[0]
+        if y * y > options.gate_sigmas**2 * S:
+            counts["outlier"] += 1
+            return
+        K = P[:, 0] / S
+        self.x = self.x + K * y
+        self.P = P - np.outer(K, P[0])
+        counts["used"] += 1
+
+    def predict(self, dt: float, R: np.ndarray, body_accel: np.ndarray) -> None:
+        az = float(R[2] @ body_accel) - GRAVITY
+        F = np.array([[1.0, dt], [0.0, 1.0]])
+        self.x = F @ self.x + np.array([0.5 * dt * dt, dt]) * az
+        q = self.options.accel_noise**2 * dt
+        self.P = F @ self.P @ F.T + q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+
+
 def vertical_velocity_from_range(
     flight: Flight,
     world_q_body_wxyz: np.ndarray,
@@ -379,68 +449,145 @@ def vertical_velocity_from_range(
     Height from a reading: ``h = r cos(tilt) - (world_R_body body_t_range).z`` (flat ground, beam =
     the z axis of ``calib.body_T_range``); prediction with the world vertical acceleration
     ``(world_R_body f).z - g``. The paper's "numerical derivative of the height" is replaced by
-    this filter (same information, no differentiation noise).
+    this filter (same information, no differentiation noise). Runs :class:`VerticalFilter`.
 
     Args:
         flight: needs ``imu`` and ``range``.
         world_q_body_wxyz: (N, 4) attitude at the IMU times.
         options: filter options.
     """
-    options = options or VerticalFilterOptions()
     imu, rng = flight.imu, flight.range
     if imu is None or rng is None:
         raise FlightDataError(f"{flight.name}: vertical velocity needs the imu and range streams")
-    T = np.asarray(flight.calib.body_T_range, dtype=float)
-    beam, lever = T[:3, 2], T[:3, 3]
+    vf = VerticalFilter(
+        flight.calib.body_T_range, flight.calib.range_min, flight.calib.range_max, options
+    )
     R_all = quat_wxyz_to_matrix(world_q_body_wxyz)
     n = len(imu)
     vz = np.zeros(n)
     hh = np.full(n, np.nan)
-    x = np.zeros(2)
-    P = np.diag([1e6, 1.0])
-    started = False
-    counts = {"used": 0, "out_of_limits": 0, "tilt": 0, "outlier": 0}
     j = 0
-    lo, hi = flight.calib.range_min, flight.calib.range_max
     for i in range(n):
         # Range readings up to this IMU time.
         while j < len(rng) and rng.t[j] <= imu.t[i]:
-            r = float(rng.range[j])
+            vf.update_range(float(rng.range[j]), R_all[i])
             j += 1
-            if not (lo <= r <= hi):
-                counts["out_of_limits"] += 1
-                continue
-            R = R_all[i]
-            cos_tilt = -float(R[2] @ beam)
-            if cos_tilt < np.cos(options.max_tilt):
-                counts["tilt"] += 1
-                continue
-            z = r * cos_tilt - float(R[2] @ lever)
-            if not started:
-                x = np.array([z, 0.0])
-                P = np.diag([options.range_sigma**2, 0.25])
-                started = True
-                counts["used"] += 1
-                continue
-            S = P[0, 0] + options.range_sigma**2
-            y = z - x[0]
-            if y * y > options.gate_sigmas**2 * S:
-                counts["outlier"] += 1
-                continue
-            K = P[:, 0] / S
-            x = x + K * y
-            P = P - np.outer(K, P[0])
-            counts["used"] += 1
         if i + 1 < n:
-            dt = imu.t[i + 1] - imu.t[i]
-            az = float(R_all[i][2] @ imu.body_accel[i]) - GRAVITY
-            F = np.array([[1.0, dt], [0.0, 1.0]])
-            x = F @ x + np.array([0.5 * dt * dt, dt]) * az
-            q = options.accel_noise**2 * dt
-            P = F @ P @ F.T + q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
-        vz[i] = x[1] if started else 0.0
-        hh[i] = x[0] if started else np.nan
-    return VerticalVelocity(t=imu.t.copy(), world_vz=vz, height=hh, counts=counts)
+            vf.predict(imu.t[i + 1] - imu.t[i], R_all[i], imu.body_accel[i])
+        vz[i] = vf.world_vz
+        hh[i] = vf.height
+    return VerticalVelocity(t=imu.t.copy(), world_vz=vz, height=hh, counts=dict(vf.counts))
+
+
+class ObserverOutput(NamedTuple):
+    """The observer after one input sample: ``eta`` (2,) [m/s], ``world_v_body`` (3,) [m/s],
+    ``xi`` (2,) [SLAM units per metre] and ``world_xy`` (2,) [m] (NaN without SLAM), ``session``
+    (-1 before any SLAM)."""
+
+    t: float
+    eta: np.ndarray
+    world_v_body: np.ndarray
+    xi: np.ndarray
+    world_xy: np.ndarray
+    session: int
+
+
+class IIObserverStepper:
+    """:class:`IIObserver` with the SLAM bookkeeping of :func:`run_ii_observer`, one input
+    sample at a time: ``add_slam`` queues a SLAM pose, ``step`` applies the queued poses taken up
+    to the sample's time (propagating to each pose's time first, inputs interpolated between the
+    previous sample and this one) and propagates to the sample. The whole-flight function and the
+    event-fed :class:`fgnav.frontends.prior_stages.FrontendPriorStage` both run it.
+
+    A pose taken before the newest propagated time (arrived late) is applied at the current time
+    (delivery latency is not modelled, as in the module docstring) and counted ``slam_late``.
+    """
+
+    def __init__(
+        self,
+        options: IIObserverOptions,
+        drag_k: tuple[float, float] | None,
+        body_R_cam: np.ndarray,
+        align_slam_axes: bool = False,
+    ) -> None:
+        self.options = options
+        self.observer = IIObserver(options, drag_k=drag_k)
+        self.body_R_cam = np.asarray(body_R_cam, dtype=float)
+        self.align = align_slam_axes
+        self.counts = {
+            "slam_used": 0,
+            "slam_lost": 0,
+            "slam_before_imu": 0,
+            "scale_resets": 0,
+        }
+        self._queue: deque = deque()
+        self._prev: tuple | None = None  # (t, acc, gyr, R, vz) of the previous sample
+        self._t_first: float | None = None
+        self._current: int | None = None
+        self._world_R_slam = np.eye(3)
+
+    def add_slam(self, t: float, slam_t_cam, slam_q_cam_wxyz, session: int) -> None:
+        self._queue.append((float(t), slam_t_cam, slam_q_cam_wxyz, int(session)))
+
+    def step(self, t, acc, gyr, R, vz) -> ObserverOutput:
+        obs = self.observer
+        counts = self.counts
+        if self._prev is None:
+            obs.propagate(t, acc, gyr, R, vz)  # latches the inputs
+            self._t_first = t
+        prev = self._prev
+        while self._queue and self._queue[0][0] <= t:
+            ts, p, q, sid = self._queue.popleft()
+            if ts < self._t_first:
+                counts["slam_before_imu"] += 1
+                continue
+            if sid < 0:
+                counts["slam_lost"] += 1
+                continue
+            if ts > obs.t:
+                # Inputs at the SLAM time, interpolated between the previous sample and this one.
+                a = (ts - prev[0]) / (t - prev[0])
+                obs.propagate(
+                    ts,
+                    (1 - a) * prev[1] + a * acc,
+                    (1 - a) * prev[2] + a * gyr,
+                    (1 - a) * prev[3] + a * R,
+                    (1 - a) * prev[4] + a * vz,
+                )
+            elif prev is not None and ts < obs.t:
+                counts["slam_late"] = counts.get("slam_late", 0) + 1
+            if sid != self._current:
+                if self._current is not None:
+                    counts["scale_resets"] += 1
+                obs.reset_scale()
+                self._current = sid
+                if self.align:
+                    if prev is None:
+                        w_R_b = R
+                    else:
+                        b = (ts - prev[0]) / (t - prev[0])
+                        w_R_b = (1 - b) * prev[3] + b * R
+                    m = w_R_b @ self.body_R_cam @ quat_wxyz_to_matrix(np.asarray(q, float)).T
+                    U, _, Vt = np.linalg.svd(m)
+                    self._world_R_slam = U @ Vt
+            p = np.asarray(p, dtype=float)
+            obs.update_slam((self._world_R_slam @ p)[:2] if self.align else p[:2])
+            counts["slam_used"] += 1
+        obs.propagate(t, acc, gyr, R, vz)
+        self._prev = (t, acc, gyr, R, vz)
+        y2p = obs.y2_pred
+        nan2 = np.full(2, np.nan)
+        if y2p is None:
+            return ObserverOutput(t, obs.eta, obs.world_velocity(), nan2, nan2, -1)
+        xi = obs.xi
+        return ObserverOutput(
+            t,
+            obs.eta,
+            obs.world_velocity(),
+            xi,
+            y2p / np.maximum(xi, self.options.scale_floor),
+            int(self._current),
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -591,7 +738,10 @@ def run_ii_observer(
             [[0.0], np.cumsum(0.5 * (world_vz[1:] + world_vz[:-1]) * np.diff(imu.t))]
         )
         counts_v = {"height_is_relative": 1}
-    obs = IIObserver(options, drag_k=None if drag is None else tuple(np.ravel(drag)[:2]))
+    body_R_cam = np.asarray(flight.calib.body_T_cam, dtype=float)[:3, :3]
+    stepper = IIObserverStepper(
+        options, None if drag is None else tuple(np.ravel(drag)[:2]), body_R_cam, align_slam_axes
+    )
     R_all = quat_wxyz_to_matrix(q)
 
     n = len(imu)
@@ -600,62 +750,22 @@ def run_ii_observer(
     vel = np.empty((n, 3))
     pos = np.full((n, 3), np.nan)
     sess = np.full(n, -1, dtype=int)
-    counts = {"slam_used": 0, "slam_lost": 0, "slam_before_imu": 0, "scale_resets": 0}
     t0 = time.perf_counter()
     j = 0
-    current = None
     acc, gyr = imu.body_accel, imu.body_omega
-    body_R_cam = np.asarray(flight.calib.body_T_cam, dtype=float)[:3, :3]
-    world_R_slam = np.eye(3)
     for i in range(n):
         t = float(imu.t[i])
-        if i == 0:
-            obs.propagate(t, acc[0], gyr[0], R_all[0], world_vz[0])  # latches the inputs
         while j < len(slam) and slam.t[j] <= t:
-            ts, sid = float(slam.t[j]), int(slam.session[j])
+            stepper.add_slam(
+                float(slam.t[j]), slam.slam_t_cam[j], slam.slam_q_cam_wxyz[j], int(slam.session[j])
+            )
             j += 1
-            if ts < imu.t[0]:
-                counts["slam_before_imu"] += 1
-                continue
-            if sid < 0:
-                counts["slam_lost"] += 1
-                continue
-            if ts > obs.t:
-                # Inputs at the SLAM time, interpolated between IMU samples i-1 and i.
-                a = (ts - imu.t[i - 1]) / (t - imu.t[i - 1])
-                obs.propagate(
-                    ts,
-                    (1 - a) * acc[i - 1] + a * acc[i],
-                    (1 - a) * gyr[i - 1] + a * gyr[i],
-                    (1 - a) * R_all[i - 1] + a * R_all[i],
-                    (1 - a) * world_vz[i - 1] + a * world_vz[i],
-                )
-            if sid != current:
-                if current is not None:
-                    counts["scale_resets"] += 1
-                obs.reset_scale()
-                current = sid
-                if align_slam_axes:
-                    if i == 0:
-                        w_R_b = R_all[0]
-                    else:
-                        b = (ts - imu.t[i - 1]) / (t - imu.t[i - 1])
-                        w_R_b = (1 - b) * R_all[i - 1] + b * R_all[i]
-                    m = w_R_b @ body_R_cam @ quat_wxyz_to_matrix(slam.slam_q_cam_wxyz[j - 1]).T
-                    U, _, Vt = np.linalg.svd(m)
-                    world_R_slam = U @ Vt
-            p = slam.slam_t_cam[j - 1]
-            obs.update_slam((world_R_slam @ p)[:2] if align_slam_axes else p[:2])
-            counts["slam_used"] += 1
-        obs.propagate(t, acc[i], gyr[i], R_all[i], world_vz[i])
-        eta[i] = obs.eta
-        vel[i] = obs.world_velocity()
-        y2p = obs.y2_pred
-        if y2p is not None:
-            xi[i] = obs.xi
-            sess[i] = current
-            pos[i, :2] = y2p / np.maximum(xi[i], options.scale_floor)
+        o = stepper.step(t, acc[i], gyr[i], R_all[i], world_vz[i])
+        eta[i], vel[i] = o.eta, o.world_v_body
+        if o.session >= 0:
+            xi[i], sess[i], pos[i, :2] = o.xi, o.session, o.world_xy
         pos[i, 2] = height[i]
+    obs, counts = stepper.observer, stepper.counts
     counts["capped_scale_steps"] = obs.capped_steps
     counts.update(counts_v)
     runtime = time.perf_counter() - t0

@@ -12,8 +12,10 @@
   the ``vertical`` flight it ends at 0.3 % of the truth), so a scale prior from it with a
   caller-set sigma could be confidently wrong.
 
-The attitude the front-ends need is the flight's attitude stream when it has one, else seed 002's
-attitude EKF run on the IMU (and rangefinder, yaw when present).
+Both run as the event-fed :class:`fgnav.frontends.prior_stages.FrontendPriorStage`; the functions
+here replay a whole flight into it (the online smoother feeds it as events arrive). The attitude
+the front-ends need is the flight's attitude stream when it has one, else seed 002's attitude EKF
+run on the IMU (and rangefinder, yaw when present).
 """
 
 from __future__ import annotations
@@ -25,9 +27,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import interpolate_quat_wxyz
+from fgnav.datasets.events import flight_streams, replay
 from fgnav.datasets.types import Flight
-from fgnav.frontends.attitude_ekf import run_attitude_ekf
+from fgnav.frontends.prior_stages import (
+    ML_SCALE_SIGMAS,
+    PRIOR_SOURCES,
+    FrontendPriorStage,
+    PriorOptions,
+)
 from fgnav.frontends.priors import (
     FrontendPriors,
     combine_priors,
@@ -37,21 +44,24 @@ from fgnav.frontends.priors import (
 
 log = logging.getLogger(__name__)
 
-PRIOR_SOURCES = ("ml-scale", "observer")
-"""Front-ends that can feed the smoother (see the module docstring)."""
+__all__ = [
+    "ML_SCALE_SIGMAS",
+    "PRIOR_SOURCES",
+    "frontend_priors",
+    "ml_scale_priors",
+    "observer_priors",
+]
 
-ML_SCALE_SIGMAS = (0.015, 0.02)
-"""Displacement noises ``(SLAM units, m)`` of the vertical scale pairs: SLAM position noise of
-~1 cm at scale ~1 at both ends; rangefinder height after the vertical filter ~2 cm
-(scripts/reproduce_seed004.py uses the same)."""
 
-
-def _attitude_at(flight: Flight, t: np.ndarray) -> np.ndarray:
-    if flight.attitude is not None:
-        att = flight.attitude
-    else:
-        att = run_attitude_ekf(flight).attitude_series()
-    return interpolate_quat_wxyz(att.t, att.world_q_body_wxyz, np.asarray(t, float))
+def replay_stage(flight: Flight, options: PriorOptions) -> FrontendPriorStage:
+    """A flight replayed into :class:`FrontendPriorStage` (time order: SLAM poses at their
+    capture times, as the whole-flight front-ends always took them), history kept."""
+    stage = FrontendPriorStage(flight.calib, options, keep_history=True, name=flight.name)
+    streams = flight_streams(flight, ("imu", "attitude", "range", "yaw", "slam"), {"slam": 0.0})
+    for ev in replay(streams):
+        stage.feed(ev)
+    stage.flush()
+    return stage
 
 
 def _require(flight: Flight, source: str, streams: Sequence[str]) -> None:
@@ -63,32 +73,16 @@ def _require(flight: Flight, source: str, streams: Sequence[str]) -> None:
 
 
 def ml_scale_priors(flight: Flight) -> FrontendPriors:
-    """Seed 004's closed-form scale per SLAM session from vertical displacement pairs."""
-    from fgnav.frontends.ii_observer import vertical_velocity_from_range
-    from fgnav.frontends.scale_ml import (
-        MLScaleOptions,
-        PairOptions,
-        estimate_scale,
-        scale_pairs_from_flight,
-    )
-
+    """Seed 004's closed-form scale per SLAM session from vertical displacement pairs (the
+    flight replayed into the ML-scale stage)."""
     _require(flight, "ml-scale", ("imu", "slam", "range"))
-    vv = vertical_velocity_from_range(flight, _attitude_at(flight, flight.imu.t))
-    pairs = scale_pairs_from_flight(
-        flight,
-        _attitude_at(flight, flight.slam.t),
-        height=(vv.t, vv.height),
-        options=PairOptions(components="vertical"),
-    )
-    sx, sy = ML_SCALE_SIGMAS
-    return priors_from_scale(estimate_scale(pairs, MLScaleOptions(sigma_slam=sx, sigma_metric=sy)))
+    stage = replay_stage(flight, PriorOptions(sources=("ml-scale",)))
+    return priors_from_scale(stage.scale_result(), min_pairs=stage.options.min_pairs)
 
 
 def observer_priors(flight: Flight, drag_k: Sequence[float] | None = None) -> FrontendPriors:
-    """Velocity and scale priors from seed 000's I&I observer (``drag_k`` calibrated: argument,
-    else ``flight.meta["drag_k"]``)."""
-    from fgnav.frontends.ii_observer import IIObserverOptions, run_ii_observer
-
+    """Velocity priors from seed 000's I&I observer (``drag_k`` calibrated: argument, else
+    ``flight.meta["drag_k"]``; the flight replayed into the observer stage)."""
     _require(flight, "observer", ("imu", "slam", "range"))
     k = drag_k if drag_k is not None else flight.meta.get("drag_k")
     if k is None:
@@ -96,14 +90,16 @@ def observer_priors(flight: Flight, drag_k: Sequence[float] | None = None) -> Fr
             f"{flight.name}: front-end prior 'observer' needs a calibrated drag coefficient "
             "(flight.meta['drag_k'] or [priors] drag_k)"
         )
-    result = run_ii_observer(
-        flight,
-        IIObserverOptions(kinematics="full", drag_k=tuple(float(x) for x in np.atleast_1d(k))),
-        world_q_body_wxyz=_attitude_at(flight, flight.imu.t),
-        align_slam_axes=True,
-    )
+    k = np.atleast_1d(np.asarray(k, dtype=float))
+    opts = PriorOptions(sources=("observer",), drag_k=(float(k[0]), float(k[-1])))
+    result = replay_stage(flight, opts).observer_result()
     return dataclasses.replace(
-        priors_from_observer(result), slam_scale={}, slam_scale_sigma={}, slam_axis_scale={}
+        priors_from_observer(
+            result, velocity_sigma=opts.velocity_sigma, settle_time=opts.settle_time
+        ),
+        slam_scale={},
+        slam_scale_sigma={},
+        slam_axis_scale={},
     )
 
 

@@ -11,7 +11,8 @@ fields the link sends (``t``, ``world_T_body``, ``world_v_body``, ``gyro_bias``,
 A factory ``make(calib, config) -> estimator`` builds one from the calibration and the
 ``--config`` tables. :data:`ESTIMATORS` names them:
 
-* ``online``: the push-API fixed-lag smoother (``[graph]`` and ``[online]`` tables), imported
+* ``online``: the push-API fixed-lag smoother (``[graph]``, ``[online]`` and ``[priors]``
+  tables: the front-ends that supply priors run inside it on the link's events), imported
   when called; a clear error when this version does not have it yet;
 * ``msf-ekf``: the MSF-style EKF baseline (``[msf-ekf]``) behind :class:`MsfLive`, which gives
   it the same shape (its states at ``output_rate_hz`` on the IMU's clock).
@@ -64,9 +65,12 @@ def online_smoother(calib: Calibration, config: Mapping[str, Any]) -> LiveEstima
             "the push-API online smoother (fgnav.solvers.online) is not in this version of "
             "fgnav; use --estimator msf-ekf"
         ) from None
-    from fgnav.methods import fixed_lag_options
+    from fgnav.methods import fixed_lag_options, online_prior_options
 
-    return OnlineSmoother(calib, fixed_lag_options(config), name="live")
+    # [priors]: the front-end prior stage inside the smoother, fed the link's events (drag_k
+    # from the table: a live link has no flight metadata).
+    priors = online_prior_options(None, config)
+    return OnlineSmoother(calib, fixed_lag_options(config), name="live", priors=priors)
 
 
 def msf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
@@ -82,7 +86,7 @@ ESTIMATORS: dict[str, EstimatorFactory] = {"online": online_smoother, "msf-ekf":
 
 DEFAULT_ESTIMATOR = "online"
 
-CONFIG_TABLES = {"online": ["graph", "online"], "msf-ekf": ["msf-ekf"]}
+CONFIG_TABLES = {"online": ["graph", "online", "priors"], "msf-ekf": ["msf-ekf"]}
 """``--config`` tables each estimator reads."""
 
 

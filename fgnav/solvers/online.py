@@ -74,8 +74,18 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
 - **Optical flow**: the readings ending in each keyframe's window summed into one factor
   (:func:`fgnav.solvers.flow.flow_keyframe_factor`) once the next keyframe has closed.
 
-Not handled on this path (the ``prepared`` engine of :mod:`fgnav.solvers.fixed_lag` runs them):
-seed 000's per-axis SLAM model, front-end priors.
+- **Front-end priors** (``priors``: the ``[priors]`` table): seed 000's I&I observer and seed
+  004's ML scale run as :class:`fgnav.frontends.prior_stages.FrontendPriorStage`, fed every
+  event this smoother accepts. When keyframe k closes, the observer's velocity at the processed
+  IMU sample nearest ``t_k`` (within half a period; after its 5 s settle time) is a prior on
+  ``V(k)`` (sigma 0.2 m/s, as the prepared engine's); a session's ML scale, once the stage has
+  accepted 3 pairs, is the initial value and prior (its Fisher sigma) of the session's chain
+  when the chain starts after that, else one scale-only prior on the chain's newest alignment
+  variable (once per session); a provisional alignment starts from it. Used counts:
+  ``prior:observer-velocity``, ``prior:ml-scale``.
+
+Not handled on this path (the ``prepared`` engine of :mod:`fgnav.solvers.fixed_lag` runs it):
+seed 000's per-axis SLAM model.
 """
 
 from __future__ import annotations
@@ -395,6 +405,9 @@ class OnlineSmoother:
         options: smoother options (graph noise, lag, iSAM2 settings, SLAM start gates, the
             push API's start, time and drag rules).
         name: name used in messages.
+        priors: the ``[priors]`` options (:class:`fgnav.frontends.prior_stages.PriorOptions`):
+            the front-ends that supply priors run as a stage fed the same events (see *Front-end
+            priors* in the module docstring); None: none.
     """
 
     def __init__(
@@ -403,8 +416,10 @@ class OnlineSmoother:
         options: FixedLagOptions | None = None,
         name: str = "online",
         health: HealthOptions | None = None,
+        priors: Any = None,
     ):
         self.calib = calib.check()
+        self.prior_options = priors.check() if priors is not None and priors.sources else None
         self.options = options or FixedLagOptions()
         self.go = self.options.graph.check()
         self.name = name
@@ -458,6 +473,8 @@ class OnlineSmoother:
         self.received[stream] = self.received.get(stream, 0) + 1
         if not self._check_time(stream, ev.t):
             return None
+        if self._pstage is not None:
+            self._pstage.feed(ev)
         if isinstance(ev, SlamPose):
             if self.go.use_slam:
                 self._on_slam(ev)
@@ -574,6 +591,7 @@ class OnlineSmoother:
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "slam_rotation_convention": self._slam_conv,
+            "frontend_prior_stage": self._prior_report(),
             "health": self._health_report(),
             "updates": len(lat),
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -683,6 +701,14 @@ class OnlineSmoother:
         # The state carried over a restart after an IMU gap (see _carry_state).
         self._carry: dict[str, Any] | None = None
         self._carried_align: dict[int, tuple[gtsam.Similarity3, np.ndarray | None]] = {}
+        # Front-end priors (seed 000's observer velocity, seed 004's ML scale): a stage fed the
+        # same events; rebuilt, not carried, on a reset.
+        self._pstage = None
+        if self.prior_options is not None:
+            from fgnav.frontends.prior_stages import FrontendPriorStage
+
+            self._pstage = FrontendPriorStage(self.calib, self.prior_options, name=self.name)
+        self._scale_prior_done: set[int] = set()  # sessions whose ML-scale prior is in
 
     def _use(self, kind: str, n: int = 1) -> None:
         self.used[kind] = self.used.get(kind, 0) + n
@@ -765,6 +791,8 @@ class OnlineSmoother:
             self._carry = carry
             self._t_last = {"imu": t}
         self._use("imu")
+        if self._pstage is not None:
+            self._pstage.feed(ev)
         if self._sgc is not None:
             self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
@@ -1066,6 +1094,7 @@ class OnlineSmoother:
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = nav.pose(), nav.velocity(), bias
         self.k = k
         self._new_slow(k, g, vals, stamps)
+        self._frontend_priors(k, g)
         self._drag_factor(k - 1, g, stamps)
         self._flow_factor(k - 1, g, stamps)
         self._waiting_scalar(k)
@@ -1094,6 +1123,60 @@ class OnlineSmoother:
                 and self.n_fallbacks == 0
             ):
                 self._switch_factorization()
+
+    def _frontend_priors(self, k: int, g) -> None:
+        """Front-end priors at keyframe k as it closes: the observer's velocity at the processed
+        IMU sample nearest ``t_k`` (within half a period) as a prior on ``V(k)``; a session's ML
+        scale, the first time the stage has one for a session whose alignment started before,
+        as a prior on the scale of its newest alignment variable (once per session; a chain that
+        starts after the stage has one takes it as its initial value and prior instead)."""
+        ps = self._pstage
+        if ps is None:
+            return
+        pv = ps.velocity_at(self.t_kf[k], 0.5 * self.period)
+        if pv is not None:
+            g.add(gtsam.PriorFactorVector(V(k), pv[0], self._noise(3, pv[1], False)))
+            self._use("prior:observer-velocity")
+        for sess, s in self.sessions.items():
+            if sess in self._scale_prior_done:
+                continue
+            key = s.last_key if s.chain else None  # a provisional one takes it as value
+            if key is None or not self._alive(key) or key in self._queued_values.keys():
+                continue
+            sc = ps.scale(sess)
+            if sc is None:
+                continue
+            g.add(self._scale_prior(key, self.values[key], sc))
+            self._scale_prior_done.add(sess)
+            self._use("prior:ml-scale")
+
+    def _scale_prior(self, key: int, value: gtsam.Similarity3, sc) -> Any:
+        """A prior on the scale of alignment ``key`` only: ``(s, sigma)`` on the log-scale,
+        rotation and translation free (sigmas 1e3)."""
+        s, sig = sc[0], sc[1]
+        mean = gtsam.Similarity3(value.rotation(), value.translation(), float(s))
+        sigmas = np.r_[[1e3] * 6, [sig / s]]
+        return gtsam.PriorFactorSimilarity3(key, mean, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+
+    def _prior_report(self) -> dict[str, Any] | None:
+        """The front-end prior stage: sources, the ML scale per session it has, its counts."""
+        ps = self._pstage
+        if ps is None:
+            return None
+        scales = {}
+        for sess in ps.sessions:
+            sc = ps.scale(sess)
+            if sc is not None:
+                scales[str(sess)] = {"scale": sc[0], "sigma": sc[1], "pairs": sc[2]}
+        return {
+            "sources": list(self.prior_options.sources),
+            "ml_scale": scales,
+            "counts": ps.all_counts,
+        }
+
+    def _ml_scale(self, sess: int):
+        """The ML-scale stage's ``(s, sigma, n_pairs)`` for a session, or None."""
+        return self._pstage.scale(sess) if self._pstage is not None else None
 
     def _new_slow(self, k: int, g, vals, stamps) -> None:
         """Drag and ground segments starting at keyframe k."""
@@ -2125,24 +2208,31 @@ class OnlineSmoother:
         o, go = self.options, self.go
         seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
         key = S(s.index * SESSION_STRIDE + seg)
-        value = make_slam_T_world(fit.scale, fit.slam_R_world, fit.slam_t_world)
+        scale, rel = fit.scale, max(o.slam_init_scale_sigma_rel, fit.scale_rel_se)
+        ml = self._ml_scale(sess)
+        if ml is not None and sess not in self._scale_prior_done:
+            # The ML-scale stage's scale: the initial value, its sigma the prior's.
+            scale, rel = ml[0], ml[1] / ml[0]
+            self._scale_prior_done.add(sess)
+            self._use("prior:ml-scale")
+        value = make_slam_T_world(scale, fit.slam_R_world, fit.slam_t_world)
         # The fit's origin is the first camera position of the session: move it to the current
         # world frame through the newest keyframe estimate at the session's first pose.
         value = self._align_origin(s, value)
-        rel = max(o.slam_init_scale_sigma_rel, fit.scale_rel_se)
         sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
         g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
         self._insert(key, value, g, stamps)
         s.chain[seg] = key
         s.last_key, s.last_seg = key, seg
         log.info(
-            "%s: SLAM session %d aligned at t=%.2f s: scale %.4f (rel. s.e. %.3f, %d pairs)",
+            "%s: SLAM session %d aligned at t=%.2f s: scale %.4f (rel. s.e. %.3f, %d pairs)%s",
             self.name,
             sess,
             t,
             fit.scale,
             fit.scale_rel_se,
             fit.n_pairs,
+            "" if ml is None else f"; ML-scale stage {ml[0]:.4f} +- {ml[1]:.4f} used",
         )
         # Re-attach the provisional factors still in the window to the new alignment.
         held, self._held = self._held, []
@@ -2186,6 +2276,9 @@ class OnlineSmoother:
         scale = self._session_scale.get(sess - 1, None) or next(
             iter(reversed(list(self._session_scale.values()))), o.slam_provisional_scale
         )
+        ml = self._ml_scale(sess)
+        if ml is not None:
+            scale = ml[0]  # the ML-scale stage's (its prior is added with the keyframe)
         world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
         value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ world_t_cam)
         key = S(PROVISIONAL_BASE + self._n_prov)
@@ -2699,10 +2792,11 @@ def run_online(
     name: str = "online",
     progress: bool = False,
     total: int | None = None,
+    priors: Any = None,
 ) -> Estimate:
     """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
     :class:`OnlineSmoother`; the causal estimate."""
-    return feed_all(events, calib, options, name, progress, total).result()
+    return feed_all(events, calib, options, name, progress, total, priors).result()
 
 
 def feed_all(
@@ -2712,10 +2806,11 @@ def feed_all(
     name: str = "online",
     progress: bool = False,
     total: int | None = None,
+    priors: Any = None,
 ) -> OnlineSmoother:
     """The :class:`OnlineSmoother` after feeding it ``events`` (its ``runtime_s`` set: the wall
-    time of the loop)."""
-    sm = OnlineSmoother(calib, options, name)
+    time of the loop; ``priors``: :class:`fgnav.frontends.prior_stages.PriorOptions`)."""
+    sm = OnlineSmoother(calib, options, name, priors=priors)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -2741,14 +2836,13 @@ PUSH_STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow")
 
 def push_engine_gap(flight, options: FixedLagOptions, priors: Any = None) -> str | None:
     """What of this flight and these options the push engine does not run yet (None: nothing):
-    camera images with homography factors on, seed 000's per-axis SLAM model, front-end priors.
-    Decided from the configuration and the streams present, never from their content."""
+    seed 000's per-axis SLAM model. Front-end priors run on it as a stage (``priors`` is kept
+    for the callers). Decided from the configuration and the streams present, never from their
+    content."""
     go = options.graph
     model = choose_slam_model(flight, go.slam_model)  # a configuration fact of the flight
     if go.use_slam and flight.slam is not None and model == "axis":
         return "seed 000's per-axis SLAM model"
-    if priors is not None:
-        return "front-end priors"
     return None
 
 
@@ -2771,10 +2865,12 @@ def replay_online(
     progress: bool = False,
     lagged: bool = False,
     source: Any = None,
+    priors: Any = None,
 ) -> Estimate:
     """A flight's events, in arrival order, through an :class:`OnlineSmoother` (the smoother
     gets the calibration and the events only; ground truth and metadata are never read); the
-    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one.
+    causal estimate, or with ``lagged`` the ``fixed-lag@lag`` one. ``priors``: the ``[priors]``
+    options (:class:`fgnav.frontends.prior_stages.PriorOptions`), run as a stage inside.
 
     ``source``: a :class:`fgnav.datasets.native.FlightStreams` whose events are read from its
     files in chunks (bounded memory); ``flight`` is then its outline (checks only).
@@ -2804,5 +2900,5 @@ def replay_online(
     else:
         events = replay_flight(flight, streams)
         total = sum(len(getattr(flight, n)) for n in streams)
-    sm = feed_all(events, flight.calib, options, flight.name, progress, total)
+    sm = feed_all(events, flight.calib, options, flight.name, progress, total, priors)
     return sm.lagged_result() if lagged else sm.result()
