@@ -2624,8 +2624,7 @@ class OnlineSmoother:
             pose_cov = vel_cov = None
             if self.options.covariance:
                 try:
-                    pose_cov = np.asarray(sm.marginalCovariance(X(k)))
-                    vel_cov = np.asarray(sm.marginalCovariance(V(k)))
+                    pose_cov, vel_cov = sm.marginalCovariances([X(k), V(k)])
                 except SOLVER_ERRORS:
                     # The estimate stands; only its marginal is not computable (GTSAM's
                     # "Indeterminate" on a near-singular window): reported as missing.

