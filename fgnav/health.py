@@ -97,6 +97,23 @@ DETECTORS = (
 )
 
 
+#: event type -> detector method (filled on first use: the event types import datasets)
+_FEED_HANDLERS: dict[type, Callable[[Any, Any], Any]] = {}
+
+
+def _init_feed_handlers() -> None:
+    from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose
+
+    _FEED_HANDLERS.update(
+        {
+            ImuSample: lambda d, ev: d._imu(ev),
+            SlamPose: lambda d, ev: d._slam(ev),
+            RangeReading: lambda d, ev: d._range(ev),
+            ImageFrame: lambda d, ev: d._image(ev),
+        }
+    )
+
+
 @dataclass
 class HealthOptions:
     """Thresholds of the detectors and the monitor (see the module docstring)."""
@@ -188,6 +205,7 @@ class FaultDetectors:
         self._run = {"gyro": [0] * 3, "accel": [0] * 3}
         self._imu_med: float | None = None
         self._n_imu = 0
+        self._imu_kinds: tuple | None = None  # (kind, lo, hi, rail, run, bits) per sensor
         self._slam_prev: dict[int, tuple[float, np.ndarray]] = {}
         self._slam_jumps: dict[int, int] = {}
         self._range_val: float | None = None
@@ -228,33 +246,33 @@ class FaultDetectors:
     def feed(self, ev: Any) -> Any:
         """Look at one event; returns the event to use (maybe with a new SLAM session) or None
         when the event is dropped (counted in ``dropped`` by reason)."""
-        from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose
-
-        if isinstance(ev, ImuSample):
-            self._imu(ev)
+        handler = _FEED_HANDLERS.get(type(ev))
+        if handler is None:
+            if not _FEED_HANDLERS:
+                _init_feed_handlers()
+                return self.feed(ev)
+            for cls, h in _FEED_HANDLERS.items():  # a subclass of an event type
+                if isinstance(ev, cls):
+                    return h(self, ev)
             return ev
-        if isinstance(ev, SlamPose):
-            return self._slam(ev)
-        if isinstance(ev, RangeReading):
-            return self._range(ev)
-        if isinstance(ev, ImageFrame):
-            return self._image(ev)
-        return ev
+        return handler(self, ev)
 
-    def _imu(self, ev) -> None:
+    def _imu(self, ev) -> Any:
         w, a = ev.body_omega, ev.body_accel
         self.imu_flags = self._imu_values(
             float(ev.t),
             w.tolist() if hasattr(w, "tolist") else w,
             a.tolist() if hasattr(a, "tolist") else a,
         )
+        return ev
 
     def _imu_values(self, t: float, w: list[float], a: list[float]) -> int:
         """One IMU sample (plain Python floats: this runs for every sample, up to 1 kHz);
         returns its saturation flags."""
         flags = 0
-        if self._imu_last is not None and t > self._imu_last:
-            dt = t - self._imu_last
+        last = self._imu_last
+        if last is not None and t > last:
+            dt = t - last
             if len(self._imu_dts) >= 20:
                 if self._imu_med is None or self._n_imu % 50 == 0:
                     self._imu_med = float(np.median(self._imu_dts))
@@ -268,17 +286,19 @@ class FaultDetectors:
                     return flags
             self._imu_dts.append(dt)
         self._n_imu += 1
-        if self._imu_last is None or t > self._imu_last:
+        if last is None or t > last:
             self._imu_last = t
         o = self.options
-        for kind, v, floor, spread, bits in (
-            ("gyro", w, o.saturation_min_gyro, o.saturation_spread_gyro, SAT_GYRO_BITS),
-            ("accel", a, o.saturation_min_accel, o.saturation_spread_accel, SAT_ACCEL_BITS),
-        ):
-            lo, hi = self._lo[kind], self._hi[kind]
-            rail, run = self._rail[kind], self._run[kind]
+        kinds = self._imu_kinds
+        if kinds is None:
+            kinds = self._imu_kinds = tuple(
+                (kind, self._lo[kind], self._hi[kind], self._rail[kind], self._run[kind], bits)
+                for kind, bits in (("gyro", SAT_GYRO_BITS), ("accel", SAT_ACCEL_BITS))
+            )
+        isfinite = math.isfinite
+        for (kind, lo, hi, rail, run, bits), v in zip(kinds, (w, a), strict=True):
             for i, x in enumerate(v):
-                if not math.isfinite(x):
+                if not isfinite(x):
                     continue
                 if x < lo[i]:
                     lo[i] = x
@@ -293,6 +313,10 @@ class FaultDetectors:
                 if abs(ax - r) > 1e-9 * r:
                     continue
                 run[i] += 1  # samples at exactly the current largest |value|
+                if kind == "gyro":
+                    floor, spread = o.saturation_min_gyro, o.saturation_spread_gyro
+                else:
+                    floor, spread = o.saturation_min_accel, o.saturation_spread_accel
                 if ax >= floor and hi[i] - lo[i] >= spread:
                     if run[i] == o.saturation_run:
                         self._count(
