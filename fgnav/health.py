@@ -526,27 +526,34 @@ class HealthMonitor:
         """Reasons the state is not sane (empty: sane)."""
         o = self.options
         bad = []
-        v = np.asarray(state.world_v_body, float)
-        p = np.asarray(state.world_T_body, float)[:3, 3]
-        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(p))):
+        # Plain floats: this runs at every keyframe (numpy's per-call overhead dominated it).
+        v = np.asarray(state.world_v_body, float).tolist()
+        p = np.asarray(state.world_T_body, float)[:3, 3].tolist()
+        isfinite = math.isfinite
+        if not all(isfinite(x) for x in (*v, *p)):
             return ["non-finite state"]
-        sp = float(np.linalg.norm(v))
+        sp = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         if sp > o.max_speed_mps:
             bad.append(f"speed {sp:.1f} m/s > {o.max_speed_mps:g}")
         if state.pose_cov is not None and np.all(np.isfinite(state.pose_cov)):
-            sig = float(np.sqrt(max(np.trace(state.pose_cov[3:, 3:]), 0.0)))
+            c = state.pose_cov
+            sig = math.sqrt(max(float(c[3, 3]) + float(c[4, 4]) + float(c[5, 5]), 0.0))
             if sig > o.max_pos_sigma_m:
                 bad.append(f"position sigma {sig:.1f} m > {o.max_pos_sigma_m:g}")
-        ab = np.abs(np.asarray(state.accel_bias, float))
+        ab = [abs(x) for x in np.asarray(state.accel_bias, float).tolist()]
         # With a thrust-only horizontal prediction (the smoother's accelerometer check found the
         # horizontal channels unusable) the x, y "bias" absorbs their offsets (1-5 m/s^2 on the
         # Crazyflie): judged against 3x the bound there.
-        bound = np.full(3, o.max_accel_bias)
-        if self.horizontal_accel_free:
-            bound[:2] *= 3.0
-        worst = int(np.argmax(ab / bound))
-        ba, ba_bound = float(ab[worst]), float(bound[worst])
-        bg = float(np.abs(state.gyro_bias).max())
+        b0 = float(o.max_accel_bias)
+        bound = [3.0 * b0, 3.0 * b0, b0] if self.horizontal_accel_free else [b0, b0, b0]
+        if all(isfinite(x) for x in ab):
+            ratio = [a / b for a, b in zip(ab, bound, strict=True)]
+            worst = ratio.index(max(ratio))  # the first largest, as numpy's argmax
+        else:
+            worst = int(np.argmax(np.asarray(ab) / np.asarray(bound)))
+        ba, ba_bound = ab[worst], bound[worst]
+        gb = [abs(x) for x in np.asarray(state.gyro_bias, float).ravel().tolist()]
+        bg = max(gb) if all(isfinite(x) for x in gb) else float(np.max(gb))  # NaN as numpy's
         if ba > ba_bound:
             bad.append(f"accelerometer bias {ba:.2f} m/s^2 > {ba_bound:g}")
         if bg > o.max_gyro_bias:
