@@ -166,6 +166,15 @@ FLOW_PIXELS_PER_RAD = 47.8
 """Pixels per radian of image motion of the UTIL flow decks, fitted against Vicon (README of
 ``crazyflie_util_flowdeck``: 47.8 +/- 0.3 pooled over the seven flights; per flight and axis 42-50,
 lower on the faster flights); the firmware's 48.83 reads every velocity 2.2 % too small."""
+FLOW_RATE_GAIN = (1.1315, -0.2358)
+"""``calib.flow_rate_gain`` ``(a, b)``: the UTIL flow decks read an image rate ``r`` [rad/s] as
+``(a + b |r|) r`` times :data:`FLOW_PIXELS_PER_RAD`, fitted (least squares, airborne readings,
+``r`` the total rate, translation from Vicon velocity and height plus the gyro's rotation) on
+the seven flights pooled (2026-12-02, ``cf17b``). The single linear scale of each flight was
+0.90-1.05 and fell with the flight's speed (rates 0.4-1.0 rad/s; within traj3 0.91 at 0.6-0.9
+and 0.82 at 0.9-1.2 rad/s): the sensor under-reads fast image motion. Fitted leaving each flight
+out, the model leaves that flight's scale error at 0.1-5.5 % (3.7-10.4 % with the linear
+scale). Gain 1 at 0.56 rad/s."""
 FLOW_GAP_FACTOR = 1.5
 """A flow step longer than this many loop periods has dropped reads: ``dt`` is one loop."""
 IMU_PAIR_TOLERANCE_S = 0.5e-3
@@ -791,6 +800,7 @@ def crazyflie_calibration(imu_noise: ImuNoise = CRAZYFLIE_IMU_NOISE) -> Calibrat
         body_T_range=make_pose(DOWNWARD_RANGE[:3, :3], lever),
         body_T_flow=make_pose(DOWNWARD_FLOW[:3, :3], lever),
         flow_pixels_per_rad=FLOW_PIXELS_PER_RAD,
+        flow_rate_gain=FLOW_RATE_GAIN,
         range_min=TOF_RANGE_MIN_M,
         range_max=TOF_RANGE_MAX_M,
         imu_noise=imu_noise,

@@ -449,6 +449,7 @@ def calibration_to_dict(calib: Calibration) -> dict[str, Any]:
         "time_offsets": {str(k): float(v) for k, v in calib.time_offsets.items()},
         "body_T_flow": np.asarray(calib.body_T_flow, dtype=float).tolist(),
         "flow_pixels_per_rad": float(calib.flow_pixels_per_rad),
+        "flow_rate_gain": [float(x) for x in calib.flow_rate_gain],
     }
 
 
@@ -464,8 +465,8 @@ def _matrix(d: Mapping, key: str, path: Path) -> np.ndarray:
 
 def calibration_from_dict(d: Any, path: Path) -> Calibration:
     """Inverse of :func:`calibration_to_dict`; errors name the file and key. The flow keys
-    (``body_T_flow``, ``flow_pixels_per_rad``) are optional (files written before the flow
-    stream lack them; the defaults of :class:`Calibration` apply)."""
+    (``body_T_flow``, ``flow_pixels_per_rad``, ``flow_rate_gain``) are optional (files written
+    before the flow stream lack them; the defaults of :class:`Calibration` apply)."""
     keys = (
         "body_T_cam",
         "body_T_range",
@@ -475,7 +476,7 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
         "range_max",
         "time_offsets",
     )
-    optional = ("body_T_flow", "flow_pixels_per_rad", "images_camera")
+    optional = ("body_T_flow", "flow_pixels_per_rad", "flow_rate_gain", "images_camera")
     if not isinstance(d, Mapping):
         raise FlightFormatError(path, f"expected a mapping with keys {list(keys)}")
     missing = [k for k in keys if k not in d]
@@ -500,6 +501,9 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
     try:
         if "flow_pixels_per_rad" in d:
             flow["flow_pixels_per_rad"] = float(d["flow_pixels_per_rad"])
+        if "flow_rate_gain" in d:
+            a, b = (float(x) for x in d["flow_rate_gain"])
+            flow["flow_rate_gain"] = (a, b)
         return Calibration(
             body_T_cam=_matrix(d, "body_T_cam", path),
             body_T_range=_matrix(d, "body_T_range", path),

@@ -455,6 +455,10 @@ class Calibration:
         body_T_flow: 4x4 pose of the optical-flow sensor (see ``FlowSeries``).
         flow_pixels_per_rad: flow units per radian of image motion (1.0 for radians).
         time_offsets: per-stream clock offsets [s] already applied by the reader (metadata).
+        flow_rate_gain: ``(a, b)``: the flow sensor reads an image rate ``r`` [rad/s] (a
+            2-vector, translation and rotation) as ``(a + b |r|) r`` times
+            ``flow_pixels_per_rad``; ``(1, 0)``: linear. The smoothers undo it on each keyframe
+            window's mean rate (``fgnav.solvers.flow.linearise_flow``).
     """
 
     body_T_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -466,6 +470,7 @@ class Calibration:
     body_T_flow: np.ndarray = field(default_factory=lambda: DOWNWARD_FLOW.copy())
     flow_pixels_per_rad: float = 1.0
     time_offsets: dict[str, float] = field(default_factory=dict)
+    flow_rate_gain: tuple[float, float] = (1.0, 0.0)
 
     def check(self, name: str = "calib") -> Calibration:
         for f in ("body_T_cam", "body_T_range", "body_T_flow"):
@@ -477,6 +482,11 @@ class Calibration:
                 raise FlightDataError(f"{name}.{f}: rotation part is not a proper rotation")
             if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-12:
                 raise FlightDataError(f"{name}.{f}: last row must be [0, 0, 0, 1]")
+        a, b = (float(x) for x in self.flow_rate_gain)
+        if not (np.isfinite(a) and np.isfinite(b) and a > 0):
+            raise FlightDataError(
+                f"{name}.flow_rate_gain: expected (a > 0, b) finite, got {self.flow_rate_gain}"
+            )
         if not (np.isfinite(self.flow_pixels_per_rad) and self.flow_pixels_per_rad > 0):
             raise FlightDataError(
                 f"{name}.flow_pixels_per_rad: expected a positive number, got "

@@ -13,7 +13,9 @@ the readings of one keyframe window into one
    (``flow:gated:height``; no range reading to tell it: ``flow:no-height``), or the optical axis
    tilted more than ``max_tilt_deg`` (``flow:gated:tilt``). Counts are of readings.
 3. **Sum**: ``flow`` and ``dt`` are the sums of the accepted readings, so the factor sees the
-   image motion over the window; the angular rate input is the mean bias-corrected gyro over the
+   image motion over the window (the sensor's rate-dependent gain ``calib.flow_rate_gain``
+   undone on the window's mean rate, :func:`linearise_flow`); the angular rate input is the mean
+   bias-corrected gyro over the
    union of the readings' intervals (zero-order hold on each IMU sample), so the rotational part
    cancels exactly as the sensor integrated it.
 4. **Noise**: per reading ``sigma_rad * flow_pixels_per_rad`` [flow units] with lag-1 correlation
@@ -191,6 +193,32 @@ def mean_rate_over(
     return integral(np.asarray(t1, float)) - integral(np.asarray(t0, float))
 
 
+def linearise_flow(
+    flow: np.ndarray, dt: float, pixels_per_rad: float, gain: Sequence[float]
+) -> np.ndarray:
+    """The (summed) flow ``flow`` [flow units] over ``dt`` [s] with the sensor's rate-dependent
+    gain undone (``Calibration.flow_rate_gain`` ``(a, b)``: an image rate ``r`` reads as
+    ``(a + b |r|) r``): ``m = flow / (ppr dt)``, ``|r|`` the root of ``a |r| + b |r|^2 = |m|``
+    (with ``b < 0`` clamped at the top of the curve, ``|r| = a / (2 |b|)``), returned as
+    ``flow |r| / |m|``. Unchanged for ``(1, 0)``. Applied to a keyframe window's sum (noise of
+    its mean rate about 0.1 rad/s on a Crazyflie, against 0.4 rad/s per reading), not per reading:
+    ``|m|`` of a noisy reading overstates ``|r|``."""
+    a, b = (float(x) for x in gain)
+    f = np.asarray(flow, float)
+    if a == 1.0 and b == 0.0:
+        return f
+    m = float(np.linalg.norm(f)) / (pixels_per_rad * dt)
+    if not m > 0:
+        return f
+    if b == 0.0:
+        r = m / a
+    elif b < 0 and a * a + 4.0 * b * m <= 0:
+        r = a / (-2.0 * b)
+    else:
+        r = (-a + math.sqrt(a * a + 4.0 * b * m)) / (2.0 * b)
+    return f * (r / m)
+
+
 def _run_sigma(
     ends: np.ndarray, starts: np.ndarray, dts: np.ndarray, sigma: float, rho: float
 ) -> float:
@@ -229,7 +257,7 @@ def flow_keyframe_factor(
         samples: the readings (``FlowSample``: ``t`` end of interval, ``dt``, ``flow``,
             ``quality``, ``arrival``), in any order.
         imu_t, imu_omega: gyro samples (N,), (N, 3) [rad/s] covering the readings' intervals.
-        calib: ``body_T_flow`` and ``flow_pixels_per_rad`` (and nothing else is read).
+        calib: ``body_T_flow``, ``flow_pixels_per_rad`` and ``flow_rate_gain`` (nothing else).
         pose_key, velocity_key, ground_key: ``X(k)``, ``V(k)``, ``G(j)`` of the keyframe.
         options: gates and noise (defaults when None).
         gyro_bias: (3,) gyro bias subtracted from the rate input [rad/s] (the estimate known when
@@ -296,8 +324,9 @@ def flow_keyframe_factor(
     dt = float(dts.sum())
     rot = mean_rate_over(imu_t, imu_omega, starts, ends).sum(axis=0)
     omega = rot / dt - (np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, float))
-    # 4. Noise of the sum (correlated runs), in flow units.
     ppr = float(calib.flow_pixels_per_rad)
+    flow = linearise_flow(flow, dt, ppr, calib.flow_rate_gain)
+    # 4. Noise of the sum (correlated runs), in flow units.
     sigma = _run_sigma(ends, starts, dts, o.sigma_rad * ppr, o.lag1_corr)
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2, sigma)
     if robust is not None:
@@ -493,9 +522,10 @@ class FlowFactors:
             dt = float(dts.sum())
             rot = mean_rate_over(imu_t, imu_omega, ends - dts, ends).sum(axis=0)
             omega = rot / dt - np.asarray(gyro_bias, float)
-            out[k] = flow_body_velocity(
-                fl.flow[idx].sum(axis=0), dt, omega, float(h), R_kf[k], T_flow, ppr
+            flow = linearise_flow(
+                fl.flow[idx].sum(axis=0), dt, ppr, self.flight.calib.flow_rate_gain
             )
+            out[k] = flow_body_velocity(flow, dt, omega, float(h), R_kf[k], T_flow, ppr)
         return out
 
     def report(self) -> dict[str, Any]:

@@ -216,6 +216,16 @@ class GraphOptions:
             velocity RMSE batch 0.045-0.104 -> 0.032-0.086, fixed-lag 0.082-0.116 -> 0.056-0.090
             m/s; simulated flowdeck (forced thrust-only) batch 0.033 -> 0.024, push 0.094 ->
             0.050 m/s. Independent of ``use_drag`` (that is the factor on the measured force).
+        thrust_only_gyro_z_sigma: with a thrust-only IMU prediction and no yaw source (no yaw
+            stream, no SLAM), the prior sigma of the gyro's body-z (yaw-rate) bias [rad/s], when
+            below the calibration's (None: the calibration's). The yaw-rate bias is then seen only
+            through the ``omega x u`` term of the horizontal body dynamics (``b_z |u|``: 2 mm/s^2
+            at 2 mrad/s and 1 m/s), about 100x below the misfit of the thrust-only drag model
+            (0.1-0.3 m/s^2); estimated, it followed that misfit: on the seven Crazyflie flights
+            it moved to -3.5..+1.5 mrad/s, on 5 of 7 against the in-flight bias measured with
+            Vicon, and the end yaw error grew (batch traj5 5.9 -> 9.8 deg, traj1 4.3 -> 6.5
+            deg). Held at its prior mean (the firmware subtracts the bias measured at rest), the
+            yaw is the integrated gyro's.
         contact_height_m: ground contact: when the rangefinder puts its sensor within this
             height of the ground on the two readings around a keyframe (a vehicle standing on
             the floor before take-off and after landing: the flow deck's time-of-flight reads
@@ -285,6 +295,7 @@ class GraphOptions:
     thrust_only_sigma: float = 0.3
     thrust_only_tau_s: float = 3.0
     thrust_only_drag_sigma: float | None = 0.1
+    thrust_only_gyro_z_sigma: float | None = 1e-4
     contact_height_m: float | None = 0.03
     contact_velocity_sigma: float = 0.1
     contact_range_sigma: float | None = 0.015
@@ -311,6 +322,11 @@ class GraphOptions:
             raise FlightDataError(
                 f"GraphOptions.accel_horizontal={self.accel_horizontal!r}: expected one of "
                 + ", ".join(ACCEL_HORIZONTAL_MODES)
+            )
+        if self.thrust_only_gyro_z_sigma is not None and not self.thrust_only_gyro_z_sigma > 0:
+            raise FlightDataError(
+                f"GraphOptions.thrust_only_gyro_z_sigma={self.thrust_only_gyro_z_sigma}: "
+                "expected > 0 or None"
             )
         if not (self.thrust_only_sigma > 0 and self.thrust_only_tau_s > 0):
             raise FlightDataError(
@@ -1278,7 +1294,11 @@ class GraphBuilder:
                 gtsam.noiseModel.Diagonal.Sigmas(
                     np.r_[
                         [o.prior_accel_bias_sigma] * 3,
-                        [gyro_bias_prior_sigma(o, self.flight.calib)] * 3,
+                        gyro_bias_prior_sigmas(
+                            o,
+                            self.flight.calib,
+                            self.thrust_only and not self.use_yaw and not self.use_slam,
+                        ),
                     ]
                 ),
             )
@@ -1830,6 +1850,19 @@ def gyro_bias_prior_sigma(options: GraphOptions, calib: Calibration) -> float:
     if options.prior_gyro_bias_sigma is not None:
         return float(options.prior_gyro_bias_sigma)
     return float(calib.imu_noise.gyro_bias_sigma)
+
+
+def gyro_bias_prior_sigmas(
+    options: GraphOptions, calib: Calibration, yaw_rate_unobserved: bool
+) -> np.ndarray:
+    """(3,) sigmas of the prior on the first gyro bias [rad/s]: :func:`gyro_bias_prior_sigma` on
+    every axis, body z lowered to ``thrust_only_gyro_z_sigma`` when ``yaw_rate_unobserved`` (a
+    thrust-only prediction with no yaw source; see that option)."""
+    s = gyro_bias_prior_sigma(options, calib)
+    z = s
+    if yaw_rate_unobserved and options.thrust_only_gyro_z_sigma is not None:
+        z = min(s, float(options.thrust_only_gyro_z_sigma))
+    return np.array([s, s, z])
 
 
 def thrust_only_noise(

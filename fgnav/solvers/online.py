@@ -143,7 +143,7 @@ from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
     choose_slam_model,
-    gyro_bias_prior_sigma,
+    gyro_bias_prior_sigmas,
     pim_params,
     robust_noise,
     saturated_pim_params,
@@ -980,7 +980,12 @@ class OnlineSmoother:
                 bias,
                 gtsam.noiseModel.Diagonal.Sigmas(
                     np.r_[
-                        [go.prior_accel_bias_sigma] * 3, [gyro_bias_prior_sigma(go, self.calib)] * 3
+                        [go.prior_accel_bias_sigma] * 3,
+                        gyro_bias_prior_sigmas(
+                            go,
+                            self.calib,
+                            self._thrust_only and not go.use_slam and not (go.use_yaw and yaws),
+                        ),
                     ]
                 ),
             )
