@@ -2109,7 +2109,8 @@ class OnlineSmoother:
         value = self.values[prev]
         n_seg = seg - s.last_seg
         walk = math.sqrt(go.slam_segment_s * n_seg)
-        rw = np.array([go.slam_rot_rw] * 3 + [go.slam_trans_rw_m] * 3 + [go.slam_scale_rw]) * walk
+        scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
+        rw = np.array([go.slam_rot_rw] * 3 + [go.slam_trans_rw_m] * 3 + [scale_rw]) * walk
         if self._alive(prev):
             g.add(
                 gtsam.BetweenFactorSimilarity3(

@@ -54,14 +54,15 @@ def test_euroc_v102_keyframes_batch_within_4cm(real_data, run):
 @pytest.mark.parametrize(
     "manifest, ate_max, convention",
     [
-        (MANIFEST, 0.080, "as-is"),
+        (MANIFEST, 0.070, "as-is"),
         (V102["orbslam2_kf1"], 0.25, "as-is"),
         (V102["orbslam3_kf2"], 0.12, "inverse"),
     ],
 )
 def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, convention):
-    # The push engine's newest state (strictly causal), default options. Measured 2026-12-03:
-    # MH_01 7.2 cm, V1_02 ORB-SLAM2 keyframes 20.3 cm, ORB-SLAM3 keyframes 8.8 cm (before the
+    # The push engine's newest state (strictly causal), default options. Measured 2026-12-02
+    # with FixedLagOptions.slam_scale_rw 3e-4: MH_01 6.3 cm (7.2 with the graph's 1e-3), V1_02
+    # ORB-SLAM2 keyframes 20.3 cm, ORB-SLAM3 keyframes 8.7 cm (8.8) (before the
     # still-stretch gyro-bias start, the early SLAM-vs-gyro decision and the start's
     # relinearisation: 7.5, 45 and 59 cm).
     from fgnav.solvers.fixed_lag import FixedLagOptions
