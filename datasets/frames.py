@@ -35,7 +35,7 @@ from dataclasses import replace
 import numpy as np
 
 from .errors import FlightDataError
-from .geometry import GRAVITY, matrix_to_quat_wxyz, quat_wxyz_to_matrix, so3_exp
+from .geometry import GRAVITY, matrix_to_quat_wxyz, project_to_so3, quat_wxyz_to_matrix, so3_exp
 from .types import DOWNWARD_RANGE, Flight, Trajectory
 
 #: Rotation taking NED vectors to ENU (symmetric: also ``NED_R_ENU``).
@@ -91,13 +91,6 @@ def tilt_angle(world_R_body: np.ndarray) -> np.ndarray:
     """Angle [rad] between the body z axis and the world z axis (..., 3, 3) -> (...,)."""
     R = np.asarray(world_R_body, dtype=float)
     return np.arccos(np.clip(R[..., 2, 2], -1.0, 1.0))
-
-
-def _project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation (Frobenius) to a 3x3 matrix (orthogonal Procrustes)."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def _small_rotation_log(R: np.ndarray) -> np.ndarray:
@@ -159,9 +152,9 @@ def align_rotation_sequences(
     for _ in range(iterations):
         # a_R_b = argmax tr(a_R_b^T sum A (B y_R_x)^T)
         M = np.einsum("nij,nkj->ik", A, B @ y_R_x)
-        a_R_b = _project_to_yaw(M) if world_yaw_only else _project_to_rotation(M)
+        a_R_b = _project_to_yaw(M) if world_yaw_only else project_to_so3(M)
         # y_R_x = argmax tr(y_R_x^T sum (a_R_b B)^T A)
-        y_R_x = _project_to_rotation(np.einsum("nji,njk->ik", a_R_b @ B, A))
+        y_R_x = project_to_so3(np.einsum("nji,njk->ik", a_R_b @ B, A))
         cost = float(np.sum((A - a_R_b @ B @ y_R_x) ** 2))
         if abs(last - cost) < tol:
             break

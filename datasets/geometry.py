@@ -175,11 +175,17 @@ def ordered_product(R: np.ndarray) -> np.ndarray:
     return R[0]
 
 
-def rotation_mean(Rs: np.ndarray) -> np.ndarray:
-    """Chordal L2 mean of rotations (N, 3, 3): SVD projection of their sum onto SO(3)."""
-    U, _, Vt = np.linalg.svd(np.sum(np.asarray(Rs, dtype=float), axis=0))
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation (Frobenius) to a 3x3 matrix: SVD projection onto SO(3) (orthogonal
+    Procrustes)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     return U @ D @ Vt
+
+
+def rotation_mean(Rs: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations (N, 3, 3): SVD projection of their sum onto SO(3)."""
+    return project_to_so3(np.sum(np.asarray(Rs, dtype=float), axis=0))
 
 
 def slerp_rotations(t_src: np.ndarray, world_R_body: np.ndarray, t_query: np.ndarray) -> np.ndarray:
@@ -233,6 +239,16 @@ def interpolate_quat_wxyz(t: np.ndarray, q_wxyz: np.ndarray, t_query: np.ndarray
     q *= sign[:, None]
     out = np.stack([np.interp(t_query, t, q[:, i]) for i in range(4)], axis=1)
     return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def nlerp_quat_wxyz(t0: float, q0: np.ndarray, t1: float, q1: np.ndarray, t: float) -> np.ndarray:
+    """Normalised linear interpolation of two unit quaternions ``[w, x, y, z]`` (sign-aligned)
+    at ``t`` (one query: :func:`interpolate_quat_wxyz` for arrays)."""
+    if q0 @ q1 < 0:
+        q1 = -q1
+    a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+    q = q0 + a * (q1 - q0)
+    return q / np.linalg.norm(q)
 
 
 def yaw_of(world_R_body: np.ndarray) -> np.ndarray:

@@ -51,9 +51,9 @@ from typing import Any
 import numpy as np
 
 from .errors import FgnavError, FlightDataError
-from .frames import _project_to_rotation
 from .geometry import (
     matrix_to_quat_wxyz,
+    project_to_so3,
     quat_wxyz_to_matrix,
     slerp_rotations,
     so3_exp,
@@ -260,7 +260,7 @@ class _Core:
         X, bias = self._gauss_newton(C, c, X_given, free_rotation=True)
         fit_med = _median_deg(self.residuals(C, X, bias))
         if spread >= MIN_AXIS_SPREAD:
-            X2, bias2 = self._gauss_newton(C, c, _project_to_rotation(M), free_rotation=True)
+            X2, bias2 = self._gauss_newton(C, c, project_to_so3(M), free_rotation=True)
             fit2 = _median_deg(self.residuals(C, X2, bias2))
             if fit2 < fit_med / 1.1:
                 X, bias, fit_med = X2, bias2, fit2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -48,8 +49,6 @@ def feed_until(filt, events, t_cut: float):
 def assert_same_prefix(part, full, min_states: int = 100, t_cut: float | None = None) -> None:
     """``part``'s trajectory is the first states of ``full``'s, to 1e-12 m (a causality check:
     the run cut at ``t_cut`` gives the same states before it)."""
-    import numpy as np
-
     n = len(part.trajectory)
     assert n > min_states, n
     if t_cut is not None:

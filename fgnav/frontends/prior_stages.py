@@ -48,7 +48,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import AttitudeSample, ImuSample, RangeReading, SlamPose, YawReading
-from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.geometry import nlerp_quat_wxyz, project_to_so3, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration
 from fgnav.frontends.attitude_ekf import AttitudeEkfStage
 from fgnav.frontends.ii_observer import (
@@ -344,7 +344,7 @@ class FrontendPriorStage:
             if att[0][0] >= t:
                 return att[0][1]
             (t0, q0), (t1, q1) = att[0], att[1]
-            return _nlerp(t0, q0, t1, q1, t)
+            return nlerp_quat_wxyz(t0, q0, t1, q1, t)
         if self._mode == "ekf":
             eq = self._ekf_q
             while eq and eq[0][0] < t:
@@ -435,10 +435,7 @@ class FrontendPriorStage:
                 if hab is None:
                     s.counts["no_metric"] += 1
                 else:
-                    U, _, Vt = np.linalg.svd(s.M)
-                    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-                    w_R_s = U @ D @ Vt
-                    x = (w_R_s @ (pb - pa))[2:3]
+                    x = (project_to_so3(s.M) @ (pb - pa))[2:3]
                     s.est.add_pair(x, np.array([hab[1] - hab[0]]), tb)
             s.a = (tb, pb)
             s.n_edge += 1
@@ -454,7 +451,7 @@ class FrontendPriorStage:
         while k > 0 and hq[k - 1][0] > t:
             k -= 1
         (t0, q0), (t1, q1) = hq[k - 1], hq[k]
-        return _nlerp(t0, q0, t1, q1, t)
+        return nlerp_quat_wxyz(t0, q0, t1, q1, t)
 
     def _height_at(self, ta: float, tb: float) -> tuple[float, float] | None:
         hh = self._hh
@@ -466,12 +463,3 @@ class FrontendPriorStage:
         if not (math.isfinite(ha) and math.isfinite(hb)):
             return None
         return float(ha), float(hb)
-
-
-def _nlerp(t0: float, q0: np.ndarray, t1: float, q1: np.ndarray, t: float) -> np.ndarray:
-    """Normalised linear interpolation of two unit quaternions (sign-aligned) at ``t``."""
-    if q0 @ q1 < 0:
-        q1 = -q1
-    a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-    q = q0 + a * (q1 - q0)
-    return q / np.linalg.norm(q)

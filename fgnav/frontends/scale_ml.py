@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.geometry import project_to_so3, quat_wxyz_to_matrix
 from fgnav.datasets.types import Flight
 
 log = logging.getLogger(__name__)
@@ -239,10 +239,7 @@ def world_R_slam_from_attitude(
     ``world_R_body body_R_cam slam_R_cam^T`` (attitude at the SLAM times)."""
     Rs = quat_wxyz_to_matrix(slam_q_cam_wxyz)
     Rw = quat_wxyz_to_matrix(world_q_body_wxyz)
-    M = np.einsum("nij,jk,nlk->il", Rw, body_R_cam, Rs)
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    return project_to_so3(np.einsum("nij,jk,nlk->il", Rw, body_R_cam, Rs))
 
 
 def scale_pairs_from_flight(

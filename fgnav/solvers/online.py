@@ -1146,7 +1146,7 @@ class OnlineSmoother:
             if sess in self._scale_prior_done:
                 continue
             key = s.last_key if s.chain else None  # a provisional one takes it as value
-            if key is None or not self._alive(key) or key in self._queued_values.keys():
+            if key is None or not self._alive(key) or self._queued_values.exists(key):
                 continue
             sc = ps.scale(sess)
             if sc is None:
