@@ -36,6 +36,10 @@ Factors of this module (residual = unwhitened ``h(x) - z``, SLAM units):
   (world_R_body f + g) dt^2 / 2``, ``world_R_body(t) = world_R_body Exp(omega dt)``. For an online
   smoother whose keyframes lie on a fixed grid while the images arrive late; with ``|dt|`` up to
   half a 20 Hz keyframe period the neglected jerk and bias terms are below 0.1 mm at 1 m/s^2.
+- ``make_slam_axis_position_offset_factor`` (keys ``X, V``, Vector6 ``[k, o]``; 3-D): the
+  per-axis model with the unknown origin for an image taken ``dt`` seconds from the keyframe,
+  the body carried to the capture time as in the offset factor above: ``diag(k) world_t_cam(t) +
+  o``.
 - ``make_slam_rotation_factor`` (keys ``X, S``; 3-D): ``Log(slam_R_cam_meas^T slam_R_world
   world_R_body body_R_cam)`` [rad]; it makes the yaw of the SLAM frame (and roll/pitch) observable.
 
@@ -461,6 +465,107 @@ def _axis_factor(error, pose_key, vector_key, slam_t_meas, noise_model, body_t_c
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, vector_key], error_fn)
+
+
+def slam_axis_position_offset_error(
+    world_T_body: gtsam.Pose3,
+    world_v_body: np.ndarray,
+    alignment: np.ndarray,
+    slam_t_meas: np.ndarray,
+    body_t_cam: np.ndarray,
+    dt: float,
+    body_accel: np.ndarray,
+    body_omega: np.ndarray,
+    gravity: float,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per-axis scale and offset residual of an image taken ``dt`` [s] from the keyframe:
+    ``diag(k) p_cam(t) + o - z`` with ``p_cam(t) = p + v dt + (R_b f + g) dt^2 / 2 + R_b
+    Exp(omega dt) c`` (see :func:`slam_position_offset_error`).
+
+    Args:
+        world_T_body, world_v_body: keyframe pose and velocity.
+        alignment: (6,) ``[kx, ky, kz]`` [SLAM units per metre], ``[ox, oy, oz]`` [SLAM units].
+        slam_t_meas: (3,) measured camera position [SLAM units] (SLAM axes = world axes).
+        body_t_cam: (3,) lever arm [m].
+        dt: capture time minus keyframe time [s].
+        body_accel, body_omega: bias-corrected IMU reading near the capture time.
+        gravity: g [m/s^2].
+
+    Returns:
+        ``(e (3,), [e_D_pose (3x6), e_D_vel (3x3), e_D_alignment (3x6)])``.
+    """
+    return _axis_offset(
+        pose_matrix(world_T_body),
+        np.asarray(world_v_body, float),
+        np.asarray(alignment, float),
+        np.asarray(slam_t_meas, float),
+        *_offset_terms(body_t_cam, dt, body_accel, body_omega, gravity),
+        True,
+    )
+
+
+def _axis_offset(m, v, a, z, dt, Ec, f_half, g_half, with_jacobians):
+    R_b = m[:3, :3]
+    lever = f_half + Ec
+    p = m[:3, 3] + v * dt + g_half + R_b @ lever
+    k = a[:3]
+    e = k * p + a[3:] - z
+    if not with_jacobians:
+        return e, None
+    e_D_pose = np.empty((3, 6))
+    e_D_pose[:, :3] = -k[:, None] * (R_b @ skew(lever))
+    e_D_pose[:, 3:] = k[:, None] * R_b
+    return e, [e_D_pose, np.diag(k * dt), np.hstack([np.diag(p), np.eye(3)])]
+
+
+def make_slam_axis_position_offset_factor(
+    pose_key: int,
+    vel_key: int,
+    alignment_key: int,
+    slam_t_meas: np.ndarray,
+    body_t_cam: np.ndarray,
+    dt: float,
+    body_accel: np.ndarray,
+    body_omega: np.ndarray,
+    gravity: float,
+    noise_model: gtsam.noiseModel.Base,
+) -> gtsam.CustomFactor:
+    """Per-axis SLAM position of an image taken ``dt`` seconds from the keyframe, on ``(X:
+    Pose3, V: Vector3, alignment: Vector6 [kx, ky, kz, ox, oy, oz])`` (3-D, SLAM units); see
+    :func:`slam_axis_position_offset_error`. The push-API smoother's per-axis factor (its
+    keyframes lie on a grid, the SLAM poses between them).
+
+    Args:
+        slam_t_meas: (3,) SLAM position [SLAM units]; SLAM axes equal the world's (seed 000).
+        body_t_cam: (3,) lever arm [m].
+        dt: capture time minus keyframe time [s] (keep ``|dt|`` within a keyframe period).
+        body_accel, body_omega: bias-corrected IMU reading near the capture time (held constant
+            over ``dt``) [m/s^2], [rad/s].
+        gravity: g [m/s^2] (world z up).
+        noise_model: 3-D noise in SLAM units (may be robust).
+
+    Not modelled: a rotation between the SLAM and world axes, jerk and bias change over ``dt``.
+    """
+    z = as_vector(slam_t_meas, 3, "slam_t_meas")
+    terms = _offset_terms(
+        as_vector(body_t_cam, 3, "body_t_cam"), dt, body_accel, body_omega, gravity
+    )
+    check_noise_dim(noise_model, ERROR_DIM)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        e, jacobians = _axis_offset(
+            values.atPose3(pose_key).matrix(),
+            values.atVector(vel_key),
+            values.atVector(alignment_key),
+            z,
+            *terms,
+            H is not None,
+        )
+        if H is not None:
+            H[0], H[1], H[2] = jacobians
+        return e
+
+    return gtsam.CustomFactor(noise_model, [pose_key, vel_key, alignment_key], error_fn)
 
 
 def make_slam_relative_factor(

@@ -303,7 +303,7 @@ def run_fixed_lag(
     from fgnav.solvers.online import replay_online, resolve_engine
 
     opts = fixed_lag_options(config)
-    engine, why = resolve_engine(flight, opts)
+    engine = resolve_engine(opts)
     if engine == "push":
         if opts.graph.use_slam and flight.slam is None:
             # The replay knows the log has no SLAM stream (a live link knows its configured
@@ -311,23 +311,13 @@ def run_fixed_lag(
             opts = replace(opts, graph=replace(opts.graph, use_slam=False))
         popts = online_prior_options(flight, config)
         est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
-        est = _with_info(est, engine=engine, engine_reason=why)
+        est = _with_info(est, engine=engine)
         return _with_stage_priors(est)
     if source is not None:
-        raise MethodUnavailableError(
-            f"fixed-lag: the {engine} engine needs the whole flight ({why or 'configured'})"
-        )
-    if why:
-        log.warning(
-            "%s: fixed-lag runs the prepared engine (not strictly causal: keyframes, gyro "
-            "bias and attitude prepared from the whole flight) because the push engine does "
-            'not run %s yet; [online] engine = "push" forces it',
-            flight.name,
-            why,
-        )
+        raise MethodUnavailableError("fixed-lag: the prepared engine needs the whole flight")
     priors = frontend_priors(flight, config)
     est = _run(flight, opts, priors=priors, progress=progress)
-    est = _with_info(est, engine=engine, engine_reason=why)
+    est = _with_info(est, engine=engine)
     return _with_priors(est, priors)
 
 
@@ -336,12 +326,9 @@ def run_fixed_lag_lagged(
 ) -> Estimate:
     """The push-API smoother's second output, ``fixed-lag@lag``: each keyframe's state as smoothed
     just before it leaves the window (delayed by the lag; ``[graph]`` and ``[online]``)."""
-    from fgnav.solvers.online import push_engine_gap, replay_online
+    from fgnav.solvers.online import replay_online
 
     opts = fixed_lag_options(config)
-    gap = push_engine_gap(flight, opts)
-    if gap:
-        raise MethodUnavailableError(f"fixed-lag@lag: the push engine does not run {gap} yet")
     popts = online_prior_options(flight, config)
     return replay_online(flight, opts, progress=progress, lagged=True, priors=popts)
 
@@ -456,18 +443,17 @@ def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = 
     """Seed 000's I&I observer alone with ``[ii-observer]`` (fields of ``Seed000Options``).
 
     Defaults filled here (stated in ``info["compare_defaults"]``): ``align_slam_axes`` is True
-    unless the flight's SLAM follows the paper's per-axis model (``meta["truth"]
-    ["slam_axis_scale"]``: SLAM axes are the world's); ``drag_k``, which the paper takes as known,
+    unless the flight's SLAM declares the paper's per-axis model (``meta["slam_model"] =
+    "axis"``: SLAM axes are the world's); ``drag_k``, which the paper takes as known,
     comes from ``flight.meta["drag_k"]`` or, on a simulated flight, from the simulator's value.
     """
     from fgnav.baselines.seed000 import Seed000Options, run_seed000
+    from fgnav.solvers.graph import declared_slam_model
 
     table = dict(config.get("ii-observer", {}))
-    truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
-    truth = truth if isinstance(truth, dict) else {}
     defaults: dict[str, Any] = {}
     if "align_slam_axes" not in table:
-        defaults["align_slam_axes"] = not truth.get("slam_axis_scale")
+        defaults["align_slam_axes"] = declared_slam_model(flight) != "axis"
     defaults.update(calibrated_drag_k(flight, table))
     fields = {k: v for k, v in defaults.items() if k != "drag_k_source"}
     opts = _options(Seed000Options, {"ii-observer": {**fields, **table}}, "ii-observer")

@@ -305,6 +305,8 @@ def simulate(
             "description": sc.description,
             "truth": truth,
             "notes": notes,
+            # The SLAM input's model, as a SLAM bridge would declare it (not ground truth).
+            **({"slam_model": "axis"} if axis_scale else {}),
         },
     )
     flight.check()

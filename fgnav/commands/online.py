@@ -3,8 +3,8 @@
 By default (``[online] engine = "auto"``) the flight's events are replayed in arrival order into
 the push-API smoother (:mod:`fgnav.solvers.online`), which sees nothing before it arrives (the
 front-end priors of ``--priors`` / ``[priors]`` run inside it as a stage fed the same events);
-flights that need what the push engine does not run yet (seed 000's per-axis SLAM model) run the
-prepared engine (:mod:`fgnav.solvers.fixed_lag`), and the run says so.
+``[online] engine = "prepared"`` runs the runner over a flight prepared as a whole
+(:mod:`fgnav.solvers.fixed_lag`; not strictly causal) instead, and the run says so.
 
 Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assembles the options and
 calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
@@ -58,8 +58,7 @@ def _streams(path: str, config, opts):
         source = open_flight_streams(path)
     except FlightFormatError:
         return None  # images, or a bad file: the whole read names the problem
-    engine, _ = resolve_engine(source.outline, opts)
-    return source if engine == "push" else None
+    return source if resolve_engine(opts) == "push" else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,11 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if info.get("engine") == "push":
         print("engine: push (events replayed in arrival order; strictly causal)")
     elif info.get("engine"):
-        why = info.get("engine_reason")
-        print(
-            "engine: prepared (whole-flight preparation; not strictly causal)"
-            + (f": the push engine does not run {why} yet" if why else "")
-        )
+        print("engine: prepared (whole-flight preparation; not strictly causal)")
     if info.get("reset_counter"):
         print(f"resets: {info['reset_counter']} (state lost and re-initialised; see summary.json)")
     if info.get("factorization_fallbacks"):

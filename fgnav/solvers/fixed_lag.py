@@ -192,9 +192,8 @@ class FixedLagOptions:
             (:class:`fgnav.solvers.online.OnlineSmoother`: strictly causal, nothing prepared
             from the whole flight); ``"prepared"``, this module's runner over a flight prepared
             as a whole (keyframes on the SLAM and camera times, gyro bias and attitude from the
-            whole flight: not strictly causal), which the push engine does not yet replace for
-            camera images (homography factors), seed 000's per-axis SLAM model and front-end
-            priors; ``"auto"`` (default): ``"push"`` unless the flight needs one of those.
+            whole flight: not strictly causal), kept for comparison; ``"auto"`` (default):
+            ``"push"``, which runs every flight and option.
         The push engine's own rules (see :mod:`fgnav.solvers.online`):
         start_wait_s: wait this long after the first IMU sample for a SLAM pose to start at [s].
         init_imu_s: IMU span averaged for the initial attitude [s].

@@ -55,11 +55,11 @@ from fgnav.solvers.measurements import (
     associate,
     attitude_from_slam,
     attitude_track,
+    fit_axis_scale,
     gyro_bias_from_slam,
     init_slam_alignment,
     mean_in_windows,
     omega_from_attitude,
-    second_difference_pairs,
     world_specific_accel,
 )
 
@@ -375,14 +375,21 @@ def _isotropic(dim: int, sigma: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
 
 
+def declared_slam_model(flight: Flight) -> str:
+    """The SLAM model the flight's SLAM input declares (``flight.meta["slam_model"]``, a fact of
+    the input like its frame: ``"axis"`` for seed 000's per-axis SLAM, which the simulator's seed
+    000 scenarios write), else ``"sim3"``. Never read from ground truth."""
+    meta = flight.meta if isinstance(flight.meta, dict) else {}
+    model = meta.get("slam_model", "sim3")
+    if model not in ("sim3", "axis"):
+        raise FlightDataError(f"{flight.name}: meta slam_model={model!r}: expected sim3 or axis")
+    return model
+
+
 def choose_slam_model(flight: Flight, slam_model: str) -> str:
-    """``GraphOptions.slam_model`` resolved: ``"auto"`` is ``"axis"`` when the flight's metadata
-    says its SLAM stream is per-axis (the simulator's seed 000 scenarios), else ``"sim3"``."""
-    if slam_model != "auto":
-        return slam_model
-    truth = flight.meta.get("truth", {}) if isinstance(flight.meta, dict) else {}
-    axis = truth.get("slam_axis_scale") if isinstance(truth, dict) else None
-    return "axis" if axis not in (None, (), []) else "sim3"
+    """``GraphOptions.slam_model`` resolved: ``"auto"`` is the flight's declared model
+    (:func:`declared_slam_model`)."""
+    return declared_slam_model(flight) if slam_model == "auto" else slam_model
 
 
 def robust_noise(base: gtsam.noiseModel.Base, o: GraphOptions) -> gtsam.noiseModel.Base:
@@ -1154,36 +1161,16 @@ class GraphBuilder:
         slam = self.flight.slam
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
-        half, step = 0.5, 0.1
-        sd2, wd2, _ = second_difference_pairs(
-            slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a, half, step
-        )
-        if len(sd2) < 3:
-            raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
-        sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
-        den = (wd2**2).sum(axis=0)
-        k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), np.nan)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            res = sd2 - k * wd2
-            se = np.sqrt((res**2).sum(axis=0) / max(len(sd2) - 2, 1) / den)
-            rel_se = se * math.sqrt(2.0 * half / step) / np.abs(k)
-        # An axis whose fit has a relative standard error above 1 is not determined by it.
-        ok = np.isfinite(k) & (k > 0) & (rel_se <= 1.0)
-        rel_se = np.where(ok, rel_se, np.inf)
-        if not ok.any():
-            raise FlightDataError(
-                f"per-axis SLAM scale initialisation gave {k}: too little motion on every axis"
-            )
-        if not ok.all():
+        k, rel_se, _ = fit_axis_scale(slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a)
+        if not np.isfinite(rel_se).all():
             # An axis without acceleration (e.g. z at constant altitude) is not seen by second
             # differences; the absolute per-axis factors still fix it, from this initial value.
             log.info(
                 "per-axis SLAM scale init %s: axis %s without enough motion starts at the mean of "
                 "the others",
                 np.round(k, 4),
-                "".join("xyz"[i] for i in np.flatnonzero(~ok)),
+                "".join("xyz"[i] for i in np.flatnonzero(~np.isfinite(rel_se))),
             )
-            k = np.where(ok, k, k[ok].mean())
         log.info("per-axis SLAM scale init %s (rel. s.e. %s)", np.round(k, 4), np.round(rel_se, 3))
         return k, rel_se
 

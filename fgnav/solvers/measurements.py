@@ -8,6 +8,7 @@ body FLU, SI units, time in seconds).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -429,6 +430,46 @@ def second_difference_pairs(
     """``(slam_d2, world_d2, centres)`` of :func:`slam_second_differences`."""
     d = slam_second_differences(t_slam, slam_t, imu_t, world_a, h, step)
     return d.slam_d2, d.world_d2, d.centers
+
+
+def fit_axis_scale(
+    t_slam: np.ndarray,
+    slam_t: np.ndarray,
+    imu_t: np.ndarray,
+    world_a: np.ndarray,
+    h: float = 0.5,
+    step: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Seed 000's per-axis SLAM scale ``[kx, ky, kz]`` [SLAM units per metre] by least squares of
+    the SLAM second differences against the metric ones from the accelerometer (SLAM axes = world
+    axes; the means removed, which absorbs a constant accelerometer offset).
+
+    Returns:
+        ``(k (3,), rel_se (3,), n_pairs)``: ``rel_se`` the relative standard error of each axis
+        (inflated by ``sqrt(2 h / step)`` for the overlap of neighbouring second differences; inf
+        for an axis the fit does not determine, rel. s.e. above 1, which starts at the mean of
+        the others).
+
+    Raises:
+        FlightDataError: fewer than 3 pairs, or no axis determined.
+    """
+    sd2, wd2, _ = second_difference_pairs(t_slam, slam_t, imu_t, world_a, h, step)
+    if len(sd2) < 3:
+        raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
+    sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)
+    den = (wd2**2).sum(axis=0)
+    k = np.where(den > 0, (sd2 * wd2).sum(axis=0) / np.where(den > 0, den, 1.0), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        res = sd2 - k * wd2
+        se = np.sqrt((res**2).sum(axis=0) / max(len(sd2) - 2, 1) / den)
+        rel_se = se * math.sqrt(2.0 * h / step) / np.abs(k)
+    ok = np.isfinite(k) & (k > 0) & (rel_se <= 1.0)
+    rel_se = np.where(ok, rel_se, np.inf)
+    if not ok.any():
+        raise FlightDataError(
+            f"per-axis SLAM scale initialisation gave {k}: too little motion on every axis"
+        )
+    return np.where(ok, k, k[ok].mean()), rel_se, len(sd2)
 
 
 def init_slam_alignment(

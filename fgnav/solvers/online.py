@@ -20,9 +20,10 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   the newest still stretch of the arrived IMU before the start (specific force within
   ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
   takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one.
-- **SLAM** (``graph.slam_model`` must be ``sim3``): a pose taken at ``t`` attaches to the keyframe
-  nearest ``t`` through :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body
-  carried over ``t - t_k`` by the IMU reading at ``t``). Each session has a chain of
+- **SLAM** (``graph.slam_model`` ``sim3``; the per-axis model below): a pose taken at ``t``
+  attaches to the keyframe nearest ``t`` through
+  :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body carried over
+  ``t - t_k`` by the IMU reading at ``t``). Each session has a chain of
   ``Similarity3`` alignment variables, one per ``graph.slam_segment_s`` of the session's time, with
   a random walk between them; a segment whose predecessor has left the window (a SLAM pause longer
   than the lag) starts from the predecessor's last estimate under a prior widened by the walk over
@@ -84,8 +85,15 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   variable (once per session); a provisional alignment starts from it. Used counts:
   ``prior:observer-velocity``, ``prior:ml-scale``.
 
-Not handled on this path (the ``prepared`` engine of :mod:`fgnav.solvers.fixed_lag` runs it):
-seed 000's per-axis SLAM model.
+- **Per-axis SLAM** (seed 000, ``graph.slam_model = "axis"``, or ``"auto"`` on a flight whose
+  SLAM input declares it, ``meta["slam_model"]``): every session feeds one chain of Vector6
+  ``[kx, ky, kz, ox, oy, oz]`` variables (per-axis scale, SLAM origin; SLAM axes = world axes),
+  one per ``graph.slam_segment_s``, with the batch's relative random walk between them. It starts
+  from the per-axis least-squares fit (:func:`fgnav.solvers.measurements.fit_axis_scale`) over
+  the arrived poses once they span ``slam_init_window_s`` and the fit has
+  ``slam_init_min_pairs`` pairs and one axis within ``slam_init_max_rel_se``; the poses wait
+  for it (no provisional alignment) and attach through
+  :func:`fgnav.factors.slam_scale.make_slam_axis_position_offset_factor`.
 """
 
 from __future__ import annotations
@@ -123,6 +131,7 @@ from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
+    make_slam_axis_position_offset_factor,
     make_slam_position_factor,
     make_slam_position_offset_factor,
     make_slam_rotation_factor,
@@ -142,6 +151,7 @@ from fgnav.solvers.fixed_lag import (
 from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
+    WEAK_SCALE_PRIOR_REL,
     choose_slam_model,
     gyro_bias_prior_sigmas,
     pim_params,
@@ -151,8 +161,10 @@ from fgnav.solvers.graph import (
 )
 from fgnav.solvers.measurements import (
     MIN_ANCHOR_GAP_PERIODS,
+    fit_axis_scale,
     init_slam_alignment,
     level_rotation_from_accel,
+    world_specific_accel,
 )
 from fgnav.solvers.window import TimeOrderedSmoother, move_window
 
@@ -423,11 +435,14 @@ class OnlineSmoother:
         self.options = options or FixedLagOptions()
         self.go = self.options.graph.check()
         self.name = name
-        if self.go.slam_model not in ("auto", "sim3"):
+        if self.go.slam_model not in ("auto", "sim3", "axis"):
             raise FlightDataError(
-                f"{name}: graph.slam_model={self.go.slam_model!r}: the online smoother "
-                "supports the sim3 SLAM model only"
+                f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
             )
+        # Seed 000's per-axis model (SLAM axes = world axes, one scale per axis shared by every
+        # session): a configuration of the SLAM input; "auto" is the Sim(3) model here (a
+        # replay resolves it from the flight's declaration before it builds the smoother).
+        self._axis = self.go.slam_model == "axis"
         if not self.options.lag_s > 0:
             raise FlightDataError(f"{name}: lag_s={self.options.lag_s}: expected > 0")
         self.period = 1.0 / self.go.keyframe_hz
@@ -1143,7 +1158,7 @@ class OnlineSmoother:
             g.add(gtsam.PriorFactorVector(V(k), pv[0], self._noise(3, pv[1], False)))
             self._use("prior:observer-velocity")
         for sess, s in self.sessions.items():
-            if sess in self._scale_prior_done:
+            if sess in self._scale_prior_done or self._axis:
                 continue
             key = s.last_key if s.chain else None  # a provisional one takes it as value
             if key is None or not self._alive(key) or self._queued_values.exists(key):
@@ -1732,7 +1747,7 @@ class OnlineSmoother:
             q = q * _CONJ
         if self._first_slam_t is None:
             self._first_slam_t = float(ev.t)
-        sess = int(ev.session)
+        sess = 0 if self._axis else int(ev.session)
         s = self.sessions.get(sess)
         if s is None:
             s = self.sessions[sess] = _Session(
@@ -2027,6 +2042,9 @@ class OnlineSmoother:
     def _slam_factor(self, k, payload, g, stamps, remove, prov_new) -> None:
         sess, row, t, p, q = payload
         s = self.sessions[sess]
+        if self._axis:
+            self._axis_factor(k, payload, s, g, stamps)
+            return
         key = self._session_key(sess, s, t, g, stamps, remove, prov_new)
         if key is None:
             self._held.append((k, "slam", payload))
@@ -2078,7 +2096,146 @@ class OnlineSmoother:
 
     def _scale_guess(self, key: int) -> float:
         v = self.values.get(key)
-        return float(v.scale()) if v is not None else 1.0
+        if v is None:
+            return 1.0
+        return float(np.max(v[:3])) if isinstance(v, np.ndarray) else float(v.scale())
+
+    # ------------------------------------------------------------------------------------------
+    # Seed 000's per-axis SLAM model: one chain of Vector6 [kx, ky, kz, ox, oy, oz] segments
+    # ------------------------------------------------------------------------------------------
+
+    def _axis_factor(self, k: int, payload, s: _Session, g, stamps) -> None:
+        """A SLAM position under the per-axis model (held until the per-axis fit exists)."""
+        _sess, _row, t, p, _q = payload
+        key = self._axis_key(s, t, g, stamps)
+        if key is None:
+            self._held.append((k, "slam", payload))
+            return
+        noise = self._noise(3, self.go.slam_sigma_m * self._scale_guess(key))
+        dt = t - self.t_kf[k]
+        i = self.imu.nearest(t)
+        b = self.values[B(self.k)]
+        g.add(
+            make_slam_axis_position_offset_factor(
+                X(k),
+                V(k),
+                key,
+                p,
+                self.body_T_cam[:3, 3],
+                dt,
+                b.correctAccelerometer(self.imu.a[i]) if abs(dt) >= 1e-6 else np.zeros(3),
+                b.correctGyroscope(self.imu.w[i]) if abs(dt) >= 1e-6 else np.zeros(3),
+                self.go.gravity,
+                noise,
+            )
+        )
+        stamps[key] = self.t_kf[self.k]
+        self._use("slam")
+
+    def _axis_key(self, s: _Session, t: float, g, stamps) -> int | None:
+        """The per-axis alignment variable of a pose at ``t`` (None until the fit exists)."""
+        o, go = self.options, self.go
+        if not s.chain and 0 in self._carried_align:
+            return self._carried_chain(0, s, t, g, stamps)
+        if not s.chain:
+            t_now = self.t_kf[self.k]
+            if not (t_now >= s.next_fit and s.t[-1] - s.t[0] >= o.slam_init_window_s):
+                return None
+            s.next_fit = t_now + 0.5
+            fit = self._fit_axis(s)
+            if fit is None:
+                return None
+            self._start_axis_chain(s, t, *fit, g, stamps)
+            return s.last_key
+        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
+        if seg in s.chain:
+            return s.chain[seg]
+        if seg < s.last_seg:
+            return s.chain[s.last_seg]
+        key = S(s.index * SESSION_STRIDE + seg)
+        prev = s.last_key
+        a = np.asarray(self.values[prev], float)
+        walk = math.sqrt(go.slam_segment_s * (seg - s.last_seg))
+        scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
+        k_max = float(np.max(a[:3]))
+        # Relative random walk of every axis and an origin walk of slam_trans_rw_m metres (the
+        # batch's per-axis chain, GraphBuilder.slow_factors).
+        rw = np.r_[scale_rw * walk * np.abs(a[:3]), [go.slam_trans_rw_m * walk * k_max] * 3]
+        if self._alive(prev):
+            g.add(
+                gtsam.BetweenFactorVector(
+                    prev, key, np.zeros(6), gtsam.noiseModel.Diagonal.Sigmas(rw)
+                )
+            )
+        else:
+            # The predecessor left the window: its last estimate, widened by the walk.
+            base = np.r_[0.01 * np.abs(a[:3]), [0.05 * k_max] * 3]
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
+            g.add(gtsam.PriorFactorVector(key, a, noise))
+            self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
+        self._insert(key, a, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
+        return key
+
+    def _fit_axis(self, s: _Session) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Per-axis scale ``(k, rel_se, n_pairs)`` from the arrived SLAM positions and IMU
+        (:func:`fgnav.solvers.measurements.fit_axis_scale`), or None (gates not passed: pairs,
+        and the best-determined axis's relative standard error)."""
+        o = self.options
+        if not self.imu.t:
+            return None
+        t_all = np.asarray(s.t)
+        keep = (t_all >= self.imu.t[0] + 0.6) & (t_all <= self.imu.t[-1])
+        keep &= t_all >= t_all[-1] - o.slam_fit_max_s
+        if keep.sum() < 8:
+            return None
+        t = t_all[keep]
+        imu = self.imu.series(t[0] - 0.6, t[-1] + 0.6)
+        R = self._attitude_track(imu.t) if imu is not None else None
+        if R is None:
+            return None
+        try:
+            k, rel_se, n = fit_axis_scale(
+                t, np.asarray(s.p)[keep], imu.t, world_specific_accel(imu, R, self.go.gravity)
+            )
+        except FlightDataError:
+            return None
+        if n < o.slam_init_min_pairs or not np.min(rel_se) <= o.slam_init_max_rel_se:
+            return None
+        return k, rel_se, n
+
+    def _start_axis_chain(self, s: _Session, t: float, k, rel_se, n: int, g, stamps) -> None:
+        """The chain's first variable: the fitted scales and the origin that maps the newest
+        SLAM position onto the current estimate of its keyframe, under a prior (each axis's
+        relative sigma the fit's, at least ``slam_init_scale_sigma_rel``, at most 50 % for an
+        axis the fit does not determine; the origin free)."""
+        o, go = self.options, self.go
+        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
+        key = S(s.index * SESSION_STRIDE + seg)
+        pose = self._pose_at(s.t[-1])
+        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
+        a = np.r_[k, s.p[-1] - k * world_t_cam]
+        rel = np.minimum(np.maximum(o.slam_init_scale_sigma_rel, rel_se), WEAK_SCALE_PRIOR_REL)
+        sig = np.r_[rel * k, [10.0 * float(np.max(k))] * 3]
+        g.add(gtsam.PriorFactorVector(key, a, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        self._insert(key, a, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
+        log.info(
+            "%s: per-axis SLAM scale at t=%.2f s: %s (rel. s.e. %s, %d pairs)",
+            self.name,
+            t,
+            np.round(k, 4).tolist(),
+            np.round(rel_se, 3).tolist(),
+            n,
+        )
+        held, self._held = self._held, []
+        for item in held:
+            if self._kf_alive(item[0]):
+                self._pending.append(item)
+            else:
+                self._drop("slam:before-alignment")
 
     def _session_key(self, sess, s: _Session, t, g, stamps, remove, prov_new) -> int:
         """The alignment variable of a pose at time ``t`` of session ``sess`` (created here)."""
@@ -2318,6 +2475,8 @@ class OnlineSmoother:
         """World z [m] of a SLAM camera position through its session's newest alignment."""
         s = self.sessions.get(session)
         S = self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+        if isinstance(S, np.ndarray):  # per-axis: slam_t = diag(k) world_t + o
+            return float((slam_t_cam[2] - S[5]) / S[2])
         if not isinstance(S, gtsam.Similarity3):
             return None
         scale, slam_R_world, slam_t_world = slam_alignment_parts(S)
@@ -2435,9 +2594,13 @@ class OnlineSmoother:
             sn = self.sessions.get(sess)
             if sn is None or not sn.t or abs(sn.t[-1] - t) > GAP_PLACE_MAX_S:
                 continue
-            # slam_t_cam = s slam_R_world world_t_cam + slam_t_world
-            R, scale = value.rotation().matrix(), value.scale()
-            world_t_cam = R.T @ (sn.p[-1] - value.translation()) / scale
+            # slam_t_cam = s slam_R_world world_t_cam + slam_t_world (per-axis: diag(k) ... + o)
+            if isinstance(value, np.ndarray):
+                R, scale, origin = np.diag(1.0 / value[:3]), 1.0, value[3:]
+            else:
+                R, scale = value.rotation().matrix(), value.scale()
+                origin = value.translation()
+            world_t_cam = R.T @ (sn.p[-1] - origin) / scale
             vel = None
             j = bisect.bisect_left(sn.t, sn.t[-1] - GAP_PLACE_MAX_S)
             if sn.t[-1] - sn.t[j] > 0:
@@ -2456,14 +2619,29 @@ class OnlineSmoother:
         if cov is not None and np.all(np.isfinite(cov)):
             noise = gtsam.noiseModel.Gaussian.Covariance(cov * CARRY_SIGMA_FACTOR**2)
         else:
-            sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, self.options.rebuild_slow_sigma_rel])
-            noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
-        g.add(gtsam.PriorFactorSimilarity3(key, value, noise))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(self._slam_rebuild_sigmas(value))
+        g.add(self._slam_prior(key, value, noise))
         self._insert(key, value, g, stamps)
         s.chain[seg] = key
         s.last_key, s.last_seg = key, seg
         self._use("slam:alignment-carried")
         return key
+
+    def _slam_rebuild_sigmas(self, value: Any) -> np.ndarray:
+        """Sigmas of the prior that carries a SLAM alignment into a rebuilt window: 0.05 rad,
+        0.5 m and ``rebuild_slow_sigma_rel`` of the scale (per-axis: of each axis, the origin
+        0.5 m in SLAM units)."""
+        rel = self.options.rebuild_slow_sigma_rel
+        if isinstance(value, np.ndarray):
+            return np.r_[rel * np.abs(value[:3]), [0.5 * float(np.max(value[:3]))] * 3]
+        return np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, rel])
+
+    @staticmethod
+    def _slam_prior(key: int, value: Any, noise: Any) -> Any:
+        """A prior on a SLAM alignment: Sim(3), or the per-axis model's Vector6."""
+        if isinstance(value, np.ndarray):
+            return gtsam.PriorFactorVector(key, value, noise)
+        return gtsam.PriorFactorSimilarity3(key, value, noise)
 
     def _health_report(self) -> dict[str, Any]:
         rep = self._health.report()
@@ -2482,7 +2660,7 @@ class OnlineSmoother:
         """A fresh window; ``startup``: with the start's relinearisation
         (``FixedLagOptions.startup_relinearize_*``) for the QR start."""
         o = self.options
-        dims = {"s": 7, "d": 2 if self.go.drag_per_axis else 1, "g": 1}
+        dims = {"s": 6 if self._axis else 7, "d": 2 if self.go.drag_per_axis else 1, "g": 1}
         if startup and o.startup_relinearize_threshold is not None:
             o = dataclasses.replace(
                 o,
@@ -2588,8 +2766,8 @@ class OnlineSmoother:
             val = self.values[key]
             c = _chr(key)
             if c == "s":
-                sig = np.array([0.05, 0.05, 0.05, 0.5, 0.5, 0.5, o.rebuild_slow_sigma_rel])
-                g.add(gtsam.PriorFactorSimilarity3(key, val, gtsam.noiseModel.Diagonal.Sigmas(sig)))
+                noise = gtsam.noiseModel.Diagonal.Sigmas(self._slam_rebuild_sigmas(val))
+                g.add(self._slam_prior(key, val, noise))
             else:
                 vv = np.asarray(val, float)
                 sig = (
@@ -2668,7 +2846,7 @@ class OnlineSmoother:
                     continue
                 try:
                     c = _chr(key)
-                    if c == "s":
+                    if c == "s" and not self._axis:
                         self.values[key] = sm.calculateEstimateSimilarity3(key)
                     else:
                         self.values[key] = np.asarray(sm.calculateEstimateVector(key), float)
@@ -2739,7 +2917,14 @@ class OnlineSmoother:
     def _track_slow(self, t: float) -> None:
         for sess, s in self.sessions.items():
             if s.last_key is not None and s.last_key in self.values and self._alive(s.last_key):
-                sc = float(self.values[s.last_key].scale())
+                v = self.values[s.last_key]
+                if self._axis:
+                    # The flight's scale: the geometric mean of the axes (as the batch's).
+                    k = np.asarray(v[:3], float)
+                    sc = float(np.cbrt(np.prod(k)))
+                    self.track.setdefault("slam_axis_scale", []).append((t, k, 0, self._epoch))
+                else:
+                    sc = float(v.scale())
                 self._session_scale[sess] = sc
                 self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
         for c, name in (("d", "drag_k"), ("g", "ground_height")):
@@ -2839,29 +3024,15 @@ ENGINES = ("auto", "push", "prepared")
 PUSH_STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow")
 
 
-def push_engine_gap(flight, options: FixedLagOptions, priors: Any = None) -> str | None:
-    """What of this flight and these options the push engine does not run yet (None: nothing):
-    seed 000's per-axis SLAM model. Front-end priors run on it as a stage (``priors`` is kept
-    for the callers). Decided from the configuration and the streams present, never from their
-    content."""
-    go = options.graph
-    model = choose_slam_model(flight, go.slam_model)  # a configuration fact of the flight
-    if go.use_slam and flight.slam is not None and model == "axis":
-        return "seed 000's per-axis SLAM model"
-    return None
-
-
-def resolve_engine(flight, options: FixedLagOptions, priors: Any = None) -> tuple[str, str | None]:
-    """``(engine, why)``: the engine that runs ``flight`` and, when ``"auto"`` falls back to
-    ``"prepared"``, the reason."""
+def resolve_engine(options: FixedLagOptions) -> str:
+    """The engine ``options`` select: ``"auto"`` is the push engine, which runs every flight and
+    option (the Sim(3) and the per-axis SLAM models, front-end priors as a stage); the
+    ``"prepared"`` runner only when configured."""
     if options.engine not in ENGINES:
         raise FlightDataError(
             f"FixedLagOptions.engine={options.engine!r}: expected one of {', '.join(ENGINES)}"
         )
-    if options.engine != "auto":
-        return options.engine, None
-    gap = push_engine_gap(flight, options, priors)
-    return ("prepared", gap) if gap else ("push", None)
+    return "push" if options.engine == "auto" else options.engine
 
 
 def replay_online(
@@ -2896,7 +3067,11 @@ def replay_online(
     rotation, offset = file_modes(
         flight, options.graph.slam_rotation, options.graph.slam_time_offset
     )
-    g = dataclasses.replace(options.graph, slam_rotation=rotation, slam_time_offset=offset)
+    # The SLAM model the input declares (configuration, never its content or ground truth).
+    model = choose_slam_model(flight, options.graph.slam_model)
+    g = dataclasses.replace(
+        options.graph, slam_rotation=rotation, slam_time_offset=offset, slam_model=model
+    )
     options = dataclasses.replace(options, graph=g)
     streams = [n for n in PUSH_STREAMS if getattr(flight, n, None) is not None]
     if source is not None:

@@ -16,8 +16,7 @@ from fgnav.eval.flow_table import check_goals, flow_figures, markdown_table
 def _traj(t, p, yaw):
     R = np.array([rpy_to_matrix(0.0, 0.0, y) for y in yaw])
     v = np.gradient(p, t, axis=0)
-    return Trajectory(t=t, world_t_body=p, world_q_body_wxyz=matrix_to_quat_wxyz(R),
-                      world_v_body=v)
+    return Trajectory(t=t, world_t_body=p, world_q_body_wxyz=matrix_to_quat_wxyz(R), world_v_body=v)
 
 
 def test_start_known_drift_is_the_end_error_after_placing_the_first_pose():
@@ -39,10 +38,18 @@ def test_start_known_drift_is_the_end_error_after_placing_the_first_pose():
 
 def test_goals_and_better_than_filters():
     rows = {
-        "batch": {"hvel100_rmse_mps": 0.05, "height_rmse_m": 0.01, "ate_m": 0.1,
-                  "start_drift_pct": 1.5},
-        "cf-ekf": {"hvel100_rmse_mps": 0.2, "height_rmse_m": 0.02, "ate_m": 0.05,
-                   "start_drift_pct": 3.0},
+        "batch": {
+            "hvel100_rmse_mps": 0.05,
+            "height_rmse_m": 0.01,
+            "ate_m": 0.1,
+            "start_drift_pct": 1.5,
+        },
+        "cf-ekf": {
+            "hvel100_rmse_mps": 0.2,
+            "height_rmse_m": 0.02,
+            "ate_m": 0.05,
+            "start_drift_pct": 3.0,
+        },
     }
     g = {x["goal"]: x["met"] for x in check_goals(rows)}
     assert g["hvel100_rmse_mps"] and g["height_rmse_m"] and not g["start_drift_pct"]

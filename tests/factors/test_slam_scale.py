@@ -302,3 +302,49 @@ def test_offset_factor_jacobians_match_central_differences(seed: int) -> None:
         unit_noise(3),
     )
     assert_jacobians_close(fac, values, [6, 3, 7])
+
+
+def _axis_offset_case(rng: np.random.Generator, dt: float):
+    """Per-axis alignment ``[k, o]``, a moving body and the camera position the model predicts
+    at ``t_k + dt`` (constant specific force and angular rate)."""
+    pose, v, _, f, w = _offset_truth(rng)
+    a = np.r_[rng.uniform(0.2, 3.0, 3), rng.normal(0, 2.0, 3)]
+    c = rng.normal(0, 0.2, 3)
+    R = pose.rotation().matrix()
+    E = gtsam.Rot3.Expmap(w * dt).matrix()
+    p = pose.translation() + v * dt + 0.5 * (R @ f + np.array([0, 0, -9.81])) * dt**2 + R @ E @ c
+    values = gtsam.Values()
+    values.insert(X(0), pose)
+    values.insert(V(0), v)
+    values.insert(S(0), a)
+    return values, a[:3] * p + a[3:], c, f, w
+
+
+@pytest.mark.parametrize("dt", [-0.024, 0.0, 0.031])
+def test_axis_offset_factor_zero_at_consistent_state_and_matches_plain_at_dt0(dt: float) -> None:
+    from fgnav.factors.slam_scale import make_slam_axis_position_offset_factor
+
+    values, z, c, f, w = _axis_offset_case(np.random.default_rng(11), dt)
+    fac = make_slam_axis_position_offset_factor(
+        X(0), V(0), S(0), z, c, dt, f, w, 9.81, unit_noise(3)
+    )
+    np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-10)
+    if dt == 0.0:
+        plain = make_slam_axis_offset_factor(X(0), S(0), z + 0.1, unit_noise(3), c)
+        off = make_slam_axis_position_offset_factor(
+            X(0), V(0), S(0), z + 0.1, c, 0.0, f, w, 9.81, unit_noise(3)
+        )
+        np.testing.assert_allclose(off.unwhitenedError(values), plain.unwhitenedError(values))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_axis_offset_factor_jacobians_match_central_differences(seed: int) -> None:
+    from fgnav.factors.slam_scale import make_slam_axis_position_offset_factor
+
+    rng = np.random.default_rng(400 + seed)
+    dt = rng.uniform(-0.05, 0.05)
+    values, _, c, f, w = _axis_offset_case(rng, dt)
+    fac = make_slam_axis_position_offset_factor(
+        X(0), V(0), S(0), rng.normal(0, 2, 3), c, dt, f, w, 9.81, unit_noise(3)
+    )
+    assert_jacobians_close(fac, values, [6, 3, 6])

@@ -39,21 +39,24 @@ def test_linearise_flow_inverts_the_gain(rate):
     d = rng.normal(size=2)
     r = rate * d / np.linalg.norm(d)
     measured = (a + b * np.linalg.norm(r)) * r * ppr * dt
-    np.testing.assert_allclose(linearise_flow(measured, dt, ppr, FLOW_RATE_GAIN), r * ppr * dt,
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        linearise_flow(measured, dt, ppr, FLOW_RATE_GAIN), r * ppr * dt, rtol=1e-12, atol=1e-12
+    )
 
 
 def test_linearise_flow_identity_zero_and_clamp():
     f = np.array([1.5, -2.0])
     np.testing.assert_array_equal(linearise_flow(f, 0.05, 48.0, (1.0, 0.0)), f)
-    np.testing.assert_array_equal(linearise_flow(np.zeros(2), 0.05, 48.0, FLOW_RATE_GAIN),
-                                  np.zeros(2))
+    np.testing.assert_array_equal(
+        linearise_flow(np.zeros(2), 0.05, 48.0, FLOW_RATE_GAIN), np.zeros(2)
+    )
     np.testing.assert_allclose(linearise_flow(f, 0.05, 48.0, (2.0, 0.0)), f / 2)
     # Beyond the top of the curve (a^2 / (4 |b|) = 1.36 rad/s): the rate at the top.
     a, b = FLOW_RATE_GAIN
     big = np.array([3.0, 0.0]) * 48.0 * 0.05
-    np.testing.assert_allclose(linearise_flow(big, 0.05, 48.0, FLOW_RATE_GAIN),
-                               [a / (-2 * b) * 48.0 * 0.05, 0.0])
+    np.testing.assert_allclose(
+        linearise_flow(big, 0.05, 48.0, FLOW_RATE_GAIN), [a / (-2 * b) * 48.0 * 0.05, 0.0]
+    )
 
 
 def test_flow_rate_gain_in_the_crazyflie_calibration_and_native_files():

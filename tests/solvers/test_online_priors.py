@@ -13,7 +13,7 @@ from fgnav.eval.metrics import evaluate
 from fgnav.frontends.prior_stages import PriorOptions
 from fgnav.methods import run_fixed_lag
 from fgnav.solvers.fixed_lag import FixedLagOptions
-from fgnav.solvers.online import OnlineSmoother, push_engine_gap, resolve_engine
+from fgnav.solvers.online import OnlineSmoother, resolve_engine
 
 STREAMS = ("imu", "attitude", "range", "yaw", "slam")
 
@@ -36,10 +36,9 @@ def _drag(flight):
 def test_priors_run_on_the_push_engine(two_turns):
     config = {"priors": {"sources": ["observer"], "drag_k": _drag(two_turns)}}
     opts = FixedLagOptions()
-    assert push_engine_gap(two_turns, opts, object()) is None
-    assert resolve_engine(two_turns, opts, object()) == ("push", None)
+    assert resolve_engine(opts) == "push"
     est = run_fixed_lag(two_turns, config)
-    assert est.info["engine"] == "push" and est.info["engine_reason"] is None
+    assert est.info["engine"] == "push"
     assert est.causal
     n_kf = est.info["updates"]
     # A velocity prior on every keyframe after the observer's 5 s settle time (20 Hz).
