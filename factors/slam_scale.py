@@ -391,13 +391,28 @@ def make_slam_position_offset_factor(
     terms = _offset_terms(
         as_pose_matrix(body_T_cam, "body_T_cam")[:3, 3], dt, body_accel, body_omega, gravity
     )
+    return _offset_factor(
+        _slam_offset,
+        gtsam.Values.atSimilarity3,
+        (pose_key, vel_key, sim_key),
+        z,
+        terms,
+        noise_model,
+    )
+
+
+def _offset_factor(offset, at_alignment, keys, z, terms, noise_model) -> gtsam.CustomFactor:
+    """CustomFactor on ``(X: Pose3, V: Vector3, alignment)`` from an offset model
+    ``offset(pose matrix, v, alignment, z, *terms, with_jacobians)``; ``at_alignment`` reads
+    the alignment from the values (``Values.atSimilarity3`` or ``Values.atVector``)."""
     check_noise_dim(noise_model, ERROR_DIM)
+    pose_key, vel_key, align_key = keys
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _slam_offset(
+        e, jacobians = offset(
             values.atPose3(pose_key).matrix(),
             values.atVector(vel_key),
-            values.atSimilarity3(sim_key),
+            at_alignment(values, align_key),
             z,
             *terms,
             H is not None,
@@ -406,7 +421,7 @@ def make_slam_position_offset_factor(
             H[0], H[1], H[2] = jacobians
         return e
 
-    return gtsam.CustomFactor(noise_model, [pose_key, vel_key, sim_key], error_fn)
+    return gtsam.CustomFactor(noise_model, list(keys), error_fn)
 
 
 def make_slam_axis_scale_factor(
@@ -550,22 +565,14 @@ def make_slam_axis_position_offset_factor(
     terms = _offset_terms(
         as_vector(body_t_cam, 3, "body_t_cam"), dt, body_accel, body_omega, gravity
     )
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _axis_offset(
-            values.atPose3(pose_key).matrix(),
-            values.atVector(vel_key),
-            values.atVector(alignment_key),
-            z,
-            *terms,
-            H is not None,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, vel_key, alignment_key], error_fn)
+    return _offset_factor(
+        _axis_offset,
+        gtsam.Values.atVector,
+        (pose_key, vel_key, alignment_key),
+        z,
+        terms,
+        noise_model,
+    )
 
 
 def make_slam_relative_factor(
