@@ -54,20 +54,7 @@ def test_bad_flag_values(flight_folder, tmp_path, capsys, flags, needle):
         ("batch", "[graph]\nslam_segment_s = -2.0\n", "option slam_segment_s = -2.0"),
         ("batch", "[lm]\nmax_iterations = 0\n", "[lm]: option max_iterations = 0"),
         ("online", "[online]\nslam_init_window_s = -1.0\n", "expected >= 0"),
-    ],
-)
-def test_bad_config_values(flight_folder, tmp_path, capsys, command, table, needle):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    err = _one_line_error(
-        capsys, [command, str(flight_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    )
-    assert str(cfg) in err and needle in err
-
-
-@pytest.mark.parametrize(
-    ("command", "table", "needle"),
-    [
+        # Unknown tables and options.
         ("online", "[online]\nlag = 2.0\n", "unknown option(s) ['lag'] for FixedLagOptions"),
         ("batch", "[grpah]\nkeyframe_hz = 10.0\n", "unknown table(s) ['grpah']"),
         ("online", "[batch]\ncovariance = 'none'\n", "unknown table(s) ['batch']"),
@@ -75,7 +62,7 @@ def test_bad_config_values(flight_folder, tmp_path, capsys, command, table, need
         ("compare", "[msf_ekf]\nrange_sigma = 0.1\n", "unknown table(s) ['msf_ekf']"),
     ],
 )
-def test_unknown_config_keys(flight_folder, tmp_path, capsys, command, table, needle):
+def test_bad_config_values_and_keys(flight_folder, tmp_path, capsys, command, table, needle):
     cfg = tmp_path / "bad.toml"
     cfg.write_text(table)
     err = _one_line_error(
