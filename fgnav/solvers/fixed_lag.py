@@ -152,7 +152,12 @@ class FixedLagOptions:
         slam_provisional_log_scale_sigma: sigma of its log-scale prior. Hover gives the scale no
             information, so a wide prior lets noise move it before the motion starts (simulated
             two-turns, seed 0: sigma 1.0 -> causal ATE 2.2 cm, 0.3 -> 1.9 cm, 0.1 -> 1.9 cm;
-            EuRoC MH_01, true scale 5x off the default: 8.5 cm with 0.3 or 1.0).
+            EuRoC MH_01, true scale 5x off the default: 8.5 cm with 0.3 or 1.0). Default 1.0:
+            a monocular SLAM's units are arbitrary (EuRoC V1_02: ORB-SLAM2 0.44 per metre,
+            ORB-SLAM3 5.0, a log-ratio of -0.8 and +1.6 from the default scale 1), and 0.3 held
+            the push engine's provisional scale near 1 until the chain started (V1_02 causal ATE
+            with 1.0 vs 0.3: ORB-SLAM2 9.4 vs 19.2 cm, ORB-SLAM3 5.3 vs 8.1 cm, NEES 7.0 / 5.7 vs
+            24.5 / 11.4; MH_01 6.29 vs 6.27 cm; two-turns seed 1 0.50 cm both, see README).
         slam_provisional_rot_sigma: sigma of its rotation prior [rad] (initial value from the SLAM
             orientation and the attitude).
         rebuild_rot_sigma [rad], rebuild_pos_sigma [m], rebuild_vel_sigma [m/s],
@@ -247,7 +252,7 @@ class FixedLagOptions:
     slam_init_min_pairs: int = 12
     slam_provisional: bool = True
     slam_provisional_scale: float = 1.0
-    slam_provisional_log_scale_sigma: float = 0.3
+    slam_provisional_log_scale_sigma: float = 1.0
     slam_provisional_rot_sigma: float = 0.3
     rebuild_rot_sigma: float = 0.01
     rebuild_pos_sigma: float = 0.05

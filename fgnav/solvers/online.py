@@ -20,6 +20,9 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   the newest still stretch of the arrived IMU before the start (specific force within
   ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
   takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one.
+  When that still stretch ended before the start (a take-off before it, no attitude stream),
+  attitude and velocity are the stretch's level attitude and rest integrated with the arrived
+  IMU up to the start (``_from_still``), not a level on the moving vehicle's specific force.
 - **SLAM** (``graph.slam_model`` ``sim3``; the per-axis model below): a pose taken at ``t``
   attaches to the keyframe nearest ``t`` through
   :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body carried over
@@ -206,6 +209,12 @@ PROVISIONAL_BASE = 1 << 40
 #: Index stride of a session's alignment chain: ``S(index * SESSION_STRIDE + segment)``, with
 #: ``index`` the session's order of arrival (0, 1, ...), whatever id the SLAM gives it.
 SESSION_STRIDE = 100_000
+#: Velocity prior at a start integrated from rest (``OnlineSmoother._from_still``): sigma
+#: ``STILL_VEL_SIGMA + STILL_VEL_SIGMA_RATE * age`` [m/s] with ``age`` the time since the
+#: still stretch ended (an accelerometer bias and a tilt of the still attitude of 0.1 m/s^2
+#: each, integrated, plus a floor).
+STILL_VEL_SIGMA = 0.05
+STILL_VEL_SIGMA_RATE = 0.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -938,17 +947,22 @@ class OnlineSmoother:
         still = gyro_b is not None
         if not still:
             gyro_b = np.zeros(3)
+        vel = np.zeros(3)
+        if still and R_att is None and self._carry is None and still_age > 0.0:
+            R0, vel = self._from_still(t_start, still_age, gyro_b, yaw0)
         self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
         self.t_kf = {0: t_start}
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
         pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
-        vel = np.zeros(3)
         yaw_sigma = (
             go.prior_yaw_sigma if not (go.use_yaw and yaws) else max(go.prior_yaw_sigma, 1.0)
         )
         pos_sigma, vel_sigma = go.prior_position_sigma, go.prior_velocity_sigma
+        if still and R_att is None and self._carry is None and still_age > 0.0:
+            # Integrated from rest (``_from_still``): its error grows with the time since.
+            vel_sigma = min(vel_sigma, STILL_VEL_SIGMA + STILL_VEL_SIGMA_RATE * still_age)
         carry, self._carry = self._carry, None
         if carry is not None:
             # Restart after an IMU gap: the newest state before it, its priors widened by the gap.
@@ -1027,6 +1041,25 @@ class OnlineSmoother:
             np.round(gyro_b, 4).tolist(),
             f"from the IMU still {still_age:.2f} s before" if still else "moving: zero",
         )
+
+    def _from_still(
+        self, t_start: float, still_age: float, gyro_b: np.ndarray, yaw0: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Attitude and velocity at ``t_start`` when the vehicle stood still until
+        ``still_age`` before it: level (yaw ``yaw0``) from the mean specific force of the still
+        stretch's last ``STILL_WINDOW_S`` (gravity only), then the arrived IMU integrated from
+        the stretch's end to ``t_start`` with the still gyro bias and zero accelerometer bias,
+        from rest. A start while moving (EuRoC V1_02: take-off 1.5 s before the start) would
+        otherwise level on a specific force tilted by the acceleration (2-3 deg, 0.4 m/s^2 of
+        gravity read as acceleration) and start from zero velocity. Uses only IMU samples
+        before ``t_start``."""
+        t_end = t_start - still_age
+        s = self.imu.span(t_end - STILL_WINDOW_S, t_end)
+        R_end = level_rotation_from_accel(np.asarray(self.imu.a[s]).mean(axis=0), yaw0)
+        bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
+        pim = self._preintegrate(t_end, t_start, bias, count=False)
+        nav = pim.predict(gtsam.NavState(gtsam.Rot3(R_end), np.zeros(3), np.zeros(3)), bias)
+        return nav.attitude().matrix(), np.asarray(nav.velocity(), float)
 
     def _still_gyro_bias(self, t_start: float) -> tuple[np.ndarray | None, float]:
         """The mean gyro rate over the newest still stretch of the arrived IMU before

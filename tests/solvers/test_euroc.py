@@ -55,8 +55,8 @@ def test_euroc_v102_keyframes_batch_within_4cm(real_data, run):
     "manifest, ate_max, convention",
     [
         (MANIFEST, 0.070, "as-is"),
-        (V102["orbslam2_kf1"], 0.25, "as-is"),
-        (V102["orbslam3_kf2"], 0.12, "inverse"),
+        (V102["orbslam2_kf1"], 0.11, "as-is"),
+        (V102["orbslam3_kf2"], 0.065, "inverse"),
     ],
 )
 def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, convention):
@@ -64,7 +64,9 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, convent
     # with FixedLagOptions.slam_scale_rw 3e-4: MH_01 6.3 cm (7.2 with the graph's 1e-3), V1_02
     # ORB-SLAM2 keyframes 20.3 cm, ORB-SLAM3 keyframes 8.7 cm (8.8) (before the
     # still-stretch gyro-bias start, the early SLAM-vs-gyro decision and the start's
-    # relinearisation: 7.5, 45 and 59 cm).
+    # relinearisation: 7.5, 45 and 59 cm). After the start from the still stretch (attitude and
+    # velocity integrated from rest) and the provisional log-scale sigma 1.0 (was 0.3): MH_01
+    # 6.3 cm, V1_02 ORB-SLAM2 9.4 cm, ORB-SLAM3 5.3 cm; NEES 3.7, 7.0, 5.7 (16.2, 14.6 before).
     from fgnav.solvers.fixed_lag import FixedLagOptions
     from fgnav.solvers.online import replay_online
 

@@ -219,6 +219,36 @@ def test_jittered_camera_replay():
     )
 
 
+def test_start_after_a_still_stretch_integrates_attitude_and_velocity_from_rest():
+    """Still (level, rotors on) until 3 s, then a constant acceleration of 1 m/s^2 along world x
+    and z until the start at the IMU (5 s): the start levels on the still stretch and integrates
+    the IMU since, from rest (EuRoC V1_02 takes off 1.5 s before its start). Leveling on the
+    specific force at the start instead tilts the attitude by atan(1 / (g + 1)) = 5.3 deg and
+    starts at zero velocity."""
+    from fgnav.datasets.types import Calibration
+
+    rng = np.random.default_rng(1)
+    bias = np.array([0.01, -0.02, 0.08])
+    sm = OnlineSmoother(Calibration(), FixedLagOptions())
+    g = sm.go.gravity
+    for i in range(int(5.2 * 200)):
+        t = i / 200.0
+        w = bias + rng.normal(0.0, 0.01, 3)
+        a = np.array([1.0, 0.0, g + 1.0]) if t >= 3.0 else np.array([0.0, 0.0, g])
+        a = a + rng.normal(0.0, 0.3, 3)
+        sm.feed(ImuSample(t, t, w, a))
+    assert sm.t0 == pytest.approx(5.0, abs=0.01)
+    first = sm.out[0]
+    z_body_in_world = first.world_T_body[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    tilt = math.degrees(math.acos(min(1.0, z_body_in_world[2])))
+    assert tilt < 0.5, tilt
+    # 2 s at 1 m/s^2 from rest along the body's x and z (level: the world's, up to the yaw).
+    v_body = first.world_T_body[:3, :3].T @ first.world_v_body
+    # (0.14 m/s off in x here: a 0.4 deg pitch of the 0.5 s still mean with this noise)
+    np.testing.assert_allclose(v_body, [2.0, 0.0, 2.0], atol=0.2)
+    assert math.sqrt(first.vel_cov[0, 0]) < 0.6
+
+
 def test_gyro_bias_start_from_the_newest_still_stretch():
     """A vehicle that stands (rotors on: vibration) and then moves before the start: the gyro
     bias starts from the still stretch's mean rate, whose size (0.08 rad/s, EuRoC's) is above any
