@@ -202,10 +202,15 @@ class GraphOptions:
             [m/s^2] (rotor drag: about 0.2-0.4 m/s^2 RMS on the Crazyflie flights, from Vicon):
             white noise of that size per keyframe mean plus an accelerometer-bias random walk on
             body x, y reaching it in ``thrust_only_tau_s``.
-        thrust_only_tau_s: time over which the neglected force changes [s] (3 s: with the drag
-            dynamics below the bias walk carries the drag model's misfit only; Crazyflie
-            fixed-lag velocity RMSE 1 s -> 3 s: 0.055-0.087 -> 0.055-0.088 m/s, traj3 0.085 ->
-            0.064).
+        thrust_only_tau_s: time over which the neglected force changes [s] (0.5 s: the drag
+            model's misfit that the bias walk carries turns with the body velocity, about 1 rad/s
+            on traj3's circles). With 3 s the push engine's velocity overshot in steady fast
+            flight (traj3 at 1.25 m/s: +8 % along the track, the filter's bias lagging the
+            misfit; the batch, smoothing both sides, unaffected); the linear flow scale's 8 %
+            under-read at those rates had hidden it (traj3 fixed-lag 0.065 m/s linear, 0.095
+            with ``flow_rate_gain``). 3 s -> 0.5 s on the seven Crazyflie flights: fixed-lag
+            velocity RMSE 0.057-0.096 -> 0.052-0.078 m/s (traj3 0.095 -> 0.068), batch
+            0.028-0.048 -> 0.027-0.049 m/s (2026-12-02, cf17c).
         thrust_only_drag_sigma: drag dynamics of the thrust-only prediction [m/s^2]: the body x,
             y accelerometer bias (the negated specific force the prediction integrates) is tied
             to the rotor drag ``k u_xy`` at every keyframe by the drag factor with a zero
@@ -293,7 +298,7 @@ class GraphOptions:
     drag_accel_check: bool = True
     accel_horizontal: str = "auto"
     thrust_only_sigma: float = 0.3
-    thrust_only_tau_s: float = 3.0
+    thrust_only_tau_s: float = 0.5
     thrust_only_drag_sigma: float | None = 0.1
     thrust_only_gyro_z_sigma: float | None = 1e-4
     contact_height_m: float | None = 0.03
