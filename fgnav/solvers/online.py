@@ -102,6 +102,7 @@ import bisect
 import dataclasses
 import logging
 import math
+import operator
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -243,6 +244,9 @@ class OnlineState:
     quality: int
 
 
+_first = operator.itemgetter(0)
+
+
 def _chr(key: int) -> str:
     """Symbol character of a GTSAM key (top 8 bits; no ``gtsam.Symbol`` per call)."""
     return chr(key >> 56)
@@ -352,6 +356,32 @@ class _States:
     def array(self) -> np.ndarray:
         """(N, 76) packed rows."""
         return np.array(self._rows) if self._rows else np.empty((0, _ROW_LEN))
+
+
+class _Ring:
+    """The newest ``capacity`` rows of ``width`` floats in a preallocated array (a deque with
+    ``maxlen`` of small vectors without re-stacking them at every read)."""
+
+    __slots__ = ("_buf", "_n", "_i")
+
+    def __init__(self, capacity: int, width: int) -> None:
+        self._buf = np.empty((max(int(capacity), 1), width))
+        self._n = 0  # rows held
+        self._i = 0  # next row to write
+
+    def append(self, row) -> None:
+        self._buf[self._i] = row
+        self._i = (self._i + 1) % len(self._buf)
+        self._n = min(self._n + 1, len(self._buf))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def array(self) -> np.ndarray:
+        """The rows held, oldest first (a copy)."""
+        if self._n < len(self._buf):
+            return self._buf[: self._n].copy()
+        return np.concatenate((self._buf[self._i :], self._buf[: self._i]))
 
 
 class _Imu:
@@ -681,14 +711,14 @@ class OnlineSmoother:
         self.values: dict[int, Any] = {}  # last good estimate of live keys
         self.stamp: dict[int, float] = {}
         self._n_prov = 0
-        self._drag_means: deque = deque(maxlen=self.options.drag_scatter_n)
+        self._drag_means = _Ring(self.options.drag_scatter_n, 2)
         self._drag_sigma = float(self.go.drag_model_sigma)
         self._drag_on = self.go.use_drag
         self._drag_checked = False
         self._thrust_axis_ok = True
         # Accelerometer check (fgnav.solvers.accel_check): keyframe-mean horizontal specific
         # force and the smoother's body velocity; thrust-only prediction once it is unusable.
-        self._accel_rows: deque = deque(maxlen=self.options.drag_scatter_n)
+        self._accel_rows = _Ring(self.options.drag_scatter_n, 5)  # f_xy, u_xy, white sigma
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
         self._thrust_provisional = False  # thrust-only until the accelerometer check decides
@@ -1356,7 +1386,7 @@ class OnlineSmoother:
         ):
             R = self.values[X(j)].rotation().matrix()
             u = R.T @ np.asarray(self.values[V(j)], float)
-            self._accel_rows.append((mean[:2].copy(), u[:2], sigma_a / math.sqrt(n)))
+            self._accel_rows.append((mean[0], mean[1], u[0], u[1], sigma_a / math.sqrt(n)))
             first = self._accel_check is None or self._accel_check.decision == "undecided"
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
@@ -1377,7 +1407,7 @@ class OnlineSmoother:
         if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
             self._drop("drag:not-thrust-borne")
             return
-        self._drag_means.append(mean[:2].copy())
+        self._drag_means.append(mean[:2])
         if self.go.drag_sigma_from_data and len(self._drag_means) >= 20 and j % 20 == 0:
             self._drag_sigma = max(self.go.drag_model_sigma, self._drag_scatter())
             chk = self._accel_check
@@ -1434,10 +1464,9 @@ class OnlineSmoother:
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
         from fgnav.solvers.accel_check import check_horizontal_accel
 
-        rows = list(self._accel_rows)
-        f = np.array([r[0] for r in rows])
-        u = np.array([r[1] for r in rows])
-        white = float(np.sqrt(np.mean([r[2] ** 2 for r in rows])))
+        rows = self._accel_rows.array()
+        f, u = rows[:, 0:2], rows[:, 2:4]
+        white = float(np.sqrt(np.mean(rows[:, 4] ** 2)))
         chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
@@ -1636,10 +1665,10 @@ class OnlineSmoother:
         if go.contact_height_m is None or not go.use_range or len(rng) < 2:
             return
         t_j = self.t_kf[j]
-        ts = [r[0] for r in rng]
-        i = bisect.bisect_right(ts, t_j)
-        pair = (i - 1, i) if 1 <= i < len(ts) else (len(ts) - 2, len(ts) - 1)
-        if pair[0] < 0 or any(abs(ts[p] - t_j) > go.interp_max_gap_s for p in pair):
+        n = len(rng)
+        i = bisect.bisect_right(rng, t_j, key=_first)  # no copy of the readings' times
+        pair = (i - 1, i) if 1 <= i < n else (n - 2, n - 1)
+        if pair[0] < 0 or any(abs(rng[p][0] - t_j) > go.interp_max_gap_s for p in pair):
             return
         if not self._kf_alive(j) or X(j) not in self.values:
             return
@@ -1660,7 +1689,7 @@ class OnlineSmoother:
             stamps[gk] = self.t_kf[self.k]
 
     def _drag_scatter(self) -> float:
-        x = np.asarray(self._drag_means)
+        x = self._drag_means.array()
         half = max(1, int(round(0.25 * self.go.keyframe_hz)))
         pad = np.pad(x, ((half, half), (0, 0)), mode="edge")
         win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0)
