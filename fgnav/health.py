@@ -262,13 +262,19 @@ class FaultDetectors:
         return handler(self, ev)
 
     def _imu(self, ev) -> Any:
+        self.feed_imu(ev)
+        return ev
+
+    def feed_imu(self, ev) -> int:
+        """One IMU sample (never dropped: :meth:`feed` without the dispatch); returns its
+        saturation flags (also kept in ``imu_flags``)."""
         w, a = ev.body_omega, ev.body_accel
         self.imu_flags = self._imu_values(
             float(ev.t),
             w.tolist() if hasattr(w, "tolist") else w,
             a.tolist() if hasattr(a, "tolist") else a,
         )
-        return ev
+        return self.imu_flags
 
     def _imu_values(self, t: float, w: list[float], a: list[float]) -> int:
         """One IMU sample (plain Python floats: this runs for every sample, up to 1 kHz);

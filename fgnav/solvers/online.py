@@ -400,9 +400,10 @@ class _Imu:
         self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
-        i = bisect.bisect_left(self.t, t_keep)
-        if i > 1000:
-            del self.t[:i], self.w[:i], self.a[:i], self.sat[:i]
+        t = self.t
+        if len(t) > 1000 and t[1000] < t_keep:  # else bisect_left(t, t_keep) <= 1000
+            i = bisect.bisect_left(t, t_keep)
+            del t[:i], self.w[:i], self.a[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -507,6 +508,12 @@ class OnlineSmoother:
 
     def feed(self, ev: Any) -> OnlineState | None:
         """Take one event (arrival order); the newest state when keyframes closed, else None."""
+        if type(ev) is ImuSample:
+            # Most events: straight to the IMU path (the fault detectors never drop a sample;
+            # they only flag saturation).
+            if self._health.options.enabled:
+                self._health.detectors.feed_imu(ev)
+            return self._feed_imu(ev)
         ev = self._health_feed(ev)
         if ev is None:
             return None
@@ -853,6 +860,8 @@ class OnlineSmoother:
 
     def _advance(self, t_imu: float) -> bool:
         """Close every keyframe the IMU has passed; True when one closed."""
+        if not self._anchors_on and t_imu <= self.t_kf[self.k] + self.period + 1e-9:
+            return False  # most samples: no keyframe to close (_next_time's grid rule)
         closed = False
         while True:
             t_next, ready = self._next_time(t_imu)
