@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+from fgnav.factors import _jacobians
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     as_vector,
@@ -294,6 +295,8 @@ def make_slam_position_factor(
         )
         if H is not None:
             H[0], H[1] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
@@ -423,6 +426,8 @@ def _offset_factor(offset, at_alignment, keys, z, terms, noise_model) -> gtsam.C
         )
         if H is not None:
             H[0], H[1], H[2] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, list(keys), error_fn)
@@ -641,6 +646,8 @@ def make_slam_rotation_factor(
         )
         if H is not None:
             H[0], H[1] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)

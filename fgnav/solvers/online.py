@@ -130,6 +130,7 @@ from fgnav.datasets.geometry import (
 )
 from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
+from fgnav.factors import _jacobians
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
     make_slam_axis_position_offset_factor,
@@ -499,6 +500,7 @@ class OnlineSmoother:
         self._session_scale: dict[int, float] = {}
         self._drag_decision: str | None = None
         self._noise_cache: dict[tuple, Any] = {}
+        self._lin_errors: dict | None = None  # errors recorded at the update's linearisation
         self._health_init(health)
         self._clear()
 
@@ -1161,7 +1163,13 @@ class OnlineSmoother:
         prov_new: list[tuple[int, int, Any]] = []
         self._attach_pending(g, stamps, remove, prov_new)
         n_moves = self.n_fallbacks
-        ok = self._update(g, vals, stamps, remove)
+        # The monitored factors' errors as iSAM2 linearises them (the health monitor's input:
+        # the update leaves the window at that linearisation point; no second callback).
+        self._lin_errors = _jacobians.LINEARIZED = {} if self._health_on else None
+        try:
+            ok = self._update(g, vals, stamps, remove)
+        finally:
+            _jacobians.LINEARIZED = None
         self._cur_stamps = {}
         # After a move of the window the new factors' indices are not this update's: such
         # provisional factors stay on the provisional alignment (counted).
@@ -2538,6 +2546,7 @@ class OnlineSmoother:
         point into the monitor, then its verdict on the newest state: quality lowered while it
         diverges, a rebuild from the last healthy state when it says so."""
         hm = self._health
+        known, self._lin_errors = self._lin_errors or {}, None
         if not hm.options.enabled or not self.out or self.out[-1].t != self.t_kf.get(k):
             return
         if not self._health_checked and getattr(self, "slam_check", None):
@@ -2551,8 +2560,14 @@ class OnlineSmoother:
             sensor = sensor_of(f.keys()) if f is not None else None
             if sensor is None:
                 continue
+            # Its error at the last linearisation (iSAM2's, at ``lin``) when recorded, else
+            # evaluated there (the same numbers: tests/solvers/test_online_health_cache.py).
+            e = known.get(f)
             try:
-                e = np.asarray(f.whitenedError(lin), float)
+                if e is not None and all(lin.exists(key) for key in f.keys()):
+                    e = np.asarray(f.noiseModel().whiten(e), float)
+                else:
+                    e = np.asarray(f.whitenedError(lin), float)
             except (RuntimeError, IndexError, ValueError):
                 continue  # a key not in the window (the update failed and was rebuilt)
             hm.innovations(sensor, t, float(e @ e), int(e.size))
