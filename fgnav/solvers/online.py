@@ -501,6 +501,8 @@ class OnlineSmoother:
         self._drag_decision: str | None = None
         self._noise_cache: dict[tuple, Any] = {}
         self._lin_errors: dict | None = None  # errors recorded at the update's linearisation
+        self._lin_factors: list | None = None  # the update's factors, alive through it
+        self._lin_hits = 0  # monitored factors whose recorded error health used
         self._health_init(health)
         self._clear()
 
@@ -1166,6 +1168,9 @@ class OnlineSmoother:
         # The monitored factors' errors as iSAM2 linearises them (the health monitor's input:
         # the update leaves the window at that linearisation point; no second callback).
         self._lin_errors = _jacobians.LINEARIZED = {} if self._health_on else None
+        # The update's factors as Python objects kept alive through it: a callback's ``this``
+        # is then that object (else pybind11 hands it a copy), the key health looks up.
+        self._lin_factors = [g.at(i) for i in range(g.size())] if self._health_on else None
         try:
             ok = self._update(g, vals, stamps, remove)
         finally:
@@ -2547,6 +2552,7 @@ class OnlineSmoother:
         diverges, a rebuild from the last healthy state when it says so."""
         hm = self._health
         known, self._lin_errors = self._lin_errors or {}, None
+        factors, self._lin_factors = self._lin_factors, None
         if not hm.options.enabled or not self.out or self.out[-1].t != self.t_kf.get(k):
             return
         if not self._health_checked and getattr(self, "slam_check", None):
@@ -2555,17 +2561,20 @@ class OnlineSmoother:
         t = self.t_kf[k]
         # iSAM2's live linearisation point (a view: getLinearizationPoint() copies the window)
         lin = getattr(self.smoother, "_theta_view", None) or self.smoother.getLinearizationPoint()
-        for i in range(g.size()):
-            f = g.at(i)
-            sensor = sensor_of(f.keys()) if f is not None else None
+        if factors is None or len(factors) != g.size():
+            factors = [g.at(i) for i in range(g.size())]
+        for f in factors:
+            keys = f.keys() if f is not None else None
+            sensor = sensor_of(keys) if keys is not None else None
             if sensor is None:
                 continue
             # Its error at the last linearisation (iSAM2's, at ``lin``) when recorded, else
             # evaluated there (the same numbers: tests/solvers/test_online_health_cache.py).
             e = known.get(f)
             try:
-                if e is not None and all(lin.exists(key) for key in f.keys()):
+                if e is not None and all(lin.exists(key) for key in keys):
                     e = np.asarray(f.noiseModel().whiten(e), float)
+                    self._lin_hits += 1
                 else:
                     e = np.asarray(f.whitenedError(lin), float)
             except (RuntimeError, IndexError, ValueError):
