@@ -25,6 +25,14 @@ ROTATION_TOLERANCE = 1e-3
 ORTHONORMAL_EXACT = 1e-12
 
 
+#: Opt-in record of the errors that the SLAM and range factors' callbacks computed while
+#: linearising (``CustomFactor -> unwhitened error``): a caller that needs those factors' errors
+#: at the linearisation point just used (the online smoother's health monitor, after its iSAM2
+#: update) sets a dict here around the update and reads them instead of evaluating each callback
+#: again. None: not recording (the default; a callback then only checks this).
+LINEARIZED: dict | None = None
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """3-vector -> 3x3 skew-symmetric matrix ``[v]x`` with ``skew(a) @ b == cross(a, b)``."""
     x, y, z = np.asarray(v, dtype=float).tolist()

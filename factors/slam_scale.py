@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+from fgnav.factors import _jacobians
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     as_vector,
@@ -239,12 +240,14 @@ def slam_rotation_error(
     slam_T_world: gtsam.Similarity3,
     slam_R_cam_meas: np.ndarray,
     body_T_cam: gtsam.Pose3 | np.ndarray,
-) -> tuple[np.ndarray, list[np.ndarray]]:
+    with_jacobians: bool = True,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
     """SLAM orientation residual ``Log(slam_R_cam_meas^T slam_R_world world_R_body body_R_cam)``
     [rad] (right-invariant error in the camera frame).
 
     Returns:
         ``(e (3,), [e_D_pose (3x6), e_D_sim (3x7)])``; only rotation columns are non-zero.
+        Without ``with_jacobians`` (an error-only evaluation): ``(e, None)``.
     """
     world_R_body, _ = pose_parts(world_T_body)
     body_R_cam, _ = pose_parts(body_T_cam)
@@ -252,6 +255,8 @@ def slam_rotation_error(
     world_R_cam = world_R_body @ body_R_cam
     predicted = slam_R_world @ world_R_cam
     e = so3_log(np.asarray(slam_R_cam_meas, dtype=float).T @ predicted)
+    if not with_jacobians:
+        return e, None
     Jr_inv = so3_right_jacobian_inv(e)
     e_D_pose = np.zeros((3, 6))
     e_D_pose[:, :3] = Jr_inv @ body_R_cam.T
@@ -290,6 +295,8 @@ def make_slam_position_factor(
         )
         if H is not None:
             H[0], H[1] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
@@ -419,6 +426,8 @@ def _offset_factor(offset, at_alignment, keys, z, terms, noise_model) -> gtsam.C
         )
         if H is not None:
             H[0], H[1], H[2] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, list(keys), error_fn)
@@ -633,10 +642,12 @@ def make_slam_rotation_factor(
 
     def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         e, jacobians = slam_rotation_error(
-            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam
+            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam, H is not None
         )
         if H is not None:
             H[0], H[1] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+from fgnav.factors import _jacobians
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     check_noise_dim,
@@ -153,6 +154,8 @@ def make_range_factor(
         )
         if H is not None:
             H[0], H[1] = jacobians
+            if _jacobians.LINEARIZED is not None:
+                _jacobians.LINEARIZED[this] = e
         return e
 
     return gtsam.CustomFactor(noise_model, [pose_key, ground_key], error_fn)

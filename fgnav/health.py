@@ -97,6 +97,10 @@ DETECTORS = (
 )
 
 
+#: a whitened squared error above this leaving the health window makes the running chi2 sum be
+#: summed afresh (the subtraction would leave a cancellation error of ~1e-16 of it behind)
+_RESUM_CHI2 = 1e4
+
 #: event type -> detector method (filled on first use: the event types import datasets)
 _FEED_HANDLERS: dict[type, Callable[[Any, Any], Any]] = {}
 
@@ -258,13 +262,19 @@ class FaultDetectors:
         return handler(self, ev)
 
     def _imu(self, ev) -> Any:
+        self.feed_imu(ev)
+        return ev
+
+    def feed_imu(self, ev) -> int:
+        """One IMU sample (never dropped: :meth:`feed` without the dispatch); returns its
+        saturation flags (also kept in ``imu_flags``)."""
         w, a = ev.body_omega, ev.body_accel
         self.imu_flags = self._imu_values(
             float(ev.t),
             w.tolist() if hasattr(w, "tolist") else w,
             a.tolist() if hasattr(a, "tolist") else a,
         )
-        return ev
+        return self.imu_flags
 
     def _imu_values(self, t: float, w: list[float], a: list[float]) -> int:
         """One IMU sample (plain Python floats: this runs for every sample, up to 1 kHz);
@@ -495,6 +505,7 @@ class HealthMonitor:
         #: set by the smoother when its horizontal prediction is thrust-only (see ``sanity``)
         self.horizontal_accel_free = False
         self._win: dict[str, deque] = {}
+        self._sums: dict[str, list] = {}  # sensor -> [sum of chi2, sum of dof] over its window
         self.status = "ok"
         self.n_diverged = 0
         self.n_recovered = 0
@@ -509,17 +520,34 @@ class HealthMonitor:
 
     def innovations(self, sensor: str, t: float, chi2: float, dof: int) -> None:
         """Whitened squared error ``chi2`` of a factor with ``dof`` rows at time ``t``."""
-        w = self._win.setdefault(sensor, deque())
+        w = self._win.get(sensor)
+        if w is None:
+            w = self._win[sensor] = deque()
+            self._sums[sensor] = [0.0, 0]
+        sums = self._sums[sensor]
         w.append((t, chi2, dof))
+        sums[0] += chi2
+        sums[1] += dof
+        big = False
         while w and w[0][0] < t - self.options.window_s:
-            w.popleft()
+            _, c, d = w.popleft()
+            sums[0] -= c
+            sums[1] -= d
+            big = big or not c <= _RESUM_CHI2
+        if big:
+            # A large (or non-finite) value left the window: the running sum is taken afresh
+            # (no cancellation error left behind).
+            sums[0] = sum(x[1] for x in w)
 
     def chi2(self) -> dict[str, float]:
-        """Normalised chi-squared (sum of whitened squares / dof) per sensor over the window."""
+        """Normalised chi-squared (sum of whitened squares / dof) per sensor over the window
+        (running sums kept by :meth:`innovations`, not a pass over the window)."""
         out = {}
+        n_min = self.options.window_min_factors
         for s, w in self._win.items():
-            if len(w) >= self.options.window_min_factors:
-                out[s] = sum(x[1] for x in w) / max(sum(x[2] for x in w), 1)
+            if len(w) >= n_min:
+                c, d = self._sums[s]
+                out[s] = c / max(d, 1)
         return out
 
     def sanity(self, state: Any) -> list[str]:
@@ -615,6 +643,7 @@ class HealthMonitor:
         self._last_recovery = t
         self._alarm_since = None
         self._win.clear()
+        self._sums.clear()
         self._snapshots.clear()
         self.events.append({"t": t, "reasons": why, "recovered_from": snap.t})
         log.warning(
@@ -637,6 +666,7 @@ class HealthMonitor:
         snapshots, windows and alarm of the old chain are dropped; counts and status stay."""
         self._snapshots.clear()
         self._win.clear()
+        self._sums.clear()
         self._alarm_since = None
         self._last_snapshot_t = -math.inf
 

@@ -105,6 +105,7 @@ import bisect
 import dataclasses
 import logging
 import math
+import operator
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -132,6 +133,7 @@ from fgnav.datasets.geometry import (
 )
 from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
+from fgnav.factors import _jacobians
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
     make_slam_axis_position_offset_factor,
@@ -252,6 +254,9 @@ class OnlineState:
     quality: int
 
 
+_first = operator.itemgetter(0)
+
+
 def _chr(key: int) -> str:
     """Symbol character of a GTSAM key (top 8 bits; no ``gtsam.Symbol`` per call)."""
     return chr(key >> 56)
@@ -363,6 +368,32 @@ class _States:
         return np.array(self._rows) if self._rows else np.empty((0, _ROW_LEN))
 
 
+class _Ring:
+    """The newest ``capacity`` rows of ``width`` floats in a preallocated array (a deque with
+    ``maxlen`` of small vectors without re-stacking them at every read)."""
+
+    __slots__ = ("_buf", "_n", "_i")
+
+    def __init__(self, capacity: int, width: int) -> None:
+        self._buf = np.empty((max(int(capacity), 1), width))
+        self._n = 0  # rows held
+        self._i = 0  # next row to write
+
+    def append(self, row) -> None:
+        self._buf[self._i] = row
+        self._i = (self._i + 1) % len(self._buf)
+        self._n = min(self._n + 1, len(self._buf))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def array(self) -> np.ndarray:
+        """The rows held, oldest first (a copy)."""
+        if self._n < len(self._buf):
+            return self._buf[: self._n].copy()
+        return np.concatenate((self._buf[self._i :], self._buf[: self._i]))
+
+
 class _Imu:
     """Arrived IMU samples (lists, trimmed to the history)."""
 
@@ -379,9 +410,10 @@ class _Imu:
         self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
-        i = bisect.bisect_left(self.t, t_keep)
-        if i > 1000:
-            del self.t[:i], self.w[:i], self.a[:i], self.sat[:i]
+        t = self.t
+        if len(t) > 1000 and t[1000] < t_keep:  # else bisect_left(t, t_keep) <= 1000
+            i = bisect.bisect_left(t, t_keep)
+            del t[:i], self.w[:i], self.a[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -477,6 +509,9 @@ class OnlineSmoother:
         self._session_scale: dict[int, float] = {}
         self._drag_decision: str | None = None
         self._noise_cache: dict[tuple, Any] = {}
+        self._lin_errors: dict | None = None  # errors recorded at the update's linearisation
+        self._lin_factors: list | None = None  # the update's factors, alive through it
+        self._lin_hits = 0  # monitored factors whose recorded error health used
         self._health_init(health)
         self._clear()
 
@@ -486,6 +521,12 @@ class OnlineSmoother:
 
     def feed(self, ev: Any) -> OnlineState | None:
         """Take one event (arrival order); the newest state when keyframes closed, else None."""
+        if type(ev) is ImuSample:
+            # Most events: straight to the IMU path (the fault detectors never drop a sample;
+            # they only flag saturation).
+            if self._health.options.enabled:
+                self._health.detectors.feed_imu(ev)
+            return self._feed_imu(ev)
         ev = self._health_feed(ev)
         if ev is None:
             return None
@@ -690,14 +731,14 @@ class OnlineSmoother:
         self.values: dict[int, Any] = {}  # last good estimate of live keys
         self.stamp: dict[int, float] = {}
         self._n_prov = 0
-        self._drag_means: deque = deque(maxlen=self.options.drag_scatter_n)
+        self._drag_means = _Ring(self.options.drag_scatter_n, 2)
         self._drag_sigma = float(self.go.drag_model_sigma)
         self._drag_on = self.go.use_drag
         self._drag_checked = False
         self._thrust_axis_ok = True
         # Accelerometer check (fgnav.solvers.accel_check): keyframe-mean horizontal specific
         # force and the smoother's body velocity; thrust-only prediction once it is unusable.
-        self._accel_rows: deque = deque(maxlen=self.options.drag_scatter_n)
+        self._accel_rows = _Ring(self.options.drag_scatter_n, 5)  # f_xy, u_xy, white sigma
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
         self._thrust_provisional = False  # thrust-only until the accelerometer check decides
@@ -832,6 +873,8 @@ class OnlineSmoother:
 
     def _advance(self, t_imu: float) -> bool:
         """Close every keyframe the IMU has passed; True when one closed."""
+        if not self._anchors_on and t_imu <= self.t_kf[self.k] + self.period + 1e-9:
+            return False  # most samples: no keyframe to close (_next_time's grid rule)
         closed = False
         while True:
             t_next, ready = self._next_time(t_imu)
@@ -1155,7 +1198,16 @@ class OnlineSmoother:
         prov_new: list[tuple[int, int, Any]] = []
         self._attach_pending(g, stamps, remove, prov_new)
         n_moves = self.n_fallbacks
-        ok = self._update(g, vals, stamps, remove)
+        # The monitored factors' errors as iSAM2 linearises them (the health monitor's input:
+        # the update leaves the window at that linearisation point; no second callback).
+        self._lin_errors = _jacobians.LINEARIZED = {} if self._health_on else None
+        # The update's factors as Python objects kept alive through it: a callback's ``this``
+        # is then that object (else pybind11 hands it a copy), the key health looks up.
+        self._lin_factors = [g.at(i) for i in range(g.size())] if self._health_on else None
+        try:
+            ok = self._update(g, vals, stamps, remove)
+        finally:
+            _jacobians.LINEARIZED = None
         self._cur_stamps = {}
         # After a move of the window the new factors' indices are not this update's: such
         # provisional factors stay on the provisional alignment (counted).
@@ -1389,7 +1441,7 @@ class OnlineSmoother:
         ):
             R = self.values[X(j)].rotation().matrix()
             u = R.T @ np.asarray(self.values[V(j)], float)
-            self._accel_rows.append((mean[:2].copy(), u[:2], sigma_a / math.sqrt(n)))
+            self._accel_rows.append((mean[0], mean[1], u[0], u[1], sigma_a / math.sqrt(n)))
             first = self._accel_check is None or self._accel_check.decision == "undecided"
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
@@ -1410,7 +1462,7 @@ class OnlineSmoother:
         if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
             self._drop("drag:not-thrust-borne")
             return
-        self._drag_means.append(mean[:2].copy())
+        self._drag_means.append(mean[:2])
         if self.go.drag_sigma_from_data and len(self._drag_means) >= 20 and j % 20 == 0:
             self._drag_sigma = max(self.go.drag_model_sigma, self._drag_scatter())
             chk = self._accel_check
@@ -1467,10 +1519,9 @@ class OnlineSmoother:
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
         from fgnav.solvers.accel_check import check_horizontal_accel
 
-        rows = list(self._accel_rows)
-        f = np.array([r[0] for r in rows])
-        u = np.array([r[1] for r in rows])
-        white = float(np.sqrt(np.mean([r[2] ** 2 for r in rows])))
+        rows = self._accel_rows.array()
+        f, u = rows[:, 0:2], rows[:, 2:4]
+        white = float(np.sqrt(np.mean(rows[:, 4] ** 2)))
         chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
@@ -1669,10 +1720,10 @@ class OnlineSmoother:
         if go.contact_height_m is None or not go.use_range or len(rng) < 2:
             return
         t_j = self.t_kf[j]
-        ts = [r[0] for r in rng]
-        i = bisect.bisect_right(ts, t_j)
-        pair = (i - 1, i) if 1 <= i < len(ts) else (len(ts) - 2, len(ts) - 1)
-        if pair[0] < 0 or any(abs(ts[p] - t_j) > go.interp_max_gap_s for p in pair):
+        n = len(rng)
+        i = bisect.bisect_right(rng, t_j, key=_first)  # no copy of the readings' times
+        pair = (i - 1, i) if 1 <= i < n else (n - 2, n - 1)
+        if pair[0] < 0 or any(abs(rng[p][0] - t_j) > go.interp_max_gap_s for p in pair):
             return
         if not self._kf_alive(j) or X(j) not in self.values:
             return
@@ -1693,7 +1744,7 @@ class OnlineSmoother:
             stamps[gk] = self.t_kf[self.k]
 
     def _drag_scatter(self) -> float:
-        x = np.asarray(self._drag_means)
+        x = self._drag_means.array()
         half = max(1, int(round(0.25 * self.go.keyframe_hz)))
         pad = np.pad(x, ((half, half), (0, 0)), mode="edge")
         win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0)
@@ -2533,6 +2584,8 @@ class OnlineSmoother:
         point into the monitor, then its verdict on the newest state: quality lowered while it
         diverges, a rebuild from the last healthy state when it says so."""
         hm = self._health
+        known, self._lin_errors = self._lin_errors or {}, None
+        factors, self._lin_factors = self._lin_factors, None
         if not hm.options.enabled or not self.out or self.out[-1].t != self.t_kf.get(k):
             return
         if not self._health_checked and getattr(self, "slam_check", None):
@@ -2541,13 +2594,22 @@ class OnlineSmoother:
         t = self.t_kf[k]
         # iSAM2's live linearisation point (a view: getLinearizationPoint() copies the window)
         lin = getattr(self.smoother, "_theta_view", None) or self.smoother.getLinearizationPoint()
-        for i in range(g.size()):
-            f = g.at(i)
-            sensor = sensor_of(f.keys()) if f is not None else None
+        if factors is None or len(factors) != g.size():
+            factors = [g.at(i) for i in range(g.size())]
+        for f in factors:
+            keys = f.keys() if f is not None else None
+            sensor = sensor_of(keys) if keys is not None else None
             if sensor is None:
                 continue
+            # Its error at the last linearisation (iSAM2's, at ``lin``) when recorded, else
+            # evaluated there (the same numbers: tests/solvers/test_online_health_cache.py).
+            e = known.get(f)
             try:
-                e = np.asarray(f.whitenedError(lin), float)
+                if e is not None and all(lin.exists(key) for key in keys):
+                    e = np.asarray(f.noiseModel().whiten(e), float)
+                    self._lin_hits += 1
+                else:
+                    e = np.asarray(f.whitenedError(lin), float)
             except (RuntimeError, IndexError, ValueError):
                 continue  # a key not in the window (the update failed and was rebuilt)
             hm.innovations(sensor, t, float(e @ e), int(e.size))

@@ -96,9 +96,13 @@ def test_jacobians_match_central_differences(seed: int) -> None:
         make_slam_relative_factor(X(0), X(1), S(0), z_i, z_j, body_T_cam, unit), values, [6, 6, 7]
     )
     R_meas = gtsam.Rot3.Expmap(rng.uniform(-1, 1, 3)).matrix()
-    assert_jacobians_close(
-        make_slam_rotation_factor(X(0), S(0), R_meas, body_T_cam, unit), values, [6, 7]
-    )
+    rot = make_slam_rotation_factor(X(0), S(0), R_meas, body_T_cam, unit)
+    assert_jacobians_close(rot, values, [6, 7])
+    # The error-only evaluation (no Jacobians computed) gives the same error.
+    e, J = slam_rotation_error(pose_i, sim, R_meas, body_T_cam, with_jacobians=False)
+    assert J is None
+    np.testing.assert_array_equal(e, slam_rotation_error(pose_i, sim, R_meas, body_T_cam)[0])
+    np.testing.assert_array_equal(rot.unwhitenedError(values), e)
     assert_jacobians_close(
         make_slam_axis_scale_factor(X(1), S(1), z_j, unit, body_t_cam=body_T_cam.translation()),
         values,

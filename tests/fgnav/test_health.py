@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -354,3 +355,33 @@ def test_batch_stuck_range_run_dropped_from_its_first_reading():
     assert h["detectors"]["range-stuck"] == 1 and h["resolved"] is True
     assert h["dropped"]["range:stuck"] == len(rng) - i8
     assert score_estimate(bad, est).ate_rmse_m < 1.5 * ate0
+
+
+def test_monitor_running_chi2_equals_a_pass_over_the_window():
+    """The running sums of :meth:`HealthMonitor.innovations` give the normalised chi2 of a
+    fresh pass over the window, also after outliers (1e9) and a NaN have left it."""
+    hm = HealthMonitor(HealthOptions(window_min_factors=3, window_s=1.0))
+    rng = np.random.default_rng(7)
+    kept: dict[str, list] = {"slam": [], "range": []}
+    t = 0.0
+    for i in range(400):
+        for sensor, dof in (("slam", 3), ("range", 1)):
+            c = float(rng.chisquare(dof))
+            if i in (50, 51, 200):
+                c *= 1e9
+            if i == 120 and sensor == "range":
+                c = math.nan
+            hm.innovations(sensor, t, c, dof)
+            kept[sensor].append((t, c, dof))
+            kept[sensor] = [x for x in kept[sensor] if x[0] >= t - 1.0]
+        got = hm.chi2()
+        for sensor, w in kept.items():
+            if len(w) < 3:
+                assert sensor not in got
+                continue
+            want = sum(x[1] for x in w) / sum(x[2] for x in w)
+            if math.isnan(want):
+                assert math.isnan(got[sensor])
+            else:
+                assert got[sensor] == pytest.approx(want, rel=1e-12, abs=1e-12), (i, sensor)
+        t = round(t + 0.05, 6)
