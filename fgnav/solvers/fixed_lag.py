@@ -57,7 +57,7 @@ import logging
 import math
 import time
 import tracemalloc
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import gtsam
@@ -107,14 +107,20 @@ class FixedLagOptions:
         lag_s: smoother lag [s].
         relinearize_threshold: ISAM2 relinearization threshold of the keyframe states ``X, V, B``
             (largest tangent-space component).
-        relinearize_threshold_position: the same for the translation part of the keyframe
-            poses ``X`` [m] (None: ``relinearize_threshold``; the smaller of the two is used).
+        relinearize_threshold_position: push engine: the same for the translation part of the
+            keyframe poses ``X`` [m] (None: ``relinearize_threshold``; the smaller of the two is
+            used; the prepared runner always uses ``relinearize_threshold``).
             0.5 m let a keyframe position leave the window (marginalised) still linearised at
             its IMU-predicted initial value, a few cm from its estimate: the marginal then holds
             a linearisation error that biases the SLAM scale. Measured 2026-12-02 (push engine,
-            EuRoC MH_01, seed 1): 0.5 -> 0.003 m, causal ATE 6.27 -> 4.7 cm, final scale error
-            1.27 -> 0.72 %, NEES 3.5 -> 2.0; rotation, velocity or bias thresholds of 0.01 alone
-            changed nothing (6.2-6.3 cm). See README's results table for the sims.
+            EuRoC MH_01, scale walk 3e-4): 0.5 -> 0.003 m, causal ATE 6.27 -> 4.73 cm (lagged
+            output 5.95 -> 4.24 cm), final scale error 1.27 -> 0.70 %, NEES 3.5 -> 2.1; V1_02
+            ORB-SLAM2 / ORB-SLAM3 keyframes 20.31 / 8.74 -> 20.48 / 7.16 cm; simulated (seed 1,
+            camera) two-turns 0.49 -> 0.46, circle 0.43 -> 0.44, rectangle 0.44 -> 0.45,
+            figure8 0.52 -> 0.50 cm. Rotation, velocity or bias thresholds of 0.01 alone changed
+            nothing (6.2-6.3 cm); 0.01 m gave 4.85 cm; every threshold 0.003 with
+            relinearisation at every update 4.74 cm (0.68 %): the linearisation is then spent.
+            More relinearisation per update: ``scripts/bench_online.py`` measures the cost.
         relinearize_threshold_slow: the same for the slow variables ``S, D, G`` (a provisional
             SLAM scale moves by tens of percent when it becomes observable: its factors must be
             relinearised then).
@@ -225,14 +231,17 @@ class FixedLagOptions:
             window (``OnlineSmoother.lagged_result``: the ``fixed-lag@lag`` row of
             ``fgnav compare``, delayed by the lag).
         slam_scale_rw: relative SLAM scale random walk of the push engine's alignment
-            segments [1/sqrt(s)] (None: ``graph.slam_scale_rw``, which the batch smoother and the
-            prepared runner use). 3e-4: the graph's 1e-3 was tuned for the simulator's 1e-4/s
-            drift; ORB-SLAM3 on MH_01 measures -2.7e-5 +- 2.6e-5 per second. Measured
-            2026-12-02, causal ATE EuRoC MH_01 7.17 -> 6.27 cm (NEES 4.8 -> 3.5; final scale
-            error 1.24 -> 1.27 %: the bias that appears at take-off, 45-60 s, is not the walk's),
-            two-turns 0.966 -> 0.972 cm, figure8 1.134 -> 1.123 cm, V1_02 ORB-SLAM2 / ORB-SLAM3
-            keyframes 20.30 / 8.78 -> 20.31 / 8.74 cm. The batch keeps 1e-3 (3e-4 there: MH_01
-            3.78 -> 3.82 cm).
+            segments [1/sqrt(s)] (None, the default: ``graph.slam_scale_rw``, 1e-3, which the
+            batch smoother and the prepared runner use). 3e-4 (the default from 2026-12-02
+            afternoon to evening) had been measured with the 0.5 m position relinearisation
+            threshold (EuRoC MH_01 7.17 -> 6.27 cm): it held back part of the scale bias that
+            threshold caused. With the 3 mm threshold (``relinearize_threshold_position``),
+            measured 2026-12-02 evening, 3e-4 -> 1e-3: MH_01 causal ATE 4.73 -> 4.61 cm, final
+            scale error 0.70 -> 0.49 %, mean 0.91 -> 0.77 %, NEES 2.07 -> 1.86; V1_02 ORB-SLAM2 /
+            ORB-SLAM3 keyframes 20.48 / 7.16 -> 20.49 / 7.22 cm; simulated (seed 1, camera)
+            two-turns 0.46 / circle 0.44 / rectangle 0.45 / figure8 0.50 cm -> 0.46 / 0.44 /
+            0.43 / 0.50 cm (final scale error rectangle -0.35 -> -0.51 %, figure8 -0.06 ->
+            +0.02 %).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -281,10 +290,27 @@ class FixedLagOptions:
     drag_check_s: float = 0.5
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
-    slam_scale_rw: float | None = 3e-4
+    slam_scale_rw: float | None = None
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
     lagged_output: bool = True
+
+
+def relinearize_thresholds(o: FixedLagOptions, slow_dims: dict[str, int]) -> dict[str, np.ndarray]:
+    """iSAM2's relinearisation threshold per variable symbol, one per tangent component:
+    ``relinearize_threshold`` for ``X, V, B`` (the pose translation
+    ``relinearize_threshold_position``, when set, if smaller), ``relinearize_threshold_slow``
+    for the slow variables of ``slow_dims`` (symbol -> tangent dimension)."""
+    out: dict[str, np.ndarray] = {}
+    for c, dim in {"x": 6, "v": 3, "b": 6}.items():
+        thr = np.full(dim, float(o.relinearize_threshold))
+        if c == "x" and o.relinearize_threshold_position is not None:
+            # Pose3 tangent [rotation, translation]: the position's own threshold.
+            thr[3:] = min(o.relinearize_threshold, o.relinearize_threshold_position)
+        out[c] = thr
+    for c, dim in slow_dims.items():
+        out[c] = np.full(dim, float(o.relinearize_threshold_slow))
+    return out
 
 
 def _isam2_params(
@@ -294,14 +320,8 @@ def _isam2_params(
     ``factorization`` overrides ``o.factorization``."""
     p = gtsam.ISAM2Params()
     thresholds = gtsam.ISAM2ThresholdMap()
-    for c, dim in {"x": 6, "v": 3, "b": 6}.items():
-        thr = np.full(dim, o.relinearize_threshold)
-        if c == "x" and o.relinearize_threshold_position is not None:
-            # Pose3 tangent [rotation, translation]: the position's own threshold.
-            thr[3:] = min(o.relinearize_threshold, o.relinearize_threshold_position)
+    for c, thr in relinearize_thresholds(o, slow_dims).items():
         thresholds.insert((c, thr))
-    for c, dim in slow_dims.items():
-        thresholds.insert((c, np.full(dim, o.relinearize_threshold_slow)))
     p.setRelinearizeThreshold(thresholds)
     p.relinearizeSkip = int(o.relinearize_skip)
     p.setFactorization((factorization or o.factorization).upper())
@@ -830,7 +850,10 @@ class FixedLagRunner:
             return False
 
     def _new_smoother(self, factorization: str) -> Any:
-        params = _isam2_params(self.options, self.builder.slow_dims(), factorization)
+        # The prepared runner keeps the keyframe threshold for the pose translation too (the
+        # 3 mm one was measured on the push engine only).
+        o = replace(self.options, relinearize_threshold_position=None)
+        params = _isam2_params(o, self.builder.slow_dims(), factorization)
         if self.smoother_kind == "gtsam":
             return gtsam.IncrementalFixedLagSmoother(self.options.lag_s, params)
         return TimeOrderedSmoother(self.options.lag_s, params, self.options.fine_levels)
