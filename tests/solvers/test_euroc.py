@@ -52,21 +52,19 @@ def test_euroc_v102_keyframes_batch_within_4cm(real_data, run):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize(
-    "manifest, ate_max, scale_max, convention",
+    "manifest, ate_max, convention",
     [
-        (MANIFEST, 0.050, 0.006, "as-is"),
-        (V102["orbslam2_kf1"], 0.25, 0.02, "as-is"),
-        (V102["orbslam3_kf2"], 0.09, 0.02, "inverse"),
+        (MANIFEST, 0.070, "as-is"),
+        (V102["orbslam2_kf1"], 0.25, "as-is"),
+        (V102["orbslam3_kf2"], 0.12, "inverse"),
     ],
 )
-def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_max, convention):
+def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, convention):
     # The push engine's newest state (strictly causal), default options. Measured 2026-12-02
-    # evening with the pose-translation relinearisation threshold 3 mm
-    # (FixedLagOptions.relinearize_threshold_position) and the graph's scale walk 1e-3: MH_01
-    # 4.61 cm, final scale error 0.49 % (4.73 cm, 0.70 % with the walk 3e-4; 6.27 cm, 1.27 %
-    # with the 0.5 m threshold), V1_02 ORB-SLAM2 keyframes 20.5 cm (20.3 before), ORB-SLAM3
-    # keyframes 7.2 cm (8.7); before the still-stretch gyro-bias start, the early SLAM-vs-gyro
-    # decision and the start's relinearisation: 7.5, 45 and 59 cm.
+    # with FixedLagOptions.slam_scale_rw 3e-4: MH_01 6.3 cm (7.2 with the graph's 1e-3), V1_02
+    # ORB-SLAM2 keyframes 20.3 cm, ORB-SLAM3 keyframes 8.7 cm (8.8) (before the
+    # still-stretch gyro-bias start, the early SLAM-vs-gyro decision and the start's
+    # relinearisation: 7.5, 45 and 59 cm).
     from fgnav.solvers.fixed_lag import FixedLagOptions
     from fgnav.solvers.online import replay_online
 
@@ -78,4 +76,22 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_m
     m = evaluate(est, flight.ground_truth, alignment="se3")
     assert m.ate_rmse_m < ate_max, m.ate_rmse_m
     s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
-    assert abs(est.slam_scale[0] / s_true - 1) < scale_max, est.slam_scale[0] / s_true - 1
+    assert abs(est.slam_scale[0] / s_true - 1) < 0.02
+
+
+@pytest.mark.realdata
+def test_euroc_mh01_push_engine_position_relinearisation(real_data):
+    # Opt-in (not the default: see FixedLagOptions.relinearize_threshold_position): the keyframe
+    # positions relinearised at 3 mm and the graph's scale walk. Measured 2026-12-02 evening:
+    # MH_01 causal ATE 4.61 cm, final scale error 0.49 % (defaults: 6.27 cm, 1.27 %).
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.online import replay_online
+
+    flight = load_flight(MANIFEST)
+    opts = FixedLagOptions(relinearize_threshold_position=0.003, slam_scale_rw=None)
+    est = replay_online(flight, opts)
+    assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
+    m = evaluate(est, flight.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.050, m.ate_rmse_m
+    s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
+    assert abs(est.slam_scale[0] / s_true - 1) < 0.006, est.slam_scale[0] / s_true - 1
