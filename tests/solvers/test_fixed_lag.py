@@ -228,3 +228,20 @@ def test_failed_update_with_provisional_slam_factors_keeps_them_registered(two_t
     est = r.run()
     assert est.info["factorization_fallbacks"] == 1 and est.info["solver_failures"] == 0
     assert not r.provisional_factors  # all re-attached once the closed-form alignment came
+
+
+def test_pose_translation_has_its_own_relinearisation_threshold():
+    # The keyframe positions relinearise at 3 mm when set (0.5 m left them marginalised at
+    # their IMU-predicted value: MH_01's causal scale 1.27 % off against 0.70 %); the rest as set.
+    from fgnav.solvers.fixed_lag import relinearize_thresholds
+
+    thr = relinearize_thresholds(FixedLagOptions(relinearize_threshold_position=0.003), {"s": 7})
+    np.testing.assert_array_equal(thr["x"], [0.5, 0.5, 0.5, 0.003, 0.003, 0.003])
+    np.testing.assert_array_equal(thr["v"], np.full(3, 0.5))
+    np.testing.assert_array_equal(thr["b"], np.full(6, 0.5))
+    np.testing.assert_array_equal(thr["s"], np.full(7, 0.01))
+    old = relinearize_thresholds(FixedLagOptions(), {})
+    np.testing.assert_array_equal(old["x"], np.full(6, 0.5))
+    # The start's tighter threshold wins over a looser position threshold.
+    start = FixedLagOptions(relinearize_threshold=0.001, relinearize_threshold_position=0.003)
+    np.testing.assert_array_equal(relinearize_thresholds(start, {})["x"], np.full(6, 0.001))
