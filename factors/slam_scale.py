@@ -350,10 +350,16 @@ def _offset_terms(body_t_cam, dt, body_accel, body_omega, gravity):
     return float(dt), E @ c, f_half, g_half
 
 
-def _slam_offset(m, v, slam_T_world, z, dt, Ec, f_half, g_half, with_jacobians):
+def _carried_camera(m, v, dt, Ec, f_half, g_half):
+    """``(R_b, lever, p_cam(t))`` of the offset model: the camera carried ``dt`` from the
+    keyframe pose matrix ``m`` and velocity ``v``."""
     R_b = m[:3, :3]
     lever = f_half + Ec
-    p = m[:3, 3] + v * dt + g_half + R_b @ lever
+    return R_b, lever, m[:3, 3] + v * dt + g_half + R_b @ lever
+
+
+def _slam_offset(m, v, slam_T_world, z, dt, Ec, f_half, g_half, with_jacobians):
+    R_b, lever, p = _carried_camera(m, v, dt, Ec, f_half, g_half)
     R = slam_T_world.rotation().matrix()
     s = slam_T_world.scale()
     e = s * (R @ p + slam_T_world.translation()) - z
@@ -529,9 +535,7 @@ def slam_axis_position_offset_error(
 
 
 def _axis_offset(m, v, a, z, dt, Ec, f_half, g_half, with_jacobians):
-    R_b = m[:3, :3]
-    lever = f_half + Ec
-    p = m[:3, 3] + v * dt + g_half + R_b @ lever
+    R_b, lever, p = _carried_camera(m, v, dt, Ec, f_half, g_half)
     k = a[:3]
     e = k * p + a[3:] - z
     if not with_jacobians:

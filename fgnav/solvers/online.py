@@ -2231,11 +2231,9 @@ class OnlineSmoother:
                 return None
             self._start_axis_chain(s, t, *fit, g, stamps)
             return s.last_key
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        if seg in s.chain:
-            return s.chain[seg]
-        if seg < s.last_seg:
-            return s.chain[s.last_seg]
+        seg, known = self._segment(s, t)
+        if known is not None:
+            return known
         key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         a = np.asarray(self.values[prev], float)
@@ -2339,12 +2337,9 @@ class OnlineSmoother:
                 if s.provisional is None:
                     self._start_provisional(sess, s, g, stamps)
                 return s.provisional
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        if seg in s.chain:
-            return s.chain[seg]
-        if seg < s.last_seg:
-            # An older segment than the newest (a late pose): the newest variable takes it.
-            return s.chain[s.last_seg]
+        seg, known = self._segment(s, t)
+        if known is not None:
+            return known
         key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         value = self.values[prev]
@@ -2372,6 +2367,17 @@ class OnlineSmoother:
         s.chain[seg] = key
         s.last_key, s.last_seg = key, seg
         return key
+
+    def _segment(self, s: _Session, t: float) -> tuple[int, int | None]:
+        """The alignment segment of a pose at ``t`` and its existing variable (None: a new
+        segment after the newest). An older segment than the newest (a late pose) has no
+        variable of its own: the newest one takes it."""
+        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+        if seg in s.chain:
+            return seg, s.chain[seg]
+        if seg < s.last_seg:
+            return seg, s.chain[s.last_seg]
+        return seg, None
 
     def _insert(self, key: int, value: Any, g, stamps) -> None:
         self._queued_values.insert(key, value)
