@@ -28,7 +28,10 @@ each counted by name in :meth:`FaultDetectors.report`:
   alignment, its scale started from the previous one's), so the jump is not fitted as motion.
 - ``range-stuck``: ``range_stuck_s`` of readings with identical values while the estimate says
   the sensor's height changed by more than ``range_stuck_motion_m``; further identical readings
-  are dropped (``range:stuck``) until the value changes.
+  are dropped (``range:stuck``) until the value changes. Batch: the whole run is dropped; a
+  constant run the detector could not call stuck from the solve that contains it (that solve
+  follows a stuck reading the more, the stiffer the ground-height walk) is tested on one more
+  solve without its readings (:func:`stuck_range_candidates`, :func:`confirm_stuck_range`).
 - ``camera-frozen``: an image identical (byte for byte) to the previous one; dropped
   (``images:frozen``).
 - ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
@@ -214,6 +217,7 @@ class FaultDetectors:
         self._slam_jumps: dict[int, int] = {}
         self._range_val: float | None = None
         self._range_t0: float | None = None
+        self._range_slam0: tuple[int, np.ndarray] | None = None
         self._range_stuck = False
         #: (start time, value) of each stuck range run declared
         self.stuck_runs: list[tuple[float, float]] = []
@@ -392,6 +396,7 @@ class FaultDetectors:
         if self._range_val is None or r != self._range_val:
             self._range_val, self._range_t0 = r, t
             self._range_h0 = self._height(t)
+            self._range_slam0 = self._slam_last
             self._range_stuck = False
             return ev
         if self._range_stuck:
@@ -399,6 +404,13 @@ class FaultDetectors:
             return None
         if t - self._range_t0 >= o.range_stuck_s:
             h0, h1 = self._range_h0, self._height(t)
+            s0, s1 = self._range_slam0, self._slam_last
+            if s0 is not None and s1 is not None and s0[0] == s1[0]:
+                # Both SLAM positions through the newest alignment: its origin, which walks
+                # (and absorbs a stuck reading the more, the stiffer the ground walk), cancels.
+                a, b = self.context.slam_height(*s0), self.context.slam_height(*s1)
+                if a is not None and b is not None:
+                    h0, h1 = a, b
             if h0 is not None and h1 is not None and abs(h1 - h0) > o.range_stuck_motion_m:
                 self._range_stuck = True
                 self.stuck_runs.append((self._range_t0, r))
@@ -799,6 +811,54 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         "error_per_factor": per_factor,
         "_fixes": {"jumps": jumps, "stuck_range_t": stuck, "frozen_image_t": frozen},
     }
+
+
+def constant_range_runs(flight: Any, min_s: float) -> list[tuple[int, int]]:
+    """Index runs ``[i, j)`` of identical range readings spanning at least ``min_s`` [s]."""
+    if flight.range is None or len(flight.range.t) < 2:
+        return []
+    t, r = np.asarray(flight.range.t, float), np.asarray(flight.range.range, float)
+    starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
+    ends = np.r_[starts[1:], len(r)]
+    return [
+        (int(i), int(j))
+        for i, j in zip(starts, ends, strict=True)
+        if np.isfinite(r[i]) and t[j - 1] - t[i] >= min_s
+    ]
+
+
+def stuck_range_candidates(
+    flight: Any, declared_t: Any, options: HealthOptions | None = None
+) -> list[tuple[int, int]]:
+    """The constant range runs (index runs) the batch's detector did not declare stuck
+    (``declared_t``: the times of the readings it dropped). Its context, the solve with those
+    readings in it, can follow a stuck reading (the more, the stiffer the ground-height walk);
+    :func:`confirm_stuck_range` tests them on a solve without them."""
+    o = (options or HealthOptions()).check()
+    if flight.range is None:
+        return []
+    declared = {float(x) for x in declared_t}
+    t = np.asarray(flight.range.t, float)
+    runs = constant_range_runs(flight, o.range_stuck_s)
+    return [(i, j) for i, j in runs if float(t[i]) not in declared]
+
+
+def confirm_stuck_range(
+    flight: Any, runs: list[tuple[int, int]], est: Any, options: HealthOptions | None = None
+) -> list[tuple[int, int]]:
+    """The runs over which ``est`` (solved without their readings) says the rangefinder's height
+    changed by more than ``range_stuck_motion_m`` while it read one value: stuck."""
+    o = (options or HealthOptions()).check()
+    tr = est.trajectory
+    z = _interp(tr.t, tr.world_t_body[:, 2])
+    t = np.asarray(flight.range.t, float)
+    out = []
+    for i, j in runs:
+        zs = [z(float(x)) for x in t[i:j]]
+        zs = [v for v in zs if v is not None]
+        if zs and max(zs) - min(zs) > o.range_stuck_motion_m:
+            out.append((i, j))
+    return out
 
 
 def fixed_flight(flight: Any, fixes: dict[str, Any]) -> Any | None:

@@ -258,19 +258,30 @@ def fixed_lag_options(config: Mapping[str, Any]):
 def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` and
     ``[priors]`` tables."""
-    from fgnav.health import check_batch, fixed_flight
+    from fgnav.health import check_batch, fixed_flight, stuck_range_candidates
     from fgnav.solvers.batch import solve_batch
 
     opts = batch_options(config)
     priors = frontend_priors(flight, config)
     est = solve_batch(flight, opts, priors=priors, progress=progress)
     health = check_batch(flight, est)
-    fixed = fixed_flight(flight, health.pop("_fixes"))
+    fixes = health.pop("_fixes")
+    candidates = stuck_range_candidates(flight, fixes["stuck_range_t"])
+    probe = None
+    if candidates:
+        fixes["stuck_range_t"], n_stuck, probe = _confirm_stuck_range(
+            flight, candidates, fixes, opts, priors
+        )
+        if n_stuck:
+            det = health["detectors"]
+            det["range-stuck"] = det.get("range-stuck", 0) + n_stuck
+            health["dropped"]["range:stuck"] = len(fixes["stuck_range_t"])
+    fixed = fixed_flight(flight, fixes)
     if fixed is not None:
         # The detectors' fixes (SLAM jumps as new sessions, stuck range readings and frozen
         # images dropped): solved once more, the first solve's report kept.
         try:
-            est2 = solve_batch(fixed, opts, priors=priors, progress=progress)
+            est2 = probe or solve_batch(fixed, opts, priors=priors, progress=progress)
         except FgnavError as e:
             log.warning(
                 "%s: batch with the detectors' fixes failed (%s): the first solve kept",
@@ -290,6 +301,43 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
                 "error_per_factor": second["error_per_factor"],
             }
     return _with_priors(_with_info(est, health=health), priors)
+
+
+def _confirm_stuck_range(flight, runs, fixes, opts, priors):
+    """The constant range runs ``runs`` (index runs the batch's detector did not call stuck)
+    tested: the flight solved once without their readings (and with the detectors' other
+    fixes); a run over which that solve's height moves by more than ``range_stuck_motion_m`` is
+    stuck (said as the detector says it), the others keep their readings. Returns the stuck
+    readings' times (the detector's and these), the number of runs found stuck here, and the
+    probe solve when it is the solve of the fixed flight (every run stuck), else None."""
+    from fgnav.health import HealthOptions, confirm_stuck_range, fixed_flight
+    from fgnav.solvers.batch import solve_batch
+
+    t = np.asarray(flight.range.t, float)
+    declared = fixes["stuck_range_t"]
+    test_t = sorted(set(declared).union(*(t[i:j].tolist() for i, j in runs)))
+    try:
+        est = solve_batch(
+            fixed_flight(flight, {**fixes, "stuck_range_t": test_t}), opts, priors=priors
+        )
+    except FgnavError as e:
+        log.warning("%s: the stuck-range test solve failed (%s): readings kept", flight.name, e)
+        return declared, 0, None
+    stuck = confirm_stuck_range(flight, runs, est)
+    r = np.asarray(flight.range.range, float)
+    moved = HealthOptions().range_stuck_motion_m
+    for i, j in stuck:
+        log.warning(
+            "%s: health: range-stuck: rangefinder constant at %.3f m from t=%.2f to %.2f s while "
+            "the solve without those readings moves by more than %.2f m: readings dropped",
+            flight.name,
+            r[i],
+            t[i],
+            t[j - 1],
+            moved,
+        )
+    out = sorted(set(declared).union(*(t[i:j].tolist() for i, j in stuck)))
+    return out, len(stuck), est if len(stuck) == len(runs) else None
 
 
 def run_fixed_lag(

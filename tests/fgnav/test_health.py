@@ -357,6 +357,30 @@ def test_batch_stuck_range_run_dropped_from_its_first_reading():
     assert score_estimate(bad, est).ate_rmse_m < 1.5 * ate0
 
 
+def test_constant_range_runs_and_their_confirmation_on_a_solve_without_them():
+    """Runs of identical readings spanning ``range_stuck_s``; a run is stuck when the solve
+    without its readings moves the height by more than ``range_stuck_motion_m`` over it."""
+    from types import SimpleNamespace
+
+    from fgnav.datasets.types import Trajectory
+
+    from fgnav.health import confirm_stuck_range, constant_range_runs, stuck_range_candidates
+
+    t = np.arange(0.0, 10.0, 0.05)
+    r = 1.0 + 0.01 * np.sin(t * 7.0)
+    r[40:80] = r[40]  # 2.0-3.95 s: constant
+    r[120:130] = r[120]  # 0.45 s: too short
+    r[150:190] = r[150]  # 7.5-9.45 s: constant
+    f = SimpleNamespace(range=SimpleNamespace(t=t, range=r))
+    runs = constant_range_runs(f, 1.0)
+    assert runs == [(40, 80), (150, 190)]
+    assert stuck_range_candidates(f, t[150:190]) == [(40, 80)]
+    z = np.where(t < 7.0, 1.0, 1.0 + 0.2 * (t - 7.0))  # climbs 0.4 m over the second run
+    n = len(t)
+    tr = Trajectory(t, np.c_[np.zeros((n, 2)), z], np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)))
+    assert confirm_stuck_range(f, runs, SimpleNamespace(trajectory=tr)) == [(150, 190)]
+
+
 def test_monitor_running_chi2_equals_a_pass_over_the_window():
     """The running sums of :meth:`HealthMonitor.innovations` give the normalised chi2 of a
     fresh pass over the window, also after outliers (1e9) and a NaN have left it."""
