@@ -37,8 +37,10 @@ def test_slam_model_is_the_flights_declaration_not_its_truth() -> None:
 @pytest.mark.slow
 def test_push_engine_circle_per_axis_with_camera() -> None:
     """Circle (per-axis scale 0.3/0.2/0.25, drifting), every sensor and the rendered camera, 20 s,
-    seed 1. Measured: ATE 0.40 cm (the prepared engine, not causal: 0.81 cm), final kx, ky, kz
-    0.2 / 0.4 / 0.5 % from the drifting truth (prepared 0.07 / 0.4 / 1.3 %), fit at t=3.0 s."""
+    seed 1. Measured: ATE 0.38 cm (the prepared engine, not causal: 0.81 cm), final kx, ky
+    0.2 / 0.4 % from the drifting truth (prepared 0.07 / 0.4 %), fit at t=3.0 s. The circle is
+    flat (true z std below 0.5 mm): kz has no motion to be seen in and rests on its start fit,
+    the priors and the walks (-3.2 % with the ground walk 0.002 m/sqrt(s), -0.5 % with 0.01)."""
     f = simulate("circle", seed=1, options=SimOptions(duration=20.0))
     est = replay_online(f, FixedLagOptions())
     assert est.info["engine"] == "push-api"
@@ -46,7 +48,9 @@ def test_push_engine_circle_per_axis_with_camera() -> None:
     m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.ate_rmse_m < 0.008, m.ate_rmse_m
     k = est.series["slam_axis_scale"].value[-1]
-    np.testing.assert_allclose(k, _true_axis_scale(f, est.trajectory.t[-1]), rtol=0.01)
+    k_true = _true_axis_scale(f, est.trajectory.t[-1])
+    np.testing.assert_allclose(k[:2], k_true[:2], rtol=0.01)
+    np.testing.assert_allclose(k[2], k_true[2], rtol=0.05)  # unobservable: see the docstring
     assert est.slam_scale[0] == pytest.approx(float(np.cbrt(np.prod(k))))
     # Poses whose keyframe left the window before the fit are counted.
     assert 0 < est.info["dropped"]["slam:before-alignment"] < 60
