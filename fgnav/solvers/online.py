@@ -147,6 +147,7 @@ from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
+from fgnav.solvers.accel_check import RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
     FixedLagOptions,
@@ -738,7 +739,8 @@ class OnlineSmoother:
         self._thrust_axis_ok = True
         # Accelerometer check (fgnav.solvers.accel_check): keyframe-mean horizontal specific
         # force and the smoother's body velocity; thrust-only prediction once it is unusable.
-        self._accel_rows = _Ring(self.options.drag_scatter_n, 5)  # f_xy, u_xy, white sigma
+        # f_xy, u_xy, white sigma of the last keyframes, with the check's running sums
+        self._accel_rows = RunningAccelCheck(self.options.drag_scatter_n)
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
         self._thrust_provisional = False  # thrust-only until the accelerometer check decides
@@ -1517,12 +1519,9 @@ class OnlineSmoother:
         horizontal specific force against the smoother's body velocities at them): unusable ->
         drag off and (``accel_horizontal = "auto"``) thrust-only IMU prediction from the next
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
-        from fgnav.solvers.accel_check import check_horizontal_accel
-
-        rows = self._accel_rows.array()
-        f, u = rows[:, 0:2], rows[:, 2:4]
-        white = float(np.sqrt(np.mean(rows[:, 4] ** 2)))
-        chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
+        # (check_horizontal_accel on the window's rows, from running sums)
+        rows = self._accel_rows
+        chk = rows.check(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
             # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
