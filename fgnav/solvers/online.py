@@ -764,6 +764,7 @@ class OnlineSmoother:
 
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
+        self._height_parts: tuple | None = None  # (alignment, its parts) for _slam_height
         self._bad_since = -math.inf
         # The state carried over a restart after an IMU gap (see _carry_state).
         self._carry: dict[str, Any] | None = None
@@ -2568,7 +2569,12 @@ class OnlineSmoother:
             return float((slam_t_cam[2] - S[5]) / S[2])
         if not isinstance(S, gtsam.Similarity3):
             return None
-        scale, slam_R_world, slam_t_world = slam_alignment_parts(S)
+        # The alignment changes at the slow-variable reads only, the range readings (50 Hz)
+        # ask for every one: its parts kept with the object they came from.
+        cached = self._height_parts
+        if cached is None or cached[0] is not S:
+            cached = self._height_parts = (S, *slam_alignment_parts(S))
+        _, scale, slam_R_world, slam_t_world = cached
         return float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
 
     def _health_feed(self, ev: Any) -> Any:
@@ -2933,7 +2939,9 @@ class OnlineSmoother:
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
         self._pose_hist[k] = (self.t_kf[k], pose)
         while len(self._pose_hist) > self.options.history_s * self.go.keyframe_hz:
-            del self._pose_hist[min(self._pose_hist)]
+            # The oldest is the first inserted: keyframes are read once each, in increasing k
+            # (``_clear`` starts a new dict), so no min() over the ~600 keys.
+            del self._pose_hist[next(iter(self._pose_hist))]
         t = self.t_kf[k]
         # Slow variables.
         every = max(1, self.options.slow_read_every)
