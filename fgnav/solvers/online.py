@@ -845,7 +845,9 @@ class OnlineSmoother:
             self._drop("imu:non-finite")
             return None
         last = self._t_last.get("imu", -math.inf)
-        if not self._check_time("imu", t):
+        if t > last:  # most samples (t is finite here): _check_time's accepting branch
+            self._t_last["imu"] = t
+        elif not self._check_time("imu", t):
             return None
         if t < last:
             self.reset("imu-clock-jump")
@@ -858,7 +860,8 @@ class OnlineSmoother:
             self.reset("imu-gap")
             self._carry = carry
             self._t_last = {"imu": t}
-        self._use("imu")
+        used = self.used
+        used["imu"] = used.get("imu", 0) + 1
         if self._pstage is not None:
             self._pstage.feed(ev)
         if self._sgc is not None:
