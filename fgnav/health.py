@@ -213,6 +213,9 @@ class FaultDetectors:
         self._imu_med: float | None = None
         self._n_imu = 0
         self._imu_kinds: tuple | None = None  # (kind, lo, hi, rail, run, bits) per sensor
+        # Per axis (gyro x, y, z, accel x, y, z) the open interval of values that change no
+        # detector state (inside the seen range, below the rail by a margin): most samples.
+        self._imu_calm: tuple[float, ...] | None = None
         self._slam_prev: dict[int, tuple[float, np.ndarray]] = {}
         self._slam_jumps: dict[int, int] = {}
         self._range_val: float | None = None
@@ -302,6 +305,38 @@ class FaultDetectors:
         self._n_imu += 1
         if last is None or t > last:
             self._imu_last = t
+        calm = self._imu_calm
+        if calm is not None:
+            w0, w1, w2 = w
+            a0, a1, a2 = a
+            if (
+                calm[0] < w0 < calm[1]
+                and calm[2] < w1 < calm[3]
+                and calm[4] < w2 < calm[5]
+                and calm[6] < a0 < calm[7]
+                and calm[8] < a1 < calm[9]
+                and calm[10] < a2 < calm[11]
+            ):
+                return 0  # strictly inside every axis's calm interval: nothing to update
+        flags = self._imu_axes(t, w, a)
+        self._imu_calm = self._calm_intervals()
+        return flags
+
+    def _calm_intervals(self) -> tuple[float, ...]:
+        """Per axis ``(low, high)``: a value strictly between them is inside the axis's seen
+        range ``[lo, hi]`` and below its rail ``r`` by more than the ``1e-9 r`` the rail test of
+        :meth:`_imu_axes` allows (margin ``4e-9 r``), so it changes no state and sets no flag."""
+        out: list[float] = []
+        for kind in ("gyro", "accel"):
+            lo, hi, rail = self._lo[kind], self._hi[kind], self._rail[kind]
+            for i in range(3):
+                b = rail[i] * (1.0 - 4e-9)
+                out += (max(lo[i], -b), min(hi[i], b))
+        return tuple(out)
+
+    def _imu_axes(self, t: float, w: list[float], a: list[float]) -> int:
+        """The per-axis range, rail and run bookkeeping of one sample; its saturation flags."""
+        flags = 0
         o = self.options
         kinds = self._imu_kinds
         if kinds is None:

@@ -9,7 +9,7 @@ machine's load: run it on an idle machine.
 
     .venv/bin/python scripts/bench_online.py [--camera] [--duration 180] [--keyframe-hz 20]
         [--lag 2] [--marginalize-every 1] [--factorization CHOLESKY|QR]
-        [--smoother time-ordered|gtsam]
+        [--smoother time-ordered|gtsam] [--relinearize-position 0.003]
 
 Also prints a machine reference workload (a fixed mix of Python, NumPy and GTSAM work, best of 3,
 before and after the run) and the smoother's CPU time in units of it: this VM's CPU speed varies by
@@ -205,6 +205,13 @@ def main() -> None:
         help="render the 30 Hz downward camera and add its homography factors (the VO front-end "
         "runs once before the smoother; its time is printed apart)",
     )
+    ap.add_argument(
+        "--relinearize-position",
+        type=float,
+        default=FixedLagOptions.relinearize_threshold_position,
+        help="push engine: relinearisation threshold of the keyframe positions [m] "
+        "(FixedLagOptions.relinearize_threshold_position; e.g. 0.003)",
+    )
     ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     ap.add_argument(
         "--speed-limit",
@@ -240,10 +247,12 @@ def main() -> None:
         factorization=args.factorization,
         smoother=args.smoother,
         track_memory=args.memory,
+        relinearize_threshold_position=args.relinearize_position,
     )
     print(
         f"lag {args.lag} s, marginalisation every {args.marginalize_every} s, "
-        f"window {args.smoother}"
+        f"window {args.smoother}, position relinearisation threshold "
+        f"{args.relinearize_position} m"
     )
     print(f"engine: {args.engine}")
     if args.camera and args.engine == "prepared":

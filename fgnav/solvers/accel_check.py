@@ -170,3 +170,143 @@ def check_horizontal_accel(
         rms_u=rms_u,
         n=n,
     )
+
+
+class RunningAccelCheck:
+    """:func:`check_horizontal_accel` over the last ``capacity`` keyframe rows, kept as running
+    sums (the push engine runs the check every few keyframes on a sliding window: the sums make
+    each decision O(1) instead of a pass over the window). Row: ``(f_x, f_y, u_x, u_y,
+    white_sigma)``; the white sigma of the check is the RMS of the (finite) rows' (as the push
+    engine gave it). Rows with a non-finite value are kept in the window but left out, as
+    :func:`check_horizontal_accel` leaves them out. The sums are recomputed from the rows every
+    ``capacity`` additions (no drift of the add-and-subtract). Same decisions and figures as
+    :func:`check_horizontal_accel` on the window's rows to rounding (about 1e-12 relative;
+    ``tests/solvers/test_accel_check.py``)."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self._rows = np.zeros((self.capacity, 5))
+        self._ok = np.zeros(self.capacity, bool)
+        self._n = 0  # rows in the window
+        self._i = 0  # next slot
+        self._adds = 0
+        self._ref: list[float] | None = None  # the shift of the sums (f_x, f_y, u_x, u_y)
+        self._clear_sums()
+
+    def _clear_sums(self) -> None:
+        self.n_ok = 0
+        self.s_f = [0.0, 0.0]
+        self.s_u = [0.0, 0.0]
+        self.s_ff = [0.0, 0.0]
+        self.s_uu = [0.0, 0.0]
+        self.s_fu = [0.0, 0.0]
+        self.s_w2 = 0.0
+
+    def _account(self, row, sign: float) -> None:
+        fx, fy, ux, uy, ws = row
+        ref = self._ref
+        self.n_ok += int(sign)
+        for a, (f, u) in enumerate(((fx - ref[0], ux - ref[2]), (fy - ref[1], uy - ref[3]))):
+            self.s_f[a] += sign * f
+            self.s_u[a] += sign * u
+            self.s_ff[a] += sign * f * f
+            self.s_uu[a] += sign * u * u
+            self.s_fu[a] += sign * f * u
+        self.s_w2 += sign * ws * ws
+
+    def _reseed(self) -> None:
+        """Sums from the rows, about their mean (shifted sums: no cancellation of large
+        means against small scatter)."""
+        ok = np.flatnonzero(self._ok[: self._n])
+        self._clear_sums()
+        self._ref = self._rows[ok, :4].mean(axis=0).tolist() if len(ok) else [0.0] * 4
+        for j in ok:
+            self._account(self._rows[j].tolist(), 1.0)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row) -> None:
+        """One keyframe's ``(f_x, f_y, u_x, u_y, white_sigma)``; the oldest row leaves when
+        the window is full."""
+        row = [float(x) for x in row]
+        if len(row) != 5:
+            raise ValueError(f"RunningAccelCheck.append: 5 values, got {len(row)}")
+        i = self._i
+        if self._n == self.capacity and self._ok[i]:
+            self._account(self._rows[i].tolist(), -1.0)
+        ok = all(math.isfinite(x) for x in row)
+        if ok and self._ref is None:
+            self._ref = row[:4]
+        self._rows[i] = row
+        self._ok[i] = ok
+        if ok:
+            self._account(row, 1.0)
+        self._i = (i + 1) % self.capacity
+        self._n = min(self._n + 1, self.capacity)
+        self._adds += 1
+        if self._adds % self.capacity == 0:
+            self._reseed()
+
+    def rows(self) -> np.ndarray:
+        """The window's rows, oldest first."""
+        if self._n < self.capacity:
+            return self._rows[: self._n].copy()
+        return np.roll(self._rows, -self._i, axis=0)
+
+    def check(
+        self,
+        k_max: float = K_MAX,
+        signal_floor: float = SIGNAL_FLOOR,
+        unusable_ratio: float = UNUSABLE_RATIO,
+        weigh_ratio: float = WEIGH_RATIO,
+        min_keyframes: int = MIN_KEYFRAMES,
+    ) -> AccelCheck:
+        """:func:`check_horizontal_accel` on the window (white sigma: the RMS of the rows')."""
+        n = self.n_ok
+        nan2 = (math.nan, math.nan)
+        if n < min_keyframes:
+            return AccelCheck(
+                "undecided", math.nan, math.nan, math.nan, nan2, nan2, math.nan, math.nan, n
+            )
+        white_sigma = math.sqrt(max(self.s_w2, 0.0) / n)
+        ref = self._ref
+        k = [0.0, 0.0]
+        b = [0.0, 0.0]
+        res_sum = 0.0
+        f2 = u2 = 0.0  # sums of the raw f^2 and u^2 over both axes
+        for a in range(2):
+            mu_f, mu_u = self.s_f[a] / n, self.s_u[a] / n  # shifted means
+            den = self.s_uu[a] - n * mu_u * mu_u  # sum of (u - mean u)^2
+            cross = self.s_fu[a] - n * mu_u * mu_f  # sum of (f - mean f)(u - mean u)
+            ff = self.s_ff[a] - n * mu_f * mu_f
+            k[a] = min(max(-cross / den, 0.0), k_max) if den > 1e-12 else 0.0
+            b[a] = (mu_f + ref[a]) + k[a] * (mu_u + ref[2 + a])
+            res_sum += ff + 2.0 * k[a] * cross + k[a] * k[a] * max(den, 0.0)
+            # sum x^2 = sum (x - r)^2 + 2 r sum (x - r) + n r^2
+            f2 += self.s_ff[a] + 2.0 * ref[a] * self.s_f[a] + n * ref[a] ** 2
+            u2 += self.s_uu[a] + 2.0 * ref[2 + a] * self.s_u[a] + n * ref[2 + a] ** 2
+        res_ms = max(res_sum, 0.0) / n
+        residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
+        rms_u = math.sqrt(max(u2, 0.0) / n)
+        signal = max(k_max * rms_u, signal_floor)
+        ratio = residual / signal
+        if ratio > unusable_ratio:
+            decision = "unusable"
+        elif ratio > weigh_ratio:
+            decision = "noisy"
+        else:
+            decision = "usable"
+        return AccelCheck(
+            decision=decision,
+            ratio=ratio,
+            residual=residual,
+            signal=signal,
+            k=(float(k[0]), float(k[1])),
+            bias=(float(b[0]), float(b[1])),
+            rms_f=math.sqrt(max(f2, 0.0) / n),
+            rms_u=rms_u,
+            n=n,
+        )

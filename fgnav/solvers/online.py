@@ -147,6 +147,7 @@ from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
+from fgnav.solvers.accel_check import RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
     FixedLagOptions,
@@ -738,7 +739,8 @@ class OnlineSmoother:
         self._thrust_axis_ok = True
         # Accelerometer check (fgnav.solvers.accel_check): keyframe-mean horizontal specific
         # force and the smoother's body velocity; thrust-only prediction once it is unusable.
-        self._accel_rows = _Ring(self.options.drag_scatter_n, 5)  # f_xy, u_xy, white sigma
+        # f_xy, u_xy, white sigma of the last keyframes, with the check's running sums
+        self._accel_rows = RunningAccelCheck(self.options.drag_scatter_n)
         self._accel_check = None
         self._thrust_only = self.go.accel_horizontal == "thrust-only"
         self._thrust_provisional = False  # thrust-only until the accelerometer check decides
@@ -762,6 +764,7 @@ class OnlineSmoother:
 
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
+        self._height_parts: tuple | None = None  # (alignment, its parts) for _slam_height
         self._bad_since = -math.inf
         # The state carried over a restart after an IMU gap (see _carry_state).
         self._carry: dict[str, Any] | None = None
@@ -842,7 +845,9 @@ class OnlineSmoother:
             self._drop("imu:non-finite")
             return None
         last = self._t_last.get("imu", -math.inf)
-        if not self._check_time("imu", t):
+        if t > last:  # most samples (t is finite here): _check_time's accepting branch
+            self._t_last["imu"] = t
+        elif not self._check_time("imu", t):
             return None
         if t < last:
             self.reset("imu-clock-jump")
@@ -855,7 +860,8 @@ class OnlineSmoother:
             self.reset("imu-gap")
             self._carry = carry
             self._t_last = {"imu": t}
-        self._use("imu")
+        used = self.used
+        used["imu"] = used.get("imu", 0) + 1
         if self._pstage is not None:
             self._pstage.feed(ev)
         if self._sgc is not None:
@@ -1517,12 +1523,9 @@ class OnlineSmoother:
         horizontal specific force against the smoother's body velocities at them): unusable ->
         drag off and (``accel_horizontal = "auto"``) thrust-only IMU prediction from the next
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
-        from fgnav.solvers.accel_check import check_horizontal_accel
-
-        rows = self._accel_rows.array()
-        f, u = rows[:, 0:2], rows[:, 2:4]
-        white = float(np.sqrt(np.mean(rows[:, 4] ** 2)))
-        chk = check_horizontal_accel(f, u, white, min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
+        # (check_horizontal_accel on the window's rows, from running sums)
+        rows = self._accel_rows
+        chk = rows.check(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
         self._accel_check = chk
         if chk.decision != "unusable":
             # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
@@ -2569,7 +2572,12 @@ class OnlineSmoother:
             return float((slam_t_cam[2] - S[5]) / S[2])
         if not isinstance(S, gtsam.Similarity3):
             return None
-        scale, slam_R_world, slam_t_world = slam_alignment_parts(S)
+        # The alignment changes at the slow-variable reads only, the range readings (50 Hz)
+        # ask for every one: its parts kept with the object they came from.
+        cached = self._height_parts
+        if cached is None or cached[0] is not S:
+            cached = self._height_parts = (S, *slam_alignment_parts(S))
+        _, scale, slam_R_world, slam_t_world = cached
         return float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
 
     def _health_feed(self, ev: Any) -> Any:
@@ -2934,7 +2942,9 @@ class OnlineSmoother:
         self.values[X(k)], self.values[V(k)], self.values[B(k)] = pose, vel, bias
         self._pose_hist[k] = (self.t_kf[k], pose)
         while len(self._pose_hist) > self.options.history_s * self.go.keyframe_hz:
-            del self._pose_hist[min(self._pose_hist)]
+            # The oldest is the first inserted: keyframes are read once each, in increasing k
+            # (``_clear`` starts a new dict), so no min() over the ~600 keys.
+            del self._pose_hist[next(iter(self._pose_hist))]
         t = self.t_kf[k]
         # Slow variables.
         every = max(1, self.options.slow_read_every)

@@ -71,6 +71,37 @@ def test_quantised_rest_below_the_floors_is_not_saturation():
     assert det.counts == {}
 
 
+def test_saturation_fast_path_same_flags_and_counts_as_the_full_pass(monkeypatch):
+    """The calm-interval shortcut of the IMU detectors (most samples skip the per-axis pass)
+    gives the same flags, counts and details as the per-axis pass on every sample: noise,
+    clipped vibration on two rails, repeated quantised values, a non-finite sample and an IMU
+    gap."""
+    rng = np.random.default_rng(RNG_SEED)
+    n = 6000
+    t = np.arange(n) * 0.005
+    t[3000:] += 0.5  # a gap
+    w = rng.normal(0.0, 0.2, (n, 3))
+    w[:, 2] += 1.5 * np.sin(0.01 * np.arange(n))
+    w = np.clip(w, -0.6, 0.6)  # gyro rail
+    a = np.array([0.0, 0.0, 9.81]) + 4.0 * np.sin(0.9 * np.arange(n))[:, None] * [0, 0, 1]
+    a += rng.normal(0.0, 0.3, (n, 3))
+    a = np.clip(np.round(a, 2), -12.0, 12.0)  # quantised, accelerometer rail
+    w[1234, 1] = np.nan
+
+    def run(shortcut: bool):
+        det = FaultDetectors()
+        if not shortcut:
+            monkeypatch.setattr(det, "_calm_intervals", lambda: None)
+        flags = [det.feed_imu(_imu(ti, wi, ai)) for ti, wi, ai in zip(t, w, a, strict=True)]
+        return flags, det.counts, det.details
+
+    fast, slow = run(True), run(False)
+    assert fast[0] == slow[0]
+    assert fast[1] == slow[1] and fast[2] == slow[2]
+    assert slow[1]["imu-saturation"] > 100 and slow[1]["imu-gap"] == 1
+    assert sum(f != 0 for f in slow[0]) > 100
+
+
 def test_imu_gap():
     det = FaultDetectors()
     t = list(np.arange(0, 1, 0.005)) + list(np.arange(1.3, 2, 0.005))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgnav.solvers.accel_check import check_horizontal_accel
+from fgnav.solvers.accel_check import RunningAccelCheck, check_horizontal_accel
 
 
 def _speeds(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -61,3 +61,41 @@ def test_white_noise_of_the_means_is_not_counted_against_the_accelerometer():
 def test_too_few_keyframes_is_undecided():
     c = check_horizontal_accel(np.zeros((5, 2)), np.zeros((5, 2)))
     assert c.decision == "undecided" and c.drag_on
+
+
+@pytest.mark.parametrize("case", ["usable", "noisy", "unusable", "still"])
+def test_running_check_equals_the_batch_check_on_its_window(case):
+    """The sliding-window check from running sums gives the batch check's decision and figures
+    on the window's rows, after every row, over several window turns (the sums re-seeded), with
+    a non-finite row in the stream."""
+    rng = np.random.default_rng(1)
+    n, cap = 700, 200
+    u = _speeds(n, rng) + (3.0 if case == "still" else 0.0)
+    if case == "still":  # a hover: constant speed, the drag fit degenerate
+        u = np.full((n, 2), 0.2) + 1e-9 * rng.normal(size=(n, 2))
+    wander = {"usable": 0.0, "noisy": 0.15, "unusable": 2.0, "still": 0.0}[case]
+    f = -0.4 * u + 5.0 + 0.01 * rng.normal(size=u.shape)
+    f += wander * np.sin(0.05 * np.arange(n))[:, None] * [1.0, -1.0]
+    white = 0.01 + 0.001 * rng.random(n)
+    f[333, 0] = np.nan
+    run = RunningAccelCheck(cap)
+    decisions = set()
+    for i in range(n):
+        run.append((f[i, 0], f[i, 1], u[i, 0], u[i, 1], white[i]))
+        lo = max(0, i + 1 - cap)
+        assert np.array_equal(run.rows()[:, 0], f[lo : i + 1, 0], equal_nan=True)
+        if i % 7 and i != n - 1:
+            continue
+        rows = run.rows()
+        ok = np.isfinite(rows).all(axis=1)
+        w = float(np.sqrt(np.mean(rows[ok, 4] ** 2)))
+        ref = check_horizontal_accel(rows[:, :2], rows[:, 2:4], w, min_keyframes=10)
+        got = run.check(min_keyframes=10)
+        assert got.decision == ref.decision and got.n == ref.n
+        for name in ("ratio", "residual", "signal", "rms_f", "rms_u"):
+            want = pytest.approx(getattr(ref, name), rel=1e-9, abs=1e-12, nan_ok=True)
+            assert getattr(got, name) == want
+        assert got.k == pytest.approx(ref.k, rel=1e-9, abs=1e-9, nan_ok=True)
+        assert got.bias == pytest.approx(ref.bias, rel=1e-9, abs=1e-9, nan_ok=True)
+        decisions.add(got.decision)
+    assert case in decisions or case == "still"
