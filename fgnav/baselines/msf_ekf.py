@@ -559,11 +559,7 @@ class MsfEkf:
             ok = self._correct(H, r, Rm, 6)
         else:
             ok = self._correct(Hp, rp, np.eye(3) * (x.s * o.slam_position_sigma_m) ** 2, 3)
-        if ok:
-            self.counts.slam_updates += 1
-        else:
-            self.counts.slam_rejected_gate += 1
-        return ok
+        return self.counts.gated("slam", ok)
 
     def update_range(self, r_meas: float) -> bool:
         """Fuse one tilted-rangefinder reading against the fixed ground height."""
@@ -585,11 +581,7 @@ class MsfEkf:
         dc[ITH : ITH + 3] = (x.R @ skew(d_body))[2]
         H = ((dnum * c - num * dc) / c**2)[None, :]
         ok = self._correct(H, np.array([r_meas - h]), np.array([[o.range_sigma**2]]), 1)
-        if ok:
-            self.counts.range_updates += 1
-        else:
-            self.counts.range_rejected_gate += 1
-        return ok
+        return self.counts.gated("range", ok)
 
     # ------------------------------------------------------------------------------------------
     # Event stream (the estimator never sees the flight; see fgnav.datasets.events)

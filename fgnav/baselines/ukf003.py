@@ -593,11 +593,7 @@ class Ukf003:
 
         idx = np.array([IP + 2, IPHI, IPHI + 1, IPHI + 2, IZB])
         ok = self._update(idx, h, np.array([r_meas]), np.array([[o.range_sigma**2]]))
-        if ok:
-            self.counts.range_updates += 1
-        else:
-            self.counts.range_rejected_gate += 1
-        return ok
+        return self.counts.gated("range", ok)
 
     def update_yaw(self, yaw: float) -> bool:
         """Yaw reading [rad] (residual wrapped)."""
@@ -609,11 +605,7 @@ class Ukf003:
             np.array([[self.opt.yaw_sigma**2]]),
             wrap_z=np.array([0]),
         )
-        if ok:
-            self.counts.yaw_updates += 1
-        else:
-            self.counts.yaw_rejected_gate += 1
-        return ok
+        return self.counts.gated("yaw", ok)
 
     def update_attitude(self, world_R_body: np.ndarray) -> bool:
         """Roll and pitch of an AHRS attitude reading."""
@@ -622,11 +614,7 @@ class Ukf003:
         ok = self._update(
             idx, lambda X: X, phi[1:], np.eye(2) * self.opt.attitude_sigma**2, wrap_z=np.array([1])
         )
-        if ok:
-            self.counts.attitude_updates += 1
-        else:
-            self.counts.attitude_rejected_gate += 1
-        return ok
+        return self.counts.gated("attitude", ok)
 
     def update_relative_slam(
         self,
@@ -685,11 +673,7 @@ class Ukf003:
         ok = self._update(idx, h, z, Rm, consider=None if excited else np.array([IS]))
         if ok and not excited:
             self.counts.slam_scale_considered += 1
-        if ok:
-            self.counts.slam_updates += 1
-        else:
-            self.counts.slam_rejected_gate += 1
-        return ok
+        return self.counts.gated("slam", ok)
 
     # -- whole flight ----------------------------------------------------------------------------
 
