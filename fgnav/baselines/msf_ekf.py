@@ -39,6 +39,7 @@ import numpy as np
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._options import SlamRangeOptions
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     AttitudeSample,
@@ -91,48 +92,22 @@ CHI2_999 = {1: 10.83, 3: 16.27, 6: 22.46}
 
 
 @dataclass
-class MsfOptions:
-    """Options of :class:`MsfEkf`.
+class MsfOptions(SlamRangeOptions):
+    """Options of :class:`MsfEkf`: the shared SLAM and range options
+    (:class:`~fgnav.baselines._options.SlamRangeOptions`; the SLAM orientation is the MSF pose
+    sensor's, ``initial_scale`` None is :func:`initial_scale_guess`, and
+    ``initial_scale_rel_sigma`` None three times its standard error) and:
 
     Attributes:
-        slam_position_sigma_m: SLAM position noise [m]; the filter uses ``s * sigma`` in SLAM
-            units (a monocular SLAM's noise is geometric, so it scales with the map).
-        slam_rotation_sigma: SLAM orientation noise [rad].
-        use_slam_rotation: also fuse the SLAM camera orientation (MSF pose sensor).
-        use_range: fuse the rangefinder when the flight has one.
-        range_sigma: rangefinder noise [m].
-        range_max_tilt_rad: no range update above this tilt.
-        initial_scale: initial ``s`` (SLAM units per metre); None: estimated from the first
-            seconds of SLAM and IMU (see :func:`initial_scale_guess`).
-        initial_scale_rel_sigma: initial relative standard deviation of ``s``; None: twice the
-            standard error of the closed-form initialisation, at least 2 % (with
-            ``initial_scale`` given and this None: 30 %).
-        initial_velocity_sigma: initial velocity standard deviation [m/s].
-        initial_bias_sigma_gyro, initial_bias_sigma_accel: initial bias standard deviations.
-        scale_walk: random walk of ``s`` [1/s relative per sqrt(s)].
         alignment_walk_rot, alignment_walk_pos: random walk of the SLAM alignment
             [rad/sqrt(s)], [SLAM units/sqrt(s)].
-        gate: apply Mahalanobis gating.
         output_rate_hz: rate of the reported causal trajectory.
         buffer_s: how far back delayed measurements may reach [s]; older ones are counted and
             skipped.
     """
 
-    slam_position_sigma_m: float = 0.015
-    slam_rotation_sigma: float = 0.01
-    use_slam_rotation: bool = True
-    use_range: bool = True
-    range_sigma: float = 0.03
-    range_max_tilt_rad: float = np.deg2rad(35.0)
-    initial_scale: float | None = None
-    initial_scale_rel_sigma: float | None = None
-    initial_velocity_sigma: float = 0.5
-    initial_bias_sigma_gyro: float = 0.01
-    initial_bias_sigma_accel: float = 0.2
-    scale_walk: float = 1e-3
     alignment_walk_rot: float = 1e-4
     alignment_walk_pos: float = 1e-3
-    gate: bool = True
     output_rate_hz: float = 20.0
     buffer_s: float = 1.0
 

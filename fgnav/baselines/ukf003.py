@@ -116,6 +116,7 @@ from scipy.linalg import cho_solve
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._options import SlamRangeOptions
 from fgnav.baselines.msf_ekf import (
     FIT_RETRY_S,
     HISTORY_BEFORE_START_S,
@@ -182,32 +183,25 @@ class CameraTrigger(NamedTuple):
 
 
 @dataclass
-class Ukf003Options:
-    """Options of :class:`Ukf003`.
+class Ukf003Options(SlamRangeOptions):
+    """Options of :class:`Ukf003`: the shared SLAM and range options
+    (:class:`~fgnav.baselines._options.SlamRangeOptions`; a displacement of two SLAM poses gets
+    ``sqrt(2) * s * slam_position_sigma_m`` in SLAM units, ``use_slam_rotation`` fuses the
+    relative rotation ``z_R``, and ``initial_scale_rel_sigma`` None is twice the closed-form
+    fit's standard error) and:
 
     Attributes:
-        slam_position_sigma_m: SLAM position noise per pose [m]; a displacement of two poses gets
-            ``sqrt(2) * s * sigma`` in SLAM units.
-        slam_rotation_sigma: SLAM orientation noise per pose [rad].
         slam_drift_walk_m [m/sqrt(s)], slam_drift_walk_rot [rad/sqrt(s)]: random walk of the
             SLAM pose noise of the clones (a map that drifts: later poses see the keyframe's pose
             offset by the drift since it was taken).
-        use_slam_rotation: also fuse the relative rotation ``z_R``.
-        use_range, range_sigma [m], range_max_tilt_rad: rangefinder (absolute).
         use_yaw, yaw_sigma [rad]: yaw stream (absolute).
         use_attitude, attitude_sigma [rad], attitude_min_interval_s: roll and pitch of the
             attitude stream (absolute), at most one update per interval.
-        initial_scale: initial ``s``; None: closed-form fit (module docstring).
-        initial_scale_rel_sigma: initial relative sigma of ``s``; None: twice the fit's standard
-            error, at least ``MIN_SCALE_REL_SIGMA`` (30 % with ``initial_scale`` given).
-        initial_velocity_sigma [m/s], initial_attitude_sigma [rad] (roll and pitch; yaw gets the
-            yaw stream's sigma or this), initial_bias_sigma_gyro [rad/s],
-            initial_bias_sigma_accel [m/s^2], initial_altimeter_bias_sigma [m].
-        scale_walk: random walk of ``s`` [relative / sqrt(s)].
+        initial_attitude_sigma [rad] (roll and pitch; yaw gets the yaw stream's sigma or this),
+            initial_altimeter_bias_sigma [m]: initial standard deviations.
         altimeter_bias_walk: random walk of ``z_b`` [m / sqrt(s)].
         ut_alpha, ut_beta, ut_kappa: scaled unscented transform parameters (Julier 2002; Wan & van
             der Merwe 2000); alpha = 1, kappa = 0 puts the sigma points at ``sqrt(n)`` sigma.
-        gate: Mahalanobis gating of every update.
         output_rate_hz: rate of the reported causal trajectory (Shen: 100 Hz fused output).
         keyframe_interval_s: SLAM poses are measured relative to the keyframe (the clone in the
             state) until one is at least this much later [s]; that one becomes the new keyframe
@@ -222,32 +216,19 @@ class Ukf003Options:
             filter outputs at 100 Hz, hence 0.01 s.
     """
 
-    slam_position_sigma_m: float = 0.015
-    slam_rotation_sigma: float = 0.01
     slam_drift_walk_m: float = 2e-3
     slam_drift_walk_rot: float = 2e-4
-    use_slam_rotation: bool = True
-    use_range: bool = True
-    range_sigma: float = 0.03
-    range_max_tilt_rad: float = float(np.deg2rad(35.0))
     use_yaw: bool = True
     yaw_sigma: float = 0.03
     use_attitude: bool = False
     attitude_sigma: float = 0.01
     attitude_min_interval_s: float = 0.05
-    initial_scale: float | None = None
-    initial_scale_rel_sigma: float | None = None
-    initial_velocity_sigma: float = 0.5
     initial_attitude_sigma: float = 0.02
-    initial_bias_sigma_gyro: float = 0.01
-    initial_bias_sigma_accel: float = 0.2
     initial_altimeter_bias_sigma: float = 0.01
-    scale_walk: float = 1e-3
     altimeter_bias_walk: float = 0.005
     ut_alpha: float = 1.0
     ut_beta: float = 2.0
     ut_kappa: float = 0.0
-    gate: bool = True
     output_rate_hz: float = 100.0
     ut_interval_s: float = 0.01
     keyframe_interval_s: float = 2.0
