@@ -267,6 +267,23 @@ def initial_fit(flight: Flight, max_rel_std: float = 0.05, step_s: float = 2.0) 
     )
 
 
+def arrived_initial_fit(
+    arrived: Arrived, prefix: Flight, t_now: float, counts: SlamRangeCounts
+) -> InitFit | None:
+    """:func:`initial_fit` on the arrived ``prefix`` for a filter's start: None while the
+    arrived data do not fix the scale (the history is then trimmed to
+    ``HISTORY_BEFORE_START_S`` before ``t_now``); else the fit, its window counted as
+    ``init_window_s`` (seconds from the first SLAM pose)."""
+    try:
+        fit = initial_fit(prefix)
+    except FlightDataError:
+        arrived.trim(t_now - HISTORY_BEFORE_START_S)
+        return None
+    t0 = prefix.slam.t[0]
+    counts.extra["init_window_s"] = (fit.t_start - t0, fit.t_end - t0)
+    return fit
+
+
 def _fit_from(flight: Flight, t0: float, max_rel_std: float) -> tuple[InitFit | None, tuple | None]:
     """Growing windows from ``t0``; the first that determines ``s``, and the last try."""
     slam, imu = flight.slam, flight.imu
@@ -637,17 +654,11 @@ class MsfEkf:
             t_start = max(prefix.imu.t[0], prefix.slam.t[0])
             scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
         else:
-            try:
-                fit = initial_fit(prefix)
-            except FlightDataError:
-                h.trim(t_now - HISTORY_BEFORE_START_S)
+            fit = arrived_initial_fit(h, prefix, t_now, self.counts)
+            if fit is None:
                 return
             scale0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             R0, bg0 = fit.world_R_body_end, fit.gyro_bias
-            self.counts.extra["init_window_s"] = (
-                fit.t_start - prefix.slam.t[0],
-                fit.t_end - prefix.slam.t[0],
-            )
             # Causal: the state at the window's last image time t_end is carried to now by
             # the IMU samples buffered since.
             t_start = fit.t_end

@@ -119,10 +119,9 @@ from fgnav.baselines._counts import SlamRangeCounts
 from fgnav.baselines._options import SlamRangeOptions
 from fgnav.baselines.msf_ekf import (
     FIT_RETRY_S,
-    HISTORY_BEFORE_START_S,
     SCALE_INIT_WINDOWS_S,
     InitFit,
-    initial_fit,
+    arrived_initial_fit,
     new_map_scale_guess,
 )
 from fgnav.datasets.errors import FlightDataError
@@ -831,16 +830,13 @@ class Ukf003:
         if o.initial_scale is not None:
             s0, v0, rel0 = float(o.initial_scale), np.zeros(3), 0.15
         else:
-            try:
-                fit = initial_fit(prefix)
-            except FlightDataError:
-                h.trim(t_now - HISTORY_BEFORE_START_S)
+            fit = arrived_initial_fit(h, prefix, t_now, self.counts)
+            if fit is None:
                 return
             s0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             t_start = fit.t_end
             j_end = min(int(np.searchsorted(slam.t, t_start)), len(slam) - 1)
             t_first_out = t_start + max(0.0, float(slam.latency[j_end]))
-            self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
         R0, yaw_sigma = self._initial_attitude(prefix, t_start, fit)
         if fit is not None:
             # The fit's velocity is in its own world (yaw of its attitude); keep it in body.
