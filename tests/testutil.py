@@ -44,6 +44,16 @@ CRAZYFLIE_LIKE = dict(
 )
 
 
+def two_turns_folder(tmp_path_factory, seed: int) -> Path:
+    """A simulated 8 s two-turns flight folder without images (the CLI tests' flight)."""
+    from fgnav.datasets.simulate.options import SimOptions
+    from fgnav.datasets.simulate.simulator import simulate_to_folder
+
+    out = tmp_path_factory.mktemp("flight") / "two_turns"
+    simulate_to_folder("two-turns", out, seed=seed, options=SimOptions(duration=8.0, images=False))
+    return out
+
+
 def truth_scale(flight) -> dict[int, float]:
     """The simulator's SLAM scale of each session at its start (``meta["truth"]``)."""
     return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
