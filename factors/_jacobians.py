@@ -99,6 +99,66 @@ def check_noise_dim(noise_model: gtsam.noiseModel.Base, dim: int) -> None:
         raise ValueError(f"noise model has dimension {noise_model.dim()}, the factor needs {dim}")
 
 
+#: ``custom_factor`` readers of a variable of GTSAM's own type (``read(values, key)``).
+pose_at = gtsam.Values.atPose3
+vector_at = gtsam.Values.atVector
+similarity3_at = gtsam.Values.atSimilarity3
+
+
+def pose_matrix_at(values: gtsam.Values, key: int) -> np.ndarray:
+    """4x4 matrix of the ``Pose3`` at ``key`` (a ``custom_factor`` reader)."""
+    return values.atPose3(key).matrix()
+
+
+def scalar_at(values: gtsam.Values, key: int) -> float:
+    """The ``Vector1`` at ``key`` as a float (a ``custom_factor`` reader)."""
+    return float(values.atVector(key)[0])
+
+
+def custom_factor(
+    noise_model: gtsam.noiseModel.Base,
+    dim: int,
+    variables,
+    error,
+    constants: tuple = (),
+    *,
+    lazy: bool = False,
+    record: bool = False,
+) -> gtsam.CustomFactor:
+    """The ``gtsam.CustomFactor`` plumbing every factor of ``fgnav.factors`` shares.
+
+    Args:
+        noise_model: noise of the ``dim``-D error (checked with ``check_noise_dim``).
+        dim: the error's dimension.
+        variables: ``((key, read), ...)`` in the factor's key order; ``read(values, key)`` gives
+            the argument ``error`` takes for that variable (``pose_at``, ``pose_matrix_at``,
+            ``scalar_at``, ...).
+        error: ``error(*states, *constants[, with_jacobians]) -> (e, jacobians)``, one Jacobian
+            per variable; with ``lazy`` it takes the last ``with_jacobians`` flag (GTSAM asks for
+            Jacobians when it linearises, not when it only evaluates the error).
+        constants: the measurement and calibration arguments after the states.
+        record: keep the error in ``LINEARIZED`` when it is set and the factor is linearised.
+    """
+    check_noise_dim(noise_model, dim)
+    variables = tuple(variables)
+
+    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        with_jacobians = H is not None
+        args = [read(values, key) for key, read in variables]
+        if lazy:
+            e, jacobians = error(*args, *constants, with_jacobians)
+        else:
+            e, jacobians = error(*args, *constants)
+        if with_jacobians:
+            for i, J in enumerate(jacobians):
+                H[i] = J
+            if record and LINEARIZED is not None:
+                LINEARIZED[this] = e
+        return e
+
+    return gtsam.CustomFactor(noise_model, [key for key, _ in variables], error_fn)
+
+
 #: Validated pose matrices by their bytes (calibrations repeat for every factor of a flight).
 _POSE_CACHE: dict[bytes, np.ndarray] = {}
 _POSE_CACHE_MAX = 64

@@ -48,11 +48,13 @@ import gtsam
 import numpy as np
 from fgnav.factors._jacobians import (
     as_pose_matrix,
-    check_noise_dim,
+    custom_factor,
+    pose_at,
     pose_parts,
     skew,
     so3_log,
     so3_right_jacobian_inv,
+    vector_at,
 )
 
 ERROR_DIM = 8
@@ -238,24 +240,9 @@ def make_homography_factor(
     K_inv = np.linalg.inv(K)
     corners_i = image_corners(image_size)
     measured = transfer_corners(H_meas, corners_i)
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = homography_error(
-            values.atPose3(pose_i_key),
-            values.atPose3(pose_j_key),
-            values.atVector(ground_key),
-            measured,
-            K,
-            body_T_cam,
-            corners_i,
-            K_inv,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_i_key, pose_j_key, ground_key], error_fn)
+    variables = ((pose_i_key, pose_at), (pose_j_key, pose_at), (ground_key, vector_at))
+    constants = (measured, K, body_T_cam, corners_i, K_inv)
+    return custom_factor(noise_model, ERROR_DIM, variables, homography_error, constants)
 
 
 def homography_decomposed_error(
@@ -315,22 +302,14 @@ def make_homography_decomposed_factor(
     if u_meas.shape != (3,) or not np.all(np.isfinite(u_meas)):
         raise ValueError(f"t_over_d_meas: expected 3 finite values, got {np.shape(t_over_d_meas)}")
     body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
-    check_noise_dim(noise_model, DECOMPOSED_ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = homography_decomposed_error(
-            values.atPose3(pose_i_key),
-            values.atPose3(pose_j_key),
-            values.atVector(ground_key),
-            R_meas,
-            u_meas,
-            body_T_cam,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_i_key, pose_j_key, ground_key], error_fn)
+    variables = ((pose_i_key, pose_at), (pose_j_key, pose_at), (ground_key, vector_at))
+    return custom_factor(
+        noise_model,
+        DECOMPOSED_ERROR_DIM,
+        variables,
+        homography_decomposed_error,
+        (R_meas, u_meas, body_T_cam),
+    )
 
 
 def _check_K(K: np.ndarray) -> np.ndarray:

@@ -76,10 +76,13 @@ import numpy as np
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     as_vector,
-    check_noise_dim,
+    custom_factor,
     pose_matrix,
+    pose_matrix_at,
     pose_parts,
+    scalar_at,
     skew,
+    vector_at,
 )
 
 ERROR_DIM = 2
@@ -263,26 +266,9 @@ def make_optical_flow_factor(
         raise ValueError(f"flow pixels_per_rad: expected > 0, got {calib.pixels_per_rad}")
     body_R_flow, body_t_flow = pose_parts(as_pose_matrix(calib.body_T_flow, "body_T_flow"))
     body_R_flow, body_t_flow = np.array(body_R_flow), np.array(body_t_flow)
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _optical_flow(
-            values.atPose3(pose_key).matrix(),
-            values.atVector(velocity_key),
-            float(values.atVector(ground_key)[0]),
-            flow,
-            dt,
-            omega,
-            body_R_flow,
-            body_t_flow,
-            ppr,
-            H is not None,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, velocity_key, ground_key], error_fn)
+    variables = ((pose_key, pose_matrix_at), (velocity_key, vector_at), (ground_key, scalar_at))
+    constants = (flow, dt, omega, body_R_flow, body_t_flow, ppr)
+    return custom_factor(noise_model, ERROR_DIM, variables, _optical_flow, constants, lazy=True)
 
 
 def flow_sum_sigma(sigma: float, n: int, lag1_corr: float) -> float:

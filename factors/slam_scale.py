@@ -53,17 +53,20 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from fgnav.factors import _jacobians
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     as_vector,
-    check_noise_dim,
+    custom_factor,
+    pose_at,
     pose_matrix,
+    pose_matrix_at,
     pose_parts,
     sim3_parts,
+    similarity3_at,
     skew,
     so3_log,
     so3_right_jacobian_inv,
+    vector_at,
 )
 
 ERROR_DIM = 3
@@ -282,24 +285,15 @@ def make_slam_position_factor(
     z = as_vector(slam_t_cam_meas, 3, "slam_t_cam_meas")
     body_t_cam = np.array(as_pose_matrix(body_T_cam, "body_T_cam")[:3, 3])
     body_t_cam_skew = skew(body_t_cam)
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _slam_position(
-            values.atPose3(pose_key).matrix(),
-            values.atSimilarity3(sim_key),
-            z,
-            body_t_cam,
-            body_t_cam_skew,
-            H is not None,
-        )
-        if H is not None:
-            H[0], H[1] = jacobians
-            if _jacobians.LINEARIZED is not None:
-                _jacobians.LINEARIZED[this] = e
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
+    return custom_factor(
+        noise_model,
+        ERROR_DIM,
+        ((pose_key, pose_matrix_at), (sim_key, similarity3_at)),
+        _slam_position,
+        (z, body_t_cam, body_t_cam_skew),
+        lazy=True,
+        record=True,
+    )
 
 
 def slam_position_offset_error(
@@ -406,7 +400,7 @@ def make_slam_position_offset_factor(
     )
     return _offset_factor(
         _slam_offset,
-        gtsam.Values.atSimilarity3,
+        similarity3_at,
         (pose_key, vel_key, sim_key),
         z,
         terms,
@@ -418,25 +412,11 @@ def _offset_factor(offset, at_alignment, keys, z, terms, noise_model) -> gtsam.C
     """CustomFactor on ``(X: Pose3, V: Vector3, alignment)`` from an offset model
     ``offset(pose matrix, v, alignment, z, *terms, with_jacobians)``; ``at_alignment`` reads
     the alignment from the values (``Values.atSimilarity3`` or ``Values.atVector``)."""
-    check_noise_dim(noise_model, ERROR_DIM)
     pose_key, vel_key, align_key = keys
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = offset(
-            values.atPose3(pose_key).matrix(),
-            values.atVector(vel_key),
-            at_alignment(values, align_key),
-            z,
-            *terms,
-            H is not None,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-            if _jacobians.LINEARIZED is not None:
-                _jacobians.LINEARIZED[this] = e
-        return e
-
-    return gtsam.CustomFactor(noise_model, list(keys), error_fn)
+    variables = ((pose_key, pose_matrix_at), (vel_key, vector_at), (align_key, at_alignment))
+    return custom_factor(
+        noise_model, ERROR_DIM, variables, offset, (z, *terms), lazy=True, record=True
+    )
 
 
 def make_slam_axis_scale_factor(
@@ -486,15 +466,8 @@ def _axis_factor(error, pose_key, vector_key, slam_t_meas, noise_model, body_t_c
     """CustomFactor on ``(X: Pose3, Vector)`` from a per-axis ``error(pose, vector, z, lever)``."""
     z = as_vector(slam_t_meas, 3, "slam_t_meas")
     lever = None if body_t_cam is None else as_vector(body_t_cam, 3, "body_t_cam")
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = error(values.atPose3(pose_key), values.atVector(vector_key), z, lever)
-        if H is not None:
-            H[0], H[1] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, vector_key], error_fn)
+    variables = ((pose_key, pose_at), (vector_key, vector_at))
+    return custom_factor(noise_model, ERROR_DIM, variables, error, (z, lever))
 
 
 def slam_axis_position_offset_error(
@@ -580,7 +553,7 @@ def make_slam_axis_position_offset_factor(
     )
     return _offset_factor(
         _axis_offset,
-        gtsam.Values.atVector,
+        vector_at,
         (pose_key, vel_key, alignment_key),
         z,
         terms,
@@ -605,22 +578,9 @@ def make_slam_relative_factor(
     z_i = as_vector(slam_t_cam_i, 3, "slam_t_cam_i")
     z_j = as_vector(slam_t_cam_j, 3, "slam_t_cam_j")
     body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_relative_error(
-            values.atPose3(pose_i_key),
-            values.atPose3(pose_j_key),
-            values.atSimilarity3(sim_key),
-            z_i,
-            z_j,
-            body_T_cam,
-        )
-        if H is not None:
-            H[0], H[1], H[2] = jacobians
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_i_key, pose_j_key, sim_key], error_fn)
+    variables = ((pose_i_key, pose_at), (pose_j_key, pose_at), (sim_key, similarity3_at))
+    constants = (z_i, z_j, body_T_cam)
+    return custom_factor(noise_model, ERROR_DIM, variables, slam_relative_error, constants)
 
 
 def make_slam_rotation_factor(
@@ -642,16 +602,13 @@ def make_slam_rotation_factor(
         raise ValueError(f"slam_R_cam_meas: expected a finite 3x3 rotation, got shape {z.shape}")
     z = gtsam.Rot3(z).matrix()
     body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = slam_rotation_error(
-            values.atPose3(pose_key), values.atSimilarity3(sim_key), z, body_T_cam, H is not None
-        )
-        if H is not None:
-            H[0], H[1] = jacobians
-            if _jacobians.LINEARIZED is not None:
-                _jacobians.LINEARIZED[this] = e
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, sim_key], error_fn)
+    variables = ((pose_key, pose_at), (sim_key, similarity3_at))
+    return custom_factor(
+        noise_model,
+        ERROR_DIM,
+        variables,
+        slam_rotation_error,
+        (z, body_T_cam),
+        lazy=True,
+        record=True,
+    )

@@ -38,12 +38,13 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-from fgnav.factors import _jacobians
 from fgnav.factors._jacobians import (
     as_pose_matrix,
-    check_noise_dim,
+    custom_factor,
     pose_matrix,
+    pose_matrix_at,
     pose_parts,
+    scalar_at,
     skew,
 )
 
@@ -139,26 +140,15 @@ def make_range_factor(
     beam = body_R_range @ _E_Z
     beam_skew, body_t_range_skew = skew(beam), skew(body_t_range)
     body_t_range = np.array(body_t_range)
-    check_noise_dim(noise_model, ERROR_DIM)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _tilted_range(
-            values.atPose3(pose_key).matrix(),
-            float(values.atVector(ground_key)[0]),
-            z,
-            beam,
-            beam_skew,
-            body_t_range,
-            body_t_range_skew,
-            H is not None,
-        )
-        if H is not None:
-            H[0], H[1] = jacobians
-            if _jacobians.LINEARIZED is not None:
-                _jacobians.LINEARIZED[this] = e
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key, ground_key], error_fn)
+    return custom_factor(
+        noise_model,
+        ERROR_DIM,
+        ((pose_key, pose_matrix_at), (ground_key, scalar_at)),
+        _tilted_range,
+        (z, beam, beam_skew, body_t_range, body_t_range_skew),
+        lazy=True,
+        record=True,
+    )
 
 
 def gate_range(

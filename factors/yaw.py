@@ -29,7 +29,7 @@ import math
 
 import gtsam
 import numpy as np
-from fgnav.factors._jacobians import check_noise_dim, pose_matrix
+from fgnav.factors._jacobians import custom_factor, pose_matrix, pose_matrix_at
 
 #: Floor on ``R[0,0]^2 + R[1,0]^2`` = cos(pitch)^2; 1e-4 = cos(89.43 deg)^2, beyond any flight.
 MIN_HORIZONTAL_NORM2 = 1e-4
@@ -96,12 +96,6 @@ def make_yaw_factor(
     z = float(yaw_meas)
     if not np.isfinite(z):
         raise ValueError(f"yaw_meas: non-finite value {yaw_meas}")
-    check_noise_dim(noise_model, 2 if cos_sin else 1)
-
-    def error_fn(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        e, jacobians = _yaw(values.atPose3(pose_key).matrix(), z, cos_sin, H is not None)
-        if H is not None:
-            H[0] = jacobians[0]
-        return e
-
-    return gtsam.CustomFactor(noise_model, [pose_key], error_fn)
+    dim = 2 if cos_sin else 1
+    variables = ((pose_key, pose_matrix_at),)
+    return custom_factor(noise_model, dim, variables, _yaw, (z, cos_sin), lazy=True)

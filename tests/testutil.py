@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +11,17 @@ import pytest
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 REAL_DATA = PROJECT_ROOT.parent / "shared" / "data" / "real"
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    """``python -m fgnav.cli ARGS`` from the project root (text output captured, 120 s limit)."""
+    return subprocess.run(
+        [sys.executable, "-m", "fgnav.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=PROJECT_ROOT,
+    )
 
 
 def require_real_data() -> Path:
@@ -31,6 +44,16 @@ CRAZYFLIE_LIKE = dict(
 )
 
 
+def two_turns_folder(tmp_path_factory, seed: int) -> Path:
+    """A simulated 8 s two-turns flight folder without images (the CLI tests' flight)."""
+    from fgnav.datasets.simulate.options import SimOptions
+    from fgnav.datasets.simulate.simulator import simulate_to_folder
+
+    out = tmp_path_factory.mktemp("flight") / "two_turns"
+    simulate_to_folder("two-turns", out, seed=seed, options=SimOptions(duration=8.0, images=False))
+    return out
+
+
 def truth_scale(flight) -> dict[int, float]:
     """The simulator's SLAM scale of each session at its start (``meta["truth"]``)."""
     return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
@@ -46,14 +69,16 @@ def feed_until(filt, events, t_cut: float):
     return filt.result()
 
 
-def assert_same_prefix(part, full, min_states: int = 100, t_cut: float | None = None) -> None:
-    """``part``'s trajectory is the first states of ``full``'s, to 1e-12 m (a causality check:
-    the run cut at ``t_cut`` gives the same states before it)."""
+def assert_same_prefix(
+    part, full, min_states: int = 100, t_cut: float | None = None, atol: float = 1e-12
+) -> None:
+    """``part``'s trajectory is the first states of ``full``'s, to ``atol`` m (0: bit-identical;
+    a causality check: the run cut at ``t_cut`` gives the same states before it)."""
     n = len(part.trajectory)
     assert n > min_states, n
     if t_cut is not None:
         assert part.trajectory.t[-1] <= t_cut
     np.testing.assert_array_equal(part.trajectory.t, full.trajectory.t[:n])
     np.testing.assert_allclose(
-        part.trajectory.world_t_body, full.trajectory.world_t_body[:n], rtol=0, atol=1e-12
+        part.trajectory.world_t_body, full.trajectory.world_t_body[:n], rtol=0, atol=atol
     )

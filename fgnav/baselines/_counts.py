@@ -26,3 +26,11 @@ class SlamRangeCounts:
     range_rejected_gate: int = 0
     range_rejected_tilt: int = 0
     extra: dict = field(default_factory=dict)
+
+    def gated(self, stream: str, ok: bool) -> bool:
+        """Count one update of ``stream`` (``"slam"``, ``"range"``, ...) as used
+        (``<stream>_updates``) or rejected by the innovation gate (``<stream>_rejected_gate``);
+        ``ok`` back."""
+        name = f"{stream}_updates" if ok else f"{stream}_rejected_gate"
+        setattr(self, name, getattr(self, name) + 1)
+        return ok

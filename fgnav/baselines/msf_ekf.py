@@ -39,6 +39,7 @@ import numpy as np
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._options import SlamRangeOptions
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     AttitudeSample,
@@ -91,48 +92,22 @@ CHI2_999 = {1: 10.83, 3: 16.27, 6: 22.46}
 
 
 @dataclass
-class MsfOptions:
-    """Options of :class:`MsfEkf`.
+class MsfOptions(SlamRangeOptions):
+    """Options of :class:`MsfEkf`: the shared SLAM and range options
+    (:class:`~fgnav.baselines._options.SlamRangeOptions`; the SLAM orientation is the MSF pose
+    sensor's, ``initial_scale`` None is :func:`initial_scale_guess`, and
+    ``initial_scale_rel_sigma`` None three times its standard error) and:
 
     Attributes:
-        slam_position_sigma_m: SLAM position noise [m]; the filter uses ``s * sigma`` in SLAM
-            units (a monocular SLAM's noise is geometric, so it scales with the map).
-        slam_rotation_sigma: SLAM orientation noise [rad].
-        use_slam_rotation: also fuse the SLAM camera orientation (MSF pose sensor).
-        use_range: fuse the rangefinder when the flight has one.
-        range_sigma: rangefinder noise [m].
-        range_max_tilt_rad: no range update above this tilt.
-        initial_scale: initial ``s`` (SLAM units per metre); None: estimated from the first
-            seconds of SLAM and IMU (see :func:`initial_scale_guess`).
-        initial_scale_rel_sigma: initial relative standard deviation of ``s``; None: twice the
-            standard error of the closed-form initialisation, at least 2 % (with
-            ``initial_scale`` given and this None: 30 %).
-        initial_velocity_sigma: initial velocity standard deviation [m/s].
-        initial_bias_sigma_gyro, initial_bias_sigma_accel: initial bias standard deviations.
-        scale_walk: random walk of ``s`` [1/s relative per sqrt(s)].
         alignment_walk_rot, alignment_walk_pos: random walk of the SLAM alignment
             [rad/sqrt(s)], [SLAM units/sqrt(s)].
-        gate: apply Mahalanobis gating.
         output_rate_hz: rate of the reported causal trajectory.
         buffer_s: how far back delayed measurements may reach [s]; older ones are counted and
             skipped.
     """
 
-    slam_position_sigma_m: float = 0.015
-    slam_rotation_sigma: float = 0.01
-    use_slam_rotation: bool = True
-    use_range: bool = True
-    range_sigma: float = 0.03
-    range_max_tilt_rad: float = np.deg2rad(35.0)
-    initial_scale: float | None = None
-    initial_scale_rel_sigma: float | None = None
-    initial_velocity_sigma: float = 0.5
-    initial_bias_sigma_gyro: float = 0.01
-    initial_bias_sigma_accel: float = 0.2
-    scale_walk: float = 1e-3
     alignment_walk_rot: float = 1e-4
     alignment_walk_pos: float = 1e-3
-    gate: bool = True
     output_rate_hz: float = 20.0
     buffer_s: float = 1.0
 
@@ -290,6 +265,23 @@ def initial_fit(flight: Flight, max_rel_std: float = 0.05, step_s: float = 2.0) 
         f"{flight.name}: no window of the flight determines the SLAM scale "
         f"(last try: {last}); pass MsfOptions.initial_scale"
     )
+
+
+def arrived_initial_fit(
+    arrived: Arrived, prefix: Flight, t_now: float, counts: SlamRangeCounts
+) -> InitFit | None:
+    """:func:`initial_fit` on the arrived ``prefix`` for a filter's start: None while the
+    arrived data do not fix the scale (the history is then trimmed to
+    ``HISTORY_BEFORE_START_S`` before ``t_now``); else the fit, its window counted as
+    ``init_window_s`` (seconds from the first SLAM pose)."""
+    try:
+        fit = initial_fit(prefix)
+    except FlightDataError:
+        arrived.trim(t_now - HISTORY_BEFORE_START_S)
+        return None
+    t0 = prefix.slam.t[0]
+    counts.extra["init_window_s"] = (fit.t_start - t0, fit.t_end - t0)
+    return fit
 
 
 def _fit_from(flight: Flight, t0: float, max_rel_std: float) -> tuple[InitFit | None, tuple | None]:
@@ -559,11 +551,7 @@ class MsfEkf:
             ok = self._correct(H, r, Rm, 6)
         else:
             ok = self._correct(Hp, rp, np.eye(3) * (x.s * o.slam_position_sigma_m) ** 2, 3)
-        if ok:
-            self.counts.slam_updates += 1
-        else:
-            self.counts.slam_rejected_gate += 1
-        return ok
+        return self.counts.gated("slam", ok)
 
     def update_range(self, r_meas: float) -> bool:
         """Fuse one tilted-rangefinder reading against the fixed ground height."""
@@ -585,11 +573,7 @@ class MsfEkf:
         dc[ITH : ITH + 3] = (x.R @ skew(d_body))[2]
         H = ((dnum * c - num * dc) / c**2)[None, :]
         ok = self._correct(H, np.array([r_meas - h]), np.array([[o.range_sigma**2]]), 1)
-        if ok:
-            self.counts.range_updates += 1
-        else:
-            self.counts.range_rejected_gate += 1
-        return ok
+        return self.counts.gated("range", ok)
 
     # ------------------------------------------------------------------------------------------
     # Event stream (the estimator never sees the flight; see fgnav.datasets.events)
@@ -670,17 +654,11 @@ class MsfEkf:
             t_start = max(prefix.imu.t[0], prefix.slam.t[0])
             scale0, v0, rel0 = o.initial_scale, np.zeros(3), 0.15
         else:
-            try:
-                fit = initial_fit(prefix)
-            except FlightDataError:
-                h.trim(t_now - HISTORY_BEFORE_START_S)
+            fit = arrived_initial_fit(h, prefix, t_now, self.counts)
+            if fit is None:
                 return
             scale0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             R0, bg0 = fit.world_R_body_end, fit.gyro_bias
-            self.counts.extra["init_window_s"] = (
-                fit.t_start - prefix.slam.t[0],
-                fit.t_end - prefix.slam.t[0],
-            )
             # Causal: the state at the window's last image time t_end is carried to now by
             # the IMU samples buffered since.
             t_start = fit.t_end

@@ -116,12 +116,12 @@ from scipy.linalg import cho_solve
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._options import SlamRangeOptions
 from fgnav.baselines.msf_ekf import (
     FIT_RETRY_S,
-    HISTORY_BEFORE_START_S,
     SCALE_INIT_WINDOWS_S,
     InitFit,
-    initial_fit,
+    arrived_initial_fit,
     new_map_scale_guess,
 )
 from fgnav.datasets.errors import FlightDataError
@@ -182,32 +182,25 @@ class CameraTrigger(NamedTuple):
 
 
 @dataclass
-class Ukf003Options:
-    """Options of :class:`Ukf003`.
+class Ukf003Options(SlamRangeOptions):
+    """Options of :class:`Ukf003`: the shared SLAM and range options
+    (:class:`~fgnav.baselines._options.SlamRangeOptions`; a displacement of two SLAM poses gets
+    ``sqrt(2) * s * slam_position_sigma_m`` in SLAM units, ``use_slam_rotation`` fuses the
+    relative rotation ``z_R``, and ``initial_scale_rel_sigma`` None is twice the closed-form
+    fit's standard error) and:
 
     Attributes:
-        slam_position_sigma_m: SLAM position noise per pose [m]; a displacement of two poses gets
-            ``sqrt(2) * s * sigma`` in SLAM units.
-        slam_rotation_sigma: SLAM orientation noise per pose [rad].
         slam_drift_walk_m [m/sqrt(s)], slam_drift_walk_rot [rad/sqrt(s)]: random walk of the
             SLAM pose noise of the clones (a map that drifts: later poses see the keyframe's pose
             offset by the drift since it was taken).
-        use_slam_rotation: also fuse the relative rotation ``z_R``.
-        use_range, range_sigma [m], range_max_tilt_rad: rangefinder (absolute).
         use_yaw, yaw_sigma [rad]: yaw stream (absolute).
         use_attitude, attitude_sigma [rad], attitude_min_interval_s: roll and pitch of the
             attitude stream (absolute), at most one update per interval.
-        initial_scale: initial ``s``; None: closed-form fit (module docstring).
-        initial_scale_rel_sigma: initial relative sigma of ``s``; None: twice the fit's standard
-            error, at least ``MIN_SCALE_REL_SIGMA`` (30 % with ``initial_scale`` given).
-        initial_velocity_sigma [m/s], initial_attitude_sigma [rad] (roll and pitch; yaw gets the
-            yaw stream's sigma or this), initial_bias_sigma_gyro [rad/s],
-            initial_bias_sigma_accel [m/s^2], initial_altimeter_bias_sigma [m].
-        scale_walk: random walk of ``s`` [relative / sqrt(s)].
+        initial_attitude_sigma [rad] (roll and pitch; yaw gets the yaw stream's sigma or this),
+            initial_altimeter_bias_sigma [m]: initial standard deviations.
         altimeter_bias_walk: random walk of ``z_b`` [m / sqrt(s)].
         ut_alpha, ut_beta, ut_kappa: scaled unscented transform parameters (Julier 2002; Wan & van
             der Merwe 2000); alpha = 1, kappa = 0 puts the sigma points at ``sqrt(n)`` sigma.
-        gate: Mahalanobis gating of every update.
         output_rate_hz: rate of the reported causal trajectory (Shen: 100 Hz fused output).
         keyframe_interval_s: SLAM poses are measured relative to the keyframe (the clone in the
             state) until one is at least this much later [s]; that one becomes the new keyframe
@@ -222,32 +215,19 @@ class Ukf003Options:
             filter outputs at 100 Hz, hence 0.01 s.
     """
 
-    slam_position_sigma_m: float = 0.015
-    slam_rotation_sigma: float = 0.01
     slam_drift_walk_m: float = 2e-3
     slam_drift_walk_rot: float = 2e-4
-    use_slam_rotation: bool = True
-    use_range: bool = True
-    range_sigma: float = 0.03
-    range_max_tilt_rad: float = float(np.deg2rad(35.0))
     use_yaw: bool = True
     yaw_sigma: float = 0.03
     use_attitude: bool = False
     attitude_sigma: float = 0.01
     attitude_min_interval_s: float = 0.05
-    initial_scale: float | None = None
-    initial_scale_rel_sigma: float | None = None
-    initial_velocity_sigma: float = 0.5
     initial_attitude_sigma: float = 0.02
-    initial_bias_sigma_gyro: float = 0.01
-    initial_bias_sigma_accel: float = 0.2
     initial_altimeter_bias_sigma: float = 0.01
-    scale_walk: float = 1e-3
     altimeter_bias_walk: float = 0.005
     ut_alpha: float = 1.0
     ut_beta: float = 2.0
     ut_kappa: float = 0.0
-    gate: bool = True
     output_rate_hz: float = 100.0
     ut_interval_s: float = 0.01
     keyframe_interval_s: float = 2.0
@@ -593,11 +573,7 @@ class Ukf003:
 
         idx = np.array([IP + 2, IPHI, IPHI + 1, IPHI + 2, IZB])
         ok = self._update(idx, h, np.array([r_meas]), np.array([[o.range_sigma**2]]))
-        if ok:
-            self.counts.range_updates += 1
-        else:
-            self.counts.range_rejected_gate += 1
-        return ok
+        return self.counts.gated("range", ok)
 
     def update_yaw(self, yaw: float) -> bool:
         """Yaw reading [rad] (residual wrapped)."""
@@ -609,11 +585,7 @@ class Ukf003:
             np.array([[self.opt.yaw_sigma**2]]),
             wrap_z=np.array([0]),
         )
-        if ok:
-            self.counts.yaw_updates += 1
-        else:
-            self.counts.yaw_rejected_gate += 1
-        return ok
+        return self.counts.gated("yaw", ok)
 
     def update_attitude(self, world_R_body: np.ndarray) -> bool:
         """Roll and pitch of an AHRS attitude reading."""
@@ -622,11 +594,7 @@ class Ukf003:
         ok = self._update(
             idx, lambda X: X, phi[1:], np.eye(2) * self.opt.attitude_sigma**2, wrap_z=np.array([1])
         )
-        if ok:
-            self.counts.attitude_updates += 1
-        else:
-            self.counts.attitude_rejected_gate += 1
-        return ok
+        return self.counts.gated("attitude", ok)
 
     def update_relative_slam(
         self,
@@ -685,11 +653,7 @@ class Ukf003:
         ok = self._update(idx, h, z, Rm, consider=None if excited else np.array([IS]))
         if ok and not excited:
             self.counts.slam_scale_considered += 1
-        if ok:
-            self.counts.slam_updates += 1
-        else:
-            self.counts.slam_rejected_gate += 1
-        return ok
+        return self.counts.gated("slam", ok)
 
     # -- whole flight ----------------------------------------------------------------------------
 
@@ -866,16 +830,13 @@ class Ukf003:
         if o.initial_scale is not None:
             s0, v0, rel0 = float(o.initial_scale), np.zeros(3), 0.15
         else:
-            try:
-                fit = initial_fit(prefix)
-            except FlightDataError:
-                h.trim(t_now - HISTORY_BEFORE_START_S)
+            fit = arrived_initial_fit(h, prefix, t_now, self.counts)
+            if fit is None:
                 return
             s0, v0, rel0 = fit.scale, fit.world_v_body_end, fit.rel_std
             t_start = fit.t_end
             j_end = min(int(np.searchsorted(slam.t, t_start)), len(slam) - 1)
             t_first_out = t_start + max(0.0, float(slam.latency[j_end]))
-            self.counts.extra["init_window_s"] = (fit.t_start - slam.t[0], fit.t_end - slam.t[0])
         R0, yaw_sigma = self._initial_attitude(prefix, t_start, fit)
         if fit is not None:
             # The fit's velocity is in its own world (yaw of its attitude); keep it in body.

@@ -419,19 +419,6 @@ def slam_second_differences(
     return SecondDifferences(slam_d2, world_d2, tj, w)
 
 
-def second_difference_pairs(
-    t_slam: np.ndarray,
-    slam_t: np.ndarray,
-    imu_t: np.ndarray,
-    world_a: np.ndarray,
-    h: float,
-    step: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(slam_d2, world_d2, centres)`` of :func:`slam_second_differences`."""
-    d = slam_second_differences(t_slam, slam_t, imu_t, world_a, h, step)
-    return d.slam_d2, d.world_d2, d.centers
-
-
 def fit_axis_scale(
     t_slam: np.ndarray,
     slam_t: np.ndarray,
@@ -453,7 +440,8 @@ def fit_axis_scale(
     Raises:
         FlightDataError: fewer than 3 pairs, or no axis determined.
     """
-    sd2, wd2, _ = second_difference_pairs(t_slam, slam_t, imu_t, world_a, h, step)
+    d = slam_second_differences(t_slam, slam_t, imu_t, world_a, h, step)
+    sd2, wd2 = d.slam_d2, d.world_d2
     if len(sd2) < 3:
         raise FlightDataError("per-axis SLAM scale initialisation: fewer than 3 pairs")
     sd2, wd2 = sd2 - sd2.mean(axis=0), wd2 - wd2.mean(axis=0)

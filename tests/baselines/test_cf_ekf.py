@@ -11,7 +11,7 @@ from fgnav.datasets.geometry import make_pose, rpy_to_matrix
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.types import DOWNWARD_FLOW
 from fgnav.factors.optical_flow import FlowSensor, predict_flow
-from testutil import CRAZYFLIE_LIKE
+from testutil import CRAZYFLIE_LIKE, assert_same_prefix, feed_until
 
 from fgnav.baselines.cf_ekf import IP, IU, CfEkf, CfEkfOptions, run_cf_ekf, tof_sigma
 from fgnav.eval.metrics import flow_flight_figures
@@ -79,14 +79,8 @@ def test_causal_a_run_cut_at_t_gives_the_same_states_before_t(flight):
     full = run_cf_ekf(flight)
     ekf = CfEkf()
     ekf.start(flight.calib, flight.name)
-    for ev in replay_flight(flight, ("imu", "range", "flow")):
-        if ev.arrival > 8.0:
-            break
-        ekf.feed(ev)
-    part = ekf.result()
-    n = len(part.trajectory)
-    assert n > 700
-    np.testing.assert_array_equal(part.trajectory.world_t_body, full.trajectory.world_t_body[:n])
+    part = feed_until(ekf, replay_flight(flight, ("imu", "range", "flow")), 8.0)
+    assert_same_prefix(part, full, min_states=700, t_cut=8.0, atol=0.0)
     assert ekf.latest() is not None and np.allclose(ekf.latest()[0], ekf.S[IP : IP + 3])
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from fgnav.datasets.events import replay_flight
 from fgnav.datasets.simulate import SimOptions, simulate
-from testutil import CRAZYFLIE_LIKE
+from testutil import CRAZYFLIE_LIKE, assert_same_prefix, feed_until
 
 from fgnav.baselines.seed002_flow import Seed002Flow, run_seed002_flow
 from fgnav.eval.metrics import flow_flight_figures
@@ -47,12 +47,6 @@ def test_causal_a_run_cut_at_t_gives_the_same_states_before_t(flight):
     full = run_seed002_flow(flight)
     f = Seed002Flow()
     f.start(flight.calib, flight.name)
-    for ev in replay_flight(flight, ("imu", "yaw", "range", "flow")):
-        if ev.arrival > 8.0:
-            break
-        f.feed(ev)
-    part = f.result()
-    n = len(part.trajectory)
-    assert n > 700
-    np.testing.assert_array_equal(part.trajectory.world_t_body, full.trajectory.world_t_body[:n])
+    part = feed_until(f, replay_flight(flight, ("imu", "yaw", "range", "flow")), 8.0)
+    assert_same_prefix(part, full, min_states=700, t_cut=8.0, atol=0.0)
     np.testing.assert_array_equal(f.latest()[0], part.trajectory.world_t_body[-1])

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import shutil
 import struct
-import subprocess
-import sys
 import zlib
 from pathlib import Path
 
@@ -571,18 +569,12 @@ def test_util_still_imu_noise_constant_is_the_pooled_still_estimate(util_flights
 
 @pytest.mark.realdata
 def test_cli_info_on_a_raw_log(tmp_path):
-    from testutil import PROJECT_ROOT, require_real_data
+    from testutil import require_real_data, run_cli
 
     path = require_real_data() / "crazyflie_util_flowdeck" / "0425-traj1"
     if not path.is_file():
         pytest.skip(f"{path} is absent")
-    run = subprocess.run(
-        [sys.executable, "-m", "fgnav.cli", "info", str(path)],
-        capture_output=True,
-        text=True,
-        cwd=PROJECT_ROOT,
-        timeout=120,
-    )
+    run = run_cli("info", path)
     assert run.returncode == 0, run.stderr
     out = run.stdout
     assert out.startswith("flight  0425-traj1")
@@ -599,13 +591,7 @@ def test_cli_info_on_a_raw_log(tmp_path):
     data = bytearray(damaged.read_bytes())
     data[1000] ^= 0xFF
     damaged.write_bytes(bytes(data))
-    run = subprocess.run(
-        [sys.executable, "-m", "fgnav.cli", "info", str(damaged)],
-        capture_output=True,
-        text=True,
-        cwd=PROJECT_ROOT,
-        timeout=120,
-    )
+    run = run_cli("info", damaged)
     assert run.returncode == 1
     err = [line for line in run.stderr.splitlines() if line.strip()]
     assert len(err) == 1 and "CRC-32 mismatch" in err[0], run.stderr

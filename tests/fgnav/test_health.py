@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose, replay_flight
 from fgnav.datasets.simulate.options import SimOptions
-from fgnav.datasets.simulate.simulator import simulate, simulate_to_folder
+from fgnav.datasets.simulate.simulator import simulate
+from testutil import two_turns_folder
 
 from fgnav.cli import main
 from fgnav.compare import score_estimate
@@ -338,9 +339,7 @@ def test_online_gyro_saturation_without_downweighting_diverges(two_turns):
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
-    out = tmp_path_factory.mktemp("flight") / "two_turns"
-    simulate_to_folder("two-turns", out, seed=4, options=SimOptions(duration=8.0, images=False))
-    return out
+    return two_turns_folder(tmp_path_factory, seed=4)
 
 
 def test_batch_not_converged_exits_1_unless_write_anyway(folder, tmp_path, capsys):

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 from fgnav.datasets import Flight, ImuSeries, RangeSeries, SlamSeries, Trajectory
 from fgnav.datasets.native import write_flight
-from testutil import PROJECT_ROOT
+from testutil import PROJECT_ROOT, run_cli
 
 from fgnav.info import GAP_FACTOR, flight_info
 
@@ -68,13 +65,7 @@ def test_flight_info_numbers():
 
 
 def _run(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "fgnav.cli", "info", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=PROJECT_ROOT,
-    )
+    return run_cli("info", *args)
 
 
 @pytest.mark.realdata

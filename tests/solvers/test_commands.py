@@ -7,15 +7,14 @@ import json
 import pytest
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate_to_folder
+from testutil import two_turns_folder
 
 from fgnav.cli import main
 
 
 @pytest.fixture(scope="module")
 def flight_folder(tmp_path_factory):
-    out = tmp_path_factory.mktemp("flight") / "two_turns"
-    simulate_to_folder("two-turns", out, seed=3, options=SimOptions(duration=8.0, images=False))
-    return out
+    return two_turns_folder(tmp_path_factory, seed=3)
 
 
 def test_batch_command_writes_outputs(flight_folder, tmp_path, capsys):
