@@ -64,6 +64,16 @@ class SimOptions:
             run, ORB-SLAM3 monocular on EuRoC MH_01 (-2.7e-5 +- 2.6e-5 per second in 10 s
             windows, ``scripts/slam_scale_drift.py``). Up to 2026-11 the default was 5e-4, 6x that
             bound; keep it for stress tests of scale tracking.
+        slam_origin_rw_m: map drift: the SLAM frame's origin follows a Brownian walk of this
+            density [m/sqrt(s)] per axis (in metres before scaling, zero at each session's
+            first pose, continuous in time); 0 (default, the seeded flights and figures as
+            before): the map is rigid and every pose has only its white noise. Real monocular
+            SLAM drifts: ORB-SLAM3 on EuRoC MH_01 (run A, whole-run Sim(3) fit to the truth
+            camera positions) has a white part of about 2.9 mm per axis and a residual whose
+            increments grow with the lag, ``E|r(t + tau) - r(t)|^2`` per axis 1.6e-5 m^2 at
+            50 ms, 4.2e-5 at 0.5 s, 7.5e-5 at 2 s, 2.7e-4 at 10 s (about 7 mm/sqrt(s) over
+            0.5 s, 5 mm/sqrt(s) over 10 s; ``scripts/nees_breakdown.py --slam-drift``); the
+            smoothers model it as the alignment's origin walk ``graph.slam_trans_rw_m``.
         slam_latency_s, slam_latency_jitter_s: delivery delay of SLAM poses [s].
         slam_resets: times of map resets [s]: tracking is lost for ``slam_reset_gap_s``, then a
             new session starts with a new similarity and scale.
@@ -144,6 +154,7 @@ class SimOptions:
     slam_scale_range: tuple[float, float] = (0.5, 2.0)
     slam_axis_scale: tuple[float, ...] | None = None
     slam_scale_drift_per_s: float = 1e-4
+    slam_origin_rw_m: float = 0.0
     slam_latency_s: float = 0.1
     slam_latency_jitter_s: float = 0.01
     slam_resets: tuple[float, ...] = ()
@@ -243,6 +254,8 @@ class SimOptions:
             len(self.slam_axis_scale) != 3 or min(self.slam_axis_scale) <= 0
         ):
             raise bad("slam_axis_scale", "None, () or three positive scales (kx, ky, kz)")
+        if not (math.isfinite(self.slam_origin_rw_m) and self.slam_origin_rw_m >= 0):
+            raise bad("slam_origin_rw_m", "a non-negative walk density [m/sqrt(s)]")
         if self.slam_scale is not None and not self.slam_scale > 0:
             raise bad("slam_scale", "a positive scale (SLAM units per metre)")
         for t0, t1 in self.slam_dropouts:

@@ -393,6 +393,8 @@ def simulate_slam(
     the identity up to noise), with a new scale drawn log-uniformly in ``slam_scale_range``
     (session 0 uses ``slam_scale`` when given). With ``axis_scale`` the seed-000 model is used
     instead (every session keeps the same per-axis scale, identity rotation, zero offset).
+    Position error: white ``slam_noise_m`` per pose plus, with ``slam_origin_rw_m``, the map's
+    origin drift (a Brownian walk in metres from the session's first pose).
     Latency: ``slam_latency_s + |N(0, jitter^2)|``.
 
     Returns:
@@ -435,6 +437,13 @@ def simulate_slam(
         world_R_cam = world_T_cam[idx, :3, :3]
         if not noise_free and opts.slam_noise_m > 0:
             world_t_cam = world_t_cam + rng.normal(0.0, opts.slam_noise_m, world_t_cam.shape)
+        if not noise_free and opts.slam_origin_rw_m > 0 and len(idx) > 1:
+            # The map's slow drift: a Brownian offset of the SLAM frame's origin [m], zero at
+            # the session's first pose (real monocular SLAM, see SimOptions.slam_origin_rw_m).
+            steps = rng.normal(0.0, 1.0, (len(idx) - 1, 3)) * (
+                opts.slam_origin_rw_m * np.sqrt(np.diff(t[idx]))[:, None]
+            )
+            world_t_cam = world_t_cam + np.vstack([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
         if not noise_free and opts.slam_rot_noise_rad > 0:
             world_R_cam = world_R_cam @ so3_exp(
                 rng.normal(0.0, opts.slam_rot_noise_rad, (len(idx), 3))

@@ -307,6 +307,36 @@ def test_slam_maps_back_to_ground_truth_through_the_stored_similarity():
     assert np.all(f.slam.latency < opts.slam_latency_s + 6 * opts.slam_latency_jitter_s)
 
 
+def test_slam_origin_walk_has_its_density_and_is_off_by_default():
+    """``slam_origin_rw_m``: the map's origin drifts as a Brownian walk (increments over a lag
+    tau have variance ``rw^2 tau`` per axis on top of twice the white noise); 0 leaves the
+    seeded SLAM stream exactly as before."""
+    base = dict(images=False, duration=30.0)
+    f0 = simulate("two-turns", seed=3, options=SimOptions(**base))
+    f0b = simulate("two-turns", seed=3, options=SimOptions(**base, slam_origin_rw_m=0.0))
+    np.testing.assert_array_equal(f0.slam.slam_t_cam, f0b.slam.slam_t_cam)
+    rw, sigma = 0.02, 0.002
+    f = simulate(
+        "two-turns",
+        seed=3,
+        options=SimOptions(**base, slam_origin_rw_m=rw, slam_noise_m=sigma),
+    )
+    assert f.meta["truth"]["options"]["slam_origin_rw_m"] == rw
+    idx = _at(f.ground_truth.t, f.slam.t)
+    gt = f.ground_truth
+    world_t_cam = gt.world_t_body[idx] + gt.world_R_body()[idx] @ f.calib.body_T_cam[:3, 3]
+    r = _slam_to_world(f) - world_t_cam
+    # Zero at the first pose (up to the white noise), a walk afterwards.
+    assert np.linalg.norm(r[0]) < 5 * sigma
+    dt = float(np.median(np.diff(f.slam.t)))
+    for tau in (0.5, 2.0):
+        lag = round(tau / dt)
+        d = np.mean((r[lag:] - r[:-lag]) ** 2)
+        np.testing.assert_allclose(d, rw**2 * lag * dt + 2 * sigma**2, rtol=0.3)
+    with pytest.raises(SimulationError, match="slam_origin_rw_m"):
+        SimOptions(slam_origin_rw_m=-1.0)
+
+
 def test_slam_scale_option_sets_the_first_session():
     f = simulate(
         "vertical",
