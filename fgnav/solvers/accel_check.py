@@ -149,8 +149,19 @@ def check_horizontal_accel(
         b[a] = float(np.mean(f[:, a] + k[a] * u[:, a]))
     res = f + k * u - b
     res_ms = float(np.mean(np.sum(res**2, axis=1)))
-    residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
     rms_u = math.sqrt(float(np.mean(np.sum(u**2, axis=1))))
+    rms_f = math.sqrt(float(np.mean(np.sum(f**2, axis=1))))
+    return _verdict(
+        res_ms, rms_u, rms_f, k, b, n, white_sigma, k_max, signal_floor, unusable_ratio, weigh_ratio
+    )
+
+
+def _verdict(
+    res_ms, rms_u, rms_f, k, b, n, white_sigma, k_max, signal_floor, unusable_ratio, weigh_ratio
+) -> AccelCheck:
+    """The check's figures and decision from the drag fit's mean squared residual [m^2/s^4] and
+    the RMS velocity and specific force (module docstring)."""
+    residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
     signal = max(k_max * rms_u, signal_floor)
     ratio = residual / signal
     if ratio > unusable_ratio:
@@ -166,7 +177,7 @@ def check_horizontal_accel(
         signal=signal,
         k=(float(k[0]), float(k[1])),
         bias=(float(b[0]), float(b[1])),
-        rms_f=math.sqrt(float(np.mean(np.sum(f**2, axis=1)))),
+        rms_f=rms_f,
         rms_u=rms_u,
         n=n,
     )
@@ -288,25 +299,16 @@ class RunningAccelCheck:
             # sum x^2 = sum (x - r)^2 + 2 r sum (x - r) + n r^2
             f2 += self.s_ff[a] + 2.0 * ref[a] * self.s_f[a] + n * ref[a] ** 2
             u2 += self.s_uu[a] + 2.0 * ref[2 + a] * self.s_u[a] + n * ref[2 + a] ** 2
-        res_ms = max(res_sum, 0.0) / n
-        residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
-        rms_u = math.sqrt(max(u2, 0.0) / n)
-        signal = max(k_max * rms_u, signal_floor)
-        ratio = residual / signal
-        if ratio > unusable_ratio:
-            decision = "unusable"
-        elif ratio > weigh_ratio:
-            decision = "noisy"
-        else:
-            decision = "usable"
-        return AccelCheck(
-            decision=decision,
-            ratio=ratio,
-            residual=residual,
-            signal=signal,
-            k=(float(k[0]), float(k[1])),
-            bias=(float(b[0]), float(b[1])),
-            rms_f=math.sqrt(max(f2, 0.0) / n),
-            rms_u=rms_u,
-            n=n,
+        return _verdict(
+            max(res_sum, 0.0) / n,
+            math.sqrt(max(u2, 0.0) / n),
+            math.sqrt(max(f2, 0.0) / n),
+            k,
+            b,
+            n,
+            white_sigma,
+            k_max,
+            signal_floor,
+            unusable_ratio,
+            weigh_ratio,
         )
