@@ -207,6 +207,13 @@ def main() -> None:
     )
     ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     ap.add_argument(
+        "--position-threshold",
+        type=float,
+        default=FixedLagOptions.relinearize_threshold_position,
+        help="keyframe position relinearisation threshold [m] "
+        "(FixedLagOptions.relinearize_threshold_position; <= 0: none, the keyframe threshold)",
+    )
+    ap.add_argument(
         "--speed-limit",
         action="store_true",
         help="also run the same window with GTSAM's built-in factors standing in for the custom "
@@ -240,10 +247,16 @@ def main() -> None:
         factorization=args.factorization,
         smoother=args.smoother,
         track_memory=args.memory,
+        relinearize_threshold_position=(
+            args.position_threshold
+            if args.position_threshold and args.position_threshold > 0
+            else None
+        ),
     )
     print(
         f"lag {args.lag} s, marginalisation every {args.marginalize_every} s, "
-        f"window {args.smoother}"
+        f"window {args.smoother}, position relinearisation threshold "
+        f"{opts.relinearize_threshold_position}"
     )
     print(f"engine: {args.engine}")
     if args.camera and args.engine == "prepared":

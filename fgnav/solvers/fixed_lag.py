@@ -109,7 +109,9 @@ class FixedLagOptions:
             (largest tangent-space component).
         relinearize_threshold_position: push engine: the same for the translation part of the
             keyframe poses ``X`` [m] (None: ``relinearize_threshold``; the smaller of the two is
-            used; the prepared runner always uses ``relinearize_threshold``).
+            used; the prepared runner always uses ``relinearize_threshold``, and so does the push
+            engine with the per-axis SLAM model and during the start's relinearisation without
+            an attitude stream: see ``OnlineSmoother._new_smoother``).
             0.5 m let a keyframe position leave the window (marginalised) still linearised at
             its IMU-predicted initial value, a few cm from its estimate: the marginal then holds
             a linearisation error that biases the SLAM scale. Measured 2026-12-02 (push engine,
@@ -122,6 +124,10 @@ class FixedLagOptions:
             relinearisation at every update 4.74 cm (0.68 %): the linearisation is then spent.
             The default (with ``slam_scale_rw = None``, below) since 2026-12-02 evening: MH_01
             causal ATE 4.62 cm, final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm).
+            It breaks the first-estimate rule of iSAM2's marginals (their variables are held,
+            their neighbours now relinearised): weakly observed directions get information they
+            do not have (circle's per-axis kz 29 % off, hence not with that model; V1_02 NEES
+            7.0 / 5.7 -> 10.9 / 6.6, causal ATE 9.36 / 5.34 -> 9.64 / 5.42 cm).
             After an IMU-gap restart it swung the SLAM scale (20 s two-turns without camera,
             8 s gap: -5 % -> +31 % 0.3 s after the restart; 2.56x nominal against the health
             test's 2.5x): the restarted window sees the scale only through its products with the
