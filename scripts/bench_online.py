@@ -205,14 +205,16 @@ def main() -> None:
         help="render the 30 Hz downward camera and add its homography factors (the VO front-end "
         "runs once before the smoother; its time is printed apart)",
     )
+    ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     ap.add_argument(
+        "--position-threshold",
         "--relinearize-position",
+        dest="position_threshold",
         type=float,
         default=FixedLagOptions.relinearize_threshold_position,
-        help="push engine: relinearisation threshold of the keyframe positions [m] "
-        "(FixedLagOptions.relinearize_threshold_position; e.g. 0.003)",
+        help="keyframe position relinearisation threshold [m] "
+        "(FixedLagOptions.relinearize_threshold_position; <= 0: none, the keyframe threshold)",
     )
-    ap.add_argument("--memory", action="store_true", help="trace the Python heap (slower)")
     ap.add_argument(
         "--speed-limit",
         action="store_true",
@@ -247,12 +249,16 @@ def main() -> None:
         factorization=args.factorization,
         smoother=args.smoother,
         track_memory=args.memory,
-        relinearize_threshold_position=args.relinearize_position,
+        relinearize_threshold_position=(
+            args.position_threshold
+            if args.position_threshold and args.position_threshold > 0
+            else None
+        ),
     )
     print(
         f"lag {args.lag} s, marginalisation every {args.marginalize_every} s, "
         f"window {args.smoother}, position relinearisation threshold "
-        f"{args.relinearize_position} m"
+        f"{opts.relinearize_threshold_position}"
     )
     print(f"engine: {args.engine}")
     if args.camera and args.engine == "prepared":

@@ -109,7 +109,9 @@ class FixedLagOptions:
             (largest tangent-space component).
         relinearize_threshold_position: push engine: the same for the translation part of the
             keyframe poses ``X`` [m] (None: ``relinearize_threshold``; the smaller of the two is
-            used; the prepared runner always uses ``relinearize_threshold``).
+            used; the prepared runner always uses ``relinearize_threshold``, and so does the push
+            engine with the per-axis SLAM model and during the start's relinearisation without
+            an attitude stream: see ``OnlineSmoother._new_smoother``).
             0.5 m let a keyframe position leave the window (marginalised) still linearised at
             its IMU-predicted initial value, a few cm from its estimate: the marginal then holds
             a linearisation error that biases the SLAM scale. Measured 2026-12-02 (push engine,
@@ -120,11 +122,22 @@ class FixedLagOptions:
             figure8 0.52 -> 0.50 cm. Rotation, velocity or bias thresholds of 0.01 alone changed
             nothing (6.2-6.3 cm); 0.01 m gave 4.85 cm; every threshold 0.003 with
             relinearisation at every update 4.74 cm (0.68 %): the linearisation is then spent.
-            Not the default (None) yet: on the 20 s two-turns flight without camera it costs
-            2.73 -> 2.94 cm nominal and 5.67 -> 8.04 cm with an 8 s IMU gap (6-14 s; the
-            health test's bound is 2.5x nominal, it gives 2.74x); 0.01 m gives 2.77x. Set it
-            with ``slam_scale_rw = None`` (below) for MH_01's figures. Not benchmarked
-            (``scripts/bench_online.py``).
+            The default (with ``slam_scale_rw = None``, below) since 2026-12-02 evening: MH_01
+            causal ATE 4.62 cm, final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm).
+            It breaks the first-estimate rule of iSAM2's marginals (their variables are held,
+            their neighbours now relinearised): weakly observed directions get information they
+            do not have (circle's per-axis kz 29 % off, hence not with that model; V1_02 NEES
+            7.0 / 5.7 -> 10.9 / 6.6, causal ATE 9.36 / 5.34 -> 9.64 / 5.42 cm).
+            After an IMU-gap restart it swung the SLAM scale (20 s two-turns without camera,
+            8 s gap: -5 % -> +31 % 0.3 s after the restart; 2.56x nominal against the health
+            test's 2.5x): the restarted window sees the scale only through its products with the
+            velocity and position, whose priors the gap widened, and relinearising the
+            positions moved the scale along that near-degenerate direction. The carried
+            alignment chain now keeps its first linearisation point during the restart's QR
+            start (``OnlineSmoother._carried_chain``): 1.81x; mean ATE over eight restarts
+            (seeds 0-1; gaps 6-14, 7-15, 8-11, 10-12 s) 6.68 -> 5.31 cm (old defaults 5.15 cm).
+            Without a camera the threshold is neutral to mixed (two-turns seed 1 2.72 -> 3.16
+            cm, seed 0 3.38 -> 1.97 cm). Speed: see README (``scripts/bench_online.py``).
         relinearize_threshold_slow: the same for the slow variables ``S, D, G`` (a provisional
             SLAM scale moves by tens of percent when it becomes observable: its factors must be
             relinearised then).
@@ -254,6 +267,7 @@ class FixedLagOptions:
             keyframes 20.48 / 7.16 -> 20.49 / 7.22 cm; simulated (seed 1, camera) two-turns,
             circle, rectangle, figure8 0.46 / 0.44 / 0.45 / 0.50 -> 0.46 / 0.44 / 0.43 /
             0.50 cm (final scale error rectangle -0.35 -> -0.51 %, figure8 -0.06 -> +0.02 %).
+            None (the graph's 1e-3) is the default since (with the 3 mm position threshold).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -262,7 +276,7 @@ class FixedLagOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)
     lag_s: float = 2.0
     relinearize_threshold: float = 0.5
-    relinearize_threshold_position: float | None = None
+    relinearize_threshold_position: float | None = 0.003
     relinearize_threshold_slow: float = 0.01
     relinearize_skip: int = 10
     factorization: str = "CHOLESKY"
@@ -302,7 +316,7 @@ class FixedLagOptions:
     drag_check_s: float = 0.5
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
-    slam_scale_rw: float | None = 3e-4
+    slam_scale_rw: float | None = None
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
     lagged_output: bool = True

@@ -269,22 +269,28 @@ def test_online_slam_jump_named_and_recovered(two_turns):
     assert sorted(est.slam_scale) == [0, JUMP_SESSION_BASE]
 
 
-@pytest.mark.parametrize("gap, factor", [((10.0, 12.0), 2.0), ((6.0, 14.0), 2.5)])
+@pytest.mark.parametrize("gap, factor", [((10.0, 12.0), 1.5), ((6.0, 14.0), 2.2)])
 def test_online_imu_gap_restarts_from_the_state_before_it(two_turns, gap, factor):
     """Past ``max_imu_gap_s`` the chain is broken and the smoother restarts from the newest
     state before the gap: its world frame, biases and SLAM alignment carried (priors widened
-    by the gap), the vehicle placed by the first SLAM pose after it (before: a blank start at
-    the origin, ATE 25x / 21x nominal on the 24 s matrix flight). Measured: 1.5x for 2 s;
-    2.1x for 8 s right after the hover (the alignment carried from 1 s of motion)."""
+    by the gap; the alignment's linearisation held at the carried value during the restart's
+    QR start), the vehicle placed by the first SLAM pose after it (before: a blank start at
+    the origin, ATE 25x / 21x nominal on the 24 s matrix flight), the SLAM rotation convention
+    kept when decided before the gap (9.15 s in). Measured 2026-12-02 (default options): 1.01x
+    for 2 s (1.09x with a fresh SLAM-vs-gyro check); 1.81x for 8 s right after the hover (the
+    alignment carried from 1 s of motion; 2.56x without the held linearisation)."""
     f = two_turns
     keep = (f.imu.t < gap[0]) | (f.imu.t >= gap[1])
     bad = dataclasses.replace(f, imu=f.imu.select(keep))
-    _, ate0 = _online(f)
+    nominal, ate0 = _online(f)
     est, ate = _online(bad)
     assert est.info["health"]["detectors"]["imu-gap"] == 1
     assert est.info["dropped"]["reset:imu-gap"] == 1 and est.info["reset_counter"] == 1
     assert est.info["used"]["slam:alignment-carried"] == 1
     assert ate < factor * ate0, (ate, ate0)
+    t_check = nominal.info["slam_gyro_check"]["t"]
+    if t_check < gap[0]:  # decided before the gap: kept over the restart, not decided again
+        assert est.info["slam_gyro_check"]["t"] == t_check
     # One trajectory in one world frame: the first state after the gap is where the truth is
     # (the alignment of the whole run is fixed by the part before the gap).
     tr = est.trajectory
@@ -293,6 +299,26 @@ def test_online_imu_gap_restarts_from_the_state_before_it(two_turns, gap, factor
     i = int(np.searchsorted(tr.t, t_after))
     err = (tr.world_t_body[i] - tr.world_t_body[0]) - (gt.world_t_body[1] - gt.world_t_body[0])
     assert np.linalg.norm(err) < 0.3, err
+
+
+def test_online_imu_gap_holds_the_carried_alignment(two_turns):
+    """After a restart the window sees the SLAM scale only through its products with the
+    velocity and position, whose priors the gap widened: the carried alignment and the segments
+    that follow it keep their first linearisation point (as iSAM2 keeps those of a marginal's
+    variables) while the restart's QR start lasts."""
+    f = two_turns
+    keep = (f.imu.t < 6.0) | (f.imu.t >= 14.0)
+    bad = dataclasses.replace(f, imu=f.imu.select(keep))
+    sm = OnlineSmoother(f.calib, FixedLagOptions(), f.name)
+    for ev in replay_flight(bad, [n for n in PUSH_STREAMS if getattr(bad, n) is not None]):
+        if ev.t > 18.5:
+            break
+        sm.feed(ev)
+    assert sm.reset_counter == 1
+    (s,) = sm.sessions.values()
+    assert s.carried and len(s.chain) >= 2  # the carried segment and the ones after it
+    live = [k for k in s.chain.values() if k in sm.smoother]
+    assert live and set(live) <= sm.smoother._held
 
 
 def _gyro_clipped(f, rail=0.5):
