@@ -122,10 +122,14 @@ class FixedLagOptions:
             figure8 0.52 -> 0.50 cm. Rotation, velocity or bias thresholds of 0.01 alone changed
             nothing (6.2-6.3 cm); 0.01 m gave 4.85 cm; every threshold 0.003 with
             relinearisation at every update 4.74 cm (0.68 %): the linearisation is then spent.
-            The default (with ``slam_scale_rw = None``, below) since 2026-12-02 evening: MH_01
-            causal ATE 4.62 cm, final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm).
-            It breaks the first-estimate rule of iSAM2's marginals (their variables are held,
-            their neighbours now relinearised): weakly observed directions get information they
+            Opt-in (set it with ``slam_scale_rw = None``, below): MH_01 causal ATE 4.62 cm,
+            final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm; defaults 6.3 cm,
+            1.27 %). Not the default: it costs the 180 s figure8 benchmark without camera ATE
+            2.65 -> 2.96 cm and p99 latency 4.6-5.0 -> 12.5-17 ms (every 10th update
+            relinearises and re-eliminates the whole window; ``scripts/bench_online.py
+            --position-threshold 0.003``, 2026-12-02 20:31, load 0), and it breaks the
+            first-estimate rule of iSAM2's marginals (their variables are held, their
+            neighbours now relinearised): weakly observed directions get information they
             do not have (circle's per-axis kz 29 % off, hence not with that model; V1_02 NEES
             7.0 / 5.7 -> 10.9 / 6.6, causal ATE 9.36 / 5.34 -> 9.64 / 5.42 cm).
             After an IMU-gap restart it swung the SLAM scale (20 s two-turns without camera,
@@ -267,7 +271,7 @@ class FixedLagOptions:
             keyframes 20.48 / 7.16 -> 20.49 / 7.22 cm; simulated (seed 1, camera) two-turns,
             circle, rectangle, figure8 0.46 / 0.44 / 0.45 / 0.50 -> 0.46 / 0.44 / 0.43 /
             0.50 cm (final scale error rectangle -0.35 -> -0.51 %, figure8 -0.06 -> +0.02 %).
-            None (the graph's 1e-3) is the default since (with the 3 mm position threshold).
+            None (the graph's 1e-3) goes with the 3 mm position threshold (opt-in).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -276,7 +280,7 @@ class FixedLagOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)
     lag_s: float = 2.0
     relinearize_threshold: float = 0.5
-    relinearize_threshold_position: float | None = 0.003
+    relinearize_threshold_position: float | None = None
     relinearize_threshold_slow: float = 0.01
     relinearize_skip: int = 10
     factorization: str = "CHOLESKY"
@@ -316,7 +320,7 @@ class FixedLagOptions:
     drag_check_s: float = 0.5
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
-    slam_scale_rw: float | None = None
+    slam_scale_rw: float | None = 3e-4
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
     lagged_output: bool = True

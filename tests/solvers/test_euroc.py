@@ -54,9 +54,9 @@ def test_euroc_v102_keyframes_batch_within_4cm(real_data, run):
 @pytest.mark.parametrize(
     "manifest, ate_max, scale_max, convention",
     [
-        (MANIFEST, 0.050, 0.006, "as-is"),
+        (MANIFEST, 0.070, 0.02, "as-is"),
         (V102["orbslam2_kf1"], 0.10, 0.02, "as-is"),
-        (V102["orbslam3_kf2"], 0.062, 0.02, "inverse"),
+        (V102["orbslam3_kf2"], 0.060, 0.02, "inverse"),
     ],
 )
 def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_max, convention):
@@ -67,10 +67,10 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_m
     # relinearisation: 7.5, 45 and 59 cm). After the start from the still stretch (attitude and
     # velocity integrated from rest) and the provisional log-scale sigma 1.0 (was 0.3): MH_01
     # 6.3 cm, V1_02 ORB-SLAM2 9.4 cm, ORB-SLAM3 5.3 cm; NEES 3.7, 7.0, 5.7 (16.2, 14.6 before).
-    # With the keyframe positions relinearised at 3 mm and the graph's scale walk (the defaults
-    # since 2026-12-02 evening; FixedLagOptions.relinearize_threshold_position): MH_01 4.62 cm,
-    # final scale error 0.49 % (1.27 % before), NEES 1.90; V1_02 ORB-SLAM2 9.69 cm, ORB-SLAM3
-    # 5.86 cm.
+    # With the keyframe positions relinearised at 3 mm and the graph's scale walk (opt-in,
+    # FixedLagOptions.relinearize_threshold_position; the test below): MH_01 4.62 cm, final
+    # scale error 0.49 % (1.27 % with the defaults), NEES 1.90; V1_02 ORB-SLAM2 9.69 cm,
+    # ORB-SLAM3 5.86 cm.
     from fgnav.solvers.fixed_lag import FixedLagOptions
     from fgnav.solvers.online import replay_online
 
@@ -83,3 +83,21 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_m
     assert m.ate_rmse_m < ate_max, m.ate_rmse_m
     s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
     assert abs(est.slam_scale[0] / s_true - 1) < scale_max, est.slam_scale[0] / s_true - 1
+
+
+@pytest.mark.realdata
+def test_euroc_mh01_push_engine_position_relinearisation(real_data):
+    # Opt-in (not the default: see FixedLagOptions.relinearize_threshold_position): the keyframe
+    # positions relinearised at 3 mm and the graph's scale walk. Measured 2026-12-02 evening:
+    # MH_01 causal ATE 4.61-4.62 cm, final scale error 0.49 % (defaults: 6.27 cm, 1.27 %).
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.online import replay_online
+
+    flight = load_flight(MANIFEST)
+    opts = FixedLagOptions(relinearize_threshold_position=0.003, slam_scale_rw=None)
+    est = replay_online(flight, opts)
+    assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
+    m = evaluate(est, flight.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.050, m.ate_rmse_m
+    s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
+    assert abs(est.slam_scale[0] / s_true - 1) < 0.006, est.slam_scale[0] / s_true - 1
