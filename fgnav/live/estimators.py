@@ -13,7 +13,7 @@ A factory ``make(calib, config) -> estimator`` builds one from the calibration a
 
 * ``online``: the push-API fixed-lag smoother (``[graph]``, ``[online]`` and ``[priors]``
   tables: the front-ends that supply priors run inside it on the link's events), imported
-  when called; a clear error when this version does not have it yet;
+  when called;
 * ``msf-ekf``: the MSF-style EKF baseline (``[msf-ekf]``) behind :class:`MsfLive`, which gives
   it the same shape (its states at ``output_rate_hz`` on the IMU's clock).
 """
