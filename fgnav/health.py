@@ -885,13 +885,13 @@ def confirm_stuck_range(
     changed by more than ``range_stuck_motion_m`` while it read one value: stuck."""
     o = (options or HealthOptions()).check()
     tr = est.trajectory
-    z = _interp(tr.t, tr.world_t_body[:, 2])
     t = np.asarray(flight.range.t, float)
     out = []
     for i, j in runs:
-        zs = [z(float(x)) for x in t[i:j]]
-        zs = [v for v in zs if v is not None]
-        if zs and max(zs) - min(zs) > o.range_stuck_motion_m:
+        ts = t[i:j]
+        ts = ts[(ts >= tr.t[0] - 0.5) & (ts <= tr.t[-1] + 0.5)]  # as _interp's span
+        zs = np.interp(ts, tr.t, tr.world_t_body[:, 2])
+        if len(zs) and float(zs.max() - zs.min()) > o.range_stuck_motion_m:
             out.append((i, j))
     return out
 

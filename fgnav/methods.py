@@ -281,7 +281,11 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
         # The detectors' fixes (SLAM jumps as new sessions, stuck range readings and frozen
         # images dropped): solved once more, the first solve's report kept.
         try:
-            est2 = probe or solve_batch(fixed, opts, priors=priors, progress=progress)
+            est2 = (
+                probe
+                if probe is not None
+                else solve_batch(fixed, opts, priors=priors, progress=progress)
+            )
         except FgnavError as e:
             log.warning(
                 "%s: batch with the detectors' fixes failed (%s): the first solve kept",
