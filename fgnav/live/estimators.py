@@ -1,12 +1,12 @@
 """Estimators the live link can drive: anything with ``feed``, ``latest``, ``counts``, ``result``.
 
-The link is written against the push API of ``fgnav.solvers.online.OnlineSmoother``
-(``/work/notes/ONLINE_API.md``): ``feed(event)`` in arrival order returns the newest state
-when the event closed a keyframe (else None); ``latest()``; ``counts()`` as
-``{"received": {stream: n}, "used": ..., "late": ..., "dropped": {"stream:reason": n}}``;
-``result()`` the causal :class:`~fgnav.estimate.Estimate`. A state has the ``OnlineState``
-fields the link sends (``t``, ``world_T_body``, ``world_v_body``, ``gyro_bias``, ``pose_cov``,
-``vel_cov``, ``reset_counter``, ``quality``).
+The link is written against the push API of ``fgnav.solvers.online.OnlineSmoother`` (its module
+docstring; DESIGN.md's event-stream data flow): ``feed(event)`` in arrival order returns the newest
+state when the event closed a keyframe (else None); ``latest()``; ``counts()`` as ``{"received":
+{stream: n}, "used": ..., "late": ..., "dropped": {"stream:reason": n}}``; ``result()`` the causal
+:class:`~fgnav.estimate.Estimate`. A state has the ``OnlineState`` fields the link sends (``t``,
+``world_T_body``, ``world_v_body``, ``gyro_bias``, ``pose_cov``, ``vel_cov``, ``reset_counter``,
+``quality``).
 
 A factory ``make(calib, config) -> estimator`` builds one from the calibration and the
 ``--config`` tables. :data:`ESTIMATORS` names them:

@@ -6,9 +6,10 @@
 conversions themselves are :mod:`fgnav.live.convert`.
 
 Arrival time. An event's ``arrival`` is when it reached fgnav, expressed on the boot clock: the
-newest IMU time seen when it was received, or its own stamp if later (``ONLINE_API``). So a SLAM
-pose stamped at its image time ``t`` that arrives 100 ms later has ``arrival`` 100 ms after
-``t``, measured by the IMU stream, never by fgnav's wall clock.
+newest IMU time seen when it was received, or its own stamp if later (an estimator uses an event
+only from its arrival on: ``fgnav.datasets.events``). So a SLAM pose stamped at its image time ``t``
+that arrives 100 ms later has ``arrival`` 100 ms after ``t``, measured by the IMU stream, never by
+fgnav's wall clock.
 
 Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.session`):
 
