@@ -142,6 +142,18 @@ class FixedLagOptions:
             (seeds 0-1; gaps 6-14, 7-15, 8-11, 10-12 s) 6.68 -> 5.31 cm (old defaults 5.15 cm).
             Without a camera the threshold is neutral to mixed (two-turns seed 1 2.72 -> 3.16
             cm, seed 0 3.38 -> 1.97 cm). Speed: see README (``scripts/bench_online.py``).
+            Ruled out as cheaper ways to the same MH_01 gain (2026-12-02 22:00-22:30, MH_01
+            push engine, defaults 6.29 cm, +1.27 %,
+            NEES 3.69; the keyframe translation's estimate is 18 mm (p50) / 47 mm (p90) from
+            its linearisation point when it is marginalised): 3 mm (1 mm) only for the poses of
+            the oldest stamp block (the others held for that update) with the graph's scale
+            walk 4.94 (4.86) cm, +0.57 % (with 3e-4: 5.01 cm, +0.73 %),
+            but the same p99 (17.5 ms, figure8 ATE 2.48 -> 2.73 cm: any relinearised old pose
+            re-eliminates the whole time-ordered chain); the two oldest blocks 4.62 cm, +0.60
+            %; only while a pose is among the last 4-20 updates (the root, cheap) 6.9-7.4 cm;
+            1 cm 4.95-4.96 cm, +0.67-0.82 %; 2 cm 5.03 cm; rotation at 1 mrad alone 5.38 cm,
+            +0.84 %; velocity 3 mm/s or bias 1e-3 alone unchanged; iSAM2's wildfire threshold 0
+            unchanged.
         relinearize_threshold_slow: the same for the slow variables ``S, D, G`` (a provisional
             SLAM scale moves by tens of percent when it becomes observable: its factors must be
             relinearised then).
