@@ -150,7 +150,9 @@ class FixedLagOptions:
             walk 4.94 (4.86) cm, +0.57 % (with 3e-4: 5.01 cm, +0.73 %),
             but the same p99 (17.5 ms, figure8 ATE 2.48 -> 2.73 cm: any relinearised old pose
             re-eliminates the whole time-ordered chain); the two oldest blocks 4.62 cm, +0.60
-            %; only while a pose is among the last 4-20 updates (the root, cheap) 6.9-7.4 cm;
+            %, and for them only in every 3rd / 5th block 5.96 / 6.98 cm; only in the first
+            10-40 s 6.25-7.18 cm (the gain accrues over the whole flight, not at take-off);
+            only while a pose is among the last 4-20 updates (the root, cheap) 6.9-7.4 cm;
             1 cm 4.95-4.96 cm, +0.67-0.82 %; 2 cm 5.03 cm; rotation at 1 mrad alone 5.38 cm,
             +0.84 %; velocity 3 mm/s or bias 1e-3 alone unchanged; iSAM2's wildfire threshold 0
             unchanged.
