@@ -2557,7 +2557,7 @@ class OnlineSmoother:
         if ml is not None:
             source = "ml-scale"
         if scale is None:
-            data = self._data_scale(s)
+            data = self._data_scale(s) if o.slam_provisional_wait_s > 0 else None
             if data is None and s.t[-1] - self._prov_t_first(s) < o.slam_provisional_wait_s:
                 return False
             if data is None:
