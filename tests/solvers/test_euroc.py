@@ -77,6 +77,8 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_m
     flight = load_flight(manifest)
     est = replay_online(flight, FixedLagOptions())
     assert est.info["slam_rotation_convention"] == convention
+    # By default the provisional alignment starts at slam_provisional_scale (1).
+    assert [p["from"] for p in est.info["slam_provisional_scales"]] == ["default"]
     assert est.info["slam_gyro_check"]["t"] - flight.slam.t[0] < 7.0
     assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
     m = evaluate(est, flight.ground_truth, alignment="se3")
@@ -101,3 +103,31 @@ def test_euroc_mh01_push_engine_position_relinearisation(real_data):
     assert m.ate_rmse_m < 0.050, m.ate_rmse_m
     s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
     assert abs(est.slam_scale[0] / s_true - 1) < 0.006, est.slam_scale[0] / s_true - 1
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    "run, scale_tol, ate_max", [("orbslam2_kf1", 0.12, 0.085), ("orbslam3_kf2", 0.15, 0.075)]
+)
+def test_euroc_v102_push_engine_provisional_scale_from_data(real_data, run, scale_tol, ate_max):
+    # Opt-in (FixedLagOptions.slam_provisional_wait_s, not the default: it loses on ORB-SLAM3
+    # and MH_01): the provisional SLAM scale from the arrived motion instead of 1. Measured
+    # 2026-12-02 (1.5 s, 0.2 m): provisional scale ORB-SLAM2 0.483 against the true 0.443 (the
+    # default 1 is 2.3x off), causal ATE 9.36 -> 8.06 cm; ORB-SLAM3 5.61 against 5.01 (its
+    # convention not decided yet: the rotation that maps the displacements is taken), causal
+    # ATE 5.34 -> 7.05 cm.
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.online import replay_online
+
+    flight = load_flight(V102[run])
+    est = replay_online(flight, FixedLagOptions(slam_provisional_wait_s=1.5))
+    (prov,) = est.info["slam_provisional_scales"]
+    assert prov["from"] == "data"
+    # The held poses attach: the provisional is made within the wait of the first pose.
+    assert prov["t"] - flight.slam.t[0] <= 1.5 + 1e-6
+    assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
+    s_true = slam_scale_vs_truth(flight.slam, flight.ground_truth, flight.calib.body_T_cam)[0]
+    assert abs(prov["scale"] / s_true - 1) < scale_tol, prov["scale"] / s_true - 1
+    m = evaluate(est, flight.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < ate_max, m.ate_rmse_m
+    assert abs(est.slam_scale[0] / s_true - 1) < 0.02
