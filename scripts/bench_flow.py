@@ -34,14 +34,24 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="write the figures here")
     a = ap.parse_args()
     rng = {} if a.sim_range else {"range_noise_m": 0.008, "range_outlier_prob": 0.0}
-    opts = SimOptions(images=False, slam_rate_hz=0.0, attitude_rate_hz=0.0, yaw_rate_hz=0.0,
-                      duration=a.duration, **rng)
+    opts = SimOptions(
+        images=False,
+        slam_rate_hz=0.0,
+        attitude_rate_hz=0.0,
+        yaw_rate_hz=0.0,
+        duration=a.duration,
+        **rng,
+    )
     flight = simulate("flowdeck", seed=a.seed, options=opts)
     rows = {}
-    print(f"flowdeck seed {a.seed}, {a.duration:g} s, range "
-          f"{'simulator' if a.sim_range else 'Crazyflie-like (8 mm, no outliers)'}")
-    print(f"{'method':14s} {'hvel':>7s} {'hvel100':>8s} {'height':>7s} {'ATE4':>7s} "
-          f"{'drift':>7s} {'drift%':>7s} {'time':>6s}")
+    print(
+        f"flowdeck seed {a.seed}, {a.duration:g} s, range "
+        f"{'simulator' if a.sim_range else 'Crazyflie-like (8 mm, no outliers)'}"
+    )
+    print(
+        f"{'method':14s} {'hvel':>7s} {'hvel100':>8s} {'height':>7s} {'ATE4':>7s} "
+        f"{'drift':>7s} {'drift%':>7s} {'time':>6s}"
+    )
     for name in a.methods.split(","):
         t0 = time.perf_counter()
         est = METHODS[name].run(flight, {})
@@ -51,9 +61,11 @@ def main() -> None:
         fig["hvel100_rmse_mps"] = fig100["hvel_rmse_mps"]
         fig["wall_s"] = wall
         rows[name] = fig
-        print(f"{name:14s} {fig['hvel_rmse_mps']:7.3f} {fig['hvel100_rmse_mps']:8.3f} "
-              f"{fig['height_rmse_m']:7.3f} {fig['ate_m']:7.3f} {fig['end_drift_m']:7.3f} "
-              f"{fig['end_drift_pct']:7.2f} {wall:6.1f}")
+        print(
+            f"{name:14s} {fig['hvel_rmse_mps']:7.3f} {fig['hvel100_rmse_mps']:8.3f} "
+            f"{fig['height_rmse_m']:7.3f} {fig['ate_m']:7.3f} {fig['end_drift_m']:7.3f} "
+            f"{fig['end_drift_pct']:7.2f} {wall:6.1f}"
+        )
     print("units: m/s, m/s (100 ms means), m, m, m, % of the horizontal path, s")
     if a.json:
         with open(a.json, "w") as fh:

@@ -28,8 +28,8 @@ from fgnav.datasets.load import load_flight
 from fgnav.eval.metrics import associate
 from fgnav.methods import METHODS
 
-DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / (
-    "crazyflie_util_flowdeck"
+DEFAULT_DIR = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / ("crazyflie_util_flowdeck")
 )
 
 
@@ -98,17 +98,22 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     logs = a.logs or sorted(DEFAULT_DIR.glob("0425-traj*"), key=lambda p: int(p.name[9:]))
-    print("| flight | method | drift [%] | true yaw [%] | true speed [%] | end yaw err [deg] | "
-          "raw gyro end yaw err [deg] | speed scale |")
+    print(
+        "| flight | method | drift [%] | true yaw [%] | true speed [%] | end yaw err [deg] | "
+        "raw gyro end yaw err [deg] | speed scale |"
+    )
     print("|:--|:--|--:|--:|--:|--:|--:|--:|")
     for p in logs:
         f = load_flight(p)
         g = gyro_end_yaw_error(f)
         for m in a.methods.split(","):
             r = parts(METHODS[m].run(f, {}), f)
-            print(f"| {p.name[5:]} | {m} | {r['drift']:.2f} | {r['true_yaw']:.2f} | "
-                  f"{r['true_speed']:.2f} | {r['end_yaw_deg']:+.1f} | {g:+.1f} | "
-                  f"{r['scale']:.3f} |", flush=True)
+            print(
+                f"| {p.name[5:]} | {m} | {r['drift']:.2f} | {r['true_yaw']:.2f} | "
+                f"{r['true_speed']:.2f} | {r['end_yaw_deg']:+.1f} | {g:+.1f} | "
+                f"{r['scale']:.3f} |",
+                flush=True,
+            )
     return 0
 
 

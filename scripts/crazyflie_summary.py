@@ -18,8 +18,8 @@ import numpy as np
 from fgnav.datasets.crazyflie import read_crazyflie
 from fgnav.datasets.downward_check import flow_vs_truth, range_vs_truth
 
-DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / (
-    "crazyflie_util_flowdeck"
+DEFAULT_DIR = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / ("crazyflie_util_flowdeck")
 )
 
 
@@ -28,12 +28,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("logs", nargs="*", type=Path)
     args = ap.parse_args(argv)
     logs = args.logs or sorted(DEFAULT_DIR.glob("0425-traj*"), key=lambda p: int(p.name[9:]))
-    streams = ["| flight | read [s] | " + " | ".join(
-        f"{s} n / Hz / s" for s in ("imu", "flow", "range", "ground_truth")) + " |"]
+    streams = [
+        "| flight | read [s] | "
+        + " | ".join(f"{s} n / Hz / s" for s in ("imu", "flow", "range", "ground_truth"))
+        + " |"
+    ]
     skipped = ["| flight | imu | flow dt one loop (after gap) | range | ground truth |"]
-    fits = ["| flight | ToF scale | ToF offset [mm] | ToF noise [mm] | flow px/rad x, y | "
-            "flow resid [px] | lag-1 | after-gap resid (one loop / step) | after-gap motion "
-            "[loops] |"]
+    fits = [
+        "| flight | ToF scale | ToF offset [mm] | ToF noise [mm] | flow px/rad x, y | "
+        "flow resid [px] | lag-1 | after-gap resid (one loop / step) | after-gap motion "
+        "[loops] |"
+    ]
     for p in logs:
         t0 = time.perf_counter()
         f = read_crazyflie(p)
@@ -44,8 +49,14 @@ def main(argv: list[str] | None = None) -> None:
         streams.append(f"| {f.name} | {dt_read:.2f} | " + " | ".join(cells) + " |")
 
         def skips(d: dict) -> str:
-            return ", ".join(f"{k.removeprefix('skipped_')} {v}" for k, v in d.items()
-                             if k.startswith("skipped") and v) or "none"
+            return (
+                ", ".join(
+                    f"{k.removeprefix('skipped_')} {v}"
+                    for k, v in d.items()
+                    if k.startswith("skipped") and v
+                )
+                or "none"
+            )
 
         skipped.append(
             f"| {f.name} | {skips(f.meta['imu'])} | {f.meta['flow']['dt_one_loop_after_gap']} | "

@@ -33,8 +33,8 @@ from fgnav.eval.flow_table import (
 )
 from fgnav.methods import METHODS
 
-DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / (
-    "crazyflie_util_flowdeck"
+DEFAULT_DIR = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / ("crazyflie_util_flowdeck")
 )
 DRAG_OFF = {"graph": {"use_drag": False}}
 #: Tolerance of "never worse with drag on" (relative; the same graph gives equal figures).
@@ -77,11 +77,21 @@ def main(argv: list[str] | None = None) -> int:
         all_goals += [{"flight": f.name, **g} for g in goals]
         out["flights"][f.name] = {"rows": rows, "wall_s": walls, "goals": goals}
         out["drag"][f.name] = drag
-        md += [f"## {f.name} (path {rows['batch']['path_m']:.1f} m)", "",
-               markdown_table(rows, SMOOTHERS + FILTERS), "", goals_markdown(goals), ""]
-        print(f"{f.name}: " + "; ".join(
-            f"{m} " + " ".join(f"{rows[m][k]:.3f}" for k, _, _ in COLUMNS) for m in rows),
-            flush=True)
+        md += [
+            f"## {f.name} (path {rows['batch']['path_m']:.1f} m)",
+            "",
+            markdown_table(rows, SMOOTHERS + FILTERS),
+            "",
+            goals_markdown(goals),
+            "",
+        ]
+        print(
+            f"{f.name}: "
+            + "; ".join(
+                f"{m} " + " ".join(f"{rows[m][k]:.3f}" for k, _, _ in COLUMNS) for m in rows
+            ),
+            flush=True,
+        )
     if not a.no_sim:
         from fgnav.datasets.simulate import SimOptions, simulate
 
@@ -93,23 +103,35 @@ def main(argv: list[str] | None = None) -> int:
             drag[m] = {"on": on, "off": off, "decision": drag_line(info)}
         out["drag"]["sim:two-turns seed 1"] = drag
     # Drag on vs off.
-    md += ["## Drag on vs off", "",
-           "| flight | method | ATE on / off [m] | velocity on / off [m/s] | never worse | "
-           "decision |", "|:--|:--|--:|--:|:--|:--|"]
+    md += [
+        "## Drag on vs off",
+        "",
+        "| flight | method | ATE on / off [m] | velocity on / off [m/s] | never worse | decision |",
+        "|:--|:--|--:|--:|:--|:--|",
+    ]
     never_worse = True
     for name, d in out["drag"].items():
         for m, r in d.items():
             on, off = r["on"], r["off"]
-            ok = all(on[k] <= off[k] * (1 + DRAG_TOL) + 1e-9
-                     for k in ("ate_m", "hvel100_rmse_mps") if math.isfinite(off[k]))
+            ok = all(
+                on[k] <= off[k] * (1 + DRAG_TOL) + 1e-9
+                for k in ("ate_m", "hvel100_rmse_mps")
+                if math.isfinite(off[k])
+            )
             r["never_worse"] = ok
             never_worse &= ok
-            md.append(f"| {name} | {m} | {on['ate_m']:.4f} / {off['ate_m']:.4f} | "
-                      f"{on['hvel100_rmse_mps']:.4f} / {off['hvel100_rmse_mps']:.4f} | "
-                      f"{'yes' if ok else 'NO'} | {r['decision'][:90]} |")
+            md.append(
+                f"| {name} | {m} | {on['ate_m']:.4f} / {off['ate_m']:.4f} | "
+                f"{on['hvel100_rmse_mps']:.4f} / {off['hvel100_rmse_mps']:.4f} | "
+                f"{'yes' if ok else 'NO'} | {r['decision'][:90]} |"
+            )
     n_met = sum(g["met"] for g in all_goals)
-    md += ["", f"Goals met: {n_met} of {len(all_goals)}; drag never worse: "
-           f"{'yes' if never_worse else 'no'}.", ""]
+    md += [
+        "",
+        f"Goals met: {n_met} of {len(all_goals)}; drag never worse: "
+        f"{'yes' if never_worse else 'no'}.",
+        "",
+    ]
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "crazyflie_table.md").write_text("\n".join(md) + "\n")
     (a.out / "crazyflie_table.json").write_text(json.dumps(out, indent=1, default=float) + "\n")

@@ -77,8 +77,10 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     out = Path(args.out)
-    flights = [(sc, lambda sc=sc: simulate(sc, args.seed, SimOptions(images=not args.no_images)))
-               for sc in SCENARIOS]
+    flights = [
+        (sc, lambda sc=sc: simulate(sc, args.seed, SimOptions(images=not args.no_images)))
+        for sc in SCENARIOS
+    ]
     if not args.no_euroc:
         flights += [
             (name, lambda m=m: load_flight(m)) for name, m in EUROC_FLIGHTS.items() if m.is_file()
