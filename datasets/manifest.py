@@ -57,7 +57,10 @@ config's ``[graph]`` table (they go to ``flight.meta["slam_options"]``). A log r
 tables is read once (ULog, Crazyflie) or once per topic (bags); ``[calib] format = "ulog"`` takes
 the log's calibration (rangefinder pose and limits from PX4 parameters), ``[calib] format =
 "crazyflie"`` the Crazyflie reader's (:func:`.crazyflie.crazyflie_calibration`); ``[calib] format
-= "native"`` (a ``calib.yaml``) sets every calibration value yourself, flow sensor included.
+= "native"`` (a ``calib.yaml``) sets every calibration value yourself, flow sensor included;
+``[calib.imu_noise]`` (any of :class:`.types.ImuNoise`'s fields) replaces the calibration file's
+IMU noise values, e.g. with densities measured in flight where the file has the sensor's at rest
+(the EuRoC manifests: ``scripts/euroc_imu_noise.py``).
 ``[flow]`` (``crazyflie`` or ``native_csv``) is the optical-flow stream. Unknown keys, tables and
 formats are errors naming the manifest, table and key and listing the valid ones; a missing file
 is an error naming the resolved path.
@@ -87,7 +90,7 @@ from .load import lazy_reader
 from .native import read_calib_yaml, read_stream_csv
 from .slam_gyro import SlamConventionError, check_modes
 from .tum import TIME_UNITS, read_tum, read_tum_slam
-from .types import Calibration, Flight
+from .types import Calibration, Flight, ImuNoise
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +138,7 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
             f"[{table}] format = {fmt!r} is not supported; valid: {', '.join(formats)}",
         )
     if table == "calib":
-        valid = ("format", "path")
+        valid = ("format", "path", "imu_noise")
         if fmt in ("ulog", "crazyflie"):
             valid += ("stream",)
     else:
@@ -171,6 +174,25 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
     if fmt == "rosbag" and "topic" not in spec:
         raise FlightFormatError(manifest, f"[{table}] topic: required for format 'rosbag'")
     return fmt
+
+
+def _imu_noise_override(manifest: Path, base: ImuNoise, spec: Any) -> ImuNoise:
+    """``[calib.imu_noise]``: the calibration file's IMU noise with the given fields replaced
+    (e.g. densities measured in flight where the file has the sensor's values at rest)."""
+    fields = [f.name for f in dataclasses.fields(ImuNoise)]
+    if not isinstance(spec, dict):
+        raise FlightFormatError(
+            manifest, f"[calib.imu_noise] must be a table of {', '.join(fields)}"
+        )
+    unknown = [k for k in spec if k not in fields]
+    if unknown:
+        raise FlightFormatError(
+            manifest, f"[calib.imu_noise] unknown key(s) {unknown}; valid: {', '.join(fields)}"
+        )
+    for k, v in spec.items():
+        if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
+            raise FlightFormatError(manifest, f"[calib.imu_noise] {k}: expected a number > 0")
+    return dataclasses.replace(base, **{k: float(v) for k, v in spec.items()})
 
 
 def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
@@ -319,6 +341,10 @@ def read_manifest(path: str | Path) -> Flight:
         else:
             calib = read_calib_yaml(p)
         sources["calib"] = {"format": fmt, "path": str(p)}
+        if "imu_noise" in doc["calib"]:
+            noise = _imu_noise_override(manifest, calib.imu_noise, doc["calib"]["imu_noise"])
+            calib = dataclasses.replace(calib, imu_noise=noise)
+            sources["calib"]["imu_noise"] = "manifest"
 
     offsets: dict[str, float] = dict(calib.time_offsets)
     streams: dict[str, Any] = {}

@@ -101,6 +101,53 @@ def test_native_calib_in_manifest(tmp_path):
     assert f.calib.range_max == float("inf")
 
 
+def test_imu_noise_override_in_manifest(tmp_path):
+    """``[calib.imu_noise]`` replaces the named fields of the calibration file's IMU noise and
+    keeps the others; unknown keys and non-positive values are one-line errors."""
+    _small_flight_files(tmp_path)
+    imu = ImuSeries(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))
+    write_flight(Flight(name="c", imu=imu), tmp_path / "nat")
+    calib = '[calib]\nformat = "native"\npath = "../nat/calib.yaml"\n'
+    base = read_manifest_text(tmp_path, GOOD + calib).calib.imu_noise
+    f = read_manifest_text(
+        tmp_path, GOOD + calib + "[calib.imu_noise]\naccel_noise_density = 0.0166\n"
+    )
+    assert f.calib.imu_noise.accel_noise_density == 0.0166
+    assert f.calib.imu_noise.gyro_noise_density == base.gyro_noise_density
+    assert f.meta["sources"]["calib"]["imu_noise"] == "manifest"
+    with pytest.raises(FlightFormatError, match=r"\[calib.imu_noise\] unknown key\(s\) \['acc'\]"):
+        read_manifest_text(tmp_path, GOOD + calib + "[calib.imu_noise]\nacc = 0.01\n")
+    with pytest.raises(FlightFormatError, match=r"gyro_noise_density: expected a number > 0"):
+        read_manifest_text(tmp_path, GOOD + calib + "[calib.imu_noise]\ngyro_noise_density = 0\n")
+
+
+def read_manifest_text(folder, text: str) -> Flight:
+    (folder / "m.toml").write_text(text)
+    return read_manifest(folder / "m.toml")
+
+
+@pytest.mark.realdata
+def test_euroc_manifests_carry_the_in_flight_imu_noise(real_data):
+    """The EuRoC manifests replace the file's densities at rest with those measured in flight
+    (scripts/euroc_imu_noise.py on V1_02 over 50 ms windows: 0.0166 and 0.00109, within 10 %)
+    and keep the bias walks."""
+    import sys
+
+    sys.path.insert(0, str(PROJECT_ROOT / "scripts"))
+    from euroc_imu_noise import window_errors
+
+    v102 = read_manifest(PROJECT_ROOT / "datasets" / "manifests" / "euroc_v102_orbslam2_kf1.toml")
+    r = window_errors(v102, 0.05)
+    T = float(r["T"])
+    meas_a = float(np.sqrt(np.mean(r["accel"] ** 2)) / np.sqrt(T))
+    meas_g = float(np.sqrt(np.mean(r["gyro"] ** 2)) / np.sqrt(T))
+    for name in ("euroc_mh01_orbslam3", "euroc_v102_orbslam2_kf1", "euroc_v102_orbslam3_kf2"):
+        n = read_manifest(PROJECT_ROOT / "datasets" / "manifests" / f"{name}.toml").calib.imu_noise
+        assert n.accel_noise_density == pytest.approx(meas_a, rel=0.1), (name, meas_a)
+        assert n.gyro_noise_density == pytest.approx(meas_g, rel=0.1), (name, meas_g)
+        assert n.accel_random_walk == 3.0e-3 and n.gyro_random_walk == 1.9393e-05
+
+
 @pytest.mark.parametrize(
     "edit, match",
     [
