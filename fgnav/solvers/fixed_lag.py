@@ -122,9 +122,11 @@ class FixedLagOptions:
             figure8 0.52 -> 0.50 cm. Rotation, velocity or bias thresholds of 0.01 alone changed
             nothing (6.2-6.3 cm); 0.01 m gave 4.85 cm; every threshold 0.003 with
             relinearisation at every update 4.74 cm (0.68 %): the linearisation is then spent.
-            Opt-in (set it with ``slam_scale_rw = None``, below): MH_01 causal ATE 4.62 cm,
-            final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm; defaults 6.3 cm,
-            1.27 %). Not the default: it costs the 180 s figure8 benchmark without camera ATE
+            Opt-in (with ``slam_scale_rw = None``, the default since 2026-12-03, below): MH_01
+            causal ATE 4.62 cm, final scale error 0.49 %, NEES 1.90 (lagged output 4.03 cm;
+            defaults 6.3 cm, 1.27 %); with the manifest's IMU noise measured in flight
+            (2026-12-03) 3.78 cm, 0.05 %, NEES 0.77 (defaults 4.53 cm, 0.48 %). Not the
+            default: it costs the 180 s figure8 benchmark without camera ATE
             2.65 -> 2.96 cm and p99 latency 4.6-5.0 -> 12.5-17 ms (every 10th update
             relinearises and re-eliminates the whole window; ``scripts/bench_online.py
             --position-threshold 0.003``, 2026-12-02 20:31, load 0), and it breaks the
@@ -285,7 +287,8 @@ class FixedLagOptions:
             ``fgnav compare``, delayed by the lag).
         slam_scale_rw: relative SLAM scale random walk of the push engine's alignment
             segments [1/sqrt(s)] (None: ``graph.slam_scale_rw``, which the batch smoother and the
-            prepared runner use). 3e-4: the graph's 1e-3 was tuned for the simulator's 1e-4/s
+            prepared runner use). Until 2026-12-03 3e-4: the graph's 1e-3 was tuned for the
+            simulator's 1e-4/s
             drift; ORB-SLAM3 on MH_01 measures -2.7e-5 +- 2.6e-5 per second. Measured
             2026-12-02, causal ATE EuRoC MH_01 7.17 -> 6.27 cm (NEES 4.8 -> 3.5; final scale
             error 1.24 -> 1.27 %), two-turns 0.966 -> 0.972 cm, figure8 1.134 -> 1.123 cm, V1_02
@@ -299,6 +302,15 @@ class FixedLagOptions:
             circle, rectangle, figure8 0.46 / 0.44 / 0.45 / 0.50 -> 0.46 / 0.44 / 0.43 /
             0.50 cm (final scale error rectangle -0.35 -> -0.51 %, figure8 -0.06 -> +0.02 %).
             None (the graph's 1e-3) goes with the 3 mm position threshold (opt-in).
+            Default None since 2026-12-03: with the EuRoC manifests' IMU noise measured in flight
+            (accelerometer 8x, gyro 6x the densities at rest; ``scripts/euroc_imu_noise.py``)
+            3e-4 -> None gives MH_01 causal ATE 4.69 -> 4.53 cm, final scale error 0.70 ->
+            0.48 %, NEES 1.11 -> 1.09; V1_02 ORB-SLAM2 / ORB-SLAM3 8.43 / 3.47 -> 8.43 / 3.46
+            cm (scale error 1.15 / 0.86 -> 1.19 / 1.12 %); simulated (seed 1, camera)
+            two-turns, figure8, rectangle, circle 0.496 / 0.510 / 0.405 / 0.407 -> 0.490 /
+            0.514 / 0.410 / 0.396 cm, without camera two-turns 2.820 -> 2.822, figure8 3.384 ->
+            3.407 cm. The at-rest densities had made the IMU overconfident, and the tighter walk
+            had partly made up for it.
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.
@@ -349,7 +361,7 @@ class FixedLagOptions:
     drag_check_s: float = 0.5
     drag_scatter_n: int = 200
     slam_fit_max_s: float = 20.0
-    slam_scale_rw: float | None = 3e-4
+    slam_scale_rw: float | None = None
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
     lagged_output: bool = True
