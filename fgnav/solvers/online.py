@@ -134,7 +134,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
 )
 from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
-from fgnav.estimate import Estimate, TimeSeries
+from fgnav.estimate import Estimate, OnlineState, TimeSeries
 from fgnav.factors import _jacobians
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
@@ -220,41 +220,6 @@ SESSION_STRIDE = 100_000
 #: each, integrated, plus a floor).
 STILL_VEL_SIGMA = 0.05
 STILL_VEL_SIGMA_RATE = 0.2
-
-
-@dataclass(frozen=True, eq=False)
-class OnlineState:
-    """The newest estimate (see ``/README.md``'s online section for the frames).
-
-    Attributes:
-        t: state time [s] on the input clock (a keyframe time).
-        world_T_body: (4, 4) pose, world z up, body FLU.
-        world_v_body: (3,) velocity in world [m/s].
-        accel_bias, gyro_bias: (3,) IMU biases [m/s^2], [rad/s].
-        pose_cov: (6, 6) marginal covariance, GTSAM Pose3 tangent ``[rot, trans]`` in body frame
-            (right perturbation), or None when not computed.
-        vel_cov: (3, 3) covariance of ``world_v_body``, or None.
-        slam_scale: SLAM units per metre per session (sessions with an alignment).
-        drag_k: drag coefficient(s) [1/s], or None.
-        ground_height: ground height under the rangefinder [m], or None.
-        reset_counter: resets and rebuilds that lost state so far.
-        quality: 0-100: 0 before initialisation, 30 with the IMU alone, 60 on a provisional
-            SLAM alignment, 100 with an aligned session or range and yaw; halved for 2 s after
-            a solver failure or reset.
-    """
-
-    t: float
-    world_T_body: np.ndarray
-    world_v_body: np.ndarray
-    accel_bias: np.ndarray
-    gyro_bias: np.ndarray
-    pose_cov: np.ndarray | None
-    vel_cov: np.ndarray | None
-    slam_scale: dict[int, float]
-    drag_k: np.ndarray | None
-    ground_height: float | None
-    reset_counter: int
-    quality: int
 
 
 _first = operator.itemgetter(0)
