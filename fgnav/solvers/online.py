@@ -149,7 +149,7 @@ from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
-from fgnav.solvers.accel_check import RunningAccelCheck
+from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
     FixedLagOptions,
@@ -1501,7 +1501,7 @@ class OnlineSmoother:
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
         # (check_horizontal_accel on the window's rows, from running sums)
         rows = self._accel_rows
-        chk = rows.check(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
+        chk = rows.check(AccelLimits(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES))
         self._accel_check = chk
         if chk.decision != "unusable":
             # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
