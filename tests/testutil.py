@@ -24,6 +24,15 @@ def run_cli(*args) -> subprocess.CompletedProcess:
     )
 
 
+def compare_cli(folder, out, methods: str, *extra) -> int:
+    """``fgnav compare FOLDER --out OUT --methods METHODS --no-figures --no-progress EXTRA`` in
+    this process (output to the test's capsys); its exit code."""
+    from fgnav.cli import main
+
+    args = ["compare", folder, "--out", out, "--methods", methods, "--no-figures", "--no-progress"]
+    return main([str(a) for a in (*args, *extra)])
+
+
 def require_real_data() -> Path:
     """``../shared/data/real``, or skip the calling test with the reason."""
     if not REAL_DATA.is_dir():
