@@ -1584,35 +1584,14 @@ class OnlineSmoother:
         """Preintegration parameters of the current accelerometer model: the calibration's, or
         with the body x, y noise and bias walk of the thrust-only prediction
         (:func:`fgnav.solvers.graph.thrust_only_noise`)."""
-        if not self._thrust_only:
-            if self._bias_release:
-                self._bias_release = False
-                n = self.calib.imu_noise
-                p = pim_params(n, self.go.gravity)
-                p.setBiasAccCovariance(
-                    np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
-                )
-                return p
+        if not (self._thrust_only or self._bias_release):
             return self.pim_params
-        if self._bias_release:
-            self._bias_release = False
-            p = pim_params(self.calib.imu_noise, self.go.gravity)
-            n = self.calib.imu_noise
-            nd, _ = thrust_only_noise(
-                self.go.thrust_only_sigma,
-                self.go.thrust_only_tau_s,
-                self.go.keyframe_hz,
-                n.accel_noise_density,
-                n.accel_random_walk,
-            )
-            p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
-            p.setBiasAccCovariance(
-                np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
-            )
-            return p
-        p = getattr(self, "_pim_thrust", None)
-        if p is None:
-            n = self.calib.imu_noise
+        if not self._bias_release and getattr(self, "_pim_thrust", None) is not None:
+            return self._pim_thrust
+        n = self.calib.imu_noise
+        p = pim_params(n, self.go.gravity)
+        walk = BIAS_RELEASE_WALK  # x, y bias walk of a release (one interval)
+        if self._thrust_only:
             nd, rw = thrust_only_noise(
                 self.go.thrust_only_sigma,
                 self.go.thrust_only_tau_s,
@@ -1620,9 +1599,13 @@ class OnlineSmoother:
                 n.accel_noise_density,
                 n.accel_random_walk,
             )
-            p = pim_params(self.calib.imu_noise, self.go.gravity)
             p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
-            p.setBiasAccCovariance(np.diag([rw**2, rw**2, n.accel_random_walk**2]))
+            if not self._bias_release:
+                walk = rw
+        p.setBiasAccCovariance(np.diag([walk**2, walk**2, n.accel_random_walk**2]))
+        if self._bias_release:
+            self._bias_release = False
+        else:
             self._pim_thrust = p
         return p
 
@@ -2210,10 +2193,9 @@ class OnlineSmoother:
                 return None
             self._start_axis_chain(s, t, *fit, g, stamps)
             return s.last_key
-        seg, known = self._segment(s, t)
+        seg, key, known = self._segment(s, t)
         if known is not None:
             return known
-        key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         a = np.asarray(self.values[prev], float)
         walk = math.sqrt(go.slam_segment_s * (seg - s.last_seg))
@@ -2234,9 +2216,7 @@ class OnlineSmoother:
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
             g.add(gtsam.PriorFactorVector(key, a, noise))
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
-        self._insert(key, a, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, a, g, stamps)
         return key
 
     def _fit_axis(self, s: _Session) -> tuple[np.ndarray, np.ndarray, int] | None:
@@ -2271,18 +2251,13 @@ class OnlineSmoother:
         SLAM position onto the current estimate of its keyframe, under a prior (each axis's
         relative sigma the fit's, at least ``slam_init_scale_sigma_rel``, at most 50 % for an
         axis the fit does not determine; the origin free)."""
-        o, go = self.options, self.go
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
-        pose = self._pose_at(s.t[-1])
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        a = np.r_[k, s.p[-1] - k * world_t_cam]
+        o = self.options
+        seg, key = self._segment_key(s, t)
+        a = np.r_[k, s.p[-1] - k * self._cam_at(s.t[-1])]
         rel = np.minimum(np.maximum(o.slam_init_scale_sigma_rel, rel_se), WEAK_SCALE_PRIOR_REL)
         sig = np.r_[rel * k, [10.0 * float(np.max(k))] * 3]
         g.add(gtsam.PriorFactorVector(key, a, gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        self._insert(key, a, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, a, g, stamps)
         log.info(
             "%s: per-axis SLAM scale at t=%.2f s: %s (rel. s.e. %s, %d pairs)",
             self.name,
@@ -2291,12 +2266,7 @@ class OnlineSmoother:
             np.round(rel_se, 3).tolist(),
             n,
         )
-        held, self._held = self._held, []
-        for item in held:
-            if self._kf_alive(item[0]):
-                self._pending.append(item)
-            else:
-                self._drop("slam:before-alignment")
+        self._release_held()
 
     def _session_key(self, sess, s: _Session, t, g, stamps, remove, prov_new) -> int:
         """The alignment variable of a pose at time ``t`` of session ``sess`` (created here)."""
@@ -2316,10 +2286,9 @@ class OnlineSmoother:
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
                 return s.provisional
-        seg, known = self._segment(s, t)
+        seg, key, known = self._segment(s, t)
         if known is not None:
             return known
-        key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         value = self.values[prev]
         n_seg = seg - s.last_seg
@@ -2342,23 +2311,33 @@ class OnlineSmoother:
                 )
             )
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
-        self._insert(key, value, g, stamps)
+        self._add_to_chain(s, seg, key, value, g, stamps)
         if s.carried and t_now - self.t0 < o.startup_qr_s:
             self.smoother.hold_linearization([key])  # see _carried_chain
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
         return key
 
-    def _segment(self, s: _Session, t: float) -> tuple[int, int | None]:
-        """The alignment segment of a pose at ``t`` and its existing variable (None: a new
-        segment after the newest). An older segment than the newest (a late pose) has no
-        variable of its own: the newest one takes it."""
-        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+    def _segment(self, s: _Session, t: float) -> tuple[int, int, int | None]:
+        """The alignment segment of a pose at ``t``, its key (:meth:`_segment_key`) and its
+        existing variable (None: a new segment after the newest). An older segment than the
+        newest (a late pose) has no variable of its own: the newest one takes it."""
+        seg, key = self._segment_key(s, t)
         if seg in s.chain:
-            return seg, s.chain[seg]
+            return seg, key, s.chain[seg]
         if seg < s.last_seg:
-            return seg, s.chain[s.last_seg]
-        return seg, None
+            return seg, key, s.chain[s.last_seg]
+        return seg, key, None
+
+    def _segment_key(self, s: _Session, t: float) -> tuple[int, int]:
+        """The alignment segment of session ``s`` at ``t`` (``slam_segment_s`` steps from the
+        session's first pose) and its variable's key."""
+        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+        return seg, S(s.index * SESSION_STRIDE + seg)
+
+    def _add_to_chain(self, s: _Session, seg: int, key: int, value: Any, g, stamps) -> None:
+        """Insert the new alignment variable ``key`` of segment ``seg``, the session's newest."""
+        self._insert(key, value, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
 
     def _insert(self, key: int, value: Any, g, stamps) -> None:
         self._queued_values.insert(key, value)
@@ -2439,9 +2418,8 @@ class OnlineSmoother:
         return slerp_rotations(tk, Rk, np.clip(t, tk[0], tk[-1]))
 
     def _start_chain(self, sess, s: _Session, t, fit, g, stamps, remove, prov_new) -> None:
-        o, go = self.options, self.go
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
+        o = self.options
+        seg, key = self._segment_key(s, t)
         scale, rel = fit.scale, max(o.slam_init_scale_sigma_rel, fit.scale_rel_se)
         ml = self._ml_scale(sess)
         if ml is not None and sess not in self._scale_prior_done:
@@ -2455,9 +2433,7 @@ class OnlineSmoother:
         value = self._align_origin(s, value)
         sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
         g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        self._insert(key, value, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, value, g, stamps)
         log.info(
             "%s: SLAM session %d aligned at t=%.2f s: scale %.4f (rel. s.e. %.3f, %d pairs)%s",
             self.name,
@@ -2469,14 +2445,7 @@ class OnlineSmoother:
             "" if ml is None else f"; ML-scale stage {ml[0]:.4f} +- {ml[1]:.4f} used",
         )
         # Re-attach the provisional factors still in the window to the new alignment.
-        held, self._held = self._held, []
-        for item in held:
-            if item[2][0] == sess and self._kf_alive(item[0]):
-                self._pending.append(item)
-            elif item[2][0] == sess:
-                self._drop("slam:before-alignment")
-            else:
-                self._held.append(item)
+        self._release_held(sess)
         if s.provisional is not None:
             for idx, (k, tp, p, q) in s.prov_factors:
                 if self._kf_alive(k) and self._alive(s.provisional):
@@ -2489,10 +2458,7 @@ class OnlineSmoother:
         """Translation of an alignment so that the newest SLAM pose maps onto the current
         estimate of its keyframe (the fit placed the world origin at the first camera)."""
         scale, R = value.scale(), value.rotation().matrix()
-        pose = self._pose_at(s.t[-1])
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        slam_t_world = s.p[-1] - scale * R @ world_t_cam
-        return make_slam_T_world(scale, R, slam_t_world)
+        return make_slam_T_world(scale, R, s.p[-1] - scale * R @ self._cam_at(s.t[-1]))
 
     def _pose_at(self, t: float) -> gtsam.Pose3:
         """The newest estimate of the keyframe nearest ``t`` (the newest one for later times)."""
@@ -2500,6 +2466,11 @@ class OnlineSmoother:
         while k > 0 and k not in self._pose_hist:
             k -= 1
         return self._pose_hist[k][1] if k in self._pose_hist else self.values[X(self.k)]
+
+    def _cam_at(self, t: float) -> np.ndarray:
+        """``world_t_cam`` of :meth:`_pose_at` ``(t)`` (the camera centre in world [m])."""
+        pose = self._pose_at(t)
+        return pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
 
     def _start_provisional(self, sess, s: _Session, g, stamps) -> bool:
         """The session's provisional alignment (False: not yet, its poses are held back).
@@ -2543,8 +2514,7 @@ class OnlineSmoother:
                     sess,
                     scale,
                 )
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ world_t_cam)
+        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ self._cam_at(s.t[-1]))
         key = S(PROVISIONAL_BASE + self._n_prov)
         self._n_prov += 1
         sig = np.r_[
@@ -2558,15 +2528,21 @@ class OnlineSmoother:
             {"session": int(sess), "t": float(s.t[-1]), "scale": float(scale), "from": source}
         )
         # The poses held back while waiting for the data's scale attach to it now.
+        self._release_held(sess)
+        return True
+
+    def _release_held(self, sess: int | None = None) -> None:
+        """The SLAM poses held back for session ``sess`` (every session's when None) go to
+        the pending factors, those whose keyframe has left the window are dropped
+        (``slam:before-alignment``); other sessions' stay held."""
         held, self._held = self._held, []
         for item in held:
-            if item[2][0] == sess and self._kf_alive(item[0]):
-                self._pending.append(item)
-            elif item[2][0] == sess:
-                self._drop("slam:before-alignment")
-            else:
+            if sess is not None and item[2][0] != sess:
                 self._held.append(item)
-        return True
+            elif self._kf_alive(item[0]):
+                self._pending.append(item)
+            else:
+                self._drop("slam:before-alignment")
 
     def _prov_t_first(self, s: _Session) -> float:
         """Time of the session's first arrived pose the smoother covers."""
@@ -2591,11 +2567,7 @@ class OnlineSmoother:
         i1 = int(np.searchsorted(ts, self.t_kf[self.k] + 1e-9)) - 1
         if i1 <= i0:
             return None
-        cams = []
-        for t in (ts[i0], ts[i1]):
-            pose = self._pose_at(float(t))
-            cams.append(pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3])
-        v_world = cams[1] - cams[0]
+        v_world = self._cam_at(float(ts[i1])) - self._cam_at(float(ts[i0]))
         v_slam = np.asarray(s.p[i1]) - np.asarray(s.p[i0])
         d_world, d_slam = float(np.linalg.norm(v_world)), float(np.linalg.norm(v_slam))
         if d_world < self.options.slam_provisional_min_disp_m or not d_slam > 0.0:
@@ -2788,18 +2760,15 @@ class OnlineSmoother:
         near-degenerate direction (20 s two-turns without camera, 8 s gap: -5 % -> +31 %
         0.3 s after the restart; ATE 2.56x nominal, held 1.81x)."""
         value, cov = self._carried_align.pop(sess)
-        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
+        seg, key = self._segment_key(s, t)
         if cov is not None and np.all(np.isfinite(cov)):
             noise = gtsam.noiseModel.Gaussian.Covariance(cov * CARRY_SIGMA_FACTOR**2)
         else:
             noise = gtsam.noiseModel.Diagonal.Sigmas(self._slam_rebuild_sigmas(value))
         g.add(self._slam_prior(key, value, noise))
-        self._insert(key, value, g, stamps)
+        self._add_to_chain(s, seg, key, value, g, stamps)
         self.smoother.hold_linearization([key])
         s.carried = True
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
         self._use("slam:alignment-carried")
         return key
 
@@ -3164,20 +3133,6 @@ class OnlineSmoother:
 _STREAM = {cls: name for cls, name in STREAM_OF_EVENT.items() if cls is not ImuSample}
 
 
-def run_online(
-    events,
-    calib: Calibration,
-    options: FixedLagOptions | None = None,
-    name: str = "online",
-    progress: bool = False,
-    total: int | None = None,
-    priors: Any = None,
-) -> Estimate:
-    """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
-    :class:`OnlineSmoother`; the causal estimate."""
-    return feed_all(events, calib, options, name, progress, total, priors).result()
-
-
 def feed_all(
     events,
     calib: Calibration,
@@ -3187,8 +3142,10 @@ def feed_all(
     total: int | None = None,
     priors: Any = None,
 ) -> OnlineSmoother:
-    """The :class:`OnlineSmoother` after feeding it ``events`` (its ``runtime_s`` set: the wall
-    time of the loop; ``priors``: :class:`fgnav.frontends.prior_stages.PriorOptions`)."""
+    """The :class:`OnlineSmoother` after feeding it ``events`` (e.g.
+    :func:`fgnav.datasets.events.replay_flight`; its ``runtime_s`` set: the wall time of the
+    loop; ``priors``: :class:`fgnav.frontends.prior_stages.PriorOptions`); its ``result()`` is
+    the causal estimate."""
     sm = OnlineSmoother(calib, options, name, priors=priors)
     bar = None
     if progress:
