@@ -110,7 +110,7 @@ import math
 import operator
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -154,7 +154,9 @@ from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
     FixedLagOptions,
     _isam2_params,
+    fixed_lag_estimate,
     rebuild_state_priors,
+    try_move_window,
 )
 from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
@@ -174,7 +176,7 @@ from fgnav.solvers.measurements import (
     level_rotation_from_accel,
     world_specific_accel,
 )
-from fgnav.solvers.window import TimeOrderedSmoother, move_window
+from fgnav.solvers.window import TimeOrderedSmoother
 
 log = logging.getLogger(__name__)
 
@@ -629,26 +631,21 @@ class OnlineSmoother:
             "frontend_prior_stage": self._prior_report(),
             "health": self._health_report(),
             "updates": len(lat),
-            "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
-            "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
-            "latency_max_s": float(lat.max()) if len(lat) else None,
-            "times_real_time": float(span / runtime) if runtime > 0 else None,
-            "options": asdict(self.options),
         }
-        return Estimate(
-            method="fixed-lag",
-            trajectory=traj,
+        return fixed_lag_estimate(
+            traj,
+            info,
+            lat,
+            runtime,
+            span,
+            self.options,
             pose_cov=pose_cov,
             vel_cov=vel_cov,
             slam_scale=dict(self._session_scale),
             drag_k=last.drag_k,
             ground_height=last.ground_height,
             series=series,
-            update_latency=lat,
-            runtime_s=runtime,
-            causal=True,
-            info=info,
-        ).check()
+        )
 
     def _leftovers(self) -> dict[str, int]:
         """Measurements that arrived but wait for a keyframe that never closed (the IMU ended
@@ -2870,15 +2867,8 @@ class OnlineSmoother:
         same linearisation point and stamps. Also used on a smoother whose update just failed
         (its factors include that update's). False (smoother unchanged) when that fails too."""
         new = self._new_smoother(factorization)
-        try:
-            index = move_window(self.smoother, new)
-        except SOLVER_ERRORS as e:
-            log.warning(
-                "%s: moving the window to %s failed (%s)",
-                self.name,
-                factorization,
-                " ".join(str(e).split())[:120],
-            )
+        index = try_move_window(self.smoother, new, self.name, factorization)
+        if index is None:
             return False
         self.smoother = new
         self.factorization = factorization
