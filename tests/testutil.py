@@ -24,13 +24,23 @@ def run_cli(*args) -> subprocess.CompletedProcess:
     )
 
 
-def compare_cli(folder, out, methods: str, *extra) -> int:
-    """``fgnav compare FOLDER --out OUT --methods METHODS --no-figures --no-progress EXTRA`` in
-    this process (output to the test's capsys); its exit code."""
+def command_cli(command: str, folder, out, *extra, config: str | None = None) -> int:
+    """``fgnav COMMAND FOLDER --out OUT --no-progress EXTRA`` in this process (output to the
+    test's capsys); with ``config``, that TOML text is written to ``OUT.toml`` and passed as
+    ``--config``. Its exit code."""
     from fgnav.cli import main
 
-    args = ["compare", folder, "--out", out, "--methods", methods, "--no-figures", "--no-progress"]
+    args = [command, folder, "--out", out, "--no-progress"]
+    if config is not None:
+        cfg = Path(out).with_suffix(".toml")
+        cfg.write_text(config)
+        args += ["--config", cfg]
     return main([str(a) for a in (*args, *extra)])
+
+
+def compare_cli(folder, out, methods: str, *extra) -> int:
+    """``fgnav compare FOLDER --out OUT --methods METHODS --no-figures`` (:func:`command_cli`)."""
+    return command_cli("compare", folder, out, "--methods", methods, "--no-figures", *extra)
 
 
 def require_real_data() -> Path:
