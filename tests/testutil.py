@@ -78,6 +78,35 @@ def truth_scale(flight) -> dict[int, float]:
     return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
 
 
+def truth_scale_at(flight, t: float, session: int = 0) -> float:
+    """The simulator's (drifting) SLAM scale of ``session`` at time ``t``."""
+    s = flight.meta["truth"]["slam_sessions"][str(session)]
+    return s["scale"] * (1.0 + s["scale_drift_per_s"] * (t - s["t_start"]))
+
+
+def truth_axis_scale_at(flight, t: float) -> np.ndarray:
+    """The simulator's per-axis SLAM scale ``[kx, ky, kz]`` at time ``t`` (session 0's drift
+    from t = 0, as the circle scenario applies it)."""
+    truth = flight.meta["truth"]
+    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * t
+    return np.asarray(truth["slam_axis_scale"]) * drift
+
+
+def circle_axis_run(run):
+    """Seed 000's circle (per-axis SLAM scale 0.3/0.2/0.25, drifting) with every sensor and the
+    rendered downward camera, 20 s, seed 1, through ``run(flight, FixedLagOptions())``, which
+    must report no solver failure: ``(flight, estimate, SE(3)-aligned metrics)``."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    from fgnav.eval.metrics import evaluate
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    f = simulate("circle", seed=1, options=SimOptions(duration=20.0))
+    est = run(f, FixedLagOptions())
+    assert est.info["solver_failures"] == 0
+    return f, est, evaluate(est, f.ground_truth, alignment="se3")
+
+
 def feed_until(filt, events, t_cut: float):
     """Feed ``events`` (arrival order) to ``filt`` until one arrives after ``t_cut``; the
     filter's result then."""
