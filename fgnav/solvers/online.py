@@ -3048,18 +3048,16 @@ class OnlineSmoother:
             raise FlightDataError(f"{self.name}: no lagged state (run shorter than the lag?)")
         traj = _trajectory(lag[lag[:, 0] == eps[epoch]], _LAG_ROW)
         est = self.result(epoch=epoch)
-        info = dict(est.info, delay_s=self.options.lag_s)
-        return Estimate(
+        # The causal estimate's slow variables, series, latency and counts; the lagged states
+        # (their covariances are not kept).
+        return dataclasses.replace(
+            est,
             method="fixed-lag@lag",
             trajectory=traj,
-            slam_scale=est.slam_scale,
-            drag_k=est.drag_k,
-            ground_height=est.ground_height,
-            series=est.series,
-            update_latency=est.update_latency,
-            runtime_s=est.runtime_s,
+            pose_cov=None,
+            vel_cov=None,
             causal=False,
-            info=info,
+            info=dict(est.info, delay_s=self.options.lag_s),
         ).check()
 
     def _track_slow(self, t: float) -> None:
