@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FlightFormatError
+from .errors import FlightFormatError, note
 
 log = logging.getLogger(__name__)
 
@@ -256,8 +256,6 @@ def drop_repeated_rows(
         f"{raw.path}: skipped {len(dropped)} {what} line(s) repeating the previous line exactly "
         f"(same time stamp and values): lines {shown}"
     )
-    log.warning(msg)
-    if notes is not None:
-        notes.append(msg)
+    note(log, notes, msg)
     keep = ~same
     return t[keep], values[keep], [ln for ln, k in zip(raw.lines, keep, strict=True) if k]

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import FlightDataError, FlightFormatError
+from .errors import FlightDataError, FlightFormatError, note
 from .types import Calibration, CameraIntrinsics, ImuNoise
 
 log = logging.getLogger(__name__)
@@ -118,12 +118,6 @@ def opencv_matrix(value: Any, key: str, path: str | Path) -> np.ndarray:
     return a.reshape(rows, cols)
 
 
-def _note(notes: list[str] | None, msg: str) -> None:
-    log.warning(msg)
-    if notes is not None:
-        notes.append(msg)
-
-
 def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> Calibration:
     """Read camera intrinsics, ``body_T_cam`` and IMU noise from an ORB-SLAM3 settings file.
 
@@ -167,7 +161,8 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
     present = {k: v for k, v in _NOISE_KEYS.items() if v in d}
     if not present:
         imu_noise = ImuNoise()
-        _note(
+        note(
+            log,
             notes,
             f"{p}: no IMU noise keys ({', '.join(_NOISE_KEYS.values())}); "
             f"using fgnav's defaults {imu_noise}",
@@ -181,7 +176,7 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
     T_raw = _first(d, ("IMU.T_b_c1", "Tbc"), p, required=False)
     if T_raw is None:
         body_T_cam = np.eye(4)
-        _note(notes, f"{p}: no IMU.T_b_c1; body_T_cam set to identity")
+        note(log, notes, f"{p}: no IMU.T_b_c1; body_T_cam set to identity")
     else:
         body_T_cam = opencv_matrix(T_raw, "IMU.T_b_c1", p)
         if body_T_cam.shape != (4, 4):
@@ -206,7 +201,5 @@ def _repair_rotation(T: np.ndarray, path: Path, notes: list[str] | None) -> np.n
         f"{path}: IMU.T_b_c1 rotation orthonormal only to {err:.1e} (printed digits); "
         f"projected onto SO(3)"
     )
-    log.info(msg)
-    if notes is not None:
-        notes.append(msg)
+    note(log, notes, msg, logging.INFO)
     return out

@@ -1,7 +1,9 @@
-"""Errors raised by fgnav.datasets. Every message names the file/stream, the line or field, and
-what was expected, so that a user can fix the input without reading code."""
+"""Errors raised by fgnav.datasets, and the readers' notes. Every message names the file/stream,
+the line or field, and what was expected, so that a user can fix the input without reading code."""
 
 from __future__ import annotations
+
+import logging
 
 
 class FgnavError(Exception):
@@ -27,3 +29,14 @@ class FlightFormatError(FgnavError, ValueError):
         self.reason = message
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
+
+
+def note(
+    log: logging.Logger, notes: list[str] | None, msg: str, level: int = logging.WARNING
+) -> None:
+    """A reader's note (skipped lines, a detected time unit, a projected rotation): ``msg`` is
+    logged on ``log`` at ``level`` and appended to ``notes`` when given (the reader's list,
+    which ends in ``flight.meta["notes"]``)."""
+    log.log(level, msg)
+    if notes is not None:
+        notes.append(msg)

@@ -85,7 +85,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from .errors import FlightDataError, FlightFormatError
+from .errors import FlightDataError, FlightFormatError, note
 from .frames import rotate_body_frame
 from .geometry import invert_pose
 from .types import (
@@ -139,12 +139,6 @@ def _describe_ns(ns: int) -> str:
     return f"{ns} ns"
 
 
-def _note(notes: list[str] | None, msg: str) -> None:
-    log.warning(msg)
-    if notes is not None:
-        notes.append(msg)
-
-
 def _read_csv(
     path: str | Path, widths: tuple[int, ...], what: str, notes: list[str] | None
 ) -> tuple[_tables.RawTable, int]:
@@ -170,7 +164,8 @@ def _read_csv(
     if end < len(raw.rows):
         junk = raw.lines[end:]
         sample = ", ".join(repr(",".join(r))[:40] for r in raw.rows[end : end + 3])
-        _note(
+        note(
+            log,
             notes,
             f"{raw.path}: skipped {len(junk)} trailing non-data line(s) after the last data row "
             f"(lines {junk[0]}-{junk[-1]}: {sample}{' ...' if len(junk) > 3 else ''})",
@@ -186,7 +181,8 @@ def _times(raw: _tables.RawTable, notes: list[str] | None) -> np.ndarray:
     parsed = _tables.parse_ns(raw, 0)
     if parsed.resolution_ns > 1 and parsed.example is not None:
         line, tok = parsed.example
-        _note(
+        note(
+            log,
             notes,
             f"{raw.path}: time stamps are not plain integer ns (line {line}: {tok!r}, e.g. from a "
             f"spreadsheet); read exactly, but their resolution is only "
@@ -262,9 +258,7 @@ def read_euroc_groundtruth(path: str | Path, *, notes: list[str] | None = None) 
             f"{raw.path}: 8-column EuRoC pose file, pose only (no velocity or biases); 20 Hz "
             f"'*_GT.txt' files of this kind hold cam0 poses, not IMU poses"
         )
-        log.info(msg)
-        if notes is not None:
-            notes.append(msg)
+        note(log, notes, msg, logging.INFO)
     return Trajectory(
         t=t, world_t_body=v[:, 1:4].copy(), world_q_body_wxyz=v[:, 4:8].copy(), **kwargs
     ).check(str(raw.path))

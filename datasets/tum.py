@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _tables
-from .errors import FlightFormatError
+from .errors import FlightFormatError, note
 from .geometry import quat_wxyz_to_xyzw, quat_xyzw_to_wxyz
 from .types import SlamSeries, Trajectory
 
@@ -59,9 +59,7 @@ def _read(
             + ("nanoseconds" if unit == "ns" else "seconds")
             + f" (largest {biggest:.4g} {'>=' if unit == 'ns' else '<'} {NS_THRESHOLD:.0e})"
         )
-        log.info(msg)
-        if notes is not None:
-            notes.append(msg)
+        note(log, notes, msg, logging.INFO)
     if unit == "ns":
         values[:, 0] = _tables.ns_to_seconds(_tables.parse_ns(raw, 0).ns)
     t, values, lines = _tables.drop_repeated_rows(raw, values[:, 0], values, notes, what)

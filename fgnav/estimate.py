@@ -88,6 +88,45 @@ class Estimate:
         return self
 
 
+@dataclass(frozen=True, eq=False)
+class OnlineState:
+    """The newest state of an online estimator (see ``/README.md``'s online section for the frames).
+
+    What ``feed`` / ``latest`` of the push-API smoother (``fgnav.solvers.online``) and of the
+    live filters (``fgnav.live.estimators``) return, and what the live link sends.
+
+    Attributes:
+        t: state time [s] on the input clock (a keyframe time for the smoother).
+        world_T_body: (4, 4) pose, world z up, body FLU.
+        world_v_body: (3,) velocity in world [m/s].
+        accel_bias, gyro_bias: (3,) IMU biases [m/s^2], [rad/s].
+        pose_cov: (6, 6) marginal covariance, GTSAM Pose3 tangent ``[rot, trans]`` in body frame
+            (right perturbation), or None when not computed.
+        vel_cov: (3, 3) covariance of ``world_v_body``, or None.
+        slam_scale: SLAM units per metre per session (sessions with an alignment).
+        drag_k: drag coefficient(s) [1/s], or None.
+        ground_height: ground height under the rangefinder [m], or None.
+        reset_counter: resets and rebuilds that lost state so far.
+        quality: 0-100. The smoother: 0 before initialisation, 30 with the IMU alone, 60 on a
+            provisional SLAM alignment, 100 with an aligned session or range and yaw; halved
+            for 2 s after a solver failure or reset. A filter: from its position covariance
+            (``fgnav.live.estimators.QUALITY_SIGMA_M``).
+    """
+
+    t: float
+    world_T_body: np.ndarray
+    world_v_body: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias: np.ndarray
+    pose_cov: np.ndarray | None
+    vel_cov: np.ndarray | None
+    slam_scale: dict[int, float] = field(default_factory=dict)
+    drag_k: np.ndarray | None = None
+    ground_height: float | None = None
+    reset_counter: int = 0
+    quality: int = 0
+
+
 def estimate_in_body(est: Estimate, int_R_body: np.ndarray) -> Estimate:
     """An estimate made in an internal body frame (``v_int = int_R_body @ v_body``, same origin;
     e.g. :func:`fgnav.datasets.frames.thrust_body_rotation`) re-expressed in the flight's body:

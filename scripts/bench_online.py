@@ -155,13 +155,13 @@ def speed_limit(flight, args) -> None:
     same window (IMU, attitude, SLAM; no range, drag or camera), back to back."""
     from fgnav.datasets.events import replay_flight
 
-    from fgnav.solvers.online import run_online
+    from fgnav.solvers.online import feed_all
 
     g = GraphOptions(keyframe_hz=args.keyframe_hz, use_range=False, use_drag=False)
     opts = FixedLagOptions(lag_s=args.lag, graph=g, covariance=False)
     streams = ["imu", "attitude", "yaw", "slam"]
     t0 = time.perf_counter()
-    custom = run_online(replay_flight(flight, streams), flight.calib, opts, "custom")
+    custom = feed_all(replay_flight(flight, streams), flight.calib, opts, "custom").result()
     t_custom = time.perf_counter() - t0
     builtin = builtin_stand_in(flight, opts)
     t_builtin = builtin.runtime_s

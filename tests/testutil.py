@@ -24,6 +24,25 @@ def run_cli(*args) -> subprocess.CompletedProcess:
     )
 
 
+def command_cli(command: str, folder, out, *extra, config: str | None = None) -> int:
+    """``fgnav COMMAND FOLDER --out OUT --no-progress EXTRA`` in this process (output to the
+    test's capsys); with ``config``, that TOML text is written to ``OUT.toml`` and passed as
+    ``--config``. Its exit code."""
+    from fgnav.cli import main
+
+    args = [command, folder, "--out", out, "--no-progress"]
+    if config is not None:
+        cfg = Path(out).with_suffix(".toml")
+        cfg.write_text(config)
+        args += ["--config", cfg]
+    return main([str(a) for a in (*args, *extra)])
+
+
+def compare_cli(folder, out, methods: str, *extra) -> int:
+    """``fgnav compare FOLDER --out OUT --methods METHODS --no-figures`` (:func:`command_cli`)."""
+    return command_cli("compare", folder, out, "--methods", methods, "--no-figures", *extra)
+
+
 def require_real_data() -> Path:
     """``../shared/data/real``, or skip the calling test with the reason."""
     if not REAL_DATA.is_dir():
@@ -57,6 +76,35 @@ def two_turns_folder(tmp_path_factory, seed: int) -> Path:
 def truth_scale(flight) -> dict[int, float]:
     """The simulator's SLAM scale of each session at its start (``meta["truth"]``)."""
     return {int(k): v["scale"] for k, v in flight.meta["truth"]["slam_sessions"].items()}
+
+
+def truth_scale_at(flight, t: float, session: int = 0) -> float:
+    """The simulator's (drifting) SLAM scale of ``session`` at time ``t``."""
+    s = flight.meta["truth"]["slam_sessions"][str(session)]
+    return s["scale"] * (1.0 + s["scale_drift_per_s"] * (t - s["t_start"]))
+
+
+def truth_axis_scale_at(flight, t: float) -> np.ndarray:
+    """The simulator's per-axis SLAM scale ``[kx, ky, kz]`` at time ``t`` (session 0's drift
+    from t = 0, as the circle scenario applies it)."""
+    truth = flight.meta["truth"]
+    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * t
+    return np.asarray(truth["slam_axis_scale"]) * drift
+
+
+def circle_axis_run(run):
+    """Seed 000's circle (per-axis SLAM scale 0.3/0.2/0.25, drifting) with every sensor and the
+    rendered downward camera, 20 s, seed 1, through ``run(flight, FixedLagOptions())``, which
+    must report no solver failure: ``(flight, estimate, SE(3)-aligned metrics)``."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    from fgnav.eval.metrics import evaluate
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    f = simulate("circle", seed=1, options=SimOptions(duration=20.0))
+    est = run(f, FixedLagOptions())
+    assert est.info["solver_failures"] == 0
+    return f, est, evaluate(est, f.ground_truth, alignment="se3")
 
 
 def feed_until(filt, events, t_cut: float):

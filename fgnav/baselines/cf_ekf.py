@@ -63,7 +63,12 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import Event, FlowSample, ImuSample, RangeReading, replay_flight
-from fgnav.datasets.geometry import GRAVITY, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from fgnav.datasets.geometry import (
+    GRAVITY,
+    matrix_to_quat_wxyz,
+    quat_multiply_wxyz,
+    quat_wxyz_to_matrix,
+)
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate
 from fgnav.solvers.measurements import level_rotation_from_accel
@@ -141,20 +146,6 @@ class CfEkfCounts:
     tof_outliers: int = 0
     tof_tilted: int = 0
     extra: dict = field(default_factory=dict)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a (x) b`` of ``[w, x, y, z]`` quaternions."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
 
 
 def _quat_exp(v: np.ndarray) -> np.ndarray:
@@ -246,7 +237,7 @@ class CfEkf:
         dp_body = u * dt + f * dt * dt / 2.0
         S[IP : IP + 3] += R @ dp_body - np.array([0.0, 0.0, g * dt * dt / 2.0])
         S[IU : IU + 3] = u + dt * (f - np.cross(w, u) - g * R[2])
-        q = _quat_mul(self.q, _quat_exp(w * dt))
+        q = quat_multiply_wxyz(self.q, _quat_exp(w * dt))
         self.q = q / np.linalg.norm(q)
         self.R = quat_wxyz_to_matrix(self.q)
         # Process noise.
@@ -286,7 +277,7 @@ class CfEkf:
         (``kalmanCoreFinalize``)."""
         v = self.S[ID : ID + 3]
         if np.any(np.abs(v) > 0.1e-3) and np.all(np.abs(v) < 10):
-            q = _quat_mul(self.q, _quat_exp(v))
+            q = quat_multiply_wxyz(self.q, _quat_exp(v))
             self.q = q / np.linalg.norm(q)
             A = np.eye(N_STATE)
             A[ID : ID + 3, ID : ID + 3] = _att_rotation(v / 2.0)

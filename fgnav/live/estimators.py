@@ -4,9 +4,9 @@ The link is written against the push API of ``fgnav.solvers.online.OnlineSmoothe
 docstring; DESIGN.md's event-stream data flow): ``feed(event)`` in arrival order returns the newest
 state when the event closed a keyframe (else None); ``latest()``; ``counts()`` as ``{"received":
 {stream: n}, "used": ..., "late": ..., "dropped": {"stream:reason": n}}``; ``result()`` the causal
-:class:`~fgnav.estimate.Estimate`. A state has the ``OnlineState`` fields the link sends (``t``,
-``world_T_body``, ``world_v_body``, ``gyro_bias``, ``pose_cov``, ``vel_cov``, ``reset_counter``,
-``quality``).
+:class:`~fgnav.estimate.Estimate`. A state is an :class:`~fgnav.estimate.OnlineState` (the link
+sends its ``t``, ``world_T_body``, ``world_v_body``, ``gyro_bias``, ``pose_cov``, ``vel_cov``,
+``reset_counter`` and ``quality``).
 
 A factory ``make(calib, config) -> estimator`` builds one from the calibration and the
 ``--config`` tables. :data:`ESTIMATORS` names them:
@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -32,7 +31,7 @@ from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.events import STREAM_OF_EVENT, Event, ImuSample, RangeReading, SlamPose
 from fgnav.datasets.geometry import make_pose
 from fgnav.datasets.types import Calibration
-from fgnav.estimate import Estimate
+from fgnav.estimate import Estimate, OnlineState
 
 
 class LiveEstimatorError(FgnavError, RuntimeError):
@@ -106,24 +105,6 @@ QUALITY_SIGMA_M = 0.1
 RMS position standard deviation [m]: 91 at 1 cm, 50 at 10 cm, 9 at 1 m."""
 
 
-@dataclass(frozen=True)
-class FilterState:
-    """A filter's state with the fields of ``OnlineState`` (see the module docstring)."""
-
-    t: float
-    world_T_body: np.ndarray
-    world_v_body: np.ndarray
-    accel_bias: np.ndarray
-    gyro_bias: np.ndarray
-    pose_cov: np.ndarray | None
-    vel_cov: np.ndarray | None
-    slam_scale: dict[int, float] = field(default_factory=dict)
-    drag_k: np.ndarray | None = None
-    ground_height: float | None = None
-    reset_counter: int = 0
-    quality: int = 0
-
-
 class MsfLive:
     """:class:`~fgnav.baselines.msf_ekf.MsfEkf` with the push API of the online smoother.
 
@@ -147,10 +128,10 @@ class MsfLive:
         self._received: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
         self._imu_used = 0
-        self._latest: FilterState | None = None
+        self._latest: OnlineState | None = None
         self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
 
-    def feed(self, ev: Event) -> FilterState | None:
+    def feed(self, ev: Event) -> OnlineState | None:
         stream = STREAM_OF_EVENT[type(ev)]
         self._received[stream] += 1
         if stream not in self.USED_STREAMS:
@@ -175,16 +156,16 @@ class MsfLive:
         self._latest = self._state(ev.t)
         return self._latest
 
-    def latest(self) -> FilterState | None:
+    def latest(self) -> OnlineState | None:
         return self._latest
 
-    def _state(self, t: float) -> FilterState:
+    def _state(self, t: float) -> OnlineState:
         from fgnav.baselines.msf_ekf import IV, pose_covariance
 
         x = self._ekf.latest()
         pose_cov = pose_covariance(x)
         sigma = math.sqrt(max(float(np.trace(pose_cov[3:6, 3:6])) / 3.0, 0.0))
-        return FilterState(
+        return OnlineState(
             t=float(t),
             world_T_body=make_pose(x.R, x.p),
             world_v_body=x.v.copy(),

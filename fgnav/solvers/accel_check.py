@@ -59,6 +59,20 @@ MIN_KEYFRAMES = 20
 
 
 @dataclass(frozen=True)
+class AccelLimits:
+    """The check's limits (module docstring): ``k_max`` largest plausible drag coefficient
+    [1/s], ``signal_floor`` smallest drag signal [m/s^2], ``unusable_ratio`` and
+    ``weigh_ratio`` the decision thresholds on ``ratio``, ``min_keyframes`` fewest keyframes
+    for a decision."""
+
+    k_max: float = K_MAX
+    signal_floor: float = SIGNAL_FLOOR
+    unusable_ratio: float = UNUSABLE_RATIO
+    weigh_ratio: float = WEIGH_RATIO
+    min_keyframes: int = MIN_KEYFRAMES
+
+
+@dataclass(frozen=True)
 class AccelCheck:
     """Outcome of :func:`check_horizontal_accel`.
 
@@ -109,16 +123,18 @@ class AccelCheck:
     def as_dict(self) -> dict:
         return {**asdict(self), "line": self.line()}
 
+    @classmethod
+    def undecided(cls, n: int) -> AccelCheck:
+        """The outcome with too few keyframes (``n`` of them): no figures."""
+        nan2 = (math.nan, math.nan)
+        return cls("undecided", math.nan, math.nan, math.nan, nan2, nan2, math.nan, math.nan, n)
+
 
 def check_horizontal_accel(
     f_xy: np.ndarray,
     u_xy: np.ndarray,
     white_sigma: float = 0.0,
-    k_max: float = K_MAX,
-    signal_floor: float = SIGNAL_FLOOR,
-    unusable_ratio: float = UNUSABLE_RATIO,
-    weigh_ratio: float = WEIGH_RATIO,
-    min_keyframes: int = MIN_KEYFRAMES,
+    limits: AccelLimits = AccelLimits(),
 ) -> AccelCheck:
     """Decide whether the horizontal specific force can feed the drag model (module docstring).
 
@@ -127,46 +143,39 @@ def check_horizontal_accel(
         u_xy: (N, 2) horizontal body velocity at those keyframes [m/s] (an estimate: initial
             values, flow dead reckoning, or the online smoother's states).
         white_sigma: white-noise standard deviation of one keyframe mean [m/s^2].
-        k_max, signal_floor, unusable_ratio, weigh_ratio, min_keyframes: see module docstring.
+        limits: the check's limits (:class:`AccelLimits`).
     """
     f = np.asarray(f_xy, float).reshape(-1, 2)
     u = np.asarray(u_xy, float).reshape(-1, 2)
     ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(u), axis=1)
     f, u = f[ok], u[ok]
     n = len(f)
-    nan2 = (math.nan, math.nan)
-    if n < min_keyframes:
-        return AccelCheck(
-            "undecided", math.nan, math.nan, math.nan, nan2, nan2, math.nan, math.nan, n
-        )
+    if n < limits.min_keyframes:
+        return AccelCheck.undecided(n)
     k = np.zeros(2)
     b = np.zeros(2)
     for a in range(2):
         uc = u[:, a] - u[:, a].mean()
         fc = f[:, a] - f[:, a].mean()
         den = float(uc @ uc)
-        k[a] = float(np.clip(-(fc @ uc) / den, 0.0, k_max)) if den > 1e-12 else 0.0
+        k[a] = float(np.clip(-(fc @ uc) / den, 0.0, limits.k_max)) if den > 1e-12 else 0.0
         b[a] = float(np.mean(f[:, a] + k[a] * u[:, a]))
     res = f + k * u - b
     res_ms = float(np.mean(np.sum(res**2, axis=1)))
     rms_u = math.sqrt(float(np.mean(np.sum(u**2, axis=1))))
     rms_f = math.sqrt(float(np.mean(np.sum(f**2, axis=1))))
-    return _verdict(
-        res_ms, rms_u, rms_f, k, b, n, white_sigma, k_max, signal_floor, unusable_ratio, weigh_ratio
-    )
+    return _verdict(res_ms, rms_u, rms_f, k, b, n, white_sigma, limits)
 
 
-def _verdict(
-    res_ms, rms_u, rms_f, k, b, n, white_sigma, k_max, signal_floor, unusable_ratio, weigh_ratio
-) -> AccelCheck:
+def _verdict(res_ms, rms_u, rms_f, k, b, n, white_sigma, limits: AccelLimits) -> AccelCheck:
     """The check's figures and decision from the drag fit's mean squared residual [m^2/s^4] and
     the RMS velocity and specific force (module docstring)."""
     residual = math.sqrt(max(res_ms - 2.0 * white_sigma**2, 0.0))
-    signal = max(k_max * rms_u, signal_floor)
+    signal = max(limits.k_max * rms_u, limits.signal_floor)
     ratio = residual / signal
-    if ratio > unusable_ratio:
+    if ratio > limits.unusable_ratio:
         decision = "unusable"
-    elif ratio > weigh_ratio:
+    elif ratio > limits.weigh_ratio:
         decision = "noisy"
     else:
         decision = "usable"
@@ -267,21 +276,11 @@ class RunningAccelCheck:
             return self._rows[: self._n].copy()
         return np.roll(self._rows, -self._i, axis=0)
 
-    def check(
-        self,
-        k_max: float = K_MAX,
-        signal_floor: float = SIGNAL_FLOOR,
-        unusable_ratio: float = UNUSABLE_RATIO,
-        weigh_ratio: float = WEIGH_RATIO,
-        min_keyframes: int = MIN_KEYFRAMES,
-    ) -> AccelCheck:
+    def check(self, limits: AccelLimits = AccelLimits()) -> AccelCheck:
         """:func:`check_horizontal_accel` on the window (white sigma: the RMS of the rows')."""
         n = self.n_ok
-        nan2 = (math.nan, math.nan)
-        if n < min_keyframes:
-            return AccelCheck(
-                "undecided", math.nan, math.nan, math.nan, nan2, nan2, math.nan, math.nan, n
-            )
+        if n < limits.min_keyframes:
+            return AccelCheck.undecided(n)
         white_sigma = math.sqrt(max(self.s_w2, 0.0) / n)
         ref = self._ref
         k = [0.0, 0.0]
@@ -293,7 +292,7 @@ class RunningAccelCheck:
             den = self.s_uu[a] - n * mu_u * mu_u  # sum of (u - mean u)^2
             cross = self.s_fu[a] - n * mu_u * mu_f  # sum of (f - mean f)(u - mean u)
             ff = self.s_ff[a] - n * mu_f * mu_f
-            k[a] = min(max(-cross / den, 0.0), k_max) if den > 1e-12 else 0.0
+            k[a] = min(max(-cross / den, 0.0), limits.k_max) if den > 1e-12 else 0.0
             b[a] = (mu_f + ref[a]) + k[a] * (mu_u + ref[2 + a])
             res_sum += ff + 2.0 * k[a] * cross + k[a] * k[a] * max(den, 0.0)
             # sum x^2 = sum (x - r)^2 + 2 r sum (x - r) + n r^2
@@ -307,8 +306,5 @@ class RunningAccelCheck:
             b,
             n,
             white_sigma,
-            k_max,
-            signal_floor,
-            unusable_ratio,
-            weigh_ratio,
+            limits,
         )

@@ -953,15 +953,14 @@ class FixedLagRunner:
         provisional factors that update added are found by identity in ``step``). Returns False
         (smoother unchanged) when the fresh smoother fails too."""
         smoother = self._new_smoother(factorization)
-        try:
-            new_index = move_window(self.smoother, smoother)
-        except SOLVER_ERRORS as e:
-            log.warning(
-                "fixed-lag: moving the window to %s failed (%s); staying with %s",
-                factorization,
-                " ".join(str(e).split())[:120],
-                self.factorization,
-            )
+        new_index = try_move_window(
+            self.smoother,
+            smoother,
+            "fixed-lag",
+            factorization,
+            f"; staying with {self.factorization}",
+        )
+        if new_index is None:
             return False
         self._install(smoother)
         self.factorization = factorization
@@ -1362,32 +1361,76 @@ class FixedLagRunner:
                 "factorization_final": self.factorization,
                 "factorization_fallbacks": self.n_fallbacks,
                 "solver_failure_messages": self.failure_messages[:10],
-                "updates": n,
-                "latency_p50_s": float(np.percentile(lat, 50)) if n else None,
-                "latency_p99_s": float(np.percentile(lat, 99)) if n else None,
-                "latency_max_s": float(lat.max()) if n else None,
-                "times_real_time": float((b.t_kf[-1] - b.t_kf[0]) / runtime)
-                if runtime > 0
-                else None,
                 "python_heap_peak_bytes": peak_bytes,
-                "options": asdict(self.options),
+                "updates": n,
             }
         )
-        return Estimate(
-            method="fixed-lag",
-            trajectory=traj,
+        return fixed_lag_estimate(
+            traj,
+            info,
+            lat,
+            runtime,
+            b.t_kf[-1] - b.t_kf[0],
+            self.options,
             slam_scale=slam_scale,
             drag_k=drag_k,
             ground_height=ground,
             series=series,
-            update_latency=lat,
-            runtime_s=runtime,
-            causal=True,
-            info=info,
-        ).check()
+        )
 
     def _last_t_of(self, sess: int) -> float:
         return self._sess_last_t.get(sess, -math.inf)
+
+
+def try_move_window(old, new, who: str, factorization: str, note: str = "") -> dict | None:
+    """:func:`fgnav.solvers.window.move_window` from smoother ``old`` into ``new`` (a fresh
+    ``factorization`` one); its factor index map, or None when GTSAM fails (logged as a warning
+    of ``who``, with ``note`` appended)."""
+    try:
+        return move_window(old, new)
+    except SOLVER_ERRORS as e:
+        log.warning(
+            "%s: moving the window to %s failed (%s)%s",
+            who,
+            factorization,
+            " ".join(str(e).split())[:120],
+            note,
+        )
+        return None
+
+
+def fixed_lag_estimate(
+    traj: Trajectory,
+    info: dict[str, Any],
+    lat: np.ndarray,
+    runtime: float,
+    span_s: float,
+    options: FixedLagOptions,
+    **fields: Any,
+) -> Estimate:
+    """The fixed-lag smoother's causal estimate (either engine: :class:`FixedLagRunner`, the
+    push-API :class:`fgnav.solvers.online.OnlineSmoother`): ``info`` completed with the update
+    latency figures (``lat``, wall time of each update [s]), the real-time factor (``span_s``
+    of flight time in ``runtime`` seconds of wall time) and the options; ``fields``: the other
+    :class:`~fgnav.estimate.Estimate` fields."""
+    has = len(lat) > 0
+    info = {
+        **info,
+        "latency_p50_s": float(np.percentile(lat, 50)) if has else None,
+        "latency_p99_s": float(np.percentile(lat, 99)) if has else None,
+        "latency_max_s": float(lat.max()) if has else None,
+        "times_real_time": float(span_s / runtime) if runtime > 0 else None,
+        "options": asdict(options),
+    }
+    return Estimate(
+        method="fixed-lag",
+        trajectory=traj,
+        update_latency=lat,
+        runtime_s=runtime,
+        causal=True,
+        info=info,
+        **fields,
+    ).check()
 
 
 def run_fixed_lag(

@@ -110,7 +110,7 @@ import math
 import operator
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import gtsam
@@ -134,7 +134,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
 )
 from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
-from fgnav.estimate import Estimate, TimeSeries
+from fgnav.estimate import Estimate, OnlineState, TimeSeries
 from fgnav.factors import _jacobians
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
@@ -149,12 +149,14 @@ from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
-from fgnav.solvers.accel_check import RunningAccelCheck
+from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
     SOLVER_ERRORS,
     FixedLagOptions,
     _isam2_params,
+    fixed_lag_estimate,
     rebuild_state_priors,
+    try_move_window,
 )
 from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
@@ -174,7 +176,7 @@ from fgnav.solvers.measurements import (
     level_rotation_from_accel,
     world_specific_accel,
 )
-from fgnav.solvers.window import TimeOrderedSmoother, move_window
+from fgnav.solvers.window import TimeOrderedSmoother
 
 log = logging.getLogger(__name__)
 
@@ -220,41 +222,6 @@ SESSION_STRIDE = 100_000
 #: each, integrated, plus a floor).
 STILL_VEL_SIGMA = 0.05
 STILL_VEL_SIGMA_RATE = 0.2
-
-
-@dataclass(frozen=True, eq=False)
-class OnlineState:
-    """The newest estimate (see ``/README.md``'s online section for the frames).
-
-    Attributes:
-        t: state time [s] on the input clock (a keyframe time).
-        world_T_body: (4, 4) pose, world z up, body FLU.
-        world_v_body: (3,) velocity in world [m/s].
-        accel_bias, gyro_bias: (3,) IMU biases [m/s^2], [rad/s].
-        pose_cov: (6, 6) marginal covariance, GTSAM Pose3 tangent ``[rot, trans]`` in body frame
-            (right perturbation), or None when not computed.
-        vel_cov: (3, 3) covariance of ``world_v_body``, or None.
-        slam_scale: SLAM units per metre per session (sessions with an alignment).
-        drag_k: drag coefficient(s) [1/s], or None.
-        ground_height: ground height under the rangefinder [m], or None.
-        reset_counter: resets and rebuilds that lost state so far.
-        quality: 0-100: 0 before initialisation, 30 with the IMU alone, 60 on a provisional
-            SLAM alignment, 100 with an aligned session or range and yaw; halved for 2 s after
-            a solver failure or reset.
-    """
-
-    t: float
-    world_T_body: np.ndarray
-    world_v_body: np.ndarray
-    accel_bias: np.ndarray
-    gyro_bias: np.ndarray
-    pose_cov: np.ndarray | None
-    vel_cov: np.ndarray | None
-    slam_scale: dict[int, float]
-    drag_k: np.ndarray | None
-    ground_height: float | None
-    reset_counter: int
-    quality: int
 
 
 _first = operator.itemgetter(0)
@@ -664,26 +631,21 @@ class OnlineSmoother:
             "frontend_prior_stage": self._prior_report(),
             "health": self._health_report(),
             "updates": len(lat),
-            "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
-            "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
-            "latency_max_s": float(lat.max()) if len(lat) else None,
-            "times_real_time": float(span / runtime) if runtime > 0 else None,
-            "options": asdict(self.options),
         }
-        return Estimate(
-            method="fixed-lag",
-            trajectory=traj,
+        return fixed_lag_estimate(
+            traj,
+            info,
+            lat,
+            runtime,
+            span,
+            self.options,
             pose_cov=pose_cov,
             vel_cov=vel_cov,
             slam_scale=dict(self._session_scale),
             drag_k=last.drag_k,
             ground_height=last.ground_height,
             series=series,
-            update_latency=lat,
-            runtime_s=runtime,
-            causal=True,
-            info=info,
-        ).check()
+        )
 
     def _leftovers(self) -> dict[str, int]:
         """Measurements that arrived but wait for a keyframe that never closed (the IMU ended
@@ -1536,7 +1498,7 @@ class OnlineSmoother:
         keyframe on, said in one line; noisy -> the drag noise floor is raised to the misfit."""
         # (check_horizontal_accel on the window's rows, from running sums)
         rows = self._accel_rows
-        chk = rows.check(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES)
+        chk = rows.check(AccelLimits(min_keyframes=ONLINE_ACCEL_CHECK_MIN_KEYFRAMES))
         self._accel_check = chk
         if chk.decision != "unusable":
             # The first verdicts (the Crazyflie on the ground, motors spinning up) may still
@@ -1619,35 +1581,14 @@ class OnlineSmoother:
         """Preintegration parameters of the current accelerometer model: the calibration's, or
         with the body x, y noise and bias walk of the thrust-only prediction
         (:func:`fgnav.solvers.graph.thrust_only_noise`)."""
-        if not self._thrust_only:
-            if self._bias_release:
-                self._bias_release = False
-                n = self.calib.imu_noise
-                p = pim_params(n, self.go.gravity)
-                p.setBiasAccCovariance(
-                    np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
-                )
-                return p
+        if not (self._thrust_only or self._bias_release):
             return self.pim_params
-        if self._bias_release:
-            self._bias_release = False
-            p = pim_params(self.calib.imu_noise, self.go.gravity)
-            n = self.calib.imu_noise
-            nd, _ = thrust_only_noise(
-                self.go.thrust_only_sigma,
-                self.go.thrust_only_tau_s,
-                self.go.keyframe_hz,
-                n.accel_noise_density,
-                n.accel_random_walk,
-            )
-            p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
-            p.setBiasAccCovariance(
-                np.diag([BIAS_RELEASE_WALK**2, BIAS_RELEASE_WALK**2, n.accel_random_walk**2])
-            )
-            return p
-        p = getattr(self, "_pim_thrust", None)
-        if p is None:
-            n = self.calib.imu_noise
+        if not self._bias_release and getattr(self, "_pim_thrust", None) is not None:
+            return self._pim_thrust
+        n = self.calib.imu_noise
+        p = pim_params(n, self.go.gravity)
+        walk = BIAS_RELEASE_WALK  # x, y bias walk of a release (one interval)
+        if self._thrust_only:
             nd, rw = thrust_only_noise(
                 self.go.thrust_only_sigma,
                 self.go.thrust_only_tau_s,
@@ -1655,9 +1596,13 @@ class OnlineSmoother:
                 n.accel_noise_density,
                 n.accel_random_walk,
             )
-            p = pim_params(self.calib.imu_noise, self.go.gravity)
             p.setAccelerometerCovariance(np.diag([nd**2, nd**2, n.accel_noise_density**2]))
-            p.setBiasAccCovariance(np.diag([rw**2, rw**2, n.accel_random_walk**2]))
+            if not self._bias_release:
+                walk = rw
+        p.setBiasAccCovariance(np.diag([walk**2, walk**2, n.accel_random_walk**2]))
+        if self._bias_release:
+            self._bias_release = False
+        else:
             self._pim_thrust = p
         return p
 
@@ -2245,10 +2190,9 @@ class OnlineSmoother:
                 return None
             self._start_axis_chain(s, t, *fit, g, stamps)
             return s.last_key
-        seg, known = self._segment(s, t)
+        seg, key, known = self._segment(s, t)
         if known is not None:
             return known
-        key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         a = np.asarray(self.values[prev], float)
         walk = math.sqrt(go.slam_segment_s * (seg - s.last_seg))
@@ -2269,9 +2213,7 @@ class OnlineSmoother:
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
             g.add(gtsam.PriorFactorVector(key, a, noise))
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
-        self._insert(key, a, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, a, g, stamps)
         return key
 
     def _fit_axis(self, s: _Session) -> tuple[np.ndarray, np.ndarray, int] | None:
@@ -2306,18 +2248,13 @@ class OnlineSmoother:
         SLAM position onto the current estimate of its keyframe, under a prior (each axis's
         relative sigma the fit's, at least ``slam_init_scale_sigma_rel``, at most 50 % for an
         axis the fit does not determine; the origin free)."""
-        o, go = self.options, self.go
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
-        pose = self._pose_at(s.t[-1])
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        a = np.r_[k, s.p[-1] - k * world_t_cam]
+        o = self.options
+        seg, key = self._segment_key(s, t)
+        a = np.r_[k, s.p[-1] - k * self._cam_at(s.t[-1])]
         rel = np.minimum(np.maximum(o.slam_init_scale_sigma_rel, rel_se), WEAK_SCALE_PRIOR_REL)
         sig = np.r_[rel * k, [10.0 * float(np.max(k))] * 3]
         g.add(gtsam.PriorFactorVector(key, a, gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        self._insert(key, a, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, a, g, stamps)
         log.info(
             "%s: per-axis SLAM scale at t=%.2f s: %s (rel. s.e. %s, %d pairs)",
             self.name,
@@ -2326,12 +2263,7 @@ class OnlineSmoother:
             np.round(rel_se, 3).tolist(),
             n,
         )
-        held, self._held = self._held, []
-        for item in held:
-            if self._kf_alive(item[0]):
-                self._pending.append(item)
-            else:
-                self._drop("slam:before-alignment")
+        self._release_held()
 
     def _session_key(self, sess, s: _Session, t, g, stamps, remove, prov_new) -> int:
         """The alignment variable of a pose at time ``t`` of session ``sess`` (created here)."""
@@ -2351,10 +2283,9 @@ class OnlineSmoother:
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
                 return s.provisional
-        seg, known = self._segment(s, t)
+        seg, key, known = self._segment(s, t)
         if known is not None:
             return known
-        key = S(s.index * SESSION_STRIDE + seg)
         prev = s.last_key
         value = self.values[prev]
         n_seg = seg - s.last_seg
@@ -2377,23 +2308,33 @@ class OnlineSmoother:
                 )
             )
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
-        self._insert(key, value, g, stamps)
+        self._add_to_chain(s, seg, key, value, g, stamps)
         if s.carried and t_now - self.t0 < o.startup_qr_s:
             self.smoother.hold_linearization([key])  # see _carried_chain
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
         return key
 
-    def _segment(self, s: _Session, t: float) -> tuple[int, int | None]:
-        """The alignment segment of a pose at ``t`` and its existing variable (None: a new
-        segment after the newest). An older segment than the newest (a late pose) has no
-        variable of its own: the newest one takes it."""
-        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+    def _segment(self, s: _Session, t: float) -> tuple[int, int, int | None]:
+        """The alignment segment of a pose at ``t``, its key (:meth:`_segment_key`) and its
+        existing variable (None: a new segment after the newest). An older segment than the
+        newest (a late pose) has no variable of its own: the newest one takes it."""
+        seg, key = self._segment_key(s, t)
         if seg in s.chain:
-            return seg, s.chain[seg]
+            return seg, key, s.chain[seg]
         if seg < s.last_seg:
-            return seg, s.chain[s.last_seg]
-        return seg, None
+            return seg, key, s.chain[s.last_seg]
+        return seg, key, None
+
+    def _segment_key(self, s: _Session, t: float) -> tuple[int, int]:
+        """The alignment segment of session ``s`` at ``t`` (``slam_segment_s`` steps from the
+        session's first pose) and its variable's key."""
+        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
+        return seg, S(s.index * SESSION_STRIDE + seg)
+
+    def _add_to_chain(self, s: _Session, seg: int, key: int, value: Any, g, stamps) -> None:
+        """Insert the new alignment variable ``key`` of segment ``seg``, the session's newest."""
+        self._insert(key, value, g, stamps)
+        s.chain[seg] = key
+        s.last_key, s.last_seg = key, seg
 
     def _insert(self, key: int, value: Any, g, stamps) -> None:
         self._queued_values.insert(key, value)
@@ -2474,9 +2415,8 @@ class OnlineSmoother:
         return slerp_rotations(tk, Rk, np.clip(t, tk[0], tk[-1]))
 
     def _start_chain(self, sess, s: _Session, t, fit, g, stamps, remove, prov_new) -> None:
-        o, go = self.options, self.go
-        seg = int((t - s.t_first) / go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
+        o = self.options
+        seg, key = self._segment_key(s, t)
         scale, rel = fit.scale, max(o.slam_init_scale_sigma_rel, fit.scale_rel_se)
         ml = self._ml_scale(sess)
         if ml is not None and sess not in self._scale_prior_done:
@@ -2490,9 +2430,7 @@ class OnlineSmoother:
         value = self._align_origin(s, value)
         sig = np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])
         g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
-        self._insert(key, value, g, stamps)
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
+        self._add_to_chain(s, seg, key, value, g, stamps)
         log.info(
             "%s: SLAM session %d aligned at t=%.2f s: scale %.4f (rel. s.e. %.3f, %d pairs)%s",
             self.name,
@@ -2504,14 +2442,7 @@ class OnlineSmoother:
             "" if ml is None else f"; ML-scale stage {ml[0]:.4f} +- {ml[1]:.4f} used",
         )
         # Re-attach the provisional factors still in the window to the new alignment.
-        held, self._held = self._held, []
-        for item in held:
-            if item[2][0] == sess and self._kf_alive(item[0]):
-                self._pending.append(item)
-            elif item[2][0] == sess:
-                self._drop("slam:before-alignment")
-            else:
-                self._held.append(item)
+        self._release_held(sess)
         if s.provisional is not None:
             for idx, (k, tp, p, q) in s.prov_factors:
                 if self._kf_alive(k) and self._alive(s.provisional):
@@ -2524,10 +2455,7 @@ class OnlineSmoother:
         """Translation of an alignment so that the newest SLAM pose maps onto the current
         estimate of its keyframe (the fit placed the world origin at the first camera)."""
         scale, R = value.scale(), value.rotation().matrix()
-        pose = self._pose_at(s.t[-1])
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        slam_t_world = s.p[-1] - scale * R @ world_t_cam
-        return make_slam_T_world(scale, R, slam_t_world)
+        return make_slam_T_world(scale, R, s.p[-1] - scale * R @ self._cam_at(s.t[-1]))
 
     def _pose_at(self, t: float) -> gtsam.Pose3:
         """The newest estimate of the keyframe nearest ``t`` (the newest one for later times)."""
@@ -2535,6 +2463,11 @@ class OnlineSmoother:
         while k > 0 and k not in self._pose_hist:
             k -= 1
         return self._pose_hist[k][1] if k in self._pose_hist else self.values[X(self.k)]
+
+    def _cam_at(self, t: float) -> np.ndarray:
+        """``world_t_cam`` of :meth:`_pose_at` ``(t)`` (the camera centre in world [m])."""
+        pose = self._pose_at(t)
+        return pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
 
     def _start_provisional(self, sess, s: _Session, g, stamps) -> bool:
         """The session's provisional alignment (False: not yet, its poses are held back).
@@ -2578,8 +2511,7 @@ class OnlineSmoother:
                     sess,
                     scale,
                 )
-        world_t_cam = pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
-        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ world_t_cam)
+        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ self._cam_at(s.t[-1]))
         key = S(PROVISIONAL_BASE + self._n_prov)
         self._n_prov += 1
         sig = np.r_[
@@ -2593,15 +2525,21 @@ class OnlineSmoother:
             {"session": int(sess), "t": float(s.t[-1]), "scale": float(scale), "from": source}
         )
         # The poses held back while waiting for the data's scale attach to it now.
+        self._release_held(sess)
+        return True
+
+    def _release_held(self, sess: int | None = None) -> None:
+        """The SLAM poses held back for session ``sess`` (every session's when None) go to
+        the pending factors, those whose keyframe has left the window are dropped
+        (``slam:before-alignment``); other sessions' stay held."""
         held, self._held = self._held, []
         for item in held:
-            if item[2][0] == sess and self._kf_alive(item[0]):
-                self._pending.append(item)
-            elif item[2][0] == sess:
-                self._drop("slam:before-alignment")
-            else:
+            if sess is not None and item[2][0] != sess:
                 self._held.append(item)
-        return True
+            elif self._kf_alive(item[0]):
+                self._pending.append(item)
+            else:
+                self._drop("slam:before-alignment")
 
     def _prov_t_first(self, s: _Session) -> float:
         """Time of the session's first arrived pose the smoother covers."""
@@ -2626,11 +2564,7 @@ class OnlineSmoother:
         i1 = int(np.searchsorted(ts, self.t_kf[self.k] + 1e-9)) - 1
         if i1 <= i0:
             return None
-        cams = []
-        for t in (ts[i0], ts[i1]):
-            pose = self._pose_at(float(t))
-            cams.append(pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3])
-        v_world = cams[1] - cams[0]
+        v_world = self._cam_at(float(ts[i1])) - self._cam_at(float(ts[i0]))
         v_slam = np.asarray(s.p[i1]) - np.asarray(s.p[i0])
         d_world, d_slam = float(np.linalg.norm(v_world)), float(np.linalg.norm(v_slam))
         if d_world < self.options.slam_provisional_min_disp_m or not d_slam > 0.0:
@@ -2823,18 +2757,15 @@ class OnlineSmoother:
         near-degenerate direction (20 s two-turns without camera, 8 s gap: -5 % -> +31 %
         0.3 s after the restart; ATE 2.56x nominal, held 1.81x)."""
         value, cov = self._carried_align.pop(sess)
-        seg = int((t - s.t_first) / self.go.slam_segment_s + 1e-9)
-        key = S(s.index * SESSION_STRIDE + seg)
+        seg, key = self._segment_key(s, t)
         if cov is not None and np.all(np.isfinite(cov)):
             noise = gtsam.noiseModel.Gaussian.Covariance(cov * CARRY_SIGMA_FACTOR**2)
         else:
             noise = gtsam.noiseModel.Diagonal.Sigmas(self._slam_rebuild_sigmas(value))
         g.add(self._slam_prior(key, value, noise))
-        self._insert(key, value, g, stamps)
+        self._add_to_chain(s, seg, key, value, g, stamps)
         self.smoother.hold_linearization([key])
         s.carried = True
-        s.chain[seg] = key
-        s.last_key, s.last_seg = key, seg
         self._use("slam:alignment-carried")
         return key
 
@@ -2936,15 +2867,8 @@ class OnlineSmoother:
         same linearisation point and stamps. Also used on a smoother whose update just failed
         (its factors include that update's). False (smoother unchanged) when that fails too."""
         new = self._new_smoother(factorization)
-        try:
-            index = move_window(self.smoother, new)
-        except SOLVER_ERRORS as e:
-            log.warning(
-                "%s: moving the window to %s failed (%s)",
-                self.name,
-                factorization,
-                " ".join(str(e).split())[:120],
-            )
+        index = try_move_window(self.smoother, new, self.name, factorization)
+        if index is None:
             return False
         self.smoother = new
         self.factorization = factorization
@@ -3124,18 +3048,16 @@ class OnlineSmoother:
             raise FlightDataError(f"{self.name}: no lagged state (run shorter than the lag?)")
         traj = _trajectory(lag[lag[:, 0] == eps[epoch]], _LAG_ROW)
         est = self.result(epoch=epoch)
-        info = dict(est.info, delay_s=self.options.lag_s)
-        return Estimate(
+        # The causal estimate's slow variables, series, latency and counts; the lagged states
+        # (their covariances are not kept).
+        return dataclasses.replace(
+            est,
             method="fixed-lag@lag",
             trajectory=traj,
-            slam_scale=est.slam_scale,
-            drag_k=est.drag_k,
-            ground_height=est.ground_height,
-            series=est.series,
-            update_latency=est.update_latency,
-            runtime_s=est.runtime_s,
+            pose_cov=None,
+            vel_cov=None,
             causal=False,
-            info=info,
+            info=dict(est.info, delay_s=self.options.lag_s),
         ).check()
 
     def _track_slow(self, t: float) -> None:
@@ -3199,20 +3121,6 @@ class OnlineSmoother:
 _STREAM = {cls: name for cls, name in STREAM_OF_EVENT.items() if cls is not ImuSample}
 
 
-def run_online(
-    events,
-    calib: Calibration,
-    options: FixedLagOptions | None = None,
-    name: str = "online",
-    progress: bool = False,
-    total: int | None = None,
-    priors: Any = None,
-) -> Estimate:
-    """Feed an event stream (e.g. :func:`fgnav.datasets.events.replay_flight`) through an
-    :class:`OnlineSmoother`; the causal estimate."""
-    return feed_all(events, calib, options, name, progress, total, priors).result()
-
-
 def feed_all(
     events,
     calib: Calibration,
@@ -3222,8 +3130,10 @@ def feed_all(
     total: int | None = None,
     priors: Any = None,
 ) -> OnlineSmoother:
-    """The :class:`OnlineSmoother` after feeding it ``events`` (its ``runtime_s`` set: the wall
-    time of the loop; ``priors``: :class:`fgnav.frontends.prior_stages.PriorOptions`)."""
+    """The :class:`OnlineSmoother` after feeding it ``events`` (e.g.
+    :func:`fgnav.datasets.events.replay_flight`; its ``runtime_s`` set: the wall time of the
+    loop; ``priors``: :class:`fgnav.frontends.prior_stages.PriorOptions`); its ``result()`` is
+    the causal estimate."""
     sm = OnlineSmoother(calib, options, name, priors=priors)
     bar = None
     if progress:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.simulate import SimOptions, simulate
+from testutil import compare_cli
 
-from fgnav.cli import main
 from fgnav.compare import compare, truth_slam_scales
 from fgnav.eval.metrics import evaluate
 from fgnav.methods import METHODS, Method, available_methods, missing_reason
@@ -206,18 +206,7 @@ def test_cli_compare(flight, tmp_path, capsys):
 
     folder = write_flight(dataclasses.replace(flight, references={}), tmp_path / "flight")
     out = tmp_path / "out"
-    rc = main(
-        [
-            "compare",
-            str(folder),
-            "--out",
-            str(out),
-            "--methods",
-            "ekf004,ekf-vo002",
-            "--no-figures",
-            "--no-progress",
-        ]
-    )
+    rc = compare_cli(folder, out, "ekf004,ekf-vo002")
     printed = capsys.readouterr().out
     assert rc == 0
     assert printed.splitlines()[0].startswith("method")
@@ -226,7 +215,7 @@ def test_cli_compare(flight, tmp_path, capsys):
     assert f"report: {out / 'report.md'}" in printed
     data = json.loads((out / "compare.json").read_text())
     assert [r["method"] for r in data["table"]] == ["ekf004"]
-    rc = main(["compare", str(folder), "--out", str(out), "--methods", "nope"])
+    rc = compare_cli(folder, out, "nope")
     assert rc == 1
     assert "unknown method 'nope'" in capsys.readouterr().err
 

@@ -9,9 +9,7 @@ import sys
 
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate
-from testutil import PROJECT_ROOT
-
-from fgnav.cli import main
+from testutil import PROJECT_ROOT, compare_cli
 
 
 @pytest.fixture(scope="module")
@@ -22,18 +20,7 @@ def compared(tmp_path_factory):
     f = simulate("two-turns", seed=1, options=SimOptions(duration=20.0, images=False))
     folder = write_flight(f, d / "flight")
     out = d / "out"
-    rc = main(
-        [
-            "compare",
-            str(folder),
-            "--out",
-            str(out),
-            "--methods",
-            "fixed-lag,ekf004",
-            "--no-figures",
-            "--no-progress",
-        ]
-    )
+    rc = compare_cli(folder, out, "fixed-lag,ekf004")
     assert rc == 0
     return folder, out
 

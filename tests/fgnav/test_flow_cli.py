@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+from testutil import compare_cli
+
 from fgnav.cli import main
 
 
@@ -38,18 +40,7 @@ def test_simulate_batch_and_compare_a_flow_deck_flight(tmp_path, capsys):
     assert info["factors"]["flow"] > 0.95 * info["keyframes"]
     assert info["flow"]["flow-readings-used"] > 1100
     cmp_out = tmp_path / "cmp"
-    rc = main(
-        [
-            "compare",
-            str(folder),
-            "--out",
-            str(cmp_out),
-            "--methods",
-            "batch,cf-ekf,ekf-flow002,ekf-vo002",
-            "--no-figures",
-            "--no-progress",
-        ]
-    )
+    rc = compare_cli(folder, cmp_out, "batch,cf-ekf,ekf-flow002,ekf-vo002")
     printed = capsys.readouterr().out
     assert rc == 0
     data = json.loads((cmp_out / "compare.json").read_text())

@@ -12,9 +12,8 @@ import pytest
 from fgnav.datasets.events import ImageFrame, ImuSample, RangeReading, SlamPose, replay_flight
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate
-from testutil import two_turns_folder
+from testutil import command_cli
 
-from fgnav.cli import main
 from fgnav.compare import score_estimate
 from fgnav.eval.align import interpolate_trajectory
 from fgnav.health import (
@@ -365,32 +364,23 @@ def test_online_gyro_saturation_without_downweighting_diverges(two_turns):
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    return two_turns_folder(tmp_path_factory, seed=4)
-
-
-def test_batch_not_converged_exits_1_unless_write_anyway(folder, tmp_path, capsys):
-    cfg = tmp_path / "lm.toml"
-    cfg.write_text("[lm]\nmax_iterations = 1\n")
+def test_batch_not_converged_exits_1_unless_write_anyway(cli_folder, tmp_path, capsys):
     out = tmp_path / "o"
-    assert (
-        main(["batch", str(folder), "--out", str(out), "--config", str(cfg), "--no-progress"]) == 1
-    )
+    lm = "[lm]\nmax_iterations = 1\n"
+    assert command_cli("batch", cli_folder, out, config=lm) == 1
     cap = capsys.readouterr()
     err = cap.err.strip().splitlines()[-1]
     assert "batch did not converge: LM stopped at the iteration limit (1 iterations)" in err
     assert "nothing written (--write-anyway writes it)" in err and not out.exists()
-    argv = ["batch", str(folder), "--out", str(out), "--config", str(cfg), "--no-progress"]
-    assert main([*argv, "--write-anyway"]) == 0
+    assert command_cli("batch", cli_folder, out, "--write-anyway", config=lm) == 0
     cap = capsys.readouterr()
     assert "health: not-converged" in cap.out
     s = json.loads((out / "summary.json").read_text())
     assert s["info"]["health"]["status"] == "not-converged" and s["info"]["lm_converged"] is False
 
 
-def test_batch_nominal_prints_health_ok(folder, tmp_path, capsys):
-    assert main(["batch", str(folder), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+def test_batch_nominal_prints_health_ok(cli_folder, tmp_path, capsys):
+    assert command_cli("batch", cli_folder, tmp_path / "o") == 0
     assert "health: ok" in capsys.readouterr().out
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert s["info"]["health"]["status"] == "ok" and s["info"]["health"]["detectors"] == {}

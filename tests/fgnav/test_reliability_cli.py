@@ -6,14 +6,8 @@ from __future__ import annotations
 import pytest
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate_to_folder
-from testutil import two_turns_folder
 
 from fgnav.cli import main
-
-
-@pytest.fixture(scope="module")
-def flight_folder(tmp_path_factory):
-    return two_turns_folder(tmp_path_factory, seed=4)
 
 
 def _one_line_error(capsys, argv: list[str]) -> str:
@@ -34,10 +28,8 @@ def _one_line_error(capsys, argv: list[str]) -> str:
         (["--keyframe-hz", "0"], "option keyframe_hz = 0.0: expected > 0"),
     ],
 )
-def test_bad_flag_values(flight_folder, tmp_path, capsys, flags, needle):
-    err = _one_line_error(
-        capsys, ["online", str(flight_folder), "--out", str(tmp_path / "o"), *flags]
-    )
+def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
+    err = _one_line_error(capsys, ["online", str(cli_folder), "--out", str(tmp_path / "o"), *flags])
     assert "command line" in err and needle in err
     assert not (tmp_path / "o").exists()
 
@@ -61,11 +53,11 @@ def test_bad_flag_values(flight_folder, tmp_path, capsys, flags, needle):
         ("compare", "[msf_ekf]\nrange_sigma = 0.1\n", "unknown table(s) ['msf_ekf']"),
     ],
 )
-def test_bad_config_values_and_keys(flight_folder, tmp_path, capsys, command, table, needle):
+def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table, needle):
     cfg = tmp_path / "bad.toml"
     cfg.write_text(table)
     err = _one_line_error(
-        capsys, [command, str(flight_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+        capsys, [command, str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
     )
     assert str(cfg) in err and needle in err
 

@@ -27,9 +27,9 @@ from fgnav.datasets.geometry import (  # noqa: E402
     so3_exp,
 )
 
+from fgnav.estimate import OnlineState  # noqa: E402
 from fgnav.live import convert  # noqa: E402
 from fgnav.live.convert import Rejected  # noqa: E402
-from fgnav.live.estimators import FilterState  # noqa: E402
 from fgnav.live.link import mavlink_dialect, new_mavlink, pack  # noqa: E402
 
 F32 = 2e-6  # relative precision of float32 fields
@@ -238,7 +238,7 @@ def test_flow_signs_follow_mavlink_text(wire):
 
 
 def _state(R, p, v, pose_cov=None, vel_cov=None, t=4.5, quality=80, reset=3):
-    return FilterState(
+    return OnlineState(
         t=t,
         world_T_body=make_pose(R, p),
         world_v_body=np.asarray(v, float),

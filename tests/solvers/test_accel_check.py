@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgnav.solvers.accel_check import RunningAccelCheck, check_horizontal_accel
+from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck, check_horizontal_accel
 
 
 def _speeds(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -89,8 +89,9 @@ def test_running_check_equals_the_batch_check_on_its_window(case):
         rows = run.rows()
         ok = np.isfinite(rows).all(axis=1)
         w = float(np.sqrt(np.mean(rows[ok, 4] ** 2)))
-        ref = check_horizontal_accel(rows[:, :2], rows[:, 2:4], w, min_keyframes=10)
-        got = run.check(min_keyframes=10)
+        limits = AccelLimits(min_keyframes=10)
+        ref = check_horizontal_accel(rows[:, :2], rows[:, 2:4], w, limits)
+        got = run.check(limits)
         assert got.decision == ref.decision and got.n == ref.n
         for name in ("ratio", "residual", "signal", "rms_f", "rms_u"):
             want = pytest.approx(getattr(ref, name), rel=1e-9, abs=1e-12, nan_ok=True)

@@ -7,7 +7,7 @@ import json
 import pytest
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate_to_folder
-from testutil import two_turns_folder
+from testutil import command_cli, two_turns_folder
 
 from fgnav.cli import main
 
@@ -18,15 +18,9 @@ def flight_folder(tmp_path_factory):
 
 
 def test_batch_command_writes_outputs(flight_folder, tmp_path, capsys):
-    cfg = tmp_path / "cfg.toml"
-    cfg.write_text('[graph]\nkeyframe_hz = 10.0\n[batch]\ncovariance = "slow"\n')
     out = tmp_path / "batch"
-    assert (
-        main(
-            ["batch", str(flight_folder), "--out", str(out), "--config", str(cfg), "--no-progress"]
-        )
-        == 0
-    )
+    cfg = '[graph]\nkeyframe_hz = 10.0\n[batch]\ncovariance = "slow"\n'
+    assert command_cli("batch", flight_folder, out, config=cfg) == 0
     text = capsys.readouterr().out
     assert "ATE" in text and "SE(3) alignment" in text
     for name in ("estimate.tum", "states.csv", "summary.json"):
@@ -39,10 +33,7 @@ def test_batch_command_writes_outputs(flight_folder, tmp_path, capsys):
 
 def test_online_command_prints_latency(flight_folder, tmp_path, capsys):
     out = tmp_path / "online"
-    assert (
-        main(["online", str(flight_folder), "--out", str(out), "--lag", "1.5", "--no-progress"])
-        == 0
-    )
+    assert command_cli("online", flight_folder, out, "--lag", "1.5") == 0
     text = capsys.readouterr().out
     assert "p50" in text and "p99" in text and "real time" in text
     # A native folder without images: read in chunks as it is replayed, scored all the same.

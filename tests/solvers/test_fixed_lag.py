@@ -6,16 +6,12 @@ import pytest
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate
+from testutil import circle_axis_run, truth_axis_scale_at, truth_scale_at
 
 from fgnav.eval.metrics import evaluate
 from fgnav.keys import X
 from fgnav.solvers.fixed_lag import FixedLagOptions, FixedLagRunner, run_fixed_lag
 from fgnav.solvers.graph import GraphOptions
-
-
-def _truth_scale_at(flight, session: int, t: float) -> float:
-    s = flight.meta["truth"]["slam_sessions"][str(session)]
-    return s["scale"] * (1.0 + s["scale_drift_per_s"] * (t - s["t_start"]))
 
 
 def _indeterminate_update(r: FixedLagRunner) -> bool:
@@ -51,7 +47,7 @@ def test_fixed_lag_two_turns(two_turns_12s, online_two_turns):
     assert m.vel_rmse_mps < 0.1
     assert est.info["slam_provisional_alignments"][0]["session"] == 0
     assert "slam:before-scale-init" not in est.info["dropped"]
-    s_true = _truth_scale_at(f, 0, float(est.trajectory.t[-1]))
+    s_true = truth_scale_at(f, float(est.trajectory.t[-1]))
     assert abs(est.slam_scale[0] / s_true - 1) < 0.03
     # SLAM poses before the scale could be initialised are counted, never silently lost.
     n_slam = len(f.slam)
@@ -69,7 +65,7 @@ def test_fixed_lag_two_turns_28s_causal_accuracy():
     m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.ate_rmse_m < 0.035, m.ate_rmse_m
     assert m.vel_rmse_mps < 0.055
-    assert abs(est.slam_scale[0] / _truth_scale_at(f, 0, float(est.trajectory.t[-1])) - 1) < 0.02
+    assert abs(est.slam_scale[0] / truth_scale_at(f, float(est.trajectory.t[-1])) - 1) < 0.02
 
 
 def test_late_measurements_beyond_lag_are_counted():
@@ -115,16 +111,11 @@ def test_fixed_lag_circle_per_axis_slam_with_camera():
     closed-form fit is determined, the world origin stays at the first keyframe (no jump), and the
     homography factors keep the start metric. Measured (20 s, seeds 0/1/2): ATE 0.89/0.92/1.05 cm,
     final kx, ky within 0.8 % of the drifting truth."""
-    f = simulate("circle", seed=1, options=SimOptions(duration=20.0))
-    est = run_fixed_lag(f, FixedLagOptions())
+    f, est, m = circle_axis_run(run_fixed_lag)
     assert est.info["slam_model"] == "axis"
-    assert est.info["solver_failures"] == 0
-    m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.ate_rmse_m < 0.02, m.ate_rmse_m
     assert m.vel_rmse_mps < 0.05, m.vel_rmse_mps
-    truth = f.meta["truth"]
-    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * est.trajectory.t[-1]
-    k_true = np.asarray(truth["slam_axis_scale"]) * drift
+    k_true = truth_axis_scale_at(f, est.trajectory.t[-1])
     k = est.series["slam_axis_scale"].value[-1]
     np.testing.assert_allclose(k[:2], k_true[:2], rtol=0.02)
     # SLAM poses before the per-axis fit is determined are counted, not silently lost.

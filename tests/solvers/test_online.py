@@ -22,7 +22,7 @@ from fgnav.datasets.simulate.simulator import simulate
 
 from fgnav.eval.metrics import evaluate
 from fgnav.solvers.fixed_lag import FixedLagOptions
-from fgnav.solvers.online import OnlineSmoother, replay_online, run_online
+from fgnav.solvers.online import OnlineSmoother, feed_all, replay_online
 
 STREAMS = ("imu", "attitude", "range", "yaw", "slam")
 
@@ -75,7 +75,7 @@ def test_push_is_causal(two_turns, push_run):
     nothing later changed them."""
     t_cut = 14.0
     events = [e for e in replay_flight(two_turns, STREAMS) if e.arrival <= t_cut]
-    cut = run_online(iter(events), two_turns.calib, FixedLagOptions())
+    cut = feed_all(iter(events), two_turns.calib, FixedLagOptions()).result()
     full = push_run.trajectory
     n = len(cut.trajectory)
     assert n > 200 and cut.trajectory.t[-1] <= t_cut
@@ -90,7 +90,7 @@ def test_push_never_reads_the_flight(two_turns):
     stripped = dataclasses.replace(two_turns, ground_truth=None, meta={})
     a = replay_online(stripped, FixedLagOptions())
     events = list(replay_flight(two_turns, STREAMS))
-    b = run_online(iter(events), two_turns.calib, FixedLagOptions())
+    b = feed_all(iter(events), two_turns.calib, FixedLagOptions()).result()
     np.testing.assert_array_equal(a.trajectory.world_t_body, b.trajectory.world_t_body)
 
 
@@ -219,7 +219,7 @@ def test_jittered_camera_replay():
         events.append(e)
     events.sort(key=lambda e: e.arrival)
     opts = FixedLagOptions(image_latency_s=0.02)
-    est = run_online(iter(events), f.calib, opts)
+    est = feed_all(iter(events), f.calib, opts).result()
     c = est.info
     assert c["dropped"].get("imu:out-of-order", 0) > 5
     assert c["received"]["images"] == sum(isinstance(e, ImageFrame) for e in events)

@@ -10,18 +10,11 @@ import numpy as np
 import pytest
 from fgnav.datasets.events import replay_flight
 from fgnav.datasets.simulate import SimOptions, simulate
-from testutil import assert_same_prefix, feed_until
+from testutil import assert_same_prefix, circle_axis_run, feed_until, truth_axis_scale_at
 
-from fgnav.eval.metrics import evaluate
 from fgnav.solvers.fixed_lag import FixedLagOptions
 from fgnav.solvers.graph import choose_slam_model
 from fgnav.solvers.online import OnlineSmoother, replay_online, resolve_engine
-
-
-def _true_axis_scale(flight, t: float) -> np.ndarray:
-    truth = flight.meta["truth"]
-    drift = 1.0 + truth["slam_sessions"]["0"]["scale_drift_per_s"] * t
-    return np.asarray(truth["slam_axis_scale"]) * drift
 
 
 def test_slam_model_is_the_flights_declaration_not_its_truth() -> None:
@@ -41,14 +34,11 @@ def test_push_engine_circle_per_axis_with_camera() -> None:
     0.2 / 0.4 % from the drifting truth (prepared 0.07 / 0.4 %), fit at t=3.0 s. The circle is
     flat (true z std below 0.5 mm): kz has no motion to be seen in and rests on its start fit,
     the priors and the walks (-3.2 % with the ground walk 0.002 m/sqrt(s), -0.5 % with 0.01)."""
-    f = simulate("circle", seed=1, options=SimOptions(duration=20.0))
-    est = replay_online(f, FixedLagOptions())
+    f, est, m = circle_axis_run(replay_online)
     assert est.info["engine"] == "push-api"
-    assert est.info["solver_failures"] == 0
-    m = evaluate(est, f.ground_truth, alignment="se3")
     assert m.ate_rmse_m < 0.008, m.ate_rmse_m
     k = est.series["slam_axis_scale"].value[-1]
-    k_true = _true_axis_scale(f, est.trajectory.t[-1])
+    k_true = truth_axis_scale_at(f, est.trajectory.t[-1])
     np.testing.assert_allclose(k[:2], k_true[:2], rtol=0.01)
     np.testing.assert_allclose(k[2], k_true[2], rtol=0.05)  # unobservable: see the docstring
     assert est.slam_scale[0] == pytest.approx(float(np.cbrt(np.prod(k))))
@@ -67,4 +57,4 @@ def test_push_engine_circle_per_axis_is_causal() -> None:
     part = feed_until(OnlineSmoother(f.calib, opts, f.name), replay_flight(f, streams), 8.0)
     assert_same_prefix(part, full, t_cut=8.0)
     k = full.series["slam_axis_scale"].value[-1]
-    np.testing.assert_allclose(k[:2], _true_axis_scale(f, 12.0)[:2], rtol=0.03)
+    np.testing.assert_allclose(k[:2], truth_axis_scale_at(f, 12.0)[:2], rtol=0.03)

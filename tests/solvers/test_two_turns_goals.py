@@ -10,23 +10,18 @@ from __future__ import annotations
 import pytest
 from fgnav.datasets.simulate.options import SimOptions
 from fgnav.datasets.simulate.simulator import simulate
+from testutil import truth_scale_at
 
 from fgnav.eval.metrics import evaluate
 from fgnav.solvers.batch import BatchOptions, solve_batch
 from fgnav.solvers.fixed_lag import FixedLagOptions, run_fixed_lag
 
 
-def _final_truth_scale(flight) -> float:
-    s = flight.meta["truth"]["slam_sessions"]["0"]
-    t_end = float(flight.slam.t[-1])
-    return s["scale"] * (1.0 + s["scale_drift_per_s"] * (t_end - s["t_start"]))
-
-
 @pytest.mark.slow
 def test_two_turns_all_sensors_batch_and_fixed_lag_goals():
     f = simulate("two-turns", seed=1, options=SimOptions())
     assert f.images is not None and f.meta["truth"]["slam_sessions"]["0"]["scale_drift_per_s"] > 0
-    s_end = _final_truth_scale(f)
+    s_end = truth_scale_at(f, float(f.slam.t[-1]))
     kx_true = f.meta["truth"]["drag_k"][0]
     batch = solve_batch(f, BatchOptions(covariance="slow"))
     online = run_fixed_lag(f, FixedLagOptions(lag_s=2.0))
@@ -47,7 +42,7 @@ def test_two_turns_stress_drift_final_scale_within_its_sigma():
     0.50 %)."""
     f = simulate("two-turns", seed=1, options=SimOptions(images=False, slam_scale_drift_per_s=5e-4))
     est = solve_batch(f, BatchOptions(covariance="slow"))
-    err = est.slam_scale[0] - _final_truth_scale(f)
+    err = est.slam_scale[0] - truth_scale_at(f, float(f.slam.t[-1]))
     sigma = est.slam_scale_sigma[0]
     assert 0 < sigma < 0.01 * est.slam_scale[0]
     assert abs(err) < 2.0 * sigma, (err, sigma)
