@@ -233,7 +233,10 @@ def test_fgnav_replay_into_fgnav_live(flight_dir, direct_ate, tmp_path, speed):
     assert re.search(r"\(20\.\d s of flight in [\d.]+ s wall", replay.text), replay.text
     assert "lost none" in replay.text, replay.text
     m = re.search(r"(\d+) TIMESYNC replies, median tc1 - ts1 (-?[\d.]+) ms", replay.text)
-    assert m and int(m.group(1)) >= 1 and abs(float(m.group(2))) < 50.0, replay.text
+    # tc1 is the newest stamp fgnav live has read: within 50 ms of wall time of the sender's
+    # clock, which runs `speed` times faster than the wall in a replay (at 4x with the machine
+    # loaded by other jobs, 2026-12-03: -58.4 ms of boot clock, 15 ms of wall time).
+    assert m and int(m.group(1)) >= 1 and abs(float(m.group(2))) < 50.0 * speed, replay.text
     counts = _check_live_counts(flight, out)
     assert "stream" in live.text and "lost (MAVLink sequence numbers" in live.text
 
