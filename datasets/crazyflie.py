@@ -211,6 +211,7 @@ CRAZYFLIE_IMU_NOISE = ImuNoise(
     gyro_random_walk=STILL_IMU_NOISE.gyro_random_walk,
     accel_random_walk=0.02,
     gyro_bias_sigma=CRAZYFLIE_GYRO_BIAS_SIGMA,
+    rest_bias_removed=True,
 )
 """The same IMU **in flight** (``calib.imu_noise``; the estimator's noise model), measured on the
 airborne parts of the seven UTIL flights (above 0.3 m): white densities from the differences of

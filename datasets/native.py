@@ -141,7 +141,16 @@ _SCALAR_FIELDS = {"range", "quality", "yaw", "session", "latency", "dt"}
 
 
 #: ``imu_noise`` keys a calibration file may leave out (their ``ImuNoise`` defaults).
-OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma"})
+OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma", "rest_bias_removed"})
+#: ``imu_noise`` keys that are flags (written and read as booleans, the others as numbers).
+FLAG_NOISE_KEYS = frozenset({"rest_bias_removed"})
+
+
+def _flag(v: Any) -> bool:
+    """A calibration flag read from YAML: a boolean (or 0 / 1)."""
+    if isinstance(v, bool) or v in (0, 1):
+        return bool(v)
+    raise ValueError(f"expected a boolean, got {v!r}")
 
 
 def _fmt(x: float) -> str:
@@ -443,7 +452,10 @@ def calibration_to_dict(calib: Calibration) -> dict[str, Any]:
         "body_T_cam": np.asarray(calib.body_T_cam, dtype=float).tolist(),
         "body_T_range": np.asarray(calib.body_T_range, dtype=float).tolist(),
         "camera": _camera_to_dict(calib.camera),
-        "imu_noise": {k: float(v) for k, v in dataclasses.asdict(calib.imu_noise).items()},
+        "imu_noise": {
+            k: bool(v) if k in FLAG_NOISE_KEYS else float(v)
+            for k, v in dataclasses.asdict(calib.imu_noise).items()
+        },
         "range_min": float(calib.range_min),
         "range_max": float(calib.range_max),
         "time_offsets": {str(k): float(v) for k, v in calib.time_offsets.items()},
@@ -508,7 +520,9 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
             body_T_cam=_matrix(d, "body_T_cam", path),
             body_T_range=_matrix(d, "body_T_range", path),
             camera=_camera_from_dict(d["camera"], path, "camera"),
-            imu_noise=ImuNoise(**{k: float(v) for k, v in noise.items()}),
+            imu_noise=ImuNoise(
+                **{k: _flag(v) if k in FLAG_NOISE_KEYS else float(v) for k, v in noise.items()}
+            ),
             range_min=float(d["range_min"]),
             range_max=float(d["range_max"]),
             time_offsets={str(k): float(v) for k, v in (d["time_offsets"] or {}).items()},

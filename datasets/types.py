@@ -431,6 +431,11 @@ class ImuNoise:
             smoothers' prior on the first gyro bias unless ``GraphOptions.prior_gyro_bias_sigma``
             is set): small for an autopilot that removes the bias measured at rest before it
             logs the rates (the Crazyflie firmware).
+        rest_bias_removed: the autopilot has already subtracted the gyro bias it measured at
+            rest from the logged rates (the Crazyflie firmware): the push engine's start then
+            keeps the first gyro bias at the prior's zero mean instead of the mean rate of a
+            still stretch before the start (on a vehicle standing on its legs with the rotors
+            spinning that mean is its rocking, not the in-flight bias).
     """
 
     gyro_noise_density: float = 1.7e-4
@@ -438,6 +443,7 @@ class ImuNoise:
     gyro_random_walk: float = 1.94e-5
     accel_random_walk: float = 3.0e-3
     gyro_bias_sigma: float = 0.01
+    rest_bias_removed: bool = False
 
 
 @dataclass(frozen=True, eq=False)

@@ -290,3 +290,31 @@ def test_gyro_bias_start_from_the_newest_still_stretch():
         w = bias + np.array([0.5 * math.sin(3 * t), 0.3 * math.cos(2 * t), 0.2])
         sm2.feed(ImuSample(t, t, w, np.array([math.sin(2 * t), 0.0, g])))
     np.testing.assert_array_equal(sm2.out[0].gyro_bias, np.zeros(3))
+
+
+def test_still_stretch_bias_not_taken_when_the_autopilot_removed_the_rest_bias():
+    """``imu_noise.rest_bias_removed`` (the Crazyflie firmware subtracts the bias it measured at
+    rest): a still stretch's mean rate before the start is then the vehicle rocking on its legs,
+    not the bias, and the first gyro bias stays at the prior's zero mean; the still stretch still
+    levels the start. The same stream without the flag starts from the stretch's mean."""
+    from fgnav.datasets.types import Calibration, ImuNoise
+
+    rng = np.random.default_rng(2)
+    rocking = np.array([0.004, -0.003, 0.002])  # net rate of the rocking over the stretch
+    cal = Calibration(imu_noise=ImuNoise(gyro_bias_sigma=3e-3, rest_bias_removed=True))
+    firsts = {}
+    for flag, calib in ((True, cal), (False, Calibration())):
+        sm = OnlineSmoother(calib, FixedLagOptions())
+        g = sm.go.gravity
+        for i in range(int(5.2 * 200)):
+            t = i / 200.0
+            w = rocking + rng.normal(0.0, 0.01, 3)
+            a = np.array([0.0, 0.0, g]) + rng.normal(0.0, 0.3, 3)
+            if t >= 3.0:
+                w = w + np.array([0.5 * math.sin(3 * t), 0.3 * math.cos(2 * t), 0.2])
+            sm.feed(ImuSample(t, t, w, a))
+        assert sm.t0 == pytest.approx(5.0, abs=0.01)
+        firsts[flag] = sm.out[0]
+    np.testing.assert_array_equal(firsts[True].gyro_bias, np.zeros(3))
+    np.testing.assert_allclose(firsts[False].gyro_bias, rocking, atol=0.002)
+    assert np.abs(firsts[False].gyro_bias).max() > 0.002

@@ -83,3 +83,15 @@ def test_native_calibration_without_gyro_bias_sigma_reads_the_default():
     d["imu_noise"]["bogus"] = 1.0
     with pytest.raises(FlightFormatError, match="imu_noise"):
         calibration_from_dict(d, Path("calib.yaml"))
+
+
+def test_native_calibration_rest_bias_removed_flag_round_trips():
+    d = calibration_to_dict(Calibration(imu_noise=ImuNoise(rest_bias_removed=True)))
+    assert d["imu_noise"]["rest_bias_removed"] is True  # written as a boolean
+    assert calibration_from_dict(d, Path("calib.yaml")).imu_noise.rest_bias_removed is True
+    del d["imu_noise"]["rest_bias_removed"]  # a file written before the key existed
+    assert calibration_from_dict(d, Path("calib.yaml")).imu_noise.rest_bias_removed is False
+    d["imu_noise"]["rest_bias_removed"] = "yes"
+    with pytest.raises(FlightFormatError):
+        calibration_from_dict(d, Path("calib.yaml"))
+    assert CRAZYFLIE_IMU_NOISE.rest_bias_removed
