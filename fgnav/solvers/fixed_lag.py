@@ -393,6 +393,8 @@ def _isam2_params(
     thresholds = gtsam.ISAM2ThresholdMap()
     for c, thr in relinearize_thresholds(o, slow_dims).items():
         thresholds.insert((c, thr))
+    # TimeOrderedSmoother's ballast variables (1-D, never moved: see fgnav.solvers.window).
+    thresholds.insert(("z", np.ones(1)))
     p.setRelinearizeThreshold(thresholds)
     p.relinearizeSkip = int(o.relinearize_skip)
     p.setFactorization((factorization or o.factorization).upper())
