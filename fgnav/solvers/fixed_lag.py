@@ -158,26 +158,26 @@ class FixedLagOptions:
             1 cm 4.95-4.96 cm, +0.67-0.82 %; 2 cm 5.03 cm; rotation at 1 mrad alone 5.38 cm,
             +0.84 %; velocity 3 mm/s or bias 1e-3 alone unchanged; iSAM2's wildfire threshold 0
             unchanged.
-            Where the time went (profile 2026-12-03, 60-180 s figure8 benchmark, thread CPU time per
-            keyframe update, load 2-5): an update that relinearises at 3 mm relinearised 68-74
-            variables and re-eliminated 120-130 (the window: ~165), with 182-188 ``CustomFactor``
-            callbacks (9-15 ms of 12-16 ms CPU; a plain update has 5, a marginalisation 8);
-            covariance and estimate reads 0.2-0.8 ms, unchanged. The callbacks were those of *every*
-            factor of the window: past 65 % of its variables affected iSAM2 re-eliminates in batch
-            and relinearises everything (``fgnav.solvers.window``, ballast); re-eliminating from the
-            oldest key with nothing relinearised cost 16.6 ms, 2.5 ms off the batch path. With this
-            option the push engine now pads the window with ballast variables
-            (``online.BALLAST_WITH_POSITION_THRESHOLD``): the same estimates (MH_01 4.64 cm, +0.49
-            %, NEES 2.02; figure8 3.08 cm), relinearising updates 182 -> 91 callbacks, 11.9-14.1 ->
-            8.7-9.0 ms CPU, CPU p99 20.1-21.1 -> 13.1-13.5 ms against 4.8-5.4 ms for the defaults
-            (wall p99 at load 3-5: defaults 8.5-13.8 ms, 16.1 / 8.2x; 3 mm 19.2 / 10.0 ms, 9.9 /
-            18.6x; figure8 ATE 2.48 -> 3.08 cm): still about 2.5x the defaults' p99, hence still
-            opt-in. Measured the same morning on top of the ballast, none a default (MH_01 push
-            engine, graph scale walk unless said; bench = 60 s figure8, CPU p99, defaults 4.8-5.5
-            ms): the marginal rebuilt at marginalisation from the block's factors linearised at the
-            current estimate (``eliminatePartialSequential``, ``LinearContainerFactor`` at the
-            estimate) without any relinearisation 5.51 cm, +0.47 %, NEES 3.11 (scale walk 3e-4: 5.66
-            cm, +0.73 %), but 117 factors linearised (5.5-8.5 ms), 4-6 ms of elimination and a
+            Where the time went (``scripts/profile_online.py``, 2026-12-03, 60-180 s figure8
+            benchmark, thread CPU time per keyframe update, load 2-5): an update that relinearises
+            at 3 mm relinearised 68-74 variables and re-eliminated 120-130 (the window: ~165), with
+            182-188 ``CustomFactor`` callbacks (9-15 ms of 12-16 ms CPU; a plain update has 5, a
+            marginalisation 8); covariance and estimate reads 0.2-0.8 ms, unchanged. The callbacks
+            were those of *every* factor of the window: past 65 % of its variables affected iSAM2
+            re-eliminates in batch and relinearises everything (``fgnav.solvers.window``, ballast);
+            re-eliminating from the oldest key with nothing relinearised cost 16.6 ms, 2.5 ms off
+            the batch path. With this option the push engine now pads the window with ballast
+            variables (``online.BALLAST_WITH_POSITION_THRESHOLD``): the same estimates (MH_01 4.64
+            cm, +0.49 %, NEES 2.02; figure8 3.08 cm), relinearising updates 182 -> 91 callbacks,
+            11.9-14.1 -> 8.7-9.0 ms CPU, CPU p99 20.1-21.1 -> 13.1-13.5 ms against 4.8-5.4 ms for
+            the defaults (wall p99 at load 3-5: defaults 8.5-13.8 ms, 16.1 / 8.2x; 3 mm 19.2 / 10.0
+            ms, 9.9 / 18.6x; figure8 ATE 2.48 -> 3.08 cm): still about 2.5x the defaults' p99, hence
+            still opt-in. Measured the same morning on top of the ballast, none a default (MH_01
+            push engine, graph scale walk unless said; bench = 60 s figure8, CPU p99, defaults
+            4.8-5.5 ms): the marginal rebuilt at marginalisation from the block's factors linearised
+            at the current estimate (``eliminatePartialSequential``, ``LinearContainerFactor`` at
+            the estimate) without any relinearisation 5.51 cm, +0.47 %, NEES 3.11 (scale walk 3e-4:
+            5.66 cm, +0.73 %), but 117 factors linearised (5.5-8.5 ms), 4-6 ms of elimination and a
             whole-window re-elimination per block (p99 23-32 ms wall), and together with the 3 mm
             relinearisation worse than without (5.24-5.39 cm, +0.59-0.68 %); 3 mm for the oldest one
             / two blocks only 4.94 / 4.62 cm, +0.57 / +0.60 % (bench CPU p99 11.2 ms, 48 callbacks
