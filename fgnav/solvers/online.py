@@ -189,7 +189,7 @@ BIAS_RELEASE_WALK = 30.0
 #: (``TimeOrderedSmoother(ballast=...)``; above 1 / 0.65 - 1 = 0.54, iSAM2's batch share).
 #: Measured 2026-12-03 (60 s figure8 benchmark without camera, 3 mm, load 2-5): the updates
 #: that relinearise 188 -> 96 CustomFactor callbacks on average, 16.3 -> 7.4 ms; estimates
-#: the same (MH_01 4.641 cm either way).
+#: the same up to the elimination order's rounding (MH_01 3.784 against 3.775 cm).
 BALLAST_WITH_POSITION_THRESHOLD = 0.6
 #: Keyframes of the first accelerometer check (0.5 s at 20 Hz; then every 5 keyframes over the
 #: last ``drag_scatter_n``): the IMU prediction uses the measured horizontal specific force until

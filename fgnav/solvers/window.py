@@ -38,16 +38,17 @@ keys (split cliques and what depends on them first): GTSAM 4.3 mishandles one ca
 Ballast (``ballast``): ``ISAM2::recalculate`` re-eliminates in *batch* when an update affects at
 least 65 % of its variables (``batchThreshold``, a constant of GTSAM 4.3): it then relinearises
 every factor of the window at its linearisation point (each ``CustomFactor`` a Python callback)
-instead of taking the cached linearisations. In a time-ordered tree any change at the oldest keys
-(a relinearised old keyframe pose) affects the whole chain up to the root, so it always took the
-batch path. Measured on the 60 s figure8 benchmark (load 4, thread CPU time): re-eliminating the
-whole window from its oldest key with nothing relinearised, 16.6 ms (154 variables, every factor
-relinearised) against 2.5 ms (134 variables, cached linearisations) with ballast. Ballast
-variables (``BALLAST(i)``: a 1-D vector with a unit prior each, their own root cliques, never
-touched again) keep the window below that share. The estimate is the same (the same factors at
-the same linearisation point); only the relinearisation of factors whose variables did not move is
-spared. It costs a few more cliques in the tree (read once per block, see below) and is worth it
-only where old keys relinearise (``FixedLagOptions.relinearize_threshold_position``).
+instead of taking the cached linearisations. In a time-ordered tree any change at the oldest keys (a
+relinearised old keyframe pose) affects the whole chain up to the root, so it always took the batch
+path. Measured on the 60 s figure8 benchmark (load 4, thread CPU time): re-eliminating the whole
+window from its oldest key with nothing relinearised, 16.6 ms (154 variables, every factor
+relinearised) against 2.5 ms (134 variables, cached linearisations) with ballast. Ballast variables
+(``BALLAST(i)``: a 1-D vector with a unit prior each, their own root cliques, never touched again)
+keep the window below that share. The estimate is the same (the same factors at the same
+linearisation point, up to the elimination order's rounding); only the relinearisation of factors
+whose variables did not move is spared. It costs a few more cliques in the tree (read once per
+block, see below) and is worth it only where old keys relinearise
+(``FixedLagOptions.relinearize_threshold_position``).
 
 Callbacks: GTSAM's Python wrapper hands every ``CustomFactor`` callback the Values it linearises
 at; for iSAM2's own linearisation point that was a copy of the whole window per callback (about
