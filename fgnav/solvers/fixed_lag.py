@@ -128,7 +128,7 @@ class FixedLagOptions:
             (2026-12-03) 3.78 cm, 0.05 %, NEES 0.77 (defaults 4.53 cm, 0.48 %). Not the
             default: it costs the 180 s figure8 benchmark without camera ATE
             2.65 -> 2.96 cm and p99 latency 4.6-5.0 -> 12.5-17 ms (every 10th update
-            relinearises and re-eliminates the whole window; ``scripts/bench_online.py
+            relinearises and re-eliminates the whole window, see below; ``scripts/bench_online.py
             --position-threshold 0.003``, 2026-12-02 20:31, load 0), and it breaks the
             first-estimate rule of iSAM2's marginals (their variables are held, their
             neighbours now relinearised): weakly observed directions get information they
@@ -158,6 +158,42 @@ class FixedLagOptions:
             1 cm 4.95-4.96 cm, +0.67-0.82 %; 2 cm 5.03 cm; rotation at 1 mrad alone 5.38 cm,
             +0.84 %; velocity 3 mm/s or bias 1e-3 alone unchanged; iSAM2's wildfire threshold 0
             unchanged.
+            Where the time went (``scripts/profile_online.py``, 2026-12-03, 180 s figure8 benchmark,
+            thread CPU time per keyframe update, load 3-5): an update that relinearises at 3 mm
+            (every 10th) relinearised 68-77 variables and re-eliminated 117-131 (the window: ~165),
+            with 176-188 ``CustomFactor`` callbacks (9-15 ms of its 12-14 ms CPU; a plain update has
+            5, a marginalisation 8); covariance and estimate reads 0.2-0.9 ms, unchanged. Those were
+            the callbacks of *every* factor of the window: past 65 % of its variables affected,
+            iSAM2 re-eliminates in batch and relinearises everything (``fgnav.solvers.window``,
+            ballast); re-eliminating from the oldest key with nothing relinearised cost 16.6 ms, 2.5
+            ms off the batch path (60 s, load 4). With this option the push engine now pads the
+            window with ballast variables (``online.BALLAST_WITH_POSITION_THRESHOLD``):
+            relinearising updates 176-182 -> 91-102 callbacks, 12-14 -> 8.7-9.5 ms CPU; CPU p99
+            20-21 -> 13-16 ms against 4.8-5.4 ms for the defaults; ``scripts/bench_online.py`` after
+            the in-flight IMU noise (06:50, load 3, back to back) defaults 20.0x, p50 1.67 ms, p99
+            5.09 ms, ATE 2.65 cm against 3 mm 16.4x, 1.61 ms, 13.1 ms, 2.96 cm: still 2.5-3x the
+            defaults' p99, hence still opt-in. The estimates are those without ballast up to the
+            elimination order's rounding (MH_01 3 mm 3.784 against 3.775 cm, +0.04 %, NEES 0.77, CPU
+            p99 10.2 against 13.4 ms, defaults 4.53 cm, +0.48 %, 4.3 ms; before the in-flight IMU
+            noise 4.641 cm either way; V1_02 ORB-SLAM2 / ORB-SLAM3 9.64 / 5.42 cm either way).
+            Measured before the in-flight IMU noise on top of the ballast, none a default (MH_01
+            push engine, then 6.29 cm, +1.27 %, NEES 3.69 by default, 4.64 cm, +0.49 %, NEES 2.02
+            with 3 mm; graph scale walk unless said; bench = 60 s figure8, CPU p99, defaults 4.8-5.5
+            ms): the marginal rebuilt at marginalisation from the block's factors linearised at the
+            current estimate (``eliminatePartialSequential``, ``LinearContainerFactor`` at the
+            estimate) without any relinearisation 5.51 cm, +0.47 %, NEES 3.11 (scale walk 3e-4: 5.66
+            cm, +0.73 %; its separator held: 5.42 cm, +0.54 %), but 117 factors linearised (5.5-8.5
+            ms), 4-6 ms of elimination and a whole-window re-elimination per block (p99 23-32 ms
+            wall), and together with the 3 mm relinearisation worse than without (5.24-5.39 cm,
+            +0.59-0.68 %); 3 mm for the oldest one / two blocks only 4.94 / 4.62 cm, +0.57 / +0.60 %
+            (bench CPU p99 11.2 / 11.8 ms, 48 / 74 callbacks per relinearisation); one block's poses
+            in turn per relinearisation every 3rd update 4.71 cm, +0.57 %, NEES 1.86 (CPU p99 8.9
+            ms; every 5th: 4.84 cm, +0.58 %); at most the 12 poses of largest translation delta per
+            relinearisation every 3rd update 4.50 cm, +0.64 %, NEES 1.63 (CPU p99 9.0 ms, bench ATE
+            3.31 cm against 2.54 cm; 8 every 2nd: 4.53 cm, +0.66 %); relinearizeSkip 1 or 3 at 3 mm:
+            p50 5.7-6.0 ms; iSAM2's relinearisation moved off the marginalising updates
+            (``force_relinearize``) made no difference above the noise. Whatever the cost, the 3 mm
+            threshold loses on the benchmark flight without camera (2.48-2.65 -> 2.96-3.59 cm).
         relinearize_threshold_slow: the same for the slow variables ``S, D, G`` (a provisional
             SLAM scale moves by tens of percent when it becomes observable: its factors must be
             relinearised then).
@@ -393,6 +429,8 @@ def _isam2_params(
     thresholds = gtsam.ISAM2ThresholdMap()
     for c, thr in relinearize_thresholds(o, slow_dims).items():
         thresholds.insert((c, thr))
+    # TimeOrderedSmoother's ballast variables (1-D, never moved: see fgnav.solvers.window).
+    thresholds.insert(("z", np.ones(1)))
     p.setRelinearizeThreshold(thresholds)
     p.relinearizeSkip = int(o.relinearize_skip)
     p.setFactorization((factorization or o.factorization).upper())

@@ -187,6 +187,12 @@ _CONJ = np.array([1.0, -1.0, -1.0, -1.0])
 #: thrust-only [m/s^3/sqrt(Hz)]: the bias may jump by the measured offsets (1-5 m/s^2 on the
 #: Crazyflie) within one 50 ms interval.
 BIAS_RELEASE_WALK = 30.0
+#: Ballast variables per window variable with ``relinearize_threshold_position`` set
+#: (``TimeOrderedSmoother(ballast=...)``; above 1 / 0.65 - 1 = 0.54, iSAM2's batch share).
+#: Measured 2026-12-03 (60 s figure8 benchmark without camera, 3 mm, load 2-5): the updates
+#: that relinearise 188 -> 96 CustomFactor callbacks on average, 16.3 -> 7.4 ms; estimates
+#: the same up to the elimination order's rounding (MH_01 3.784 against 3.775 cm).
+BALLAST_WITH_POSITION_THRESHOLD = 0.6
 #: Keyframes of the first accelerometer check (0.5 s at 20 Hz; then every 5 keyframes over the
 #: last ``drag_scatter_n``): the IMU prediction uses the measured horizontal specific force until
 #: it has decided, so it decides early (the Crazyflie: ratio 7-40 already on the first 0.5 s).
@@ -2831,7 +2837,12 @@ class OnlineSmoother:
                 relinearize_skip=o.startup_relinearize_skip,
                 relinearize_threshold_position=None,
             )
-        return TimeOrderedSmoother(o.lag_s, _isam2_params(o, dims, factorization), o.fine_levels)
+        # With the position threshold old keyframe poses relinearise, each re-eliminating the
+        # whole window: ballast keeps that off iSAM2's batch path (window.py).
+        ballast = BALLAST_WITH_POSITION_THRESHOLD if o.relinearize_threshold_position else 0.0
+        return TimeOrderedSmoother(
+            o.lag_s, _isam2_params(o, dims, factorization), o.fine_levels, ballast=ballast
+        )
 
     def _block(self, t: float) -> float:
         blk = self.options.marginalize_every_s

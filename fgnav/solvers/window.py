@@ -35,6 +35,21 @@ Marginalisation itself runs in two ``marginalizeLeaves`` calls when a clique kee
 keys (split cliques and what depends on them first): GTSAM 4.3 mishandles one call there (see
 ``_split_cliques_first``). The tree is read from ``ISAM2.dot()`` for that, once per block.
 
+Ballast (``ballast``): ``ISAM2::recalculate`` re-eliminates in *batch* when an update affects at
+least 65 % of its variables (``batchThreshold``, a constant of GTSAM 4.3): it then relinearises
+every factor of the window at its linearisation point (each ``CustomFactor`` a Python callback)
+instead of taking the cached linearisations. In a time-ordered tree any change at the oldest keys (a
+relinearised old keyframe pose) affects the whole chain up to the root, so it always took the batch
+path. Measured on the 60 s figure8 benchmark (load 4, thread CPU time): re-eliminating the whole
+window from its oldest key with nothing relinearised, 16.6 ms (154 variables, every factor
+relinearised) against 2.5 ms (134 variables, cached linearisations) with ballast. Ballast variables
+(``BALLAST(i)``: a 1-D vector with a unit prior each, their own root cliques, never touched again)
+keep the window below that share. The estimate is the same (the same factors at the same
+linearisation point, up to the elimination order's rounding); only the relinearisation of factors
+whose variables did not move is spared. It costs a few more cliques in the tree (read once per
+block, see below) and is worth it only where old keys relinearise
+(``FixedLagOptions.relinearize_threshold_position``).
+
 Callbacks: GTSAM's Python wrapper hands every ``CustomFactor`` callback the Values it linearises
 at; for iSAM2's own linearisation point that was a copy of the whole window per callback (about
 45 us at 200 values, 20 % of an update on the benchmark) unless a Python object already wraps
@@ -58,6 +73,21 @@ import numpy as np
 
 _CLIQUE = re.compile(r'^(\d+)\[label="([^"]*)"\];$')
 _EDGE = re.compile(r"^(\d+)->(\d+)$")
+
+
+#: ``iSAM2``'s share of affected variables from which it re-eliminates in batch (GTSAM 4.3
+#: ``ISAM2.cpp``: ``batchThreshold``, not a parameter).
+ISAM2_BATCH_THRESHOLD = 0.65
+
+
+def BALLAST(i: int) -> int:  # noqa: N802 (named as the keys of fgnav.keys)
+    """Key of ``TimeOrderedSmoother``'s i-th ballast variable (symbol ``z``)."""
+    return gtsam.symbol("z", i)
+
+
+def is_ballast(key: int) -> bool:
+    """Is ``key`` a ballast variable (``BALLAST``)?"""
+    return gtsam.Symbol(key).chr() == ord("z")
 
 
 def bayes_tree(
@@ -98,13 +128,22 @@ class TimeOrderedSmoother:
         params: ``gtsam.ISAM2Params``.
         fine_levels: number of most recent updates whose keys get their own constraint group
             within the newest stamp block (0: blocks only).
+        ballast: keep at least this many ballast variables per window variable (plus 2), so
+            that re-eliminating the whole window stays below iSAM2's batch threshold (see the
+            module docstring; 0: none; above ``1 / ISAM2_BATCH_THRESHOLD - 1`` = 0.54 for that).
+            ``params`` needs a relinearisation threshold entry for symbol ``z`` (1-D) when its
+            thresholds are per symbol.
     """
 
-    def __init__(self, lag_s: float, params: gtsam.ISAM2Params, fine_levels: int = 4):
+    def __init__(
+        self, lag_s: float, params: gtsam.ISAM2Params, fine_levels: int = 4, ballast: float = 0.0
+    ):
         if not lag_s > 0:
             raise ValueError(f"lag_s must be > 0, got {lag_s}")
         if fine_levels < 0:
             raise ValueError(f"fine_levels must be >= 0, got {fine_levels}")
+        if not ballast >= 0:
+            raise ValueError(f"ballast must be >= 0, got {ballast}")
         self.lag_s = float(lag_s)
         self.fine_levels = int(fine_levels)
         self.isam = gtsam.ISAM2(params)
@@ -130,6 +169,9 @@ class TimeOrderedSmoother:
         self.reorders = 0
         #: updates whose groups could not follow the blocks (ran unconstrained)
         self.unordered_updates = 0
+        self.ballast = float(ballast)
+        #: ballast variables in the smoother
+        self.n_ballast = 0
 
     # -- the part of IncrementalFixedLagSmoother's interface the runner uses -------------------
 
@@ -170,11 +212,32 @@ class TimeOrderedSmoother:
             self.unordered_updates += 1
         extra = _key_list(extra_keys) if extra_keys else None
         held = _key_list(self._held) if self._held else None
+        if self.ballast > 0:
+            graph, values = self._add_ballast(graph, values)
         self._result = self.isam.update(graph, values, list(remove or []), groups, held, extra)
         if remove:
             self._forget_unused()
         self._marginalize()
         return self._result
+
+    def _add_ballast(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The update's factors and values with the ballast variables the window now needs
+        (``ballast`` per window key, plus 2) appended; the caller's objects are not changed and
+        the update's own factors keep their positions (``getNewFactorsIndices``)."""
+        need = int(np.ceil(self.ballast * len(self._stamp))) + 2
+        if need <= self.n_ballast:
+            return graph, values
+        g2 = gtsam.NonlinearFactorGraph()
+        g2.push_back(graph)
+        v2 = gtsam.Values(values)
+        unit = gtsam.noiseModel.Unit.Create(1)
+        for i in range(self.n_ballast, need):
+            g2.add(gtsam.PriorFactorVector(BALLAST(i), np.zeros(1), unit))
+            v2.insert(BALLAST(i), np.zeros(1))
+        self.n_ballast = need
+        return g2, v2
 
     def hold_linearization(self, keys) -> None:
         """Never relinearise these keys while they are in the window (iSAM2 does so for the keys
@@ -378,7 +441,7 @@ def move_window(old: Any, new: Any) -> dict[int, int]:
     ``IncrementalFixedLagSmoother``) losslessly: the same factors at the same linearisation point
     and stamps. Marginals (``LinearContainerFactor``) are anchored at their linearisation point and
     their variables held there, as the old iSAM2 held them. Works on a smoother whose update just
-    failed (its factors include that update's).
+    failed (its factors include that update's). Ballast variables (``BALLAST``) stay behind.
 
     Returns:
         factor index in ``old`` -> index in ``new``.
@@ -388,12 +451,17 @@ def move_window(old: Any, new: Any) -> dict[int, int]:
     """
     factors = old.getFactors()
     lin_point = old.getLinearizationPoint()
+    ballast = [k for k in lin_point.keys() if is_ballast(k)]
+    if ballast:  # the new smoother makes its own (a copy: the point may be iSAM2's own)
+        lin_point = gtsam.Values(lin_point)
+        for k in ballast:
+            lin_point.erase(k)
     graph = gtsam.NonlinearFactorGraph()
     index: dict[int, int] = {}
     held: set[int] = set()
     for i in range(factors.size()):
         f = factors.at(i)
-        if f is None:
+        if f is None or (f.size() == 1 and is_ballast(f.keys()[0])):
             continue
         if isinstance(f, gtsam.LinearContainerFactor):
             held.update(f.keys())

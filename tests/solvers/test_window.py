@@ -459,3 +459,106 @@ def test_slow_keys_whose_names_collide_are_told_apart():
     a, b = ours.calculateEstimatePose3(X(79)), ref.calculateEstimatePose3(X(79))
     assert np.abs(a.localCoordinates(b)).max() < 0.02
     assert np.abs(a.localCoordinates(x_true)).max() < 0.2
+
+
+def _counted_chain(n: int, seed: int = 3):
+    """``_chain_problem`` with a Python factor (a Pose3 prior as a ``CustomFactor``) on every
+    ``x`` key, its callbacks counted in the returned list."""
+    calls = [0]
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.5)
+
+    def prior(z):
+        def error(this, values, H):
+            calls[0] += 1
+            x = values.atPose3(this.keys()[0])
+            e = z.localCoordinates(x)
+            if H is not None:
+                H[0] = np.eye(6)  # (GTSAM's Pose3 Logmap Jacobian ~ I near zero error)
+            return e
+
+        return error
+
+    steps = []
+    for g, v, stamps, newest in _chain_problem(n, block_s=1.0, seed=seed):
+        g.add(gtsam.CustomFactor(noise, [newest], prior(v.atPose3(newest))))
+        steps.append((g, v, stamps, newest))
+    return steps, calls
+
+
+@pytest.mark.parametrize("relinearize", [False, True])
+def test_ballast_keeps_old_changes_off_the_batch_path(relinearize):
+    """Ballast: a change at the window's oldest keys re-eliminates the whole time-ordered chain.
+    Without ballast iSAM2 then takes its batch path (>= 65 % of the variables affected) and
+    relinearises every factor, each Python factor a callback; with ballast it re-eliminates
+    incrementally from the cached linearisations. Same estimates (the same factors at the same
+    linearisation point), the same marginalisations (leaves only), ballast outside the window's
+    bookkeeping, and left behind by ``move_window``."""
+    from fgnav.solvers.window import BALLAST, ISAM2_BATCH_THRESHOLD, is_ballast, move_window
+
+    runs = {}
+    for ballast in (0.0, 0.6):
+        steps, calls = _counted_chain(45)
+        p = _params()
+        if relinearize:  # old keys relinearise too (the 3 mm position threshold's case)
+            p.setRelinearizeThreshold(1e-3)
+        sm = TimeOrderedSmoother(2.0, p, ballast=ballast)
+        sm.isam = _CheckedISAM2(sm.isam)
+        for g, v, stamps, _ in steps:
+            sm.update(g, v, stamps)
+        # A new factor between the two oldest poses of the window: the whole chain above them.
+        oldest = sorted(
+            (k for k, t in sm.timestamps().items() if chr(gtsam.Symbol(k).chr()) == "x"),
+            key=lambda k: gtsam.Symbol(k).index(),
+        )[:2]
+        lp = sm.getLinearizationPoint()
+        g = gtsam.NonlinearFactorGraph()
+        g.add(
+            gtsam.BetweenFactorPose3(
+                oldest[0],
+                oldest[1],
+                lp.atPose3(oldest[0]).between(lp.atPose3(oldest[1])),
+                gtsam.noiseModel.Isotropic.Sigma(6, 0.05),
+            )
+        )
+        before = calls[0]
+        res = sm.update(g, gtsam.Values(), {})
+        window = len(sm.timestamps())
+        runs[ballast] = dict(
+            calls=calls[0] - before,
+            reelim=res.getVariablesReeliminated(),
+            window=window,
+            size=sm.isam.getLinearizationPoint().size(),
+            n_ballast=sm.n_ballast,
+            est={k: sm.calculateEstimatePose3(k) for k in oldest},
+            marg=sm.isam.marginalisations,
+            sm=sm,
+            n_x=sum(chr(gtsam.Symbol(k).chr()) == "x" for k in sm.timestamps()),
+        )
+    bare, ball = runs[0.0], runs[0.6]
+    assert bare["marg"] == ball["marg"] == 3
+    assert bare["n_ballast"] == 0 and bare["size"] == bare["window"]
+    # Enough ballast: the whole window below the batch share.
+    assert ball["n_ballast"] >= 0.6 * ball["window"]
+    assert ball["window"] < ISAM2_BATCH_THRESHOLD * ball["size"]
+    assert not any(is_ballast(k) for k in ball["sm"].timestamps())
+    # The whole chain re-eliminated either way ...
+    assert bare["reelim"] >= bare["window"] - 2 and ball["reelim"] >= 0.7 * ball["window"]
+    # ... but without ballast every Python factor of the window was relinearised.
+    assert bare["calls"] >= bare["n_x"]
+    if relinearize:
+        assert ball["calls"] < 0.5 * bare["calls"]
+    else:
+        assert ball["calls"] == 0
+    for k, pose in bare["est"].items():
+        assert np.abs(pose.localCoordinates(ball["est"][k])).max() < 1e-6
+    # A moved window leaves the ballast behind (the new smoother makes its own).
+    new = TimeOrderedSmoother(2.0, _params(), ballast=0.6)
+    move_window(ball["sm"], new)
+    lp = new.getLinearizationPoint()
+    assert set(new.timestamps()) == set(ball["sm"].timestamps())
+    assert new.n_ballast >= 0.6 * len(new.timestamps())
+    assert lp.exists(BALLAST(0)) and not lp.exists(BALLAST(new.n_ballast))
+    k = next(iter(ball["est"]))
+    assert np.abs(new.calculateEstimatePose3(k).localCoordinates(ball["est"][k])).max() < 1e-6
+    with pytest.raises(ValueError, match="ballast"):
+        TimeOrderedSmoother(1.0, _params(), ballast=-1.0)
