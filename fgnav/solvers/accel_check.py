@@ -87,6 +87,7 @@ class AccelCheck:
         rms_f: RMS horizontal specific force [m/s^2].
         rms_u: RMS horizontal body speed [m/s].
         n: keyframes used.
+        k_max: the largest plausible drag coefficient the check allowed [1/s] (``AccelLimits``).
     """
 
     decision: str
@@ -98,6 +99,7 @@ class AccelCheck:
     rms_f: float
     rms_u: float
     n: int
+    k_max: float = K_MAX
 
     @property
     def drag_on(self) -> bool:
@@ -115,7 +117,7 @@ class AccelCheck:
         return (
             f"{what}: horizontal specific force scatter about its best drag fit "
             f"{self.residual:.2f} m/s^2 vs at most {self.signal:.2f} m/s^2 drag could explain "
-            f"(k <= {K_MAX:g} 1/s at {self.rms_u:.2f} m/s RMS): ratio {self.ratio:.2f} "
+            f"(k <= {self.k_max:g} 1/s at {self.rms_u:.2f} m/s RMS): ratio {self.ratio:.2f} "
             f"(fit k {self.k[0]:.2f}, {self.k[1]:.2f} 1/s, offsets {self.bias[0]:+.2f}, "
             f"{self.bias[1]:+.2f} m/s^2; {self.n} keyframes)"
         )
@@ -189,6 +191,7 @@ def _verdict(res_ms, rms_u, rms_f, k, b, n, white_sigma, limits: AccelLimits) ->
         rms_f=rms_f,
         rms_u=rms_u,
         n=n,
+        k_max=float(limits.k_max),
     )
 
 

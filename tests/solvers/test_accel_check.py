@@ -100,3 +100,13 @@ def test_running_check_equals_the_batch_check_on_its_window(case):
         assert got.bias == pytest.approx(ref.bias, rel=1e-9, abs=1e-9, nan_ok=True)
         decisions.add(got.decision)
     assert case in decisions or case == "still"
+
+
+def test_the_line_states_the_limit_the_check_used():
+    """The printed line names the ``k_max`` of the limits given, not the module default."""
+    rng = np.random.default_rng(3)
+    u = _speeds(600, rng)
+    f = -np.array([0.38, 0.42]) * u + 0.01 * rng.normal(size=u.shape)
+    c = check_horizontal_accel(f, u, white_sigma=0.01, limits=AccelLimits(k_max=1.5))
+    assert c.k_max == 1.5 and "k <= 1.5 1/s" in c.line()
+    assert "k <= 0.6 1/s" in check_horizontal_accel(f, u, white_sigma=0.01).line()
