@@ -54,7 +54,7 @@ from fgnav.datasets.load import load_flight
 from fgnav.methods import METHODS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from crazyflie_drift_parts import DEFAULT_DIR, parts  # noqa: E402
+from crazyflie_drift_parts import default_logs, parts  # noqa: E402
 
 FINDINGS = """
 1. Not the flow attachment: the newest keyframe (no flow factor yet, IMU-predicted) and k-1
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
-    logs = a.logs or sorted(DEFAULT_DIR.glob("0425-traj*"), key=lambda p: int(p.name[9:]))
+    logs = a.logs or default_logs()
     print(
         "| flight | variant | drift [%] | true yaw [%] | true speed [%] | speed scale | "
         "body v err x, y [m/s] | gyro bias x, y [mrad/s] |"

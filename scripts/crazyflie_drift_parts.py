@@ -33,6 +33,11 @@ DEFAULT_DIR = (
 )
 
 
+def default_logs() -> list[Path]:
+    """The shared flow-deck logs, in flight-number order."""
+    return sorted(DEFAULT_DIR.glob("0425-traj*"), key=lambda p: int(p.name[9:]))
+
+
 def _rz(a: np.ndarray) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
@@ -97,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--methods", default="batch,fixed-lag")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
-    logs = a.logs or sorted(DEFAULT_DIR.glob("0425-traj*"), key=lambda p: int(p.name[9:]))
+    logs = a.logs or default_logs()
     print(
         "| flight | method | drift [%] | true yaw [%] | true speed [%] | end yaw err [deg] | "
         "raw gyro end yaw err [deg] | speed scale |"
