@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
 
+import fgnav.solvers.window as window_mod
 from fgnav.solvers.fixed_lag import FixedLagOptions, FixedLagRunner, run_fixed_lag
-from fgnav.solvers.window import TimeOrderedSmoother, bayes_tree
+from fgnav.solvers.window import TimeOrderedSmoother, bayes_tree, split_cliques
 
 
 def _bayes_tree(isam: gtsam.ISAM2) -> tuple[dict, dict, dict, dict]:
@@ -79,6 +80,31 @@ class _CheckedISAM2:
 
     def __getattr__(self, name):
         return getattr(self._isam, name)
+
+
+def reference_split(dot_isam: gtsam.ISAM2, gone) -> set[int]:
+    """``split_cliques`` the long way, on :func:`bayes_tree`'s dictionaries (integer keys): the
+    keys to marginalise of every clique that keeps some of its keys (they must lead it), with
+    those of the subtrees whose separator holds them."""
+    names = set(gone)
+    frontals, separators, children = bayes_tree(dot_isam)
+    first: set[int] = set()
+    for c, fr in frontals.items():
+        mine = [f in names for f in fr]
+        if all(mine) or not any(mine):
+            continue
+        n_lead = mine.index(False)
+        assert not any(mine[n_lead:])
+        lead = set(fr[:n_lead])
+        first |= lead
+        for child in children.get(c, []):
+            if lead & set(separators[child]):
+                stack = [child]
+                while stack:
+                    x = stack.pop()
+                    first.update(f for f in frontals[x] if f in names)
+                    stack.extend(children.get(x, []))
+    return first
 
 
 def _to_list(keys: gtsam.KeyList) -> list[int]:
@@ -300,11 +326,21 @@ def test_runner_uses_gtsam_window_for_small_marginalisation_blocks(two_turns_12s
 
 
 @pytest.mark.parametrize("seed", range(16))
-def test_fuzz_only_leaves_are_marginalised(seed):
+def test_fuzz_only_leaves_are_marginalised(seed, monkeypatch):
     """Random windows: blocks, lags, fine levels, relinearisation, factorization; late factors,
     loop closures and their removal (a key losing its only factor), stamps raised without a
     factor or lowered, factor-free updates. Before every marginalisation the keys must be leaves
-    (``assert_leaves``); the bookkeeping must follow iSAM2's variables."""
+    (``assert_leaves``); the bookkeeping must follow iSAM2's variables; the split cliques read
+    from the ``dot()`` text (``split_cliques``) must be those of the parsed tree."""
+    splits = []
+
+    def checked_split(dot, gone):
+        got = split_cliques(dot, gone)
+        assert got == reference_split(sm.isam._isam, gone)
+        splits.append(len(got))
+        return got
+
+    monkeypatch.setattr(window_mod, "split_cliques", checked_split)
     rng = np.random.default_rng(seed)
     blk, lag = float(rng.choice([0.25, 0.5, 1.0])), float(rng.choice([1.0, 2.0]))
     p = gtsam.ISAM2Params()
@@ -389,6 +425,21 @@ def test_fuzz_only_leaves_are_marginalised(seed):
         assert window == set(sm.isam.getLinearizationPoint().keys())
         assert set(sm._label) <= window
     assert sm.isam.marginalisations >= 4
+    assert splits, "no marginalisation read the tree"
+
+
+def test_split_cliques_of_a_split_clique():
+    """A clique whose first keys are marginalised and whose child depends on them: the child's
+    subtree goes first; a marginalised key behind a kept one is refused."""
+    dot = (
+        'digraph G{\n1[label="10, 11, 12"];\n1->2\n2[label="5, 6 : 10, 12"];\n2->3\n'
+        '3[label="4 : 5"];\n1->7\n7[label="8 : 11"];\n}'
+    )
+    assert split_cliques(dot, [10, 5, 6, 4]) == {10, 5, 6, 4}
+    assert split_cliques(dot, [10, 11, 8, 5, 6, 4]) == {10, 11, 8, 5, 6, 4}
+    assert split_cliques(dot, [5, 6, 4]) == set()  # whole cliques: one call does it
+    with pytest.raises(RuntimeError, match="do not lead clique"):
+        split_cliques(dot, [11])
 
 
 def test_held_keys_keep_their_linearisation_point():
