@@ -222,6 +222,11 @@ PROVISIONAL_BASE = 1 << 40
 #: Index stride of a session's alignment chain: ``S(index * SESSION_STRIDE + segment)``, with
 #: ``index`` the session's order of arrival (0, 1, ...), whatever id the SLAM gives it.
 SESSION_STRIDE = 100_000
+#: Rotation sigma [rad] of the prior on a SLAM segment that starts after its predecessor left
+#: the window (on top of the walk over the pause; the scale's is 1 %).
+GAP_SEGMENT_ROT_SIGMA = 0.01
+#: Floor of that prior's sigmas (a zero walk and a zero origin sigma would pin the origin).
+MIN_GAP_SEGMENT_SIGMA = 1e-6
 #: Velocity prior at a start integrated from rest (``OnlineSmoother._from_still``): sigma
 #: ``STILL_VEL_SIGMA + STILL_VEL_SIGMA_RATE * age`` [m/s] with ``age`` the time since the
 #: still stretch ended (an accelerometer bias and a tilt of the still attitude of 0.1 m/s^2
@@ -2317,13 +2322,11 @@ class OnlineSmoother:
             )
         else:
             # The predecessor left the window (a pause longer than the lag): its last estimate,
-            # widened by the walk over the gap.
-            base = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.01])
-            g.add(
-                gtsam.PriorFactorSimilarity3(
-                    key, value, gtsam.noiseModel.Diagonal.Sigmas(np.hypot(base, rw))
-                )
-            )
+            # widened by the walk over the gap. Its origin's own uncertainty is the position
+            # gauge the window's states share (``FixedLagOptions.slam_gap_origin_sigma_m``).
+            base = np.r_[[GAP_SEGMENT_ROT_SIGMA] * 3, [o.slam_gap_origin_sigma_m] * 3, [0.01]]
+            sig = np.maximum(np.hypot(base, rw), MIN_GAP_SEGMENT_SIGMA)
+            g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
             self.used["slam:segments-after-gap"] = self.used.get("slam:segments-after-gap", 0) + 1
         self._add_to_chain(s, seg, key, value, g, stamps)
         if s.carried and t_now - self.t0 < o.startup_qr_s:
