@@ -71,11 +71,9 @@ from typing import Any
 import gtsam
 import numpy as np
 
-_CLIQUE = re.compile(r'^(\d+)\[label="([^"]*)"\];$')
-_EDGE = re.compile(r"^(\d+)->(\d+)$")
-#: The same lines found in one pass over the whole ``ISAM2.dot()`` text (``split_cliques``):
-#: clique id and label (frontal keys, then `` : `` and the separator keys, absent at a root;
-#: keys ``", "``-separated).
+#: The lines of an ``ISAM2.dot()`` text, found in one pass over the whole text: clique id and
+#: label (frontal keys, then `` : `` and the separator keys, absent at a root; keys
+#: ``", "``-separated), and parent -> child edges.
 _CLIQUE_ALL = re.compile(r'^(\d+)\[label="([^"]*)"\];$', re.M)
 _EDGE_ALL = re.compile(r"^(\d+)->(\d+)$", re.M)
 
@@ -107,14 +105,13 @@ def bayes_tree(
     frontals: dict[str, list[int]] = {}
     separators: dict[str, list[int]] = {}
     children: dict[str, list[str]] = {}
-    for line in isam.dot(str).splitlines():
-        line = line.strip()
-        if m := _CLIQUE.match(line):
-            parts = m.group(2).split(":")
-            frontals[m.group(1)] = [int(k) for k in parts[0].split(",")]
-            separators[m.group(1)] = [int(k) for k in parts[1].split(",")] if parts[1:] else []
-        elif m := _EDGE.match(line):
-            children.setdefault(m.group(1), []).append(m.group(2))
+    dot = isam.dot(str)
+    for c, label in _CLIQUE_ALL.findall(dot):
+        fr_text, _, sep_text = label.partition(" : ")
+        frontals[c] = [int(k) for k in fr_text.split(", ")]
+        separators[c] = [int(k) for k in sep_text.split(", ")] if sep_text else []
+    for parent, child in _EDGE_ALL.findall(dot):
+        children.setdefault(parent, []).append(child)
     return frontals, separators, children
 
 
