@@ -10,7 +10,9 @@ wall and CPU time per frame (all steps: image access, rectifying warp, corners, 
 decomposition, dead reckoning) and the accuracy against the simulator's true homographies: the
 RMS corner transfer error and its mean radial part over the pairs (a positive radial part is an
 expansion of the measured homography). OpenCV runs on ``--threads`` threads (default 1: per-core
-numbers).
+numbers). The pairs whose Lucas-Kanade started from the previous pair's motion
+(``HomographyVOOptions.flow_guess``) and those whose guess was rejected (tracked again through the
+pyramid) are counted on each line; ``--set flow_guess=none`` times the tracking without it.
 
 Usage::
 
@@ -141,7 +143,9 @@ def main() -> int:
                 print(
                     f"{w:>5d}x{h:<4d} {n_threads:3d} {rectify!s:>7s} {decomposition:>8s} {n:6d} "
                     f"{ms:8.2f} {1000.0 / ms:8.1f} {n / best_cpu:8.1f} {rms:7.4f} "
-                    f"{radial:+7.4f}+-{sem:.4f}   ({res.counts['valid_pairs']} valid pairs)"
+                    f"{radial:+7.4f}+-{sem:.4f}   ({res.counts['valid_pairs']} valid pairs, LK "
+                    f"guessed {res.counts.get('flow_guess_previous', 0)}, guess rejected "
+                    f"{res.counts.get('flow_guess_rejected', 0)})"
                 )
     print(f"paper (C++, i5 3.4 GHz): ~{PAPER_FPS:.0f} frames/s")
     return 0
