@@ -515,14 +515,17 @@ def imu_saturation_flags(
 
 
 def _image_digest(ev: Any) -> bytes | None:
+    """Digest of a frame's pixels (or file) for the frozen-camera check. SHA-1 of the buffer, not
+    a copy of it: 63 us for 320x240 against 145 us for BLAKE2b of ``tobytes()`` (no security
+    need, only equality with the previous frame)."""
     img = getattr(ev, "image", None)
     if img is not None:
-        return hashlib.blake2b(np.ascontiguousarray(img).tobytes(), digest_size=16).digest()
+        return hashlib.sha1(np.ascontiguousarray(img), usedforsecurity=False).digest()
     path = getattr(ev, "path", None)
     if path is None:
         return None
     try:
-        return hashlib.blake2b(path.read_bytes(), digest_size=16).digest()
+        return hashlib.sha1(path.read_bytes(), usedforsecurity=False).digest()
     except OSError:
         return None  # unreadable: the VO stage counts it
 
