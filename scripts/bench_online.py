@@ -287,6 +287,14 @@ def main() -> None:
             f"({args.duration / hom['vo_time_s']:.1f}x real time, before the smoother); "
             f"{n_hom} homography factors"
         )
+    if info.get("vo_time_s"):
+        # The push engine's VO stage, inside the loop's clock.
+        vo_s = info["vo_time_s"]
+        print(
+            f"camera: VO stage {vo_s:.1f} s wall inside the loop ({100 * vo_s / est.runtime_s:.0f} "
+            f"% of it, {1e3 * vo_s / max(1, info['vo_counts'].get('frames', 0)):.2f} ms per "
+            "frame)"
+        )
     print(f"updates: {len(lat)} ({len(lat) / est.runtime_s:.1f} updates/s wall)")
     p50, p99 = np.percentile(lat, [50, 99]) * 1e3
     print(f"latency: p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {lat.max() * 1e3:.2f} ms")
