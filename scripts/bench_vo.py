@@ -13,11 +13,14 @@ expansion of the measured homography). OpenCV runs on ``--threads`` threads (def
 numbers). The pairs whose Lucas-Kanade started from the previous pair's motion
 (``HomographyVOOptions.flow_guess``) and those whose guess was rejected (tracked again through the
 pyramid) are counted on each line; ``--set flow_guess=none`` times the tracking without it.
+``--attitude ahrs`` feeds the flight's simulated AHRS stream (0.005 rad noise) instead of the
+true attitude, as the online loop does: the rectified images then jitter with its noise, and
+the accuracy includes that of the attitude.
 
 Usage::
 
     .venv/bin/python scripts/bench_vo.py [--duration 12] [--repeat 5] [--threads 1,2]
-        [--resolutions 320x240]
+        [--resolutions 320x240] [--attitude ahrs]
         [--set lk_window_px=21 --set forward_backward=True ...]
 
 Timings on a shared, loaded machine are noisy: the best of ``--repeat`` runs is reported (wall
@@ -97,6 +100,12 @@ def main() -> int:
         "--resolutions", default="320x240,640x480", help="image sizes WxH, comma-separated"
     )
     ap.add_argument(
+        "--attitude",
+        choices=("truth", "ahrs"),
+        default="truth",
+        help="attitude input: the true one (only the vision timed) or the simulated AHRS stream",
+    )
+    ap.add_argument(
         "--set", action="append", default=[], metavar="NAME=VALUE", help="VO option override"
     )
     args = ap.parse_args()
@@ -123,7 +132,11 @@ def main() -> int:
         )
         gt = flight.ground_truth
         ground = float(flight.meta["truth"]["ground_height"])
-        attitude = AttitudeSeries(t=gt.t, world_q_body_wxyz=gt.world_q_body_wxyz)
+        attitude = (
+            AttitudeSeries(t=gt.t, world_q_body_wxyz=gt.world_q_body_wxyz)
+            if args.attitude == "truth"
+            else flight.attitude
+        )
         height = TimeSeries(t=gt.t, value=gt.world_t_body[:, 2] - ground)
         n = len(flight.images)
         for n_threads in threads:
