@@ -335,6 +335,19 @@ class FixedLagOptions:
         image_latency_s: with a camera, a keyframe without an image closes only once the IMU is
             this much (plus half a keyframe period) past it, so that an image taken for it
             can still arrive and anchor it [s]: the camera's latency (0 for a replay).
+        vo_worker: where the push engine runs the homography VO stage: ``"process"`` in a
+            child interpreter (``fgnav.frontends.vo_process``) on another core, so that the
+            frames' tracking overlaps the smoother's updates, or ``"inline"`` in the event loop
+            (a frame's pair attaches at the keyframe that closes past it). Measured
+            (``bench_online.py --camera``, 180 s figure8, back to back): inline 7.1x real time,
+            ATE 1.656 cm; process 10.3x, 1.598 cm (delay 1), 12.1x, 1.657 cm (delay 2; on 20 s
+            of figure8 0.525 cm inline, 0.529 delay 1, 0.581 delay 2). A
+            worker thread is no help: the GIL hand-offs between the VO's Python and the factor
+            callbacks cost more than the overlap (8.3x -> 7.4x).
+        vo_process_delay_keyframes: with ``vo_worker="process"``, a frame's pair attaches at the
+            keyframe update this many keyframes after the one that closes past the frame; that
+            update waits for exactly those frames, so the estimate does not depend on the
+            child's timing (the newer frames are still being tracked meanwhile).
         lagged_output: also keep each keyframe's state as smoothed just before it leaves the
             window (``OnlineSmoother.lagged_result``: the ``fixed-lag@lag`` row of
             ``fgnav compare``, delayed by the lag).
@@ -418,6 +431,8 @@ class FixedLagOptions:
     slam_scale_rw: float | None = None
     slam_check_max_s: float = 300.0
     image_latency_s: float = 0.0
+    vo_worker: str = "process"
+    vo_process_delay_keyframes: int = 1
     lagged_output: bool = True
 
 

@@ -147,6 +147,7 @@ from fgnav.factors.slam_scale import (
 )
 from fgnav.factors.tilted_range import gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
+from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
@@ -462,6 +463,15 @@ class OnlineSmoother:
             raise FlightDataError(
                 f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
             )
+        if self.options.vo_worker not in ("inline", "process"):
+            raise FlightDataError(
+                f"{name}: online.vo_worker={self.options.vo_worker!r}: expected inline or process"
+            )
+        if self.options.vo_process_delay_keyframes < 1:
+            raise FlightDataError(
+                f"{name}: online.vo_process_delay_keyframes="
+                f"{self.options.vo_process_delay_keyframes!r}: expected an integer >= 1"
+            )
         # Seed 000's per-axis model (SLAM axes = world axes, one scale per axis shared by every
         # session): a configuration of the SLAM input; "auto" is the Sim(3) model here (a
         # replay resolves it from the flight's declaration before it builds the smoother).
@@ -565,6 +575,13 @@ class OnlineSmoother:
             self.out[-1] if self.out and self.out[-1].reset_counter == self.reset_counter else None
         )
 
+    def close(self) -> None:
+        """End of the stream: take the VO process's last measurements (counted, not made into
+        factors: no keyframe closes after them) and stop it. :meth:`result` stays available."""
+        self._vo_collect(math.inf)
+        if isinstance(self._vo, VoProcess):
+            self._vo.close()
+
     def reset(self, reason: str = "requested") -> None:
         """Drop the window and every buffer; the next events initialise again."""
         self.reset_counter += 1
@@ -587,6 +604,7 @@ class OnlineSmoother:
         """The causal estimate: every state output so far on one clock. A backward clock jump
         starts a new epoch (its states' times restart); ``epoch`` picks one (default the last),
         ``info["clock_epochs"]`` counts the states of each."""
+        self._vo_collect(math.inf)  # the VO process's last frames (their counts)
         ep = np.asarray(self._out_epoch, dtype=int)
         epochs = sorted(set(ep.tolist()))
         which = epochs[epoch] if epochs else 0
@@ -699,6 +717,8 @@ class OnlineSmoother:
         self._anchors_on = False
         self._slam_wait: list = []  # SLAM poses taken after the newest keyframe
         self._flow: deque = deque()  # arrived optical-flow readings (last 5 s)
+        if isinstance(getattr(self, "_vo", None), VoProcess):
+            self._vo.close()
         self._vo = None  # the homography VO stage (made at the first image)
         self._vo_off: str | None = None
         self._vo_links: deque = deque()  # (t_i, t_j, H or None, inliers, rms) of the VO pairs
@@ -1912,7 +1932,8 @@ class OnlineSmoother:
         from fgnav.solvers.vision import homography_options
 
         self._hopts = homography_options(go.homography)
-        self._vo = HomographyVoStage(
+        stage = VoProcess if self.options.vo_worker == "process" else HomographyVoStage
+        self._vo = stage(
             self.calib, cam, self._hopts.vo, uses_attitude=True, name=self.name, keep_history=False
         )
         self._cam_K = np.asarray(cam.K, float)
@@ -1933,7 +1954,22 @@ class OnlineSmoother:
             self._drop("images:before-start")
             return
         R, h = self._frame_inputs(float(ev.t))
-        m = self._vo.process(ev, R, h)
+        if isinstance(self._vo, VoProcess):
+            self._vo.submit(ev, R, h)  # taken at the update after this frame's keyframe
+            return
+        self._vo_take(self._vo.process(ev, R, h))
+
+    def _vo_collect(self, t_max: float) -> None:
+        """Take the VO process's measurements of the frames up to ``t_max``, in order (waits for
+        them: which frames are taken depends on ``t_max`` only, not on the child's timing)."""
+        vo = self._vo
+        if not isinstance(vo, VoProcess):
+            return
+        while (t := vo.oldest_time()) is not None and t <= t_max:
+            self._vo_take(vo.take())
+
+    def _vo_take(self, m) -> None:
+        """A VO measurement: gated into a link of :meth:`_homography_factors`."""
         self.vo_busy_s = self._vo.busy_s
         if m is None:
             return
@@ -1985,6 +2021,11 @@ class OnlineSmoother:
         t_new = self.t_kf[self.k]
         tol = self._hopts.frame_tolerance_s
         o = self._hopts
+        # VO process: the frames up to ``vo_process_delay_keyframes`` keyframes back (the newer
+        # ones are still tracked while this update runs; they attach at a later one).
+        self._vo_collect(
+            self.t_kf.get(self.k - self.options.vo_process_delay_keyframes, -math.inf) + tol
+        )
         while self._vo_links and self._vo_links[0][1] <= t_new + tol:
             t_i, t_j, H, n_in, rms = self._vo_links.popleft()
             ch = self._hchain
@@ -3170,6 +3211,7 @@ def feed_all(
         sm.feed(ev)
         if bar is not None and i % 1000 == 999:
             bar.update(1000)
+    sm.close()
     sm.runtime_s = time.perf_counter() - t_wall
     if bar is not None:
         bar.close()
