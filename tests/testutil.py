@@ -24,6 +24,17 @@ def run_cli(*args) -> subprocess.CompletedProcess:
     )
 
 
+def run_script(name: str, *args, timeout: float = 300) -> str:
+    """``python scripts/NAME ARGS``; its stdout (text; a non-zero exit fails the test)."""
+    return subprocess.run(
+        [sys.executable, str(PROJECT_ROOT / "scripts" / name), *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=True,
+    ).stdout
+
+
 def command_cli(command: str, folder, out, *extra, config: str | None = None) -> int:
     """``fgnav COMMAND FOLDER --out OUT --no-progress EXTRA`` in this process (output to the
     test's capsys); with ``config``, that TOML text is written to ``OUT.toml`` and passed as

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
-from testutil import PROJECT_ROOT
+from testutil import run_script
 
 FACTOR_ROWS = (
     "BetweenFactorPose3 (C++)",
@@ -22,15 +19,8 @@ FACTOR_ROWS = (
 
 
 def test_bench_script_prints_a_row_per_factor() -> None:
-    script = PROJECT_ROOT / "scripts" / "bench_factors.py"
     args = ["--n-poses", "6", "--n-linearize", "10", "--repeats", "1"]
-    out = subprocess.run(
-        [sys.executable, str(script), *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    ).stdout
+    out = run_script("bench_factors.py", *args, timeout=120)
     rows = {line[:26].strip(): line[26:].split() for line in out.splitlines()}
     for name in FACTOR_ROWS:
         assert name in rows, out

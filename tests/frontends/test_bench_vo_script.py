@@ -5,22 +5,13 @@ none is rejected, and the corner transfer error stays at the tracker's level."""
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 
-from testutil import PROJECT_ROOT
+from testutil import run_script
 
 
 def test_bench_vo_with_the_ahrs_attitude_guesses_every_pair() -> None:
-    script = PROJECT_ROOT / "scripts" / "bench_vo.py"
     args = ["--duration", "4", "--repeat", "1", "--resolutions", "320x240", "--attitude", "ahrs"]
-    out = subprocess.run(
-        [sys.executable, str(script), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=True,
-    ).stdout
+    out = run_script("bench_vo.py", *args)
     rows = [line for line in out.splitlines() if line.lstrip().startswith("320x240")]
     assert len(rows) == 3, out  # unrectified, rectified, rectified with the attitude decomposition
     for row in rows:
