@@ -164,6 +164,25 @@ def _join(items: list[str]) -> str:
 #: homographies made metric by the rangefinder (seed 002's sensor set), or optical flow made
 #: metric by the rangefinder (a flow deck: the position is dead-reckoned).
 SMOOTHER_ALTERNATIVES = (("slam",), ("images", "range"), ("flow", "range"))
+#: Streams the smoothers use when the flight has them (besides the IMU they all require).
+SMOOTHER_OPTIONAL = ("slam", "attitude", "range", "yaw", "images", "flow")
+
+
+def smoother_method(
+    name: str, description: str, causal: bool, implementation: str, entry: Entry
+) -> Method:
+    """A factor-graph smoother's :class:`Method`: every smoother has the same stream contract
+    (the IMU, one of :data:`SMOOTHER_ALTERNATIVES`, and :data:`SMOOTHER_OPTIONAL` when present)."""
+    return Method(
+        name,
+        description,
+        ("imu",),
+        SMOOTHER_OPTIONAL,
+        causal,
+        implementation,
+        entry,
+        any_of=SMOOTHER_ALTERNATIVES,
+    )
 
 
 def missing_reason(missing: list[str]) -> str:
@@ -616,36 +635,27 @@ def reference_method(ref: str) -> Method:
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method(
+        smoother_method(
             "batch",
             "factor-graph smoother over the whole flight (Levenberg-Marquardt)",
-            ("imu",),
-            ("slam", "attitude", "range", "yaw", "images", "flow"),
             False,
             "fgnav.solvers.batch",
             run_batch,
-            any_of=SMOOTHER_ALTERNATIVES,
         ),
-        Method(
+        smoother_method(
             "fixed-lag",
             "online iSAM2 fixed-lag smoother, newest state after each update",
-            ("imu",),
-            ("slam", "attitude", "range", "yaw", "images", "flow"),
             True,
             "fgnav.solvers.fixed_lag",
             run_fixed_lag,
-            any_of=SMOOTHER_ALTERNATIVES,
         ),
-        Method(
+        smoother_method(
             "fixed-lag@lag",
             "the online smoother's states as smoothed when they leave the window (delayed by "
             "the lag)",
-            ("imu",),
-            ("slam", "attitude", "range", "yaw", "images", "flow"),
             False,
             "fgnav.solvers.online",
             run_fixed_lag_lagged,
-            any_of=SMOOTHER_ALTERNATIVES,
         ),
         Method(
             "msf-ekf",
