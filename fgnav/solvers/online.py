@@ -1955,6 +1955,10 @@ class OnlineSmoother:
             return
         R, h = self._frame_inputs(float(ev.t))
         if isinstance(self._vo, VoProcess):
+            if len(self._vo) >= VO_MAX_IN_FLIGHT:
+                # Frames without keyframe updates (an IMU that stopped before the camera): take
+                # the oldest now, or the pipes would fill both ways and block both processes.
+                self._vo_take(self._vo.take())
             self._vo.submit(ev, R, h)  # taken at the update after this frame's keyframe
             return
         self._vo_take(self._vo.process(ev, R, h))
@@ -3217,6 +3221,11 @@ def feed_all(
         bar.close()
     return sm
 
+
+VO_MAX_IN_FLIGHT = 8
+"""Frames the VO process may hold before the next is sent (``vo_worker="process"``): 8 frames of
+320x240 fit the widened pipe to it, 8 replies (about 1 kB each) the 64 kB one back; normally
+1-3 are in flight."""
 
 ENGINES = ("auto", "push", "prepared")
 """Values of ``FixedLagOptions.engine``."""

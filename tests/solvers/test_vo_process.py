@@ -94,3 +94,23 @@ def test_bad_vo_worker_options_are_one_line_errors(figure8_camera, field, value,
     with pytest.raises(FlightDataError, match=message) as err:
         replay_online(figure8_camera, FixedLagOptions(**{field: value}))
     assert "\n" not in str(err.value)
+
+
+def test_images_after_the_imu_ended_do_not_block_the_vo_process(figure8_camera):
+    """The IMU stops at 8 s, the camera goes on to 20 s (360 frames without a keyframe update):
+    without a cap on the frames in flight the pipes to and from the child fill and both
+    processes wait for each other."""
+    flight = figure8_camera
+    imu = flight.imu
+    keep = imu.t <= imu.t[0] + 8.0
+    cut = dataclasses.replace(
+        flight,
+        imu=dataclasses.replace(
+            imu, t=imu.t[keep], body_omega=imu.body_omega[keep], body_accel=imu.body_accel[keep]
+        ),
+    )
+    est, _ = _run(cut, vo_worker="process")
+    inline, _ = _run(cut, vo_worker="inline")
+    assert est.info["vo_counts"] == inline.info["vo_counts"]
+    assert est.info["vo_counts"]["frames"] > 550  # every frame went through the child
+    assert est.trajectory.t[-1] <= imu.t[0] + 8.0 + 1e-6
