@@ -159,6 +159,19 @@ def _finite(values: Sequence[float], stream: str) -> np.ndarray:
     return a
 
 
+# Field names: ODOMETRY's position and velocity; its (and ATTITUDE_QUATERNION's) body rates.
+_XYZ = ("x", "y", "z")
+_VXYZ = ("vx", "vy", "vz")
+_RATES = ("rollspeed", "pitchspeed", "yawspeed")
+_NAN3 = (math.nan,) * 3
+
+
+def _named(names: Sequence[str], values: Sequence[float]) -> dict[str, float]:
+    """Message fields from a vector, one float a name: ``_named(("x", "y"), v)`` is
+    ``{"x": float(v[0]), "y": float(v[1])}``."""
+    return {name: float(v) for name, v in zip(names, values, strict=True)}
+
+
 # ----------------------------------------------------------------------------------------------
 # In: messages -> events
 # ----------------------------------------------------------------------------------------------
@@ -180,15 +193,9 @@ def highres_imu_fields(ev: ImuSample, boot_offset: float) -> dict[str, Any]:
     w = F @ np.asarray(ev.body_omega, float)
     return dict(
         time_usec=s_to_us(ev.t - boot_offset),
-        xacc=float(a[0]),
-        yacc=float(a[1]),
-        zacc=float(a[2]),
-        xgyro=float(w[0]),
-        ygyro=float(w[1]),
-        zgyro=float(w[2]),
-        xmag=math.nan,
-        ymag=math.nan,
-        zmag=math.nan,
+        **_named(("xacc", "yacc", "zacc"), a),
+        **_named(("xgyro", "ygyro", "zgyro"), w),
+        **_named(("xmag", "ymag", "zmag"), _NAN3),
         abs_pressure=math.nan,
         diff_pressure=math.nan,
         pressure_alt=math.nan,
@@ -216,13 +223,8 @@ def attitude_quaternion_fields(
     w = np.full(3, math.nan) if body_omega is None else F @ np.asarray(body_omega, float)
     return dict(
         time_boot_ms=s_to_ms(ev.t - boot_offset),
-        q1=float(q[0]),
-        q2=float(q[1]),
-        q3=float(q[2]),
-        q4=float(q[3]),
-        rollspeed=float(w[0]),
-        pitchspeed=float(w[1]),
-        yawspeed=float(w[2]),
+        **_named(("q1", "q2", "q3", "q4"), q),
+        **_named(_RATES, w),
         repr_offset_q=[1.0, 0.0, 0.0, 0.0],
     )
 
@@ -294,16 +296,10 @@ def vision_odometry_fields(ev: SlamPose, boot_offset: float, reset_counter: int)
         time_usec=s_to_us(ev.t - boot_offset),
         frame_id=MAV_FRAME_LOCAL_FRD,
         child_frame_id=MAV_FRAME_BODY_FRD,
-        x=float(ev.slam_t_cam[0]),
-        y=float(ev.slam_t_cam[1]),
-        z=float(ev.slam_t_cam[2]),
+        **_named(_XYZ, ev.slam_t_cam),
         q=[float(v) for v in ev.slam_q_cam_wxyz],
-        vx=math.nan,
-        vy=math.nan,
-        vz=math.nan,
-        rollspeed=math.nan,
-        pitchspeed=math.nan,
-        yawspeed=math.nan,
+        **_named(_VXYZ, _NAN3),
+        **_named(_RATES, _NAN3),
         pose_covariance=nan21,
         velocity_covariance=list(nan21),
         reset_counter=int(reset_counter) % 256,
@@ -489,16 +485,10 @@ def odometry_fields(
         time_usec=s_to_us(state.t),
         frame_id=MAV_FRAME_LOCAL_FRD,
         child_frame_id=MAV_FRAME_BODY_FRD,
-        x=float(p_o[0]),
-        y=float(p_o[1]),
-        z=float(p_o[2]),
+        **_named(_XYZ, p_o),
         q=[float(c) for c in q_o],
-        vx=float(v_o[0]),
-        vy=float(v_o[1]),
-        vz=float(v_o[2]),
-        rollspeed=float(w_o[0]),
-        pitchspeed=float(w_o[1]),
-        yawspeed=float(w_o[2]),
+        **_named(_VXYZ, v_o),
+        **_named(_RATES, w_o),
         pose_covariance=pc,
         velocity_covariance=vc,
         reset_counter=int(state.reset_counter) % 256,

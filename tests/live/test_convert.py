@@ -291,6 +291,42 @@ def test_odometry_out_hand_values_and_round_trip(wire):
     assert convert.from_upper_triangle(wire("odometry", f_unknown).pose_covariance) is None
 
 
+def test_fields_are_every_field_of_their_message_in_order_as_plain_values():
+    """Each ``*_fields`` dict names exactly its message's fields, in the message's order, and
+    the components taken from vectors are Python floats (not numpy scalars)."""
+    m = mavlink_dialect()
+    q = matrix_to_quat_wxyz(so3_exp(np.array([0.3, -0.2, 1.0])))
+    R = quat_wxyz_to_matrix(q)
+    cases = {
+        "highres_imu": convert.highres_imu_fields(
+            ImuSample(1.0, 1.0, np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.5, GRAVITY])), 0.0
+        ),
+        "attitude_quaternion": convert.attitude_quaternion_fields(
+            AttitudeSample(1.0, 1.0, q), 0.0, np.array([0.1, 0.2, 0.3])
+        ),
+        "distance_sensor": convert.distance_sensor_fields(RangeReading(1.0, 1.0, 1.2), 0.0),
+        "odometry": convert.vision_odometry_fields(
+            SlamPose(1.0, 1.0, np.array([1.5, -2.0, 0.25]), q, 0), 0.0, 0
+        ),
+        "optical_flow_rad": convert.optical_flow_rad_fields(
+            FlowSample(1.0, 1.0, 0.02, np.array([0.1, -0.2]), 0.5), 0.0
+        ),
+    }
+    out = convert.odometry_fields(
+        _state(R, [1.0, 2.0, 3.0], [0.5, 0.0, 0.0]), body_omega=np.array([0.1, 0.2, 0.3])
+    )
+    for name, f in [*cases.items(), ("odometry", out)]:
+        msg_type = getattr(m, f"MAVLink_{name}_message")
+        assert list(f) == msg_type.fieldnames, name
+    for f, keys in (
+        (cases["highres_imu"], ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro", "xmag")),
+        (cases["attitude_quaternion"], ("q1", "q2", "q3", "q4", "rollspeed", "yawspeed")),
+        (cases["odometry"], ("x", "y", "z", "vx", "vz", "rollspeed", "yawspeed")),
+        (out, ("x", "y", "z", "vx", "vy", "vz", "rollspeed", "pitchspeed", "yawspeed")),
+    ):
+        assert all(type(f[k]) is float for k in keys), keys
+
+
 def test_upper_triangle_round_trip_and_order():
     A = np.arange(36, dtype=float).reshape(6, 6)
     S = A + A.T
