@@ -31,10 +31,17 @@ from typing import Any
 
 import numpy as np
 
+from fgnav.coverage import flight_t0
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.eval.metrics import DEFAULT_RPE_DELTA_M, Metrics, evaluate, to_jsonable
+from fgnav.eval.metrics import (
+    DEFAULT_RPE_DELTA_M,
+    Metrics,
+    common_span_ate,
+    evaluate,
+    to_jsonable,
+)
 from fgnav.methods import (
     METHODS,
     Method,
@@ -90,6 +97,7 @@ class MethodRun:
     evaluation_error: str | None = None
     wall_s: float = 0.0
     reused: bool = False
+    ate_common_m: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -107,6 +115,7 @@ class MethodRun:
         d = self.metrics.as_dict() if self.metrics else {}
         for key in ROW_METRICS:
             row[key] = d.get(key)
+        row["ate_common_m"] = self.ate_common_m
         lat = None if not self.ok else self.estimate.update_latency
         lat = None if lat is None else np.asarray(lat, dtype=float)
         has_lat = lat is not None and lat.size > 0
@@ -139,6 +148,8 @@ class CompareResult:
     config: dict[str, Any] = field(default_factory=dict)
     rpe_delta_m: float = DEFAULT_RPE_DELTA_M
     flow_figures: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: start [s, flight clock] of the span every causal method covers (``ate_common_m``)
+    common_span_start_s: float | None = None
 
     @property
     def estimates(self) -> list[Estimate]:
@@ -206,6 +217,12 @@ class CompareResult:
                 "drag_k": self.truth_drag_k(),
             },
             "rpe_delta_m": self.rpe_delta_m,
+            "common_span_start_s": self.common_span_start_s,
+            "common_span_start_rel_s": (
+                None
+                if self.common_span_start_s is None
+                else self.common_span_start_s - flight_t0(self.flight)
+            ),
             "table": self.rows(),
             "flow_table": self.flow_table(),
             "methods": methods,
@@ -547,5 +564,15 @@ def compare(
                 run.wall_s,
                 f", ATE {run.metrics.ate_rmse_m:.4f} m" if run.metrics else "",
             )
+    if flight.ground_truth is not None:
+        scored = {n: r for n, r in res.runs.items() if r.ok and r.metrics is not None}
+        res.common_span_start_s, ates = common_span_ate(
+            {n: r.estimate.trajectory for n, r in scored.items()},
+            {n: r.estimate.causal for n, r in scored.items()},
+            flight.ground_truth,
+            {n: r.metrics.alignment for n, r in scored.items()},
+        )
+        for n, ate in ates.items():
+            res.runs[n].ate_common_m = ate
     res.timings["total"] = time.perf_counter() - t_all
     return res

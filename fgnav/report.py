@@ -35,6 +35,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("causal", "causal"),
     Column("alignment", "alignment"),
     Column("ATE [m]", "ate_rmse_m", "{:.3f}"),
+    Column("ATE common [m]", "ate_common_m", "{:.3f}"),
     Column("RPE [%]", "rpe_pct", "{:.2f}"),
     Column("scale err [%]", "scale_final_abs_err_pct", "{:.2f}"),
     Column("vel RMSE [m/s]", "vel_rmse_mps", "{:.3f}"),
@@ -143,7 +144,16 @@ def render_report(data: Mapping[str, Any]) -> str:
         lines.append(f"- true drag k [1/s]: {truth['drag_k']}")
     lines += ["", "## Results", "", markdown_table(data["table"]), ""]
     lines += [
-        "ATE: RMSE of the position error after alignment; RPE: mean relative translation error "
+        "ATE: RMSE of the position error after alignment; ATE common: the same over the span "
+        "every causal method covers"
+        + (
+            f" (from {_fmt(data.get('common_span_start_rel_s'), '{:.1f}')} s after the flight's "
+            "start to the end, each method aligned over it: a filter that emits nothing before "
+            "its initialisation is otherwise scored over a shorter, easier span)"
+            if data.get("common_span_start_rel_s") is not None
+            else ""
+        )
+        + "; RPE: mean relative translation error "
         f"per distance over {_fmt(data.get('rpe_delta_m'), '{:g}')} m segments; scale err: largest "
         "|final scale error| over SLAM sessions; NEES: mean position NEES (3 for a consistent "
         "estimator); time/update p50: median wall time of one update; x real time: flight "

@@ -52,18 +52,20 @@ def checks(rows: list[dict]) -> list[str]:
             best = min(scored, key=scored.get)
             verdict = "lowest" if best == "batch" else f"not lowest ({best}: {scored[best]:.4g})"
             out.append(f"batch {label}: {scored['batch']:.4g} -> {verdict}")
-    causal = {
-        m: r["ate_rmse_m"]
-        for m, r in ok.items()
-        if r["causal"] and m not in ("fixed-lag",) and not m.startswith("ref:")
-    }
-    if "fixed-lag" in ok and causal:
-        fl = ok["fixed-lag"]["ate_rmse_m"]
-        beaten = [m for m, a in causal.items() if a < fl]
-        out.append(
-            f"fixed-lag ATE {fl:.4g}: "
-            + ("beats every causal filter" if not beaten else f"beaten by {', '.join(beaten)}")
-        )
+    # Own spans (each method from its first output) and the span every causal method covers.
+    for key, label in (("ate_rmse_m", "ATE"), ("ate_common_m", "ATE on the common span")):
+        causal = {
+            m: r[key]
+            for m, r in ok.items()
+            if r["causal"] and m != "fixed-lag" and not m.startswith("ref:") and _finite(r.get(key))
+        }
+        fl = ok.get("fixed-lag", {}).get(key)
+        if _finite(fl) and causal:
+            beaten = [m for m, a in causal.items() if a < fl]
+            out.append(
+                f"fixed-lag {label} {fl:.4g}: "
+                + ("beats every causal filter" if not beaten else f"beaten by {', '.join(beaten)}")
+            )
     return out
 
 

@@ -279,7 +279,7 @@ def interpolate_trajectory(traj: Trajectory, t: np.ndarray) -> Trajectory:
 
 
 def associate(
-    est: Trajectory, gt: Trajectory, max_gap_s: float = DEFAULT_MAX_GT_GAP_S
+    est: Trajectory, gt: Trajectory, max_gap_s: float = DEFAULT_MAX_GT_GAP_S, log: bool = True
 ) -> Association:
     """Match each estimate sample to ground truth interpolated at its time.
 
@@ -291,6 +291,8 @@ def associate(
         est: estimated trajectory.
         gt: ground truth (same clock) [s].
         max_gap_s: largest truth gap [s] to interpolate across.
+        log: warn about unmatched samples (off where the same pair was associated and logged
+            before).
 
     Returns:
         The :class:`Association`.
@@ -312,7 +314,7 @@ def associate(
     est_index = idx_inside[ok_inside]
     n_before, n_after = int(before.sum()), int(after.sum())
     n_gap = int((~ok_inside).sum())
-    if n_before or n_after or n_gap:
+    if log and (n_before or n_after or n_gap):
         logger.warning(
             "associate: %d of %d estimate samples unmatched (%d before the truth, %d after, "
             "%d in truth gaps > %.3f s)",

@@ -337,6 +337,48 @@ def _rmse(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if x.size else math.nan
 
 
+def common_span_ate(
+    trajectories: Mapping[str, Trajectory],
+    causal: Mapping[str, bool],
+    truth: Trajectory,
+    alignments: Mapping[str, str] | None = None,
+    max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
+) -> tuple[float | None, dict[str, float]]:
+    """ATE RMSE [m] of each trajectory over one common span: from the latest first matched
+    sample of the causal ones to the end, each aligned (``alignments``, default SE(3)) over that
+    span only.
+
+    A filter that emits nothing before its initialisation (a SLAM scale fit) is otherwise scored
+    over a shorter, easier span than a smoother that emits from its start; on this span every
+    causal method is scored over the same stretch of the flight.
+
+    Returns:
+        ``(t_start, {name: ate})``: the span's start on the flight's clock [s] (None, with an
+        empty dict, when no trajectory is causal or none matches the truth); trajectories with
+        fewer than 3 matched samples on the span are left out.
+    """
+    matched: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for name, traj in trajectories.items():
+        try:
+            a = associate(traj, truth, max_gap_s=max_gap_s, log=False)
+        except FlightDataError:  # nothing inside the truth's span: no ATE at all
+            continue
+        idx = a.est_index
+        matched[name] = (traj.t[idx], traj.world_t_body[idx], a.gt.world_t_body)
+    starts = [float(m[0][0]) for n, m in matched.items() if causal.get(n)]
+    if not starts:
+        return None, {}
+    t_c = max(starts)
+    out: dict[str, float] = {}
+    for name, (t, x, g) in matched.items():
+        k = t >= t_c
+        if int(k.sum()) < 3:
+            continue
+        al = align(x[k], g[k], (alignments or {}).get(name, "se3"))
+        out[name] = _rmse(np.linalg.norm(g[k] - al.apply_positions(x[k]), axis=1))
+    return t_c, out
+
+
 def scale_series(estimate: Estimate, sessions: list[int] | None = None) -> dict[int, TimeSeries]:
     """The scale-over-time series of each session present in ``estimate.series``.
 

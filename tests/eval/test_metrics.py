@@ -15,6 +15,7 @@ from fgnav.datasets.types import SlamSeries, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.eval.metrics import (
     Metrics,
+    common_span_ate,
     evaluate,
     format_table,
     nees_interval,
@@ -295,3 +296,39 @@ def test_slam_scale_drift_recovers_a_known_trend(truth):
     assert d.slope_sigma_per_s < 0.2 * rate  # four windows
     with pytest.raises(ValueError, match="window_s"):
         slam_scale_drift(slam, truth, body_T_cam, window_s=0.0)
+
+
+def test_common_span_ate_scores_every_method_from_the_latest_causal_start(truth):
+    """A smoother that emits from the start with a bad first 10 s, a filter that emits only from
+    20 s: on their own spans the filter looks better; on the common span (from 20 s) only the
+    noise of each remains, each aligned over that span."""
+    rng = np.random.default_rng(3)
+    n = len(truth)
+    early = truth.t < truth.t[0] + 10.0
+    off = rng.normal(0.0, 0.01, size=(n, 3))
+    off[early] += rng.normal(0.0, 0.5, size=(int(early.sum()), 3))
+    smoother = _est(truth, world_t_body=truth.world_t_body + off)
+    late = truth.t >= truth.t[0] + 20.0
+    noise = rng.normal(0.0, 0.02, size=(int(late.sum()), 3))
+    filt = Trajectory(
+        t=truth.t[late],
+        world_t_body=truth.world_t_body[late] + noise,
+        world_q_body_wxyz=truth.world_q_body_wxyz[late],
+    )
+    batch = _est(truth, world_t_body=truth.world_t_body + 2 * off)  # not causal: no say in t0
+    own_s = evaluate(Estimate("s", smoother), truth).ate_rmse_m
+    own_f = evaluate(Estimate("f", filt), truth).ate_rmse_m
+    assert own_s > own_f  # the smoother's bad start counts on its own span
+    t0, ate = common_span_ate(
+        {"s": smoother, "f": filt, "b": batch},
+        {"s": True, "f": True, "b": False},
+        truth,
+        {"f": "none"},
+    )
+    assert t0 == truth.t[late][0]
+    e_s = np.linalg.norm(off[late], axis=1)
+    assert ate["s"] == pytest.approx(np.sqrt(np.mean(e_s**2)), rel=0.05)  # SE(3) over the span
+    assert ate["f"] == pytest.approx(np.sqrt(np.mean(np.sum(noise**2, axis=1))), rel=1e-12)
+    assert ate["s"] < ate["f"] and set(ate) == {"s", "f", "b"}
+    # No causal trajectory: no common span.
+    assert common_span_ate({"b": batch}, {"b": False}, truth) == (None, {})
