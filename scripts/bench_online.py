@@ -237,6 +237,13 @@ def main() -> None:
         "(FixedLagOptions.relinearize_threshold_position; <= 0: none, the keyframe threshold)",
     )
     ap.add_argument(
+        "--slam-trans-rw",
+        type=float,
+        default=FixedLagOptions.slam_trans_rw_m,
+        help="push engine's SLAM alignment origin walk [m/sqrt(s)] "
+        "(FixedLagOptions.slam_trans_rw_m; < 0: the graph's)",
+    )
+    ap.add_argument(
         "--speed-limit",
         action="store_true",
         help="also run the same window with GTSAM's built-in factors standing in for the custom "
@@ -276,11 +283,14 @@ def main() -> None:
             if args.position_threshold and args.position_threshold > 0
             else None
         ),
+        slam_trans_rw_m=(
+            None if args.slam_trans_rw is None or args.slam_trans_rw < 0 else args.slam_trans_rw
+        ),
     )
     print(
         f"lag {args.lag} s, marginalisation every {args.marginalize_every} s, "
         f"window {args.smoother}, position relinearisation threshold "
-        f"{opts.relinearize_threshold_position}"
+        f"{opts.relinearize_threshold_position}, SLAM origin walk {opts.slam_trans_rw_m}"
     )
     print(f"engine: {args.engine}")
     if args.camera and args.engine == "prepared":

@@ -359,7 +359,14 @@ class FixedLagOptions:
             3.70 / 2.58 -> 3.47 / 2.44), but MH_01's final scale error 0.48 -> 0.60 % (the
             goal is 0.5 %), ORB-SLAM2's 1.27 -> 1.32 %, circle's per-axis kz off by 7 %, and
             the restart after an 8 s IMU gap cost 2.82x nominal instead of 2.44x (same
-            absolute ATE, a better nominal).
+            absolute ATE, a better nominal). With ``relinearize_threshold_position = 0.01``
+            as well (opt-in, 2026-12-04): MH_01 3.75 cm, final scale error 0.30 %, NEES 0.93;
+            V1_02 ORB-SLAM2 / ORB-SLAM3 7.93 / 3.31 cm (from 20 s 3.36 / 2.38); simulated
+            (seed 1, camera) two-turns 0.52 -> 0.46, figure8 0.53 -> 0.51 cm; the 180 s
+            figure8 benchmark without camera 2.65 -> 2.48 cm, 34.6x -> 32.6x, p99 2.5 -> 3.9
+            ms; but a simulated SLAM map reset (two-turns, 25 s, new session at 12 s) 11.8 ->
+            17.1 cm (14.6 with the threshold alone, 12.5 with the walk alone), and circle's
+            per-axis kz 7 % off: not the default.
         slam_scale_rw: relative SLAM scale random walk of the push engine's alignment
             segments [1/sqrt(s)] (None: ``graph.slam_scale_rw``, which the batch smoother and the
             prepared runner use). Until 2026-12-03 3e-4: the graph's 1e-3 was tuned for the
