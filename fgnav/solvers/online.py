@@ -458,8 +458,10 @@ class OnlineSmoother:
         self.prior_options = priors.check() if priors is not None and priors.sources else None
         self.options = options or FixedLagOptions()
         self.go = self.options.graph.check()
-        tr = self.options.slam_trans_rw_m
-        self._trans_rw = self.go.slam_trans_rw_m if tr is None else tr  # alignment origin walk
+        # The alignment segments' walks: the push engine's own where set, else the graph's.
+        o, go = self.options, self.go
+        self._trans_rw = go.slam_trans_rw_m if o.slam_trans_rw_m is None else o.slam_trans_rw_m
+        self._scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
         self.name = name
         if self.go.slam_model not in ("auto", "sim3", "axis"):
             raise FlightDataError(
@@ -2265,11 +2267,10 @@ class OnlineSmoother:
         prev = s.last_key
         a = np.asarray(self.values[prev], float)
         walk = math.sqrt(go.slam_segment_s * (seg - s.last_seg))
-        scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
         k_max = float(np.max(a[:3]))
         # Relative random walk of every axis and an origin walk of _trans_rw metres (the
         # batch's per-axis chain, GraphBuilder.slow_factors).
-        rw = np.r_[scale_rw * walk * np.abs(a[:3]), [self._trans_rw * walk * k_max] * 3]
+        rw = np.r_[self._scale_rw * walk * np.abs(a[:3]), [self._trans_rw * walk * k_max] * 3]
         if self._alive(prev):
             g.add(
                 gtsam.BetweenFactorVector(
@@ -2359,8 +2360,7 @@ class OnlineSmoother:
         value = self.values[prev]
         n_seg = seg - s.last_seg
         walk = math.sqrt(go.slam_segment_s * n_seg)
-        scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
-        rw = np.array([go.slam_rot_rw] * 3 + [self._trans_rw] * 3 + [scale_rw]) * walk
+        rw = np.array([go.slam_rot_rw] * 3 + [self._trans_rw] * 3 + [self._scale_rw]) * walk
         if self._alive(prev):
             g.add(
                 gtsam.BetweenFactorSimilarity3(
