@@ -61,9 +61,9 @@ the log's calibration (rangefinder pose and limits from PX4 parameters), ``[cali
 ``[calib.imu_noise]`` (any of :class:`.types.ImuNoise`'s fields) replaces the calibration file's
 IMU noise values, e.g. with densities measured in flight where the file has the sensor's at rest
 (the EuRoC manifests: ``scripts/euroc_imu_noise.py``).
-``[flow]`` (``crazyflie`` or ``native_csv``) is the optical-flow stream. Unknown keys, tables and
-formats are errors naming the manifest, table and key and listing the valid ones; a missing file
-is an error naming the resolved path.
+``[flow]`` (``crazyflie``, ``ulog`` or ``native_csv``) is the optical-flow stream. Unknown keys,
+tables and formats are errors naming the manifest, table and key and listing the valid ones; a
+missing file is an error naming the resolved path.
 Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
 """
 
@@ -101,7 +101,7 @@ TABLE_FORMATS: dict[str, tuple[str, ...]] = {
     "yaw": ("native_csv", "ulog"),
     "slam": ("tum_slam", "native_csv", "rosbag"),
     "images": ("euroc", "rosbag"),
-    "flow": ("native_csv", "crazyflie"),
+    "flow": ("native_csv", "crazyflie", "ulog"),
     "ground_truth": ("tum", "euroc", "native_csv", "ulog", "rosbag", "crazyflie"),
     "calib": ("orbslam3_yaml", "native", "ulog", "crazyflie"),
 }

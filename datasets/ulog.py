@@ -23,8 +23,24 @@ boot into float seconds on the same clock (``t = timestamp_us * 1e-6``):
 * ``vehicle_visual_odometry``, ``vehicle_mocap_odometry``, ``vehicle_odometry`` ->
   ``flight.references["px4_<topic>"]`` (both the current ``position[3]``/``q[4]``/``velocity[3]``
   layout and the older ``x y z``/``vx vy vz`` one).
-* ``vehicle_optical_flow`` / ``sensor_optical_flow`` / ``optical_flow``: fgnav has no flow stream
-  type; a summary (samples, rate, fields) goes to ``meta["px4_optical_flow"]``.
+* ``vehicle_optical_flow`` (PX4 >= 1.13, body axes), else ``optical_flow`` (PX4 <= 1.12, body
+  axes), else ``sensor_optical_flow`` (sensor axes, turned into the body by ``SENS_FLOW_ROT``, a
+  yaw of k x 45 deg) -> ``flight.flow`` in radians (``calib.flow_pixels_per_rad = 1``), see
+  :func:`flow_from_px4`. PX4's integrated flow is a rotation about the body FRD axes, positive
+  for a right-hand rotation of the sensor: ``pixel_flow = dt [w_x - v_y / d, w_y + v_x / d]``
+  (EKF2 ``optical_flow.cpp``/``optical_flow_control.cpp``: ``flow_rate = -pixel_flow / dt``,
+  compensated by the negated gyro, predicted as ``(v_y, -v_x) / d``), so fgnav's flow
+  (``FlowSeries``, sensor x forward, y right, z down) is ``[-pixel_flow[1], pixel_flow[0]]``. The
+  time is ``timestamp_sample`` (the end of the integration interval), the interval
+  ``integration_timespan_us``, quality 0..255 -> 0..1. Readings with quality 0, no interval, an
+  interval of 1 s or more (EKF2 drops them too), non-finite values or a time not after the
+  previous one are left out and counted (``meta["flow"]``, one warning line). ``body_T_flow``:
+  the sensor axes as the body's FRD, the lever arm ``position_offset`` (``vehicle_optical_flow``)
+  or ``EKF2_OF_POS_X/Y/Z`` minus ``EKF2_IMU_POS_X/Y/Z``. The flow module's own gyro
+  (``delta_angle``) is not used: the smoothers compensate rotation with the IMU's. A log without
+  a downward ``distance_sensor`` takes the flow message's ``distance_m`` (finite, > 0) as its
+  range stream at the flow sensor, as EKF2 does. Every flow topic is also summarised in
+  ``meta["px4_optical_flow"]``.
 * Parameters users need (``EKF2_MCOEF``, ``EKF2_BCOEF_X/Y``, ``EKF2_DRAG_*``, ``EKF2_RNG_*``,
   ``EKF2_IMU_POS_*``, ``EKF2_OF_*``, ``SENS_*``) -> ``meta["px4_params"]``.
 
@@ -48,7 +64,15 @@ from scipy.spatial.transform import Rotation, Slerp
 from .errors import FlightFormatError
 from .frames import frd_to_flu, ned_q_frd_to_world_q_body, ned_to_enu
 from .geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
-from .types import AttitudeSeries, Calibration, Flight, ImuSeries, RangeSeries, Trajectory
+from .types import (
+    AttitudeSeries,
+    Calibration,
+    Flight,
+    FlowSeries,
+    ImuSeries,
+    RangeSeries,
+    Trajectory,
+)
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +102,14 @@ PARAMS_OF_INTEREST = (
     "SENS_",
 )
 ODOMETRY_TOPICS = ("vehicle_visual_odometry", "vehicle_mocap_odometry", "vehicle_odometry")
-FLOW_TOPICS = ("vehicle_optical_flow", "sensor_optical_flow", "optical_flow")
+#: Flow topics in the order one is chosen (the first present).
+FLOW_TOPICS = ("vehicle_optical_flow", "optical_flow", "sensor_optical_flow")
+#: ``*optical_flow.quality``: 0 no valid flow, 255 best.
+FLOW_QUALITY_MAX = 255.0
+#: EKF2 uses a flow reading only when ``integration_timespan_us < 1e6``.
+FLOW_MAX_INTERVAL_S = 1.0
+#: ``SENS_FLOW_ROT``: PX4 rotations 0..7 are yaws of ``k * 45`` deg (sensor -> body, FRD).
+FLOW_ROT_YAW_STEP_DEG = 45.0
 
 Topic = Mapping[str, np.ndarray]
 
@@ -294,6 +325,114 @@ def trajectory_from_odometry(d: Topic) -> tuple[Trajectory | None, dict[str, Any
     return traj, notes
 
 
+def _flow_columns(d: Topic, topic: str) -> dict[str, np.ndarray]:
+    """One flow topic's columns under common names (``optical_flow`` of PX4 <= 1.12 has its own)."""
+    if topic == "optical_flow":
+        t = np.asarray(d["timestamp"], dtype=float) * US_TO_S
+        x, y = d["pixel_flow_x_integral"], d["pixel_flow_y_integral"]
+        dt_us, dist = d["integration_timespan"], d.get("ground_distance_m")
+    else:
+        t = _sample_time(d)
+        x, y = d["pixel_flow[0]"], d["pixel_flow[1]"]
+        dt_us, dist = d["integration_timespan_us"], d.get("distance_m")
+    n = t.size
+    return {
+        "t": t,
+        "flow": np.column_stack([np.asarray(x, float), np.asarray(y, float)]),
+        "dt": np.asarray(dt_us, dtype=float) * US_TO_S,
+        "quality": np.asarray(d.get("quality", np.full(n, FLOW_QUALITY_MAX)), dtype=float),
+        "distance": np.full(n, np.nan) if dist is None else np.asarray(dist, dtype=float),
+        "min_distance": np.asarray(d.get("min_ground_distance", [np.nan]), dtype=float),
+        "max_distance": np.asarray(d.get("max_ground_distance", [np.nan]), dtype=float),
+    }
+
+
+def body_T_flow_from_px4(
+    d: Topic, topic: str, params: Mapping[str, float]
+) -> tuple[np.ndarray, str]:
+    """The flow sensor's pose in the FLU body (axes: the body's FRD) and where its lever arm came
+    from: ``position_offset`` of ``vehicle_optical_flow`` when logged, else ``EKF2_OF_POS_X/Y/Z``,
+    minus the IMU's ``EKF2_IMU_POS_X/Y/Z`` (fgnav's body origin is the IMU; EKF2 subtracts it)."""
+    if topic == "vehicle_optical_flow" and all(f"position_offset[{i}]" in d for i in range(3)):
+        pos = np.array([float(np.asarray(d[f"position_offset[{i}]"])[-1]) for i in range(3)])
+        source = "vehicle_optical_flow.position_offset"
+    else:
+        pos = np.array([float(params.get(f"EKF2_OF_POS_{a}", 0.0)) for a in "XYZ"])
+        source = "EKF2_OF_POS_X/Y/Z"
+    imu = np.array([float(params.get(f"EKF2_IMU_POS_{a}", 0.0)) for a in "XYZ"])
+    if not np.all(np.isfinite(pos)):
+        pos, source = np.zeros(3), "none (non-finite offset logged)"
+    return make_pose(np.diag([1.0, -1.0, -1.0]), frd_to_flu(pos - imu)), source
+
+
+def flow_from_px4(
+    d: Topic, topic: str, params: Mapping[str, float]
+) -> tuple[FlowSeries | None, dict[str, Any], dict[str, np.ndarray]]:
+    """One PX4 flow topic's columns -> fgnav flow [rad] (see the module docstring).
+
+    Args:
+        d: columns of ``vehicle_optical_flow``, ``sensor_optical_flow`` or ``optical_flow``.
+        topic: which of them.
+        params: the log's parameters (``SENS_FLOW_ROT`` for ``sensor_optical_flow``).
+
+    Returns:
+        ``(series or None, notes with the skip counts, the kept readings' columns)``.
+
+    Raises:
+        ValueError: ``SENS_FLOW_ROT`` is not one of PX4's yaw rotations 0..7.
+    """
+    c = _flow_columns(d, topic)
+    t, flow, dt, quality = c["t"], c["flow"], c["dt"], c["quality"]
+    notes: dict[str, Any] = {"topic": topic, "samples": int(t.size)}
+    if topic == "sensor_optical_flow":
+        rot = int(params.get("SENS_FLOW_ROT", 0))
+        if not 0 <= rot <= 7:
+            raise ValueError(f"SENS_FLOW_ROT = {rot}: expected a yaw rotation 0..7")
+        a = np.radians(FLOW_ROT_YAW_STEP_DEG * rot)
+        yaw = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        flow = flow @ yaw.T
+        notes["sensor_to_body"] = f"SENS_FLOW_ROT {rot} (yaw {FLOW_ROT_YAW_STEP_DEG * rot:g} deg)"
+    finite = np.all(np.isfinite(flow), axis=1) & np.isfinite(dt) & np.isfinite(t)
+    reasons = {
+        "skipped_nonfinite": ~finite,
+        "skipped_quality_zero": finite & (quality <= 0),
+        "skipped_no_interval": finite & (quality > 0) & (dt <= 0),
+        "skipped_interval_over_1s": finite & (quality > 0) & (dt >= FLOW_MAX_INTERVAL_S),
+    }
+    ok = finite & (quality > 0) & (dt > 0) & (dt < FLOW_MAX_INTERVAL_S)
+    keep = ok & _increasing(np.where(ok, t, -np.inf))
+    reasons["skipped_time_not_increasing"] = ok & ~keep
+    notes.update({k: int(np.count_nonzero(v)) for k, v in reasons.items()})
+    kept = {k: (v[keep] if v.shape[:1] == t.shape else v) for k, v in c.items()}
+    if not np.any(keep):
+        return None, notes, kept
+    fx, fy = flow[keep, 0], flow[keep, 1]
+    series = FlowSeries(
+        t=t[keep],
+        dt=dt[keep],
+        flow=np.column_stack([-fy, fx]),
+        quality=quality[keep] / FLOW_QUALITY_MAX,
+    )
+    return series, notes, kept
+
+
+def range_from_flow_distance(
+    kept: dict[str, np.ndarray],
+) -> tuple[RangeSeries | None, float, float, int]:
+    """The flow message's ``distance_m`` (finite, > 0) as a range series: ``(series or None,
+    range_min, range_max, readings left out)``; quality unknown (-1)."""
+    r = kept["distance"]
+    good = np.isfinite(r) & (r > 0)
+    lo = kept["min_distance"][np.isfinite(kept["min_distance"])]
+    hi = kept["max_distance"][np.isfinite(kept["max_distance"])]
+    range_min = float(lo.max()) if lo.size else 0.0
+    range_max = float(hi.min()) if hi.size else float("inf")
+    if not np.any(good):
+        return None, range_min, range_max, int(r.size)
+    series = RangeSeries(t=kept["t"][good], range=r[good], quality=np.full(int(good.sum()), -1.0))
+    return series, range_min, range_max, int(np.count_nonzero(~good))
+
+
 def params_of_interest(params: Mapping[str, float]) -> dict[str, float]:
     """The parameters named by :data:`PARAMS_OF_INTEREST` (sorted by name)."""
     out = {}
@@ -335,9 +474,9 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
             (``"most_samples"`` or ``"first"``).
 
     Returns:
-        The flight, checked: ``imu`` (always), ``attitude``, ``range`` when present, references
-        ``px4_ekf2`` and ``px4_<odometry topic>``, ``meta`` with frames, parameters, instance
-        choices, and counts of everything left out.
+        The flight, checked: ``imu`` (always), ``attitude``, ``range`` and ``flow`` when
+        present, references ``px4_ekf2`` and ``px4_<odometry topic>``, ``meta`` with frames,
+        parameters, instance choices, and counts of everything left out.
 
     Raises:
         FlightFormatError: not a readable ULog, or no ``sensor_combined`` data.
@@ -461,20 +600,47 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
             body_T_range=body_T_range_from_params(ulog.initial_parameters),
         )
 
-    flow = {}
+    flow_series, summary = None, {}
     for topic in FLOW_TOPICS:
         inst = by_topic.get(topic, {})
-        if inst:
-            d = _choose(inst, topic, instance_policy, meta)
-            t = _sample_time(d.data)
-            flow[topic] = {
-                "samples": int(t.size),
-                "rate_hz": float(1.0 / np.median(np.diff(t))) if t.size > 1 else 0.0,
-                "fields": sorted(d.data),
-                "note": "not converted: fgnav has no optical-flow stream type",
-            }
-    if flow:
-        meta["px4_optical_flow"] = flow
+        if not inst:
+            continue
+        d = _choose(inst, topic, instance_policy, meta)
+        t = _sample_time(d.data)
+        summary[topic] = {
+            "samples": int(t.size),
+            "rate_hz": float(1.0 / np.median(np.diff(t))) if t.size > 1 else 0.0,
+            "fields": sorted(d.data),
+        }
+        if flow_series is not None or "flow" in meta:
+            summary[topic]["note"] = f"not converted: {meta['flow']['topic']} was"
+            continue
+        try:
+            flow_series, meta["flow"], kept = flow_from_px4(d.data, topic, ulog.initial_parameters)
+        except (KeyError, ValueError) as exc:
+            summary[topic]["note"] = f"not converted: {exc}"
+            meta["notes"].append(f"{topic}: not converted ({exc})")
+            continue
+        summary[topic]["note"] = "converted to the flow stream"
+        skipped = {k: v for k, v in meta["flow"].items() if k.startswith("skipped") and v}
+        if skipped:
+            log.warning("%s: %s: readings left out: %s", path, topic, skipped)
+        body_T_flow, meta["flow"]["lever_arm"] = body_T_flow_from_px4(
+            d.data, topic, ulog.initial_parameters
+        )
+        calib_kwargs.update(body_T_flow=body_T_flow, flow_pixels_per_rad=1.0)
+        if range_series is None and flow_series is not None:
+            rs, rmin, rmax, n_bad = range_from_flow_distance(kept)
+            if rs is not None:
+                range_series = rs
+                calib_kwargs.update(range_min=rmin, range_max=rmax, body_T_range=body_T_flow)
+                meta["range"] = {
+                    "source": f"{topic}.distance_m (no downward distance_sensor)",
+                    "samples": int(len(rs)),
+                    "skipped_nonfinite_or_zero": n_bad,
+                }
+    if summary:
+        meta["px4_optical_flow"] = summary
 
     flight = Flight(
         name=path.stem,
@@ -482,6 +648,7 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
         imu=imu,
         attitude=attitude,
         range=range_series,
+        flow=flow_series,
         references=references,
         calib=Calibration(**calib_kwargs),
         meta=meta,

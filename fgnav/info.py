@@ -195,7 +195,8 @@ def _details(s: Any) -> str:
     if isinstance(s, FlowSeries):
         return (
             f"dt median {float(np.median(s.dt)) * 1e3:.2f} ms; |flow| max "
-            f"{float(np.abs(s.flow).max()):.2f} px" + ("; quality" if s.quality is not None else "")
+            # Flow units: the calibration's (px, or rad at 1 px/rad; see body_T_flow below).
+            f"{float(np.abs(s.flow).max()):.3g}" + ("; quality" if s.quality is not None else "")
         )
     if isinstance(s, ImageSeries):
         where = "in memory" if s.frames is not None else "files"

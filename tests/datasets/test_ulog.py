@@ -330,3 +330,255 @@ def test_attitude_rotates_rest_accel_to_world_up(real_data):
     f_world = R @ f.imu.between(f.attitude.t[0], f.attitude.t[19]).body_accel.mean(axis=0)
     up = f_world / np.linalg.norm(f_world, axis=1, keepdims=True)
     np.testing.assert_allclose(up, np.tile([0.0, 0.0, 1.0], (20, 1)), atol=0.02)
+
+
+# ----------------------------------------------------------------------------------------------
+# Optical flow: PX4's integrated-radians convention -> fgnav's flow stream
+# ----------------------------------------------------------------------------------------------
+
+VEHICLE_FLOW_FIELDS = [
+    ("uint64_t", 0, "timestamp"),
+    ("uint64_t", 0, "timestamp_sample"),
+    ("float", 2, "pixel_flow"),
+    ("float", 3, "delta_angle"),
+    ("float", 0, "distance_m"),
+    ("uint32_t", 0, "integration_timespan_us"),
+    ("uint8_t", 0, "quality"),
+    ("float", 0, "max_flow_rate"),
+    ("float", 0, "min_ground_distance"),
+    ("float", 0, "max_ground_distance"),
+    ("float", 3, "position_offset"),
+]
+SENSOR_COMBINED_FIELDS = [
+    ("uint64_t", 0, "timestamp"),
+    ("float", 3, "gyro_rad"),
+    ("uint32_t", 0, "gyro_integral_dt"),
+    ("int32_t", 0, "accelerometer_timestamp_relative"),
+    ("float", 3, "accelerometer_m_s2"),
+    ("uint32_t", 0, "accelerometer_integral_dt"),
+]
+
+
+def _px4_flow_reading(R, p_world, v_world, omega_flu, ground, lever_flu, dt):
+    """PX4 EKF2's flow model written from its sources, solved for the logged ``pixel_flow``:
+    ``optical_flow.cpp`` takes ``flow_rate = -pixel_flow / dt`` and the flow gyro rate
+    ``-delta_angle / dt``; ``optical_flow_control.cpp`` compensates ``flow_rate - gyro_rate``;
+    ``optical_flow_fusion.cpp`` ``predictFlow`` is ``(v_y, -v_x) * R_to_earth(2, 2) / hagl`` with
+    the body FRD velocity at the sensor. NED world, FRD body: independent of fgnav's convention.
+    """
+    frd = np.diag([1.0, -1.0, -1.0])
+    ned_from_world = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    R_ned = ned_from_world @ R @ frd  # FRD body -> NED
+    w = frd @ omega_flu
+    pos = frd @ lever_flu
+    v_body = R_ned.T @ (ned_from_world @ v_world + R_ned @ np.cross(w, pos))
+    # Height of the sensor above the ground (NED down is -z_world), over R_to_earth(2, 2).
+    hagl = (p_world[2] + (R @ lever_flu)[2]) - ground
+    scale = R_ned[2, 2] / hagl
+    los = np.array([v_body[1] * scale, -v_body[0] * scale])  # predicted compensated rate
+    # los = flow_rate - gyro_rate = -pixel_flow / dt + w_xy  ->  pixel_flow = (w_xy - los) dt
+    return (w[:2] - los) * dt
+
+
+def test_px4_flow_reading_matches_fgnav_flow_model_at_random_states():
+    """The converted reading of a PX4 flow message built with EKF2's model equals fgnav's
+    flow-factor prediction at the same state (tilts up to 25 deg, lever arm, rates)."""
+    from fgnav.datasets.frames import frd_to_flu
+    from fgnav.datasets.geometry import rpy_to_matrix
+    from fgnav.datasets.ulog import body_T_flow_from_px4, flow_from_px4
+    from fgnav.factors.optical_flow import FlowSensor, predict_flow
+
+    rng = np.random.default_rng(7)
+    n = 40
+    pos_offset_frd = np.array([0.04, -0.03, 0.06])
+    imu_pos_frd = np.array([0.01, 0.01, -0.02])
+    states = []
+    flow_frd = np.zeros((n, 2))
+    for i in range(n):
+        R = rpy_to_matrix(*rng.uniform(-0.45, 0.45, 2), rng.uniform(-np.pi, np.pi))
+        p = np.array([*rng.uniform(-3, 3, 2), rng.uniform(0.5, 2.5)])
+        v = rng.normal(0.0, 1.0, 3)
+        w = rng.normal(0.0, 0.8, 3)
+        ground = rng.uniform(-0.2, 0.2)
+        lever = frd_to_flu(pos_offset_frd - imu_pos_frd)
+        flow_frd[i] = _px4_flow_reading(R, p, v, w, ground, lever, 0.02)
+        states.append((R, p, v, w, ground))
+    ts = (2_000_000 + 20_000 * np.arange(n)).astype(np.uint64)
+    cols = {
+        "timestamp": ts + 500,
+        "timestamp_sample": ts,
+        "pixel_flow[0]": flow_frd[:, 0],
+        "pixel_flow[1]": flow_frd[:, 1],
+        "integration_timespan_us": np.full(n, 20_000),
+        "quality": np.full(n, 255),
+        **{f"position_offset[{k}]": np.full(n, pos_offset_frd[k]) for k in range(3)},
+    }
+    params = {f"EKF2_IMU_POS_{a}": imu_pos_frd[k] for k, a in enumerate("XYZ")}
+    series, notes, _ = flow_from_px4(cols, "vehicle_optical_flow", params)
+    body_T_flow, source = body_T_flow_from_px4(cols, "vehicle_optical_flow", params)
+    assert source == "vehicle_optical_flow.position_offset"
+    np.testing.assert_allclose(series.t, ts * 1e-6)
+    np.testing.assert_allclose(series.dt, 0.02)
+    np.testing.assert_allclose(series.quality, 1.0)
+    sensor = FlowSensor(body_T_flow, 1.0)
+    for i, (R, p, v, w, ground) in enumerate(states):
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = R, p
+        pred = predict_flow(pose, v, ground, 0.02, w, sensor)
+        np.testing.assert_allclose(series.flow[i], pred, atol=1e-9, rtol=1e-9)
+    # The same readings in the sensor's axes, mounted with a yaw of 90 deg (SENS_FLOW_ROT 2:
+    # body = Rz(90) sensor): turned back into the body by the reader.
+    a = np.pi / 2
+    Rz = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    raw = flow_frd @ Rz  # sensor = Rz^T body, row-wise
+    cols_s = dict(cols, **{"pixel_flow[0]": raw[:, 0], "pixel_flow[1]": raw[:, 1]})
+    series_s, notes_s, _ = flow_from_px4(cols_s, "sensor_optical_flow", {"SENS_FLOW_ROT": 2})
+    np.testing.assert_allclose(series_s.flow, series.flow, atol=1e-12)
+    assert "yaw 90 deg" in notes_s["sensor_to_body"]
+    with pytest.raises(ValueError, match="SENS_FLOW_ROT"):
+        flow_from_px4(cols_s, "sensor_optical_flow", {"SENS_FLOW_ROT": 9})
+
+
+def test_px4_flow_bad_readings_are_left_out_and_counted():
+    from fgnav.datasets.ulog import flow_from_px4
+
+    n = 10
+    cols = {
+        "timestamp": (1_000_000 + 10_000 * np.arange(n)).astype(np.uint64),
+        "pixel_flow_x_integral": np.full(n, 0.01),
+        "pixel_flow_y_integral": np.full(n, -0.02),
+        "integration_timespan": np.full(n, 10_000),
+        "quality": np.full(n, 128),
+        "ground_distance_m": np.full(n, 1.2),
+    }
+    cols["quality"][1] = 0
+    cols["integration_timespan"][2] = 0
+    cols["integration_timespan"][3] = 1_500_000
+    cols["pixel_flow_x_integral"][4] = np.nan
+    cols["timestamp"][6] = cols["timestamp"][5]
+    series, notes, kept = flow_from_px4(cols, "optical_flow", {})
+    assert notes["skipped_quality_zero"] == 1
+    assert notes["skipped_no_interval"] == 1
+    assert notes["skipped_interval_over_1s"] == 1
+    assert notes["skipped_nonfinite"] == 1
+    assert notes["skipped_time_not_increasing"] == 1
+    assert len(series) == n - 5
+    # Old topic, body FRD axes: fgnav flow = [-y, x].
+    np.testing.assert_allclose(series.flow, np.tile([0.02, 0.01], (n - 5, 1)))
+    np.testing.assert_allclose(series.quality, 128 / 255)
+    np.testing.assert_allclose(kept["distance"], 1.2)
+
+
+def _write_flowdeck_ulog(flight, path, with_distance_sensor: bool = True):
+    """A simulated flow-deck flight as a PX4 log: ``sensor_combined`` (FRD), a downward
+    ``distance_sensor`` with ``EKF2_RNG_POS_*``, and ``vehicle_optical_flow`` in radians about the
+    body FRD axes (fgnav flow ``[fx, fy]`` is PX4 ``[fy, -fx]``) with its ``position_offset``."""
+    from pyulog import ULog
+
+    ulog = ULog(None)
+    t_us = lambda t: np.round((np.asarray(t) + 1.0) * 1e6).astype(np.uint64)  # noqa: E731
+    imu = flight.imu
+    n = len(imu)
+    sc = {"timestamp": t_us(imu.t), "accelerometer_timestamp_relative": np.zeros(n, np.int32)}
+    sc |= {"gyro_integral_dt": np.full(n, 5000), "accelerometer_integral_dt": np.full(n, 5000)}
+    flip = np.array([1.0, -1.0, -1.0])
+    for k in range(3):
+        sc[f"gyro_rad[{k}]"] = (imu.body_omega[:, k] * flip[k]).astype(np.float32)
+        sc[f"accelerometer_m_s2[{k}]"] = (imu.body_accel[:, k] * flip[k]).astype(np.float32)
+    _add_topic(ulog, "sensor_combined", 0, SENSOR_COMBINED_FIELDS, sc)
+    rng = flight.range
+    m = len(rng)
+    if with_distance_sensor:
+        ds = {
+            "timestamp": t_us(rng.t),
+            "current_distance": rng.range.astype(np.float32),
+            "min_distance": np.full(m, flight.calib.range_min, np.float32),
+            "max_distance": np.full(m, flight.calib.range_max, np.float32),
+            "signal_quality": np.full(m, -1, np.int8),
+            "orientation": np.full(m, 25, np.uint8),
+        }
+        _add_topic(ulog, "distance_sensor", 0, DISTANCE_FIELDS, ds)
+    fl = flight.flow
+    k = len(fl)
+    ppr = flight.calib.flow_pixels_per_rad
+    offset = flight.calib.body_T_flow[:3, 3] * flip  # FLU -> FRD
+    dist = np.interp(fl.t, rng.t, rng.range).astype(np.float32)
+    of = {
+        "timestamp": t_us(fl.t) + np.uint64(300),
+        "timestamp_sample": t_us(fl.t),
+        "pixel_flow[0]": (fl.flow[:, 1] / ppr).astype(np.float32),
+        "pixel_flow[1]": (-fl.flow[:, 0] / ppr).astype(np.float32),
+        **{f"delta_angle[{j}]": np.full(k, np.nan, np.float32) for j in range(3)},
+        "distance_m": dist,
+        "integration_timespan_us": np.round(fl.dt * 1e6).astype(np.uint32),
+        "quality": np.round(fl.quality * 255).astype(np.uint8),
+        "max_flow_rate": np.full(k, 8.0, np.float32),
+        "min_ground_distance": np.full(k, flight.calib.range_min, np.float32),
+        "max_ground_distance": np.full(k, flight.calib.range_max, np.float32),
+        **{f"position_offset[{j}]": np.full(k, offset[j], np.float32) for j in range(3)},
+    }
+    _add_topic(ulog, "vehicle_optical_flow", 0, VEHICLE_FLOW_FIELDS, of)
+    rp = flight.calib.body_T_range[:3, 3] * flip
+    ulog._initial_parameters.update(
+        {f"EKF2_RNG_POS_{a}": float(rp[j]) for j, a in enumerate("XYZ")}
+    )
+    ulog.write_ulog(str(path))
+    return path
+
+
+@pytest.mark.parametrize("with_distance_sensor", [True, False])
+def test_px4_flow_log_feeds_the_batch_smoother(tmp_path, with_distance_sensor):
+    """A simulated flow-deck flight written as a PX4 log (IMU, range, flow) and read back: the
+    batch smoother with IMU + flow + range gets its horizontal velocity within the bound of the
+    simulated flight itself; without a ``distance_sensor`` the flow message's distance is the
+    range."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    from fgnav.solvers.batch import BatchOptions, solve_batch
+    from fgnav.solvers.graph import GraphOptions
+
+    sim = simulate(
+        "flowdeck",
+        seed=0,
+        options=SimOptions(
+            duration=20.0, images=False, slam_rate_hz=0.0, attitude_rate_hz=0.0, yaw_rate_hz=0.0
+        ),
+    )
+    path = _write_flowdeck_ulog(sim, tmp_path / "flowdeck.ulg", with_distance_sensor)
+    f = read_ulog(path)
+    assert f.meta["flow"]["topic"] == "vehicle_optical_flow"
+    assert len(f.flow) == len(sim.flow)
+    np.testing.assert_allclose(f.flow.flow, sim.flow.flow / 48.0, atol=1e-6)
+    assert f.calib.flow_pixels_per_rad == 1.0
+    np.testing.assert_allclose(f.calib.body_T_flow, sim.calib.body_T_flow, atol=1e-6)
+    if with_distance_sensor:
+        np.testing.assert_allclose(f.calib.body_T_range, sim.calib.body_T_range, atol=1e-6)
+    else:
+        assert "distance_m" in f.meta["range"]["source"]
+        np.testing.assert_allclose(f.calib.body_T_range, sim.calib.body_T_flow, atol=1e-6)
+    if with_distance_sensor:
+        # The same streams through a manifest's tables (`format = "ulog"`).
+        from fgnav.datasets.load import load_flight
+
+        man = tmp_path / "flight.toml"
+        man.write_text(
+            'name = "px4-flow"\n'
+            + "".join(
+                f'[{t}]\nformat = "ulog"\npath = "flowdeck.ulg"\n'
+                for t in ("imu", "range", "flow", "calib")
+            )
+        )
+        fm = load_flight(man)
+        np.testing.assert_array_equal(fm.flow.flow, f.flow.flow)
+        np.testing.assert_allclose(fm.calib.body_T_flow, f.calib.body_T_flow)
+    est = solve_batch(f, BatchOptions(graph=GraphOptions(), covariance="none"))
+    assert est.info["factors"]["flow"] > 350
+    gt = sim.ground_truth
+    t = est.trajectory.t - 1.0  # the log's clock starts 1 s before the simulator's
+    v = np.column_stack([np.interp(t, gt.t, gt.world_v_body[:, k]) for k in range(2)])
+    # The log's world yaw is the estimator's own (no heading source): compare speeds.
+    speed_err = np.linalg.norm(est.trajectory.world_v_body[:, :2], axis=1) - np.linalg.norm(
+        v, axis=1
+    )
+    rmse = float(np.sqrt(np.mean(speed_err[t > 1.0] ** 2)))
+    assert rmse < 0.03, rmse
