@@ -26,6 +26,11 @@ each counted by name in :meth:`FaultDetectors.report`:
   exceeds the motion the IMU-propagated estimate allows, ``|v| dt + slam_jump_min_m + a_max
   dt^2 / 2``: a relocalisation. The poses after a jump continue as a new SLAM session (a new
   alignment, its scale started from the previous one's), so the jump is not fitted as motion.
+- ``slam-reset``: a SLAM pose of a session the input had not used before, after poses of
+  another: a map reset (or a new map after lost tracking) that the input declares. Named, not
+  fixed: every session has its own scale and alignment in the smoothers, so the scale is
+  estimated again from the motion after it (a map reset at 12 s of the simulated two-turns doubles
+  the batch's ATE: two 11-12 s scale fits instead of one of 24 s).
 - ``range-stuck``: ``range_stuck_s`` of readings with identical values while the estimate says
   the sensor's height changed by more than ``range_stuck_motion_m``; further identical readings
   are dropped (``range:stuck``) until the value changes. Batch: the whole run is dropped; a
@@ -92,6 +97,7 @@ DETECTORS = (
     "imu-saturation",
     "imu-gap",
     "slam-jump",
+    "slam-reset",
     "range-stuck",
     "camera-frozen",
     "slam-clock-offset",
@@ -389,6 +395,15 @@ class FaultDetectors:
         virtual = sess + JUMP_SESSION_BASE * n
         prev = self._slam_prev.get(sess)
         t = float(ev.t)
+        if prev is None and self._slam_prev and sess < JUMP_SESSION_BASE:
+            # (ids from JUMP_SESSION_BASE up: this check's own split at a jump, fed again)
+            last_sess, (t_last, _) = max(self._slam_prev.items(), key=lambda kv: kv[1][0])
+            self._count(
+                "slam-reset",
+                f"SLAM session {sess} starts at t={t:.2f}, {t - t_last:.2f} s after the last pose "
+                f"of session {last_sess}: a map reset declared by the input (a new scale and "
+                "alignment from here)",
+            )
         if prev is not None and 0 < t - prev[0] <= o.slam_jump_max_dt_s:
             dt = t - prev[0]
             scale = self.context.scale(virtual)

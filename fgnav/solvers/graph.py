@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 #: Drag coefficient used when no closed-form initial value is possible [1/s]; seed 000's
 #: simulation uses kx = 0.3, ky = 0.2 and the simulator's default is (0.38, 0.42).
 DEFAULT_DRAG_K = 0.3
+#: Origin sigma [m] of the link from a SLAM session's last alignment to the session the health
+#: check split off at a SLAM jump (the jump's size is unknown; rotation and scale walk on).
+SLAM_JUMP_ORIGIN_SIGMA_M = 10.0
 #: Relative sigma of the weak prior on a SLAM session's initial scale (closed-form fit).
 WEAK_SCALE_PRIOR_REL = 0.5
 #: Integration noise of the preintegration (GTSAM examples use 1e-8) [m^2/s^2... per s].
@@ -808,6 +811,7 @@ class GraphBuilder:
         self.slam_sessions: list[int] = []
         self.slam_chain: np.ndarray | None = None
         self.slam_chain_prev: dict[int, tuple[int, int]] = {}
+        self.slam_jump_keys: set[int] = set()
         if not self.use_slam:
             return
         slam = self.flight.slam
@@ -850,6 +854,27 @@ class GraphBuilder:
                 seg_prev, j_prev = last[sess]
                 self.slam_chain_prev[j] = (j_prev, seg - seg_prev)
             last[sess] = (seg, j)
+        # A session the health check split off at a SLAM jump (a relocalisation in the same
+        # map: id ``parent + JUMP_SESSION_BASE * n``) continues its parent's chain: its first
+        # segment walks from the parent's last one in rotation and scale over the time between
+        # them, its origin free (``slam_jump_keys``; the jump is the origin's).
+        from fgnav.health import JUMP_SESSION_BASE
+
+        if self.slam_model == "sim3":
+            first: dict[int, tuple[int, int]] = {}
+            for (sess, seg), j in sorted(self.slam_var.items()):
+                first.setdefault(sess, (seg, j))
+            for sess, (_seg, j) in first.items():
+                parent = sess - JUMP_SESSION_BASE
+                if sess < JUMP_SESSION_BASE or parent not in last:
+                    continue
+                m = slam.session[a.meas_index]
+                t_gap = float(slam.t[a.meas_index[m == sess][0]]) - float(
+                    slam.t[a.meas_index[m == parent][-1]]
+                )
+                n_seg = max(1, int(math.ceil(t_gap / seg_s - 1e-9)))
+                self.slam_chain_prev[j] = (last[parent][1], n_seg)
+                self.slam_jump_keys.add(j)
 
     def _interp_stream(self, t: np.ndarray, x: np.ndarray, name: str) -> tuple[np.ndarray, ...]:
         """Linear interpolation of a scalar stream to the keyframe times from the two samples
@@ -1523,9 +1548,10 @@ class GraphBuilder:
                 dt = math.sqrt(self.slam_walk_s(key))
                 # Similarity3 tangent [omega, u, lambda]; u is the GTSAM translation t / s... in
                 # world-scaled units (t = slam_t_world / s) [m].
-                sig = np.array(
-                    [o.slam_rot_rw * dt] * 3 + [o.slam_trans_rw_m * dt] * 3 + [o.slam_scale_rw * dt]
-                )
+                trans = o.slam_trans_rw_m * dt
+                if int(gtsam.Symbol(key).index()) in self.slam_jump_keys:
+                    trans = SLAM_JUMP_ORIGIN_SIGMA_M  # the jump moved the map's origin
+                sig = np.array([o.slam_rot_rw * dt] * 3 + [trans] * 3 + [o.slam_scale_rw * dt])
                 g.add(
                     gtsam.BetweenFactorSimilarity3(
                         prev, key, gtsam.Similarity3(), gtsam.noiseModel.Diagonal.Sigmas(sig)
