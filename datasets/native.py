@@ -826,7 +826,13 @@ def open_flight_streams(folder: str | Path, chunk_rows: int = CHUNK_ROWS) -> Fli
         if first is None:
             raise FlightFormatError(path, "no samples")
         counts[name] = count_rows(path)
-        last = _last_sample(path, name) or first
+        last = _last_sample(path, name)
+        if last is None:
+            # The last line does not parse on its own (cut in the middle, text, or a header the
+            # fast path does not know): the whole read names a bad line (file:line) and
+            # otherwise gives the true last sample. The first sample alone would give the
+            # stream a zero span and a misleading "do not overlap" error.
+            last = read_stream_csv(path, name)
         outline[name] = _ends(first, last)
         files[name] = path
     flight = Flight(

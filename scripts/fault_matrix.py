@@ -78,6 +78,8 @@ class Row:
         quick: part of ``--quick``.
         config: TOML text of a ``--config`` file (None: none).
         extra_args: more CLI flags.
+        names_input: a bad input file: an ``error`` outcome must name a file of the row's
+            input (its path), not only the flight (``file:*`` rows are so by default).
     """
 
     name: str
@@ -88,6 +90,7 @@ class Row:
     quick: bool = False
     config: str | None = None
     extra_args: tuple[str, ...] = ()
+    names_input: bool = False
 
 
 #: The row giving each base flight's nominal ATE.
@@ -815,6 +818,7 @@ def rows() -> list[Row]:
             _mh01_corrupt("imu", "text"),
             "EuRoC imu csv: a text line",
             _both(ERR),
+            names_input=True,
         ),
         R(
             "mh01:slam-out-of-order",
@@ -822,6 +826,7 @@ def rows() -> list[Row]:
             _mh01_corrupt("slam", "out-of-order"),
             "TUM SLAM file: two lines swapped",
             _both(ANY),
+            names_input=True,
         ),
     ]
 
@@ -986,6 +991,9 @@ def _run_cli_row(row: Row, command: str, ctx: Context, nominal: dict) -> Run:
         and not warnings
     ):
         outcome, err = "FAIL", f"ATE {ate:.2f} m with exit 0 and no warning"
+    names_input = row.names_input or row.name.startswith("file:")
+    if outcome == "error" and names_input and str(folder / "input") not in (err or ""):
+        outcome, err = "FAIL", f"the error names no input file: {err}"
     info = (summary or {}).get("info") or {}
     return Run(
         row.name,

@@ -77,3 +77,19 @@ def test_online_fed_from_chunks_equals_the_whole_flight_replay(folder):
     np.testing.assert_array_equal(a.trajectory.t, b.trajectory.t)
     np.testing.assert_allclose(a.trajectory.world_t_body, b.trajectory.world_t_body, atol=1e-9)
     assert a.info["received"] == b.info["received"]
+
+
+def test_a_file_cut_in_its_last_line_is_named_when_opened_as_streams(folder, tmp_path):
+    """``fgnav online`` opens a native folder as streams: a stream file cut in the middle of its
+    last line is named with its line (as the whole read names it), not read as a stream of one
+    sample (which failed later with "the imu and slam streams do not overlap")."""
+    import shutil
+
+    cut = tmp_path / "cut"
+    shutil.copytree(folder, cut)
+    lines = (cut / "slam.csv").read_text().splitlines()
+    (cut / "slam.csv").write_text("\n".join(lines[:200] + [lines[200][:30]]) + "\n")
+    with pytest.raises(FlightFormatError, match=r"slam\.csv:201: expected 10 columns"):
+        open_flight_streams(cut)
+    with pytest.raises(FlightFormatError, match=r"slam\.csv:201: expected 10 columns"):
+        read_flight(cut)
