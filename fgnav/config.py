@@ -89,6 +89,7 @@ POSITIVE_OPTIONS = frozenset(
         "slow_read_every",
         "fine_levels",
         "slam_provisional_scale",
+        "slam_provisional_min_poses",
         "slam_init_max_rel_se",
     }
 )

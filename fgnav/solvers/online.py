@@ -2563,6 +2563,8 @@ class OnlineSmoother:
         source = "session" if scale is not None else "default"
         if ml is not None:
             source = "ml-scale"
+        if scale is None and self._prov_n_covered(s) < o.slam_provisional_min_poses:
+            return False  # held back: fewer poses than make the scale observable
         if scale is None:
             data = self._data_scale(s) if o.slam_provisional_wait_s > 0 else None
             if data is None and s.t[-1] - self._prov_t_first(s) < o.slam_provisional_wait_s:
@@ -2614,6 +2616,11 @@ class OnlineSmoother:
                 self._pending.append(item)
             else:
                 self._drop("slam:before-alignment")
+
+    def _prov_n_covered(self, s: _Session) -> int:
+        """How many of the session's arrived poses the smoother covers."""
+        t = np.asarray(s.t)
+        return int(np.count_nonzero(t >= self.t0 - 0.5 * self.period))
 
     def _prov_t_first(self, s: _Session) -> float:
         """Time of the session's first arrived pose the smoother covers."""
