@@ -727,6 +727,7 @@ class OnlineSmoother:
         self._anchors: deque = deque()  # arrived image times not yet passed
         self._anchors_on = False
         self._slam_wait: list = []  # SLAM poses taken after the newest keyframe
+        self._slam_prestart: list = []  # SLAM poses that arrived before the start
         self._flow: deque = deque()  # arrived optical-flow readings (last 5 s)
         if isinstance(getattr(self, "_vo", None), VoProcess):
             self._vo.close()
@@ -1102,6 +1103,11 @@ class OnlineSmoother:
         self._read(0, wall)
         self._kf_index.append((t_start, 0))
         self._waiting_scalar(0)
+        # The SLAM poses that arrived before the start attach when taken at or after it (a pose
+        # that came with no latency, before the IMU passed its time), else are counted.
+        prestart, self._slam_prestart = self._slam_prestart, []
+        for t, payload in prestart:
+            self._take_slam(t, payload)
         # The IMU that arrived after the start time (the start may lie in the past: the first
         # SLAM pose's capture time) closes its keyframes now.
         self._advance(self._t_imu_last)
@@ -1855,12 +1861,19 @@ class OnlineSmoother:
         horizon = self._t_imu_last - self.options.history_s
         while len(s.t) > 2 and s.t[0] < horizon:
             del s.t[0], s.p[0], s.q[0]
+        payload = (sess, len(s.t) - 1, float(ev.t), p, q_stored)
         if self.t0 is None:
+            # Kept in the session for the alignment fit; attached or counted at the start.
+            self._slam_prestart.append((float(ev.t), payload))
             return
-        if ev.t < self.t0 - 0.5 * self.period:
+        self._take_slam(float(ev.t), payload)
+
+    def _take_slam(self, t: float, payload: tuple) -> None:
+        """A SLAM pose waits for its keyframe, or is counted when taken before the start."""
+        if t < self.t0 - 0.5 * self.period:
             self._drop("slam:before-start")
             return
-        self._slam_wait.append((float(ev.t), (sess, len(s.t) - 1, float(ev.t), p, q_stored)))
+        self._slam_wait.append((t, payload))
 
     def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
         """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
@@ -2194,7 +2207,8 @@ class OnlineSmoother:
             prov_new.append((g.size(), sess, (k, t, p, q)))
         g.add(fac)
         stamps[key] = self.t_kf[self.k]
-        self._use("slam")
+        # A provisional pose moved onto the new chain (row -1) was counted when it first attached.
+        self._use("slam" if row >= 0 else "slam:reattached")
         if (
             self.go.use_slam_rotation is not False
             and key != s.provisional
@@ -2521,6 +2535,7 @@ class OnlineSmoother:
             for idx, (k, tp, p, q) in s.prov_factors:
                 if self._kf_alive(k) and self._alive(s.provisional):
                     remove.append(idx)
+                    # Row -1: a re-attachment (counted as ``slam:reattached``, not as used).
                     self._pending.append((k, "slam", (sess, -1, tp, p, q)))
             s.prov_factors = []
             s.provisional = None

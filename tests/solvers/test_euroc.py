@@ -76,7 +76,7 @@ def test_euroc_v102_batch_origin_walk_default_beats_the_old_one(real_data, run):
     [
         (MANIFEST, 0.050, 0.005, "as-is"),
         (V102["orbslam2_kf1"], 0.090, 0.013, "as-is"),
-        (V102["orbslam3_kf2"], 0.038, 0.013, "inverse"),
+        (V102["orbslam3_kf2"], 0.032, 0.013, "inverse"),
     ],
 )
 def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_max, convention):
@@ -95,7 +95,9 @@ def test_euroc_push_engine_causal_accuracy(real_data, manifest, ate_max, scale_m
     # error 1.27 -> 0.70 %, NEES 3.69 -> 1.11; V1_02 ORB-SLAM2 9.36 -> 8.43 cm (1.46 -> 1.16 %),
     # ORB-SLAM3 5.34 -> 3.46 cm (1.19 -> 0.87 %). Then the push engine's scale walk 3e-4 -> the
     # graph's 1e-3 (FixedLagOptions.slam_scale_rw None): MH_01 4.53 cm, 0.48 % (issue 15's goals,
-    # 5.0 cm and 0.5 %), NEES 1.09; V1_02 8.43 / 3.46 cm, 1.19 / 1.12 %.
+    # 5.0 cm and 0.5 %), NEES 1.09; V1_02 8.43 / 3.46 cm, 1.19 / 1.12 %. 2026-12-07: a SLAM pose
+    # that arrived before the start (the first, with no latency) attaches at it instead of being
+    # lost: ORB-SLAM3 3.46 -> 2.95 cm, NEES 2.18 -> 1.35; MH_01 and ORB-SLAM2 unchanged.
     from fgnav.solvers.fixed_lag import FixedLagOptions
     from fgnav.solvers.online import replay_online
 
@@ -227,8 +229,11 @@ def test_euroc_v102_orbslam2_push_engine_segment_after_pause(real_data):
 
 @pytest.mark.slow
 @pytest.mark.realdata
-@pytest.mark.parametrize("manifest", [MANIFEST, V102["orbslam2_kf1"], V102["orbslam3_kf2"]])
-def test_fixed_lag_beats_the_causal_filters_on_the_common_span(real_data, manifest):
+@pytest.mark.parametrize(
+    "manifest, own_span_too",
+    [(MANIFEST, True), (V102["orbslam2_kf1"], False), (V102["orbslam3_kf2"], True)],
+)
+def test_fixed_lag_beats_the_causal_filters_on_the_common_span(real_data, manifest, own_span_too):
     # `fgnav compare`'s "ATE common" column: each method scored from the latest first output of
     # the causal methods (the filters emit nothing before their scale fit, 4-5 s after the first
     # SLAM pose on V1_02) to the end. Measured 2026-12-04 [cm], fixed-lag / ukf003 / msf-ekf:
@@ -242,3 +247,10 @@ def test_fixed_lag_beats_the_causal_filters_on_the_common_span(real_data, manife
     ate = {n: r.ate_common_m for n, r in res.runs.items()}
     assert res.common_span_start_s is not None and None not in ate.values(), ate
     assert ate["fixed-lag"] < min(ate["ukf003"], ate["msf-ekf"]), ate
+    # Each scored over its own span (the smoother from its start, the filters from their first
+    # output). 2026-12-07, after a SLAM pose that arrives before the start attaches at it (it
+    # was silently lost): ORB-SLAM3 2.95 / 3.25 / 4.58 cm (was 3.46). ORB-SLAM2 still loses
+    # (8.14 against ukf003's 4.69): its 5-8 s, IMU alone until the SLAM scale is observable.
+    own = {n: r.metrics.ate_rmse_m for n, r in res.runs.items()}
+    if own_span_too:
+        assert own["fixed-lag"] < min(own["ukf003"], own["msf-ekf"]), own
