@@ -73,6 +73,9 @@ def format_counts(counts: dict[str, Any]) -> list[str]:
     lines.append(f"dropped: {drop}")
     lost = ", ".join(f"{k}: {v}" for k, v in counts["lost"].items()) or "none"
     lines.append(f"lost (MAVLink sequence numbers, by sysid/compid): {lost}")
+    left = ", ".join(f"{k} {v}" for k, v in counts.get("left", {}).items())
+    if left:
+        lines.append(f"left at the end (still waiting when the stream ended): {left}")
     lines.append("sent: " + (", ".join(f"{k} {v}" for k, v in counts["sent"].items()) or "none"))
     return lines
 

@@ -112,6 +112,9 @@ class LiveResult:
         - ``dropped``: ``"stream:reason"`` -> n, at the edge (``fgnav.live.inbound``) and in
           the estimator, together; ``dropped_at_link``: those of the edge alone;
         - ``lost``: ``"sysid/compid"`` -> messages missing by sequence number;
+        - ``left``: ``"stream:reason"`` -> measurements the estimator still held when the
+          stream ended (after its last keyframe, or waiting for a SLAM alignment): its
+          estimate's ``info["skipped"]``;
         - ``sent``: messages fgnav sent, by name.
         """
         dropped = dict(self.inbound["dropped"])
@@ -125,6 +128,7 @@ class LiveResult:
             "dropped": dict(sorted(dropped.items())),
             "dropped_at_link": self.inbound["dropped"],
             "lost": self.inbound["lost"],
+            "left": dict((self.estimate.info.get("skipped") or {}) if self.estimate else {}),
             "sent": self.sent,
         }
 

@@ -199,6 +199,11 @@ def _check_live_counts(flight, out: Path) -> dict:
     assert live["messages"]["HIGHRES_IMU"] == len(flight.imu)
     assert live["dropped_at_link"] == {}
     assert live["used"]["imu"] == len(flight.imu) and live["used"]["slam"] > 0
+    # Every SLAM pose received is used once, dropped or left waiting at the end, by reason.
+    if ESTIMATOR == "online":
+        other = {**live["dropped"], **live["left"]}
+        n_other = sum(v for k, v in other.items() if k.startswith("slam:"))
+        assert live["used"]["slam"] + n_other == live["received"]["slam"], (live, other)
     assert live["sent"]["ODOMETRY"] > 0 and live["sent"]["HEARTBEAT"] >= 1
     return live
 
