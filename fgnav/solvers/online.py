@@ -1682,8 +1682,12 @@ class OnlineSmoother:
         h0 = 0.5 * (t_j - self.t_kf[j - 1]) if j - 1 in self.t_kf else h1
         lo, hi = max(t_j - h0, self._flow_done_t), t_j + h1
         samples = [r for r in self._flow if lo < r.t <= hi]
-        # Readings older than the window just made arrived too late for theirs.
-        n_late = sum(1 for r in self._flow if r.t <= lo)
+        # Readings older than the window just made arrived too late for theirs (or were taken
+        # before the start, the first window's lower edge).
+        n_early = sum(1 for r in self._flow if r.t <= min(lo, self.t0))
+        n_late = sum(1 for r in self._flow if r.t <= lo) - n_early
+        if n_early:
+            self._drop("flow:before-start", n_early)
         if n_late:
             self._drop("flow:late", n_late)
         while self._flow and self._flow[0].t <= hi:

@@ -213,3 +213,22 @@ def test_push_engine_keeps_the_rest_bias_removed_by_the_firmware(flights, name):
     assert np.abs(gb[:, 2]).max() < 3e-4  # body z held at the prior's zero
     r = _drift_parts().parts(est, f)
     assert r["drift"] <= STILL_START_DRIFT_BOUND, r
+
+
+def test_push_engine_counts_every_flow_reading(flights):
+    """Every flow reading is used or dropped by reason. Fed straight to the push API (without
+    the replay's `use_slam = false`), the smoother waits ``start_wait_s`` for a SLAM pose and
+    starts in flight: the readings before that are ``flow:before-start`` (they were counted as
+    ``flow:late``)."""
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.online import replay_online
+
+    f = flights["0425-traj1"]
+    est = replay_online(f, FixedLagOptions())
+    i = est.info
+    flow_out = {k: v for k, v in {**i["dropped"], **i["skipped"]}.items() if k[:5] == "flow:"}
+    assert i["used"]["flow"] + sum(flow_out.values()) == i["received"]["flow"] == len(f.flow)
+    # The first keyframe's window reaches half a keyframe interval before the start.
+    t0 = est.trajectory.t[0]
+    lo, hi = (int(np.count_nonzero(f.flow.t <= t)) for t in (t0 - 0.05, t0))
+    assert 0 < lo <= flow_out["flow:before-start"] <= hi and "flow:late" not in flow_out
