@@ -146,21 +146,32 @@ def _slam_position(
     ``with_jacobians``."""
     world_R_body = m[:3, :3]
     p = m[:3, 3] + world_R_body @ body_t_cam
-    R = slam_T_world.rotation().matrix()
-    s = slam_T_world.scale()
-    y = s * (R @ p + slam_T_world.translation())
+    y, sR = _sim3_point(slam_T_world, p)
     e = y - z
     if not with_jacobians:
         return e, None
-    sR = s * R
     p_D_pose = np.empty((3, 6))
     p_D_pose[:, :3] = -world_R_body @ body_t_cam_skew
     p_D_pose[:, 3:] = world_R_body
-    e_D_sim = np.empty((3, 7))
-    e_D_sim[:, :3] = -sR @ skew(p)
-    e_D_sim[:, 3:6] = sR
-    e_D_sim[:, 6] = sR @ p
-    return e, [sR @ p_D_pose, e_D_sim]
+    return e, [sR @ p_D_pose, _sim3_point_D_sim(sR, p)]
+
+
+def _sim3_point(slam_T_world: gtsam.Similarity3, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(y, s R)``: the world point ``p`` in the SLAM frame, ``y = s (R p + t)`` [SLAM units],
+    and the scaled rotation (``y_D_p``)."""
+    R = slam_T_world.rotation().matrix()
+    s = slam_T_world.scale()
+    return s * (R @ p + slam_T_world.translation()), s * R
+
+
+def _sim3_point_D_sim(sR: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Jacobian (3x7) of ``y = s (R p + t)`` w.r.t. the ``Similarity3`` local coordinates
+    ``[omega, u, lambda]`` (module docstring), from ``s R`` and the world point ``p``."""
+    y_D_sim = np.empty((3, 7))
+    y_D_sim[:, :3] = -sR @ skew(p)
+    y_D_sim[:, 3:6] = sR
+    y_D_sim[:, 6] = sR @ p
+    return y_D_sim
 
 
 def slam_axis_scale_error(
@@ -354,20 +365,14 @@ def _carried_camera(m, v, dt, Ec, f_half, g_half):
 
 def _slam_offset(m, v, slam_T_world, z, dt, Ec, f_half, g_half, with_jacobians):
     R_b, lever, p = _carried_camera(m, v, dt, Ec, f_half, g_half)
-    R = slam_T_world.rotation().matrix()
-    s = slam_T_world.scale()
-    e = s * (R @ p + slam_T_world.translation()) - z
+    y, sR = _sim3_point(slam_T_world, p)
+    e = y - z
     if not with_jacobians:
         return e, None
-    sR = s * R
     e_D_pose = np.empty((3, 6))
     e_D_pose[:, :3] = -sR @ R_b @ skew(lever)
     e_D_pose[:, 3:] = sR @ R_b
-    e_D_sim = np.empty((3, 7))
-    e_D_sim[:, :3] = -sR @ skew(p)
-    e_D_sim[:, 3:6] = sR
-    e_D_sim[:, 6] = sR @ p
-    return e, [e_D_pose, sR * dt, e_D_sim]
+    return e, [e_D_pose, sR * dt, _sim3_point_D_sim(sR, p)]
 
 
 def make_slam_position_offset_factor(

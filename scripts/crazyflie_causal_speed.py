@@ -41,9 +41,7 @@ newest-vs-older scale of V(k), V(k-1), V(k-2), V(k-5) (traj1): 1.060, 1.059, 1.0
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import logging
 import sys
 from pathlib import Path
 
@@ -54,7 +52,14 @@ from fgnav.datasets.load import load_flight
 from fgnav.methods import METHODS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from crazyflie_drift_parts import default_logs, parts  # noqa: E402
+from crazyflie_drift_parts import (  # noqa: E402
+    parse_table_args,
+    parts,
+    parts_cells,
+    print_header,
+    print_row,
+    speed_scale,
+)
 
 FINDINGS = """
 1. Not the flow attachment: the newest keyframe (no flow factor yet, IMU-predicted) and k-1
@@ -151,9 +156,7 @@ def newest_vs_older(flight, offsets=(0, 1, 2, 5)) -> dict[int, float]:
         t = r[:, 0] - o * period
         v = r[:, 1 + 3 * i : 3 + 3 * i]
         vt = np.stack([np.interp(t, gt.t, gt.world_v_body[:, a]) for a in range(2)], 1)
-        sp, spt = np.linalg.norm(v, axis=1), np.linalg.norm(vt, axis=1)
-        m = (spt > 0.5) & np.isfinite(sp)
-        out[o] = float(np.sum(sp[m] * spt[m]) / np.sum(spt[m] ** 2))
+        out[o] = speed_scale(v, vt)
     return out
 
 
@@ -173,36 +176,32 @@ def run_variant(flight, variant: str, batch_bias: np.ndarray):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("logs", nargs="*", type=Path)
-    ap.add_argument("--variants", default=",".join(VARIANTS))
-    a = ap.parse_args(argv)
-    logging.basicConfig(level=logging.ERROR)
-    logs = a.logs or default_logs()
-    print(
-        "| flight | variant | drift [%] | true yaw [%] | true speed [%] | speed scale | "
-        "body v err x, y [m/s] | gyro bias x, y [mrad/s] |"
+    logs, variants = parse_table_args(argv, __doc__, "--variants", ",".join(VARIANTS))
+    print_header(
+        "flight",
+        "variant",
+        "drift [%]",
+        "true yaw [%]",
+        "true speed [%]",
+        "speed scale",
+        "body v err x, y [m/s]",
+        "gyro bias x, y [mrad/s]",
     )
-    print("|:--|:--|--:|--:|--:|--:|--:|--:|")
     for p in logs:
         f = load_flight(p)
         batch = METHODS["batch"].run(f, {}).trajectory
         bias = np.asarray(batch.gyro_bias[len(batch.t) // 2], float)
-        for v in a.variants.split(","):
+        for v in variants:
             if v == "newest-vs-older":
                 s = newest_vs_older(f)
-                print(f"| {p.name[5:]} | {v} | scale of V(k-o), o: {s} |", flush=True)
+                print_row(p.name[5:], v, f"scale of V(k-o), o: {s}")
                 continue
             est = run_variant(f, v, bias)
             r = parts(est, f)
             e = body_error(est, f)
             gb = 1e3 * np.asarray(est.trajectory.gyro_bias, float).mean(axis=0)
-            print(
-                f"| {p.name[5:]} | {v} | {r['drift']:.2f} | {r['true_yaw']:.2f} | "
-                f"{r['true_speed']:.2f} | {r['scale']:.3f} | {e[0]:+.3f}, {e[1]:+.3f} | "
-                f"{gb[0]:+.2f}, {gb[1]:+.2f} |",
-                flush=True,
-            )
+            body = [f"{e[0]:+.3f}, {e[1]:+.3f}", f"{gb[0]:+.2f}, {gb[1]:+.2f}"]
+            print_row(p.name[5:], v, *parts_cells(r), f"{r['scale']:.3f}", *body)
     return 0
 
 

@@ -85,40 +85,71 @@ def parts(est, flight) -> dict[str, float]:
     v_yaw = np.einsum("nij,nj->ni", _rz(err), v)
     sp, spt = np.linalg.norm(v, axis=1), np.linalg.norm(vt, axis=1)
     v_speed = v * (spt / np.maximum(sp, 1e-9))[:, None]
-    fast = spt > 0.5
     return {
         "drift": drift(v),
         "true_yaw": drift(v_yaw),
         "true_speed": drift(v_speed),
         "end_yaw_deg": -math.degrees(float(err[-1])),
-        "scale": float(np.sum(sp[fast] * spt[fast]) / np.sum(spt[fast] ** 2)),
+        "scale": speed_scale(v, vt),
         "path_m": path,
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def speed_scale(v: np.ndarray, vt: np.ndarray) -> float:
+    """Least-squares ratio of the estimated horizontal speed (of ``v``, (N, 2) [m/s]) to the true
+    one (of ``vt``) over the samples where the truth is above 0.5 m/s and the estimate finite."""
+    sp, spt = np.linalg.norm(v, axis=1), np.linalg.norm(vt, axis=1)
+    m = (spt > 0.5) & np.isfinite(sp)
+    return float(np.sum(sp[m] * spt[m]) / np.sum(spt[m] ** 2))
+
+
+def parse_table_args(argv: list[str] | None, doc: str, option: str, default: str):
+    """Command line of a drift-parts table script: ``LOG ...`` (default: :func:`default_logs`) and
+    one comma-separated ``option``; logging set to errors only. ``(logs, option values)``."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("logs", nargs="*", type=Path)
-    ap.add_argument("--methods", default="batch,fixed-lag")
+    ap.add_argument(option, default=default)
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
-    logs = a.logs or default_logs()
-    print(
-        "| flight | method | drift [%] | true yaw [%] | true speed [%] | end yaw err [deg] | "
-        "raw gyro end yaw err [deg] | speed scale |"
+    values = getattr(a, option.lstrip("-").replace("-", "_")).split(",")
+    return a.logs or default_logs(), values
+
+
+def parts_cells(r: dict[str, float]) -> list[str]:
+    """The ``drift``, ``true yaw`` and ``true speed`` cells [%] of a row from :func:`parts`."""
+    return [f"{r['drift']:.2f}", f"{r['true_yaw']:.2f}", f"{r['true_speed']:.2f}"]
+
+
+def print_row(*cells: str) -> None:
+    """One row of a Markdown table, flushed (each row of these tables takes minutes)."""
+    print("| " + " | ".join(cells) + " |", flush=True)
+
+
+def print_header(*columns: str) -> None:
+    """Markdown table header: ``columns``, the first two left-aligned, the others right."""
+    print_row(*columns)
+    print("|:--|:--|" + "--:|" * (len(columns) - 2))
+
+
+def main(argv: list[str] | None = None) -> int:
+    logs, methods = parse_table_args(argv, __doc__, "--methods", "batch,fixed-lag")
+    print_header(
+        "flight",
+        "method",
+        "drift [%]",
+        "true yaw [%]",
+        "true speed [%]",
+        "end yaw err [deg]",
+        "raw gyro end yaw err [deg]",
+        "speed scale",
     )
-    print("|:--|:--|--:|--:|--:|--:|--:|--:|")
     for p in logs:
         f = load_flight(p)
         g = gyro_end_yaw_error(f)
-        for m in a.methods.split(","):
+        for m in methods:
             r = parts(METHODS[m].run(f, {}), f)
-            print(
-                f"| {p.name[5:]} | {m} | {r['drift']:.2f} | {r['true_yaw']:.2f} | "
-                f"{r['true_speed']:.2f} | {r['end_yaw_deg']:+.1f} | {g:+.1f} | "
-                f"{r['scale']:.3f} |",
-                flush=True,
-            )
+            end_yaw = [f"{r['end_yaw_deg']:+.1f}", f"{g:+.1f}"]
+            print_row(p.name[5:], m, *parts_cells(r), *end_yaw, f"{r['scale']:.3f}")
     return 0
 
 

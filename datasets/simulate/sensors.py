@@ -101,32 +101,47 @@ def simulate_imu(
 # ---------------------------------------------------------------------------------------------
 
 
+def _orientation_samples(
+    vehicle: VehicleLog,
+    opts: SimOptions,
+    rng: np.random.Generator,
+    rate_hz: float,
+    sigma: float,
+    noise_dim: tuple[int, ...],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """``(t, world_R_body, n)`` of a stream of the vehicle's orientation at ``rate_hz``, with
+    its noise ``n ~ N(0, sigma^2)`` of shape ``(N, *noise_dim)`` (None with ``noise_free`` or
+    ``sigma`` 0: nothing drawn); None when the stream is off (``rate_hz <= 0``)."""
+    if rate_hz <= 0:
+        return None
+    idx = sample_indices(opts, rate_hz, len(vehicle.t))
+    sigma = 0.0 if opts.noise_free else sigma
+    n = rng.normal(0.0, sigma, (len(idx), *noise_dim)) if sigma > 0 else None
+    return vehicle.t[idx].copy(), vehicle.world_R_body[idx], n
+
+
 def simulate_attitude(
     vehicle: VehicleLog, opts: SimOptions, rng: np.random.Generator
 ) -> AttitudeSeries | None:
     """AHRS attitude ``world_R_body Exp(n)``, ``n ~ N(0, attitude_noise_rad^2 I)``."""
-    if opts.attitude_rate_hz <= 0:
+    s = _orientation_samples(
+        vehicle, opts, rng, opts.attitude_rate_hz, opts.attitude_noise_rad, (3,)
+    )
+    if s is None:
         return None
-    idx = sample_indices(opts, opts.attitude_rate_hz, len(vehicle.t))
-    R = vehicle.world_R_body[idx]
-    sigma = 0.0 if opts.noise_free else opts.attitude_noise_rad
-    if sigma > 0:
-        R = R @ so3_exp(rng.normal(0.0, sigma, (len(idx), 3)))
-    return AttitudeSeries(vehicle.t[idx].copy(), matrix_to_quat_wxyz(R))
+    t, R, n = s
+    return AttitudeSeries(t, matrix_to_quat_wxyz(R if n is None else R @ so3_exp(n)))
 
 
 def simulate_yaw(
     vehicle: VehicleLog, opts: SimOptions, rng: np.random.Generator
 ) -> YawSeries | None:
     """Magnetometer-like yaw ``wrap(yaw_of(world_R_body) + n)``."""
-    if opts.yaw_rate_hz <= 0:
+    s = _orientation_samples(vehicle, opts, rng, opts.yaw_rate_hz, opts.yaw_noise_rad, ())
+    if s is None:
         return None
-    idx = sample_indices(opts, opts.yaw_rate_hz, len(vehicle.t))
-    yaw = yaw_of(vehicle.world_R_body[idx])
-    sigma = 0.0 if opts.noise_free else opts.yaw_noise_rad
-    if sigma > 0:
-        yaw = yaw + rng.normal(0.0, sigma, len(idx))
-    return YawSeries(vehicle.t[idx].copy(), wrap_angle(yaw))
+    t, R, n = s
+    return YawSeries(t, wrap_angle(yaw_of(R) if n is None else yaw_of(R) + n))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -103,51 +103,29 @@ def test_attitude_hand_values():
     np.testing.assert_allclose(rpy_ned, [0.0, math.radians(-10), 0.0], atol=1e-12)
 
 
+def _attitude_quaternion(wire, time_boot_ms: int, q_ned, repr_offset_q):
+    """An ATTITUDE_QUATERNION at rest written by hand (``q_ned``: q1..q4, NED from FRD), as
+    received."""
+    fields = dict(time_boot_ms=time_boot_ms, q1=q_ned[0], q2=q_ned[1], q3=q_ned[2], q4=q_ned[3])
+    rates = dict(rollspeed=0.0, pitchspeed=0.0, yawspeed=0.0)
+    return wire("attitude_quaternion", fields | rates | {"repr_offset_q": repr_offset_q})
+
+
 def test_attitude_agrees_with_the_accelerometer_and_round_trips(wire):
     """A tilted vehicle at rest: the FRD accelerometer reads ``ned_R_frd^T (0, 0, -g)``. Both
     converted to fgnav, the specific force is ``world_R_body^T (0, 0, +g)``."""
     rng = np.random.default_rng(0)
+    zero_imu = convert.highres_imu_fields(ImuSample(0.0, 0.0, np.zeros(3), np.zeros(3)), 0.0)
     for _ in range(5):
         ned_R_frd = so3_exp(rng.normal(size=3) * 0.8)
         q_ned = matrix_to_quat_wxyz(ned_R_frd)
         frd_accel = ned_R_frd.T @ np.array([0.0, 0.0, -GRAVITY])
-        msg = wire(
-            "attitude_quaternion",
-            dict(
-                time_boot_ms=1234,
-                q1=q_ned[0],
-                q2=q_ned[1],
-                q3=q_ned[2],
-                q4=q_ned[3],
-                rollspeed=0.0,
-                pitchspeed=0.0,
-                yawspeed=0.0,
-                repr_offset_q=[1.0, 0, 0, 0],
-            ),
-        )
+        msg = _attitude_quaternion(wire, 1234, q_ned, [1.0, 0, 0, 0])
         att = convert.attitude_from_quaternion(msg, arrival=2.0)
         assert att.t == 1.234 and att.arrival == 2.0
-        imu = wire(
-            "highres_imu",
-            dict(
-                time_usec=1234000,
-                xacc=frd_accel[0],
-                yacc=frd_accel[1],
-                zacc=frd_accel[2],
-                xgyro=0.0,
-                ygyro=0.0,
-                zgyro=0.0,
-                xmag=0.0,
-                ymag=0.0,
-                zmag=0.0,
-                abs_pressure=0.0,
-                diff_pressure=0.0,
-                pressure_alt=0.0,
-                temperature=0.0,
-                fields_updated=0x3F,
-                id=0,
-            ),
-        )
+        # the message of a zero IMU sample with the FRD accelerometer written in by hand
+        accel = dict(xacc=frd_accel[0], yacc=frd_accel[1], zacc=frd_accel[2])
+        imu = wire("highres_imu", zero_imu | {"time_usec": 1234000} | accel)
         world_R_body = quat_wxyz_to_matrix(att.world_q_body_wxyz)
         np.testing.assert_allclose(
             convert.imu_from_highres(imu).body_accel,
@@ -160,20 +138,7 @@ def test_attitude_agrees_with_the_accelerometer_and_round_trips(wire):
 
 
 def test_attitude_non_unit_quaternion_is_rejected(wire):
-    msg = wire(
-        "attitude_quaternion",
-        dict(
-            time_boot_ms=0,
-            q1=0.5,
-            q2=0.0,
-            q3=0.0,
-            q4=0.0,
-            rollspeed=0.0,
-            pitchspeed=0.0,
-            yawspeed=0.0,
-            repr_offset_q=[0.0] * 4,
-        ),
-    )
+    msg = _attitude_quaternion(wire, 0, [0.5, 0.0, 0.0, 0.0], [0.0] * 4)
     with pytest.raises(Rejected) as e:
         convert.attitude_from_quaternion(msg)
     assert e.value.reason == "attitude:invalid_quaternion"
