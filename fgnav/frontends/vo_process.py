@@ -32,6 +32,10 @@ import numpy as np
 from fgnav.datasets.errors import FlightDataError
 
 log = logging.getLogger(__name__)
+#: Environment variable that passes the parent's logging level to the child.
+LOG_LEVEL_ENV = "FGNAV_VO_LOG_LEVEL"
+#: The child's log format: the CLI's (``fgnav.cli``), marked as the VO process's.
+CHILD_LOG_FORMAT = "%(levelname)s %(name)s (VO process): %(message)s"
 
 
 def _serve(inp, out, threads: int = 1) -> None:
@@ -98,10 +102,13 @@ class VoProcess:
         # A fresh interpreter (``python -m fgnav.frontends.vo_process``), not multiprocessing:
         # "spawn" re-imports the caller's main module, "fork" copies a process whose OpenCV and
         # GTSAM thread pools may hold locks.
+        # The child logs at the parent's level, in the CLI's format (``LOG_LEVEL_ENV``).
+        env = {**os.environ, LOG_LEVEL_ENV: str(logging.getLogger().getEffectiveLevel())}
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "fgnav.frontends.vo_process"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
+            env=env,
         )
         self._out, self._in = self._proc.stdin, self._proc.stdout
         _widen_pipe(self._out)
@@ -193,6 +200,9 @@ class VoProcess:
 
 
 if __name__ == "__main__":
+    logging.basicConfig(
+        level=int(os.environ.get(LOG_LEVEL_ENV, logging.WARNING)), format=CHILD_LOG_FORMAT
+    )
     # Replies go to the original stdout only; anything the stage prints goes to stderr.
     _out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)

@@ -114,3 +114,26 @@ def test_images_after_the_imu_ended_do_not_block_the_vo_process(figure8_camera):
     assert est.info["vo_counts"] == inline.info["vo_counts"]
     assert est.info["vo_counts"]["frames"] > 550  # every frame went through the child
     assert est.trajectory.t[-1] <= imu.t[0] + 8.0 + 1e-6
+
+
+def test_vo_process_logs_in_the_cli_format_at_the_parents_level(figure8_camera, tmp_path, capfd):
+    """The child's log records (here: an unreadable image, skipped and counted) reach stderr in
+    the CLI's ``LEVEL name: message`` format, marked as the VO process's."""
+    import logging
+
+    flight = figure8_camera
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"not an image")
+    root = logging.getLogger()
+    old = root.level
+    root.setLevel(logging.INFO)
+    try:
+        vo = VoProcess(flight.calib, None, HomographyVOOptions(), uses_attitude=True, name="vo")
+        vo.submit(ImageFrame(0.0, 0.0, 0, flight.images.camera, path=bad), np.eye(3), 1.0)
+        assert vo.take() is None
+        vo.close()
+    finally:
+        root.setLevel(old)
+    assert vo.counts["unreadable_image"] == 1
+    err = capfd.readouterr().err
+    assert "WARNING fgnav.frontends.homography_vo (VO process): vo: cannot read image" in err
