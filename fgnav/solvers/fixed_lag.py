@@ -427,6 +427,7 @@ class FixedLagOptions:
     slam_init_min_excitation_m: float = 0.01
     slam_init_max_rel_se: float = 0.3
     slam_init_min_pairs: int = 12
+    slam_chain_fuse_provisional: bool = True
     slam_provisional: bool = True
     slam_provisional_scale: float = 1.0
     slam_provisional_log_scale_sigma: float = 1.0
