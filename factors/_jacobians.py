@@ -33,6 +33,10 @@ ORTHONORMAL_EXACT = 1e-12
 LINEARIZED: dict | None = None
 
 
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """3-vector -> 3x3 skew-symmetric matrix ``[v]x`` with ``skew(a) @ b == cross(a, b)``."""
     x, y, z = np.asarray(v, dtype=float).tolist()
@@ -75,11 +79,12 @@ def so3_right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     ``Log(Exp(phi) Exp(delta)) = phi + Jr^-1(phi) delta + O(|delta|^2)``."""
     theta2 = float(phi @ phi)
     K = skew(phi)
+    # (_EYE3: a shared read-only identity; np.eye(3) per call was a third of this function)
     if theta2 < 1e-10:
-        return np.eye(3) + 0.5 * K + K @ K / 12.0
+        return _EYE3 + 0.5 * K + K @ K / 12.0
     theta = np.sqrt(theta2)
     coeff = 1.0 / theta2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))
-    return np.eye(3) + 0.5 * K + coeff * K @ K
+    return _EYE3 + 0.5 * K + coeff * K @ K
 
 
 def as_vector(value: np.ndarray | float, size: int, name: str) -> np.ndarray:

@@ -279,6 +279,29 @@ def slam_rotation_error(
     return e, [e_D_pose, e_D_sim]
 
 
+def _slam_rotation(
+    m: np.ndarray,
+    slam_T_world: gtsam.Similarity3,
+    slam_R_cam_meas_T: np.ndarray,
+    body_R_cam: np.ndarray,
+    with_jacobians: bool,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """``slam_rotation_error`` on the 4x4 ``world_T_body`` with the measurement's transpose and
+    ``body_R_cam`` taken apart once (the factor's callback: the same arithmetic on the same
+    arrays, without the per-call conversions and the similarity's unused translation and
+    scale); no Jacobians unless ``with_jacobians``."""
+    world_R_cam = m[:3, :3] @ body_R_cam
+    e = so3_log(slam_R_cam_meas_T @ (slam_T_world.rotation().matrix() @ world_R_cam))
+    if not with_jacobians:
+        return e, None
+    Jr_inv = so3_right_jacobian_inv(e)
+    e_D_pose = np.zeros((3, 6))
+    e_D_pose[:, :3] = Jr_inv @ body_R_cam.T
+    e_D_sim = np.zeros((3, 7))
+    e_D_sim[:, :3] = Jr_inv @ world_R_cam.T
+    return e, [e_D_pose, e_D_sim]
+
+
 def make_slam_position_factor(
     pose_key: int,
     sim_key: int,
@@ -603,17 +626,17 @@ def make_slam_rotation_factor(
         noise_model: 3-D noise [rad] on the rotation error expressed in the camera frame.
     """
     z = np.asarray(slam_R_cam_meas, dtype=float)
-    if z.shape != (3, 3) or not np.all(np.isfinite(z)):
+    if z.shape != (3, 3) or not np.isfinite(z).all():
         raise ValueError(f"slam_R_cam_meas: expected a finite 3x3 rotation, got shape {z.shape}")
     z = gtsam.Rot3(z).matrix()
-    body_T_cam = as_pose_matrix(body_T_cam, "body_T_cam")
-    variables = ((pose_key, pose_at), (sim_key, similarity3_at))
+    body_R_cam = as_pose_matrix(body_T_cam, "body_T_cam")[:3, :3]
+    variables = ((pose_key, pose_matrix_at), (sim_key, similarity3_at))
     return custom_factor(
         noise_model,
         ERROR_DIM,
         variables,
-        slam_rotation_error,
-        (z, body_T_cam),
+        _slam_rotation,
+        (z.T, body_R_cam),
         lazy=True,
         record=True,
     )

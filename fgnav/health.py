@@ -282,11 +282,16 @@ class FaultDetectors:
         """One IMU sample (never dropped: :meth:`feed` without the dispatch); returns its
         saturation flags (also kept in ``imu_flags``)."""
         w, a = ev.body_omega, ev.body_accel
-        self.imu_flags = self._imu_values(
+        return self.feed_imu_values(
             float(ev.t),
             w.tolist() if hasattr(w, "tolist") else w,
             a.tolist() if hasattr(a, "tolist") else a,
         )
+
+    def feed_imu_values(self, t: float, w: list[float], a: list[float]) -> int:
+        """:meth:`feed_imu` on the sample's time and its rates and specific forces as lists of
+        floats (a caller that has them already)."""
+        self.imu_flags = self._imu_values(t, w, a)
         return self.imu_flags
 
     def _imu_values(self, t: float, w: list[float], a: list[float]) -> int:
@@ -388,7 +393,7 @@ class FaultDetectors:
     def _slam(self, ev) -> Any:
         o = self.options
         p = np.asarray(ev.slam_t_cam, float)
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             return ev
         sess = int(ev.session)
         n = self._slam_jumps.get(sess, 0)
@@ -628,7 +633,7 @@ class HealthMonitor:
         sp = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         if sp > o.max_speed_mps:
             bad.append(f"speed {sp:.1f} m/s > {o.max_speed_mps:g}")
-        if state.pose_cov is not None and np.all(np.isfinite(state.pose_cov)):
+        if state.pose_cov is not None and np.isfinite(state.pose_cov).all():
             c = state.pose_cov
             sig = math.sqrt(max(float(c[3, 3]) + float(c[4, 4]) + float(c[5, 5]), 0.0))
             if sig > o.max_pos_sigma_m:

@@ -246,6 +246,13 @@ STILL_VEL_SIGMA_RATE = 0.2
 _first = operator.itemgetter(0)
 
 
+def _norm(v) -> float:
+    """``np.linalg.norm`` of a vector (its arithmetic: the square root of ``v.dot(v)``)
+    without its per-call overhead."""
+    v = np.asarray(v, float).ravel()
+    return math.sqrt(v.dot(v))
+
+
 def _chr(key: int) -> str:
     """Symbol character of a GTSAM key (top 8 bits; no ``gtsam.Symbol`` per call)."""
     return chr(key >> 56)
@@ -525,16 +532,14 @@ class OnlineSmoother:
     def feed(self, ev: Any) -> OnlineState | None:
         """Take one event (arrival order); the newest state when keyframes closed, else None."""
         if type(ev) is ImuSample:
-            # Most events: straight to the IMU path (the fault detectors never drop a sample;
-            # they only flag saturation).
-            if self._health.options.enabled:
-                self._health.detectors.feed_imu(ev)
+            # Most events: straight to the IMU path (the fault detectors, fed there, never drop
+            # a sample; they only flag saturation).
             return self._feed_imu(ev)
         ev = self._health_feed(ev)
         if ev is None:
             return None
         if isinstance(ev, ImuSample):
-            return self._feed_imu(ev)
+            return self._feed_imu(ev, health=False)  # (a subclass: the detectors had it)
         stream = _STREAM.get(type(ev))
         if stream is None:
             raise TypeError(f"{self.name}: not a measurement event: {type(ev).__name__}")
@@ -846,12 +851,19 @@ class OnlineSmoother:
     # IMU: keyframes close here
     # ------------------------------------------------------------------------------------------
 
-    def _feed_imu(self, ev: ImuSample) -> OnlineState | None:
+    def _feed_imu(self, ev: ImuSample, health: bool = True) -> OnlineState | None:
         self.received["imu"] = self.received.get("imu", 0) + 1
         t = float(ev.t)
         w = np.asarray(ev.body_omega, float)
         a = np.asarray(ev.body_accel, float)
-        if not math.isfinite(t + float(w @ w) + float(a @ a)):
+        # Plain floats, shared with the fault detectors (every sample: numpy's per-call
+        # overhead dominated this path).
+        wl, al = w.tolist(), a.tolist()
+        if health and self._health.options.enabled:
+            self._health.detectors.feed_imu_values(t, wl, al)
+        w0, w1, w2 = wl
+        a0, a1, a2 = al
+        if not math.isfinite(t + (w0 * w0 + w1 * w1 + w2 * w2) + (a0 * a0 + a1 * a1 + a2 * a2)):
             self._drop("imu:non-finite")
             return None
         last = self._t_last.get("imu", -math.inf)
@@ -1465,13 +1477,14 @@ class OnlineSmoother:
         if mean is None or n == 0:
             self._drop("drag:no-imu-in-interval")
             return
-        cos_tilt = mean[2] / max(float(np.linalg.norm(mean)), 1e-12)
+        norm_mean = _norm(mean)
+        cos_tilt = mean[2] / max(norm_mean, 1e-12)
         sigma_a = self.calib.imu_noise.accel_noise_density * math.sqrt(max(n / dur, 1.0))
         if (
             check
             and self._accel_check_open()
             and (
-                float(np.linalg.norm(mean)) > 0.5 * self.go.gravity
+                norm_mean > 0.5 * self.go.gravity
                 and cos_tilt >= math.cos(math.radians(ACCEL_CHECK_MAX_TILT_DEG))
                 and X(j) in self.values
                 and V(j) in self.values
@@ -1841,7 +1854,7 @@ class OnlineSmoother:
             ev = ev._replace(t=ev.t + self._slam_offset)
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
             self._drop("slam:non-finite")
             return
         if self._sgc is not None:
@@ -2724,9 +2737,7 @@ class OnlineSmoother:
     def _health_init(self, options: HealthOptions | None) -> None:
         self._health = HealthMonitor(options, f"{self.name}: health")
         self._health.detectors.context = Context(
-            speed=lambda t: (
-                float(np.linalg.norm(self.out[-1].world_v_body)) if self.latest() else None
-            ),
+            speed=lambda t: _norm(self.out[-1].world_v_body) if self.latest() else None,
             height=lambda t: float(self.out[-1].world_T_body[2, 3]) if self.latest() else None,
             scale=lambda s: self._session_scale.get(s),
             slam_height=self._slam_height,
@@ -3166,10 +3177,12 @@ class OnlineSmoother:
         cut = self._block(self.t_kf[k] + self.period) - self.options.lag_s
         sm = self.smoother
         for t_j, j in list(self._kf_index):
-            if self._block(t_j) > cut + 1e-6:
-                break
+            # (read ones first: keyframes are in time order, so a later one read is also
+            # past the cut when this one is)
             if j <= self._lag_done:
                 continue
+            if self._block(t_j) > cut + 1e-6:
+                break
             self._lag_done = j
             if X(j) not in sm:
                 continue
@@ -3180,14 +3193,16 @@ class OnlineSmoother:
             except SOLVER_ERRORS:
                 continue
             self.out_lag.append(
-                np.r_[
-                    self._epoch,
-                    t_j,
-                    pose.matrix().ravel(),
-                    vel,
-                    bias.gyroscope(),
-                    bias.accelerometer(),
-                ]
+                np.concatenate(
+                    (
+                        (self._epoch, t_j),
+                        pose.matrix().ravel(),
+                        vel,
+                        bias.gyroscope(),
+                        bias.accelerometer(),
+                    ),
+                    dtype=float,
+                )
             )
 
     def lagged_result(self, epoch: int = -1) -> Estimate:
