@@ -37,7 +37,11 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   its poses attach to a *provisional* alignment (rotation from the SLAM orientation and the current
   attitude, scale from the previous session or ``slam_provisional_scale``, origin at the newest
   pose, wide log-scale prior). When the chain starts, the provisional factors still in the window
-  are removed and re-attached to it. A new session id (a map reset) starts a new chain. The causal
+  are removed and re-attached to it (counted as ``slam:reattached``). A new session id (a map
+  reset) starts a new chain; its starting scale fuses the fit with the provisional alignment's
+  estimate, which the velocity known from the session before determines
+  (``slam_chain_fuse_provisional``). A pose that arrives before the start (the first, with no
+  latency) attaches at the start once it is made. The causal
   SLAM-vs-gyro check (:class:`fgnav.datasets.slam_gyro.SlamGyroCheck`) decides the file's rotation
   convention (an inverted file is named and used inverted), names a wrong ``body_T_cam`` rotation
   and estimates the clock offset; once decided, the SLAM orientations become factors.
