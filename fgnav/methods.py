@@ -146,7 +146,10 @@ def slam_checked(flight: Flight, config: Mapping[str, Any]) -> Flight:
     if not isinstance(table, Mapping) or not table.get("use_slam", True):
         return flight
     return apply_slam_check(
-        flight, table.get("slam_rotation", "auto"), table.get("slam_time_offset", "report")
+        flight,
+        table.get("slam_rotation", "auto"),
+        table.get("slam_time_offset", "report"),
+        table.get("slam_extrinsic", "auto"),
     )
 
 

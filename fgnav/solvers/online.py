@@ -898,6 +898,7 @@ class OnlineSmoother:
             self._pstage.feed(ev)
         if self._sgc is not None:
             self._sgc.add_imu(t, w)
+
         if self._first_imu_t is None:
             self._first_imu_t = t
         self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
@@ -1863,6 +1864,7 @@ class OnlineSmoother:
             return
         if self._sgc is not None:
             self._slam_check(float(ev.t), q, int(ev.session))
+
         # The payload keeps the orientation as stored: a convention decided while it waits
         # (the early SLAM-vs-gyro decision) applies when its factor is made (``_slam_factor``).
         q_stored = q
@@ -1946,12 +1948,26 @@ class OnlineSmoother:
         else:
             log.info("%s: SLAM rotation convention as stated (decided at t=%.2f s)", self.name, t)
         if not d.body_R_cam_ok:
+            replace = self.go.slam_extrinsic == "auto"
             log.warning(
                 "%s: body_T_cam rotation is %.1f deg from the one the gyro fits: check the "
-                "calibration",
+                "calibration%s",
                 self.name,
                 d.body_R_cam_error_deg,
+                "; using the fitted rotation from here (slam_extrinsic = 'auto')"
+                if replace
+                else "",
             )
+            self.slam_check["body_R_cam_replaced"] = replace
+            if replace:
+                self._replace_body_R_cam(d.body_R_cam_fit)
+
+    def _replace_body_R_cam(self, R: np.ndarray) -> None:
+        """Use ``R`` as ``body_R_cam`` for every SLAM factor and alignment fit made from now on
+        (the position factors made before see only the translation, which is kept)."""
+        T = self.body_T_cam.copy()
+        T[:3, :3] = R
+        self.body_T_cam = T
 
     def _camera_ready(self, ev: ImageFrame) -> bool:
         """Set up the homography VO stage at the first image (False: images not used, counted).

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FgnavError, FlightFormatError
 from fgnav.datasets.events import replay_flight
-from fgnav.datasets.geometry import so3_exp
+from fgnav.datasets.geometry import so3_exp, so3_log
 from fgnav.datasets.manifest import read_manifest
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.slam_gyro import (
@@ -218,3 +218,67 @@ def test_real_causal_decision_within_7s(real_data, manifest, convention):
     assert at < 7.0, at
     # Its gyro bias is already the whole flight's (ground truth file: 0.0207, 0.0758 on y, z).
     assert d.gyro_bias[2] == pytest.approx(0.077, abs=0.006)
+
+
+@pytest.fixture(scope="module")
+def figure8_20s():
+    # Rolls and pitches as well as yaws: the hand-eye rotation is determined (axis spread 0.3).
+    return simulate("figure8", seed=1, options=SimOptions(duration=20.0, images=False))
+
+
+def _with_body_R_cam(flight, R):
+    T = np.array(flight.calib.body_T_cam, float)
+    T[:3, :3] = R
+    return dataclasses.replace(flight, calib=dataclasses.replace(flight.calib, body_T_cam=T))
+
+
+def test_wrong_body_T_cam_replaced_by_the_fitted_one(figure8_20s, caplog):
+    """``slam_extrinsic = "auto"`` (default): a rotation named wrong is replaced by the one the
+    gyro fits when two axes turned; ``"as-is"`` keeps it. An identity given for the downward
+    camera (180 deg off) is replaced within 1 deg, and the batch smoother recovers."""
+    from fgnav.eval.metrics import evaluate
+    from fgnav.solvers.batch import BatchOptions, solve_batch
+
+    f = figure8_20s
+    true_R = np.asarray(f.calib.body_T_cam)[:3, :3]
+    bad = _with_body_R_cam(f, np.eye(3))
+    with caplog.at_level(logging.WARNING, logger="fgnav.datasets.slam_gyro"):
+        fixed = apply_slam_check(bad)
+    rec = fixed.meta[META_KEY]
+    assert rec["body_R_cam_replaced"] and rec["axis_spread"] > 0.05
+    R_fit = np.asarray(fixed.calib.body_T_cam)[:3, :3]
+    assert np.degrees(np.linalg.norm(so3_log(R_fit.T @ true_R))) < 1.0
+    np.testing.assert_array_equal(fixed.calib.body_T_cam[:3, 3], f.calib.body_T_cam[:3, 3])
+    assert sum("using the body_T_cam rotation" in r.getMessage() for r in caplog.records) == 1
+    kept = apply_slam_check(bad, extrinsic="as-is")
+    assert not kept.meta[META_KEY]["body_R_cam_replaced"]
+    np.testing.assert_array_equal(kept.calib.body_T_cam, bad.calib.body_T_cam)
+    # The given rotation, when right, stays.
+    assert not apply_slam_check(f).meta[META_KEY]["body_R_cam_replaced"]
+    nominal = evaluate(solve_batch(f, BatchOptions()), f.ground_truth).ate_rmse_m
+    recovered = evaluate(solve_batch(bad, BatchOptions()), f.ground_truth).ate_rmse_m
+    assert recovered < 1.2 * nominal + 0.001, (recovered, nominal)
+
+
+def test_body_T_cam_replaced_when_one_axis_turned_is_closer_than_the_given(sim_flight):
+    """Two turns about body z: the rotation about the unexcited axes is not determined (axis
+    spread 0.001); the fit keeps the given rotation there, so the replacement is still closer to
+    the truth than a rotation named wrong (12 deg given: 2.9 deg; 90 deg: 4.1 deg)."""
+    true_R = np.asarray(sim_flight.calib.body_T_cam)[:3, :3]
+    for deg in (12.0, 90.0):
+        R = true_R @ so3_exp(np.radians(deg) * np.array([0.6, -0.8, 0.0]))
+        out = apply_slam_check(_with_body_R_cam(sim_flight, R))
+        rec = out.meta[META_KEY]
+        assert not rec["body_R_cam_ok"] and rec["axis_spread"] < 0.05
+        assert rec["body_R_cam_replaced"]
+        R_fit = np.asarray(out.calib.body_T_cam)[:3, :3]
+        assert np.degrees(np.linalg.norm(so3_log(R_fit.T @ true_R))) < 5.0
+
+
+def test_slam_extrinsic_option_is_checked(sim_flight):
+    from fgnav.solvers.graph import GraphOptions
+
+    with pytest.raises(FgnavError, match="slam_extrinsic = 'maybe'; valid: auto, as-is"):
+        GraphOptions(slam_extrinsic="maybe").check()
+    with pytest.raises(FgnavError, match="slam_extrinsic = 'no'"):
+        apply_slam_check(sim_flight, extrinsic="no")
