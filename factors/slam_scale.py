@@ -266,17 +266,8 @@ def slam_rotation_error(
     world_R_body, _ = pose_parts(world_T_body)
     body_R_cam, _ = pose_parts(body_T_cam)
     slam_R_world, _, _ = sim3_parts(slam_T_world)
-    world_R_cam = world_R_body @ body_R_cam
-    predicted = slam_R_world @ world_R_cam
-    e = so3_log(np.asarray(slam_R_cam_meas, dtype=float).T @ predicted)
-    if not with_jacobians:
-        return e, None
-    Jr_inv = so3_right_jacobian_inv(e)
-    e_D_pose = np.zeros((3, 6))
-    e_D_pose[:, :3] = Jr_inv @ body_R_cam.T
-    e_D_sim = np.zeros((3, 7))
-    e_D_sim[:, :3] = Jr_inv @ world_R_cam.T
-    return e, [e_D_pose, e_D_sim]
+    meas_T = np.asarray(slam_R_cam_meas, dtype=float).T
+    return _rotation_error(world_R_body, slam_R_world, meas_T, body_R_cam, with_jacobians)
 
 
 def _slam_rotation(
@@ -290,8 +281,21 @@ def _slam_rotation(
     ``body_R_cam`` taken apart once (the factor's callback: the same arithmetic on the same
     arrays, without the per-call conversions and the similarity's unused translation and
     scale); no Jacobians unless ``with_jacobians``."""
-    world_R_cam = m[:3, :3] @ body_R_cam
-    e = so3_log(slam_R_cam_meas_T @ (slam_T_world.rotation().matrix() @ world_R_cam))
+    R_sw = slam_T_world.rotation().matrix()
+    return _rotation_error(m[:3, :3], R_sw, slam_R_cam_meas_T, body_R_cam, with_jacobians)
+
+
+def _rotation_error(
+    world_R_body: np.ndarray,
+    slam_R_world: np.ndarray,
+    slam_R_cam_meas_T: np.ndarray,
+    body_R_cam: np.ndarray,
+    with_jacobians: bool,
+) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """The SLAM orientation residual and its Jacobians from the rotations (shared by
+    ``slam_rotation_error`` and the factor's callback)."""
+    world_R_cam = world_R_body @ body_R_cam
+    e = so3_log(slam_R_cam_meas_T @ (slam_R_world @ world_R_cam))
     if not with_jacobians:
         return e, None
     Jr_inv = so3_right_jacobian_inv(e)
