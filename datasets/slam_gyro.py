@@ -52,6 +52,7 @@ import numpy as np
 
 from .errors import FgnavError, FlightDataError
 from .geometry import (
+    make_pose,
     matrix_to_quat_wxyz,
     project_to_so3,
     quat_wxyz_to_matrix,
@@ -664,9 +665,8 @@ def apply_slam_check(
     calib = flight.calib
     record["body_R_cam_replaced"] = False
     if d is not None and not d.body_R_cam_ok and extrinsic == "auto":
-        T = np.array(calib.body_T_cam, float)
-        T[:3, :3] = d.body_R_cam_fit
-        calib = dataclasses.replace(calib, body_T_cam=T)
+        t_cam = np.asarray(calib.body_T_cam, float)[:3, 3]
+        calib = dataclasses.replace(calib, body_T_cam=make_pose(d.body_R_cam_fit, t_cam))
         record["body_R_cam_replaced"] = True
         log.warning(
             "%s: using the body_T_cam rotation the gyro fits (slam_extrinsic = 'auto')",

@@ -132,6 +132,7 @@ from fgnav.datasets.events import (
     YawReading,
 )
 from fgnav.datasets.geometry import (
+    make_pose,
     matrix_to_quat_wxyz,
     quat_wxyz_to_matrix,
     slerp_rotations,
@@ -898,7 +899,6 @@ class OnlineSmoother:
             self._pstage.feed(ev)
         if self._sgc is not None:
             self._sgc.add_imu(t, w)
-
         if self._first_imu_t is None:
             self._first_imu_t = t
         self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
@@ -1864,7 +1864,6 @@ class OnlineSmoother:
             return
         if self._sgc is not None:
             self._slam_check(float(ev.t), q, int(ev.session))
-
         # The payload keeps the orientation as stored: a convention decided while it waits
         # (the early SLAM-vs-gyro decision) applies when its factor is made (``_slam_factor``).
         q_stored = q
@@ -1960,14 +1959,9 @@ class OnlineSmoother:
             )
             self.slam_check["body_R_cam_replaced"] = replace
             if replace:
-                self._replace_body_R_cam(d.body_R_cam_fit)
-
-    def _replace_body_R_cam(self, R: np.ndarray) -> None:
-        """Use ``R`` as ``body_R_cam`` for every SLAM factor and alignment fit made from now on
-        (the position factors made before see only the translation, which is kept)."""
-        T = self.body_T_cam.copy()
-        T[:3, :3] = R
-        self.body_T_cam = T
+                # Used by every SLAM factor and alignment fit made from now on (the position
+                # factors made before see only the translation, which is kept).
+                self.body_T_cam = make_pose(d.body_R_cam_fit, self.body_T_cam[:3, 3])
 
     def _camera_ready(self, ev: ImageFrame) -> bool:
         """Set up the homography VO stage at the first image (False: images not used, counted).
@@ -2607,17 +2601,17 @@ class OnlineSmoother:
             return scale, rel
         if pv is None or not (var_p > 0 and math.isfinite(var_p)) or not rel > 0:
             return scale, rel
+        p_scale = float(pv.scale())
         var_f = rel**2
         w = var_p / (var_p + var_f)  # the fit's weight
-        log_s = w * math.log(scale) + (1.0 - w) * math.log(float(pv.scale()))
-        fused = math.exp(log_s)
+        fused = math.exp(w * math.log(scale) + (1.0 - w) * math.log(p_scale))
         log.info(
             "%s: SLAM chain start: closed-form scale %.4f (rel. s.e. %.3f) and provisional "
             "%.4f (sigma %.3f) -> %.4f",
             self.name,
             scale,
             rel,
-            float(pv.scale()),
+            p_scale,
             math.sqrt(var_p),
             fused,
         )
@@ -2715,16 +2709,19 @@ class OnlineSmoother:
             else:
                 self._drop("slam:before-alignment")
 
+    def _prov_covered(self, s: _Session) -> np.ndarray:
+        """Times of the session's arrived poses the smoother covers."""
+        t = np.asarray(s.t)
+        return t[t >= self.t0 - 0.5 * self.period]
+
     def _prov_n_covered(self, s: _Session) -> int:
         """How many of the session's arrived poses the smoother covers."""
-        t = np.asarray(s.t)
-        return int(np.count_nonzero(t >= self.t0 - 0.5 * self.period))
+        return len(self._prov_covered(s))
 
     def _prov_t_first(self, s: _Session) -> float:
         """Time of the session's first arrived pose the smoother covers."""
-        t = np.asarray(s.t)
-        inside = t[t >= self.t0 - 0.5 * self.period]
-        return float(inside[0]) if inside.size else float(t[-1])
+        inside = self._prov_covered(s)
+        return float(inside[0]) if inside.size else float(s.t[-1])
 
     def _data_scale(self, s: _Session) -> tuple[float, np.ndarray, np.ndarray] | None:
         """A provisional SLAM scale from what has arrived: the SLAM displacement between the
