@@ -461,6 +461,12 @@ def check_slam_gyro(
     )
 
 
+#: :meth:`SlamGyroCheck.stated_misfit`: pairs rotating at least this much [rad] count, and at
+#: least this many of them are needed.
+STATED_MIN_PAIR_RAD = 0.05
+STATED_MIN_PAIRS = 5
+
+
 class SlamGyroCheck:
     """Causal SLAM-vs-gyro check, fed measurements as they arrive.
 
@@ -514,6 +520,38 @@ class SlamGyroCheck:
             self.add_imu(event.t, event.body_omega)
         elif isinstance(event, SlamPose):
             self.add_slam(event.t, event.slam_q_cam_wxyz, event.session)
+
+    def stated_misfit(
+        self, min_pair_rad: float = STATED_MIN_PAIR_RAD, min_pairs: int = STATED_MIN_PAIRS
+    ) -> float | None:
+        """How badly the stated ``body_R_cam`` maps the SLAM's relative rotations onto the
+        gyro's, long before :meth:`decision` can fit one: the median over the pairs that
+        rotate at least ``min_pair_rad`` of ``|residual| / |rotation|`` with the stated
+        rotation (gyro bias fitted, the better convention, no clock offset), or None with
+        fewer such pairs than ``min_pairs``. A right rotation gives a few hundredths (the SLAM
+        and gyro noise), one ``a`` off about ``2 sin(a / 2)`` for rotations across the error's
+        axis (1.4 at 90 deg): a first warning needs one excited axis, not the two a fit does."""
+        if len(self._slam_t) < 2 or len(self._imu_t) < 2:
+            return None
+        t = np.asarray(self._slam_t)
+        R = quat_wxyz_to_matrix(np.asarray(self._slam_q).reshape(-1, 4))
+        imu_t = np.asarray(self._imu_t)
+        inside = (t > imu_t[0]) & (t < imu_t[-1])
+        p = _pairs(t[inside], R[inside], np.asarray(self._slam_s)[inside], self.options)
+        if len(p.t_i) < min_pairs:
+            return None
+        ang = np.linalg.norm(so3_log(np.transpose(p.R_i, (0, 2, 1)) @ p.R_j), axis=1)
+        big = ang >= min_pair_rad
+        if big.sum() < min_pairs:
+            return None
+        core = _Core(imu_t, _integrate(imu_t, np.asarray(self._imu_w).reshape(-1, 3)), p, 0.0)
+        out = []
+        for c in ("as-is", "inverse"):
+            C = _camera_increments(p, c)
+            _, b = core._gauss_newton(C, so3_log(C), self.body_R_cam, free_rotation=False)
+            r = np.linalg.norm(core.residuals(C, self.body_R_cam, b), axis=1)
+            out.append(float(np.median(r[big] / ang[big])))
+        return min(out)
 
     def decision(self) -> SlamGyroDecision | None:
         """The decision once the data separates the conventions (None before)."""

@@ -16,6 +16,7 @@ import numpy as np
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import (
     ordered_product,
+    project_to_so3,
     quat_wxyz_to_matrix,
     rotation_mean,
     rpy_to_matrix,
@@ -298,6 +299,9 @@ class SlamAlignmentInit:
         excitation: RMS of the metric second differences used [m] (small = scale poorly
             observable from the IMU).
         scale_rel_se: relative standard error of the least-squares scale.
+        rotation_spread: with ``rotation="motion"``, the second over the first singular value of
+            the pairs' cross-covariance (near 0: the acceleration along one axis only, the
+            rotation about it undetermined); NaN for a rotation from the orientations.
     """
 
     scale: float
@@ -306,6 +310,7 @@ class SlamAlignmentInit:
     n_pairs: int
     excitation: float
     scale_rel_se: float = float("nan")
+    rotation_spread: float = float("nan")
 
 
 def world_specific_accel(imu: ImuSeries, world_R_body: np.ndarray, gravity: float) -> np.ndarray:
@@ -468,10 +473,14 @@ def init_slam_alignment(
     gravity: float,
     h: float = 0.5,
     step: float = 0.1,
+    rotation: str = "orientations",
 ) -> SlamAlignmentInit:
     """Closed-form ``slam_T_world`` of one SLAM session.
 
-    1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``.
+    1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``; with
+       ``rotation="motion"`` instead the rotation that best maps the metric second differences
+       onto the SLAM ones (orthogonal Procrustes of the centred pairs: needs acceleration along
+       two axes or more, and neither the SLAM orientations nor ``body_R_cam``).
     2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
        second differences from the accelerometer (:func:`slam_second_differences`: on the SLAM
        samples themselves, unbiased on low-rate keyframes), jointly with
@@ -487,12 +496,6 @@ def init_slam_alignment(
         h: half-width of the second differences [s].
         step: spacing of the second-difference centres [s].
     """
-    world_R_body_slam = slerp_rotations(imu.t, world_R_body_imu, slam.t)
-    slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
-    body_R_cam = body_T_cam[:3, :3]
-    slam_R_world = rotation_mean(
-        slam_R_cam @ np.transpose(world_R_body_slam @ body_R_cam, (0, 2, 1))
-    )
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
     d = slam_second_differences(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
     slam_d2, world_d2, centers = d.slam_d2, d.world_d2, d.centers
@@ -502,6 +505,21 @@ def init_slam_alignment(
             f"{2 * h + 6 * step:.1f} s); give an initial scale (front-end priors) or a longer "
             "session"
         )
+    spread = float("nan")
+    if rotation == "motion":
+        # Centring removes the part of an accelerometer bias that stays put in the world.
+        M = (slam_d2 - slam_d2.mean(axis=0)).T @ (world_d2 - world_d2.mean(axis=0))
+        sv = np.linalg.svd(M, compute_uv=False)
+        spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+        slam_R_world = project_to_so3(M)
+    elif rotation == "orientations":
+        world_R_body_slam = slerp_rotations(imu.t, world_R_body_imu, slam.t)
+        slam_R_cam = quat_wxyz_to_matrix(slam.slam_q_cam_wxyz)
+        slam_R_world = rotation_mean(
+            slam_R_cam @ np.transpose(world_R_body_slam @ body_T_cam[:3, :3], (0, 2, 1))
+        )
+    else:
+        raise ValueError(f"init_slam_alignment: rotation={rotation!r}")
     # Joint least squares of the scale s and c = s b_a: an accelerometer bias b_a (body frame)
     # adds h^2 world_R_body b_a to each metric second difference, which SLAM does not see:
     #   slam_d2 = s slam_R_world world_d2 - h^2 slam_R_world world_R_body(t) c.
@@ -528,5 +546,5 @@ def init_slam_alignment(
     world_t_cam0 = np.zeros(3)
     slam_t_world = slam.slam_t_cam[0] - scale * slam_R_world @ world_t_cam0
     return SlamAlignmentInit(
-        scale, slam_R_world, slam_t_world, len(slam_d2), excitation, scale_se / scale
+        scale, slam_R_world, slam_t_world, len(slam_d2), excitation, scale_se / scale, spread
     )

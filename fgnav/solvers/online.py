@@ -136,6 +136,7 @@ from fgnav.datasets.geometry import (
     matrix_to_quat_wxyz,
     quat_wxyz_to_matrix,
     slerp_rotations,
+    so3_log,
     wrap_angle,
 )
 from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
@@ -246,6 +247,23 @@ MIN_GAP_SEGMENT_SIGMA = 1e-6
 #: m while the provisional scale is still 1 (true 0.44); see FixedLagOptions.
 STILL_VEL_SIGMA = 0.05
 STILL_VEL_SIGMA_RATE = 0.2
+#: Angle [deg] between the closed-form fit's SLAM rotation through ``body_R_cam`` and the one
+#: the motion fits above which the motion's is preferred while ``body_R_cam`` is unverified.
+SLAM_FIT_ROTATION_MAX_DEG = 10.0
+#: Least ``rotation_spread`` of a motion-only alignment fit (acceleration along two axes): on
+#: EuRoC MH_01 and the simulated flights the chain's first fits have 0.002-0.07 (one axis).
+SLAM_FIT_MOTION_MIN_SPREAD = 0.2
+#: Largest scale relative standard error of a motion-only fit to be used (its rotation is
+#: fitted to the same pairs: simulated two-turns with an identity ``body_R_cam`` had 0.165 at
+#: 7.4 s and a rotation that diverged; rectangle and figure8 0.007-0.013 when adopted).
+SLAM_FIT_MOTION_MAX_REL_SE = 0.05
+#: ``SlamGyroCheck.stated_misfit`` above which the stated ``body_R_cam`` is suspected before the
+#: check decides (named, see OnlineSmoother._suspect_extrinsic). Measured causally over the first
+#: 25 s: right rotations 0.01-0.05 on EuRoC MH_01 / V1_02 (both files), 0.03-0.14 on the
+#: simulated flights; an identity given for EuRoC's (90 deg off) 0.54-1.4, the simulated
+#: flights' 0.3-2.1 (rectangle, figure8, circle; two-turns' yaw-only turns cannot tell it from
+#: the inverse convention: 0.07-0.12).
+SLAM_EXTRINSIC_SUSPECT_MISFIT = 0.5
 
 
 _first = operator.itemgetter(0)
@@ -674,6 +692,7 @@ class OnlineSmoother:
             "accel_check": self._accel_check.as_dict() if self._accel_check is not None else None,
             "accel_horizontal": "thrust-only" if self._thrust_only else "measured",
             "slam_gyro_check": getattr(self, "slam_check", None),
+            "slam_extrinsic_suspect": self._extrinsic_suspect,
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "slam_rotation_convention": self._slam_conv,
@@ -779,6 +798,9 @@ class OnlineSmoother:
             self.go.slam_rotation
         )
         self._sgc = None
+        self._fit_motion_used = False
+        self._extrinsic_suspect: dict[str, float] | None = None
+        self._misfit_try = -math.inf
         if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
 
@@ -1904,6 +1926,7 @@ class OnlineSmoother:
         sgc.add_slam(t, q, session)
         d = sgc.decision()
         if d is None:
+            self._suspect_extrinsic(t)
             if t - sgc._slam_t[0] > self.options.slam_check_max_s:
                 log.warning(
                     "%s: SLAM-vs-gyro check undecided after %.0f s of SLAM (too little "
@@ -2204,6 +2227,31 @@ class OnlineSmoother:
         stamps[gk] = self.t_kf[self.k]
         self._use("range")
 
+    def _suspect_extrinsic(self, t: float) -> None:
+        """Before the check decides: a stated ``body_R_cam`` that maps the SLAM's rotations far
+        from the gyro's (:meth:`SlamGyroCheck.stated_misfit` above
+        ``SLAM_EXTRINSIC_SUSPECT_MISFIT``) is named, once, in a warning and in
+        ``info["slam_extrinsic_suspect"]``: with one excited axis, 1-3 s into a flight, where
+        the check needs two (simulated rectangle's yaw-only turns: never). Only named: the
+        provisional alignment, seeded through it, stays (withdrawing it left EuRoC MH_01 with an
+        identity rotation IMU-only for 3 s, 5.1 -> 55 cm; simulated rectangle 1.17 m -> 11 cm,
+        figure8 2.1 -> 2.2 m)."""
+        if self._extrinsic_suspect is not None or t - self._misfit_try < 1.0:
+            return
+        self._misfit_try = t
+        m = self._sgc.stated_misfit()
+        if m is None or not m > SLAM_EXTRINSIC_SUSPECT_MISFIT:
+            return
+        self._extrinsic_suspect = {"t": t, "misfit": m}
+        log.warning(
+            "%s: SLAM rotations do not fit the gyro through the given body_T_cam rotation "
+            "(misfit %.2f of the rotation, right ones give < 0.15) at t=%.2f s: check the "
+            "calibration (the SLAM-vs-gyro check decides once two axes have turned)",
+            self.name,
+            m,
+            t,
+        )
+
     def _slam_factor(self, k, payload, g, stamps, remove, prov_new) -> None:
         sess, row, t, p, q = payload
         s = self.sessions[sess]
@@ -2462,7 +2510,6 @@ class OnlineSmoother:
 
     def _fit(self, s: _Session):
         """Closed-form alignment over the session's arrived poses, or None (gates not passed)."""
-        o = self.options
         t_all = np.asarray(s.t)
         if not self.imu.t:
             return None
@@ -2496,23 +2543,73 @@ class OnlineSmoother:
                 continue
             if fit is None or f.scale_rel_se < fit.scale_rel_se:
                 fit = f
-        if fit is None:
-            return None
-        log.debug(
-            "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
-            self.name,
-            t[-1] - t[0],
-            fit.scale,
-            fit.excitation,
-            fit.scale_rel_se,
-        )
-        if not (
-            fit.excitation >= o.slam_init_min_excitation_m
+        if fit is not None:
+            log.debug(
+                "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
+                self.name,
+                t[-1] - t[0],
+                fit.scale,
+                fit.excitation,
+                fit.scale_rel_se,
+            )
+        if self._sgc is not None:
+            fit = self._fit_unverified_extrinsic(fit, t, np.asarray(s.p)[idx], q, imu, R)
+        return fit if self._fit_passes(fit) else None
+
+    def _fit_passes(self, fit) -> bool:
+        """The closed-form fit passes the gates that start a session's alignment chain."""
+        o = self.options
+        return (
+            fit is not None
+            and fit.excitation >= o.slam_init_min_excitation_m
             and fit.scale_rel_se <= o.slam_init_max_rel_se
             and fit.n_pairs >= o.slam_init_min_pairs
+        )
+
+    def _fit_unverified_extrinsic(self, fit, t, p, q, imu, R):
+        """While the SLAM-vs-gyro check has not verified ``body_R_cam``, the closed-form fit's
+        rotation (from the SLAM orientations through ``body_R_cam``) is checked against the one
+        the motion alone gives (:func:`init_slam_alignment` ``rotation="motion"``). The motion's
+        is used when it passes the chain's gates with acceleration along two axes at least
+        (``rotation_spread`` >= ``SLAM_FIT_MOTION_MIN_SPREAD``) and no fit through
+        ``body_R_cam`` has a positive scale, or the two differ by more than
+        ``SLAM_FIT_ROTATION_MAX_DEG`` and the motion's fits the scale 1.5x better (a
+        ``body_R_cam`` 90 deg off made the chain start 90 deg off and diverge, or held it back,
+        before the check decided)."""
+        slam = SlamSeries(t, p, q, np.zeros(len(t), dtype=int))
+        try:
+            alt = init_slam_alignment(
+                slam, imu, R, self.body_T_cam, self.go.gravity, rotation="motion"
+            )
+        except FlightDataError:
+            return fit
+        if not (
+            self._fit_passes(alt)
+            and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+            and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
         ):
-            return None
-        return fit
+            return fit
+        if fit is None:
+            why = "gives no positive scale"
+        else:
+            angle = math.degrees(_norm(so3_log(alt.slam_R_world @ fit.slam_R_world.T)))
+            if angle <= SLAM_FIT_ROTATION_MAX_DEG or not (
+                1.5 * alt.scale_rel_se < fit.scale_rel_se
+            ):
+                return fit
+            why = f"is {angle:.0f} deg off (scale rel. s.e. {fit.scale_rel_se:.3f})"
+        if not self._fit_motion_used:
+            self._fit_motion_used = True
+            log.warning(
+                "%s: SLAM alignment: the rotation through body_T_cam %s against the one the "
+                "motion fits (scale rel. s.e. %.3f): using the motion's until the SLAM-vs-gyro "
+                "check decides",
+                self.name,
+                why,
+                alt.scale_rel_se,
+            )
+        self._use("slam:fit-rotation-from-motion")
+        return alt
 
     def _attitude_track(self, t: np.ndarray) -> np.ndarray | None:
         """World_R_body at times ``t``: the attitude stream, else the smoother's keyframes."""
