@@ -465,6 +465,36 @@ def fit_axis_scale(
     return np.where(ok, k, k[ok].mean()), rel_se, len(sd2)
 
 
+def rotation_increments(
+    slam: SlamSeries,
+    imu_t: np.ndarray,
+    world_R_body_imu: np.ndarray,
+    pair_s: float = 0.25,
+    max_pair_s: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation vectors (P, 3) of the SLAM-frame increments ``slam_R_cam(j) slam_R_cam(i)^T``
+    and of the world-frame ones ``world_R_body(j) world_R_body(i)^T`` over pose pairs ``pair_s``
+    to ``max_pair_s`` apart. The camera is rigid on the body, so the first are the second
+    rotated by ``slam_R_world`` whatever ``body_R_cam`` is (the pairs of the SLAM-vs-gyro check
+    are body-frame, and fit ``body_R_cam`` instead)."""
+    t = np.asarray(slam.t, float)
+    j = np.searchsorted(t, t + pair_s - 1e-9)
+    i = np.arange(len(t))
+    ok = j < len(t)
+    i, j = i[ok], j[ok]
+    ok = t[j] - t[i] <= max_pair_s
+    i, j = i[ok], j[ok]
+    if not len(i):
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    S = quat_wxyz_to_matrix(np.asarray(slam.slam_q_cam_wxyz, float))
+    W = slerp_rotations(imu_t, world_R_body_imu, t)
+    tr = (0, 2, 1)
+    return (
+        so3_log(S[j] @ np.transpose(S[i], tr)),
+        so3_log(W[j] @ np.transpose(W[i], tr)),
+    )
+
+
 def init_slam_alignment(
     slam: SlamSeries,
     imu: ImuSeries,
@@ -478,9 +508,11 @@ def init_slam_alignment(
     """Closed-form ``slam_T_world`` of one SLAM session.
 
     1. ``slam_R_world`` = chordal mean of ``slam_R_cam (world_R_body body_R_cam)^T``; with
-       ``rotation="motion"`` instead the rotation that best maps the metric second differences
-       onto the SLAM ones (orthogonal Procrustes of the centred pairs: needs acceleration along
-       two axes or more, and neither the SLAM orientations nor ``body_R_cam``).
+       ``rotation="motion"`` instead, without ``body_R_cam``: the rotation that best maps the
+       metric second differences onto the SLAM ones and the world-frame rotation increments
+       onto the SLAM-frame ones (:func:`rotation_increments`; orthogonal Procrustes, each kind
+       weighing the same): determined by two non-parallel directions, e.g. turns about the
+       vertical and a horizontal acceleration.
     2. scale = least squares of SLAM second differences against ``slam_R_world`` times the metric
        second differences from the accelerometer (:func:`slam_second_differences`: on the SLAM
        samples themselves, unbiased on low-rate keyframes), jointly with
@@ -508,7 +540,11 @@ def init_slam_alignment(
     spread = float("nan")
     if rotation == "motion":
         # Centring removes the part of an accelerometer bias that stays put in the world.
-        M = (slam_d2 - slam_d2.mean(axis=0)).T @ (world_d2 - world_d2.mean(axis=0))
+        M_acc = (slam_d2 - slam_d2.mean(axis=0)).T @ (world_d2 - world_d2.mean(axis=0))
+        slam_rv, world_rv = rotation_increments(slam, imu.t, world_R_body_imu)
+        M_rot = slam_rv.T @ world_rv
+        # Each kind of pair weighs the same (metres and radians do not compare).
+        M = sum(m / n for m in (M_acc, M_rot) if (n := float(np.linalg.norm(m))) > 0)
         sv = np.linalg.svd(M, compute_uv=False)
         spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
         slam_R_world = project_to_so3(M)

@@ -468,6 +468,12 @@ class _Session:
     next_fit: float = -math.inf
     index: int = 0  # order of arrival: the chain's keys are S(index * SESSION_STRIDE + segment)
     carried: bool = False  # its chain starts from an alignment carried over an IMU gap
+    # The provisional alignment re-seeded from the motion (_reseed_provisional): done, next
+    # try, and the (slam_R_world, scale) seed for _start_provisional.
+    reseeded: bool = False
+    reseed_now: bool = False  # body_T_cam's rotation replaced: re-seed at the next pose
+    next_reseed: float = -math.inf
+    seed: tuple | None = None
 
 
 class OnlineSmoother:
@@ -1985,6 +1991,9 @@ class OnlineSmoother:
                 # Used by every SLAM factor and alignment fit made from now on (the position
                 # factors made before see only the translation, which is kept).
                 self.body_T_cam = make_pose(d.body_R_cam_fit, self.body_T_cam[:3, 3])
+                # A provisional alignment seeded through the old rotation is seeded anew.
+                for s in self.sessions.values():
+                    s.reseed_now = s.provisional is not None and not s.reseeded
 
     def _camera_ready(self, ev: ImageFrame) -> bool:
         """Set up the homography VO stage at the first image (False: images not used, counted).
@@ -2450,6 +2459,7 @@ class OnlineSmoother:
             if not s.chain:
                 if not o.slam_provisional:
                     return None  # held back until the fit
+                self._reseed_provisional(sess, s, t_now, remove)
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
                 return s.provisional
@@ -2510,6 +2520,51 @@ class OnlineSmoother:
 
     def _fit(self, s: _Session):
         """Closed-form alignment over the session's arrived poses, or None (gates not passed)."""
+        inputs = self._fit_inputs(s)
+        if inputs is None:
+            return None
+        t, p, q, imu, R = inputs
+        # The fit's SLAM-frame rotation comes from the SLAM orientations: while the convention
+        # check has not decided, try both conventions and keep the better fit (the wrong one
+        # rotates the accelerations away from the SLAM motion: a poor fit).
+        fit = self._best_fit(t, p, q, imu, R, "orientations")
+        if fit is not None:
+            log.debug(
+                "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
+                self.name,
+                t[-1] - t[0],
+                fit.scale,
+                fit.excitation,
+                fit.scale_rel_se,
+            )
+        if self._sgc is not None:
+            fit = self._fit_unverified_extrinsic(fit, inputs)
+        return fit if self._fit_passes(fit) else None
+
+    def _best_fit(self, t, p, q, imu, R, rotation: str):
+        """:func:`init_slam_alignment` with the decided convention, or while undecided the
+        better of the two (scale rel. s.e.; for ``rotation="motion"`` the stated one unless the
+        inverse's is under half of it: turns about one axis fit both conventions' rotation
+        increments, and the wrong one's rotation came out 179 deg off on simulated rectangle);
+        None when neither gives a positive scale."""
+        convs = [q] if self._slam_conv in ("as-is", "inverse") else [q, q * _CONJ]
+        margin = 0.5 if rotation == "motion" else 1.0
+        fit = None
+        for qq in convs:
+            slam = SlamSeries(t, p, qq, np.zeros(len(t), dtype=int))
+            try:
+                f = init_slam_alignment(
+                    slam, imu, R, self.body_T_cam, self.go.gravity, rotation=rotation
+                )
+            except FlightDataError:
+                continue
+            if fit is None or f.scale_rel_se < margin * fit.scale_rel_se:
+                fit = f
+        return fit
+
+    def _fit_inputs(self, s: _Session):
+        """``(t, p, q, imu, world_R_body at the IMU times)`` of the session's arrived poses the
+        IMU history covers with the second differences' margin, or None."""
         t_all = np.asarray(s.t)
         if not self.imu.t:
             return None
@@ -2529,32 +2584,7 @@ class OnlineSmoother:
         if R is None:
             return None
         idx = np.flatnonzero(keep)
-        q = np.asarray(s.q)[idx]
-        # The fit's SLAM-frame rotation comes from the SLAM orientations: while the convention
-        # check has not decided, try both conventions and keep the better fit (the wrong one
-        # rotates the accelerations away from the SLAM motion: a poor fit).
-        convs = [q] if self._slam_conv in ("as-is", "inverse") else [q, q * _CONJ]
-        fit = None
-        for qq in convs:
-            slam = SlamSeries(t, np.asarray(s.p)[idx], qq, np.zeros(len(t), dtype=int))
-            try:
-                f = init_slam_alignment(slam, imu, R, self.body_T_cam, self.go.gravity)
-            except FlightDataError:
-                continue
-            if fit is None or f.scale_rel_se < fit.scale_rel_se:
-                fit = f
-        if fit is not None:
-            log.debug(
-                "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
-                self.name,
-                t[-1] - t[0],
-                fit.scale,
-                fit.excitation,
-                fit.scale_rel_se,
-            )
-        if self._sgc is not None:
-            fit = self._fit_unverified_extrinsic(fit, t, np.asarray(s.p)[idx], q, imu, R)
-        return fit if self._fit_passes(fit) else None
+        return t, np.asarray(s.p)[idx], np.asarray(s.q)[idx], imu, R
 
     def _fit_passes(self, fit) -> bool:
         """The closed-form fit passes the gates that start a session's alignment chain."""
@@ -2566,7 +2596,7 @@ class OnlineSmoother:
             and fit.n_pairs >= o.slam_init_min_pairs
         )
 
-    def _fit_unverified_extrinsic(self, fit, t, p, q, imu, R):
+    def _fit_unverified_extrinsic(self, fit, inputs):
         """While the SLAM-vs-gyro check has not verified ``body_R_cam``, the closed-form fit's
         rotation (from the SLAM orientations through ``body_R_cam``) is checked against the one
         the motion alone gives (:func:`init_slam_alignment` ``rotation="motion"``). The motion's
@@ -2576,15 +2606,10 @@ class OnlineSmoother:
         ``SLAM_FIT_ROTATION_MAX_DEG`` and the motion's fits the scale 1.5x better (a
         ``body_R_cam`` 90 deg off made the chain start 90 deg off and diverge, or held it back,
         before the check decided)."""
-        slam = SlamSeries(t, p, q, np.zeros(len(t), dtype=int))
-        try:
-            alt = init_slam_alignment(
-                slam, imu, R, self.body_T_cam, self.go.gravity, rotation="motion"
-            )
-        except FlightDataError:
-            return fit
+        alt = self._best_fit(*inputs, "motion")
         if not (
-            self._fit_passes(alt)
+            alt is not None
+            and self._fit_passes(alt)
             and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
             and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
         ):
@@ -2732,6 +2757,57 @@ class OnlineSmoother:
         pose = self._pose_at(t)
         return pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
 
+    def _reseed_provisional(self, sess, s: _Session, t_now: float, remove) -> None:
+        """Once the stated ``body_R_cam`` is suspected (:meth:`_suspect_extrinsic`), the
+        provisional alignment seeded through it is replaced, once, by one seeded with the
+        rotation the motion fits (:func:`init_slam_alignment` ``rotation="motion"``: the
+        rotation increments and accelerations, no ``body_R_cam``) as soon as that is determined
+        (``rotation_spread`` >= ``SLAM_FIT_MOTION_MIN_SPREAD``, scale rel. s.e. within
+        ``slam_init_max_rel_se``; tried every 0.5 s), or, once the check has replaced the
+        rotation, by one seeded through the replacement (``reseed_now``); the old
+        one's factors in the window move to the new one. A seed 180 deg off cannot be undone
+        by the solver (simulated rectangle, 30 s: 123 m)."""
+        if s.provisional is None or s.reseeded:
+            return
+        if s.reseed_now:
+            # body_T_cam's rotation was replaced by the check's: seeded through the new one,
+            # with the provisional's current scale.
+            seed = None
+            scale = float(self.values[s.provisional].scale())
+            how = "through the replaced body_T_cam rotation"
+        else:
+            if self._extrinsic_suspect is None or self._sgc is None or t_now < s.next_reseed:
+                return
+            s.next_reseed = t_now + 0.5
+            inputs = self._fit_inputs(s)
+            alt = None if inputs is None else self._best_fit(*inputs, "motion")
+            if not (
+                alt is not None
+                and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+                and alt.scale_rel_se <= self.options.slam_init_max_rel_se
+            ):
+                return
+            seed, scale = alt.slam_R_world, alt.scale
+            old = self.values[s.provisional].rotation().matrix()
+            angle = math.degrees(_norm(so3_log(seed @ old.T)))
+            how = f"with the rotation the motion fits ({angle:.0f} deg from the stated one's)"
+        s.reseeded = True
+        log.warning(
+            "%s: SLAM session %d: provisional alignment re-seeded %s, scale %.4f",
+            self.name,
+            sess,
+            how,
+            scale,
+        )
+        for idx, (k, tp, p, q) in s.prov_factors:
+            if self._kf_alive(k) and self._alive(s.provisional):
+                remove.append(idx)
+                self._held.append((k, "slam", (sess, -1, tp, p, q)))
+        self._use("slam:provisional-reseeded")
+        s.prov_factors = []
+        s.provisional = None
+        s.seed = (seed, scale)
+
     def _start_provisional(self, sess, s: _Session, g, stamps) -> bool:
         """The session's provisional alignment (False: not yet, its poses are held back).
 
@@ -2752,6 +2828,11 @@ class OnlineSmoother:
         source = "session" if scale is not None else "default"
         if ml is not None:
             source = "ml-scale"
+        if s.seed is not None:
+            # _reseed_provisional: the motion's rotation, or the one through the replaced
+            # body_T_cam (None), and the scale.
+            R = R if s.seed[0] is None else s.seed[0]
+            scale, source = s.seed[1], "re-seed"
         if scale is None and self._prov_n_covered(s) < o.slam_provisional_min_poses:
             return False  # held back: fewer poses than make the scale observable
         if scale is None:

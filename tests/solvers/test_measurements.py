@@ -140,36 +140,36 @@ def test_closed_form_scale_unbiased_on_3hz_keyframes():
 
 
 def test_init_slam_alignment_rotation_from_motion():
-    """``rotation="motion"``: the SLAM rotation from the second differences alone (no SLAM
-    orientation, no ``body_R_cam``) is within a degree of the truth when two axes are excited
-    (figure8's first 8 s, spread above 0.2), and its spread says when only one is (the first
-    3 s)."""
+    """``rotation="motion"``: the SLAM rotation from the second differences and the rotation
+    increments (no ``body_R_cam``) is within a degree of the truth on figure8's first 8 s
+    (0.55 deg measured; spread 0.83), with an identity ``body_R_cam`` given (180 deg off) through
+    which the orientations give no fit; a flight that only climbs (``vertical``: one
+    direction, no turns) has a spread near 0 (0.001 measured: the rotation about the vertical
+    is undetermined)."""
     from fgnav.datasets.simulate import SimOptions, simulate
     from fgnav.datasets.types import SlamSeries
 
-    f = simulate("figure8", seed=1, options=SimOptions(duration=20.0, images=False))
-    truth = f.meta["truth"]["slam_sessions"]["0"]
-    R_imu = np.array([quat_wxyz_to_matrix(q) for q in f.ground_truth.world_q_body_wxyz])
-    wrong = np.eye(4)  # the identity for a downward camera: 180 deg off
-    wrong[:3, 3] = np.asarray(f.calib.body_T_cam)[:3, 3]
-
-    def head(seconds):
+    def head(f, seconds):
         n = f.slam.t < f.slam.t[0] + seconds
         return SlamSeries(f.slam.t[n], f.slam.slam_t_cam[n], f.slam.slam_q_cam_wxyz[n], None)
 
-    init = init_slam_alignment(head(8.0), f.imu, R_imu, wrong, 9.81, rotation="motion")
+    def attitude(f):
+        return np.array([quat_wxyz_to_matrix(q) for q in f.ground_truth.world_q_body_wxyz])
+
+    f = simulate("figure8", seed=1, options=SimOptions(duration=20.0, images=False))
+    truth = f.meta["truth"]["slam_sessions"]["0"]
+    wrong = np.eye(4)  # the identity for a downward camera: 180 deg off
+    wrong[:3, 3] = np.asarray(f.calib.body_T_cam)[:3, 3]
+    init = init_slam_alignment(head(f, 8.0), f.imu, attitude(f), wrong, 9.81, rotation="motion")
     R_err = init.slam_R_world @ np.asarray(truth["slam_R_world"]).T
     assert np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1, 1))) < 1.0
-    assert init.rotation_spread > 0.2 and init.scale_rel_se < 0.05
+    assert init.rotation_spread > 0.5 and init.scale_rel_se < 0.05
     s_mean = truth["scale"] * (1 + truth["scale_drift_per_s"] * 4.0)
     assert abs(init.scale / s_mean - 1) < 0.05
-    early = head(3.0)
-    assert (
-        init_slam_alignment(early, f.imu, R_imu, wrong, 9.81, rotation="motion").rotation_spread
-        < 0.2
-    )
-    # Through the wrong rotation the orientations give no usable fit.
     with pytest.raises(FlightDataError, match="does not match the IMU"):
-        init_slam_alignment(early, f.imu, R_imu, wrong, 9.81)
+        init_slam_alignment(head(f, 3.0), f.imu, attitude(f), wrong, 9.81)
     with pytest.raises(ValueError, match="rotation='gyro'"):
-        init_slam_alignment(f.slam, f.imu, R_imu, wrong, 9.81, rotation="gyro")
+        init_slam_alignment(f.slam, f.imu, attitude(f), wrong, 9.81, rotation="gyro")
+    v = simulate("vertical", seed=1, options=SimOptions(duration=20.0, images=False))
+    up = init_slam_alignment(head(v, 8.0), v.imu, attitude(v), wrong, 9.81, rotation="motion")
+    assert up.rotation_spread < 0.05

@@ -25,21 +25,24 @@ def _identity_camera(flight):
     return dataclasses.replace(flight, calib=dataclasses.replace(flight.calib, body_T_cam=T))
 
 
-def test_wrong_camera_rotation_named_early_and_chain_from_motion(rectangle):
+def test_wrong_camera_rotation_named_early_and_alignment_from_motion(rectangle):
     """Rectangle (60 s) turns about the vertical only: the check never decides and never named
-    the rotation. Before, the chain started through the wrong rotation at 3 s and the run
-    diverged (43.8 m, three health rebuilds); now the misfit names it at 2 s and the chain
-    starts from the motion's rotation (7.95 s): 1.17 m (2.98 cm with the right rotation). Still
-    open: the provisional alignment before the chain is seeded through the wrong rotation (the
-    same flight cut to 30 s: 123 m before, 130 m now; 45 s: 71 m -> 2.4 m). The nominal run
-    uses neither."""
+    the rotation. Before, the provisional alignment and the chain were seeded through the wrong
+    rotation (177 deg off) and the run diverged (43.8 m, three health rebuilds; 123 m on the
+    same flight cut to 30 s). Now the misfit names it at 2 s, the provisional alignment is
+    re-seeded from the rotation increments and accelerations (6.8 deg from the truth) and the
+    chain starts from them (2.6 deg): 3.9 cm against 2.98 cm with the right rotation. The nominal
+    run uses none of it."""
     nominal = replay_online(rectangle, FixedLagOptions())
     assert nominal.info["slam_extrinsic_suspect"] is None
-    assert "slam:fit-rotation-from-motion" not in nominal.info["used"]
+    for kind in ("slam:fit-rotation-from-motion", "slam:provisional-reseeded"):
+        assert kind not in nominal.info["used"]
     est = replay_online(_identity_camera(rectangle), FixedLagOptions())
     suspect = est.info["slam_extrinsic_suspect"]
     assert suspect is not None and suspect["t"] - rectangle.slam.t[0] <= 3.0, suspect
+    assert est.info["used"].get("slam:provisional-reseeded", 0) >= 1
     assert est.info["used"].get("slam:fit-rotation-from-motion", 0) >= 1
+    assert est.info["reset_counter"] == 0
     ate = evaluate(est, rectangle.ground_truth, alignment="se3").ate_rmse_m
     ate_nominal = evaluate(nominal, rectangle.ground_truth, alignment="se3").ate_rmse_m
-    assert ate_nominal < 0.05 and ate < 1.5, (ate, ate_nominal)
+    assert ate_nominal < 0.04 and ate < 0.06, (ate, ate_nominal)
