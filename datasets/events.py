@@ -269,6 +269,16 @@ def replay_flight(
     flight: Flight,
     streams: Iterable[str] | None = None,
     latency: Mapping[str, float | np.ndarray] | None = None,
+    *,
+    named_order: bool = False,
 ) -> Iterator[Event]:
-    """``replay(flight_streams(flight, streams, latency))``: the flight as one event stream."""
-    return replay(flight_streams(flight, streams, latency))
+    """``replay(flight_streams(flight, streams, latency))``: the flight as one event stream.
+
+    Events of equal arrival come in the order of :data:`EVENT_STREAMS`; with ``named_order``, in
+    the order ``streams`` names them.
+    """
+    names = None if streams is None else tuple(streams)
+    found = flight_streams(flight, names, latency)
+    if named_order and names is not None:
+        return replay([found[n] for n in names if n in found])
+    return replay(found)

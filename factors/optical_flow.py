@@ -85,13 +85,14 @@ from fgnav.factors._jacobians import (
     vector_at,
 )
 
+# Floor on cos(tilt) of the optical axis inside the factor: the rangefinder's, cos(85 deg).
+from fgnav.factors.tilted_range import MIN_COS_TILT
+
 ERROR_DIM = 2
 
 #: Floor on the sensor height inside the factor [m]: readings are gated far above it (a flow
 #: sensor focuses from about 8 cm); it only protects optimiser iterates from a division by ~0.
 MIN_HEIGHT = 0.02
-#: Floor on cos(tilt) of the optical axis inside the factor: cos(85 deg) (as the rangefinder).
-MIN_COS_TILT = float(np.cos(np.deg2rad(85.0)))
 
 _E_Z = np.array([0.0, 0.0, 1.0])
 

@@ -109,8 +109,7 @@ from fgnav.datasets.events import (
     RangeReading,
     SlamPose,
     YawReading,
-    flight_streams,
-    replay,
+    replay_flight,
 )
 from fgnav.datasets.geometry import (
     GRAVITY,
@@ -1125,8 +1124,7 @@ class Ekf004Runner:
             names.remove("attitude")
         # Ties in arrival: a yaw reading before the attitude sample taken with it (the filter
         # starts at the first attitude sample by which a yaw reading has arrived).
-        streams = flight_streams(self.flight, names)
-        for ev in replay([streams[n] for n in names if n in streams]):
+        for ev in replay_flight(self.flight, names, named_order=True):
             self.feed(ev)
         return self._estimate(np.asarray(self.latencies), time.perf_counter() - wall0)
 

@@ -56,13 +56,7 @@ from typing import NamedTuple
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import (
-    ImuSample,
-    RangeReading,
-    YawReading,
-    flight_streams,
-    replay,
-)
+from fgnav.datasets.events import ImuSample, RangeReading, YawReading, replay_flight
 from fgnav.datasets.geometry import (
     GRAVITY,
     interpolate_quat_wxyz,
@@ -664,9 +658,8 @@ def run_attitude_ekf(
     use_range = use_range and flight.range is not None
     stage = AttitudeEkfStage(flight.calib, options, q0_wxyz, use_yaw, use_range, flight.name)
     # Ties in arrival: the IMU sample first, then yaw, then range.
-    streams = flight_streams(flight, ("imu", "yaw", "range"))
     out: list[AttitudeEstimate] = []
-    for ev in replay([streams[k] for k in ("imu", "yaw", "range") if k in streams]):
+    for ev in replay_flight(flight, ("imu", "yaw", "range"), named_order=True):
         out += stage.feed(ev)
     counts = stage.counts
     log.info("attitude EKF on %s: %s", flight.name, counts)
