@@ -300,8 +300,9 @@ class SlamAlignmentInit:
             observable from the IMU).
         scale_rel_se: relative standard error of the least-squares scale.
         rotation_spread: with ``rotation="motion"``, the second over the first singular value of
-            the pairs' cross-covariance (near 0: the acceleration along one axis only, the
-            rotation about it undetermined); NaN for a rotation from the orientations.
+            the pairs' cross-covariance, acceleration and turn pairs together (near 0: one
+            direction only, e.g. a climb without turns, the rotation about it undetermined); NaN
+            for a rotation from the orientations.
     """
 
     scale: float
@@ -465,18 +466,37 @@ def fit_axis_scale(
     return np.where(ok, k, k[ok].mean()), rel_se, len(sd2)
 
 
+#: :func:`rotation_increments`: least world-frame rotation of a pair [rad] (SLAM orientation
+#: noise is about 0.01 rad; smaller turns only add noise directions to the rotation fit) and the
+#: least number of such pairs for :func:`init_slam_alignment` ``rotation="motion"`` to use them.
+MOTION_MIN_TURN_RAD = 0.05
+MOTION_MIN_TURNS = 3
+
+
 def rotation_increments(
     slam: SlamSeries,
     imu_t: np.ndarray,
     world_R_body_imu: np.ndarray,
     pair_s: float = 0.25,
     max_pair_s: float = 1.0,
+    min_angle_rad: float = MOTION_MIN_TURN_RAD,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation vectors (P, 3) of the SLAM-frame increments ``slam_R_cam(j) slam_R_cam(i)^T``
-    and of the world-frame ones ``world_R_body(j) world_R_body(i)^T`` over pose pairs ``pair_s``
-    to ``max_pair_s`` apart. The camera is rigid on the body, so the first are the second
-    rotated by ``slam_R_world`` whatever ``body_R_cam`` is (the pairs of the SLAM-vs-gyro check
-    are body-frame, and fit ``body_R_cam`` instead)."""
+    """Rotation vectors of the SLAM-frame increments ``slam_R_cam(j) slam_R_cam(i)^T`` and of the
+    world-frame ones ``world_R_body(j) world_R_body(i)^T`` of pose pairs. The camera is rigid on
+    the body, so the first are the second rotated by ``slam_R_world`` whatever ``body_R_cam``
+    is (the SLAM-vs-gyro check's pairs are body-frame, and fit ``body_R_cam`` instead).
+
+    Args:
+        slam: the session's poses, ``slam_q_cam_wxyz`` being ``slam_R_cam`` (convention applied).
+        imu_t, world_R_body_imu: (N,) times [s] and (N, 3, 3) attitude track, interpolated to the
+            pose times.
+        pair_s, max_pair_s: a pose is paired with the first one at least ``pair_s`` later, kept
+            when at most ``max_pair_s`` later [s].
+        min_angle_rad: pairs whose world-frame rotation is smaller are left out [rad].
+
+    Returns:
+        ``(slam_rv, world_rv)``, (P, 3) each [rad].
+    """
     t = np.asarray(slam.t, float)
     j = np.searchsorted(t, t + pair_s - 1e-9)
     i = np.arange(len(t))
@@ -489,10 +509,10 @@ def rotation_increments(
     S = quat_wxyz_to_matrix(np.asarray(slam.slam_q_cam_wxyz, float))
     W = slerp_rotations(imu_t, world_R_body_imu, t)
     tr = (0, 2, 1)
-    return (
-        so3_log(S[j] @ np.transpose(S[i], tr)),
-        so3_log(W[j] @ np.transpose(W[i], tr)),
-    )
+    slam_rv = so3_log(S[j] @ np.transpose(S[i], tr))
+    world_rv = so3_log(W[j] @ np.transpose(W[i], tr))
+    big = np.linalg.norm(world_rv, axis=1) >= min_angle_rad
+    return slam_rv[big], world_rv[big]
 
 
 def init_slam_alignment(
@@ -527,6 +547,7 @@ def init_slam_alignment(
         gravity: g [m/s^2].
         h: half-width of the second differences [s].
         step: spacing of the second-difference centres [s].
+        rotation: ``"orientations"`` (through ``body_T_cam``) or ``"motion"`` (without it; step 1).
     """
     world_a = world_specific_accel(imu, world_R_body_imu, gravity)
     d = slam_second_differences(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
@@ -540,11 +561,13 @@ def init_slam_alignment(
     spread = float("nan")
     if rotation == "motion":
         # Centring removes the part of an accelerometer bias that stays put in the world.
-        M_acc = (slam_d2 - slam_d2.mean(axis=0)).T @ (world_d2 - world_d2.mean(axis=0))
+        M = (slam_d2 - slam_d2.mean(axis=0)).T @ (world_d2 - world_d2.mean(axis=0))
         slam_rv, world_rv = rotation_increments(slam, imu.t, world_R_body_imu)
-        M_rot = slam_rv.T @ world_rv
-        # Each kind of pair weighs the same (metres and radians do not compare).
-        M = sum(m / n for m in (M_acc, M_rot) if (n := float(np.linalg.norm(m))) > 0)
+        if len(slam_rv) >= MOTION_MIN_TURNS and (n := float(np.linalg.norm(M))) > 0:
+            # Turns well above the orientation noise: each kind of pair weighs the same
+            # (metres and radians do not compare).
+            M_rot = slam_rv.T @ world_rv
+            M = M / n + M_rot / float(np.linalg.norm(M_rot))
         sv = np.linalg.svd(M, compute_uv=False)
         spread = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
         slam_R_world = project_to_so3(M)

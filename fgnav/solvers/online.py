@@ -250,13 +250,27 @@ STILL_VEL_SIGMA_RATE = 0.2
 #: Angle [deg] between the closed-form fit's SLAM rotation through ``body_R_cam`` and the one
 #: the motion fits above which the motion's is preferred while ``body_R_cam`` is unverified.
 SLAM_FIT_ROTATION_MAX_DEG = 10.0
-#: Least ``rotation_spread`` of a motion-only alignment fit (acceleration along two axes): on
-#: EuRoC MH_01 and the simulated flights the chain's first fits have 0.002-0.07 (one axis).
+#: Least ``rotation_spread`` of a motion-only alignment fit (two directions among the
+#: accelerations and turns): from accelerations alone the chain's first fits on EuRoC MH_01
+#: and the simulated flights had 0.002-0.07 (one axis); with the turns, simulated rectangle
+#: and figure8 0.86-0.99, a climb without turns (``vertical``) 0.001-0.004.
 SLAM_FIT_MOTION_MIN_SPREAD = 0.2
 #: Largest scale relative standard error of a motion-only fit to be used (its rotation is
 #: fitted to the same pairs: simulated two-turns with an identity ``body_R_cam`` had 0.165 at
-#: 7.4 s and a rotation that diverged; rectangle and figure8 0.007-0.013 when adopted).
+#: 7.4 s and a rotation that diverged; rectangle and figure8 0.007-0.05 when adopted).
 SLAM_FIT_MOTION_MAX_REL_SE = 0.05
+#: While ``body_R_cam`` is unverified the motion's fit replaces the one through it when it fits
+#: the scale this many times better (and is ``SLAM_FIT_ROTATION_MAX_DEG`` away).
+SLAM_FIT_MOTION_BETTER = 1.5
+#: With the convention undecided, the motion's fit takes the inverse convention only when its
+#: scale rel. s.e. is under this fraction of the stated one's (turns about one axis fit both
+#: conventions' increments: the inverse's rotation came out 179 deg off on simulated rectangle).
+SLAM_MOTION_INVERSE_RATIO = 0.5
+#: Seconds between two tries of the early misfit (``SlamGyroCheck.stated_misfit``, which
+#: integrates the arrived gyro again: 3.5 ms at 1 s of data, 14 ms at 40 s) and of the
+#: provisional re-seed (a motion fit).
+SLAM_MISFIT_RETRY_S = 1.0
+SLAM_RESEED_RETRY_S = 0.5
 #: ``SlamGyroCheck.stated_misfit`` above which the stated ``body_R_cam`` is suspected before the
 #: check decides (named, see OnlineSmoother._suspect_extrinsic). Measured causally over the first
 #: 25 s: right rotations 0.01-0.05 on EuRoC MH_01 / V1_02 (both files), 0.03-0.14 on the
@@ -2241,11 +2255,13 @@ class OnlineSmoother:
         from the gyro's (:meth:`SlamGyroCheck.stated_misfit` above
         ``SLAM_EXTRINSIC_SUSPECT_MISFIT``) is named, once, in a warning and in
         ``info["slam_extrinsic_suspect"]``: with one excited axis, 1-3 s into a flight, where
-        the check needs two (simulated rectangle's yaw-only turns: never). Only named: the
-        provisional alignment, seeded through it, stays (withdrawing it left EuRoC MH_01 with an
-        identity rotation IMU-only for 3 s, 5.1 -> 55 cm; simulated rectangle 1.17 m -> 11 cm,
-        figure8 2.1 -> 2.2 m)."""
-        if self._extrinsic_suspect is not None or t - self._misfit_try < 1.0:
+        the check needs two (simulated rectangle's yaw-only turns: never). The provisional
+        alignment seeded through it is then re-seeded from the motion
+        (:meth:`_reseed_provisional`); withdrawing it instead left EuRoC MH_01 with an identity
+        rotation IMU-only for 3 s (5.1 -> 55 cm). A right rotation with a SLAM clock 0.3 s off
+        reads about 0.5 (simulated rectangle and circle): named, but the re-seed keeps a
+        provisional whose rotation the motion confirms."""
+        if self._extrinsic_suspect is not None or t - self._misfit_try < SLAM_MISFIT_RETRY_S:
             return
         self._misfit_try = t
         m = self._sgc.stated_misfit()
@@ -2548,7 +2564,7 @@ class OnlineSmoother:
         increments, and the wrong one's rotation came out 179 deg off on simulated rectangle);
         None when neither gives a positive scale."""
         convs = [q] if self._slam_conv in ("as-is", "inverse") else [q, q * _CONJ]
-        margin = 0.5 if rotation == "motion" else 1.0
+        margin = SLAM_MOTION_INVERSE_RATIO if rotation == "motion" else 1.0
         fit = None
         for qq in convs:
             slam = SlamSeries(t, p, qq, np.zeros(len(t), dtype=int))
@@ -2596,6 +2612,16 @@ class OnlineSmoother:
             and fit.n_pairs >= o.slam_init_min_pairs
         )
 
+    def _motion_fit_ok(self, alt) -> bool:
+        """A motion-only fit (``rotation="motion"``) determines the SLAM rotation: the chain's
+        gates, two directions (``SLAM_FIT_MOTION_MIN_SPREAD``) and a well-fitted scale
+        (``SLAM_FIT_MOTION_MAX_REL_SE``)."""
+        return (
+            self._fit_passes(alt)
+            and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+            and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
+        )
+
     def _fit_unverified_extrinsic(self, fit, inputs):
         """While the SLAM-vs-gyro check has not verified ``body_R_cam``, the closed-form fit's
         rotation (from the SLAM orientations through ``body_R_cam``) is checked against the one
@@ -2603,23 +2629,19 @@ class OnlineSmoother:
         is used when it passes the chain's gates with acceleration along two axes at least
         (``rotation_spread`` >= ``SLAM_FIT_MOTION_MIN_SPREAD``) and no fit through
         ``body_R_cam`` has a positive scale, or the two differ by more than
-        ``SLAM_FIT_ROTATION_MAX_DEG`` and the motion's fits the scale 1.5x better (a
+        ``SLAM_FIT_ROTATION_MAX_DEG`` and the motion's fits the scale
+        ``SLAM_FIT_MOTION_BETTER`` times better (a
         ``body_R_cam`` 90 deg off made the chain start 90 deg off and diverge, or held it back,
         before the check decided)."""
         alt = self._best_fit(*inputs, "motion")
-        if not (
-            alt is not None
-            and self._fit_passes(alt)
-            and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
-            and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
-        ):
+        if not self._motion_fit_ok(alt):
             return fit
         if fit is None:
             why = "gives no positive scale"
         else:
             angle = math.degrees(_norm(so3_log(alt.slam_R_world @ fit.slam_R_world.T)))
             if angle <= SLAM_FIT_ROTATION_MAX_DEG or not (
-                1.5 * alt.scale_rel_se < fit.scale_rel_se
+                SLAM_FIT_MOTION_BETTER * alt.scale_rel_se < fit.scale_rel_se
             ):
                 return fit
             why = f"is {angle:.0f} deg off (scale rel. s.e. {fit.scale_rel_se:.3f})"
@@ -2760,37 +2782,38 @@ class OnlineSmoother:
     def _reseed_provisional(self, sess, s: _Session, t_now: float, remove) -> None:
         """Once the stated ``body_R_cam`` is suspected (:meth:`_suspect_extrinsic`), the
         provisional alignment seeded through it is replaced, once, by one seeded with the
-        rotation the motion fits (:func:`init_slam_alignment` ``rotation="motion"``: the
-        rotation increments and accelerations, no ``body_R_cam``) as soon as that is determined
-        (``rotation_spread`` >= ``SLAM_FIT_MOTION_MIN_SPREAD``, scale rel. s.e. within
-        ``slam_init_max_rel_se``; tried every 0.5 s), or, once the check has replaced the
-        rotation, by one seeded through the replacement (``reseed_now``); the old
-        one's factors in the window move to the new one. A seed 180 deg off cannot be undone
-        by the solver (simulated rectangle, 30 s: 123 m)."""
+        rotation the motion fits (:func:`init_slam_alignment` ``rotation="motion"``: the turns
+        and accelerations, no ``body_R_cam``) as soon as that passes :meth:`_motion_fit_ok`
+        (tried every ``SLAM_RESEED_RETRY_S``) and differs from the provisional's rotation by more
+        than ``SLAM_FIT_ROTATION_MAX_DEG`` (else the provisional stays); once the check has
+        replaced the rotation (``reseed_now``), by one seeded through the replacement (the
+        closed-form fit's chordal mean over the arrived poses when there are enough, else the
+        newest pose). The old one's factors in the window move to the new one. A seed 180 deg
+        off cannot be undone by the solver (simulated rectangle, 30 s: 123 m)."""
         if s.provisional is None or s.reseeded:
             return
+        old = self.values[s.provisional]
+        inputs = None
         if s.reseed_now:
-            # body_T_cam's rotation was replaced by the check's: seeded through the new one,
-            # with the provisional's current scale.
-            seed = None
-            scale = float(self.values[s.provisional].scale())
+            inputs = self._fit_inputs(s)
+            fit = None if inputs is None else self._best_fit(*inputs, "orientations")
+            seed = None if fit is None else fit.slam_R_world
+            scale = float(old.scale())
             how = "through the replaced body_T_cam rotation"
         else:
             if self._extrinsic_suspect is None or self._sgc is None or t_now < s.next_reseed:
                 return
-            s.next_reseed = t_now + 0.5
+            s.next_reseed = t_now + SLAM_RESEED_RETRY_S
             inputs = self._fit_inputs(s)
             alt = None if inputs is None else self._best_fit(*inputs, "motion")
-            if not (
-                alt is not None
-                and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
-                and alt.scale_rel_se <= self.options.slam_init_max_rel_se
-            ):
+            if not self._motion_fit_ok(alt):
                 return
             seed, scale = alt.slam_R_world, alt.scale
-            old = self.values[s.provisional].rotation().matrix()
-            angle = math.degrees(_norm(so3_log(seed @ old.T)))
-            how = f"with the rotation the motion fits ({angle:.0f} deg from the stated one's)"
+            angle = math.degrees(_norm(so3_log(seed @ old.rotation().matrix().T)))
+            if angle <= SLAM_FIT_ROTATION_MAX_DEG:
+                s.reseeded = True  # the motion confirms the provisional's rotation
+                return
+            how = f"with the rotation the motion fits ({angle:.0f} deg from the provisional's)"
         s.reseeded = True
         log.warning(
             "%s: SLAM session %d: provisional alignment re-seeded %s, scale %.4f",
@@ -2830,9 +2853,10 @@ class OnlineSmoother:
             source = "ml-scale"
         if s.seed is not None:
             # _reseed_provisional: the motion's rotation, or the one through the replaced
-            # body_T_cam (None), and the scale.
+            # body_T_cam (None: the newest pose's, above), and the scale.
             R = R if s.seed[0] is None else s.seed[0]
             scale, source = s.seed[1], "re-seed"
+            s.seed = None
         if scale is None and self._prov_n_covered(s) < o.slam_provisional_min_poses:
             return False  # held back: fewer poses than make the scale observable
         if scale is None:

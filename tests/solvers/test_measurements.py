@@ -173,3 +173,11 @@ def test_init_slam_alignment_rotation_from_motion():
     v = simulate("vertical", seed=1, options=SimOptions(duration=20.0, images=False))
     up = init_slam_alignment(head(v, 8.0), v.imu, attitude(v), wrong, 9.81, rotation="motion")
     assert up.rotation_spread < 0.05
+    # An estimated attitude wanders: its small increments must not pass for turns (a random walk
+    # of 1e-5 rad per sample gave spreads of 0.33-0.81 and rotations 48-151 deg off when every
+    # increment counted, whatever its size).
+    rng = np.random.default_rng(0)
+    walk = so3_exp(np.cumsum(rng.normal(0.0, 1e-5, (len(v.imu.t), 3)), axis=0))
+    noisy = attitude(v) @ walk
+    up = init_slam_alignment(head(v, 8.0), v.imu, noisy, wrong, 9.81, rotation="motion")
+    assert up.rotation_spread < 0.05
