@@ -265,7 +265,7 @@ def test_euroc_mh01_identity_body_T_cam_replaced_by_the_fitted_rotation(real_dat
     use the rotation the gyro fits (0.55 deg from the true one). Measured 2026-12-07: batch
     2.79 cm (nominal 2.8; before: LM did not converge), push engine 5.1 cm, no reset (nominal
     4.5; before: diverged, 3.9 m after 3 rebuilds); with the early misfit (1.2 s in) and the
-    provisional alignment re-seeded from the motion, 5.5 cm."""
+    chain's rotation from the motion, 5.2 cm."""
     from fgnav.solvers.fixed_lag import FixedLagOptions
     from fgnav.solvers.online import replay_online
 

@@ -26,13 +26,13 @@ def _identity_camera(flight):
 
 
 def test_wrong_camera_rotation_named_early_and_alignment_from_motion(rectangle):
-    """Rectangle (60 s) turns about the vertical only: the check never decides and never named
+    """Rectangle (41 s) turns about the vertical only: the check never decides and never named
     the rotation. Before, the provisional alignment and the chain were seeded through the wrong
-    rotation (177 deg off) and the run diverged (43.8 m, three health rebuilds; 123 m on the
-    same flight cut to 30 s). Now the misfit names it at 2 s, the provisional alignment is
-    re-seeded from the rotation increments and accelerations (6.8 deg from the truth) and the
-    chain starts from them (2.6 deg): 3.9 cm against 2.98 cm with the right rotation. The nominal
-    run uses none of it."""
+    rotation (177 deg off) and the run diverged (43.8 m, three health resets; the same
+    scenario cut to 30 / 45 s: 123 / 71 m). Now the misfit names it at 2 s, the provisional
+    alignment is re-seeded from the turns and accelerations, and the chain starts from them:
+    4.85 cm without a reset (30 / 45 s: 17.8 / 8.6 cm), against 2.98 cm with the right
+    rotation. The nominal run uses none of it."""
     nominal = replay_online(rectangle, FixedLagOptions())
     assert nominal.info["slam_extrinsic_suspect"] is None
     for kind in ("slam:fit-rotation-from-motion", "slam:provisional-reseeded"):
