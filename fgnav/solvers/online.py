@@ -2270,8 +2270,9 @@ class OnlineSmoother:
         self._extrinsic_suspect = {"t": t, "misfit": m}
         log.warning(
             "%s: SLAM rotations do not fit the gyro through the given body_T_cam rotation "
-            "(misfit %.2f of the rotation, right ones give < 0.15) at t=%.2f s: check the "
-            "calibration (the SLAM-vs-gyro check decides once two axes have turned)",
+            "(misfit %.2f of the rotation, right ones give < 0.15) at t=%.2f s: a wrong "
+            "rotation, or a SLAM clock offset of some 0.3 s or more (the SLAM-vs-gyro check "
+            "tells them apart once two axes have turned)",
             self.name,
             m,
             t,
