@@ -566,6 +566,9 @@ class OnlineSmoother:
         self._lin_factors: list | None = None  # the update's factors, alive through it
         self._lin_hits = 0  # monitored factors whose recorded error health used
         self._health_init(health)
+        # The early SLAM-rotation misfit's suspicion (_suspect_extrinsic) outlives a reset, as
+        # the check's decision does: the calibration is the same.
+        self._extrinsic_suspect: dict[str, float] | None = None
         self._clear()
 
     # ------------------------------------------------------------------------------------------
@@ -819,7 +822,6 @@ class OnlineSmoother:
         )
         self._sgc = None
         self._fit_motion_used = False
-        self._extrinsic_suspect: dict[str, float] | None = None
         self._misfit_try = -math.inf
         if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
