@@ -14,16 +14,27 @@ from pathlib import Path
 from fgnav.compare import CompareResult, compare
 from fgnav.config import check_tables
 from fgnav.coverage import compare_lines
-from fgnav.methods import METHODS, load_method_config
+from fgnav.methods import METHODS, MethodUnavailableError, load_method_config
 
 HELP = "run the smoothers and the filter baselines on a flight and compare them"
 
 
 def parse_methods(text: str | None) -> list[str] | None:
-    """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows)."""
+    """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows).
+
+    Raises:
+        MethodUnavailableError: a name that is neither a method nor ``ref:<reference>``, before
+            the flight is read (the flight's references are checked once it is).
+    """
     if text is None:
         return None
-    return [m.strip() for m in text.split(",") if m.strip()]
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    for m in names:
+        if m not in METHODS and not m.startswith("ref:"):
+            raise MethodUnavailableError(
+                f"unknown method {m!r}; valid: {', '.join(METHODS)}, ref:<reference of the flight>"
+            )
+    return names
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,10 +88,11 @@ def run(args: argparse.Namespace) -> int:
 
     check_tables(args.config, COMPARE_TABLES)
     config = load_method_config(args.config)
+    methods = parse_methods(args.methods)
     flight = load_flight(args.flight)
     result = compare(
         flight,
-        methods=parse_methods(args.methods),
+        methods=methods,
         config=config,
         progress=not args.no_progress,
     )

@@ -218,6 +218,11 @@ def test_cli_compare(flight, tmp_path, capsys):
     rc = compare_cli(folder, out, "nope")
     assert rc == 1
     assert "unknown method 'nope'" in capsys.readouterr().err
+    # Named before the flight is read: a missing flight is not what the error says.
+    rc = compare_cli(tmp_path / "missing", out, "batch,nope")
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "unknown method 'nope'" in err and "ref:<reference" in err
 
 
 def test_piecewise_constant_series_held_to_end(flight):
