@@ -369,6 +369,7 @@ def check_slam_gyro(
     options: SlamGyroOptions | None = None,
     *,
     force: bool = False,
+    refine_undecided: bool = True,
 ) -> SlamGyroDecision | None:
     """Compare SLAM relative rotations with the gyro's (module docstring: model and steps).
 
@@ -380,6 +381,9 @@ def check_slam_gyro(
         session: (M,) SLAM map ids (pairs never span two); None: one map.
         options: thresholds (:class:`SlamGyroOptions`).
         force: decide even with less rotation than ``options.min_rotation_rad`` (whole flights).
+        refine_undecided: refine the clock offset and refit when the conventions do not separate
+            (False: such a result comes back unrefined; :class:`SlamGyroCheck` drops it anyway
+            and tries again later, so the work is skipped).
 
     Returns:
         The decision, or None when too little rotation (or too few pairs) has arrived.
@@ -417,7 +421,7 @@ def check_slam_gyro(
         if given[other_g] >= CONVENTION_RATIO * given[best_g]:
             best, decided = best_g, True
     convention = best if decided else "as-is"
-    if np.isfinite(corr):
+    if np.isfinite(corr) and (decided or refine_undecided):
         # Fine offset: the 3-D residual of the winner (its fitted rotation and bias).
         X, bias = fits[convention][0], fits[convention][1]
         C = _camera_increments(p, convention)
@@ -568,6 +572,7 @@ class SlamGyroCheck:
             self.body_R_cam,
             np.asarray(self._slam_s),
             self.options,
+            refine_undecided=False,
         )
         if d is not None and d.decided:
             self._decision = d
