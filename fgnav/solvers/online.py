@@ -2478,6 +2478,7 @@ class OnlineSmoother:
             if not s.chain:
                 if not o.slam_provisional:
                     return None  # held back until the fit
+                self._renew_provisional(s)
                 self._reseed_provisional(sess, s, t_now, remove)
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
@@ -2782,6 +2783,20 @@ class OnlineSmoother:
         pose = self._pose_at(t)
         return pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
 
+    def _renew_provisional(self, s: _Session) -> None:
+        """A provisional alignment that has left the window (a SLAM pause longer than the lag
+        before the chain started) gives way to a new one, seeded with its last estimate's
+        rotation and scale. Before, every later pose was attached to the departed variable: each
+        update failed and rebuilt (simulated rectangle, SLAM paused 1-9 s: 29 rebuilds)."""
+        if s.provisional is None or self._alive(s.provisional):
+            return
+        old = self.values.get(s.provisional)
+        self._use("slam:provisional-renewed")
+        s.prov_factors = []
+        s.provisional = None
+        if old is not None and s.seed is None:
+            s.seed = (old.rotation().matrix(), float(old.scale()))
+
     def _reseed_provisional(self, sess, s: _Session, t_now: float, remove) -> None:
         """Once the stated ``body_R_cam`` is suspected (:meth:`_suspect_extrinsic`), the
         provisional alignment seeded through it is replaced, once, by one seeded with the
@@ -2793,10 +2808,9 @@ class OnlineSmoother:
         closed-form fit's chordal mean over the arrived poses when there are enough, else the
         newest pose). The old one's factors in the window move to the new one. A seed 180 deg
         off cannot be undone by the solver (simulated rectangle, 30 s: 123 m)."""
-        if s.provisional is None or s.reseeded:
-            return
-        old = self.values[s.provisional]
-        inputs = None
+        old = self.values.get(s.provisional)
+        if old is None or s.reseeded:
+            return  # none, or its estimate dropped (out of the window for lag + 5 s)
         if s.reseed_now:
             inputs = self._fit_inputs(s)
             fit = None if inputs is None else self._best_fit(*inputs, "orientations")
@@ -3370,8 +3384,13 @@ class OnlineSmoother:
         # Slow variables.
         every = max(1, self.options.slow_read_every)
         if k % every == 0:
+            # A session's newest alignment variables are kept whatever their age: a SLAM pause
+            # longer than the lag continues from their last estimate (_session_key).
+            needed = {x for ss in self.sessions.values() for x in (ss.last_key, ss.provisional)}
             for key in [key for key in self.values if _chr(key) in "sdg"]:
                 if not self._alive(key):
+                    if key in needed:
+                        continue
                     if self.stamp.get(key, t) < t - self.options.lag_s - 5.0:
                         self.values.pop(key)
                         self.stamp.pop(key, None)

@@ -50,14 +50,16 @@ def test_both_smoothers_run_through_a_5s_slam_pause(two_turns_20s):
 
 @pytest.mark.slow
 @pytest.mark.realdata
-@pytest.mark.parametrize("length_s", [3.0, 5.0])
+@pytest.mark.parametrize("length_s", [3.0, 5.0, 10.0])
 def test_euroc_mh01_slam_pause(real_data, length_s):
     """MH_01 ORB-SLAM3 run A with 3 s / 5 s of poses removed 60 s after the first pose (it
     crashed with a KeyError in ``slow_chain_previous``). Measured (uncut: batch 3.78 cm,
     fixed-lag 8.5 cm): 3 s cut batch 5.3 cm, fixed-lag 19.8 cm; 5 s cut batch 4.6 cm,
     fixed-lag 22.4 cm. The fixed-lag loss is its alignment restart after a pause longer than
     the lag (the prepared runner). The push engine (``fgnav online``) carries the chain over the
-    pause (2026-12-07: uncut 4.53 cm, 3 s cut 5.62 cm, 5 s cut 4.96 cm)."""
+    pause (2026-12-07: uncut 4.53 cm, 3 s cut 5.62 cm, 5 s cut 4.96 cm). A pause longer than
+    the lag + 5 s (10 s) crashed it with a KeyError until 2026-12-07: the chain's last estimate
+    had been dropped with the stale slow variables (now kept; 15.1 cm, the IMU alone for 10 s)."""
     from fgnav.solvers.online import replay_online
 
     flight = load_flight(MH01)
@@ -70,7 +72,9 @@ def test_euroc_mh01_slam_pause(real_data, length_s):
     assert np.isfinite(est.slam_scale[0])
     push = replay_online(f, FixedLagOptions())
     assert push.info["used"]["slam:segments-after-gap"] == 1
-    assert evaluate(push, f.ground_truth, alignment="se3").ate_rmse_m < 0.062
+    assert push.info["solver_failures"] == 0
+    bound = 0.062 if length_s < 10.0 else 0.2
+    assert evaluate(push, f.ground_truth, alignment="se3").ate_rmse_m < bound
 
 
 def test_push_engine_segment_after_pause_keeps_the_origin(two_turns_20s):
@@ -87,3 +91,30 @@ def test_push_engine_segment_after_pause_keeps_the_origin(two_turns_20s):
     assert ate < 0.066, ate
     old = replay_online(f, FixedLagOptions(slam_gap_origin_sigma_m=0.05))
     assert evaluate(old, f.ground_truth, alignment="se3").ate_rmse_m > ate + 0.003
+
+
+@pytest.mark.parametrize(
+    "scenario, start_s, length_s, bound_m",
+    [
+        # During the provisional alignment (before the chain's fit, 3 s in): 29 rebuilds before.
+        ("rectangle", 1.0, 8.0, 0.25),
+        # After the chain started, longer than lag + 5 s: a KeyError before (the chain's last
+        # estimate had been dropped).
+        ("rectangle", 3.2, 7.8, 0.08),
+    ],
+)
+def test_push_engine_runs_through_a_long_early_slam_pause(scenario, start_s, length_s, bound_m):
+    """Push engine, SLAM paused longer than the lag early in a flight (simulated, seed 1, 41 s).
+    Measured 2026-12-07: provisional phase 1-9 s 16.9 cm without a rebuild (before: every
+    update for 2 s failed on the departed provisional variable and rebuilt, 24.1 cm); chain
+    phase 3.2-11 s 5.0 cm (before: KeyError). Uncut 2.98 cm."""
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    from fgnav.solvers.online import replay_online
+
+    f = simulate(scenario, seed=1, options=SimOptions(images=False))
+    f = cut_slam(f, float(f.slam.t[0]) + start_s, length_s)
+    est = replay_online(f, FixedLagOptions())
+    assert est.info["solver_failures"] == 0 and est.info["reset_counter"] == 0
+    ate = evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m
+    assert ate < bound_m, ate
