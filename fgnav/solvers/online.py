@@ -223,6 +223,10 @@ STILL_MAX_S = 2.0
 #: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
 #: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
 STILL_MAX_GYRO_BIAS = 0.2
+#: A window in which the attitude stream turns by more than this [rad] is motion, not still:
+#: a steady roll or pitch rate in flight passes the rate tests (simulated figure8 with its
+#: first 12 s of SLAM removed: 0.12 rad/s taken for the gyro bias, the start diverged).
+STILL_MAX_ATTITUDE_TURN = 0.02
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``, above every
 #: chain key (2^40: 11 million sessions of 100 000 segments).
 PROVISIONAL_BASE = 1 << 40
@@ -1210,7 +1214,9 @@ class OnlineSmoother:
         Windows of ``STILL_WINDOW_S`` are tested backwards from ``t_start`` over the IMU
         history: still when the mean specific force is within ``still_accel_tol`` of g, the
         rate's scatter (per-axis standard deviation) below ``still_gyro_tol`` and its mean below
-        ``STILL_MAX_GYRO_BIAS``. The rate itself is not tested against a bound: a MEMS gyro's
+        ``STILL_MAX_GYRO_BIAS``, and, where the attitude stream covers the window, its turn over
+        the window below ``STILL_MAX_ATTITUDE_TURN``. The rate itself is not tested against a
+        bound: a MEMS gyro's
         bias (0.08 rad/s on EuRoC's) is larger than any stillness tolerance. The newest run of
         still windows (at most ``STILL_MAX_S``) is averaged: a vehicle standing with its rotors
         on before a take-off (EuRoC V1_02: 4 s before the first SLAM pose) gives its bias
@@ -1237,6 +1243,9 @@ class OnlineSmoother:
                     and float(ww.std(axis=0).max()) < o.still_gyro_tol
                     and float(np.abs(mean_w).max()) < STILL_MAX_GYRO_BIAS
                 )
+                if ok:
+                    turn = self._attitude_turn(end - win, end)
+                    ok = turn is None or turn <= STILL_MAX_ATTITUDE_TURN
             if ok:
                 if not sums:
                     newest = t_start - end
@@ -1249,6 +1258,14 @@ class OnlineSmoother:
         if not sums:
             return None, math.nan
         return np.mean(sums, axis=0), newest
+
+    def _attitude_turn(self, ta: float, tb: float) -> float | None:
+        """Angle [rad] the attitude stream turns between ``ta`` and ``tb``, or None when it
+        does not cover both (samples within 0.2 s)."""
+        Ra, Rb = self._attitude_at(ta), self._attitude_at(tb)
+        if Ra is None or Rb is None:
+            return None
+        return _norm(so3_log(Ra.T @ Rb))
 
     def _attitude_at(self, t: float) -> np.ndarray | None:
         """The attitude sample nearest ``t`` (within 0.2 s), or None."""
