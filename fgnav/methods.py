@@ -35,7 +35,7 @@ import importlib
 import importlib.util
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -379,7 +379,6 @@ def run_fixed_lag(
     opts = fixed_lag_options(config)
     engine = resolve_engine(opts)
     if engine == "push":
-        opts = _replay_options(flight, opts)
         popts = online_prior_options(flight, config)
         est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
         est = _with_info(est, engine=engine)
@@ -399,19 +398,9 @@ def run_fixed_lag_lagged(
     just before it leaves the window (delayed by the lag; ``[graph]`` and ``[online]``)."""
     from fgnav.solvers.online import replay_online
 
-    opts = _replay_options(flight, fixed_lag_options(config))
+    opts = fixed_lag_options(config)
     popts = online_prior_options(flight, config)
     return replay_online(flight, opts, progress=progress, lagged=True, priors=popts)
-
-
-def _replay_options(flight: Flight, opts):
-    """The push engine's options for replaying ``flight``: the replay knows the log has no SLAM
-    stream (a live link knows its configured streams), so the smoother must not wait
-    ``start_wait_s`` for a first SLAM pose (both outputs, ``fixed-lag`` and ``fixed-lag@lag``,
-    of one run)."""
-    if opts.graph.use_slam and flight.slam is None:
-        opts = replace(opts, graph=replace(opts.graph, use_slam=False))
-    return opts
 
 
 def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):

@@ -3651,6 +3651,14 @@ def replay_online(
         # A check of the file, not an input to the estimator: SLAM stamped on another clock
         # would only wait for keyframes that never come.
         flight.require_overlap("imu", "slam")
+    if options.graph.use_slam and flight.slam is None:
+        # The replay knows the log has no SLAM stream (a live link knows its configured
+        # streams): the smoother must not wait ``start_wait_s`` for a first pose. Called
+        # directly, without this, a Crazyflie log started 5 s late, in flight, and diverged
+        # (traj1: 1.26 m after a rebuild, against 0.106 m).
+        options = dataclasses.replace(
+            options, graph=dataclasses.replace(options.graph, use_slam=False)
+        )
     # A manifest's [slam] options for this file win over the config (configuration only).
     from fgnav.datasets.slam_gyro import file_modes
 
