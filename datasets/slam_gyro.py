@@ -202,13 +202,24 @@ class _Pairs:
     R_j: np.ndarray
 
 
-def _pairs(t: np.ndarray, R: np.ndarray, session: np.ndarray, o: SlamGyroOptions) -> _Pairs:
-    j = np.searchsorted(t, t + o.pair_s - 1e-9)
+def pose_pairs(
+    t: np.ndarray, session: np.ndarray | None, pair_s: float, max_pair_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``(i, j)`` of the pose pairs whose rotations are compared: each pose (times
+    ``t`` [s], increasing) with the first one at least ``pair_s`` later, kept when at most
+    ``max_pair_s`` later (a gap otherwise) and of the same session (``session`` None: one)."""
+    j = np.searchsorted(t, t + pair_s - 1e-9)
     i = np.arange(len(t))
     ok = j < len(t)
     i, j = i[ok], j[ok]
-    ok = (t[j] - t[i] <= o.max_pair_s) & (session[i] == session[j])
-    i, j = i[ok], j[ok]
+    ok = t[j] - t[i] <= max_pair_s
+    if session is not None:
+        ok &= session[i] == session[j]
+    return i[ok], j[ok]
+
+
+def _pairs(t: np.ndarray, R: np.ndarray, session: np.ndarray, o: SlamGyroOptions) -> _Pairs:
+    i, j = pose_pairs(t, session, o.pair_s, o.max_pair_s)
     return _Pairs(t[i], t[j], R[i], R[j])
 
 

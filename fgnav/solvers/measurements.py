@@ -25,6 +25,7 @@ from fgnav.datasets.geometry import (
     so3_log,
     yaw_of,
 )
+from fgnav.datasets.slam_gyro import pose_pairs
 from fgnav.datasets.types import AttitudeSeries, ImuSeries, SlamSeries
 
 log = logging.getLogger(__name__)
@@ -498,12 +499,7 @@ def rotation_increments(
         ``(slam_rv, world_rv)``, (P, 3) each [rad].
     """
     t = np.asarray(slam.t, float)
-    j = np.searchsorted(t, t + pair_s - 1e-9)
-    i = np.arange(len(t))
-    ok = j < len(t)
-    i, j = i[ok], j[ok]
-    ok = t[j] - t[i] <= max_pair_s
-    i, j = i[ok], j[ok]
+    i, j = pose_pairs(t, None, pair_s, max_pair_s)  # the SLAM-vs-gyro check's pairs
     if not len(i):
         return np.zeros((0, 3)), np.zeros((0, 3))
     S = quat_wxyz_to_matrix(np.asarray(slam.slam_q_cam_wxyz, float))

@@ -2521,7 +2521,7 @@ class OnlineSmoother:
             if not s.chain:
                 if not o.slam_provisional:
                     return None  # held back until the fit
-                self._renew_provisional(s)
+                self._renew_provisional(sess, s)
                 self._reseed_provisional(sess, s, t_now, remove)
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
@@ -2826,7 +2826,7 @@ class OnlineSmoother:
         pose = self._pose_at(t)
         return pose.translation() + pose.rotation().matrix() @ self.body_T_cam[:3, 3]
 
-    def _renew_provisional(self, s: _Session) -> None:
+    def _renew_provisional(self, sess, s: _Session) -> None:
         """A provisional alignment that has left the window (a SLAM pause longer than the lag
         before the chain started) gives way to a new one, seeded with its last estimate's
         rotation and scale. Before, every later pose was attached to the departed variable: each
@@ -2835,10 +2835,10 @@ class OnlineSmoother:
             return
         old = self.values.get(s.provisional)
         self._use("slam:provisional-renewed")
-        s.prov_factors = []
-        s.provisional = None
-        if old is not None and s.seed is None:
-            s.seed = (old.rotation().matrix(), float(old.scale()))
+        seed = s.seed
+        if old is not None and seed is None:
+            seed = (old.rotation().matrix(), float(old.scale()))
+        self._retire_provisional(sess, s, seed, [])
 
     def _reseed_provisional(self, sess, s: _Session, t_now: float, remove) -> None:
         """Once the stated ``body_R_cam`` is suspected (:meth:`_suspect_extrinsic`), the
@@ -2882,14 +2882,21 @@ class OnlineSmoother:
             how,
             scale,
         )
+        self._use("slam:provisional-reseeded")
+        self._retire_provisional(sess, s, (seed, scale), remove)
+
+    def _retire_provisional(self, sess, s: _Session, seed: tuple | None, remove: list) -> None:
+        """The session's provisional alignment gives way: its factors still in the window come
+        off (``remove``) and their poses wait, as re-attachments (row -1), for the next
+        alignment (``_held``); ``seed`` (``(slam_R_world or None, scale)``) seeds that one
+        (:meth:`_start_provisional`)."""
         for idx, (k, tp, p, q) in s.prov_factors:
             if self._kf_alive(k) and self._alive(s.provisional):
                 remove.append(idx)
                 self._held.append((k, "slam", (sess, -1, tp, p, q)))
-        self._use("slam:provisional-reseeded")
         s.prov_factors = []
         s.provisional = None
-        s.seed = (seed, scale)
+        s.seed = seed
 
     def _start_provisional(self, sess, s: _Session, g, stamps) -> bool:
         """The session's provisional alignment (False: not yet, its poses are held back).
