@@ -16,13 +16,15 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
 - **Start**: at the first SLAM pose's capture time when a SLAM pose arrives within ``start_wait_s``
   of the first IMU sample (``FixedLagOptions.graph.use_slam``), else at the IMU. Attitude from the
   attitude stream when one has arrived, else level from the mean specific force of the last
-  ``init_imu_s``; yaw from the yaw stream or ``graph.initial_yaw``. Gyro bias: the mean rate of
-  the newest still stretch of the arrived IMU before the start (specific force within
+  ``init_imu_s``; yaw from the yaw stream or ``graph.initial_yaw``. Gyro bias: the mean rate of the
+  newest still stretch of the arrived IMU before the start (specific force within
   ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
-  takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one.
-  When that still stretch ended before the start (a take-off before it, no attitude stream),
-  attitude and velocity are the stretch's level attitude and rest integrated with the arrived
-  IMU up to the start (``_from_still``), not a level on the moving vehicle's specific force.
+  takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one; the same
+  stretch gives the accelerometer bias along its specific force, ``|f| - g`` (``_still_accel_bias``;
+  across it a bias is one with the tilt). When that still stretch ended before the start (a take-off
+  before it, no attitude stream), attitude and velocity are the stretch's level attitude and rest
+  integrated with the arrived IMU up to the start (``_from_still``), not a level on the moving
+  vehicle's specific force.
 - **SLAM** (``graph.slam_model`` ``sim3``; the per-axis model below): a pose taken at ``t``
   attaches to the keyframe nearest ``t`` through
   :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body carried over
@@ -36,10 +38,11 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   (both rotation conventions tried until the SLAM-vs-gyro check decides); before that
   its poses attach to a *provisional* alignment (rotation from the SLAM orientation and the current
   attitude, scale from the previous session or ``slam_provisional_scale``, origin at the newest
-  pose, wide log-scale prior). When the chain starts, the provisional factors still in the window
-  are removed and re-attached to it (counted as ``slam:reattached``). A new session id (a map
-  reset) starts a new chain; its starting scale fuses the fit with the provisional alignment's
-  estimate, which the velocity known from the session before determines
+  pose, wide log-scale prior; while its scale is the default, a second pose long after the first
+  waits for the third: ``slam_provisional_lone_gap_s``). When the chain starts, the provisional
+  factors still in the window are removed and re-attached to it (counted as ``slam:reattached``). A
+  new session id (a map reset) starts a new chain; its starting scale fuses the fit with the
+  provisional alignment's estimate, which the velocity known from the session before determines
   (``slam_chain_fuse_provisional``). A pose that arrives before the start (the first, with no
   latency) attaches at the start once it is made. The causal
   SLAM-vs-gyro check (:class:`fgnav.datasets.slam_gyro.SlamGyroCheck`) decides the file's rotation
@@ -494,6 +497,10 @@ class _Session:
     reseed_now: bool = False  # body_T_cam's rotation replaced: re-seed at the next pose
     next_reseed: float = -math.inf
     seed: tuple | None = None
+    # The provisional alignment's scale is the default (nothing known): a second pose long after
+    # the first waits for the third (FixedLagOptions.slam_provisional_lone_gap_s).
+    lone_hold: bool = False
+    lone_waiting: bool = False
 
 
 class OnlineSmoother:
@@ -1109,13 +1116,14 @@ class OnlineSmoother:
         if not bias_from_still:
             gyro_b = np.zeros(3)
         vel = np.zeros(3)
+        acc_b = self._still_accel_bias(t_start, still_age) if bias_from_still else np.zeros(3)
         if still and R_att is None and self._carry is None and still_age > 0.0:
-            R0, vel = self._from_still(t_start, still_age, gyro_b, yaw0)
+            R0, vel = self._from_still(t_start, still_age, gyro_b, yaw0, acc_b)
         self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
         self.t_kf = {0: t_start}
-        bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
+        bias = gtsam.imuBias.ConstantBias(acc_b, gyro_b)
         pose = gtsam.Pose3(gtsam.Rot3(R0), np.zeros(3))
         yaw_sigma = (
             go.prior_yaw_sigma if not (go.use_yaw and yaws) else max(go.prior_yaw_sigma, 1.0)
@@ -1212,21 +1220,40 @@ class OnlineSmoother:
             else "moving: zero",
         )
 
+    def _still_accel_bias(self, t_start: float, still_age: float) -> np.ndarray:
+        """The accelerometer bias a still stretch shows (ending ``still_age`` before
+        ``t_start``): along the mean specific force ``f`` of its newest ``STILL_WINDOW_S``,
+        ``|f| - g``; zero across it, where a bias cannot be told from a tilt of the level
+        attitude taken from ``f``. Measured 2026-12-07 on EuRoC V1_02 (the shared flight that
+        starts after a still stretch; |f| 9.79-9.82 against g 9.81): with a zero bias the
+        integration from the stretch's end drifted 30 cm vertically before the second SLAM
+        pose; causal ATE own span ORB-SLAM2 8.14 -> 6.62 cm, ORB-SLAM3 2.95 -> 3.01 cm."""
+        t_end = t_start - still_age
+        s = self.imu.span(t_end - STILL_WINDOW_S, t_end)
+        f = np.asarray(self.imu.a[s]).mean(axis=0)
+        n = float(np.linalg.norm(f))
+        return f / n * (n - self.go.gravity) if n > 0 else np.zeros(3)
+
     def _from_still(
-        self, t_start: float, still_age: float, gyro_b: np.ndarray, yaw0: float
+        self,
+        t_start: float,
+        still_age: float,
+        gyro_b: np.ndarray,
+        yaw0: float,
+        acc_b: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Attitude and velocity at ``t_start`` when the vehicle stood still until
-        ``still_age`` before it: level (yaw ``yaw0``) from the mean specific force of the still
-        stretch's last ``STILL_WINDOW_S`` (gravity only), then the arrived IMU integrated from
-        the stretch's end to ``t_start`` with the still gyro bias and zero accelerometer bias,
-        from rest. A start while moving (EuRoC V1_02: take-off 1.5 s before the start) would
-        otherwise level on a specific force tilted by the acceleration (2-3 deg, 0.4 m/s^2 of
-        gravity read as acceleration) and start from zero velocity. Uses only IMU samples
-        before ``t_start``."""
+        """Attitude and velocity at ``t_start`` when the vehicle stood still until ``still_age``
+        before it: level (yaw ``yaw0``) from the mean specific force of the still stretch's last
+        ``STILL_WINDOW_S`` (gravity only), then the arrived IMU integrated from the stretch's end to
+        ``t_start`` with the still gyro bias and the accelerometer bias ``acc_b``
+        (:meth:`_still_accel_bias`), from rest. A start while moving (EuRoC V1_02: take-off 1.5 s
+        before the start) would otherwise level on a specific force tilted by the acceleration (2-3
+        deg, 0.4 m/s^2 of gravity read as acceleration) and start from zero velocity. Uses only IMU
+        samples before ``t_start``."""
         t_end = t_start - still_age
         s = self.imu.span(t_end - STILL_WINDOW_S, t_end)
         R_end = level_rotation_from_accel(np.asarray(self.imu.a[s]).mean(axis=0), yaw0)
-        bias = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_b)
+        bias = gtsam.imuBias.ConstantBias(acc_b, gyro_b)
         pim = self._preintegrate(t_end, t_start, bias, count=False)
         nav = pim.predict(gtsam.NavState(gtsam.Rot3(R_end), np.zeros(3), np.zeros(3)), bias)
         return nav.attitude().matrix(), np.asarray(nav.velocity(), float)
@@ -2333,6 +2360,8 @@ class OnlineSmoother:
         if key is None:
             self._held.append((k, "slam", payload))
             return
+        if s.lone_hold and key == s.provisional and self._lone_hold(sess, s, k, payload, prov_new):
+            return
         scale = self._scale_guess(key)
         noise = self._noise(3, self.go.slam_sigma_m * scale)
         dt = t - self.t_kf[k]
@@ -2378,6 +2407,42 @@ class OnlineSmoother:
                 )
             )
             self._use("slam-rotation")
+
+    def _lone_hold(self, sess, s: _Session, k: int, payload, prov_new) -> bool:
+        """True: the pose is held (the provisional alignment's second, more than
+        ``slam_provisional_lone_gap_s`` after its first, while the scale is the default). The
+        third pose releases it; both then attach together.
+
+        One displacement cannot tell the scale from the velocity (and the tilt) since the
+        start: the window's optimum moves both. Over a long displacement a default scale far
+        from the truth pulls the states by the displacement times the scale's error (EuRoC
+        V1_02 ORB-SLAM2 keyframes: second pose 1.1 s after the first, true scale 0.44 against
+        the default 1: 0.3-0.6 m for the 0.45 s until the third pose); at 20 Hz (MH_01) the
+        pull is millimetres and nothing waits."""
+        t = payload[2]
+        if s.lone_waiting:
+            # The third: the held second attaches with it (appended to the pending list being
+            # attached).
+            s.lone_hold = s.lone_waiting = False
+            self._release_held(sess)
+            return False
+        first = [row[1] for _, row in s.prov_factors] + [
+            r[1] for _, ss, r in prov_new if ss == sess
+        ]
+        if len(first) == 1 and t - first[0] > self.options.slam_provisional_lone_gap_s:
+            s.lone_waiting = True
+            self._held.append((k, "slam", payload))
+            log.info(
+                "%s: SLAM session %d: the second pose, %.2f s after the first, waits for the "
+                "third (the scale is still the default)",
+                self.name,
+                sess,
+                t - first[0],
+            )
+            return True
+        if len(first) >= 1:
+            s.lone_hold = False  # the second came soon after the first
+        return False
 
     def _scale_guess(self, key: int) -> float:
         v = self.values.get(key)
@@ -2958,6 +3023,7 @@ class OnlineSmoother:
         self._insert(key, value, g, stamps)
         s.provisional = key
         s.prov_factors = []
+        s.lone_hold = source == "default" and o.slam_provisional_lone_gap_s > 0
         self._prov_scales.append(
             {"session": int(sess), "t": float(s.t[-1]), "scale": float(scale), "from": source}
         )
