@@ -255,24 +255,29 @@ def test_jittered_camera_replay():
     )
 
 
+def _still_then_accelerating(seed, gyro_bias, gyro_sigma, accel_bias, accel_sigma):
+    """An :class:`OnlineSmoother` fed 5.2 s of 200 Hz IMU without SLAM: still and level (rotors
+    on: white noise) until 3 s, then 1 m/s^2 along world x and z; it starts at the IMU at 5 s."""
+    from fgnav.datasets.types import Calibration
+
+    rng = np.random.default_rng(seed)
+    sm = OnlineSmoother(Calibration(), FixedLagOptions())
+    g = sm.go.gravity
+    for i in range(int(5.2 * 200)):
+        t = i / 200.0
+        w = gyro_bias + rng.normal(0.0, gyro_sigma, 3)
+        a = np.array([1.0, 0.0, g + 1.0]) if t >= 3.0 else np.array([0.0, 0.0, g])
+        sm.feed(ImuSample(t, t, w, a + accel_bias + rng.normal(0.0, accel_sigma, 3)))
+    return sm
+
+
 def test_start_after_a_still_stretch_integrates_attitude_and_velocity_from_rest():
     """Still (level, rotors on) until 3 s, then a constant acceleration of 1 m/s^2 along world x
     and z until the start at the IMU (5 s): the start levels on the still stretch and integrates
     the IMU since, from rest (EuRoC V1_02 takes off 1.5 s before its start). Leveling on the
     specific force at the start instead tilts the attitude by atan(1 / (g + 1)) = 5.3 deg and
     starts at zero velocity."""
-    from fgnav.datasets.types import Calibration
-
-    rng = np.random.default_rng(1)
-    bias = np.array([0.01, -0.02, 0.08])
-    sm = OnlineSmoother(Calibration(), FixedLagOptions())
-    g = sm.go.gravity
-    for i in range(int(5.2 * 200)):
-        t = i / 200.0
-        w = bias + rng.normal(0.0, 0.01, 3)
-        a = np.array([1.0, 0.0, g + 1.0]) if t >= 3.0 else np.array([0.0, 0.0, g])
-        a = a + rng.normal(0.0, 0.3, 3)
-        sm.feed(ImuSample(t, t, w, a))
+    sm = _still_then_accelerating(1, np.array([0.01, -0.02, 0.08]), 0.01, np.zeros(3), 0.3)
     assert sm.t0 == pytest.approx(5.0, abs=0.01)
     first = sm.out[0]
     z_body_in_world = first.world_T_body[:3, :3] @ np.array([0.0, 0.0, 1.0])
@@ -292,16 +297,7 @@ def test_accel_bias_along_gravity_from_the_still_stretch():
     With a zero bias (before 2026-12-07) 0.06 m/s^2 over the 2 s to the start is 0.12 m/s; EuRoC
     V1_02's start drifted 30 cm in height before its second SLAM pose. Simulated two-turns and
     rectangle (still on the ground at the start): the bias's vertical part to 5 mm/s^2."""
-    from fgnav.datasets.types import Calibration
-
-    rng = np.random.default_rng(3)
-    acc_bias = np.array([0.03, -0.02, 0.06])
-    sm = OnlineSmoother(Calibration(), FixedLagOptions())
-    g = sm.go.gravity
-    for i in range(int(5.2 * 200)):
-        t = i / 200.0
-        a = np.array([1.0, 0.0, g + 1.0]) if t >= 3.0 else np.array([0.0, 0.0, g])
-        sm.feed(ImuSample(t, t, rng.normal(0.0, 0.002, 3), a + acc_bias + rng.normal(0, 0.05, 3)))
+    sm = _still_then_accelerating(3, np.zeros(3), 0.002, np.array([0.03, -0.02, 0.06]), 0.05)
     assert sm.t0 == pytest.approx(5.0, abs=0.01)
     first = sm.out[0]
     np.testing.assert_allclose(first.accel_bias, [0.0, 0.0, 0.06], atol=0.01)
@@ -310,6 +306,7 @@ def test_accel_bias_along_gravity_from_the_still_stretch():
 
     from fgnav.datasets.events import replay_flight
     from fgnav.datasets.simulate import SimOptions, simulate
+
     from fgnav.keys import B
     from fgnav.solvers.online import PUSH_STREAMS
 
