@@ -2822,13 +2822,8 @@ class OnlineSmoother:
         # Re-attach the provisional factors still in the window to the new alignment.
         self._release_held(sess)
         if s.provisional is not None:
-            for idx, (k, tp, p, q) in s.prov_factors:
-                if self._kf_alive(k) and self._alive(s.provisional):
-                    remove.append(idx)
-                    # Row -1: a re-attachment (counted as ``slam:reattached``, not as used).
-                    self._pending.append((k, "slam", (sess, -1, tp, p, q)))
-            s.prov_factors = []
-            s.provisional = None
+            # (row -1: a re-attachment, counted as ``slam:reattached``, not as used)
+            self._retire_provisional(sess, s, None, remove, self._pending)
 
     def _fuse_provisional_scale(self, s: _Session, scale: float, rel: float) -> tuple[float, float]:
         """The chain's starting scale: the closed-form fit's ``scale`` (relative standard error
@@ -2950,15 +2945,19 @@ class OnlineSmoother:
         self._use("slam:provisional-reseeded")
         self._retire_provisional(sess, s, (seed, scale), remove)
 
-    def _retire_provisional(self, sess, s: _Session, seed: tuple | None, remove: list) -> None:
+    def _retire_provisional(
+        self, sess, s: _Session, seed: tuple | None, remove: list, queue: list | None = None
+    ) -> None:
         """The session's provisional alignment gives way: its factors still in the window come
         off (``remove``) and their poses wait, as re-attachments (row -1), for the next
-        alignment (``_held``); ``seed`` (``(slam_R_world or None, scale)``) seeds that one
+        alignment (``queue``: ``_held`` by default; the chain's start, which exists, passes
+        ``_pending``); ``seed`` (``(slam_R_world or None, scale)``) seeds that one
         (:meth:`_start_provisional`)."""
+        queue = self._held if queue is None else queue
         for idx, (k, tp, p, q) in s.prov_factors:
             if self._kf_alive(k) and self._alive(s.provisional):
                 remove.append(idx)
-                self._held.append((k, "slam", (sess, -1, tp, p, q)))
+                queue.append((k, "slam", (sess, -1, tp, p, q)))
         s.prov_factors = []
         s.provisional = None
         s.seed = seed
