@@ -525,6 +525,18 @@ def _events_fault(kind: str) -> Callable:
                 out.append(ev)
                 if len(out) >= 2:
                     out[-1], out[-2] = out[-2], out[-1]
+            elif kind == "imu-stamp-outlier" and isinstance(ev, ImuSample) and rng.random() < 0.002:
+                # A corrupted stamp, 1000 s ahead or 50 s behind; the next sample is right.
+                dt = 1000.0 if rng.random() < 0.5 else -50.0
+                out.append(ev._replace(t=ev.t + dt, arrival=ev.arrival + dt))
+            elif kind == "implausible" and rng.random() < 0.002:
+                # Finite but impossible: 1e30 m/s^2, or a SLAM position 1e30 units out.
+                if isinstance(ev, ImuSample):
+                    out.append(ev._replace(body_accel=np.array([1e30, 0.0, 9.8])))
+                elif isinstance(ev, SlamPose):
+                    out.append(ev._replace(slam_t_cam=np.array([-1e30, 0.0, 0.0])))
+                else:
+                    out.append(ev)
             elif kind == "slam-out-of-order" and isinstance(ev, SlamPose) and rng.random() < 0.1:
                 # Delivered 150 ms late: after newer poses.
                 out.append(ev._replace(arrival=ev.arrival + 0.15))
@@ -771,6 +783,22 @@ def rows() -> list[Row]:
             _events_fault("imu-nan"),
             "2 % of IMU samples NaN",
             {"online": OK},
+            True,
+        ),
+        R(
+            "events:imu-stamp-outlier",
+            sim,
+            _events_fault("imu-stamp-outlier"),
+            "0.2 % of IMU stamps 1000 s ahead or 50 s behind (one sample each)",
+            {"online": {"recovered"}},
+            True,
+        ),
+        R(
+            "events:implausible",
+            sim,
+            _events_fault("implausible"),
+            "0.2 % of IMU samples 1e30 m/s^2 and of SLAM positions 1e30 units",
+            {"online": {"recovered"}},
             True,
         ),
         R(

@@ -226,6 +226,18 @@ STILL_MAX_S = 2.0
 #: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
 #: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
 STILL_MAX_GYRO_BIAS = 0.2
+#: Largest IMU sample taken [rad/s, m/s^2]: beyond any MEMS IMU's full scale (gyros: 2000-4000
+#: deg/s, 35-70 rad/s; accelerometers: 16-32 g); a larger finite value is a corrupted sample
+#: (a MAVLink HIGHRES_IMU with 1e30 in a field overflowed the accelerometer check's sums),
+#: dropped as ``imu:implausible``.
+IMU_MAX_RATE = 100.0
+IMU_MAX_ACCEL = 50.0 * 9.81
+#: Largest SLAM position coordinate taken [SLAM units]: a map's units are arbitrary but its
+#: positions stay within some thousand units of its origin (metres-like in the monocular
+#: systems fgnav reads: EuRoC's ORB-SLAM runs within 20); a larger finite value is a corrupted
+#: pose (a SLAM bridge's -1e30 made the jump detector open a session per pose and the estimate
+#: non-finite), dropped as ``slam:implausible-position``.
+SLAM_MAX_COORD = 1e6
 #: Late measurements of one stream before ``OnlineSmoother._warn_late`` says so (once).
 LATE_WARN_N = 20
 #: A window in which the attitude stream turns by more than this [rad] is motion, not still:
@@ -583,6 +595,10 @@ class OnlineSmoother:
         # The early SLAM-rotation misfit's suspicion (_suspect_extrinsic) outlives a reset, as
         # the check's decision does: the calibration is the same.
         self._extrinsic_suspect: dict[str, float] | None = None
+        # An IMU sample after a clock jump or gap, held until the next one says whether the
+        # discontinuity is real or the stamp corrupted: (event, t, omega, accel).
+        self._imu_suspect: tuple | None = None
+        self._suspect_events: list = []  # the other events that arrived after it
         self._clear()
 
     # ------------------------------------------------------------------------------------------
@@ -595,6 +611,12 @@ class OnlineSmoother:
             # Most events: straight to the IMU path (the fault detectors, fed there, never drop
             # a sample; they only flag saturation).
             return self._feed_imu(ev)
+        if self._imu_suspect is not None:
+            # After an IMU sample held at a clock discontinuity, in arrival order after it.
+            self._suspect_events.append(ev)
+            return None
+        if type(ev) is SlamPose and not self._slam_plausible(ev):
+            return None
         ev = self._health_feed(ev)
         if ev is None:
             return None
@@ -645,6 +667,25 @@ class OnlineSmoother:
             self._drop(f"{stream}:not-used-online")
         return None
 
+    def _slam_plausible(self, ev: SlamPose) -> bool:
+        """A SLAM pose's values before anything sees them (the jump detector included): finite,
+        a position within ``SLAM_MAX_COORD`` units of the map's origin and a unit quaternion;
+        else counted as received and dropped by reason."""
+        p = np.asarray(ev.slam_t_cam, float)
+        q = np.asarray(ev.slam_q_cam_wxyz, float)
+        why = None
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+            why = "slam:non-finite"
+        elif float(np.abs(p).max()) > SLAM_MAX_COORD:
+            why = "slam:implausible-position"
+        elif abs(float(q @ q) - 1.0) > 0.2:
+            why = "slam:non-unit-quaternion"
+        if why is None:
+            return True
+        self.received["slam"] = self.received.get("slam", 0) + 1
+        self._drop(why)
+        return False
+
     def latest(self) -> OnlineState | None:
         """The newest state (None before initialisation)."""
         return (
@@ -654,6 +695,12 @@ class OnlineSmoother:
     def close(self) -> None:
         """End of the stream: take the VO process's last measurements (counted, not made into
         factors: no keyframe closes after them) and stop it. :meth:`result` stays available."""
+        if self._imu_suspect is not None:
+            self._imu_suspect = None
+            self._drop("imu:time-unconfirmed")  # the last sample, after a discontinuity
+            held, self._suspect_events = self._suspect_events, []
+            for e in held:
+                self.feed(e)
         self._vo_collect(math.inf)
         if isinstance(self._vo, VoProcess):
             self._vo.close()
@@ -947,10 +994,45 @@ class OnlineSmoother:
             self._health.detectors.feed_imu_values(t, wl, al)
         w0, w1, w2 = wl
         a0, a1, a2 = al
-        if not math.isfinite(t + (w0 * w0 + w1 * w1 + w2 * w2) + (a0 * a0 + a1 * a1 + a2 * a2)):
+        w_sq, a_sq = w0 * w0 + w1 * w1 + w2 * w2, a0 * a0 + a1 * a1 + a2 * a2
+        if not math.isfinite(t + w_sq + a_sq):
             self._drop("imu:non-finite")
             return None
+        if w_sq > IMU_MAX_RATE**2 or a_sq > IMU_MAX_ACCEL**2:
+            self._drop("imu:implausible")
+            return None
         last = self._t_last.get("imu", -math.inf)
+        suspect = self._imu_suspect
+        if suspect is not None:
+            # The sample after a clock discontinuity decides it: real when this one continues
+            # from it, a corrupted stamp when this one continues the old clock.
+            self._imu_suspect = None
+            ts = float(suspect[0].t)
+            if not (0.0 < t - last <= self.options.max_imu_gap_s) or 0.0 < t - ts <= t - last:
+                self._imu_confirmed(suspect)
+            else:
+                self._drop("imu:time-outlier")
+            held, self._suspect_events = self._suspect_events, []
+            for e in held:
+                self.feed(e)
+            last = self._t_last.get("imu", -math.inf)
+        elif last - t > self.options.clock_jump_s or (
+            last > -math.inf and t - last > self.options.max_imu_gap_s
+        ):
+            self._imu_suspect = (ev, t, w, a)
+            return None
+        return self._imu_accept(ev, t, w, a, last)
+
+    def _imu_confirmed(self, suspect: tuple) -> None:
+        """A held IMU sample whose clock discontinuity the next sample confirmed."""
+        ev, t, w, a = suspect
+        self._imu_accept(ev, t, w, a, self._t_last.get("imu", -math.inf))
+
+    def _imu_accept(
+        self, ev: ImuSample, t: float, w: np.ndarray, a: np.ndarray, last: float
+    ) -> OnlineState | None:
+        """An IMU sample past the value checks: time rules (a clock jump or a gap the next
+        sample confirmed resets), then the keyframes it closes."""
         if t > last:  # most samples (t is finite here): _check_time's accepting branch
             self._t_last["imu"] = t
         elif not self._check_time("imu", t):

@@ -379,3 +379,41 @@ def test_still_stretch_bias_not_taken_when_the_autopilot_removed_the_rest_bias()
     np.testing.assert_array_equal(firsts[True].gyro_bias, np.zeros(3))
     np.testing.assert_allclose(firsts[False].gyro_bias, rocking, atol=0.002)
     assert np.abs(firsts[False].gyro_bias).max() > 0.002
+
+
+def test_corrupted_stamps_and_values_are_dropped_not_reset():
+    """One IMU sample stamped 1000 s ahead, one 50 s behind (a bridge's corrupted stamps), an
+    IMU sample of 1e30 m/s^2 and a SLAM position of -1e30 (finite, but no sensor gives them):
+    each is dropped by reason and the estimate goes on. Before 2026-12-07 each stamp reset the
+    smoother twice (the stamp, then the next sample back on the old clock), the 1e30 sample
+    overflowed the accelerometer check (OverflowError) and the -1e30 position opened a SLAM
+    session per pose until the estimate was NaN. A real jump (the next samples continue the new
+    clock) still resets: ``test_jittered_replay_survives_and_counts``."""
+    f = simulate("two-turns", seed=1, options=SimOptions(images=False, duration=15.0))
+    streams = ("imu", "attitude", "range", "slam")
+    ref = replay_online(f, FixedLagOptions())
+    imu_n = slam_n = 0
+    events = []
+    for e in replay_flight(f, streams):
+        if isinstance(e, ImuSample):
+            imu_n += 1
+            if imu_n == 1000:
+                e = e._replace(t=e.t + 1000.0, arrival=e.arrival + 1000.0)
+            elif imu_n == 1600:
+                e = e._replace(t=e.t - 50.0, arrival=e.arrival - 50.0)
+            elif imu_n == 2000:
+                e = e._replace(body_accel=np.array([1e30, 0.0, 9.8]))
+        elif isinstance(e, SlamPose):
+            slam_n += 1
+            if slam_n == 150:
+                e = e._replace(slam_t_cam=np.array([-1e30, 0.0, 0.0]))
+        events.append(e)
+    sm = feed_all(iter(events), f.calib, FixedLagOptions())
+    est = sm.result()
+    d = est.info["dropped"]
+    assert sm.reset_counter == 0 and est.info["solver_failures"] == 0
+    assert d.get("imu:time-outlier") == 2 and d.get("imu:implausible") == 1, d
+    assert d.get("slam:implausible-position") == 1, d
+    m = evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m
+    m_ref = evaluate(ref, f.ground_truth, alignment="se3").ate_rmse_m
+    assert m <= 1.1 * m_ref + 0.002, (m, m_ref)
