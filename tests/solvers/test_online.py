@@ -310,6 +310,7 @@ def test_accel_bias_along_gravity_from_the_still_stretch():
 
     from fgnav.datasets.events import replay_flight
     from fgnav.datasets.simulate import SimOptions, simulate
+
     from fgnav.keys import B
     from fgnav.solvers.online import PUSH_STREAMS
 
