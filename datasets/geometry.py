@@ -7,6 +7,8 @@ a 4x4 homogeneous matrix. All functions accept a single item or a stack along th
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 GRAVITY = 9.81
@@ -22,6 +24,20 @@ def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """
     q = np.asarray(q_wxyz, dtype=float)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if q.shape == (4,):
+        # One quaternion (the online smoother's SLAM poses and attitude samples): the same
+        # operations on Python floats (IEEE doubles either way: the same bits), without
+        # numpy's per-call overhead on nine 0-d slices (about 5x faster, 2026-12-07).
+        if n[0] == 0.0:
+            raise ValueError("zero-norm quaternion")
+        w, x, y, z = (q / n).tolist()
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
     if np.any(n == 0.0):
         raise ValueError("zero-norm quaternion")
     w, x, y, z = np.moveaxis(q / n, -1, 0)
@@ -260,6 +276,12 @@ def yaw_of(world_R_body: np.ndarray) -> np.ndarray:
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     """Wrap angle(s) to (-pi, pi]."""
+    if type(a) is float:
+        # A Python float (the online smoother's yaw readings): Python's float ``%`` is numpy's
+        # ``mod`` (C ``fmod`` with the result moved to the divisor's sign: the same bits) at
+        # a tenth of the cost; returned as numpy's 0-d result, as for any other input.
+        w = (a + math.pi) % (2.0 * math.pi) - math.pi
+        return np.array(math.pi if w == -math.pi else w)
     a = np.asarray(a, dtype=float)
     w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
     return np.where(w == -np.pi, np.pi, w)

@@ -51,6 +51,8 @@ within one session (use a random walk between ``S`` variables), rolling shutter.
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 from fgnav.factors._jacobians import (
@@ -630,7 +632,7 @@ def make_slam_rotation_factor(
         noise_model: 3-D noise [rad] on the rotation error expressed in the camera frame.
     """
     z = np.asarray(slam_R_cam_meas, dtype=float)
-    if z.shape != (3, 3) or not np.isfinite(z).all():
+    if z.shape != (3, 3) or not all(map(math.isfinite, z.ravel().tolist())):
         raise ValueError(f"slam_R_cam_meas: expected a finite 3x3 rotation, got shape {z.shape}")
     z = gtsam.Rot3(z).matrix()
     body_R_cam = as_pose_matrix(body_T_cam, "body_T_cam")[:3, :3]

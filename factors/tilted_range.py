@@ -36,6 +36,8 @@ width, the sensor's time offset, multipath and readings from non-ground obstacle
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 from fgnav.factors._jacobians import (
@@ -119,6 +121,28 @@ def _tilted_range(
     return e, [e_D_pose, np.array([[-1.0 / cos_tilt]])]
 
 
+#: ``_sensor_parts``' newest ``(body_T_range, parts)`` (a flight has one rangefinder pose).
+_PARTS: tuple | None = None
+
+
+def _sensor_parts(body_T_range: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(beam, beam_skew, body_t_range, body_t_range_skew)`` of a validated sensor pose (the
+    read-only matrix of ``as_pose_matrix``, the same object for the same pose), kept for the
+    newest pose: every factor of a flight shares them (read-only, as the callbacks use them);
+    they were computed again for each of the 50 Hz readings."""
+    global _PARTS
+    cached = _PARTS
+    if cached is not None and cached[0] is body_T_range:
+        return cached[1]
+    body_R_range, body_t_range = pose_parts(body_T_range)
+    beam = body_R_range @ _E_Z
+    parts = (beam, skew(beam), np.array(body_t_range), skew(body_t_range))
+    for a in parts:
+        a.flags.writeable = False
+    _PARTS = (body_T_range, parts)
+    return parts
+
+
 def make_range_factor(
     pose_key: int,
     ground_key: int,
@@ -134,18 +158,14 @@ def make_range_factor(
         noise_model: 1-D noise [m] (robust kernels recommended).
     """
     z = float(range_meas)
-    if not np.isfinite(z):
+    if not math.isfinite(z):
         raise ValueError(f"range_meas: non-finite value {range_meas}")
-    body_R_range, body_t_range = pose_parts(as_pose_matrix(body_T_range, "body_T_range"))
-    beam = body_R_range @ _E_Z
-    beam_skew, body_t_range_skew = skew(beam), skew(body_t_range)
-    body_t_range = np.array(body_t_range)
     return custom_factor(
         noise_model,
         ERROR_DIM,
         ((pose_key, pose_matrix_at), (ground_key, scalar_at)),
         _tilted_range,
-        (z, beam, beam_skew, body_t_range, body_t_range_skew),
+        (z, *_sensor_parts(as_pose_matrix(body_T_range, "body_T_range"))),
         lazy=True,
         record=True,
     )

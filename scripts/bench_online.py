@@ -13,6 +13,19 @@ Camera, 2026-12-03 afternoon (180 s, reference workload 71-100 ms): VO in the ev
 7.1-8.6x real time, ATE 1.656 cm (4.7-5.6x before the VO's LK guess moved to original pixels);
 VO process 10.3-11.0x, ATE 1.598-1.60 cm.
 
+No camera, 2026-12-07, two rounds at about 06:25 and 06:46 (the per-keyframe Python trimmed, the
+estimate bit-identical: one quaternion's rotation matrix and one yaw's wrap on plain floats, the
+range factor's sensor parts shared, finite checks on floats, repeated work of the health detectors
+skipped) of three runs each, before and after alternating, reference workload 62-71 ms: before
+27.7-34.5x real time (wall), p50 0.99-1.16 ms, p99 2.82-5.58 ms, smoother CPU / reference
+84.7-96.1; after 32.7-36.6x, p50 0.94-1.02 ms, p99 2.85-4.08 ms, CPU / reference 78.1-83.4 (about
+13 % less CPU); ATE 2.75 cm both. Where the time goes now (py-spy, 180 s): iSAM2's update without
+the callbacks 17 %, the CustomFactor callbacks 10 %, the newest state's estimate read 7 % (its
+back-substitution, 97 us; the lagged output's read after it 1.2 us), its covariance 6 %,
+marginalisation 2 %: GTSAM's part about 43 %; the SLAM-vs-gyro check's fits in the first 10 s 5 %;
+the rest is Python spread thinly (no line above 2 % of the run). 60x would need that Python cut to
+about a quarter, out of reach of such trimming.
+
     .venv/bin/python scripts/bench_online.py [--camera] [--vo-worker process|inline]
         [--duration 180] [--keyframe-hz 20]
         [--lag 2] [--marginalize-every 1] [--factorization CHOLESKY|QR]

@@ -231,12 +231,21 @@ class RunningAccelCheck:
         fx, fy, ux, uy, ws = row
         ref = self._ref
         self.n_ok += int(sign)
-        for a, (f, u) in enumerate(((fx - ref[0], ux - ref[2]), (fy - ref[1], uy - ref[3]))):
-            self.s_f[a] += sign * f
-            self.s_u[a] += sign * u
-            self.s_ff[a] += sign * f * f
-            self.s_uu[a] += sign * u * u
-            self.s_fu[a] += sign * f * u
+        # The two axes written out (the same operations in the same order as a loop over
+        # them; this runs twice per keyframe).
+        f, u = fx - ref[0], ux - ref[2]
+        s_f, s_u, s_ff, s_uu, s_fu = self.s_f, self.s_u, self.s_ff, self.s_uu, self.s_fu
+        s_f[0] += sign * f
+        s_u[0] += sign * u
+        s_ff[0] += sign * f * f
+        s_uu[0] += sign * u * u
+        s_fu[0] += sign * f * u
+        f, u = fy - ref[1], uy - ref[3]
+        s_f[1] += sign * f
+        s_u[1] += sign * u
+        s_ff[1] += sign * f * f
+        s_uu[1] += sign * u * u
+        s_fu[1] += sign * f * u
         self.s_w2 += sign * ws * ws
 
     def _reseed(self) -> None:

@@ -304,6 +304,10 @@ SLAM_EXTRINSIC_SUSPECT_MISFIT = 0.5
 _first = operator.itemgetter(0)
 
 
+#: ``ndarray.sum``'s reduction without its Python wrapper (the same arithmetic).
+_add_reduce = np.add.reduce
+
+
 def _norm(v) -> float:
     """``np.linalg.norm`` of a vector (its arithmetic: the square root of ``v.dot(v)``)
     without its per-call overhead."""
@@ -331,6 +335,8 @@ _ROW = {
     "ground": 75,
 }
 _ROW_LEN = 76
+_NAN_ROW = np.full(_ROW_LEN, np.nan)
+_NAN_ROW.flags.writeable = False
 #: Layout of a packed fixed-lag@lag row: epoch, then the trajectory columns.
 _LAG_ROW = {"t": 1, "T": slice(2, 18), "v": slice(18, 21), "bg": slice(21, 24), "ba": slice(24, 27)}
 
@@ -359,7 +365,7 @@ class _States:
 
     @staticmethod
     def _pack(st: OnlineState) -> np.ndarray:
-        r = np.full(_ROW_LEN, np.nan)
+        r = _NAN_ROW.copy()  # (np.full costs 10x a copy)
         r[0] = st.t
         r[_ROW["T"]] = np.asarray(st.world_T_body, float).ravel()
         r[_ROW["v"]], r[_ROW["ba"]], r[_ROW["bg"]] = st.world_v_body, st.accel_bias, st.gyro_bias
@@ -890,6 +896,7 @@ class OnlineSmoother:
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
         self._height_parts: tuple | None = None  # (alignment, its parts) for _slam_height
+        self._height_last: tuple | None = None  # (session, position, height): _slam_height
         self._bad_since = -math.inf
         # The state carried over a restart after an IMU gap (see _carry_state).
         self._carry: dict[str, Any] | None = None
@@ -1153,11 +1160,12 @@ class OnlineSmoother:
         s0 = np.maximum(ts[:-1], ta)
         s1 = np.minimum(ts[1:], tb)
         d = np.maximum(s1 - s0, 0.0)
-        dur = float(d.sum())
+        # (np.add.reduce: ndarray.sum's own reduction, without its Python wrapper)
+        dur = float(_add_reduce(d))
         if dur <= 0:
             return None, 0, 0.0
         acc = np.asarray(self.imu.a[i0:i1])
-        return (d[:, None] * acc).sum(axis=0) / dur, int((d > 0).sum()), dur
+        return _add_reduce(d[:, None] * acc, 0) / dur, int(np.count_nonzero(d > 0)), dur
 
     def _try_start(self, t: float) -> None:
         """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
@@ -2053,7 +2061,7 @@ class OnlineSmoother:
             ev = ev._replace(t=ev.t + self._slam_offset)
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
-        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        if not all(map(math.isfinite, p.tolist() + q.tolist())):
             self._drop("slam:non-finite")
             return
         if self._sgc is not None:
@@ -3187,12 +3195,20 @@ class OnlineSmoother:
         if not isinstance(S, gtsam.Similarity3):
             return None
         # The alignment changes at the slow-variable reads only, the range readings (50 Hz)
-        # ask for every one: its parts kept with the object they came from.
+        # ask for every one: its parts kept with the object they came from, and the newest
+        # height with the position it came from (the health detectors ask again for the same
+        # SLAM pose at each new range value: 8782 calls for 3601 poses on the 180 s benchmark).
         cached = self._height_parts
         if cached is None or cached[0] is not S:
             cached = self._height_parts = (S, *slam_alignment_parts(S))
+            self._height_last = None
+        last = self._height_last
+        if last is not None and last[0] == session and last[1] is slam_t_cam:
+            return last[2]
         _, scale, slam_R_world, slam_t_world = cached
-        return float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
+        h = float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
+        self._height_last = (session, slam_t_cam, h)
+        return h
 
     def _health_feed(self, ev: Any) -> Any:
         """The event through the fault detectors: None when dropped (counted as received and
