@@ -232,6 +232,7 @@ STILL_MAX_GYRO_BIAS = 0.2
 #: dropped as ``imu:implausible``.
 IMU_MAX_RATE = 100.0
 IMU_MAX_ACCEL = 50.0 * 9.81
+_IMU_MAX_RATE_SQ, _IMU_MAX_ACCEL_SQ = IMU_MAX_RATE**2, IMU_MAX_ACCEL**2
 #: Largest SLAM position coordinate taken [SLAM units]: a map's units are arbitrary but its
 #: positions stay within some thousand units of its origin (metres-like in the monocular
 #: systems fgnav reads: EuRoC's ORB-SLAM runs within 20); a larger finite value is a corrupted
@@ -1005,7 +1006,7 @@ class OnlineSmoother:
         if not math.isfinite(t + w_sq + a_sq):
             self._drop("imu:non-finite")
             return None
-        if w_sq > IMU_MAX_RATE**2 or a_sq > IMU_MAX_ACCEL**2:
+        if w_sq > _IMU_MAX_RATE_SQ or a_sq > _IMU_MAX_ACCEL_SQ:
             self._drop("imu:implausible")
             return None
         last = self._t_last.get("imu", -math.inf)
