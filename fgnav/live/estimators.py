@@ -49,6 +49,9 @@ class LiveEstimator(Protocol):
 
     def result(self) -> Estimate: ...
 
+    # Optional: ``close()``, called once when the link stops, before ``counts()`` and
+    # ``result()`` (the online smoother takes or counts the input it holds).
+
 
 EstimatorFactory = Callable[[Calibration, Mapping[str, Any]], LiveEstimator]
 

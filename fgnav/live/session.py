@@ -259,6 +259,11 @@ class LiveSession:
         finally:
             link.close()
         wall = time.monotonic() - wall0
+        close = getattr(self.estimator, "close", None)
+        if callable(close):
+            # End of the stream: the smoother's held input (an IMU sample after a clock
+            # discontinuity, the VO's last frames) is taken or counted.
+            close()
         counts = self.estimator.counts()
         if self._estimator_errors:
             counts = dict(counts)

@@ -417,3 +417,21 @@ def test_corrupted_stamps_and_values_are_dropped_not_reset():
     m = evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m
     m_ref = evaluate(ref, f.ground_truth, alignment="se3").ate_rmse_m
     assert m <= 1.1 * m_ref + 0.002, (m, m_ref)
+
+
+def test_a_held_last_imu_sample_is_counted_at_close():
+    """The stream's last IMU sample, stamped past a gap, has no next sample to confirm it:
+    ``close()`` (``fgnav live`` calls it when the link stops) counts it
+    (``imu:time-unconfirmed``) and takes the events held behind it, so that every received IMU
+    sample is used or dropped by reason."""
+    f = simulate("two-turns", seed=1, options=SimOptions(images=False, duration=6.0))
+    events = list(replay_flight(f, ("imu", "range", "slam")))
+    last_imu = next(e for e in reversed(events) if isinstance(e, ImuSample))
+    late = last_imu._replace(t=last_imu.t + 5.0, arrival=last_imu.arrival + 5.0)
+    tail = RangeReading(last_imu.t + 5.001, last_imu.arrival + 5.001, 1.0)
+    sm = feed_all(iter([*events, late, tail]), f.calib, FixedLagOptions())
+    c = sm.counts()
+    imu_dropped = sum(v for k, v in c["dropped"].items() if k.startswith("imu:"))
+    assert c["dropped"].get("imu:time-unconfirmed") == 1
+    assert c["received"]["imu"] == c["used"]["imu"] + imu_dropped
+    assert c["received"]["range"] == sum(isinstance(e, RangeReading) for e in events) + 1
