@@ -20,7 +20,7 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   newest still stretch of the arrived IMU before the start (specific force within
   ``still_accel_tol`` of g, rate scatter below ``still_gyro_tol``; a vehicle standing before it
   takes off), else zero (its prior sigma covers it) until the SLAM-vs-gyro check gives one; the same
-  stretch gives the accelerometer bias along its specific force, ``|f| - g`` (``_still_accel_bias``;
+  stretch gives the accelerometer bias along its specific force, ``|f| - g`` (``still_accel_bias``;
   across it a bias is one with the tilt). When that still stretch ended before the start (a take-off
   before it, no attitude stream), attitude and velocity are the stretch's level attitude and rest
   integrated with the arrived IMU up to the start (``_from_still``), not a level on the moving
@@ -307,6 +307,17 @@ _first = operator.itemgetter(0)
 
 #: ``ndarray.sum``'s reduction without its Python wrapper (the same arithmetic).
 _add_reduce = np.add.reduce
+
+
+def still_accel_bias(f_still: np.ndarray, gravity: float) -> np.ndarray:
+    """The accelerometer bias a still stretch of mean specific force ``f_still`` shows: along
+    ``f_still``, ``|f| - g``; zero across it, where a bias cannot be told from a tilt of the level
+    attitude taken from ``f_still``. Measured 2026-12-07 on EuRoC V1_02 (the shared flight that
+    starts after a still stretch; |f| 9.79-9.82 against g 9.81): with a zero bias the
+    integration from the stretch's end drifted 30 cm vertically before the second SLAM pose;
+    causal ATE own span ORB-SLAM2 8.14 -> 6.62 cm, ORB-SLAM3 2.95 -> 3.01 cm."""
+    n = float(np.linalg.norm(f_still))
+    return f_still / n * (n - gravity) if n > 0 else np.zeros(3)
 
 
 def _norm(v) -> float:
@@ -622,7 +633,7 @@ class OnlineSmoother:
             # After an IMU sample held at a clock discontinuity, in arrival order after it.
             self._suspect_events.append(ev)
             return None
-        if type(ev) is SlamPose and not self._slam_plausible(ev):
+        if isinstance(ev, SlamPose) and not self._slam_plausible(ev):
             return None
         ev = self._health_feed(ev)
         if ev is None:
@@ -705,9 +716,7 @@ class OnlineSmoother:
         if self._imu_suspect is not None:
             self._imu_suspect = None
             self._drop("imu:time-unconfirmed")  # the last sample, after a discontinuity
-            held, self._suspect_events = self._suspect_events, []
-            for e in held:
-                self.feed(e)
+            self._release_suspect_events()
         self._vo_collect(math.inf)
         if isinstance(self._vo, VoProcess):
             self._vo.close()
@@ -1017,12 +1026,10 @@ class OnlineSmoother:
             self._imu_suspect = None
             ts = float(suspect[0].t)
             if not (0.0 < t - last <= self.options.max_imu_gap_s) or 0.0 < t - ts <= t - last:
-                self._imu_confirmed(suspect)
+                self._imu_accept(*suspect, last)  # confirmed
             else:
                 self._drop("imu:time-outlier")
-            held, self._suspect_events = self._suspect_events, []
-            for e in held:
-                self.feed(e)
+            self._release_suspect_events()
             last = self._t_last.get("imu", -math.inf)
         elif last - t > self.options.clock_jump_s or (
             last > -math.inf and t - last > self.options.max_imu_gap_s
@@ -1031,10 +1038,11 @@ class OnlineSmoother:
             return None
         return self._imu_accept(ev, t, w, a, last)
 
-    def _imu_confirmed(self, suspect: tuple) -> None:
-        """A held IMU sample whose clock discontinuity the next sample confirmed."""
-        ev, t, w, a = suspect
-        self._imu_accept(ev, t, w, a, self._t_last.get("imu", -math.inf))
+    def _release_suspect_events(self) -> None:
+        """The events held behind a suspect IMU sample, once it is decided, in their order."""
+        held, self._suspect_events = self._suspect_events, []
+        for e in held:
+            self.feed(e)
 
     def _imu_accept(
         self, ev: ImuSample, t: float, w: np.ndarray, a: np.ndarray, last: float
@@ -1207,9 +1215,10 @@ class OnlineSmoother:
         if not bias_from_still:
             gyro_b = np.zeros(3)
         vel = np.zeros(3)
-        acc_b = self._still_accel_bias(t_start, still_age) if bias_from_still else np.zeros(3)
+        f_still = self._still_force(t_start - still_age) if still else None
+        acc_b = still_accel_bias(f_still, go.gravity) if bias_from_still else np.zeros(3)
         if still and R_att is None and self._carry is None and still_age > 0.0:
-            R0, vel = self._from_still(t_start, still_age, gyro_b, yaw0, acc_b)
+            R0, vel = self._from_still(t_start, still_age, f_still, gyro_b, yaw0, acc_b)
         self._provisional_thrust_only(a)
         self.t0 = t_start
         self.k = 0
@@ -1311,39 +1320,29 @@ class OnlineSmoother:
             else "moving: zero",
         )
 
-    def _still_accel_bias(self, t_start: float, still_age: float) -> np.ndarray:
-        """The accelerometer bias a still stretch shows (ending ``still_age`` before
-        ``t_start``): along the mean specific force ``f`` of its newest ``STILL_WINDOW_S``,
-        ``|f| - g``; zero across it, where a bias cannot be told from a tilt of the level
-        attitude taken from ``f``. Measured 2026-12-07 on EuRoC V1_02 (the shared flight that
-        starts after a still stretch; |f| 9.79-9.82 against g 9.81): with a zero bias the
-        integration from the stretch's end drifted 30 cm vertically before the second SLAM
-        pose; causal ATE own span ORB-SLAM2 8.14 -> 6.62 cm, ORB-SLAM3 2.95 -> 3.01 cm."""
-        t_end = t_start - still_age
-        s = self.imu.span(t_end - STILL_WINDOW_S, t_end)
-        f = np.asarray(self.imu.a[s]).mean(axis=0)
-        n = float(np.linalg.norm(f))
-        return f / n * (n - self.go.gravity) if n > 0 else np.zeros(3)
+    def _still_force(self, t_end: float) -> np.ndarray:
+        """Mean specific force of the still stretch's last ``STILL_WINDOW_S`` before ``t_end``."""
+        return np.asarray(self.imu.a[self.imu.span(t_end - STILL_WINDOW_S, t_end)]).mean(axis=0)
 
     def _from_still(
         self,
         t_start: float,
         still_age: float,
+        f_still: np.ndarray,
         gyro_b: np.ndarray,
         yaw0: float,
         acc_b: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Attitude and velocity at ``t_start`` when the vehicle stood still until ``still_age``
-        before it: level (yaw ``yaw0``) from the mean specific force of the still stretch's last
-        ``STILL_WINDOW_S`` (gravity only), then the arrived IMU integrated from the stretch's end to
-        ``t_start`` with the still gyro bias and the accelerometer bias ``acc_b``
-        (:meth:`_still_accel_bias`), from rest. A start while moving (EuRoC V1_02: take-off 1.5 s
+        before it: level (yaw ``yaw0``) from the mean specific force ``f_still`` of the still
+        stretch's last ``STILL_WINDOW_S`` (gravity only), then the arrived IMU integrated from the
+        stretch's end to ``t_start`` with the still gyro bias and the accelerometer bias ``acc_b``
+        (:func:`still_accel_bias`), from rest. A start while moving (EuRoC V1_02: take-off 1.5 s
         before the start) would otherwise level on a specific force tilted by the acceleration (2-3
         deg, 0.4 m/s^2 of gravity read as acceleration) and start from zero velocity. Uses only IMU
         samples before ``t_start``."""
         t_end = t_start - still_age
-        s = self.imu.span(t_end - STILL_WINDOW_S, t_end)
-        R_end = level_rotation_from_accel(np.asarray(self.imu.a[s]).mean(axis=0), yaw0)
+        R_end = level_rotation_from_accel(f_still, yaw0)
         bias = gtsam.imuBias.ConstantBias(acc_b, gyro_b)
         pim = self._preintegrate(t_end, t_start, bias, count=False)
         nav = pim.predict(gtsam.NavState(gtsam.Rot3(R_end), np.zeros(3), np.zeros(3)), bias)
@@ -2060,11 +2059,9 @@ class OnlineSmoother:
     def _on_slam(self, ev: SlamPose) -> None:
         if self._slam_offset:
             ev = ev._replace(t=ev.t + self._slam_offset)
+        # (values checked in feed(): _slam_plausible)
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
-        if not all(map(math.isfinite, p.tolist() + q.tolist())):
-            self._drop("slam:non-finite")
-            return
         if self._sgc is not None:
             self._slam_check(float(ev.t), q, int(ev.session))
         # The payload keeps the orientation as stored: a convention decided while it waits

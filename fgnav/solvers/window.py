@@ -389,6 +389,12 @@ class TimeOrderedSmoother:
         rank = {b: i for i, b in enumerate(blocks)}
         top = len(blocks) - 1
         u = self._n_updates
+        given = self._given
+
+        def level(key: int, t: float) -> int:
+            lvl = rank[t]
+            return lvl + max(0, fine - (u - given[key])) if lvl == top else lvl
+
         if blocks != self._labelled_blocks or fine != self._labelled_fine:
             # Every key afresh (the labels are empty: each nonzero level is inserted): one pass
             # over the stamps without the lookups of the incremental path (twice a second on
@@ -396,24 +402,20 @@ class TimeOrderedSmoother:
             self._groups.clear()
             self._label = label = {}
             self._labelled_blocks, self._labelled_fine = blocks, fine
-            given, insert2 = self._given, self._groups.insert2
+            insert2 = self._groups.insert2
             for key, t in self._stamp.items():
-                lvl = rank[t]
-                if lvl == top:
-                    lvl += max(0, fine - (u - given[key]))
+                lvl = level(key, t)
                 if lvl:
                     insert2(key, lvl)
                     label[key] = lvl
             return
         keys = {k for batch in self._recent for k in batch}
-        stamp, given, label, groups = self._stamp, self._given, self._label, self._groups
+        stamp, label, groups = self._stamp, self._label, self._groups
         for key in keys:
             t = stamp.get(key)
             if t is None:  # marginalised since
                 continue
-            lvl = rank[t]
-            if lvl == top:
-                lvl += max(0, fine - (u - given[key]))
+            lvl = level(key, t)
             was = label.get(key, 0)
             if was != lvl:
                 if was:  # KeyGroupMap.insert2 does not overwrite
