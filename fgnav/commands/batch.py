@@ -5,7 +5,8 @@ calls :func:`fgnav.solvers.batch.solve_batch`). Options come from the ``[graph]`
 ``[batch]`` and ``[priors]`` tables of ``--config`` with the flags written in (fields of
 :class:`~fgnav.solvers.graph.GraphOptions`, :class:`~fgnav.solvers.batch.LMOptions` and
 ``covariance`` / ``cov_pose_stride`` of :class:`~fgnav.solvers.batch.BatchOptions`). When the
-flight has ground truth, the estimate is scored (SE(3) alignment, printed) and the metrics go into
+flight has ground truth, the estimate is scored (SE(3) alignment; the mode used is printed: a
+straight-line flight falls back to translation only) and the metrics go into
 ``summary.json``.
 """
 
@@ -20,6 +21,7 @@ from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate
+from fgnav.eval.align import mode_label
 from fgnav.eval.outputs import summary_extra
 from fgnav.methods import batch_options, load_method_config, run_batch, with_flags
 
@@ -98,7 +100,8 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
         log.warning("%s: not scored against ground truth: %s", est.method, e)
     if metrics is not None:
         print(
-            f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE (SE(3) alignment), "
+            f"{est.method}: ATE {metrics.ate_rmse_m:.4f} m RMSE "
+            f"({mode_label(metrics.alignment)} alignment), "
             f"velocity RMSE {metrics.vel_rmse_mps:.4f} m/s, yaw RMSE "
             f"{metrics.yaw_rmse_deg:.3f} deg, RPE {metrics.rpe_pct:.3f} %"
         )

@@ -37,6 +37,16 @@ ALIGN_MODES: tuple[str, ...] = ("se3", "sim3", "4dof", "none")
 #: Mode reported when SE(3)/Sim(3) is undetermined (points on a line): centroids aligned only.
 DEGENERATE_MODE = "translation (degenerate geometry)"
 
+#: How each mode is written for a user (any other mode, e.g. the degenerate fall-back, as is).
+MODE_LABELS = {"se3": "SE(3)", "sim3": "Sim(3)", "4dof": "4-DoF", "none": "no"}
+
+
+def mode_label(mode: str) -> str:
+    """``"SE(3)"``, ``"Sim(3)"``, ``"4-DoF"``, ``"no"`` or the mode itself (the degenerate
+    geometry's translation-only fall-back)."""
+    return MODE_LABELS.get(mode, mode)
+
+
 #: Default largest time gap [s] of ground truth across which it is interpolated. Motion-capture
 #: ground truth runs at 100-200 Hz (EuRoC 200 Hz); a gap above 0.1 s means missing data.
 DEFAULT_MAX_GT_GAP_S = 0.1

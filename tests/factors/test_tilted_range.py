@@ -53,6 +53,33 @@ def test_jacobians_match_central_differences(seed: int) -> None:
     assert_jacobians_close(factor, values, [6, 1])
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_zero_error_at_a_consistent_state(seed: int) -> None:
+    """A range made by intersecting the beam with the ground plane (geometry written out here,
+    not the factor's) gives zero error at random tilted states with a lever arm."""
+    rng = np.random.default_rng(400 + seed)
+    pose = gtsam.Pose3(gtsam.Rot3.Expmap(rng.uniform(-0.4, 0.4, 3)), rng.uniform(-3, 3, 3))
+    body_T_range = gtsam.Pose3(
+        DOWN.rotation().compose(gtsam.Rot3.Expmap(rng.uniform(-0.2, 0.2, 3))),
+        rng.uniform(-0.2, 0.2, 3),
+    )
+    ground = pose.translation()[2] - rng.uniform(1.0, 4.0)
+    world_T_range = pose.compose(body_T_range)
+    origin = world_T_range.translation()
+    beam = world_T_range.rotation().matrix()[:, 2]  # sensor +z in the world
+    assert beam[2] < 0.0  # pointing down
+    hit = origin + (ground - origin[2]) / beam[2] * beam
+    range_true = float(np.linalg.norm(hit - origin))
+    values = gtsam.Values()
+    values.insert(X(0), pose)
+    values.insert(G(0), np.array([ground]))
+    factor = make_range_factor(X(0), G(0), range_true, body_T_range, unit_noise(1))
+    assert factor.unwhitenedError(values) == pytest.approx([0.0], abs=1e-12)
+    assert factor.error(values) == pytest.approx(0.0, abs=1e-20)
+    off = make_range_factor(X(0), G(0), range_true + 0.05, body_T_range, unit_noise(1))
+    assert off.unwhitenedError(values) == pytest.approx([-0.05], abs=1e-12)  # h(x) - z
+
+
 def test_cos_tilt_is_floored() -> None:
     pose = gtsam.Pose3(gtsam.Rot3.Roll(np.deg2rad(89.9)), np.array([0.0, 0.0, 2.0]))
     e, J = tilted_range_error(pose, np.array([0.0]), 0.0, DOWN)
