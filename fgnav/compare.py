@@ -60,6 +60,7 @@ smoother's SLAM-vs-gyro check; the prepared runner applies the whole-flight chec
 #: Metric keys copied from :meth:`Metrics.as_dict` into each table row of ``compare.json``.
 ROW_METRICS = (
     "ate_rmse_m",
+    "ate_4dof_m",
     "rpe_pct",
     "scale_final_abs_err_pct",
     "vel_rmse_mps",

@@ -36,6 +36,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("alignment", "alignment"),
     Column("ATE [m]", "ate_rmse_m", "{:.3f}"),
     Column("ATE common [m]", "ate_common_m", "{:.3f}"),
+    Column("ATE 4-DoF [m]", "ate_4dof_m", "{:.3f}"),
     Column("RPE [%]", "rpe_pct", "{:.2f}"),
     Column("scale err [%]", "scale_final_abs_err_pct", "{:.2f}"),
     Column("vel RMSE [m/s]", "vel_rmse_mps", "{:.3f}"),

@@ -52,6 +52,27 @@ def test_ate_of_known_offsets(truth):
     assert 0.95 * m.ate_rmse_m < m3.ate_rmse_m <= m.ate_rmse_m
 
 
+def test_4dof_ate_keeps_a_tilt_that_se3_fits_away(truth):
+    """A world tilted by 2 deg of roll: SE(3) fits it away, the 4-DoF ATE (yaw + translation,
+    DESIGN.md sec. 9's mode for visual-inertial estimates) keeps it; a yaw and translation
+    offset alone costs neither anything."""
+    p = truth.world_t_body
+    c = p.mean(axis=0)
+    tilt = rpy_to_matrix(math.radians(2.0), 0.0, 0.0)
+    tilted = Estimate("test", _est(truth, world_t_body=(p - c) @ tilt.T + c, world_v_body=None))
+    m = evaluate(tilted, truth, alignment="se3")
+    expected = np.sqrt(np.mean(np.sum(((p - c) @ tilt.T - (p - c)) ** 2, axis=1)))
+    assert m.ate_rmse_m < 1e-9
+    # The best yaw + translation cannot undo a roll: at least the vertical part stays.
+    assert 0.5 * expected < m.ate_4dof_m <= expected * (1 + 1e-9)
+    assert expected > 0.05
+    yawed = rpy_to_matrix(0.0, 0.0, 0.7)
+    moved = Estimate("test", _est(truth, world_t_body=p @ yawed.T + [3.0, -1.0, 0.5]))
+    m2 = evaluate(moved, truth, alignment="se3")
+    assert m2.ate_rmse_m < 1e-9 and m2.ate_4dof_m < 1e-9
+    assert evaluate(moved, truth, alignment="4dof").ate_4dof_m < 1e-9
+
+
 def test_sim3_removes_scale_and_reports_it(truth):
     est = Estimate("test", _est(truth, world_t_body=0.25 * truth.world_t_body, world_v_body=None))
     m = evaluate(est, truth, alignment="sim3")
