@@ -215,6 +215,47 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     return options_from(cls, table, source=source, section=section, **flagged, **overrides)
 
 
+#: The options class each filter baseline's table fills (module, class).
+_BASELINE_OPTIONS = {
+    "msf-ekf": ("fgnav.baselines.msf_ekf", "MsfOptions"),
+    "ekf004": ("fgnav.baselines.ekf004", "Ekf004Options"),
+    "ukf003": ("fgnav.baselines.ukf003", "Ukf003Options"),
+    "ii-observer": ("fgnav.baselines.seed000", "Seed000Options"),
+    "ekf-vo002": ("fgnav.baselines.seed002", "Seed002Options"),
+    "ekf-flow002": ("fgnav.baselines.seed002_flow", "Seed002FlowOptions"),
+    "cf-ekf": ("fgnav.baselines.cf_ekf", "CfEkfOptions"),
+}
+
+
+METHOD_TABLES = ("graph", "lm", "batch", "online", "priors", *_BASELINE_OPTIONS)
+"""The ``--config`` tables the methods read (``fgnav compare``, ``demo`` and ``fleet`` refuse any
+other): the smoothers' ``[graph]``, ``[lm]``, ``[batch]``, ``[online]`` and ``[priors]``, and one
+per filter baseline, named after it."""
+
+
+def check_method_config(config: Mapping[str, Any]) -> None:
+    """Build the options of every table of ``config`` without a flight, so that an unknown
+    option or a bad value is one error before any method runs (``fgnav compare``, ``demo``,
+    ``fleet``; the tables themselves are checked by :func:`fgnav.config.check_tables`).
+
+    Raises:
+        FgnavError: the first table with an unknown option or a bad value, named.
+    """
+    if any(t in config for t in ("graph", "lm", "batch")):
+        batch_options(config)
+    if "online" in config:
+        fixed_lag_options(config)
+    if "priors" in config:
+        from fgnav.frontends.prior_stages import prior_options
+
+        table = _priors_table(config)
+        # Without drag_k in the table the flight's calibration may give it (checked on the run).
+        _named_priors(config, prior_options, table, None if "drag_k" in table else (1.0, 1.0))
+    for table, (module, name) in _BASELINE_OPTIONS.items():
+        if table in config:
+            _options(getattr(importlib.import_module(module), name), config, table)
+
+
 FLAGS_KEY = "__flags__"
 """Key of a method config that lists, per table, the values written in from command-line flags."""
 
@@ -413,7 +454,7 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
     table = _priors_table(config)
     meta = getattr(flight, "meta", None)
     k = meta.get("drag_k") if isinstance(meta, dict) else None
-    opts = prior_options(table, drag_k=k)
+    opts = _named_priors(config, prior_options, table, k)
     if opts is not None and flight is not None:
         # A configuration fact (which streams the log has), as the whole-flight front-ends say.
         for source in opts.sources:
@@ -424,6 +465,17 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
                     "stream(s)"
                 )
     return opts
+
+
+def _named_priors(config: Mapping[str, Any], make: Callable, table: dict, drag_k: Any) -> Any:
+    """``make(table, drag_k=drag_k)`` (the ``[priors]`` options), its error naming the config
+    file and the table."""
+    try:
+        return make(table, drag_k=drag_k)
+    except FlightFormatError:
+        raise
+    except FgnavError as e:
+        raise FlightFormatError(str(config.get(SOURCE_KEY, "config")), f"[priors]: {e}") from None
 
 
 def _priors_table(config: Mapping[str, Any]) -> dict[str, Any]:

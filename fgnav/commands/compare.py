@@ -14,7 +14,13 @@ from pathlib import Path
 from fgnav.compare import CompareResult, compare
 from fgnav.config import check_tables
 from fgnav.coverage import compare_lines
-from fgnav.methods import METHODS, MethodUnavailableError, load_method_config
+from fgnav.methods import (
+    METHOD_TABLES,
+    METHODS,
+    MethodUnavailableError,
+    check_method_config,
+    load_method_config,
+)
 
 HELP = "run the smoothers and the filter baselines on a flight and compare them"
 
@@ -53,18 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: ``--config`` tables read by ``fgnav compare`` (one per method's options, see fgnav.methods).
-COMPARE_TABLES = [
-    "graph",
-    "lm",
-    "batch",
-    "online",
-    "priors",
-    "msf-ekf",
-    "ekf004",
-    "ukf003",
-    "ii-observer",
-    "ekf-vo002",
-]
+COMPARE_TABLES = list(METHOD_TABLES)
+"""The ``--config`` tables ``fgnav compare`` reads (:data:`fgnav.methods.METHOD_TABLES`)."""
 
 
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
@@ -88,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_tables(args.config, COMPARE_TABLES)
     config = load_method_config(args.config)
+    check_method_config(config)
     methods = parse_methods(args.methods)
     flight = load_flight(args.flight)
     result = compare(

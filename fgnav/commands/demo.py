@@ -19,6 +19,7 @@ from fgnav.commands.compare import COMPARE_TABLES, parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
 from fgnav.config import check_tables, load_config, options_from
 from fgnav.datasets.simulate import SCENARIOS, SimOptions
+from fgnav.methods import check_method_config
 
 HELP = "simulate a flight and run the main job on it"
 
@@ -87,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     )
     methods = parse_methods(args.methods)
     method_config = {k: v for k, v in config.items() if k != "simulate"}
+    check_method_config(method_config)
     stages: dict[str, float] = {}
     t_all = time.perf_counter()
 

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import argparse
 
-from fgnav.methods import load_method_config
+from fgnav.config import check_tables
+from fgnav.methods import METHOD_TABLES, check_method_config, load_method_config
 
 HELP = "run methods over many logged flights on Dask (local or a cluster), one table"
 
@@ -69,9 +70,13 @@ def run(args: argparse.Namespace) -> int:
     ):
         if v is not None and v <= 0:
             raise FgnavError(f"{flag} must be positive, got {v:g}")
+    # The tables and their options checked here, before any worker starts (one line, exit 1).
+    check_tables(args.config, list(METHOD_TABLES))
+    config = load_method_config(args.config)
+    check_method_config(config)
     opts = FleetOptions(
         methods=methods or ("batch",),
-        config=load_method_config(args.config),
+        config=config,
         scheduler=args.scheduler,
         workers=args.workers,
         timeout_s=args.timeout,

@@ -51,6 +51,13 @@ def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
         ("online", "[batch]\ncovariance = 'none'\n", "unknown table(s) ['batch']"),
         ("batch", "[priors]\nsource = ['ml-scale']\n", "[priors]: unknown option(s) ['source']"),
         ("compare", "[msf_ekf]\nrange_sigma = 0.1\n", "unknown table(s) ['msf_ekf']"),
+        # compare and fleet check every table's options before any method (or worker) runs.
+        ("compare", "[ukf003]\nbogus = 1\n", "unknown option(s) ['bogus'] for Ukf003Options"),
+        ("compare", "[graph]\nyaw_sigma = inf\n", "option yaw_sigma = inf: expected a finite"),
+        ("compare", "[cf-ekf]\nbogus = 1\n", "unknown option(s) ['bogus'] for CfEkfOptions"),
+        ("fleet", "[nosuch]\nx = 1\n", "unknown table(s) ['nosuch']"),
+        ("fleet", "[graph]\nbogus = 1\n", "unknown option(s) ['bogus'] for GraphOptions"),
+        ("fleet", "[priors]\nsources = ['nosuch']\n", "unknown front-end prior(s) ['nosuch']"),
     ],
 )
 def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table, needle):
@@ -60,6 +67,20 @@ def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table
         capsys, [command, str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
     )
     assert str(cfg) in err and needle in err
+
+
+def test_compare_reads_every_filter_table(cli_folder, tmp_path, capsys):
+    """Each filter baseline's table is accepted by ``fgnav compare`` (``[ekf-flow002]`` and
+    ``[cf-ekf]`` were refused as unknown tables), and a ``[priors]`` source that needs the
+    flight's drag coefficient is not refused before the flight is read."""
+    cfg = tmp_path / "ok.toml"
+    cfg.write_text(
+        "[cf-ekf]\npredict_rate_hz = 100.0\n[ekf-flow002]\nheight_min = 0.1\n"
+        "[ekf004]\nuse_yaw = true\n[priors]\nsources = ['ml-scale']\n"
+    )
+    argv = ["compare", str(cli_folder), "--out", str(tmp_path / "o"), "--methods", "batch"]
+    assert main([*argv, "--no-figures", "--no-progress", "--config", str(cfg)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
 
 
 def test_option_value_rules():
