@@ -17,6 +17,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
@@ -116,7 +118,8 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
             err += ")"
         print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
-        print(f"drag k: {est.drag_k} 1/s")
+        k = ", ".join(f"{v:.4f}" for v in np.atleast_1d(est.drag_k))
+        print(f"drag k: {k} 1/s")
     for line in coverage_lines(flight, est):
         print(line)
     line = health_line(est.info.get("health"))

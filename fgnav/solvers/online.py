@@ -3691,7 +3691,12 @@ class OnlineSmoother:
                     sc = float(v.scale())
                 self._session_scale[sess] = sc
                 self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
+        # The drag coefficient only once a drag factor has measured it (a drag variable made
+        # before the thrust check turned drag off holds its initial value: not an estimate).
+        drag_used = bool(self.used.get("drag") or self.used.get("drag-dynamics"))
         for c, name in (("d", "drag_k"), ("g", "ground_height")):
+            if c == "d" and not drag_used:
+                continue
             keys = [k for k in self.values if _chr(k) == c and self._alive(k)]
             if keys:
                 v = np.asarray(self.values[max(keys)], float)

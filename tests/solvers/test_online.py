@@ -435,3 +435,20 @@ def test_a_held_last_imu_sample_is_counted_at_close():
     assert c["dropped"].get("imu:time-unconfirmed") == 1
     assert c["received"]["imu"] == c["used"]["imu"] + imu_dropped
     assert c["received"]["range"] == sum(isinstance(e, RangeReading) for e in events) + 1
+
+
+def test_drag_k_reported_only_when_a_drag_factor_measured_it(push_run):
+    """An IMU body with x up (EuRoC-like): the thrust check turns drag off 0.5 s in. The drag
+    variable made before holds its initial value; it is not reported as an estimate (it was
+    printed as 0.3 1/s). With the FLU body the drag estimate is reported."""
+    cut = simulate("two-turns", seed=1, options=SimOptions(images=False, duration=8.0))
+    imu = dataclasses.replace(
+        cut.imu, body_accel=cut.imu.body_accel[:, [2, 1, 0]] * np.array([1.0, 1.0, -1.0])
+    )
+    tilted = replay_online(dataclasses.replace(cut, imu=imu), FixedLagOptions())
+    assert tilted.info["drag"].startswith("off")
+    assert tilted.drag_k is None and "drag_k" not in tilted.series
+    assert push_run.info["drag"].startswith("on")
+    k = np.atleast_1d(push_run.drag_k)
+    # Simulated 0.38, 0.42; ky is weakly observable on two-turns (mostly forward flight).
+    assert abs(k[0] - 0.38) < 0.03 and 0.0 < k[-1] < 0.6, k
