@@ -205,7 +205,14 @@ def _details(s: Any) -> str:
     return ""
 
 
-def _calibration_lines(c: Calibration) -> list[str]:
+def _calibration_lines(c: Calibration, streams: set[str] | None = None) -> list[str]:
+    """The calibration as lines; the mounts and limits of the rangefinder, the flow sensor
+    and the camera only when the flight has that stream (``streams``; None: all), the camera
+    also with SLAM (it is the SLAM's camera)."""
+
+    def has(*names: str) -> bool:
+        return streams is None or any(n in streams for n in names)
+
     def pose(T: np.ndarray) -> str:
         T = np.asarray(T, dtype=float)
         if np.array_equal(T, np.eye(4)):
@@ -214,11 +221,15 @@ def _calibration_lines(c: Calibration) -> list[str]:
         t = ", ".join(f"{v:+.4f}" for v in T[:3, 3])
         return f"t = [{t}] m, rotation {angle:.2f} deg"
 
-    lines = [f"body_T_cam    {pose(c.body_T_cam)}", f"body_T_range  {pose(c.body_T_range)}"]
-    if c.camera is None:
+    lines = []
+    if has("slam", "images"):
+        lines.append(f"body_T_cam    {pose(c.body_T_cam)}")
+    if has("range"):
+        lines.append(f"body_T_range  {pose(c.body_T_range)}")
+    k = c.camera
+    if has("slam", "images") and k is None:
         lines.append("camera        none")
-    else:
-        k = c.camera
+    elif has("slam", "images"):
         dist = ", ".join(f"{d:.6g}" for d in k.distortion) or "none"
         lines.append(
             f"camera        {k.width}x{k.height} px, fx {k.fx:g} fy {k.fy:g} cx {k.cx:g} "
@@ -230,8 +241,10 @@ def _calibration_lines(c: Calibration) -> list[str]:
         f"{n.accel_noise_density:.3g} m/s^2/sqrt(Hz), gyro walk {n.gyro_random_walk:.3g} "
         f"rad/s^2/sqrt(Hz), accel walk {n.accel_random_walk:.3g} m/s^3/sqrt(Hz)"
     )
-    lines.append(f"range limits  {c.range_min:g} .. {c.range_max:g} m")
-    lines.append(f"body_T_flow   {pose(c.body_T_flow)}; {c.flow_pixels_per_rad:.4g} px/rad")
+    if has("range"):
+        lines.append(f"range limits  {c.range_min:g} .. {c.range_max:g} m")
+    if has("flow"):
+        lines.append(f"body_T_flow   {pose(c.body_T_flow)}; {c.flow_pixels_per_rad:.4g} px/rad")
     offsets = ", ".join(f"{k} {v:+.6f} s" for k, v in c.time_offsets.items()) or "none"
     lines.append(f"time offsets  {offsets}")
     return lines
@@ -279,7 +292,7 @@ def flight_info(flight: Flight) -> FlightInfo:
         t0=min(starts) if starts else 0.0,
         overlap=overlap,
         overlap_streams=sensors,
-        calibration=tuple(_calibration_lines(flight.calib)),
+        calibration=tuple(_calibration_lines(flight.calib, set(flight.streams()))),
         notes=tuple(_notes(flight.meta)),
         stream_notes=tuple(stream_span_notes(flight)),
     )

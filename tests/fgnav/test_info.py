@@ -85,6 +85,10 @@ def test_cli_info_mh01(real_data):
     assert "sensor overlap: 0.155 .. 184.005 s (183.850 s;" in r.stdout
     assert "skipped 10 SLAM pose line(s)" in r.stdout
     assert "camera        752x480 px, fx 458.654" in r.stdout
+    # No rangefinder or flow sensor on this flight: their mounts and limits are not listed.
+    assert "body_T_cam" in r.stdout
+    for absent in ("body_T_range", "range limits", "body_T_flow"):
+        assert absent not in r.stdout
 
 
 def test_cli_info_native_folder_and_errors(tmp_path):
