@@ -325,7 +325,10 @@ def associate(
     n_before, n_after = int(before.sum()), int(after.sum())
     n_gap = int((~ok_inside).sum())
     if log and (n_before or n_after or n_gap):
-        logger.warning(
+        # Samples before or after the truth's span are common (a mocap started late, stopped
+        # early; the commands' "scored:" line states the span): a warning for truth gaps only.
+        logger.log(
+            logging.WARNING if n_gap else logging.INFO,
             "associate: %d of %d estimate samples unmatched (%d before the truth, %d after, "
             "%d in truth gaps > %.3f s)",
             n_before + n_after + n_gap,

@@ -1841,7 +1841,7 @@ def check_observability(flight: Flight, options: GraphOptions, slam_model: str) 
     has_homography = o.use_homography and flight.images is not None
     has_flow = bool(o.use_flow) and flight.flow is not None
     if o.use_slam and flight.slam is None:
-        log.warning("%s: use_slam is on but the flight has no SLAM stream", flight.name)
+        log.info("%s: no SLAM stream; SLAM factors off", flight.name)
     if o.use_range and flight.range is None:
         log.info("%s: no rangefinder stream; range factors off", flight.name)
     if not (has_slam or has_homography or has_flow or o.use_drag):

@@ -1005,10 +1005,9 @@ class OnlineSmoother:
         w = np.asarray(ev.body_omega, float)
         a = np.asarray(ev.body_accel, float)
         # Plain floats, shared with the fault detectors (every sample: numpy's per-call
-        # overhead dominated this path).
+        # overhead dominated this path). The detectors see only the samples that pass the value
+        # and time checks (a 1e30 value is not a saturation, a corrupted stamp not a gap).
         wl, al = w.tolist(), a.tolist()
-        if health and self._health.options.enabled:
-            self._health.detectors.feed_imu_values(t, wl, al)
         w0, w1, w2 = wl
         a0, a1, a2 = al
         w_sq, a_sq = w0 * w0 + w1 * w1 + w2 * w2, a0 * a0 + a1 * a1 + a2 * a2
@@ -1026,7 +1025,7 @@ class OnlineSmoother:
             self._imu_suspect = None
             ts = float(suspect[0].t)
             if not (0.0 < t - last <= self.options.max_imu_gap_s) or 0.0 < t - ts <= t - last:
-                self._imu_accept(*suspect, last)  # confirmed
+                self._imu_accept(*suspect, last=last)  # confirmed
             else:
                 self._drop("imu:time-outlier")
             self._release_suspect_events()
@@ -1034,9 +1033,9 @@ class OnlineSmoother:
         elif last - t > self.options.clock_jump_s or (
             last > -math.inf and t - last > self.options.max_imu_gap_s
         ):
-            self._imu_suspect = (ev, t, w, a)
+            self._imu_suspect = (ev, t, w, a, (wl, al) if health else None)
             return None
-        return self._imu_accept(ev, t, w, a, last)
+        return self._imu_accept(ev, t, w, a, (wl, al) if health else None, last)
 
     def _release_suspect_events(self) -> None:
         """The events held behind a suspect IMU sample, once it is decided, in their order."""
@@ -1045,10 +1044,17 @@ class OnlineSmoother:
             self.feed(e)
 
     def _imu_accept(
-        self, ev: ImuSample, t: float, w: np.ndarray, a: np.ndarray, last: float
+        self,
+        ev: ImuSample,
+        t: float,
+        w: np.ndarray,
+        a: np.ndarray,
+        values: tuple[list, list] | None,
+        last: float,
     ) -> OnlineState | None:
         """An IMU sample past the value checks: time rules (a clock jump or a gap the next
-        sample confirmed resets), then the keyframes it closes."""
+        sample confirmed resets), then the keyframes it closes. ``values``: its rates and
+        specific forces as float lists for the fault detectors (None: they had it)."""
         if t > last:  # most samples (t is finite here): _check_time's accepting branch
             self._t_last["imu"] = t
         elif not self._check_time("imu", t):
@@ -1070,6 +1076,8 @@ class OnlineSmoother:
             if decided[0]:
                 self._sgc, self._slam_conv, self._slam_offset = None, decided[1], decided[2]
             self._t_last = {"imu": t}
+        if values is not None and self._health_on:
+            self._health.detectors.feed_imu_values(t, *values)
         used = self.used
         used["imu"] = used.get("imu", 0) + 1
         if self._pstage is not None:

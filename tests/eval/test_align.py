@@ -150,6 +150,24 @@ def test_associate_counts_unmatched(truth):
         associate(Trajectory(est.t + 1e4, est.world_t_body, est.world_q_body_wxyz), gt)
 
 
+def test_unmatched_samples_warn_only_in_truth_gaps(truth, caplog):
+    """Estimate samples before or after the truth's span are common (a mocap started late):
+    said at INFO; samples in a truth gap are a WARNING."""
+    t_est = np.arange(truth.t[0] - 1.0, truth.t[-1], 0.1) + 0.013
+    est = interpolate_trajectory(truth, np.clip(t_est, truth.t[0], truth.t[-1]))
+    est = Trajectory(t_est, est.world_t_body, est.world_q_body_wxyz)
+    with caplog.at_level("INFO", logger="fgnav.eval.align"):
+        associate(est, truth, max_gap_s=0.1)
+    (rec,) = [r for r in caplog.records if "unmatched" in r.getMessage()]
+    assert rec.levelname == "INFO" and "10 before the truth" in rec.getMessage()
+    caplog.clear()
+    holed = truth.select((truth.t < 1020.0) | (truth.t > 1021.0))
+    with caplog.at_level("INFO", logger="fgnav.eval.align"):
+        associate(est, holed, max_gap_s=0.1)
+    (rec,) = [r for r in caplog.records if "unmatched" in r.getMessage()]
+    assert rec.levelname == "WARNING" and "11 in truth gaps" in rec.getMessage()
+
+
 def test_line_trajectory_falls_back_to_translation_and_says_so():
     """A purely vertical flight: the rotation about the line is undetermined."""
     from fgnav.eval.align import DEGENERATE_MODE, align

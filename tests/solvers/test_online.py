@@ -414,6 +414,9 @@ def test_corrupted_stamps_and_values_are_dropped_not_reset():
     assert sm.reset_counter == 0 and est.info["solver_failures"] == 0
     assert d.get("imu:time-outlier") == 2 and d.get("imu:implausible") == 1, d
     assert d.get("slam:implausible-position") == 1, d
+    # The fault detectors see only the samples that pass: no saturation, no IMU gap named.
+    detectors = est.info["health"]["detectors"]
+    assert not {"imu-saturation", "imu-gap"} & set(detectors), detectors
     m = evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m
     m_ref = evaluate(ref, f.ground_truth, alignment="se3").ate_rmse_m
     assert m <= 1.1 * m_ref + 0.002, (m, m_ref)
