@@ -420,8 +420,11 @@ def run_fixed_lag(
     opts = fixed_lag_options(config)
     engine = resolve_engine(opts)
     if engine == "push":
-        popts = online_prior_options(flight, config)
-        est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
+        if source is None and opts.lagged_output:
+            est = _push_outputs(flight, config, progress)[0]
+        else:
+            popts = online_prior_options(flight, config)
+            est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
         est = _with_info(est, engine=engine)
         return _with_stage_priors(est)
     if source is not None:
@@ -437,11 +440,43 @@ def run_fixed_lag_lagged(
 ) -> Estimate:
     """The push-API smoother's second output, ``fixed-lag@lag``: each keyframe's state as smoothed
     just before it leaves the window (delayed by the lag; ``[graph]`` and ``[online]``)."""
-    from fgnav.solvers.online import replay_online
+    lagged = _push_outputs(flight, config, progress)[1]
+    if isinstance(lagged, FgnavError):
+        raise lagged
+    return lagged
 
+
+#: The newest push-engine replay: ``(flight, config key, causal estimate, lagged estimate)``.
+#: ``fixed-lag`` and ``fixed-lag@lag`` are the two outputs of one run; when a caller asks for
+#: both on the same flight and config (``fgnav compare``), the second is taken from here and
+#: the entry dropped.
+_LAST_PUSH: tuple | None = None
+
+
+def _push_outputs(
+    flight: Flight, config: Mapping[str, Any], progress: bool
+) -> tuple[Estimate, Estimate | FgnavError]:
+    """``(result, lagged_result)`` of one push-engine replay of ``flight`` with ``config`` (the
+    error in place of the lagged estimate when it has none)."""
+    import json
+
+    from fgnav.solvers.online import replay_smoother
+
+    global _LAST_PUSH
+    key = json.dumps(config, sort_keys=True, default=repr)
+    last, _LAST_PUSH = _LAST_PUSH, None
+    if last is not None and last[0] is flight and last[1] == key:
+        return last[2], last[3]
     opts = fixed_lag_options(config)
     popts = online_prior_options(flight, config)
-    return replay_online(flight, opts, progress=progress, lagged=True, priors=popts)
+    sm = replay_smoother(flight, opts, progress=progress, priors=popts)
+    try:
+        lagged: Estimate | FgnavError = sm.lagged_result()
+    except FgnavError as e:  # e.g. a run shorter than the lag: only fixed-lag@lag fails
+        lagged = e
+    out = sm.result(), lagged
+    _LAST_PUSH = (flight, key, *out)
+    return out
 
 
 def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):

@@ -3822,6 +3822,19 @@ def replay_online(
     ``source``: a :class:`fgnav.datasets.native.FlightStreams` whose events are read from its
     files in chunks (bounded memory); ``flight`` is then its outline (checks only).
     """
+    sm = replay_smoother(flight, options, progress, source, priors)
+    return sm.lagged_result() if lagged else sm.result()
+
+
+def replay_smoother(
+    flight,
+    options: FixedLagOptions | None = None,
+    progress: bool = False,
+    source: Any = None,
+    priors: Any = None,
+) -> OnlineSmoother:
+    """:func:`replay_online`'s smoother after the replay: ``result()`` and, with
+    ``FixedLagOptions.lagged_output`` (the default), ``lagged_result()`` of one run."""
     from fgnav.datasets.events import replay_flight
 
     flight.check()
@@ -3859,5 +3872,4 @@ def replay_online(
     else:
         events = replay_flight(flight, streams)
         total = sum(len(getattr(flight, n)) for n in streams)
-    sm = feed_all(events, flight.calib, options, flight.name, progress, total, priors)
-    return sm.lagged_result() if lagged else sm.result()
+    return feed_all(events, flight.calib, options, flight.name, progress, total, priors)

@@ -292,3 +292,26 @@ def test_smoothers_run_without_slam_when_camera_and_range_exist():
     runnable, skipped = available_methods(dataclasses.replace(no_slam, images=None))
     assert "batch" not in runnable
     assert skipped["batch"] == "needs slam; the flight has none"
+
+
+def test_fixed_lag_and_its_lagged_output_come_from_one_replay(flight, monkeypatch):
+    """``fixed-lag`` and ``fixed-lag@lag`` are the two outputs of one push-engine run: compare
+    replays the flight once for both (it ran the smoother twice), with the figures of separate
+    runs."""
+    import fgnav.solvers.online as online
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    calls = []
+    real = online.feed_all
+    monkeypatch.setattr(online, "feed_all", lambda *a, **k: calls.append(1) or real(*a, **k))
+    res = compare(flight, ["fixed-lag", "fixed-lag@lag"], progress=False)
+    assert len(calls) == 1
+    alone = online.replay_online(flight, FixedLagOptions())
+    lagged = online.replay_online(flight, FixedLagOptions(), lagged=True)
+    for name, ref in (("fixed-lag", alone), ("fixed-lag@lag", lagged)):
+        got = res.runs[name].estimate.trajectory
+        np.testing.assert_array_equal(got.t, ref.trajectory.t)
+        np.testing.assert_allclose(got.world_t_body, ref.trajectory.world_t_body, atol=1e-12)
+    # The entry is dropped once both outputs were taken: a new call replays again.
+    compare(flight, ["fixed-lag"], progress=False)
+    assert len(calls) == 4
