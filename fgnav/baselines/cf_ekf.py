@@ -42,7 +42,8 @@ on the ground with yaw 0) and yaw 0, ``u = 0``; initial standard deviations as t
 (position x, y 100 m, z 1 m, velocity 0.01 m/s, attitude 0.01 rad).
 
 Outputs: a causal trajectory (state after each prediction step, decimated to
-``output_rate_hz``), world velocity ``R u``, pose covariance.
+``output_rate_hz``), world velocity ``R u``, pose and velocity covariances
+(:func:`state_covariances`; the velocity's includes the attitude error's share, ``-R [u]x d``).
 
 Differences from the firmware, deliberate: measurements are applied at the filter's current time
 (the firmware does the same, from its queue), floating point is double, there is no
@@ -68,6 +69,7 @@ from fgnav.datasets.geometry import (
     matrix_to_quat_wxyz,
     quat_multiply_wxyz,
     quat_wxyz_to_matrix,
+    skew,
 )
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate
@@ -164,6 +166,27 @@ def _att_rotation(d: np.ndarray) -> np.ndarray:
             [d1 + d0 * d2 / 2, -d0 + d1 * d2 / 2, 1 - d0 * d0 / 2 - d1 * d1 / 2],
         ]
     )
+
+
+def state_covariances(
+    world_R_body: np.ndarray, S: np.ndarray, P: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose and world-velocity covariances of the state ``S`` (attitude error ``d`` moved into
+    the quaternion, ``finalize``) with covariance ``P``.
+
+    The attitude error is a body-frame right perturbation (``R = R_hat (I + [d]x)``, as the
+    filter's ``A`` and ``finalize``), so the (6, 6) pose covariance in GTSAM's Pose3 tangent
+    ``[rot, trans]`` (body frame) takes ``d`` as it is and ``world_R_body^T dp`` for the
+    translation; the (3, 3) covariance of ``world_v_body = R u`` has ``dv = R du - R [u]x d``.
+    """
+    R = np.asarray(world_R_body, float)
+    J = np.zeros((6, N_STATE))
+    J[0:3, ID : ID + 3] = np.eye(3)
+    J[3:6, IP : IP + 3] = R.T
+    Jv = np.zeros((3, N_STATE))
+    Jv[:, IU : IU + 3] = R
+    Jv[:, ID : ID + 3] = -R @ skew(S[IU : IU + 3])
+    return J @ P @ J.T, Jv @ P @ Jv.T
 
 
 def tof_sigma(distance_m: float) -> float:
@@ -356,6 +379,14 @@ class CfEkf:
             return None
         return self.S[IP : IP + 3].copy(), self.q.copy(), self.R @ self.S[IU : IU + 3]
 
+    def latest_output(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The newest state of the causal trajectory, ``(t, S, world_q_body_wxyz, P)`` as
+        :meth:`result` reports it (after a prediction step); None before the first."""
+        if not self._out:
+            return None
+        S, q, P = self._out[-1]
+        return self._out_t[-1], S.copy(), q.copy(), P.copy()
+
     def _imu(self, ev: ImuSample) -> None:
         self._last_imu = ev
         if self.S is None:
@@ -442,12 +473,8 @@ class CfEkf:
         v = np.einsum("nij,nj->ni", Rs, S[:, IU : IU + 3])
         pose_cov = np.empty((len(S), 6, 6))
         vel_cov = np.empty((len(S), 3, 3))
-        for k, (_, _, P) in enumerate(self._out):
-            J = np.zeros((6, N_STATE))
-            J[0:3, ID : ID + 3] = np.eye(3)
-            J[3:6, IP : IP + 3] = Rs[k].T
-            pose_cov[k] = J @ P @ J.T
-            vel_cov[k] = Rs[k] @ P[IU : IU + 3, IU : IU + 3] @ Rs[k].T
+        for k, (s, _, P) in enumerate(self._out):
+            pose_cov[k], vel_cov[k] = state_covariances(Rs[k], s, P)
         traj = Trajectory(
             t=np.asarray(self._out_t),
             world_t_body=S[:, IP : IP + 3].copy(),

@@ -33,6 +33,7 @@ non-flat ground, time offsets.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import logging
 import math
@@ -149,6 +150,25 @@ class Seed002Flow:
         if not self._out_t:
             return None
         return self._out_p[-1].copy(), self._out_q[-1].copy()
+
+    @property
+    def ekf_counts(self) -> dict[str, int]:
+        """The attitude-and-height EKF's counts (empty before it starts)."""
+        return dict(self._ekf.counts) if self._ekf is not None else {}
+
+    def latest_output(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(t, world_t_body, world_q_body_wxyz, world_v_body)`` of the newest used reading as
+        :meth:`result` reports it: the velocity is the mean over the trailing
+        ``velocity_window_s`` (zero at the first reading, where :meth:`result` repeats the first
+        windowed value); None before the first."""
+        n = len(self._out_t)
+        if n == 0:
+            return None
+        w = self.opt.velocity_window_s
+        k0 = max(bisect.bisect_left(self._out_t, self._out_t[-1] - w) - 1, 0)
+        t, p = np.asarray(self._out_t[k0:]), np.array(self._out_p[k0:])
+        v, _ = window_velocity(t, p, np.array([n - 1 - k0]), w)
+        return self._out_t[-1], self._out_p[-1].copy(), self._out_q[-1].copy(), v[0]
 
     # -- steps ------------------------------------------------------------------------------------
 
@@ -270,13 +290,7 @@ class Seed002Flow:
             )
         t = np.asarray(self._out_t)
         p = np.array(self._out_p)
-        # Causal velocity: mean over the trailing window (position difference).
-        j = np.searchsorted(t, t - self.opt.velocity_window_s, side="left")
-        j = np.minimum(j, np.arange(len(t)) - 1).clip(0)
-        span = t - t[j]
-        v = np.zeros_like(p)
-        ok = span > 0
-        v[ok] = (p[ok] - p[j[ok]]) / span[ok, None]
+        v, ok = window_velocity(t, p, np.arange(len(t)), self.opt.velocity_window_s)
         v[~ok] = v[ok][0] if ok.any() else 0.0
         traj = Trajectory(
             t=t, world_t_body=p, world_q_body_wxyz=np.array(self._out_q), world_v_body=v
@@ -291,9 +305,24 @@ class Seed002Flow:
             info={
                 "options": dataclasses.asdict(self.opt),
                 "counts": dict(self.counts),
-                "ekf_counts": dict(self._ekf.counts) if self._ekf is not None else {},
+                "ekf_counts": self.ekf_counts,
             },
         ).check()
+
+
+def window_velocity(
+    t: np.ndarray, p: np.ndarray, k: np.ndarray, window_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Causal velocity at the samples ``k`` of the positions ``p`` at times ``t``: the position
+    difference over the trailing ``window_s`` (at least the previous sample). Returns ``(v,
+    ok)``, ``v`` zero where there is no earlier sample (``ok`` False)."""
+    j = np.searchsorted(t, t[k] - window_s, side="left")
+    j = np.minimum(j, k - 1).clip(0)
+    span = t[k] - t[j]
+    v = np.zeros((len(k), p.shape[1]))
+    ok = span > 0
+    v[ok] = (p[k[ok]] - p[j[ok]]) / span[ok, None]
+    return v, ok
 
 
 def check_flight(flight: Flight) -> None:

@@ -141,6 +141,7 @@ from fgnav.datasets.geometry import (
     matrix_to_rpy,
     quat_wxyz_to_matrix,
     rpy_to_matrix,
+    skew,
     so3_exp,
     so3_log,
     wrap_angle,
@@ -281,6 +282,30 @@ def body_rotation_jacobian(phi: np.ndarray) -> np.ndarray:
     return np.array([[-sp, 0.0, 1.0], [sr * cp, cr, 0.0], [cr * cp, -sr, 0.0]])
 
 
+def state_covariances(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose and world-velocity covariances of a main state ``x`` with covariance ``P``.
+
+    Returns ``(pose_cov, vel_cov)``: (6, 6) in GTSAM's Pose3 tangent ``[rot, trans]`` in body
+    frame (right perturbation, ``world_R_body Exp(dtheta)``, ``world_t_body + world_R_body
+    drho``) and (3, 3) of ``world_v_body = world_R_body body_v``. First order at the mean:
+    ``dtheta = J(Phi) dPhi`` (:func:`body_rotation_jacobian`), ``drho = world_R_body^T dp``,
+    ``dv = world_R_body dbody_v - world_R_body [body_v]x J(Phi) dPhi``; the UKF's own covariance
+    is a statistical linearisation, so this is exact only as the Euler-angle spread goes to 0
+    (the neglected terms are of the order of the attitude variance, ~1e-4 at 0.01 rad).
+    """
+    phi, body_v = x[IPHI : IPHI + 3], x[IV : IV + 3]
+    world_R_body = euler_to_matrix(phi[None])[0]
+    Jr = body_rotation_jacobian(phi)
+    J = np.zeros((6, N_MAIN))  # [rot (body), trans (body)] <- [p (world), Phi]
+    J[0:3, IPHI : IPHI + 3] = Jr
+    J[3:6, IP : IP + 3] = world_R_body.T
+    Jv = np.zeros((3, N_MAIN))
+    Jv[:, IV : IV + 3] = world_R_body
+    Jv[:, IPHI : IPHI + 3] = -world_R_body @ skew(body_v) @ Jr
+    P = P[:N_MAIN, :N_MAIN]
+    return J @ P @ J.T, Jv @ P @ Jv.T
+
+
 # ----------------------------------------------------------------------------------------------
 # The filter
 # ----------------------------------------------------------------------------------------------
@@ -316,6 +341,11 @@ class Ukf003:
     def scale_sigma(self) -> float:
         """Standard deviation of ``s``."""
         return float(np.sqrt(self.P[IS, IS]))
+
+    @property
+    def session(self) -> int | None:
+        """The SLAM session (map id) the clones and ``s`` belong to; None before its first pose."""
+        return self._session
 
     # -- unscented transform ---------------------------------------------------------------------
 
@@ -777,6 +807,13 @@ class Ukf003:
         """The main state vector (module docstring layout), None before the start."""
         return self.x[:N_MAIN].copy() if self._started else None
 
+    def latest_output(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """The newest state of the causal trajectory: ``(t, x, P)`` with the main state and its
+        covariance (module docstring layout) at time ``t``, as :meth:`result` reports it; None
+        before the first output."""
+        t, x, P, _ = self._out
+        return (t[-1], x[-1].copy(), P[-1].copy()) if t else None
+
     def _hold(self, dt: float) -> None:
         """Hold the previous IMU sample for ``dt`` (zero-order hold; batched)."""
         w, f, d = self._batch
@@ -1022,21 +1059,7 @@ class Ukf003:
         pose_cov = np.empty((n, 6, 6))
         vel_cov = np.empty((n, 3, 3))
         for k in range(n):
-            Jr = body_rotation_jacobian(X[k, IPHI : IPHI + 3])
-            # [rot (body), trans (body)] <- [p (world), Phi]
-            J = np.zeros((6, N_MAIN))
-            J[0:3, IPHI : IPHI + 3] = Jr
-            J[3:6, IP : IP + 3] = R[k].T
-            pose_cov[k] = J @ out_P[k] @ J.T
-            vb = X[k, IV : IV + 3]
-            Jv = np.zeros((3, N_MAIN))
-            Jv[:, IV : IV + 3] = R[k]
-            Jv[:, IPHI : IPHI + 3] = (
-                -R[k]
-                @ np.array([[0.0, -vb[2], vb[1]], [vb[2], 0.0, -vb[0]], [-vb[1], vb[0], 0.0]])
-                @ Jr
-            )
-            vel_cov[k] = Jv @ out_P[k] @ Jv.T
+            pose_cov[k], vel_cov[k] = state_covariances(X[k], out_P[k])
         traj = Trajectory(
             t=np.asarray(out_t, float),
             world_t_body=X[:, IP : IP + 3].copy(),

@@ -4,9 +4,10 @@
 Thin layer over :class:`fgnav.live.session.LiveSession`. ``--calib`` is a native ``calib.yaml``
 (:func:`fgnav.datasets.native.read_calib_yaml`). ``--config`` tables: ``[graph]``, ``[online]``
 and ``[priors]`` (the ``online`` estimator; ``[priors] sources``, ``drag_k`` as for ``fgnav
-online``: the front-end prior stage is fed the link's events), ``[msf-ekf]`` (the ``msf-ekf``
-one), ``[live]`` (:class:`fgnav.live.session.LiveOptions`: idle timeout, heartbeat rate, MAVLink
-ids).
+online``: the front-end prior stage is fed the link's events), ``[msf-ekf]``, ``[ukf003]``,
+``[cf-ekf]``, ``[ekf-flow002]`` (the filter baseline of that name,
+:mod:`fgnav.live.estimators`), ``[live]`` (:class:`fgnav.live.session.LiveOptions`: idle
+timeout, heartbeat rate, MAVLink ids).
 
 It stops on SIGINT/SIGTERM (Ctrl-C), after ``--duration`` wall seconds, or after
 ``--idle-timeout`` wall seconds (default 5) without a message once the first has come; then
@@ -37,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config",
         default=None,
-        help="TOML with [graph], [online], [priors], [msf-ekf], [live] tables",
+        help="TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
+        "own ([msf-ekf], [ukf003], [cf-ekf], [ekf-flow002])",
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"
@@ -55,7 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ESTIMATOR,
         choices=sorted(ESTIMATORS),
         help=f"what runs on the stream (default {DEFAULT_ESTIMATOR}: the push-API fixed-lag "
-        "smoother; msf-ekf: the MSF-style EKF baseline)",
+        "smoother; msf-ekf: the MSF-style EKF; ukf003: seed 003's UKF (SLAM, range, yaw; its "
+        "states 0.2 s late); cf-ekf: the Crazyflie EKF and ekf-flow002: seed 002's EKF with flow "
+        "dead reckoning (flow and range))",
     )
 
 

@@ -14,8 +14,15 @@ A factory ``make(calib, config) -> estimator`` builds one from the calibration a
 * ``online``: the push-API fixed-lag smoother (``[graph]``, ``[online]`` and ``[priors]``
   tables: the front-ends that supply priors run inside it on the link's events), imported
   when called;
-* ``msf-ekf``: the MSF-style EKF baseline (``[msf-ekf]``) behind :class:`MsfLive`, which gives
-  it the same shape (its states at ``output_rate_hz`` on the IMU's clock).
+* ``msf-ekf``, ``ukf003``, ``cf-ekf``, ``ekf-flow002``: the event-fed filter baselines
+  (``[msf-ekf]``, ``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]``: the options classes
+  ``fgnav.methods`` fills for them) behind :class:`FilterLive` adapters (:class:`MsfLive`,
+  :class:`Ukf003Live`, :class:`CfEkfLive`, :class:`Flow002Live`), which give them the same
+  shape: their newest state as an ``OnlineState`` at an output rate on the IMU's clock.
+
+Not here: ``ekf004`` (seed 004's EKF): ``Ekf004Runner`` is built from a ``Flight`` and chooses
+its attitude source, scale source and start condition from the streams that flight has; a live
+link learns which streams come only as messages arrive.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.events import STREAM_OF_EVENT, Event, ImuSample, RangeReading, SlamPose
-from fgnav.datasets.geometry import make_pose
+from fgnav.datasets.geometry import make_pose, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
@@ -83,12 +90,49 @@ def msf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
     return MsfLive(calib, _options(MsfOptions, config, "msf-ekf"))
 
 
-ESTIMATORS: dict[str, EstimatorFactory] = {"online": online_smoother, "msf-ekf": msf_ekf}
+def ukf003(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
+    """Seed 003's UKF with the push API (:class:`Ukf003Live`), ``[ukf003]`` table."""
+    from fgnav.baselines.ukf003 import Ukf003Options
+    from fgnav.methods import _options
+
+    return Ukf003Live(calib, _options(Ukf003Options, config, "ukf003"))
+
+
+def cf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
+    """The Crazyflie EKF with the push API (:class:`CfEkfLive`), ``[cf-ekf]`` table."""
+    from fgnav.baselines.cf_ekf import CfEkfOptions
+    from fgnav.methods import _options
+
+    return CfEkfLive(calib, _options(CfEkfOptions, config, "cf-ekf"))
+
+
+def ekf_flow002(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
+    """Seed 002's EKF with flow dead reckoning with the push API (:class:`Flow002Live`),
+    ``[ekf-flow002]`` table."""
+    from fgnav.baselines.seed002_flow import Seed002FlowOptions
+    from fgnav.methods import _options
+
+    return Flow002Live(calib, _options(Seed002FlowOptions, config, "ekf-flow002"))
+
+
+ESTIMATORS: dict[str, EstimatorFactory] = {
+    "online": online_smoother,
+    "msf-ekf": msf_ekf,
+    "ukf003": ukf003,
+    "cf-ekf": cf_ekf,
+    "ekf-flow002": ekf_flow002,
+}
 """Estimators by name (``fgnav live --estimator``)."""
 
 DEFAULT_ESTIMATOR = "online"
 
-CONFIG_TABLES = {"online": ["graph", "online", "priors"], "msf-ekf": ["msf-ekf"]}
+CONFIG_TABLES = {
+    "online": ["graph", "online", "priors"],
+    "msf-ekf": ["msf-ekf"],
+    "ukf003": ["ukf003"],
+    "cf-ekf": ["cf-ekf"],
+    "ekf-flow002": ["ekf-flow002"],
+}
 """``--config`` tables each estimator reads."""
 
 
@@ -100,39 +144,49 @@ def make_estimator(name: str, calib: Calibration, config: Mapping[str, Any]) -> 
 
 
 # ----------------------------------------------------------------------------------------------
-# The MSF-style EKF behind the push API
+# The filter baselines behind the push API
 # ----------------------------------------------------------------------------------------------
 
 QUALITY_SIGMA_M = 0.1
-""":class:`MsfLive`'s quality is ``100 / (1 + sigma / QUALITY_SIGMA_M)`` with ``sigma`` the
-RMS position standard deviation [m]: 91 at 1 cm, 50 at 10 cm, 9 at 1 m."""
+"""A filter's quality is ``100 / (1 + sigma / QUALITY_SIGMA_M)`` with ``sigma`` the RMS position
+standard deviation [m]: 91 at 1 cm, 50 at 10 cm, 9 at 1 m; 0 (unknown) without a covariance."""
 
 
-class MsfLive:
-    """:class:`~fgnav.baselines.msf_ekf.MsfEkf` with the push API of the online smoother.
+def quality_from_pose_cov(pose_cov: np.ndarray | None) -> int:
+    """0-100 quality from the translation block of a pose covariance (:data:`QUALITY_SIGMA_M`)."""
+    if pose_cov is None:
+        return 0
+    sigma = math.sqrt(max(float(np.trace(pose_cov[3:6, 3:6])) / 3.0, 0.0))
+    return int(round(100.0 / (1.0 + sigma / QUALITY_SIGMA_M)))
 
-    ``feed`` returns a state every ``1 / output_rate_hz`` seconds of IMU time once the filter
-    has started. The filter keeps its vehicle state across SLAM map resets, so
-    ``reset_counter`` stays 0. Events it does not use (yaw, images, flow) are counted as
-    ``"<stream>:not_used"``.
+
+class FilterLive:
+    """An event-fed filter baseline (``start(calib, name)``, ``feed(ev)``, ``result()``) with the
+    push API of the online smoother.
+
+    The common part: events of streams the filter does not use are counted as
+    ``"<stream>:not_used"``; ``feed`` returns an :class:`~fgnav.estimate.OnlineState` at most
+    every ``1 / output_rate_hz`` seconds of the filter's state time (the IMU clock), else None;
+    ``latest()``; ``counts()``; ``result()`` is the filter's causal estimate with
+    ``info["live_counts"]``. A filter keeps its vehicle state across SLAM map resets, so
+    ``reset_counter`` stays 0.
+
+    A subclass names ``USED_STREAMS`` and supplies :meth:`_feed` (feed the filter, return the time
+    of its newest state or None), :meth:`_state` (that state as an ``OnlineState``) and
+    :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from the filter's own).
     """
 
-    USED_STREAMS = ("imu", "attitude", "slam", "range")
+    USED_STREAMS: tuple[str, ...] = ()
 
-    def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
-        from fgnav.baselines.msf_ekf import MsfEkf, MsfOptions
-
-        self.options = options or MsfOptions()
+    def __init__(self, calib: Calibration, filt: Any, output_rate_hz: float, name: str) -> None:
         self._calib = calib
-        self._ekf = MsfEkf(self.options)
-        self._ekf.start(calib, name)
-        self._dt_out = 1.0 / self.options.output_rate_hz
+        self._filter = filt
+        self._filter.start(calib, name)
+        self._dt_out = 1.0 / output_rate_hz
         self._next_out: float | None = None
         self._received: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
-        self._imu_used = 0
         self._latest: OnlineState | None = None
-        self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
 
     def feed(self, ev: Event) -> OnlineState | None:
         stream = STREAM_OF_EVENT[type(ev)]
@@ -140,68 +194,377 @@ class MsfLive:
         if stream not in self.USED_STREAMS:
             self._dropped[f"{stream}:not_used"] += 1
             return None
+        t = self._feed(ev)
+        if t is None:
+            return None
+        if self._next_out is None:
+            self._next_out = t
+        if t < self._next_out:
+            return None
+        while self._next_out <= t:
+            self._next_out += self._dt_out
+        self._latest = self._state(t)
+        return self._latest
+
+    def latest(self) -> OnlineState | None:
+        return self._latest
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        used, late, dropped = self._filter_counts()
+        dropped = Counter(dropped)
+        dropped.update(self._dropped)
+        return {
+            "received": dict(sorted(self._received.items())),
+            "used": {k: v for k, v in used.items() if v},
+            "late": {k: v for k, v in late.items() if v},
+            "dropped": {k: v for k, v in sorted(dropped.items()) if v},
+        }
+
+    def close(self) -> None:
+        """The link stopped (nothing held here; :meth:`result` calls it too)."""
+
+    def result(self) -> Estimate:
+        self.close()
+        est = self._filter.result()
+        est.info["live_counts"] = self.counts()
+        return est
+
+    @staticmethod
+    def _online_state(
+        t: float,
+        world_T_body: np.ndarray,
+        world_v_body: np.ndarray,
+        pose_cov: np.ndarray | None = None,
+        vel_cov: np.ndarray | None = None,
+        accel_bias: np.ndarray | None = None,
+        gyro_bias: np.ndarray | None = None,
+        **extra: Any,
+    ) -> OnlineState:
+        """An ``OnlineState`` with the quality from ``pose_cov`` (zero biases when the filter has
+        none)."""
+        return OnlineState(
+            t=float(t),
+            world_T_body=world_T_body,
+            world_v_body=np.array(world_v_body, float),
+            accel_bias=np.zeros(3) if accel_bias is None else np.array(accel_bias, float),
+            gyro_bias=np.zeros(3) if gyro_bias is None else np.array(gyro_bias, float),
+            pose_cov=pose_cov,
+            vel_cov=vel_cov,
+            reset_counter=0,
+            quality=quality_from_pose_cov(pose_cov),
+            **extra,
+        )
+
+    # -- per filter ----------------------------------------------------------------------------
+
+    def _feed(self, ev: Event) -> float | None:
+        raise NotImplementedError
+
+    def _state(self, t: float) -> OnlineState:
+        raise NotImplementedError
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        raise NotImplementedError
+
+
+class MsfLive(FilterLive):
+    """:class:`~fgnav.baselines.msf_ekf.MsfEkf` with the push API (:class:`FilterLive`): its state
+    at each IMU sample, at ``output_rate_hz`` (default 20 Hz), once the filter has started."""
+
+    USED_STREAMS = ("imu", "attitude", "slam", "range")
+
+    def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
+        from fgnav.baselines.msf_ekf import MsfEkf, MsfOptions
+
+        self.options = options or MsfOptions()
+        super().__init__(calib, MsfEkf(self.options), self.options.output_rate_hz, name)
+        self._imu_used = 0
+        self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
+
+    def _feed(self, ev: Event) -> float | None:
         if isinstance(ev, RangeReading) and not (
             self._calib.range_min <= ev.range <= self._calib.range_max
         ):
             self._dropped["range:out_of_limits"] += 1
         if isinstance(ev, SlamPose):
             self._session = int(ev.session)
-        self._ekf.feed(ev)
-        if not isinstance(ev, ImuSample) or self._ekf.latest() is None:
+        self._filter.feed(ev)
+        if not isinstance(ev, ImuSample) or self._filter.latest() is None:
             return None
         self._imu_used += 1
-        if self._next_out is None:
-            self._next_out = ev.t
-        if ev.t < self._next_out:
-            return None
-        while self._next_out <= ev.t:
-            self._next_out += self._dt_out
-        self._latest = self._state(ev.t)
-        return self._latest
-
-    def latest(self) -> OnlineState | None:
-        return self._latest
+        return ev.t
 
     def _state(self, t: float) -> OnlineState:
         from fgnav.baselines.msf_ekf import IV, pose_covariance
 
-        x = self._ekf.latest()
-        pose_cov = pose_covariance(x)
-        sigma = math.sqrt(max(float(np.trace(pose_cov[3:6, 3:6])) / 3.0, 0.0))
-        return OnlineState(
-            t=float(t),
-            world_T_body=make_pose(x.R, x.p),
-            world_v_body=x.v.copy(),
-            accel_bias=x.ba.copy(),
-            gyro_bias=x.bg.copy(),
-            pose_cov=pose_cov,
-            vel_cov=x.P[IV : IV + 3, IV : IV + 3].copy(),
+        x = self._filter.latest()
+        return self._online_state(
+            t,
+            make_pose(x.R, x.p),
+            x.v,
+            pose_covariance(x),
+            x.P[IV : IV + 3, IV : IV + 3].copy(),
+            x.ba,
+            x.bg,
             slam_scale={self._session: float(x.s)},
-            reset_counter=0,
-            quality=int(round(100.0 / (1.0 + sigma / QUALITY_SIGMA_M))),
         )
 
-    def counts(self) -> dict[str, dict[str, int]]:
-        c = self._ekf.counts
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        c = self._filter.counts
         used = {"imu": self._imu_used, "slam": c.slam_updates, "range": c.range_updates}
-        dropped = Counter(self._dropped)
-        dropped.update(
-            {
-                "slam:gate": c.slam_rejected_gate,
-                "slam:waiting_new_map_scale": c.slam_waiting_reinit,
-                "range:gate": c.range_rejected_gate,
-                "range:tilt": c.range_rejected_tilt,
-                "slam_or_range:older_than_buffer": c.too_old,
-            }
-        )
-        return {
-            "received": dict(sorted(self._received.items())),
-            "used": {k: v for k, v in used.items() if v},
-            "late": {"slam_or_range": c.replayed} if c.replayed else {},
-            "dropped": {k: v for k, v in sorted(dropped.items()) if v},
+        dropped = {
+            "slam:gate": c.slam_rejected_gate,
+            "slam:waiting_new_map_scale": c.slam_waiting_reinit,
+            "range:gate": c.range_rejected_gate,
+            "range:tilt": c.range_rejected_tilt,
+            "slam_or_range:older_than_buffer": c.too_old,
         }
+        return used, {"slam_or_range": c.replayed}, dropped
 
-    def result(self) -> Estimate:
-        est = self._ekf.result()
-        est.info["live_counts"] = self.counts()
-        return est
+
+UKF003_LAG_S = 0.2
+""":class:`Ukf003Live` holds events back this long [s] (at least the SLAM latency: the simulated
+flights' 0.1 s plus jitter) so that each SLAM pose's camera trigger reaches the filter before the
+IMU samples after its capture time."""
+
+
+class Ukf003Live(FilterLive):
+    """:class:`~fgnav.baselines.ukf003.Ukf003` with the push API (:class:`FilterLive`).
+
+    The UKF clones its state when an image is taken (a camera trigger at the capture time ``t``)
+    and fuses the SLAM pose of that image when it arrives (``t + latency``). A live link has no
+    trigger message, so the adapter holds every event back for ``lag_s`` of arrival time and, when
+    a SLAM pose arrives, inserts its trigger at ``t`` among the held events (after the IMU samples
+    of equal time, as :meth:`Ukf003.run` orders them): the filter then sees what
+    :meth:`Ukf003.run` feeds it, and its states come ``lag_s`` late (their ``t`` says so). A pose
+    later than ``lag_s`` finds no clone and is counted as ``"slam:no_clone"``; tracking-lost poses
+    (negative session) as ``"slam:tracking_lost"``. :meth:`close` feeds what is held.
+
+    The states are the filter's causal trajectory (``output_rate_hz``, default 100 Hz, on the IMU
+    clock) at ``output_rate_hz`` of this adapter's own (``rate_hz``, default the filter's); the
+    pose and velocity covariances come from the Euler-angle and body-velocity state to first
+    order (:func:`fgnav.baselines.ukf003.state_covariances`); ``ground_height`` is the altimeter
+    bias ``z_b``; the SLAM scale is that of the filter's session. The filter runs in the link's
+    FLU body (it does not switch to an internal thrust body as :meth:`Ukf003.run` does for an
+    x-up IMU). Attitude samples are passed on even when the filter does not fuse them
+    (``use_attitude``): its start takes the initial attitude from them.
+    """
+
+    USED_STREAMS = ("imu", "attitude", "slam", "range", "yaw")
+
+    def __init__(
+        self,
+        calib: Calibration,
+        options=None,
+        name: str = "live",
+        lag_s: float = UKF003_LAG_S,
+        rate_hz: float | None = None,
+    ) -> None:
+        from fgnav.baselines.ukf003 import Ukf003, Ukf003Options
+
+        o = self.options = options or Ukf003Options()
+        self.lag_s = float(lag_s)
+        super().__init__(calib, Ukf003(o), rate_hz or o.output_rate_hz, name)
+        self._imu_used = 0
+        self._held: list[Any] = []
+        self._released = -math.inf  # arrival time of the newest event fed to the filter
+
+    def _feed(self, ev: Event) -> float | None:
+        from fgnav.baselines.ukf003 import CameraTrigger
+
+        if isinstance(ev, SlamPose):
+            if ev.session < 0:
+                self._dropped["slam:tracking_lost"] += 1
+                return None
+            if ev.t > self._released:
+                k = len(self._held)
+                while k and (
+                    self._held[k - 1].arrival > ev.t
+                    or (
+                        self._held[k - 1].arrival == ev.t
+                        and not isinstance(self._held[k - 1], ImuSample)
+                    )
+                ):
+                    k -= 1
+                self._held.insert(k, CameraTrigger(float(ev.t), float(ev.t)))
+        self._held.append(ev)
+        self._release(ev.arrival - self.lag_s)
+        out = self._filter.latest_output()
+        return None if out is None else out[0]
+
+    def _release(self, until: float) -> None:
+        k = 0
+        while k < len(self._held) and self._held[k].arrival <= until:
+            ev = self._held[k]
+            self._filter.feed(ev)
+            self._released = ev.arrival
+            if isinstance(ev, ImuSample) and self._filter.latest() is not None:
+                self._imu_used += 1
+            k += 1
+        del self._held[:k]
+
+    def close(self) -> None:
+        """Feed the filter every event still held (the link stopped)."""
+        self._release(math.inf)
+
+    def _state(self, t: float) -> OnlineState:
+        from fgnav.baselines.ukf003 import (
+            IBA,
+            IBG,
+            IP,
+            IPHI,
+            IS,
+            IV,
+            IZB,
+            euler_to_matrix,
+            state_covariances,
+        )
+
+        _, x, P = self._filter.latest_output()
+        world_R_body = euler_to_matrix(x[None, IPHI : IPHI + 3])[0]
+        pose_cov, vel_cov = state_covariances(x, P)
+        session = self._filter.session
+        return self._online_state(
+            t,
+            make_pose(world_R_body, x[IP : IP + 3]),
+            world_R_body @ x[IV : IV + 3],
+            pose_cov,
+            vel_cov,
+            x[IBA : IBA + 3],
+            x[IBG : IBG + 3],
+            slam_scale={} if session is None else {int(session): float(x[IS])},
+            ground_height=float(x[IZB]),
+        )
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        c = self._filter.counts
+        used = {
+            "imu": self._imu_used,
+            "slam": c.slam_updates,
+            "range": c.range_updates,
+            "yaw": c.yaw_updates,
+            "attitude": c.attitude_updates,
+        }
+        dropped = {
+            "slam:gate": c.slam_rejected_gate,
+            "slam:waiting_new_map_scale": c.slam_waiting_reinit,
+            "slam:no_clone": c.slam_no_clone,
+            "slam:out_of_order": c.slam_out_of_order,
+            "range:gate": c.range_rejected_gate,
+            "range:tilt": c.range_rejected_tilt,
+            "range:out_of_limits": c.range_out_of_limits,
+            "yaw:gate": c.yaw_rejected_gate,
+            "attitude:gate": c.attitude_rejected_gate,
+        }
+        return used, {}, dropped
+
+
+class CfEkfLive(FilterLive):
+    """:class:`~fgnav.baselines.cf_ekf.CfEkf` (the Crazyflie's ``kalman_core`` with flow and
+    time-of-flight) with the push API (:class:`FilterLive`).
+
+    The states are the filter's causal trajectory (after each prediction step, at
+    ``output_rate_hz``, default 100 Hz, on the IMU clock); the pose covariance takes the
+    body-frame attitude error as it is and the world velocity's includes the attitude's share
+    (:func:`fgnav.baselines.cf_ekf.state_covariances`). The filter has no IMU biases (reported as
+    zero) and no SLAM. Flow measures velocity, so the horizontal position is unobservable: its
+    variance sits at the firmware's bound (``MAX_COVARIANCE``, 100 m^2) and the quality at 1
+    (flowdeck seed 0).
+    """
+
+    USED_STREAMS = ("imu", "flow", "range")
+
+    def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
+        from fgnav.baselines.cf_ekf import CfEkf, CfEkfOptions
+
+        self.options = options or CfEkfOptions()
+        super().__init__(calib, CfEkf(self.options), self.options.output_rate_hz, name)
+        self._imu_used = 0
+
+    def _feed(self, ev: Event) -> float | None:
+        self._filter.feed(ev)
+        out = self._filter.latest_output()
+        if out is None:
+            return None
+        self._imu_used += isinstance(ev, ImuSample)
+        return out[0]
+
+    def _state(self, t: float) -> OnlineState:
+        from fgnav.baselines.cf_ekf import IP, IU, state_covariances
+
+        _, S, q, P = self._filter.latest_output()
+        world_R_body = quat_wxyz_to_matrix(q)
+        pose_cov, vel_cov = state_covariances(world_R_body, S, P)
+        v = world_R_body @ S[IU : IU + 3]
+        return self._online_state(t, make_pose(world_R_body, S[IP : IP + 3]), v, pose_cov, vel_cov)
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        c = self._filter.counts
+        used = {"imu": self._imu_used, "flow": c.flow_updates, "range": c.tof_updates}
+        dropped = {
+            "flow:outlier": c.flow_outliers,
+            "flow:low_quality": c.flow_low_quality,
+            "flow:before_start": c.flow_before_start,
+            "range:outlier": c.tof_outliers,
+            "range:tilt": c.tof_tilted,
+        }
+        return used, {}, dropped
+
+
+EKF_FLOW002_RATE_HZ = 100.0
+""":class:`Flow002Live`'s output rate [Hz] (a state per flow reading of a 100 Hz flow deck)."""
+
+
+class Flow002Live(FilterLive):
+    """:class:`~fgnav.baselines.seed002_flow.Seed002Flow` (seed 002's attitude-and-height EKF
+    with optical-flow dead reckoning) with the push API (:class:`FilterLive`).
+
+    Its state is that of the newest used flow reading (``t`` the reading's time), at most
+    ``rate_hz``: the dead-reckoned position, the EKF attitude and the trailing-window velocity
+    as :meth:`~fgnav.baselines.seed002_flow.Seed002Flow.result` reports them. The dead reckoning
+    has no covariance (its x, y drift is unbounded), so ``pose_cov`` and ``vel_cov`` are None and
+    ``quality`` is 0 (unknown; the link sends ``ODOMETRY.quality`` 1); no IMU biases (zero).
+    """
+
+    USED_STREAMS = ("imu", "yaw", "range", "flow")
+
+    def __init__(
+        self,
+        calib: Calibration,
+        options=None,
+        name: str = "live",
+        rate_hz: float = EKF_FLOW002_RATE_HZ,
+    ) -> None:
+        from fgnav.baselines.seed002_flow import Seed002Flow, Seed002FlowOptions
+
+        self.options = options or Seed002FlowOptions()
+        super().__init__(calib, Seed002Flow(self.options), rate_hz, name)
+
+    def _feed(self, ev: Event) -> float | None:
+        self._filter.feed(ev)
+        out = self._filter.latest_output()
+        return None if out is None else out[0]
+
+    def _state(self, t: float) -> OnlineState:
+        _, p, q, v = self._filter.latest_output()
+        return self._online_state(t, make_pose(quat_wxyz_to_matrix(q), p), v)
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        c, e = self._filter.counts, self._filter.ekf_counts
+        used = {
+            "imu": e.get("accel", 0) + e.get("accel_gated", 0),
+            "flow": c["flow_used"],
+            "range": e.get("range", 0),
+            "yaw": e.get("yaw", 0),
+        }
+        dropped = {
+            "flow:low_quality": c["flow_low_quality"],
+            "flow:no_height": c["flow_no_height"],
+            "flow:too_low": c["flow_low"],
+            "flow:tilted": c["flow_tilted"],
+            "flow:before_start": c["flow_before_start"],
+            "range:out_of_limits": c["range_out_of_limits"],
+            "range:tilt": e.get("range_tilt", 0),
+            "range:outlier": e.get("range_outlier", 0),
+        }
+        return used, {}, dropped
