@@ -421,7 +421,7 @@ def run_fixed_lag(
     engine = resolve_engine(opts)
     if engine == "push":
         if source is None and opts.lagged_output:
-            est = _push_outputs(flight, config, progress)[0]
+            est = _push_output(flight, config, progress, lagged=False)
         else:
             popts = online_prior_options(flight, config)
             est = replay_online(flight, opts, progress=progress, source=source, priors=popts)
@@ -440,42 +440,42 @@ def run_fixed_lag_lagged(
 ) -> Estimate:
     """The push-API smoother's second output, ``fixed-lag@lag``: each keyframe's state as smoothed
     just before it leaves the window (delayed by the lag; ``[graph]`` and ``[online]``)."""
-    lagged = _push_outputs(flight, config, progress)[1]
-    if isinstance(lagged, FgnavError):
-        raise lagged
-    return lagged
+    return _push_output(flight, config, progress, lagged=True)
 
 
-#: The newest push-engine replay: ``(flight, config key, causal estimate, lagged estimate)``.
-#: ``fixed-lag`` and ``fixed-lag@lag`` are the two outputs of one run; when a caller asks for
-#: both on the same flight and config (``fgnav compare``), the second is taken from here and
-#: the entry dropped.
-_LAST_PUSH: tuple | None = None
+#: The output a push-engine replay has not handed out yet: ``(flight, config key, lagged,
+#: estimate or error)``. ``fixed-lag`` and ``fixed-lag@lag`` are the two outputs of one run: when
+#: a caller asks for the other one next, on the same flight and config (``fgnav compare``), it
+#: comes from here and the entry is dropped; any other request replays again.
+_PENDING_PUSH: tuple | None = None
 
 
-def _push_outputs(
-    flight: Flight, config: Mapping[str, Any], progress: bool
-) -> tuple[Estimate, Estimate | FgnavError]:
-    """``(result, lagged_result)`` of one push-engine replay of ``flight`` with ``config`` (the
-    error in place of the lagged estimate when it has none)."""
+def _push_output(flight: Flight, config: Mapping[str, Any], progress: bool, lagged: bool):
+    """The causal (``lagged`` False) or the ``fixed-lag@lag`` estimate of a push-engine replay of
+    ``flight`` with ``config``; the other output is kept for the next call (see above)."""
     import json
 
     from fgnav.solvers.online import replay_smoother
 
-    global _LAST_PUSH
+    global _PENDING_PUSH
     key = json.dumps(config, sort_keys=True, default=repr)
-    last, _LAST_PUSH = _LAST_PUSH, None
-    if last is not None and last[0] is flight and last[1] == key:
-        return last[2], last[3]
-    opts = fixed_lag_options(config)
-    popts = online_prior_options(flight, config)
-    sm = replay_smoother(flight, opts, progress=progress, priors=popts)
-    try:
-        lagged: Estimate | FgnavError = sm.lagged_result()
-    except FgnavError as e:  # e.g. a run shorter than the lag: only fixed-lag@lag fails
-        lagged = e
-    out = sm.result(), lagged
-    _LAST_PUSH = (flight, key, *out)
+    pending, _PENDING_PUSH = _PENDING_PUSH, None
+    if pending is not None and pending[0] is flight and pending[1:3] == (key, lagged):
+        out = pending[3]
+    else:
+        opts = fixed_lag_options(config)
+        popts = online_prior_options(flight, config)
+        sm = replay_smoother(flight, opts, progress=progress, priors=popts)
+        outputs = {}
+        for which, get in ((False, sm.result), (True, sm.lagged_result)):
+            try:
+                outputs[which] = get()
+            except FgnavError as e:  # e.g. a run shorter than the lag: no lagged state
+                outputs[which] = e
+        out = outputs[lagged]
+        _PENDING_PUSH = (flight, key, not lagged, outputs[not lagged])
+    if isinstance(out, FgnavError):
+        raise out
     return out
 
 
