@@ -379,6 +379,11 @@ class CfEkf:
             return None
         return self.S[IP : IP + 3].copy(), self.q.copy(), self.R @ self.S[IU : IU + 3]
 
+    @property
+    def output_t(self) -> float | None:
+        """Time of the newest state of the causal trajectory (None before the first)."""
+        return self._out_t[-1] if self._out_t else None
+
     def latest_output(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
         """The newest state of the causal trajectory, ``(t, S, world_q_body_wxyz, P)`` as
         :meth:`result` reports it (after a prediction step); None before the first."""

@@ -156,6 +156,11 @@ class Seed002Flow:
         """The attitude-and-height EKF's counts (empty before it starts)."""
         return dict(self._ekf.counts) if self._ekf is not None else {}
 
+    @property
+    def output_t(self) -> float | None:
+        """Time of the newest used reading (None before the first)."""
+        return self._out_t[-1] if self._out_t else None
+
     def latest_output(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
         """``(t, world_t_body, world_q_body_wxyz, world_v_body)`` of the newest used reading as
         :meth:`result` reports it: the velocity is the mean over the trailing

@@ -807,6 +807,12 @@ class Ukf003:
         """The main state vector (module docstring layout), None before the start."""
         return self.x[:N_MAIN].copy() if self._started else None
 
+    @property
+    def output_t(self) -> float | None:
+        """Time of the newest state of the causal trajectory (None before the first output)."""
+        t = self._out[0]
+        return t[-1] if t else None
+
     def latest_output(self) -> tuple[float, np.ndarray, np.ndarray] | None:
         """The newest state of the causal trajectory: ``(t, x, P)`` with the main state and its
         covariance (module docstring layout) at time ``t``, as :meth:`result` reports it; None

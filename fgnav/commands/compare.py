@@ -58,11 +58,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-#: ``--config`` tables read by ``fgnav compare`` (one per method's options, see fgnav.methods).
-COMPARE_TABLES = list(METHOD_TABLES)
-"""The ``--config`` tables ``fgnav compare`` reads (:data:`fgnav.methods.METHOD_TABLES`)."""
-
-
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
     """Print the table, skipped and failed methods, and the files written."""
     print(result.table())
@@ -82,7 +77,7 @@ def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> No
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.load import load_flight
 
-    check_tables(args.config, COMPARE_TABLES)
+    check_tables(args.config, list(METHOD_TABLES))
     config = load_method_config(args.config)
     check_method_config(config)
     methods = parse_methods(args.methods)

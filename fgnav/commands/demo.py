@@ -15,11 +15,11 @@ import logging
 import time
 from pathlib import Path
 
-from fgnav.commands.compare import COMPARE_TABLES, parse_methods, print_result
+from fgnav.commands.compare import parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
 from fgnav.config import check_tables, load_config, options_from
 from fgnav.datasets.simulate import SCENARIOS, SimOptions
-from fgnav.methods import check_method_config
+from fgnav.methods import METHOD_TABLES, check_method_config
 
 HELP = "simulate a flight and run the main job on it"
 
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.simulate import simulate_to_folder
 
     out = Path(args.out)
-    check_tables(args.config, ["simulate", *COMPARE_TABLES])
+    check_tables(args.config, ["simulate", *METHOD_TABLES])
     config = load_config(args.config)
     sim_opts = options_from(
         SimOptions,

@@ -174,6 +174,8 @@ class FilterLive:
     A subclass names ``USED_STREAMS`` and supplies :meth:`_feed` (feed the filter, return the time
     of its newest state or None), :meth:`_state` (that state as an ``OnlineState``) and
     :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from the filter's own).
+    A filter's newest output time is its ``output_t`` (cheap: :meth:`_feed` runs per event), the
+    output itself ``latest_output()`` (read at the output rate only).
     """
 
     USED_STREAMS: tuple[str, ...] = ()
@@ -267,6 +269,17 @@ class FilterLive:
         raise NotImplementedError
 
 
+def _slam_range_dropped(c: Any) -> dict[str, int]:
+    """The link's dropped counts from a :class:`~fgnav.baselines._counts.SlamRangeCounts` (the
+    counts the SLAM-and-range filters share)."""
+    return {
+        "slam:gate": c.slam_rejected_gate,
+        "slam:waiting_new_map_scale": c.slam_waiting_reinit,
+        "range:gate": c.range_rejected_gate,
+        "range:tilt": c.range_rejected_tilt,
+    }
+
+
 class MsfLive(FilterLive):
     """:class:`~fgnav.baselines.msf_ekf.MsfEkf` with the push API (:class:`FilterLive`): its state
     at each IMU sample, at ``output_rate_hz`` (default 20 Hz), once the filter has started."""
@@ -312,13 +325,7 @@ class MsfLive(FilterLive):
     def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
         c = self._filter.counts
         used = {"imu": self._imu_used, "slam": c.slam_updates, "range": c.range_updates}
-        dropped = {
-            "slam:gate": c.slam_rejected_gate,
-            "slam:waiting_new_map_scale": c.slam_waiting_reinit,
-            "range:gate": c.range_rejected_gate,
-            "range:tilt": c.range_rejected_tilt,
-            "slam_or_range:older_than_buffer": c.too_old,
-        }
+        dropped = {**_slam_range_dropped(c), "slam_or_range:older_than_buffer": c.too_old}
         return used, {"slam_or_range": c.replayed}, dropped
 
 
@@ -389,8 +396,7 @@ class Ukf003Live(FilterLive):
                 self._held.insert(k, CameraTrigger(float(ev.t), float(ev.t)))
         self._held.append(ev)
         self._release(ev.arrival - self.lag_s)
-        out = self._filter.latest_output()
-        return None if out is None else out[0]
+        return self._filter.output_t
 
     def _release(self, until: float) -> None:
         k = 0
@@ -446,12 +452,9 @@ class Ukf003Live(FilterLive):
             "attitude": c.attitude_updates,
         }
         dropped = {
-            "slam:gate": c.slam_rejected_gate,
-            "slam:waiting_new_map_scale": c.slam_waiting_reinit,
+            **_slam_range_dropped(c),
             "slam:no_clone": c.slam_no_clone,
             "slam:out_of_order": c.slam_out_of_order,
-            "range:gate": c.range_rejected_gate,
-            "range:tilt": c.range_rejected_tilt,
             "range:out_of_limits": c.range_out_of_limits,
             "yaw:gate": c.yaw_rejected_gate,
             "attitude:gate": c.attitude_rejected_gate,
@@ -483,11 +486,10 @@ class CfEkfLive(FilterLive):
 
     def _feed(self, ev: Event) -> float | None:
         self._filter.feed(ev)
-        out = self._filter.latest_output()
-        if out is None:
-            return None
-        self._imu_used += isinstance(ev, ImuSample)
-        return out[0]
+        t = self._filter.output_t
+        if t is not None:
+            self._imu_used += isinstance(ev, ImuSample)
+        return t
 
     def _state(self, t: float) -> OnlineState:
         from fgnav.baselines.cf_ekf import IP, IU, state_covariances
@@ -542,8 +544,7 @@ class Flow002Live(FilterLive):
 
     def _feed(self, ev: Event) -> float | None:
         self._filter.feed(ev)
-        out = self._filter.latest_output()
-        return None if out is None else out[0]
+        return self._filter.output_t
 
     def _state(self, t: float) -> OnlineState:
         _, p, q, v = self._filter.latest_output()
