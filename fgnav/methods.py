@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import inspect
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -212,7 +213,34 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     # flag's value as coming from the command line.
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
     source = str(config.get(SOURCE_KEY, "config"))
-    return options_from(cls, table, source=source, section=section, **flagged, **overrides)
+    options = options_from(cls, table, source=source, section=section, **flagged, **overrides)
+    _self_check(options, f"{source} [{section}]")
+    return options
+
+
+def _self_check(options: Any, where: str) -> None:
+    """Run an options object's own ``validate()`` or ``check()`` (the rules between fields,
+    the choices of a string) now, so that ``fgnav compare`` refuses a bad value before any method
+    runs; the error names the file and table."""
+    from fgnav.config import OptionValueError
+
+    for name in ("validate", "check"):
+        fn = getattr(options, name, None)
+        if not callable(fn):
+            continue
+        required = [
+            p
+            for p in inspect.signature(fn).parameters.values()
+            if p.default is inspect.Parameter.empty
+            and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+        ]
+        if required:
+            continue
+        try:
+            fn()
+        except (FgnavError, ValueError) as e:
+            raise OptionValueError(f"{where}: {e}") from None
+        return
 
 
 #: The options class each filter baseline's table fills (module, class).
