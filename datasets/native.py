@@ -147,11 +147,11 @@ OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma", "rest_bias_removed"})
 FLAG_NOISE_KEYS = frozenset({"rest_bias_removed"})
 
 
-def _flag(v: Any) -> bool:
-    """A calibration flag read from YAML: a boolean (or 0 / 1)."""
-    if isinstance(v, bool) or v in (0, 1):
+def _flag(v: Any, key: str, path: Path) -> bool:
+    """A calibration flag read from YAML: a boolean (or 0 / 1), or an error naming the key."""
+    if isinstance(v, bool) or (isinstance(v, int | float) and v in (0, 1)):
         return bool(v)
-    raise ValueError(f"expected a boolean, got {v!r}")
+    raise FlightFormatError(path, f"{key}: expected a boolean, got {v!r}")
 
 
 def _fmt(x: float) -> str:
@@ -534,7 +534,9 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
         camera=_camera_from_dict(d["camera"], path, "camera"),
         imu_noise=ImuNoise(
             **{
-                k: _flag(v) if k in FLAG_NOISE_KEYS else _number(v, f"imu_noise.{k}", path)
+                k: _flag(v, f"imu_noise.{k}", path)
+                if k in FLAG_NOISE_KEYS
+                else _number(v, f"imu_noise.{k}", path)
                 for k, v in noise.items()
             }
         ),

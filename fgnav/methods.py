@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from fgnav.datasets.errors import FgnavError, FlightFormatError
+from fgnav.datasets.errors import FgnavError, FlightDataError, FlightFormatError
 from fgnav.datasets.types import STREAMS, Flight, Trajectory
 from fgnav.estimate import Estimate
 
@@ -511,7 +511,6 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
     """The ``[priors]`` table as :class:`fgnav.frontends.prior_stages.PriorOptions` for the
     push engine and the live link (None without sources). ``drag_k`` when the table has none:
     the flight's calibration ``flight.meta["drag_k"]`` (never its ground truth)."""
-    from fgnav.datasets.errors import FlightDataError
     from fgnav.frontends.prior_stages import prior_options
 
     table = _priors_table(config)
@@ -532,13 +531,16 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
 
 def _named_priors(config: Mapping[str, Any], make: Callable, table: dict, drag_k: Any) -> Any:
     """``make(table, drag_k=drag_k)`` (the ``[priors]`` options), its error naming the config
-    file and the table."""
+    file (when there is one: ``--priors`` alone has none) and the table once."""
     try:
         return make(table, drag_k=drag_k)
     except FlightFormatError:
         raise
     except FgnavError as e:
-        raise FlightFormatError(str(config.get(SOURCE_KEY, "config")), f"[priors]: {e}") from None
+        msg = str(e) if str(e).startswith("[priors]") else f"[priors]: {e}"
+        if SOURCE_KEY in config:
+            raise FlightFormatError(str(config[SOURCE_KEY]), msg) from None
+        raise FlightDataError(msg) from None
 
 
 def _priors_table(config: Mapping[str, Any]) -> dict[str, Any]:

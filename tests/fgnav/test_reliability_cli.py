@@ -83,6 +83,27 @@ def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table
     assert str(cfg) in err and needle in err
 
 
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_observer_prior_without_a_drag_k_names_priors_once(cli_folder, tmp_path, capsys, command):
+    """``--priors observer`` on a flight without a calibrated drag k: one line naming ``[priors]``
+    once (the push engine's said ``config: [priors]: [priors]: ...`` with no config file), and
+    the config file when the sources come from one."""
+    out = tmp_path / "o"
+    err = _one_line_error(
+        capsys, [command, str(cli_folder), "--out", str(out), "--priors", "observer"]
+    )
+    assert "needs a calibrated drag coefficient" in err
+    assert err.count("[priors]") <= 2 and "[priors]: [priors]" not in err  # the hint names it too
+    assert "config:" not in err
+    cfg = tmp_path / "p.toml"
+    cfg.write_text("[priors]\nsources = ['observer']\n")
+    err = _one_line_error(
+        capsys, [command, str(cli_folder), "--out", str(out), "--config", str(cfg)]
+    )
+    assert "needs a calibrated drag coefficient" in err and "[priors]: [priors]" not in err
+    assert not out.exists()
+
+
 def test_compare_reads_every_filter_table(cli_folder, tmp_path, capsys):
     """Each filter baseline's table is accepted by ``fgnav compare`` (``[ekf-flow002]`` and
     ``[cf-ekf]`` were refused as unknown tables), and a ``[priors]`` source that needs the
