@@ -214,11 +214,13 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
     source = str(config.get(SOURCE_KEY, "config"))
     options = options_from(cls, table, source=source, section=section, **flagged, **overrides)
-    _self_check(options, f"{source} [{section}]")
+    # A file names where the value may come from; without one it came from a flag or a default.
+    where = f"{source} [{section}]" if SOURCE_KEY in config else f"[{section}]"
+    _self_check(options, where, tuple(flagged))
     return options
 
 
-def _self_check(options: Any, where: str) -> None:
+def _self_check(options: Any, where: str, flagged: tuple[str, ...] = ()) -> None:
     """Run an options object's own ``validate()`` or ``check()`` (the rules between fields,
     the choices of a string) now, so that ``fgnav compare`` refuses a bad value before any method
     runs; the error names the file and table."""
@@ -239,7 +241,11 @@ def _self_check(options: Any, where: str) -> None:
         try:
             fn()
         except (FgnavError, ValueError) as e:
-            raise OptionValueError(f"{where}: {e}") from None
+            msg = str(e)
+            # The options' own messages name the field as ``Class.name=value``.
+            if any(f".{name}=" in msg for name in flagged):
+                where = "command line"
+            raise OptionValueError(f"{where}: {msg}") from None
         return
 
 

@@ -26,6 +26,8 @@ def _one_line_error(capsys, argv: list[str]) -> str:
         (["--lag", "-1"], "option lag_s = -1.0: expected > 0"),
         (["--lag", "nan"], "option lag_s = nan: expected a finite number"),
         (["--keyframe-hz", "0"], "option keyframe_hz = 0.0: expected > 0"),
+        # 1e9 ran without end (found by fuzzing the command line).
+        (["--keyframe-hz", "1e9"], "keyframe_hz=1000000000.0: expected > 0 and <= 1000"),
     ],
 )
 def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
