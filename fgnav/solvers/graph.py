@@ -789,7 +789,10 @@ class GraphBuilder:
                 self.options = replace(self.options, use_drag=False)
             elif chk.decision == "noisy":
                 self.drag_sigma = max(self.drag_sigma, chk.residual)
-        log.warning(
+        # A usable accelerometer is the nominal case (INFO); drag off, or on with a raised
+        # noise floor, is said as a warning.
+        log.log(
+            logging.INFO if chk.decision == "usable" else logging.WARNING,
             "%s: %s%s",
             self.flight.name,
             chk.line(),
