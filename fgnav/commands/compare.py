@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fgnav.commands import out_folder
 from fgnav.compare import CompareResult, compare
 from fgnav.config import check_tables
 from fgnav.coverage import compare_lines
@@ -51,7 +52,9 @@ def parse_methods(text: str | None) -> list[str] | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
-    parser.add_argument("--out", required=True, help="output folder (report.md, compare.json)")
+    parser.add_argument(
+        "--out", type=out_folder, required=True, help="output folder (report.md, compare.json)"
+    )
     parser.add_argument(
         "--methods",
         default=None,

@@ -15,6 +15,7 @@ import logging
 import time
 from pathlib import Path
 
+from fgnav.commands import out_folder
 from fgnav.commands.compare import parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
 from fgnav.config import check_tables, load_config, options_from
@@ -30,7 +31,9 @@ SMOOTHERS = ("batch", "fixed-lag")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    parser.add_argument(
+        "--out", type=out_folder, default="out/demo", help="output folder (default out/demo)"
+    )
     parser.add_argument("--scenario", default="two-turns", choices=SCENARIOS, help="flight plan")
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
     parser.add_argument("--duration", type=float, default=None, help="flight length [s]")

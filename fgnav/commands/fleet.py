@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 
+from fgnav.commands import out_folder
 from fgnav.config import check_tables
 from fgnav.methods import METHOD_TABLES, check_method_config, load_method_config
 
@@ -29,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="INPUT",
         help="flight (log, manifest, flight folder), folder to scan, or quoted glob pattern",
     )
-    parser.add_argument("--out", required=True, help="output folder (the table, per-flight runs)")
+    parser.add_argument(
+        "--out", type=out_folder, required=True, help="output folder (the table, per-flight runs)"
+    )
     parser.add_argument(
         "--methods",
         default="batch",

@@ -24,6 +24,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from fgnav.commands import out_folder
+
 HELP = "run the online estimator on a live MAVLink link (udpin:HOST:PORT)"
 
 
@@ -33,7 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--calib", required=True, help="calibration file (a flight's calib.yaml)")
     parser.add_argument(
-        "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
+        "--out",
+        type=out_folder,
+        required=True,
+        help="output folder (estimate.tum, states.csv, summary.json)",
     )
     parser.add_argument(
         "--config",

@@ -11,6 +11,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from fgnav.commands import out_folder
 from fgnav.config import load_config, options_from
 from fgnav.datasets.errors import FlightFormatError
 from fgnav.datasets.simulate import SCENARIOS, SimOptions, simulate_to_folder
@@ -22,7 +23,7 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, choices=SCENARIOS, help="flight plan")
-    parser.add_argument("--out", required=True, help="flight folder to write")
+    parser.add_argument("--out", type=out_folder, required=True, help="flight folder to write")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw")
     parser.add_argument("--duration", type=float, default=None, help="flight length [s]")
     parser.add_argument(

@@ -212,3 +212,17 @@ def test_online_scores_a_flight_with_a_slam_reset(tmp_path, capsys):
     assert set(m["scale_final_err_pct"]) == {"0", "1"}
     assert set(m["scale_mean_abs_err_pct"]) == {"0", "1"}
     assert all(abs(v) < 5.0 for v in m["scale_final_err_pct"].values())
+
+
+@pytest.mark.parametrize("command", ["batch", "online", "compare", "simulate"])
+def test_empty_out_is_refused(cli_folder, tmp_path, capsys, monkeypatch, command):
+    """``--out ""`` (an unset shell variable) wrote the outputs into the current folder."""
+    monkeypatch.chdir(tmp_path)
+    argv = [command, "--out", ""] + (
+        ["--scenario", "hover"] if command == "simulate" else [str(cli_folder)]
+    )
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert "argument --out: empty path" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
