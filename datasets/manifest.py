@@ -73,7 +73,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -248,6 +248,18 @@ def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
     return p
 
 
+class _LogRef(NamedTuple):
+    """One manifest table's view of a whole log: its format, file, table name, the stream it
+    takes, the bag topic and (Crazyflie) whether the CRC must match."""
+
+    fmt: str
+    path: Path
+    table: str
+    stream: str
+    topic: str | None = None
+    check_crc: bool = True
+
+
 class _LogCache:
     """Whole-log readers (ULog, ROS bags) return a Flight; each is read once per manifest and the
     table's stream taken from it. Their notes are added once, prefixed with the table."""
@@ -256,43 +268,28 @@ class _LogCache:
         self.manifest = manifest
         self.flights: dict[tuple[str, str, str, bool], Flight] = {}
 
-    def get(
-        self,
-        fmt: str,
-        path: Path,
-        table: str,
-        stream: str,
-        topic: str | None,
-        notes: list[str],
-        check_crc: bool = True,
-    ) -> Flight:
-        key = (fmt, str(path), topic or "", check_crc)
+    def get(self, ref: _LogRef, notes: list[str]) -> Flight:
+        key = (ref.fmt, str(ref.path), ref.topic or "", ref.check_crc)
         if key not in self.flights:
-            if fmt == "ulog":
+            path = ref.path
+            if ref.fmt == "ulog":
                 flight = lazy_reader("ulog", "read_ulog", path)(path)
-            elif fmt == "crazyflie":
-                flight = lazy_reader("crazyflie", "read_crazyflie", path)(path, check_crc)
+            elif ref.fmt == "crazyflie":
+                flight = lazy_reader("crazyflie", "read_crazyflie", path)(path, ref.check_crc)
             else:
-                flight = lazy_reader("rosbag", "read_bag", path)(path, topics={stream: topic})
+                topics = {ref.stream: ref.topic}
+                flight = lazy_reader("rosbag", "read_bag", path)(path, topics=topics)
             self.flights[key] = flight
             log_notes = flight.meta.get("notes")
             if isinstance(log_notes, list | tuple):
-                notes += [f"[{table}] {n}" for n in log_notes]
+                notes += [f"[{ref.table}] {n}" for n in log_notes]
             elif isinstance(log_notes, dict):
-                notes += [f"[{table}] {k}: {v}" for k, v in log_notes.items()]
+                notes += [f"[{ref.table}] {k}: {v}" for k, v in log_notes.items()]
         return self.flights[key]
 
-    def stream(
-        self,
-        fmt: str,
-        path: Path,
-        table: str,
-        stream: str,
-        topic: str | None,
-        notes: list[str],
-        check_crc: bool = True,
-    ) -> Any:
-        flight = self.get(fmt, path, table, stream, topic, notes, check_crc)
+    def stream(self, ref: _LogRef, notes: list[str]) -> Any:
+        flight = self.get(ref, notes)
+        table, path, stream = ref.table, ref.path, ref.stream
         streams = flight.streams()
         if stream not in streams:
             raise FlightFormatError(
@@ -363,7 +360,7 @@ def read_manifest(path: str | Path) -> Flight:
             calib = read_orbslam3_yaml(p, notes=notes)
         elif fmt in ("ulog", "crazyflie"):
             crc = _check_crc(manifest, "calib", doc["calib"])
-            calib = logs.get(fmt, p, "calib", "calib", None, notes, crc).calib
+            calib = logs.get(_LogRef(fmt, p, "calib", "calib", None, crc), notes).calib
         else:
             calib = read_calib_yaml(p)
         sources["calib"] = {"format": fmt, "path": str(p)}
@@ -389,15 +386,15 @@ def read_manifest(path: str | Path) -> Flight:
         p = _resolve(manifest, root, table, spec["path"])
         if fmt in LOG_FORMATS:
             default = f"ref:{table.split('.', 1)[1]}" if kind == "references" else kind
-            series = logs.stream(
+            ref = _LogRef(
                 fmt,
                 p,
                 table,
                 spec.get("stream", default),
                 spec.get("topic"),
-                notes,
                 _check_crc(manifest, table, spec),
             )
+            series = logs.stream(ref, notes)
         else:
             series = _read_stream(kind, fmt, p, spec, calib, notes)
         offset = float(spec.get("time_offset_s", 0.0))
