@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from fgnav.commands import out_folder
+from fgnav.commands import add_out_argument
 from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
@@ -35,12 +35,7 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
-    parser.add_argument(
-        "--out",
-        type=out_folder,
-        required=True,
-        help="output folder (estimate.tum, states.csv, summary.json)",
-    )
+    add_out_argument(parser)
     parser.add_argument(
         "--config", default=None, help="TOML file with [graph], [lm], [batch] and [priors] tables"
     )

@@ -24,7 +24,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from fgnav.commands import out_folder
+from fgnav.commands import add_out_argument
 
 HELP = "run the online estimator on a live MAVLink link (udpin:HOST:PORT)"
 
@@ -34,12 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mavlink", required=True, help="udpin:HOST:PORT to listen on (e.g. udpin:127.0.0.1:14550)"
     )
     parser.add_argument("--calib", required=True, help="calibration file (a flight's calib.yaml)")
-    parser.add_argument(
-        "--out",
-        type=out_folder,
-        required=True,
-        help="output folder (estimate.tum, states.csv, summary.json)",
-    )
+    add_out_argument(parser)
     parser.add_argument(
         "--config",
         default=None,
