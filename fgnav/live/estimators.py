@@ -14,15 +14,16 @@ A factory ``make(calib, config) -> estimator`` builds one from the calibration a
 * ``online``: the push-API fixed-lag smoother (``[graph]``, ``[online]`` and ``[priors]``
   tables: the front-ends that supply priors run inside it on the link's events), imported
   when called;
-* ``msf-ekf``, ``ukf003``, ``cf-ekf``, ``ekf-flow002``: the event-fed filter baselines
-  (``[msf-ekf]``, ``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]``: the options classes
-  ``fgnav.methods`` fills for them) behind :class:`FilterLive` adapters (:class:`MsfLive`,
-  :class:`Ukf003Live`, :class:`CfEkfLive`, :class:`Flow002Live`), which give them the same
-  shape: their newest state as an ``OnlineState`` at an output rate on the IMU's clock.
+* ``msf-ekf``, ``ekf004``, ``ukf003``, ``cf-ekf``, ``ekf-flow002``: the event-fed filter
+  baselines (``[msf-ekf]``, ``[ekf004]``, ``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]``: the
+  options classes ``fgnav.methods`` fills for them) behind :class:`FilterLive` adapters
+  (:class:`MsfLive`, :class:`Ekf004Live`, :class:`Ukf003Live`, :class:`CfEkfLive`,
+  :class:`Flow002Live`), which give them the same shape: their newest state as an
+  ``OnlineState`` at an output rate on the IMU's clock.
 
-Not here: ``ekf004`` (seed 004's EKF): ``Ekf004Runner`` is built from a ``Flight`` and chooses
-its attitude source, scale source and start condition from the streams that flight has; a live
-link learns which streams come only as messages arrive.
+Not here: ``ii-observer`` (no covariance, a calibrated drag coefficient; its
+:class:`~fgnav.baselines.seed000.Seed000` is event-fed) and ``ekf-vo002`` (images: not on the
+link).
 """
 
 from __future__ import annotations
@@ -90,6 +91,15 @@ def msf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
     return MsfLive(calib, _options(MsfOptions, config, "msf-ekf"))
 
 
+def ekf004(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
+    """Seed 004's EKF with the push API (:class:`Ekf004Live`), ``[ekf004]`` table (``drag_k``
+    from it, else the default: a live link has no flight metadata)."""
+    from fgnav.baselines.ekf004 import Ekf004Options
+    from fgnav.methods import _options
+
+    return Ekf004Live(calib, _options(Ekf004Options, config, "ekf004"))
+
+
 def ukf003(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
     """Seed 003's UKF with the push API (:class:`Ukf003Live`), ``[ukf003]`` table."""
     from fgnav.baselines.ukf003 import Ukf003Options
@@ -118,6 +128,7 @@ def ekf_flow002(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
 ESTIMATORS: dict[str, EstimatorFactory] = {
     "online": online_smoother,
     "msf-ekf": msf_ekf,
+    "ekf004": ekf004,
     "ukf003": ukf003,
     "cf-ekf": cf_ekf,
     "ekf-flow002": ekf_flow002,
@@ -129,6 +140,7 @@ DEFAULT_ESTIMATOR = "online"
 CONFIG_TABLES = {
     "online": ["graph", "online", "priors"],
     "msf-ekf": ["msf-ekf"],
+    "ekf004": ["ekf004"],
     "ukf003": ["ukf003"],
     "cf-ekf": ["cf-ekf"],
     "ekf-flow002": ["ekf-flow002"],
@@ -327,6 +339,116 @@ class MsfLive(FilterLive):
         used = {"imu": self._imu_used, "slam": c.slam_updates, "range": c.range_updates}
         dropped = {**_slam_range_dropped(c), "slam_or_range:older_than_buffer": c.too_old}
         return used, {"slam_or_range": c.replayed}, dropped
+
+
+EKF004_RATE_HZ = 100.0
+""":class:`Ekf004Live`'s output rate [Hz] (a state per attitude sample of a 100 Hz AHRS)."""
+
+#: The link's stream of each measurement kind of :class:`~fgnav.baselines.ekf004.Ekf004Counts`
+#: (longest prefix first), and the link's names of two skip reasons.
+_EKF004_STREAMS = (
+    ("vertical_speed", "range"),
+    ("yaw_rate", "imu"),
+    ("attitude", "attitude"),
+    ("gyro", "imu"),
+    ("imu", "imu"),
+    ("yaw", "yaw"),
+    ("range", "range"),
+    ("slam", "slam"),
+    ("scale", "slam"),
+)
+_EKF004_SKIPS = {"range": "range:unusable", "vertical_speed": "range:vertical_speed_gap"}
+
+
+def _ekf004_key(kind: str, table: str) -> str:
+    """``"stream:reason"`` of a gated or skipped ``Ekf004Counts`` key."""
+    if table == "skipped" and kind in _EKF004_SKIPS:
+        return _EKF004_SKIPS[kind]
+    prefix, stream = next(((p, s) for p, s in _EKF004_STREAMS if kind.startswith(p)), (kind, kind))
+    if table == "gated":
+        return f"{stream}:gate" if kind == stream else f"{stream}:{kind}_gate"
+    rest = kind[len(prefix) :].lstrip("_") if prefix == stream else kind
+    return f"{stream}:{rest or kind}"
+
+
+class Ekf004Live(FilterLive):
+    """:class:`~fgnav.baselines.ekf004.Ekf004Runner` (seed 004's EKF with delay compensation)
+    with the push API (:class:`FilterLive`).
+
+    The runner holds the first ``fgnav.baselines.ekf004.SOURCES_WINDOW_S`` of events and decides
+    from them its ``"auto"`` attitude source (``ATTITUDE_QUATERNION`` among them: the stream,
+    else the attitude estimated from the IMU) and scale source (``ml`` with the stream, else
+    ``imu_fit``), and which of yaw and range its start waits for; ``[ekf004]
+    attitude_source`` / ``scale_source`` set them. Its states are the causal trajectory (the state
+    at each attitude sample, before later corrections; from the first scale fit on with
+    ``imu_fit``), at ``rate_hz``; the pose covariance maps the Euler-angle errors to the body
+    rotation (:meth:`~fgnav.baselines.ekf004.Ekf004.pose_cov`); no IMU biases (zero); the drag
+    coefficient is the fixed ``drag_k``; the SLAM scale that of the newest pose's session. It
+    runs in the link's FLU body (no internal thrust body as :func:`run_ekf004` for an x-up IMU).
+    A SLAM pose older than the filter counts as late (it is rolled back and replayed);
+    attitude samples are ``attitude:not_used`` when the attitude comes from the IMU.
+    """
+
+    USED_STREAMS = ("imu", "attitude", "yaw", "range", "slam")
+
+    def __init__(
+        self,
+        calib: Calibration,
+        options=None,
+        name: str = "live",
+        rate_hz: float = EKF004_RATE_HZ,
+    ) -> None:
+        from fgnav.baselines.ekf004 import Ekf004Options, Ekf004Runner
+
+        self.options = options or Ekf004Options()
+        super().__init__(calib, Ekf004Runner(options=self.options), rate_hz, name)
+        self._late: Counter[str] = Counter()
+        self._session: int | None = None
+
+    def _feed(self, ev: Event) -> float | None:
+        f = self._filter
+        if isinstance(ev, SlamPose):
+            self._session = int(ev.session)
+            if f.latest() is not None and ev.t < f.ekf.t:
+                self._late["slam"] += 1
+        f.feed(ev)
+        return f.output_t
+
+    def _state(self, t: float) -> OnlineState:
+        from fgnav.baselines.ekf004 import IP, IR, IV, IY, state_covariances
+        from fgnav.datasets.geometry import rpy_to_matrix
+
+        _, x, P = self._filter.latest_output()
+        pose_cov, vel_cov = state_covariances(x, P)
+        sess = self._filter.sessions.get(self._session)
+        scale = {} if sess is None or sess.scale is None else {self._session: float(sess.scale)}
+        return self._online_state(
+            t,
+            make_pose(rpy_to_matrix(*x[IR : IY + 1]), x[IP : IP + 3]),
+            x[IV : IV + 3],
+            pose_cov,
+            vel_cov,
+            slam_scale=scale,
+            drag_k=np.array(self.options.drag_k, float),
+        )
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        f = self._filter
+        c = f.counts
+        used = {
+            "imu": f.imu_used,
+            "attitude": c.used.get("attitude", 0) if f.attitude_source == "stream" else 0,
+            "yaw": c.used.get("yaw", 0),
+            "range": c.used.get("vertical_speed", 0),
+            "slam": c.used.get("slam", 0) + c.used.get("slam_reset", 0),
+        }
+        dropped: Counter[str] = Counter()
+        for table in ("gated", "skipped"):
+            for kind, n in getattr(c, table).items():
+                dropped[_ekf004_key(kind, table)] += n
+        if f.attitude_source == "imu":
+            dropped["attitude:not_used"] += self._received["attitude"]
+        return used, dict(self._late), dict(dropped)
 
 
 UKF003_LAG_S = 0.2
