@@ -25,7 +25,7 @@ from fgnav.methods import METHODS
 #: ukf003 on two-turns seed 1 (20 s) 0.126 m (the method's own trajectory: 0.125 m; it starts at
 #: 6.1 s, after the closed-form scale fit, and its scale is still settling in 20 s; on the full
 #: 28 s flight 0.083 m); cf-ekf on flowdeck seed 0 (20 s, Crazyflie-like) 0.104 m; ekf-flow002
-#: there 0.067 m; ekf004 on two-turns seed 1 (20 s, 2026-12-08) 0.037 m (the method's own
+#: there 0.067 m; ekf004 on two-turns seed 1 (20 s, 2026-12-07) 0.037 m (the method's own
 #: trajectory: 0.037 m). Bounds with about 1.4x margin.
 ATE_BOUND_M = {"ukf003": 0.18, "cf-ekf": 0.15, "ekf-flow002": 0.10, "ekf004": 0.052}
 

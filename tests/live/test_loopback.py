@@ -500,7 +500,7 @@ def test_cf_ekf_behind_the_link_in_process():
 
 
 #: Seed 004's EKF through the link on two-turns seed 1 (12 s at 4x, in process): ATE of the
-#: ODOMETRY recorded by the autopilot 0.0245 m, measured 2026-12-08 (fed the same streams
+#: ODOMETRY recorded by the autopilot 0.0245 m, measured 2026-12-07 (fed the same streams
 #: directly 0.0246 m). About 1.4x margin.
 EKF004_LINK_ATE_CAP_M = 0.035
 
