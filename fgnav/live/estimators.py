@@ -28,6 +28,7 @@ link).
 
 from __future__ import annotations
 
+import importlib
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
@@ -183,20 +184,36 @@ class FilterLive:
     ``info["live_counts"]``. A filter keeps its vehicle state across SLAM map resets, so
     ``reset_counter`` stays 0.
 
-    A subclass names ``USED_STREAMS`` and supplies :meth:`_feed` (feed the filter, return the time
-    of its newest state or None), :meth:`_state` (that state as an ``OnlineState``) and
-    :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from the filter's own).
-    A filter's newest output time is its ``output_t`` (cheap: :meth:`_feed` runs per event), the
-    output itself ``latest_output()`` (read at the output rate only).
+    A subclass names ``USED_STREAMS`` and its ``FILTER`` (built from ``options``, default the
+    filter's options class, and started with ``calib``; the output rate ``rate_hz``, default
+    ``RATE_HZ`` or else the options' ``output_rate_hz``) and supplies :meth:`_feed` (feed the
+    filter, return the time of its newest state or None), :meth:`_state` (that state as an
+    ``OnlineState``) and :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from
+    the filter's own). A filter's newest output time is its ``output_t`` (cheap: :meth:`_feed`
+    runs per event), the output itself ``latest_output()`` (read at the output rate only).
     """
 
     USED_STREAMS: tuple[str, ...] = ()
+    FILTER: tuple[str, str, str] = ("", "", "")
+    """The filter: its module, class and options class."""
+    RATE_HZ: float | None = None
+    """Default output rate [Hz]; None: the options' ``output_rate_hz``."""
 
-    def __init__(self, calib: Calibration, filt: Any, output_rate_hz: float, name: str) -> None:
+    def __init__(
+        self,
+        calib: Calibration,
+        options: Any = None,
+        name: str = "live",
+        rate_hz: float | None = None,
+    ) -> None:
+        module_name, filter_name, options_name = self.FILTER
+        module = importlib.import_module(module_name)
+        self.options = options or getattr(module, options_name)()
         self._calib = calib
-        self._filter = filt
+        self._filter = getattr(module, filter_name)(options=self.options)
         self._filter.start(calib, name)
-        self._dt_out = 1.0 / output_rate_hz
+        rate = rate_hz or self.RATE_HZ or self.options.output_rate_hz
+        self._dt_out = 1.0 / rate
         self._next_out: float | None = None
         self._received: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
@@ -297,12 +314,10 @@ class MsfLive(FilterLive):
     at each IMU sample, at ``output_rate_hz`` (default 20 Hz), once the filter has started."""
 
     USED_STREAMS = ("imu", "attitude", "slam", "range")
+    FILTER = ("fgnav.baselines.msf_ekf", "MsfEkf", "MsfOptions")
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
-        from fgnav.baselines.msf_ekf import MsfEkf, MsfOptions
-
-        self.options = options or MsfOptions()
-        super().__init__(calib, MsfEkf(self.options), self.options.output_rate_hz, name)
+        super().__init__(calib, options, name)
         self._imu_used = 0
         self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
 
@@ -390,18 +405,13 @@ class Ekf004Live(FilterLive):
     """
 
     USED_STREAMS = ("imu", "attitude", "yaw", "range", "slam")
+    FILTER = ("fgnav.baselines.ekf004", "Ekf004Runner", "Ekf004Options")
+    RATE_HZ = EKF004_RATE_HZ
 
     def __init__(
-        self,
-        calib: Calibration,
-        options=None,
-        name: str = "live",
-        rate_hz: float = EKF004_RATE_HZ,
+        self, calib: Calibration, options=None, name: str = "live", rate_hz: float | None = None
     ) -> None:
-        from fgnav.baselines.ekf004 import Ekf004Options, Ekf004Runner
-
-        self.options = options or Ekf004Options()
-        super().__init__(calib, Ekf004Runner(options=self.options), rate_hz, name)
+        super().__init__(calib, options, name, rate_hz)
         self._late: Counter[str] = Counter()
         self._session: int | None = None
 
@@ -480,6 +490,7 @@ class Ukf003Live(FilterLive):
     """
 
     USED_STREAMS = ("imu", "attitude", "slam", "range", "yaw")
+    FILTER = ("fgnav.baselines.ukf003", "Ukf003", "Ukf003Options")
 
     def __init__(
         self,
@@ -489,11 +500,8 @@ class Ukf003Live(FilterLive):
         lag_s: float = UKF003_LAG_S,
         rate_hz: float | None = None,
     ) -> None:
-        from fgnav.baselines.ukf003 import Ukf003, Ukf003Options
-
-        o = self.options = options or Ukf003Options()
         self.lag_s = float(lag_s)
-        super().__init__(calib, Ukf003(o), rate_hz or o.output_rate_hz, name)
+        super().__init__(calib, options, name, rate_hz)
         self._imu_used = 0
         self._held: list[Any] = []
         self._released = -math.inf  # arrival time of the newest event fed to the filter
@@ -598,12 +606,10 @@ class CfEkfLive(FilterLive):
     """
 
     USED_STREAMS = ("imu", "flow", "range")
+    FILTER = ("fgnav.baselines.cf_ekf", "CfEkf", "CfEkfOptions")
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
-        from fgnav.baselines.cf_ekf import CfEkf, CfEkfOptions
-
-        self.options = options or CfEkfOptions()
-        super().__init__(calib, CfEkf(self.options), self.options.output_rate_hz, name)
+        super().__init__(calib, options, name)
         self._imu_used = 0
 
     def _feed(self, ev: Event) -> float | None:
@@ -651,18 +657,8 @@ class Flow002Live(FilterLive):
     """
 
     USED_STREAMS = ("imu", "yaw", "range", "flow")
-
-    def __init__(
-        self,
-        calib: Calibration,
-        options=None,
-        name: str = "live",
-        rate_hz: float = EKF_FLOW002_RATE_HZ,
-    ) -> None:
-        from fgnav.baselines.seed002_flow import Seed002Flow, Seed002FlowOptions
-
-        self.options = options or Seed002FlowOptions()
-        super().__init__(calib, Seed002Flow(self.options), rate_hz, name)
+    FILTER = ("fgnav.baselines.seed002_flow", "Seed002Flow", "Seed002FlowOptions")
+    RATE_HZ = EKF_FLOW002_RATE_HZ
 
     def _feed(self, ev: Event) -> float | None:
         self._filter.feed(ev)
