@@ -102,7 +102,8 @@ def check_flight(flight: Flight, options: Seed000Options | None = None) -> None:
 
 class Seed000:
     """The I&I observer baseline, event-fed (module docstring): :meth:`start`, :meth:`feed` in
-    arrival order, :meth:`latest_output`, :meth:`close` at the end of the input, :meth:`result`.
+    arrival order, :meth:`latest` / :meth:`latest_output`, :meth:`close` at the end of the input,
+    :meth:`result`.
 
     Args:
         options: the baseline's options; ``drag_k`` (or ``observer.drag_k``) is needed by
@@ -145,6 +146,10 @@ class Seed000:
         """The end of the input: the IMU sample still held (waiting for the next one) is
         processed."""
         self.stage.flush()
+
+    def latest(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The newest output (:meth:`latest_output`: this baseline's state is its output)."""
+        return self.latest_output()
 
     @property
     def output_t(self) -> float | None:

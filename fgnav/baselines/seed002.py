@@ -107,8 +107,8 @@ def check_flight(flight: Flight) -> None:
 
 class Seed002Vo:
     """The attitude-and-height EKF plus homography VO dead reckoning (module docstring),
-    event-fed: :meth:`start`, :meth:`feed` in arrival order, :meth:`latest_output`,
-    :meth:`close` at the end of the input, :meth:`result`."""
+    event-fed: :meth:`start`, :meth:`feed` in arrival order, :meth:`latest` /
+    :meth:`latest_output`, :meth:`close` at the end of the input, :meth:`result`."""
 
     def __init__(self, options: Seed002Options | None = None) -> None:
         self.opt = options or Seed002Options()
@@ -157,6 +157,10 @@ class Seed002Vo:
         if self._vo is not None:
             self._vo.flush()
             self._took()
+
+    def latest(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The newest output (:meth:`latest_output`: this baseline's state is its output)."""
+        return self.latest_output()
 
     @property
     def output_t(self) -> float | None:

@@ -125,6 +125,7 @@ def test_event_fed_observer_is_the_whole_flight_run_and_causal(circle):
     np.testing.assert_array_equal(est.trajectory.world_t_body, full.trajectory.world_t_body)
     np.testing.assert_array_equal(est.trajectory.world_v_body, full.trajectory.world_v_body)
     t, p, q, v = seen
+    assert obs.latest()[0] == obs.output_t == est.trajectory.t[-1]
     assert T - 0.02 < t <= T
     i = int(np.flatnonzero(full.trajectory.t == t)[0])
     np.testing.assert_array_equal(p, full.trajectory.world_t_body[i])

@@ -71,6 +71,7 @@ def test_event_fed_run_is_the_whole_flight_run_and_causal(flight):
         np.testing.assert_array_equal(getattr(est.trajectory, k), getattr(full.trajectory, k))
     assert est.info["vo_counts"] == full.info["vo_counts"]
     t, p, q, v = seen
+    assert vo.latest()[0] == vo.output_t == est.trajectory.t[-1]
     i = int(np.flatnonzero(full.trajectory.t == t)[0])
     assert T - 0.1 < t <= T and i > 0
     np.testing.assert_array_equal(p, full.trajectory.world_t_body[i])
