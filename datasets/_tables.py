@@ -180,6 +180,10 @@ class NsTimes:
     example: tuple[int, str] | None
 
 
+NS_INT64_MAX = 2**63 - 1
+"""Largest time stamp [ns] the readers take (numpy's int64)."""
+
+
 def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
     """Column j as integer nanoseconds: exact for plain integers (``1403636579763555584`` or
     ``1403636579763555584.000``); decimal and scientific notation are read exactly with
@@ -211,6 +215,10 @@ def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
         if resolution > worst:
             worst, example = resolution, (raw.lines[k], tok)
         ns.append(int(d.to_integral_value()))
+    # The first stamp beyond the signed 64-bit range (about 292 years in ns) is named.
+    for k, v in enumerate(ns):
+        if not -NS_INT64_MAX <= v <= NS_INT64_MAX:
+            raise cell_error(raw, k, j, f"time stamp {raw.rows[k][j]!r} ns out of range")
     return NsTimes(ns, worst, example)
 
 

@@ -289,6 +289,10 @@ class CrazyflieLog:
             the header has an entry (empty when it has no records).
         n_records: number of records in the file.
         header_bytes: size of the header (offset of the first record).
+        damage: None for an intact file; for a damaged one decoded with ``check_crc=False``,
+            what was found and what was left: ``crc`` (the mismatch), ``stopped_at_byte``,
+            ``reason`` (why decoding stopped there, or None when it reached the end) and
+            ``bytes_dropped``.
     """
 
     path: Path
@@ -297,6 +301,7 @@ class CrazyflieLog:
     records: dict[str, np.ndarray]
     n_records: int
     header_bytes: int
+    damage: dict[str, Any] | None = None
 
     @property
     def seconds_per_stamp(self) -> float:
@@ -430,6 +435,12 @@ def parse_header(
     return version, types, off
 
 
+SALVAGE_HINT = (
+    "; `check_crc = false` in a manifest's table of this log reads the records before the damage"
+)
+"""Appended to a CRC mismatch: how to salvage the file (:func:`decode_crazyflie_log`)."""
+
+
 def _crc_problem(data: bytes) -> str | None:
     stored = struct.unpack_from("<I", data, len(data) - CRC_BYTES)[0]
     computed = zlib.crc32(memoryview(data)[: len(data) - CRC_BYTES])
@@ -442,39 +453,51 @@ def _crc_problem(data: bytes) -> str | None:
 
 
 def _record_starts(
-    data: bytes, version: int, types: dict[int, EventType], first: int, path: Path
+    data: bytes,
+    version: int,
+    types: dict[int, EventType],
+    first: int,
+    path: Path,
+    end: int | None = None,
+    stop: list[Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets and ids of every record (one pass over the ids; each id has a fixed size)."""
+    """Offsets and ids of every record (one pass over the ids; each id has a fixed size) up to
+    byte ``end`` (default: the CRC). A record that cannot be read (unknown id, cut off) is an
+    error, or, with a ``stop`` list, ends the pass: ``[offset, reason]`` are put in ``stop``."""
     head = 2 + np.dtype(STAMP_DTYPES[version][0]).itemsize
     size = [0] * 65536
     for e in types.values():
         size[e.id] = head + e.payload_dtype().itemsize
-    end = len(data) - CRC_BYTES
+    end = len(data) - CRC_BYTES if end is None else end
     starts: list[int] = []
     ids: list[int] = []
     add_start, add_id = starts.append, ids.append
     off = first
     while off < end:
+        problem = None
         if off + 2 > end:
-            raise FlightFormatError(
-                path,
+            problem = (
                 f"truncated record {len(starts)} at byte {off}: 1 byte left before the CRC, "
-                "a record needs at least its 2-byte event id",
+                "a record needs at least its 2-byte event id"
             )
-        eid = data[off] | (data[off + 1] << 8)
-        n = size[eid]
-        if n == 0:
-            raise FlightFormatError(
-                path,
-                f"unknown event id {eid} in record {len(starts)} at byte {off}; the header "
-                f"defines ids {sorted(types)}",
-            )
-        if off + n > end:
-            raise FlightFormatError(
-                path,
-                f"truncated record {len(starts)} at byte {off}: event "
-                f"{types[eid].name!r} needs {n} bytes, {end - off} left before the CRC",
-            )
+        else:
+            eid = data[off] | (data[off + 1] << 8)
+            n = size[eid]
+            if n == 0:
+                problem = (
+                    f"unknown event id {eid} in record {len(starts)} at byte {off}; the header "
+                    f"defines ids {sorted(types)}"
+                )
+            elif off + n > end:
+                problem = (
+                    f"truncated record {len(starts)} at byte {off}: event "
+                    f"{types[eid].name!r} needs {n} bytes, {end - off} left before the CRC"
+                )
+        if problem is not None:
+            if stop is None:
+                raise FlightFormatError(path, problem)
+            stop[:] = [off, problem]
+            break
         add_start(off)
         add_id(eid)
         off += n
@@ -486,8 +509,12 @@ def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieL
 
     Args:
         path: the log file.
-        check_crc: verify the trailing CRC-32 (a mismatch is an error); ``False`` decodes a
-            damaged file as far as its records go (a cut-off last record is still an error).
+        check_crc: verify the trailing CRC-32 (a mismatch is an error). ``False`` salvages a
+            damaged file: when the CRC does not match (a bit flipped, or a log cut off by a
+            power loss, which writes no CRC), every byte after the header may be a record and
+            decoding stops at the first record that cannot be read (an unknown event id, or
+            one cut off); what was found and dropped is in ``CrazyflieLog.damage``. Records
+            before that point are taken as they are: the format has no per-record check.
 
     Raises:
         FlightFormatError: one line naming the file and the byte offset / record: bad header,
@@ -498,11 +525,22 @@ def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieL
         raise FlightFormatError(path, "no such file (expected a Crazyflie SD-card log)")
     data = path.read_bytes()
     version, types, first = parse_header(data, path)
-    if check_crc:
-        problem = _crc_problem(data)
-        if problem:
-            raise FlightFormatError(path, problem)
-    starts, ids = _record_starts(data, version, types, first, path)
+    problem = _crc_problem(data)
+    damage = None
+    if problem and check_crc:
+        raise FlightFormatError(path, problem + SALVAGE_HINT)
+    if problem:
+        stop: list[Any] = []
+        starts, ids = _record_starts(data, version, types, first, path, len(data), stop)
+        at = int(stop[0]) if stop else len(data)
+        damage = {
+            "crc": problem,
+            "stopped_at_byte": at,
+            "reason": stop[1] if stop else None,
+            "bytes_dropped": len(data) - at,
+        }
+    else:
+        starts, ids = _record_starts(data, version, types, first, path)
     buf = np.frombuffer(data, dtype=np.uint8)
     stamp_dtype = STAMP_DTYPES[version][0]
     records: dict[str, np.ndarray] = {}
@@ -526,6 +564,7 @@ def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieL
         records=records,
         n_records=int(starts.size),
         header_bytes=first,
+        damage=damage,
     )
 
 
@@ -545,7 +584,8 @@ def check_crazyflie_log(path: str | Path) -> str | None:
         return e.reason
     except OSError as e:
         return f"cannot read ({e})"
-    return _crc_problem(data)
+    problem = _crc_problem(data)
+    return None if problem is None else problem + SALVAGE_HINT
 
 
 def is_crazyflie_log(path: str | Path) -> bool:
@@ -560,10 +600,18 @@ def is_crazyflie_log(path: str | Path) -> bool:
 
 
 def _increasing(t: np.ndarray) -> np.ndarray:
-    """Mask of samples strictly later than every earlier kept sample."""
+    """Mask of samples strictly later than every earlier kept sample. A lone stamp that jumps
+    ahead of both neighbours while they are in order (a flipped bit in a damaged log) is left
+    out first: kept, it would hide every later sample (a salvaged traj1 with one flipped bit
+    lost 23 s of IMU to it)."""
     keep = np.ones(t.shape, dtype=bool)
+    if t.size >= 3:
+        keep[1:-1] = ~((t[1:-1] > t[2:]) & (t[:-2] < t[2:]))
+    if t.size >= 2:
+        keep[0] = t[0] <= t[1] or (t.size >= 3 and t[0] < t[2])
     if t.size:
-        keep[1:] = t[1:] > np.maximum.accumulate(t)[:-1]
+        tk = np.where(keep, t, -np.inf)
+        keep[1:] &= t[1:] > np.maximum.accumulate(tk)[:-1]
     return keep
 
 
@@ -833,6 +881,17 @@ def read_crazyflie(path: str | Path, check_crc: bool = True) -> Flight:
         + ")",
         "notes": [],
     }
+    if cf.damage is not None:
+        d = cf.damage
+        meta["damage"] = dict(d)
+        msg = (
+            f"damaged log salvaged ({d['crc']}): {cf.n_records} records read, "
+            f"{d['bytes_dropped']} bytes from byte {d['stopped_at_byte']} dropped"
+            + (f" ({d['reason']})" if d["reason"] else "")
+            + "; the records read have no check of their own"
+        )
+        meta["notes"].append(msg)
+        log.warning("%s: %s", cf.path, msg)
     for name in IMU_EVENTS:
         if counts.get(name, 0) == 0:
             raise FlightFormatError(

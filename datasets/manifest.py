@@ -49,7 +49,8 @@ stream's times to put it on the flight's clock; recorded in ``calib.time_offsets
 format: ``session`` (``tum_slam``: map id of its poses), ``time_unit`` (``tum``, ``tum_slam``:
 ``"auto"``, ``"s"``, ``"ns"``), ``stream`` (``ulog``: which stream of the log's flight to take,
 default the table's name, ``ref:<name>`` for ``[references.<name>]``, e.g. ``"ref:px4_ekf2"``;
-``crazyflie`` takes the same key, e.g. ``[references.vicon] stream = "ground_truth"``) and
+``crazyflie`` takes the same key, e.g. ``[references.vicon] stream = "ground_truth"``, and
+``check_crc``: ``false`` salvages a damaged log, see :func:`.crazyflie.decode_crazyflie_log`) and
 ``topic`` (``rosbag``, required: the topic of this stream); ``[slam]`` also takes
 ``slam_rotation`` (``"auto"``, ``"as-is"``, ``"inverse"``) and ``slam_time_offset`` (``"report"``,
 ``"apply"`` or seconds): this file's SLAM-vs-gyro options (:mod:`.slam_gyro`), which win over a
@@ -121,7 +122,7 @@ _FORMAT_KEYS: dict[str, tuple[str, ...]] = {
     "tum": ("time_unit",),
     "tum_slam": ("time_unit", "session"),
     "ulog": ("stream",),
-    "crazyflie": ("stream",),
+    "crazyflie": ("stream", "check_crc"),
     "rosbag": ("topic",),
 }
 LOG_FORMATS = ("ulog", "crazyflie", "rosbag")
@@ -141,6 +142,8 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
         valid = ("format", "path", "imu_noise")
         if fmt in ("ulog", "crazyflie"):
             valid += ("stream",)
+        if fmt == "crazyflie":
+            valid += ("check_crc",)
     else:
         valid = _COMMON_KEYS + _FORMAT_KEYS.get(fmt, ())
         if table == "slam":
@@ -251,17 +254,24 @@ class _LogCache:
 
     def __init__(self, manifest: Path) -> None:
         self.manifest = manifest
-        self.flights: dict[tuple[str, str, str], Flight] = {}
+        self.flights: dict[tuple[str, str, str, bool], Flight] = {}
 
     def get(
-        self, fmt: str, path: Path, table: str, stream: str, topic: str | None, notes: list[str]
+        self,
+        fmt: str,
+        path: Path,
+        table: str,
+        stream: str,
+        topic: str | None,
+        notes: list[str],
+        check_crc: bool = True,
     ) -> Flight:
-        key = (fmt, str(path), topic or "")
+        key = (fmt, str(path), topic or "", check_crc)
         if key not in self.flights:
             if fmt == "ulog":
                 flight = lazy_reader("ulog", "read_ulog", path)(path)
             elif fmt == "crazyflie":
-                flight = lazy_reader("crazyflie", "read_crazyflie", path)(path)
+                flight = lazy_reader("crazyflie", "read_crazyflie", path)(path, check_crc)
             else:
                 flight = lazy_reader("rosbag", "read_bag", path)(path, topics={stream: topic})
             self.flights[key] = flight
@@ -273,9 +283,16 @@ class _LogCache:
         return self.flights[key]
 
     def stream(
-        self, fmt: str, path: Path, table: str, stream: str, topic: str | None, notes: list[str]
+        self,
+        fmt: str,
+        path: Path,
+        table: str,
+        stream: str,
+        topic: str | None,
+        notes: list[str],
+        check_crc: bool = True,
     ) -> Any:
-        flight = self.get(fmt, path, table, stream, topic, notes)
+        flight = self.get(fmt, path, table, stream, topic, notes, check_crc)
         streams = flight.streams()
         if stream not in streams:
             raise FlightFormatError(
@@ -284,6 +301,14 @@ class _LogCache:
                 + (", ".join(streams) or "none"),
             )
         return streams[stream]
+
+
+def _check_crc(manifest: Path, table: str, spec: dict[str, Any]) -> bool:
+    """A Crazyflie table's ``check_crc`` (default true; false salvages a damaged log)."""
+    v = spec.get("check_crc", True)
+    if not isinstance(v, bool):
+        raise FlightFormatError(manifest, f"[{table}] check_crc must be true or false, got {v!r}")
+    return v
 
 
 def _read_stream(
@@ -337,7 +362,8 @@ def read_manifest(path: str | Path) -> Flight:
         if fmt == "orbslam3_yaml":
             calib = read_orbslam3_yaml(p, notes=notes)
         elif fmt in ("ulog", "crazyflie"):
-            calib = logs.get(fmt, p, "calib", "calib", None, notes).calib
+            crc = _check_crc(manifest, "calib", doc["calib"])
+            calib = logs.get(fmt, p, "calib", "calib", None, notes, crc).calib
         else:
             calib = read_calib_yaml(p)
         sources["calib"] = {"format": fmt, "path": str(p)}
@@ -364,7 +390,13 @@ def read_manifest(path: str | Path) -> Flight:
         if fmt in LOG_FORMATS:
             default = f"ref:{table.split('.', 1)[1]}" if kind == "references" else kind
             series = logs.stream(
-                fmt, p, table, spec.get("stream", default), spec.get("topic"), notes
+                fmt,
+                p,
+                table,
+                spec.get("stream", default),
+                spec.get("topic"),
+                notes,
+                _check_crc(manifest, table, spec),
             )
         else:
             series = _read_stream(kind, fmt, p, spec, calib, notes)

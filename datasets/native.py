@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import shutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -146,11 +147,11 @@ OPTIONAL_NOISE_KEYS = frozenset({"gyro_bias_sigma", "rest_bias_removed"})
 FLAG_NOISE_KEYS = frozenset({"rest_bias_removed"})
 
 
-def _flag(v: Any) -> bool:
-    """A calibration flag read from YAML: a boolean (or 0 / 1)."""
-    if isinstance(v, bool) or v in (0, 1):
+def _flag(v: Any, key: str, path: Path) -> bool:
+    """A calibration flag read from YAML: a boolean (or 0 / 1), or an error naming the key."""
+    if isinstance(v, bool) or (isinstance(v, int | float) and v in (0, 1)):
         return bool(v)
-    raise ValueError(f"expected a boolean, got {v!r}")
+    raise FlightFormatError(path, f"{key}: expected a boolean, got {v!r}")
 
 
 def _fmt(x: float) -> str:
@@ -432,18 +433,25 @@ def _camera_from_dict(d: Any, path: Path, key: str) -> CameraIntrinsics | None:
         raise FlightFormatError(
             path, f"{key}: missing keys {missing}, unknown keys {unknown}; expected {list(fields)}"
         )
-    try:
-        return CameraIntrinsics(
-            fx=float(d["fx"]),
-            fy=float(d["fy"]),
-            cx=float(d["cx"]),
-            cy=float(d["cy"]),
-            width=int(d["width"]),
-            height=int(d["height"]),
-            distortion=tuple(float(x) for x in d["distortion"]),
-        )
-    except (TypeError, ValueError) as e:
-        raise FlightFormatError(path, f"{key}: {e}") from e
+    size = {}
+    for f in ("width", "height"):
+        v = d[f]
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, int | float)
+            or not math.isfinite(v)
+            or v != int(v)
+        ):
+            raise FlightFormatError(path, f"{key}.{f}: expected an integer, got {v!r}")
+        size[f] = int(v)
+    dist = d["distortion"] if d["distortion"] is not None else []
+    if not isinstance(dist, list | tuple):
+        raise FlightFormatError(path, f"{key}.distortion: expected a list, got {dist!r}")
+    return CameraIntrinsics(
+        **{f: _number(d[f], f"{key}.{f}", path) for f in ("fx", "fy", "cx", "cy")},
+        **size,
+        distortion=tuple(_number(x, f"{key}.distortion", path) for x in dist),
+    )
 
 
 def calibration_to_dict(calib: Calibration) -> dict[str, Any]:
@@ -510,26 +518,47 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
     flow: dict[str, Any] = {}
     if "body_T_flow" in d:
         flow["body_T_flow"] = _matrix(d, "body_T_flow", path)
+    if "flow_pixels_per_rad" in d:
+        flow["flow_pixels_per_rad"] = _number(d["flow_pixels_per_rad"], "flow_pixels_per_rad", path)
+    if "flow_rate_gain" in d:
+        gain = d["flow_rate_gain"]
+        if not isinstance(gain, list | tuple) or len(gain) != 2:
+            raise FlightFormatError(path, f"flow_rate_gain: expected [a, b], got {gain!r}")
+        flow["flow_rate_gain"] = tuple(_number(x, "flow_rate_gain", path) for x in gain)
+    offsets = d["time_offsets"] or {}
+    if not isinstance(offsets, Mapping):
+        raise FlightFormatError(path, f"time_offsets: expected a mapping, got {offsets!r}")
+    calib = Calibration(
+        body_T_cam=_matrix(d, "body_T_cam", path),
+        body_T_range=_matrix(d, "body_T_range", path),
+        camera=_camera_from_dict(d["camera"], path, "camera"),
+        imu_noise=ImuNoise(
+            **{
+                k: _flag(v, f"imu_noise.{k}", path)
+                if k in FLAG_NOISE_KEYS
+                else _number(v, f"imu_noise.{k}", path)
+                for k, v in noise.items()
+            }
+        ),
+        range_min=_number(d["range_min"], "range_min", path),
+        range_max=_number(d["range_max"], "range_max", path),
+        time_offsets={str(k): _number(v, f"time_offsets.{k}", path) for k, v in offsets.items()},
+        **flow,
+    )
     try:
-        if "flow_pixels_per_rad" in d:
-            flow["flow_pixels_per_rad"] = float(d["flow_pixels_per_rad"])
-        if "flow_rate_gain" in d:
-            a, b = (float(x) for x in d["flow_rate_gain"])
-            flow["flow_rate_gain"] = (a, b)
-        return Calibration(
-            body_T_cam=_matrix(d, "body_T_cam", path),
-            body_T_range=_matrix(d, "body_T_range", path),
-            camera=_camera_from_dict(d["camera"], path, "camera"),
-            imu_noise=ImuNoise(
-                **{k: _flag(v) if k in FLAG_NOISE_KEYS else float(v) for k, v in noise.items()}
-            ),
-            range_min=float(d["range_min"]),
-            range_max=float(d["range_max"]),
-            time_offsets={str(k): float(v) for k, v in (d["time_offsets"] or {}).items()},
-            **flow,
-        )
-    except (TypeError, ValueError) as e:
-        raise FlightFormatError(path, str(e)) from e
+        return calib.check()
+    except FlightDataError as e:
+        raise FlightFormatError(path, str(e)) from None
+
+
+def _number(v: Any, key: str, path: Path) -> float:
+    """A calibration value as a float, or an error naming the key."""
+    if isinstance(v, bool):
+        raise FlightFormatError(path, f"{key}: expected a number, got {v!r}")
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        raise FlightFormatError(path, f"{key}: expected a number, got {v!r}") from None
 
 
 def read_calib_yaml(path: str | Path) -> Calibration:

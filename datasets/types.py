@@ -13,6 +13,7 @@ and reported.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -498,6 +499,21 @@ class Calibration:
                 f"{name}.flow_pixels_per_rad: expected a positive number, got "
                 f"{self.flow_pixels_per_rad}"
             )
+        lo, hi = float(self.range_min), float(self.range_max)
+        if not (math.isfinite(lo) and lo >= 0 and hi > lo):
+            raise FlightDataError(
+                f"{name}.range_min, range_max: expected 0 <= range_min < range_max (range_max "
+                f"may be inf), got {self.range_min}, {self.range_max}"
+            )
+        for f in dataclasses.fields(self.imu_noise):
+            v = getattr(self.imu_noise, f.name)
+            if isinstance(v, bool):
+                continue
+            if not (math.isfinite(v) and v >= 0):
+                raise FlightDataError(f"{name}.imu_noise.{f.name}: expected >= 0, got {v}")
+        for stream, v in self.time_offsets.items():
+            if not math.isfinite(v):
+                raise FlightDataError(f"{name}.time_offsets.{stream}: expected a finite offset")
         if self.camera is not None:
             self.camera.check(f"{name}.camera")
         return self

@@ -53,6 +53,8 @@ uses (``sensor_selection``) are named in ``meta["px4_imu_selection"]``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -486,10 +488,15 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
     path = Path(path)
     if not path.is_file():
         raise FlightFormatError(path, "no such file (expected a PX4 .ulg log)")
+    # pyulog prints what it finds wrong in a file to stdout, a line per bad message (hundreds
+    # on a damaged log, mixed into fgnav's own output): taken here and said once.
+    printed = io.StringIO()
     try:
-        ulog = ULog(str(path))
+        with contextlib.redirect_stdout(printed):
+            ulog = ULog(str(path))
     except Exception as exc:  # pyulog raises bare Exceptions on corrupt files
         raise FlightFormatError(path, f"not a readable PX4 ULog ({exc})") from exc
+    pyulog_lines = [x.strip() for x in printed.getvalue().splitlines() if x.strip()]
 
     by_topic: dict[str, dict[int, Any]] = {}
     for d in ulog.data_list:
@@ -518,8 +525,12 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
         ],
         "notes": [],
     }
-    if ulog.file_corruption:
-        meta["notes"].append("pyulog reports file corruption: some messages were unreadable")
+    if ulog.file_corruption or pyulog_lines:
+        msg = "pyulog reports file corruption: some messages were unreadable"
+        if pyulog_lines:
+            msg += f" ({len(pyulog_lines)} message(s) from pyulog, the first: {pyulog_lines[0]!r})"
+        meta["notes"].append(msg)
+        log.warning("%s: %s", path, msg)
 
     sc = _choose(by_topic.get("sensor_combined", {}), "sensor_combined", instance_policy, meta)
     if sc is None:

@@ -43,7 +43,14 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, object]]:
         prog="fgnav",
         description="Factor-graph smoothing back-end for multirotors flying without GPS.",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="more log output: -v fgnav's DEBUG lines, -vv every library's (INFO lines are printed "
+        "by default)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules: dict[str, object] = {}
     for name, fallback_help in COMMANDS.items():
@@ -58,13 +65,23 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, object]]:
     return parser, modules
 
 
+def log_levels(verbose: int) -> tuple[int, int | None]:
+    """``(root level, level of the "fgnav" loggers or None)`` with ``verbose`` ``-v`` flags: INFO
+    by default (the commands' progress and the readers' notes); ``-v``: fgnav's DEBUG lines too;
+    ``-vv``: every library's (matplotlib's font search, Dask's scheduler ...). (``-v`` had been
+    the default INFO, and only ``-vv`` added anything.)"""
+    if verbose >= 2:
+        return logging.DEBUG, None
+    return logging.INFO, (logging.DEBUG if verbose == 1 else None)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser, modules = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2) if args.verbose else logging.INFO,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    root_level, fgnav_level = log_levels(args.verbose)
+    logging.basicConfig(level=root_level, format="%(levelname)s %(name)s: %(message)s")
+    if fgnav_level is not None:
+        logging.getLogger("fgnav").setLevel(fgnav_level)
     if args.command is None:
         parser.print_help()
         return 1

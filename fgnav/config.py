@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -50,8 +52,11 @@ def options_from(
     given = {k: v for k, v in overrides.items() if v is not None}
     kwargs.update(given)
     zero_ok = getattr(cls, "ZERO_MEANS_OFF", frozenset())
+    hints = _field_types(cls)
     for name, value in kwargs.items():
-        problem = option_value_problem(name, value, zero_ok=name in zero_ok)
+        problem = option_type_problem(hints.get(name, Any), value)
+        if problem is None:
+            problem = option_value_problem(name, value, zero_ok=name in zero_ok)
         if problem is not None:
             origin = "command line" if name in given else where
             raise OptionValueError(f"{origin}: option {name} = {value!r}: {problem}")
@@ -66,6 +71,112 @@ def check_tables(path: str | Path | None, allowed: list[str]) -> None:
         raise FlightFormatError(
             path, f"unknown table(s) {unknown} for this command; valid: {sorted(allowed)}"
         )
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    """The declared type of each field of dataclass ``cls`` (``Any`` where it cannot be
+    resolved, e.g. a name imported for type checking only)."""
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # noqa: BLE001 - resolve field by field below
+        pass
+    out: dict[str, Any] = {}
+    module = vars(__import__(cls.__module__, fromlist=["_"]))
+    for f in dataclasses.fields(cls):
+        try:
+            out[f.name] = eval(f.type, module) if isinstance(f.type, str) else f.type  # noqa: S307
+        except Exception:  # noqa: BLE001
+            out[f.name] = Any
+    return out
+
+
+def _kind(value: Any) -> str:
+    """A value's kind as a config file writes it."""
+    if isinstance(value, bool):
+        return "true/false"
+    if isinstance(value, int):
+        return "an integer"
+    if isinstance(value, float):
+        return "a decimal number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, (list, tuple)):
+        return "a list"
+    if isinstance(value, dict):
+        return "a table"
+    return type(value).__name__
+
+
+def _accepts(hint: Any, value: Any) -> bool | None:
+    """Whether ``value`` fits the declared type ``hint`` (None: the type is not checked here)."""
+    if hint is Any or isinstance(hint, TypeVar):
+        return None
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        verdicts = [_accepts(h, value) for h in typing.get_args(hint)]
+        if any(v is None for v in verdicts):
+            return None
+        return any(verdicts)
+    if origin is typing.Literal:
+        return value in typing.get_args(hint)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if hint is dict or origin is dict:
+        return isinstance(value, dict)
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        return isinstance(value, (dict, hint))  # a table fills the nested options class
+    if origin in (tuple, list) or hint in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            return False
+        given = typing.get_args(hint)
+        args = [a for a in given if a is not Ellipsis]
+        if origin is tuple and Ellipsis not in given and args and len(value) != len(args):
+            return False  # a fixed-length tuple such as (kx, ky)
+        if len(set(args)) == 1:
+            return all(_accepts(args[0], v) is not False for v in value)
+        return None
+    return None
+
+
+def _wanted(hint: Any) -> str | None:
+    """How an error names what type ``hint`` expects (None: not a type checked here)."""
+    simple = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    if hint in simple:
+        return simple[hint]
+    origin = typing.get_origin(hint)
+    if origin in (tuple, list) or hint in (tuple, list):
+        given = typing.get_args(hint)
+        if origin is tuple and given and Ellipsis not in given:
+            return f"a list of {len(given)}"
+        return "a list"
+    if (
+        hint is dict
+        or origin is dict
+        or (isinstance(hint, type) and dataclasses.is_dataclass(hint))
+    ):
+        return "a table"
+    return None
+
+
+def option_type_problem(hint: Any, value: Any) -> str | None:
+    """What is wrong with the type of an option value against its field's declared type (None:
+    it fits, or the type is not one checked: tables, arrays, options classes)."""
+    if _accepts(hint, value) is not False:
+        return None
+    union = typing.get_origin(hint) in (typing.Union, types.UnionType)
+    args = [a for a in typing.get_args(hint) if a is not type(None)] if union else [hint]
+    names = [_wanted(a) for a in args]
+    if any(n is None for n in names):
+        return f"unexpected {_kind(value)} (see the option's documentation)"
+    return f"expected {' or '.join(dict.fromkeys(names))}, found {_kind(value)}"
 
 
 class OptionValueError(FgnavError, ValueError):

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import inspect
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -41,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from fgnav.datasets.errors import FgnavError, FlightFormatError
+from fgnav.datasets.errors import FgnavError, FlightDataError, FlightFormatError
 from fgnav.datasets.types import STREAMS, Flight, Trajectory
 from fgnav.estimate import Estimate
 
@@ -212,7 +213,40 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     # flag's value as coming from the command line.
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
     source = str(config.get(SOURCE_KEY, "config"))
-    return options_from(cls, table, source=source, section=section, **flagged, **overrides)
+    options = options_from(cls, table, source=source, section=section, **flagged, **overrides)
+    # A file names where the value may come from; without one it came from a flag or a default.
+    where = f"{source} [{section}]" if SOURCE_KEY in config else f"[{section}]"
+    _self_check(options, where, tuple(flagged))
+    return options
+
+
+def _self_check(options: Any, where: str, flagged: tuple[str, ...] = ()) -> None:
+    """Run an options object's own ``validate()`` or ``check()`` (the rules between fields,
+    the choices of a string) now, so that ``fgnav compare`` refuses a bad value before any method
+    runs; the error names the file and table."""
+    from fgnav.config import OptionValueError
+
+    for name in ("validate", "check"):
+        fn = getattr(options, name, None)
+        if not callable(fn):
+            continue
+        required = [
+            p
+            for p in inspect.signature(fn).parameters.values()
+            if p.default is inspect.Parameter.empty
+            and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+        ]
+        if required:
+            continue
+        try:
+            fn()
+        except (FgnavError, ValueError) as e:
+            msg = str(e)
+            # The options' own messages name the field as ``Class.name=value``.
+            if any(f".{name}=" in msg for name in flagged):
+                where = "command line"
+            raise OptionValueError(f"{where}: {msg}") from None
+        return
 
 
 #: The options class each filter baseline's table fills (module, class).
@@ -483,7 +517,6 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
     """The ``[priors]`` table as :class:`fgnav.frontends.prior_stages.PriorOptions` for the
     push engine and the live link (None without sources). ``drag_k`` when the table has none:
     the flight's calibration ``flight.meta["drag_k"]`` (never its ground truth)."""
-    from fgnav.datasets.errors import FlightDataError
     from fgnav.frontends.prior_stages import prior_options
 
     table = _priors_table(config)
@@ -504,13 +537,16 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
 
 def _named_priors(config: Mapping[str, Any], make: Callable, table: dict, drag_k: Any) -> Any:
     """``make(table, drag_k=drag_k)`` (the ``[priors]`` options), its error naming the config
-    file and the table."""
+    file (when there is one: ``--priors`` alone has none) and the table once."""
     try:
         return make(table, drag_k=drag_k)
     except FlightFormatError:
         raise
     except FgnavError as e:
-        raise FlightFormatError(str(config.get(SOURCE_KEY, "config")), f"[priors]: {e}") from None
+        msg = str(e) if str(e).startswith("[priors]") else f"[priors]: {e}"
+        if SOURCE_KEY in config:
+            raise FlightFormatError(str(config[SOURCE_KEY]), msg) from None
+        raise FlightDataError(msg) from None
 
 
 def _priors_table(config: Mapping[str, Any]) -> dict[str, Any]:

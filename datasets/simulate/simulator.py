@@ -149,10 +149,12 @@ def simulate(
         and noise when on).
 
     Raises:
-        SimulationError: unknown scenario or invalid options.
+        SimulationError: unknown scenario, negative seed or invalid options.
     """
     if scenario not in SCENARIO_TABLE:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {list(SCENARIOS)}")
+    if int(seed) < 0:
+        raise SimulationError(f"seed {seed!r}: expected a non-negative integer")
     sc = SCENARIO_TABLE[scenario]
     opts = options or SimOptions()
     opts.validate()

@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
     )
     parser.add_argument(
-        "--config", default=None, help="TOML file with [graph], [lm] and [batch] tables"
+        "--config", default=None, help="TOML file with [graph], [lm], [batch] and [priors] tables"
     )
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
     parser.add_argument(

@@ -29,12 +29,18 @@ def parse_methods(text: str | None) -> list[str] | None:
     """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows).
 
     Raises:
-        MethodUnavailableError: a name that is neither a method nor ``ref:<reference>``, before
-            the flight is read (the flight's references are checked once it is).
+        MethodUnavailableError: a name that is neither a method nor ``ref:<reference>``, or no
+            name at all (``--methods ""``), before the flight is read (the flight's references
+            are checked once it is).
     """
     if text is None:
         return None
     names = [m.strip() for m in text.split(",") if m.strip()]
+    if not names:
+        raise MethodUnavailableError(
+            f"--methods {text!r}: no method named; valid: {', '.join(METHODS)}, "
+            "ref:<reference of the flight>"
+        )
     for m in names:
         if m not in METHODS and not m.startswith("ref:"):
             raise MethodUnavailableError(

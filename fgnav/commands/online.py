@@ -38,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, help="output folder (estimate.tum, states.csv, summary.json)"
     )
     parser.add_argument("--lag", type=float, default=None, help="smoother lag [s] (default 2)")
-    parser.add_argument("--config", default=None, help="TOML file with [graph] and [online] tables")
+    parser.add_argument(
+        "--config", default=None, help="TOML file with [graph], [online] and [priors] tables"
+    )
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
     add_priors_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -10,6 +10,7 @@ frames, and scored against the flight's ground truth when it has one.
 from __future__ import annotations
 
 import argparse
+import math
 
 HELP = "send a flight as MAVLink messages to udpout:HOST:PORT (a stand-in autopilot)"
 
@@ -57,6 +58,9 @@ def run(args: argparse.Namespace) -> int:
     mavlink_dialect()
     if not args.speed >= 0:
         raise LinkError(f"--speed {args.speed}: expected >= 0 (0: as fast as possible)")
+    for flag, value in (("--wait-peer", args.wait_peer), ("--linger", args.linger)):
+        if not (math.isfinite(value) and value >= 0):
+            raise LinkError(f"{flag} {value}: expected a finite number of seconds >= 0")
     streams = (
         SENDABLE_STREAMS
         if args.streams is None

@@ -310,8 +310,23 @@ def position_nees(
     P_body = pose_cov[:, 3:6, 3:6]
     A = np.einsum("ij,njk->nik", al.R, world_R_body)
     P = al.s**2 * np.einsum("nij,njk,nlk->nil", A, P_body, A)
-    sol = np.linalg.solve(P, err_world[:, :, None])[:, :, 0]
-    return np.einsum("ni,ni->n", err_world, sol)
+    return _quadratic_forms(err_world, P)
+
+
+def _quadratic_forms(x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(N,) ``x_n^T P_n^-1 x_n``; NaN for a row whose ``P_n`` is singular (an estimator that
+    reports an infinite or degenerate covariance) instead of failing the whole scoring."""
+    try:
+        sol = np.linalg.solve(P, x[:, :, None])[:, :, 0]
+        return np.einsum("ni,ni->n", x, sol)
+    except np.linalg.LinAlgError:
+        out = np.full(x.shape[0], np.nan)
+        for n in range(x.shape[0]):
+            try:
+                out[n] = x[n] @ np.linalg.solve(P[n], x[n])
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
 def pose_nees(
@@ -333,7 +348,10 @@ def pose_nees(
         est = gtsam.Pose3(gtsam.Rot3(est_R[n]), est_xyz[n])
         gt = gtsam.Pose3(gtsam.Rot3(gt_R[n]), gt_xyz[n])
         xi = est.localCoordinates(gt)
-        out[n] = xi @ np.linalg.solve(D @ pose_cov[n] @ D, xi)
+        try:
+            out[n] = xi @ np.linalg.solve(D @ pose_cov[n] @ D, xi)
+        except np.linalg.LinAlgError:
+            out[n] = np.nan  # a singular covariance (as in position_nees)
     return out
 
 
@@ -562,11 +580,20 @@ def evaluate(
         has = np.all(np.isfinite(estimate.pose_cov[idx]), axis=(1, 2))
         if has.any():
             cov = estimate.pose_cov[idx][has]
-            m.nees_pos = float(np.mean(position_nees(err[has], est_R[has], cov, al)))
-            m.nees_pose = float(
-                np.mean(pose_nees(a_xyz[has], a_R[has], gt.world_t_body[has], gt_R[has], cov, al.s))
-            )
-            m.n_nees = int(has.sum())
+            nees = position_nees(err[has], est_R[has], cov, al)
+            ok = np.isfinite(nees)
+            if not ok.all():
+                logger.info(
+                    "%s: NEES of %d of %d samples left out (singular covariance)",
+                    estimate.method,
+                    int((~ok).sum()),
+                    ok.size,
+                )
+            m.nees_pos = float(np.mean(nees[ok])) if ok.any() else math.nan
+            pn = pose_nees(a_xyz[has], a_R[has], gt.world_t_body[has], gt_R[has], cov, al.s)
+            pn = pn[np.isfinite(pn)]
+            m.nees_pose = float(np.mean(pn)) if pn.size else math.nan
+            m.n_nees = int(ok.sum())
             m.nees_pos_interval = nees_interval(m.n_nees, 3)
 
     if estimate.update_latency is not None and np.asarray(estimate.update_latency).size:

@@ -216,6 +216,12 @@ class StandInAutopilot:
         if bad:
             raise LinkError(f"cannot send stream(s) {bad}; sendable: {list(SENDABLE_STREAMS)}")
         self.streams = tuple(s for s in self.options.streams if getattr(flight, s) is not None)
+        if not self.streams:
+            has = [s for s in SENDABLE_STREAMS if getattr(flight, s) is not None]
+            raise LinkError(
+                f"{flight.name}: has none of the streams {list(self.options.streams)} to send "
+                f"(it has {has})"
+            )
         self.offset = boot_offset(flight, self.streams)
         sysid = self.options.system_id
         self.mav = new_mavlink(sysid, MAV_COMP_ID_AUTOPILOT1)

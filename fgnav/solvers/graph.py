@@ -99,6 +99,11 @@ class ObservabilityError(FgnavError, ValueError):
     """The chosen sensor subset leaves part of the state unobservable."""
 
 
+KEYFRAME_HZ_MAX = 1000.0
+"""Highest keyframe rate the options take [Hz]: no IMU of the supported logs is faster (the
+Crazyflie's about 1 kHz); 1e9 ran without end."""
+
+
 @dataclass
 class GraphOptions:
     """Options of the graph builder (sensor switches, noise, robust kernels, gating, priors).
@@ -342,8 +347,11 @@ class GraphOptions:
             )
         check_modes(self.slam_rotation, self.slam_time_offset, "GraphOptions")
         check_extrinsic_mode(self.slam_extrinsic, "GraphOptions")
-        if not self.keyframe_hz > 0:
-            raise FlightDataError(f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0")
+        if not 0 < self.keyframe_hz <= KEYFRAME_HZ_MAX:
+            raise FlightDataError(
+                f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0 and <= "
+                f"{KEYFRAME_HZ_MAX:g} (a keyframe needs IMU samples between it and the next)"
+            )
         if self.accel_horizontal not in ACCEL_HORIZONTAL_MODES:
             raise FlightDataError(
                 f"GraphOptions.accel_horizontal={self.accel_horizontal!r}: expected one of "

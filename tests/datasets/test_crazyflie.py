@@ -316,10 +316,56 @@ def test_crc_mismatch_and_cut_off_file(tmp_path):
     # A file cut in the middle of a record: the CRC fails first; without the check, the record.
     cut = tmp_path / "cut"
     cut.write_bytes(good.read_bytes()[:-11])
-    with pytest.raises(FlightFormatError, match="CRC-32 mismatch"):
+    with pytest.raises(FlightFormatError, match="CRC-32 mismatch.*check_crc = false"):
         decode_crazyflie_log(cut)
-    with pytest.raises(FlightFormatError, match=r"truncated record \d+ at byte \d+"):
-        decode_crazyflie_log(cut, check_crc=False)
+    # Salvaged: the records before the cut, the damage said (a power loss writes no CRC).
+    cf = decode_crazyflie_log(cut, check_crc=False)
+    whole = decode_crazyflie_log(good)
+    assert cf.n_records == whole.n_records - 1
+    assert cf.damage["reason"].startswith(f"truncated record {whole.n_records - 1} at byte")
+    assert cf.damage["bytes_dropped"] == len(cut.read_bytes()) - cf.damage["stopped_at_byte"]
+    for name, rec in cf.records.items():
+        n = len(rec)
+        np.testing.assert_array_equal(rec, whole.records[name][:n])
+    assert decode_crazyflie_log(good, check_crc=False).damage is None
+
+
+def test_damaged_log_salvaged_through_a_manifest(tmp_path):
+    """``check_crc = false`` reads a cut-off log up to the cut and a log with one flipped stamp
+    bit whole but that sample (its stamp jumped ahead: every later sample looked old)."""
+    recs, _ = flight_records(2)
+    good = write_log(tmp_path / "good", 2, recs)
+    data = good.read_bytes()
+    whole = read_crazyflie(good)
+    # Cut at two thirds: the records before the cut, the rest counted as dropped.
+    (tmp_path / "cut").write_bytes(data[: len(data) * 2 // 3])
+    # One flipped high bit in the stamp of a gyro record in the middle.
+    flipped = bytearray(data)
+    k = next(i for i in range(len(recs) // 2, len(recs)) if recs[i][0] == 5)  # a gyro record
+    head = len(header_bytes(2))
+    at = head + sum(len(record_bytes(2, e, st, v)) for e, st, v in recs[:k]) + 2 + 4
+    flipped[at] ^= 0x80  # stamp byte 4 (little endian): +2^39 us
+    (tmp_path / "flip").write_bytes(bytes(flipped))
+    for name in ("cut", "flip"):
+        with pytest.raises(FlightFormatError, match="check_crc = false"):
+            load_flight(tmp_path / name)
+        manifest = tmp_path / f"{name}.toml"
+        manifest.write_text(
+            f'name = "{name}"\n[imu]\nformat = "crazyflie"\npath = "{name}"\ncheck_crc = false\n'
+        )
+        f = read_manifest(manifest)
+        notes = [n for n in f.meta["notes"] if "damaged log salvaged" in n]
+        assert len(notes) == 1, f.meta["notes"]
+        if name == "cut":
+            assert 0.5 * len(whole.imu) < len(f.imu) < 0.75 * len(whole.imu)
+            np.testing.assert_array_equal(f.imu.t, whole.imu.t[: len(f.imu)])
+        else:
+            assert len(f.imu) == len(whole.imu) - 1
+            assert f.imu.t[-1] == whole.imu.t[-1]
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[imu]\nformat = "crazyflie"\npath = "cut"\ncheck_crc = "no"\n')
+    with pytest.raises(FlightFormatError, match=r"\[imu\] check_crc must be true or false"):
+        read_manifest(bad)
 
 
 def test_truncated_record(tmp_path):

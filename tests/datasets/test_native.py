@@ -256,3 +256,37 @@ def test_empty_file_and_missing_folder(tmp_path):
     (folder / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(FlightFormatError, match="expected 'fgnav-flight'"):
         read_flight(folder)
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        # Each calibration value's error names its key (found by fuzzing `fgnav live --calib`:
+        # "float() argument must be a string or a real number, not 'list'" named none).
+        (lambda c: c["imu_noise"].update(gyro_noise_density=[1, 2]), "imu_noise.gyro_noise_de"),
+        (lambda c: c.update(flow_pixels_per_rad={"a": 1}), "flow_pixels_per_rad: expected a nu"),
+        (lambda c: c.update(flow_rate_gain=0.5), "flow_rate_gain: expected [a, b], got 0.5"),
+        (lambda c: c["camera"].update(width=320.5), "camera.width: expected an integer"),
+        (lambda c: c["camera"].update(fy=True), "camera.fy: expected a number, got True"),
+        # Values the file reads but no sensor can have, checked on reading (were accepted).
+        (lambda c: c.update(range_max=float("nan")), "expected 0 <= range_min < range_max"),
+        (lambda c: c.update(range_min=-1.0), "expected 0 <= range_min < range_max"),
+        (lambda c: c["imu_noise"].update(accel_noise_density=-1.0), "accel_noise_density: expe"),
+        (lambda c: c.update(time_offsets={"slam": float("inf")}), "time_offsets.slam: expected"),
+    ],
+)
+def test_bad_calibration_values_named(tmp_path, edit, needle):
+    import yaml
+    from fgnav.datasets.errors import FlightFormatError
+    from fgnav.datasets.native import read_calib_yaml
+
+    folder = tmp_path / "f"
+    write_flight(make_full_flight(), folder)
+    calib = yaml.safe_load((folder / "calib.yaml").read_text())
+    edit(calib)
+    bad = tmp_path / "calib.yaml"
+    bad.write_text(yaml.safe_dump(calib))
+    with pytest.raises(FlightFormatError) as e:
+        read_calib_yaml(bad)
+    msg = str(e.value)
+    assert needle in msg and msg.count(str(bad)) == 1 and "\n" not in msg

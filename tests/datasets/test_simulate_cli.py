@@ -69,3 +69,17 @@ def test_images_are_written_losslessly(tmp_path):
         np.testing.assert_array_equal(f.images.load(i), mem.images.frames[i])
     np.testing.assert_allclose(f.calib.body_T_cam, mem.calib.body_T_cam)
     assert f.calib.camera == mem.calib.camera
+
+
+def test_cli_rejects_a_negative_seed(tmp_path, capsys):
+    """``--seed -1`` (fgnav simulate and fgnav demo) is one line and exit 1; it was numpy's
+    ``ValueError: expected non-negative integer`` with a traceback."""
+    out = tmp_path / "x"
+    argv = ["simulate", "--scenario", "hover", "--seed", "-1", "--out", str(out)]
+    assert main([*argv, "--duration", "1", "--no-images"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fgnav simulate: error: seed -1: expected a non-negative integer"]
+    assert not out.exists()
+    assert main(["demo", "--out", str(tmp_path / "d"), "--seed", "-1", "--no-images"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fgnav demo: error: seed -1: expected a non-negative integer"]

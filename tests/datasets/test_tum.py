@@ -84,6 +84,11 @@ def test_real_rpg_scientific_seconds(real_data):
         ("1 0 0 0 0 0 0 1\n1 0 0 1 0 0 0 1\n", r"x\.txt:2: time must be strictly increasing"),
         ("1 0 0 0 0 0 0 2\n", r"x\.txt:1: quaternion qx qy qz qw has norm 2"),
         ("# only a comment\n", r"x\.txt: no data lines"),
+        # Nanoseconds beyond int64 (a stamp with two lines run together, found by a fuzz).
+        (
+            "1403636579763555584 0 0 0 0 0 0 1\n14036365797635555841403636579 0 0 0 0 0 0 1\n",
+            r"x\.txt:2: column 1: time stamp '14036365797635555841403636579' ns out of range",
+        ),
     ],
 )
 def test_bad_inputs_named(tmp_path, body, match):

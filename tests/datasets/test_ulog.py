@@ -582,3 +582,18 @@ def test_px4_flow_log_feeds_the_batch_smoother(tmp_path, with_distance_sensor):
     )
     rmse = float(np.sqrt(np.mean(speed_err[t > 1.0] ** 2)))
     assert rmse < 0.03, rmse
+
+
+@pytest.mark.realdata
+def test_pyulog_prints_are_taken_and_said_once(real_data, tmp_path, capsys):
+    """pyulog prints a line per unreadable message to stdout (hundreds on a damaged log, mixed
+    into fgnav's output): the reader takes them and says them once, as a warning and a note."""
+    data = bytearray((real_data / "px4_cubeorange_quad_flight" / "test.ulg").read_bytes())
+    data[408612] ^= 0xFF  # a message id no subscription has (pyulog: "no subscription found")
+    bad = tmp_path / "bad.ulg"
+    bad.write_bytes(bytes(data))
+    f = read_ulog(bad)
+    assert capsys.readouterr().out == ""
+    notes = [n for n in f.meta["notes"] if "pyulog reports file corruption" in n]
+    assert len(notes) == 1 and "no subscription found" in notes[0]
+    assert len(f.imu) > 1000

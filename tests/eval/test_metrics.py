@@ -280,6 +280,13 @@ def test_nees_skips_rows_without_covariance():
         alignment="none",
     )
     assert full.n_nees == n
+    # A singular covariance (an estimator reporting a degenerate one) leaves its rows out of the
+    # NEES; the other metrics are still scored (it failed the whole scoring with LinAlgError).
+    sing = np.where(np.isnan(cov), cov[0], cov)
+    sing[::10, 3:, 3:] = 0.0
+    ms = evaluate(dataclasses.replace(est, pose_cov=sing), truth, alignment="none")
+    assert ms.n_nees == n - n // 10
+    assert 2.0 < ms.nees_pos < 4.0 and ms.ate_rmse_m == pytest.approx(full.ate_rmse_m)
 
 
 def test_slam_scale_drift_recovers_a_known_trend(truth):

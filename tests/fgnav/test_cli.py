@@ -40,3 +40,21 @@ def test_printed_ate_names_the_alignment_used(tmp_path, capsys):
     est2 = Estimate("batch", Trajectory(g2.t, g2.world_t_body + 0.01, g2.world_q_body_wxyz))
     score_and_write(turns, est2, tmp_path, {})
     assert "RMSE (SE(3) alignment)" in capsys.readouterr().out
+
+
+def test_verbose_flag_adds_debug_lines():
+    """INFO lines are printed by default; ``-v`` adds fgnav's DEBUG lines, ``-vv`` every
+    library's (``-v`` had been the default level, and only ``-vv`` changed anything)."""
+    import logging
+
+    from fgnav.cli import build_parser, log_levels
+
+    parser, _ = build_parser()
+    assert log_levels(parser.parse_args(["info", "x"]).verbose) == (logging.INFO, None)
+    assert log_levels(parser.parse_args(["-v", "info", "x"]).verbose) == (
+        logging.INFO,
+        logging.DEBUG,
+    )
+    assert log_levels(parser.parse_args(["-vv", "info", "x"]).verbose) == (logging.DEBUG, None)
+    r = run_cli("--help")
+    assert "fgnav's DEBUG lines" in " ".join(r.stdout.split())

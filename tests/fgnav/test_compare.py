@@ -223,6 +223,12 @@ def test_cli_compare(flight, tmp_path, capsys):
     assert rc == 1
     err = capsys.readouterr().err
     assert "unknown method 'nope'" in err and "ref:<reference" in err
+    # No method at all is an error too (it ran nothing and wrote an empty report, exit 0).
+    for empty in ("", " , "):
+        rc = compare_cli(tmp_path / "missing", out, empty)
+        assert rc == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no method named" in err[0]
 
 
 def test_piecewise_constant_series_held_to_end(flight):

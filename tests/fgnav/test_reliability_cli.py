@@ -26,6 +26,8 @@ def _one_line_error(capsys, argv: list[str]) -> str:
         (["--lag", "-1"], "option lag_s = -1.0: expected > 0"),
         (["--lag", "nan"], "option lag_s = nan: expected a finite number"),
         (["--keyframe-hz", "0"], "option keyframe_hz = 0.0: expected > 0"),
+        # 1e9 ran without end (found by fuzzing the command line).
+        (["--keyframe-hz", "1e9"], "keyframe_hz=1000000000.0: expected > 0 and <= 1000"),
     ],
 )
 def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
@@ -45,6 +47,20 @@ def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
         ("batch", "[graph]\nslam_segment_s = -2.0\n", "option slam_segment_s = -2.0"),
         ("batch", "[lm]\nmax_iterations = 0\n", "[lm]: option max_iterations = 0"),
         ("online", "[online]\nslam_init_window_s = -1.0\n", "expected >= 0"),
+        # Types, from the options' declarations (a string sigma crashed at the start; a number
+        # for a switch was taken as true).
+        (
+            "online",
+            '[graph]\nprior_position_sigma = "x"\n',
+            "option prior_position_sigma = 'x': expected a number, found a string",
+        ),
+        ("batch", "[graph]\nuse_drag = -1\n", "option use_drag = -1: expected true or false"),
+        ("online", "[online]\nrelinearize_skip = 2.5\n", "expected an integer, found a decimal"),
+        ("compare", "[ukf003]\nuse_yaw = 'yes'\n", "use_yaw = 'yes': expected true or false"),
+        ("compare", "[ii-observer]\ndrag_k = [0.4]\n", "drag_k = [0.4]: expected a list of 2"),
+        # An options class's own validate()/check() runs before any method (ekf004 failed at
+        # its start, after the other methods had run).
+        ("compare", "[ekf004]\nposition_noise = -1.0\n", "position_noise=-1.0: must be > 0"),
         # Unknown tables and options.
         ("online", "[online]\nlag = 2.0\n", "unknown option(s) ['lag'] for FixedLagOptions"),
         ("batch", "[grpah]\nkeyframe_hz = 10.0\n", "unknown table(s) ['grpah']"),
@@ -67,6 +83,27 @@ def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table
         capsys, [command, str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
     )
     assert str(cfg) in err and needle in err
+
+
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_observer_prior_without_a_drag_k_names_priors_once(cli_folder, tmp_path, capsys, command):
+    """``--priors observer`` on a flight without a calibrated drag k: one line naming ``[priors]``
+    once (the push engine's said ``config: [priors]: [priors]: ...`` with no config file), and
+    the config file when the sources come from one."""
+    out = tmp_path / "o"
+    err = _one_line_error(
+        capsys, [command, str(cli_folder), "--out", str(out), "--priors", "observer"]
+    )
+    assert "needs a calibrated drag coefficient" in err
+    assert err.count("[priors]") <= 2 and "[priors]: [priors]" not in err  # the hint names it too
+    assert "config:" not in err
+    cfg = tmp_path / "p.toml"
+    cfg.write_text("[priors]\nsources = ['observer']\n")
+    err = _one_line_error(
+        capsys, [command, str(cli_folder), "--out", str(out), "--config", str(cfg)]
+    )
+    assert "needs a calibrated drag coefficient" in err and "[priors]: [priors]" not in err
+    assert not out.exists()
 
 
 def test_compare_reads_every_filter_table(cli_folder, tmp_path, capsys):
@@ -101,6 +138,18 @@ def test_option_value_rules():
     assert options_from(GraphOptions, {"initial_yaw": -1.0}).initial_yaw == -1.0
     with pytest.raises(OptionValueError, match="expected a finite number"):
         options_from(SimOptions, {"drag_k": [0.3, float("nan")]})
+    # Types: an integer fills a float option, a list a tuple; a bool is not a number, a string
+    # is not a list of numbers, a nested options table takes a table only.
+    assert options_from(GraphOptions, {"slam_sigma_m": 1}).slam_sigma_m == 1
+    assert tuple(options_from(SimOptions, {"drag_k": [0.3, 0.4]}).drag_k) == (0.3, 0.4)
+    with pytest.raises(OptionValueError, match="slam_sigma_m = True: expected a number"):
+        options_from(GraphOptions, {"slam_sigma_m": True})
+    with pytest.raises(OptionValueError, match="drag_k = 'x': expected a list"):
+        options_from(SimOptions, {"drag_k": "x"})
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    with pytest.raises(OptionValueError, match="graph = \\[1\\]: expected a table, found a list"):
+        options_from(FixedLagOptions, {"graph": [1]})
 
 
 @pytest.mark.parametrize("command", ["batch", "online"])

@@ -92,6 +92,6 @@ def test_native_calibration_rest_bias_removed_flag_round_trips():
     del d["imu_noise"]["rest_bias_removed"]  # a file written before the key existed
     assert calibration_from_dict(d, Path("calib.yaml")).imu_noise.rest_bias_removed is False
     d["imu_noise"]["rest_bias_removed"] = "yes"
-    with pytest.raises(FlightFormatError):
+    with pytest.raises(FlightFormatError, match="imu_noise.rest_bias_removed: expected a boolean"):
         calibration_from_dict(d, Path("calib.yaml"))
     assert CRAZYFLIE_IMU_NOISE.rest_bias_removed
