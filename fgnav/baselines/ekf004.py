@@ -46,25 +46,31 @@ filter state before it; a late SLAM pose (image time ``t``, arriving ``t + laten
 filter back to ``t``, is applied there, and the later measurements are replayed. Outputs are
 causal: the state the filter had at each attitude sample, before later corrections.
 
-Without an attitude stream (``attitude_source``: ``"auto"`` picks ``"imu"`` when the flight has
-none; EuRoC): the paper's vehicle logged its onboard attitude, so roll and pitch are *estimated*,
-causally, from the IMU by seed 002's attitude EKF run as a stage on the arriving IMU, yaw and
-range events (:class:`~fgnav.frontends.attitude_ekf.AttitudeEkfStage`, reported in
+Fed events (:class:`Ekf004Runner`, built from the calibration and the options; a flight's replay
+or a live link), the filter decides what the ``"auto"`` choices below need from what has arrived
+within ``SOURCES_WINDOW_S`` of the first event (held meanwhile, then processed in order): the
+attitude source (an attitude sample among them: the stream), and which of the yaw and range
+streams its start waits for.
+
+Without an attitude stream (``attitude_source``: ``"auto"`` picks ``"imu"`` when none has arrived
+in that window; EuRoC): the paper's vehicle logged its onboard attitude, so roll and pitch are
+*estimated*, causally, from the IMU by seed 002's attitude EKF run as a stage on the arriving IMU,
+yaw and range events (:class:`~fgnav.frontends.attitude_ekf.AttitudeEkfStage`, reported in
 ``Estimate.info["attitude_source"]``) and fused with ``imu_attitude_sigma``. On a multirotor that
 gravity-referenced tilt is the rotor-drag tilt ``k v / g`` at low frequencies (the accelerometer
 reads thrust and drag, not gravity), which turns the drag-model odometry of the scale pairs into a
 ``1/k`` low-pass of the velocity: on the simulated two-turns and rectangle flights (seeds 0, 1) the
 ML scale was then off by +60 to +400 %. So the scale comes instead (``scale_source``: ``"auto"``
 picks ``"imu_fit"``) from closed-form IMU-SLAM fits over consecutive windows of the session
-(:func:`fgnav.baselines.msf_ekf.initial_fit`, which integrates the gyro itself with a bias from
-the SLAM rotations), combined by inverse variance. As in the MSF and UKF baselines, whose causal
+(:func:`fgnav.baselines.msf_ekf.initial_fit`, which integrates the gyro itself with a bias from the
+SLAM rotations), combined by inverse variance. As in the MSF and UKF baselines, whose causal
 closed-form start this shares, states are reported from the first fit on, when position and
 velocity are released (:meth:`Ekf004.release_position`) for the scaled SLAM poses to set them: the
 drag-model dead reckoning before it is not trusted (on EuRoC MH_01 the vehicle is carried by hand,
 then sits on the ground tilted by 5 deg, which the drag model reads as 0.8 m/s^2). Measured, SE(3)
-ATE without / with the attitude stream: two-turns 0.10 / 0.020 m (seed 0), 0.11 / 0.044 m (seed
-1); rectangle 0.039 / 0.029 m, 0.068 / 0.042 m; scale errors -1.6 to +1.4 %; position NEES 0.5-4.2.
-The gap is the drag-tilt bias of the estimated roll and pitch in the prediction.
+ATE without / with the attitude stream: two-turns 0.10 / 0.020 m (seed 0), 0.11 / 0.044 m (seed 1);
+rectangle 0.039 / 0.029 m, 0.068 / 0.042 m; scale errors -1.6 to +1.4 %; position NEES 0.5-4.2. The
+gap is the drag-tilt bias of the estimated roll and pitch in the prediction.
 
 The model needs a FLU multirotor body (z along the rotor thrust): when the flight's body z is more
 than ``fgnav.datasets.frames.MAX_THRUST_TILT_DEG`` from the thrust axis (EuRoC's IMU frame, x up),
@@ -120,7 +126,7 @@ from fgnav.datasets.geometry import (
     rpy_to_matrix,
     wrap_angle,
 )
-from fgnav.datasets.types import Flight, Trajectory
+from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import AttitudeEkfOptions, AttitudeEkfStage
 from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions
@@ -370,19 +376,16 @@ def drag_model_step(
     return cy * bx - sy * by, sy * bx + cy * by
 
 
-def attitude_source(flight: Flight, opt: Ekf004Options) -> str:
-    """``"stream"`` (the flight's attitude) or ``"imu"`` (the attitude EKF stage) for
-    ``opt.attitude_source``; raises :class:`FlightDataError` when the needed stream is missing."""
+def check_flight(flight: Flight, opt: Ekf004Options) -> None:
+    """Raise :class:`FlightDataError` when the flight lacks what ``opt.attitude_source`` needs
+    (an attitude stream, or an IMU to estimate it)."""
     src = opt.attitude_source
-    if src == "auto":
-        src = "stream" if flight.attitude is not None else "imu"
     if src == "stream" and flight.attitude is None:
         raise FlightDataError(f"{flight.name}: ekf004 attitude_source='stream' needs an attitude")
-    if src == "imu" and flight.imu is None:
+    if flight.imu is None and (src == "imu" or flight.attitude is None):
         raise FlightDataError(
             f"{flight.name}: ekf004 needs an attitude stream (roll, pitch) or an IMU to estimate it"
         )
-    return src
 
 
 # ----------------------------------------------------------------------------------------------
@@ -628,13 +631,19 @@ class Ekf004:
 
     def pose_cov(self) -> np.ndarray:
         """6x6 covariance in GTSAM's Pose3 tangent ``[rot (body), trans (body)]``."""
-        W = euler_rate_matrix(self.x[IR], self.x[IPI])
-        R = self.world_R_body()
-        J = np.zeros((6, N_STATE))
-        J[:3, IR : IY + 1] = W
-        J[3:, IP : IP + 3] = R.T
-        C = J @ self.P @ J.T
-        return 0.5 * (C + C.T)
+        return state_covariances(self.x, self.P)[0]
+
+
+def state_covariances(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose_cov, vel_cov)`` of a state ``x`` with covariance ``P`` (module docstring layout):
+    the 6x6 pose covariance in GTSAM's Pose3 tangent ``[rot (body), trans (body)]`` (the
+    Euler-angle errors mapped to the body rotation by :func:`euler_rate_matrix`) and the 3x3
+    covariance of the world velocity."""
+    J = np.zeros((6, N_STATE))
+    J[:3, IR : IY + 1] = euler_rate_matrix(x[IR], x[IPI])
+    J[3:, IP : IP + 3] = rpy_to_matrix(*x[IR : IY + 1]).T
+    C = J @ P @ J.T
+    return 0.5 * (C + C.T), P[IV : IV + 3, IV : IV + 3].copy()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -663,6 +672,13 @@ ODOMETRY_HISTORY_S = 30.0
 
 START_WAIT_S = 1.0
 """Longest wait [s] from the first attitude sample for the first yaw reading and range height."""
+
+_IN_ORDER = {ImuSample: "imu", AttitudeSample: "attitude", RangeReading: "range"}
+"""Streams whose samples :class:`Ekf004Runner` takes in time order only."""
+
+SOURCES_WINDOW_S = 0.5
+"""The streams that have sent an event within this long [s] of the first event's arrival decide
+the ``"auto"`` attitude and scale sources and which streams the start waits for."""
 
 IMU_FIT_HISTORY_S = 120.0
 """Seconds of arrived IMU and SLAM data kept for the closed-form scale fits."""
@@ -775,12 +791,18 @@ class _Entry:
 class Ekf004Runner:
     """Seed 004's EKF fed events in arrival order (``feed``), with delay compensation.
 
-    The runner never sees a flight: ``Ekf004Runner(flight, options).run()`` replays the flight's
-    events (:func:`fgnav.datasets.events.replay_flight`) into :meth:`feed` and returns the
-    :class:`Estimate`; a live source calls ``start``-free :meth:`feed` the same way (the runner
-    is built from the calibration and the names of the streams that will come). Afterwards
-    ``ekf`` holds the filter after the last measurement (all late ones applied), ``sessions`` the
-    SLAM sessions.
+    Built from the calibration and the options (``Ekf004Runner(calib, options)``, or
+    ``Ekf004Runner(options=...)`` then :meth:`start`), it never sees a flight: :meth:`run`
+    replays one (:func:`fgnav.datasets.events.replay_flight`) into :meth:`feed`, a live link feeds
+    it the same way (:class:`fgnav.live.estimators.Ekf004Live`). :meth:`latest_output` is the
+    newest output, :meth:`result` the :class:`Estimate`. Afterwards ``ekf`` holds the filter
+    after the last measurement (all late ones applied), ``sessions`` the SLAM sessions.
+
+    The first ``SOURCES_WINDOW_S`` of events are held: the streams among them resolve the
+    ``"auto"`` attitude source (the stream when an attitude sample came, else the IMU) and scale
+    source, and which of yaw and range the start waits for; then they are processed in order.
+    An explicit ``attitude_source="stream"`` never estimates the attitude (no output without
+    attitude samples); ``"imu"`` ignores attitude samples.
 
     What the events become: attitude samples (the stream, or seed 002's attitude EKF run as a
     stage on the IMU, yaw and range events, sampled at ``imu_attitude_rate_hz``) give roll and
@@ -788,49 +810,45 @@ class Ekf004Runner:
     yaw-rate measurement, stamped at the last of them (a delay of half the averaging window);
     consecutive tilt-corrected range heights give the vertical speed; SLAM poses are applied at
     their capture time (rolled back and replayed when late). The filter starts at the first
-    attitude sample by which the first yaw reading and range height (of the streams the flight
-    has) have arrived, or ``START_WAIT_S`` after the first attitude sample without them.
+    attitude sample by which the first yaw reading and range height (of the streams the window
+    saw) have arrived, or ``START_WAIT_S`` after the first attitude sample without them.
     """
 
-    def __init__(self, flight: Flight, opt: Ekf004Options) -> None:
-        self.attitude_source = attitude_source(flight, opt)
-        if self.attitude_source == "imu":
-            log.info(
-                "ekf004: %s has no attitude stream; attitude estimated from the IMU", flight.name
-            )
-        self.flight = flight  # replayed by run(); feed() never reads it
-        self.name = flight.name
-        self.calib = flight.calib
-        self.opt = opt
-        self.scale_source = opt.scale_source
-        if self.scale_source == "auto":
-            self.scale_source = "ml" if self.attitude_source == "stream" else "imu_fit"
-        self.attitude_sigma = (
-            opt.attitude_sigma if self.attitude_source == "stream" else opt.imu_attitude_sigma
-        )
-        self.expect_yaw = flight.yaw is not None and opt.use_yaw
-        body_T_cam = np.asarray(flight.calib.body_T_cam, dtype=float)
+    def __init__(
+        self,
+        calib: Calibration | None = None,
+        options: Ekf004Options | None = None,
+        name: str = "flight",
+    ) -> None:
+        self.opt = options or Ekf004Options()
+        self.opt.validate()
+        if calib is not None:
+            self.start(calib, name)
+
+    def start(self, calib: Calibration, name: str = "flight") -> None:
+        """Prepare to be fed events of a vehicle with calibration ``calib``."""
+        opt = self.opt
+        self.name = name
+        self.calib = calib
+        body_T_cam = np.asarray(calib.body_T_cam, dtype=float)
         self.body_R_cam = body_T_cam[:3, :3]
         self.ekf = Ekf004(opt, body_T_cam[:3, 3])
         self.counts = self.ekf.counts
-        self.odo = _MetricOdometry(opt, body_T_cam[:3, 3], flight.calib, self.counts)
+        self.odo = _MetricOdometry(opt, body_T_cam[:3, 3], calib, self.counts)
+        # Decided at the end of the sources window (_decide).
+        self.attitude_source: str | None = None
+        self.scale_source: str | None = None
+        self.attitude_sigma = math.nan
+        self.expect_yaw = self.expect_range = False
         self.att_stage: AttitudeEkfStage | None = None
-        if self.attitude_source == "imu":
-            ao = AttitudeEkfOptions(
-                accel_sigma=opt.imu_attitude_accel_sigma,
-                estimate_gyro_bias=opt.imu_attitude_gyro_bias,
-            )
-            self.att_stage = AttitudeEkfStage(
-                flight.calib, ao, use_range=flight.range is not None, name=flight.name
-            )
+        self._arrived: Arrived | None = None
+        self._held: list[Event] = []
+        self._window_end: float | None = None
+        self._t_newest: dict[str, float] = {}
         self._att_next_t = -math.inf
-        # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): they get
-        # the arrived IMU and SLAM (and a logged attitude), never the IMU-estimated attitude.
-        self._arrived = Arrived() if self.scale_source == "imu_fit" else None
         self._gyro_buf: list[np.ndarray] = []
         self._h_prev: tuple[float, float] | None = None
         self._yaw_first: float | None = None
-        self.expect_range = flight.range is not None
         self._pending_attitude: tuple[float, np.ndarray] | None = None
         self._t_first_attitude = math.nan
         self._started = False
@@ -839,21 +857,77 @@ class Ekf004Runner:
         self.history: list[_Entry] = []
         self.out_t: list[float] = []
         self.out_x: list[np.ndarray] = []
-        self.out_pose_cov: list[np.ndarray] = []
-        self.out_vel_cov: list[np.ndarray] = []
+        self.out_P: list[np.ndarray] = []
         self.scale_t: list[float] = []
         self.scale_v: list[float] = []
         self.scale_sid: list[int] = []
         self.latencies: list[float] = []
+        self.imu_used = 0  # IMU samples taken after the start (yaw rate, attitude EKF)
+        self.t_first_output: float | None = None
+        self._wall0 = time.perf_counter()
+
+    def _decide(self) -> None:
+        """The sources, from the streams of the held events (class docstring); then the held
+        events are processed."""
+        opt, held = self.opt, self._held
+        seen = {type(e) for e in held}
+        src = opt.attitude_source
+        if src == "auto":
+            src = "stream" if AttitudeSample in seen else "imu"
+        self.attitude_source = src
+        self.scale_source = opt.scale_source
+        if self.scale_source == "auto":
+            self.scale_source = "ml" if src == "stream" else "imu_fit"
+        self.attitude_sigma = opt.attitude_sigma if src == "stream" else opt.imu_attitude_sigma
+        self.expect_yaw = YawReading in seen and opt.use_yaw
+        self.expect_range = RangeReading in seen
+        if src == "imu":
+            log.info("ekf004: %s: no attitude stream; attitude estimated from the IMU", self.name)
+            ao = AttitudeEkfOptions(
+                accel_sigma=opt.imu_attitude_accel_sigma,
+                estimate_gyro_bias=opt.imu_attitude_gyro_bias,
+            )
+            self.att_stage = AttitudeEkfStage(
+                self.calib, ao, use_range=self.expect_range, name=self.name
+            )
+        # The closed-form fits integrate the gyro themselves (bias from SLAM rotations): they get
+        # the arrived IMU and SLAM (and a logged attitude), never the IMU-estimated attitude.
+        self._arrived = Arrived() if self.scale_source == "imu_fit" else None
         # imu_fit scale: outputs from the first scale on (as the MSF and UKF baselines whose
         # closed-form start it shares); the seed's ML path reports from the first sample.
-        self.t_first_output: float | None = None if self.scale_source == "ml" else np.inf
+        self.t_first_output = None if self.scale_source == "ml" else np.inf
+        self._held = []
+        for ev in held:
+            self._feed(ev)
 
     # -- events ----------------------------------------------------------------------------------
 
     def feed(self, ev: Event) -> None:
         """One measurement event, in arrival order (IMU, attitude, yaw, range, SLAM pose)."""
+        if self.attitude_source is not None:
+            self._feed(ev)
+            return
+        self._held.append(ev)
+        if self._window_end is None:
+            self._window_end = float(ev.arrival) + SOURCES_WINDOW_S
+        if ev.arrival >= self._window_end:
+            self._decide()
+
+    def close(self) -> None:
+        """The end of the input: the sources are decided now if the window has not ended."""
+        if self.attitude_source is None:
+            self._decide()
+
+    def _feed(self, ev: Event) -> None:
         w0 = time.perf_counter()
+        stream = _IN_ORDER.get(type(ev))
+        if stream is not None:
+            # The attitude-driven odometry, the range heights and the gyro average take these
+            # in time order: an older sample than the newest is skipped (counted).
+            if not ev.t > self._t_newest.get(stream, -math.inf):
+                self.counts.add("skipped", f"{stream}_out_of_order")
+                return
+            self._t_newest[stream] = float(ev.t)
         if isinstance(ev, ImuSample):
             self._on_imu(ev)
         elif isinstance(ev, AttitudeSample):
@@ -882,7 +956,26 @@ class Ekf004Runner:
             return
         self.latencies.append(time.perf_counter() - w0)
 
+    @property
+    def output_t(self) -> float | None:
+        """Time of the newest output (None before the first)."""
+        return self.out_t[-1] if self.out_t else None
+
+    def latest(self) -> np.ndarray | None:
+        """The filter's state now (module docstring layout; all late measurements applied),
+        None before the start."""
+        return self.ekf.x.copy() if self._started else None
+
+    def latest_output(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """The newest output ``(t, x, P)``: the state at an attitude sample and its covariance
+        (module docstring layout), as :meth:`result` reports it (pose and velocity covariances
+        by :func:`state_covariances`); None before the first."""
+        if not self.out_t:
+            return None
+        return self.out_t[-1], self.out_x[-1].copy(), self.out_P[-1].copy()
+
     def _on_imu(self, ev: ImuSample) -> None:
+        self.imu_used += self._started
         if self._arrived is not None:
             self._arrived.add(ev)
             self._arrived.trim(ev.t - IMU_FIT_HISTORY_S)
@@ -986,8 +1079,7 @@ class Ekf004Runner:
             if first_pass and (self.t_first_output is None or e.t >= self.t_first_output):
                 self.out_t.append(e.t)
                 self.out_x.append(ekf.x.copy())
-                self.out_pose_cov.append(ekf.pose_cov())
-                self.out_vel_cov.append(ekf.P[IV : IV + 3, IV : IV + 3].copy())
+                self.out_P.append(ekf.P.copy())
         elif e.kind == "gyro":
             ekf.update_body_rates(e.data)
         elif e.kind == "yaw":
@@ -1116,17 +1208,18 @@ class Ekf004Runner:
             return
         self._set_scale(sess, t, p_sc, s_new, s_sigma)
 
-    def run(self) -> Estimate:
-        """Replay the flight's events into :meth:`feed`; the estimate."""
-        wall0 = time.perf_counter()
-        names = ["imu", "yaw", "attitude", "range", "slam"]
-        if self.attitude_source != "stream":
-            names.remove("attitude")
+    def run(self, flight: Flight) -> Estimate:
+        """:meth:`start` with the flight's calibration, its events replayed into :meth:`feed`,
+        :meth:`close`; the estimate."""
+        check_flight(flight, self.opt)
+        self.start(flight.calib, flight.name)
         # Ties in arrival: a yaw reading before the attitude sample taken with it (the filter
         # starts at the first attitude sample by which a yaw reading has arrived).
-        for ev in replay_flight(self.flight, names, named_order=True):
+        names = ("imu", "yaw", "attitude", "range", "slam")
+        for ev in replay_flight(flight, names, named_order=True):
             self.feed(ev)
-        return self._estimate(np.asarray(self.latencies), time.perf_counter() - wall0)
+        self.close()
+        return self.result()
 
     def _arrive(self, e: _Entry) -> None:
         hist = self.history
@@ -1159,14 +1252,18 @@ class Ekf004Runner:
 
     # -- result ----------------------------------------------------------------------------------
 
-    def _estimate(self, latencies: np.ndarray, runtime_s: float) -> Estimate:
+    def result(self) -> Estimate:
+        """The causal estimate of everything processed so far."""
         if not self.out_x:
             raise FlightDataError(
-                f"{self.flight.name}: ekf004 produced no state: its output starts at the first "
+                f"{self.name}: ekf004 produced no state: its output starts at the first "
                 f"SLAM scale fit ({self.scale_source}), which the flight never allowed (too short "
                 "or too little motion)"
             )
+        latencies = np.asarray(self.latencies)
+        runtime_s = time.perf_counter() - self._wall0
         X = np.asarray(self.out_x)
+        covs = [state_covariances(x, P) for x, P in zip(self.out_x, self.out_P, strict=True)]
         R = np.stack([rpy_to_matrix(*x[IR : IY + 1]) for x in X])
         traj = Trajectory(
             t=np.asarray(self.out_t),
@@ -1210,8 +1307,8 @@ class Ekf004Runner:
         return Estimate(
             method="ekf004",
             trajectory=traj,
-            pose_cov=np.asarray(self.out_pose_cov),
-            vel_cov=np.asarray(self.out_vel_cov),
+            pose_cov=np.array([c[0] for c in covs]),
+            vel_cov=np.array([c[1] for c in covs]),
             slam_scale=scale,
             slam_scale_sigma=scale_sigma,
             series=series,
@@ -1236,7 +1333,6 @@ def run_ekf004(flight: Flight, options: Ekf004Options | None = None) -> Estimate
     from fgnav.estimate import run_in_thrust_body
 
     opt = options or Ekf004Options()
-    opt.validate()
     # The drag-model prediction and the tilt-to-acceleration model need a multirotor body (z
     # along the rotor thrust; EuRoC's IMU frame has x up): run in one and map the estimate back.
-    return run_in_thrust_body(flight, lambda f: Ekf004Runner(f, opt).run())
+    return run_in_thrust_body(flight, lambda f: Ekf004Runner(options=opt).run(f))

@@ -7,9 +7,22 @@ The observer (:mod:`fgnav.frontends.ii_observer`) estimates the horizontal body 
 reports, as the paper does, positions ``x, y = y2 / xi`` (the SLAM position divided by the scale
 estimate, predicted between SLAM samples), the rangefinder height for ``z`` (filtered with the
 vertical accelerometer, which also gives the observer's ``y5``), the velocity
-``world_R_body [eta; w]`` and the attitude it was given (the flight's AHRS stream). It is a thin,
-documented wrapper around :func:`fgnav.frontends.ii_observer.run_ii_observer` that checks the
-flight first and names any missing input.
+``world_R_body [eta; w]`` and the attitude it was given (the flight's AHRS stream).
+
+Event-fed (DESIGN.md sec. 7): :class:`Seed000` is fed the measurement events of
+:mod:`fgnav.datasets.events` in arrival order (``feed``) and answers with its newest output
+(``latest_output``); it runs the front-end stage that also gives the smoother its observer priors
+(:class:`fgnav.frontends.prior_stages.FrontendPriorStage`, here with the baseline's options): an
+IMU sample is processed once the next one and an attitude sample at or after it have arrived (the
+attitude interpolated between the two around it), range readings taken up to it update the
+vertical filter first. SLAM poses arrive ``latency`` after their image time: a late pose rolls the
+observer back to its image time and the later IMU samples are stepped again
+(``slam_history_s``; :class:`fgnav.frontends.ii_observer.IIObserverStepper`), so the state is that
+of in-order processing while the outputs already given stay as they were (causal). Without an
+attitude sample within ``fgnav.frontends.prior_stages.ATTITUDE_WAIT_S`` of the first IMU sample
+the stage runs seed 002's attitude EKF instead (a live link without ``ATTITUDE_QUATERNION``).
+:func:`run_seed000` replays a flight's events into it (:meth:`Seed000.run`), after checking the
+flight and naming any missing input.
 
 Inputs: ``imu`` (specific force and body rate), ``slam`` (positions; tracking-lost samples are
 skipped and counted by the observer; a new session restarts the scale), ``attitude``
@@ -31,37 +44,41 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.types import Flight
+from fgnav.datasets.events import Event, replay_flight
+from fgnav.datasets.types import Calibration, Flight
 from fgnav.estimate import Estimate
-from fgnav.frontends.ii_observer import (
-    IIObserverOptions,
-    VerticalFilterOptions,
-    run_ii_observer,
-)
+from fgnav.frontends.ii_observer import IIObserverOptions, VerticalFilterOptions
+from fgnav.frontends.prior_stages import FrontendPriorStage, PriorOptions
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Seed000Options:
-    """Options of :func:`run_seed000`.
+    """Options of :class:`Seed000`.
 
     Attributes:
         observer: gains, initial values and kinematics variant of the I&I observer (default: the
             paper's gains 7 and 8, ``kinematics="published"``).
-        drag_k: ``mu/m`` per body axis ``(kx, ky)`` [1/s]; None: ``flight.meta["drag_k"]``
-            (else ``observer.drag_k``).
+        drag_k: ``mu/m`` per body axis ``(kx, ky)`` [1/s]; None: ``observer.drag_k``, else (a
+            flight's replay) ``flight.meta["drag_k"]``.
         vertical: the rangefinder/accelerometer vertical filter giving height and ``y5``.
         align_slam_axes: rotate each SLAM session into world axes first (needed when the SLAM
             frame is not aligned with the world, i.e. any similarity SLAM; the paper's model and
             the simulated ``circle`` flight have aligned axes).
+        slam_history_s: the observer's delay compensation: a SLAM pose arriving up to this late
+            [s] is applied at its image time by rolling back and stepping again (0: applied at
+            the current time, counted ``slam_late``).
     """
 
     observer: IIObserverOptions = field(default_factory=IIObserverOptions)
     drag_k: tuple[float, float] | None = None
     vertical: VerticalFilterOptions = field(default_factory=VerticalFilterOptions)
     align_slam_axes: bool = False
+    slam_history_s: float = 1.0
 
 
 REQUIRED_STREAMS = ("imu", "slam", "attitude", "range")
@@ -83,31 +100,123 @@ def check_flight(flight: Flight, options: Seed000Options | None = None) -> None:
         )
 
 
+class Seed000:
+    """The I&I observer baseline, event-fed (module docstring): :meth:`start`, :meth:`feed` in
+    arrival order, :meth:`latest` / :meth:`latest_output`, :meth:`close` at the end of the input,
+    :meth:`result`.
+
+    Args:
+        options: the baseline's options; ``drag_k`` (or ``observer.drag_k``) is needed by
+            :meth:`start` (:meth:`run` takes a flight's ``meta["drag_k"]`` when neither is set).
+    """
+
+    def __init__(self, options: Seed000Options | None = None) -> None:
+        self.options = options or Seed000Options()
+        self.stage: FrontendPriorStage | None = None
+
+    def start(self, calib: Calibration, name: str = "flight") -> None:
+        """Prepare to be fed events of a vehicle with calibration ``calib``."""
+        o = self.options
+        k = o.drag_k if o.drag_k is not None else o.observer.drag_k
+        if k is None:
+            raise FlightDataError(
+                f"{name}: the seed-000 I&I observer needs the drag coefficient mu/m "
+                "(Seed000Options.drag_k)"
+            )
+        k = np.atleast_1d(np.asarray(k, dtype=float))
+        self.name = name
+        self.stage = FrontendPriorStage(
+            calib,
+            PriorOptions(sources=("observer",), drag_k=(float(k[0]), float(k[-1]))),
+            keep_history=True,
+            name=name,
+            observer_options=o.observer,
+            align_slam_axes=o.align_slam_axes,
+            vertical_options=o.vertical,
+            slam_history_s=o.slam_history_s,
+        )
+        self._t0 = time.perf_counter()
+
+    def feed(self, ev: Event) -> None:
+        """One event in arrival order (IMU, attitude, range, SLAM; yaw feeds the attitude EKF
+        of a flight without attitude; others are ignored)."""
+        self.stage.feed(ev)
+
+    def close(self) -> None:
+        """The end of the input: the IMU sample still held (waiting for the next one) is
+        processed."""
+        self.stage.flush()
+
+    def latest(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The newest output (:meth:`latest_output`: this baseline's state is its output)."""
+        return self.latest_output()
+
+    @property
+    def output_t(self) -> float | None:
+        """Time of the newest processed IMU sample with a position (None before the first
+        SLAM pose and range reading)."""
+        out = self.latest_output()
+        return None if out is None else out[0]
+
+    def latest_output(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(t, world_t_body, world_q_body_wxyz, world_v_body)`` of the newest processed IMU
+        sample, as :meth:`result` reports it: x, y ``y2 / xi``, z the filtered height; None while
+        the position is undefined (before the first SLAM pose or range reading)."""
+        row = self.stage.latest_row
+        if row is None:
+            return None
+        o, q, h = row
+        p = np.array([*o.world_xy, h])
+        if o.session < 0 or not np.all(np.isfinite(p)):
+            return None
+        return o.t, p, np.asarray(q, dtype=float).copy(), np.asarray(o.world_v_body).copy()
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """The observer's counts (:meth:`result`'s ``info``) with the stage's (events out of
+        order, late range readings, IMU samples without attitude)."""
+        return {**self.stage.observer_counts(), **self.stage.counts}
+
+    def result(self) -> Estimate:
+        """The causal estimate of everything processed so far (``Estimate(method="ii-observer",
+        causal=True)``; rows without a position left out and counted in
+        ``info["rows_without_position"]``, with every count of the observer and the stage)."""
+        est = self.stage.observer_result().to_estimate()
+        info = dict(est.info)
+        info.update(self.stage.counts)
+        info["attitude_source"] = self.stage.attitude_mode
+        info["align_slam_axes"] = self.options.align_slam_axes
+        info["wrapper_options"] = dataclasses.asdict(self.options)
+        return dataclasses.replace(est, runtime_s=time.perf_counter() - self._t0, info=info).check()
+
+    def run(self, flight: Flight) -> Estimate:
+        """Replay a flight's IMU, attitude, range and SLAM events in arrival order (the SLAM
+        poses at their ``latency``), then :meth:`close`; the estimate."""
+        check_flight(flight, self.options)
+        o = self.options
+        if o.drag_k is None and o.observer.drag_k is None:
+            k = np.atleast_1d(np.asarray(flight.meta["drag_k"], dtype=float))
+            self.options = dataclasses.replace(o, drag_k=(float(k[0]), float(k[-1])))
+        self.start(flight.calib, flight.name)
+        for ev in replay_flight(flight, ("imu", "attitude", "range", "slam")):
+            self.feed(ev)
+        self.close()
+        return self.result()
+
+
 def run_seed000(flight: Flight, options: Seed000Options | None = None) -> Estimate:
-    """Run the I&I observer over a flight; return ``Estimate(method="ii-observer", causal=True)``.
+    """Run the I&I observer over a flight (:meth:`Seed000.run`); return
+    ``Estimate(method="ii-observer", causal=True)``.
 
     Rows before the first SLAM sample or the first range reading have no position; they are left
     out and counted in ``info["rows_without_position"]`` (with every other count of the
-    observer: SLAM samples used/lost, capped scale steps, range readings used/rejected).
+    observer: SLAM samples used/lost/delayed, capped scale steps, range readings used/rejected).
     """
-    options = options or Seed000Options()
-    check_flight(flight, options)
-    obs_opts = options.observer
-    if options.drag_k is not None:
-        obs_opts = dataclasses.replace(obs_opts, drag_k=tuple(options.drag_k))
-    wall0 = time.perf_counter()
-    res = run_ii_observer(
-        flight, obs_opts, vertical=options.vertical, align_slam_axes=options.align_slam_axes
-    )
-    est = res.to_estimate()
-    info = dict(est.info)
-    info["align_slam_axes"] = options.align_slam_axes
-    info["wrapper_options"] = dataclasses.asdict(options)
-    out = dataclasses.replace(est, runtime_s=time.perf_counter() - wall0, info=info).check()
+    est = Seed000(options).run(flight)
     log.info(
         "seed 000 observer on %s: scale %s, %d rows without position",
         flight.name,
-        info.get("slam_scale_xy"),
-        info.get("rows_without_position", 0),
+        est.info.get("slam_scale_xy"),
+        est.info.get("rows_without_position", 0),
     )
-    return out
+    return est

@@ -4,8 +4,8 @@
 Thin layer over :class:`fgnav.live.session.LiveSession`. ``--calib`` is a native ``calib.yaml``
 (:func:`fgnav.datasets.native.read_calib_yaml`). ``--config`` tables: ``[graph]``, ``[online]``
 and ``[priors]`` (the ``online`` estimator; ``[priors] sources``, ``drag_k`` as for ``fgnav
-online``: the front-end prior stage is fed the link's events), ``[msf-ekf]``, ``[ukf003]``,
-``[cf-ekf]``, ``[ekf-flow002]`` (the filter baseline of that name,
+online``: the front-end prior stage is fed the link's events), ``[msf-ekf]``, ``[ekf004]``,
+``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]`` (the filter baseline of that name,
 :mod:`fgnav.live.estimators`), ``[live]`` (:class:`fgnav.live.session.LiveOptions`: idle
 timeout, heartbeat rate, MAVLink ids).
 
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--config",
         default=None,
         help="TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
-        "own ([msf-ekf], [ukf003], [cf-ekf], [ekf-flow002])",
+        "own ([msf-ekf], [ekf004], [ukf003], [cf-ekf], [ekf-flow002])",
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"
@@ -57,9 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ESTIMATOR,
         choices=sorted(ESTIMATORS),
         help=f"what runs on the stream (default {DEFAULT_ESTIMATOR}: the push-API fixed-lag "
-        "smoother; msf-ekf: the MSF-style EKF; ukf003: seed 003's UKF (SLAM, range, yaw; its "
-        "states 0.2 s late); cf-ekf: the Crazyflie EKF and ekf-flow002: seed 002's EKF with flow "
-        "dead reckoning (flow and range))",
+        "smoother; msf-ekf: the MSF-style EKF; ekf004: seed 004's EKF (attitude, or the IMU's "
+        "estimate without ATTITUDE_QUATERNION; SLAM, range, yaw); ukf003: seed 003's UKF (SLAM, "
+        "range, yaw; its states 0.2 s late); cf-ekf: the Crazyflie EKF and ekf-flow002: seed "
+        "002's EKF with flow dead reckoning (flow and range))",
     )
 
 

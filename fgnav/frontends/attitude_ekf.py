@@ -488,8 +488,9 @@ class AttitudeEkfStage:
     the start. Readings taken before the first IMU sample are skipped; a yaw or range reading
     older than the filter's time is applied at the filter's time (counted ``late``; a late yaw
     reading keeps its innovation against the filter's yaw at its own time, from a short history,
-    so the vehicle's turn since then is not taken for an error); range
-    readings out of ``[range_min, range_max]`` are skipped and counted (``range_out_of_limits``).
+    so the vehicle's turn since then is not taken for an error); an IMU sample older than the
+    filter's time is skipped (counted ``imu_late``); range readings out of ``[range_min,
+    range_max]`` are skipped and counted (``range_out_of_limits``).
     """
 
     def __init__(
@@ -517,13 +518,16 @@ class AttitudeEkfStage:
         self._omega_prev = np.zeros(3)
         self._height_init = False
         self._n_late = 0
+        self._n_imu_late = 0
         self._yaw_hist: deque[tuple[float, float]] = deque(maxlen=YAW_HISTORY_SAMPLES)
 
     @property
     def counts(self) -> dict[str, int]:
-        """Updates applied and skipped, by kind (the EKF's counts and ``late``)."""
+        """Updates applied and skipped, by kind (the EKF's counts, ``late`` yaw and range
+        readings and ``imu_late``: IMU samples older than the filter, skipped)."""
         c = dict(self.ekf.counts) if self.ekf is not None else {}
         c["late"] = self._n_late
+        c["imu_late"] = self._n_imu_late
         return c
 
     def feed(self, ev) -> list[AttitudeEstimate]:
@@ -585,7 +589,10 @@ class AttitudeEkfStage:
         t = float(ev.t)
         late = t < self._t_prev
         if late:
-            if isinstance(ev, ImuSample) or not math.isfinite(self._t_prev):
+            if isinstance(ev, ImuSample):
+                self._n_imu_late += 1
+                return []
+            if not math.isfinite(self._t_prev):
                 return []
             self._n_late += 1
             t_meas, t = t, self._t_prev

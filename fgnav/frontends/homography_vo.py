@@ -1240,8 +1240,10 @@ class HomographyVoStage:
       interpolated from what has arrived (or until ``max_interp_gap_s`` has passed on the event
       clock, then it uses the newest values within that gap). The height is the tilted range
       (seed 002 eq. 21) with a trailing running median of ``range_median_window`` readings: only
-      past readings, unlike the batch path's centred median. :meth:`flush` processes what still
-      waits at the end of a stream.
+      past readings, unlike the batch path's centred median. An upstream stage may give the
+      attitude and the height instead (:meth:`add_inputs`: the seed-002 baseline's attitude-and-
+      height EKF, its outputs at each IMU sample), with only the images as events.
+      :meth:`flush` processes what still waits at the end of a stream.
 
     Nothing here reads the future or a whole flight; the state is the reference frame (its
     prepared image, pyramid and tracked points), the dead-reckoned pose and counters.
@@ -1298,7 +1300,8 @@ class HomographyVoStage:
         # Outputs.
         self.counts: Counter[str] = Counter()
         self.measurements: list[HomographyMeasurement] = []
-        self._posed: list[tuple[float, np.ndarray, np.ndarray, float]] = []
+        self._posed: list[tuple[float, np.ndarray, np.ndarray, float, float]] = []  # t R p yaw h
+        self._n_posed = 0
         self.latest_measurement: HomographyMeasurement | None = None
         self.busy_s = 0.0
         # Event mode (feed): short input buffers and frames waiting for their inputs.
@@ -1382,7 +1385,7 @@ class HomographyVoStage:
             self._world_R_cam = self._world_R_body @ self.body_R_cam
             self._world_t_cam = world_T_body0[:3, 3] + self._world_R_body @ self.body_t_cam
             self._psi = float(yaw_of(self._world_R_body))
-            self._append_pose(t)
+            self._append_pose(t, body_height)
             return None
         ref = self._ref
         base = dict(index_i=ref.index, index_j=k, t_i=ref.t, t_j=t)
@@ -1424,7 +1427,7 @@ class HomographyVoStage:
             self._world_R_body = self._world_R_cam @ self.body_R_cam.T
             self._psi = float(yaw_of(self._world_R_body))
         self._world_t_cam = self._world_t_cam - self._world_R_cam @ m.cam_j_t_cam_i
-        self._append_pose(t)
+        self._append_pose(t, body_height)
         self._ref = cur
         return m
 
@@ -1445,9 +1448,10 @@ class HomographyVoStage:
         if self.keep_history:
             self.measurements.append(m)
 
-    def _append_pose(self, t: float) -> None:
+    def _append_pose(self, t: float, body_height: float) -> None:
         world_t_body = self._world_t_cam - self._world_R_body @ self.body_t_cam
-        pose = (t, self._world_R_body.copy(), world_t_body, self._psi)
+        pose = (t, self._world_R_body.copy(), world_t_body, self._psi, float(body_height))
+        self._n_posed += 1
         if self.keep_history or not self._posed:
             self._posed.append(pose)
         else:
@@ -1457,10 +1461,22 @@ class HomographyVoStage:
         """``(t, world_T_body (4, 4), yaw)`` of the newest posed frame, or None."""
         if not self._posed:
             return None
-        t, R, p, psi = self._posed[-1]
+        t, R, p, psi, _ = self._posed[-1]
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, p
         return t, T, psi
+
+    @property
+    def n_posed(self) -> int:
+        """Frames posed so far."""
+        return self._n_posed
+
+    def posed_since(self, n: int) -> list[tuple[float, np.ndarray, np.ndarray, float]]:
+        """``(t, world_R_body, world_t_body, body_height)`` of the frames posed after the first
+        ``n`` (``keep_history``; without it only the newest is kept), ``body_height`` [m] the
+        height above the ground the frame was given."""
+        k = max(len(self._posed) - (self._n_posed - n), 0)
+        return [(t, R, p, h) for t, R, p, _, h in self._posed[k:]]
 
     # -- events ----------------------------------------------------------------------------------
 
@@ -1468,12 +1484,9 @@ class HomographyVoStage:
         """One event in arrival order (attitude sample, range reading or image frame; others are
         ignored). Returns the pair measurements of the frames processed because of it."""
         if isinstance(event, AttitudeSample):
-            t = float(event.t)
-            if not self._att_t or t > self._att_t[-1]:
-                self._att_t.append(t)
-                self._att_R.append(quat_wxyz_to_matrix(np.asarray(event.world_q_body_wxyz)))
-            else:
-                self.counts["attitude_out_of_order"] += 1
+            self._add_attitude(
+                float(event.t), quat_wxyz_to_matrix(np.asarray(event.world_q_body_wxyz))
+            )
         elif isinstance(event, RangeReading):
             self._add_range(event)
         elif isinstance(event, ImageFrame):
@@ -1488,9 +1501,49 @@ class HomographyVoStage:
         self._trim()
         return out
 
+    def add_inputs(
+        self,
+        t: float,
+        arrival: float,
+        world_R_body: np.ndarray | None = None,
+        body_height: float | None = None,
+    ) -> list[HomographyMeasurement]:
+        """The attitude ``world_R_body`` (3, 3) and/or the body height above the ground [m] at
+        time ``t`` from a stage upstream (seed 002's attitude-and-height EKF), in place of
+        attitude samples and range readings, available from ``arrival``. Returns the pair
+        measurements of the frames that waited for them."""
+        if world_R_body is not None:
+            self._add_attitude(float(t), np.asarray(world_R_body, float))
+        if body_height is not None:
+            if self._h_t and t <= self._h_t[-1]:
+                self.counts["height_out_of_order"] += 1
+            else:
+                self._h_t.append(float(t))
+                self._h_v.append(float(body_height))
+        self._clock = max(self._clock, float(arrival))
+        out = self._drain(final=False)
+        self._trim()
+        return out
+
+    def inputs_at(self, t: float) -> tuple[np.ndarray | None, float | None]:
+        """The attitude and the body height at ``t`` as a frame taken then gets them (from the
+        buffered inputs; None where unavailable)."""
+        gap = self.options.max_interp_gap_s
+        return (
+            _value_at(self._att_t, self._att_R, t, gap, _slerp2),
+            _value_at(self._h_t, self._h_v, t, gap, _lerp2),
+        )
+
     def flush(self) -> list[HomographyMeasurement]:
         """Process every waiting frame with what has arrived (end of the stream)."""
         return self._drain(final=True)
+
+    def _add_attitude(self, t: float, world_R_body: np.ndarray) -> None:
+        if not self._att_t or t > self._att_t[-1]:
+            self._att_t.append(t)
+            self._att_R.append(world_R_body)
+        else:
+            self.counts["attitude_out_of_order"] += 1
 
     def _add_range(self, ev: RangeReading) -> None:
         c = self.calib
@@ -1517,13 +1570,8 @@ class HomographyVoStage:
             if not (att_ready and h_ready) and not final and self._clock <= f.t + gap:
                 break
             self._pending.pop(0)
-            R = (
-                _value_at(self._att_t, self._att_R, f.t, gap, _slerp2)
-                if self.uses_attitude
-                else None
-            )
-            h = _value_at(self._h_t, self._h_v, f.t, gap, _lerp2)
-            m = self.process(f, R, h)
+            R, h = self.inputs_at(f.t)
+            m = self.process(f, R if self.uses_attitude else None, h)
             if m is not None:
                 out.append(m)
         return out

@@ -59,23 +59,28 @@ the full variant); RK4 is stable for ``lambda dt < 2.78`` -- at 200 Hz and ``k g
 SLAM sample, stable for ``gamma_k X_dot_i^2 dt_slam < 2``; the step's gain is capped so that this
 product stays below ``max_scale_step`` (1: dead-beat), which only acts at high speed (``gamma_k =
 8``, 20 Hz SLAM: above ``|X_dot| = 1.6 m/s``). The capped steps are counted. SLAM samples are used
-at their image times (``SlamSeries.t``; delivery latency is not modelled).
+at their image times (``SlamSeries.t``): a sample arriving late is applied there by rolling the
+observer back (:class:`IIObserverStepper` with a history; the seed-000 baseline), or at the
+current time without one.
 Not modelled: accelerometer bias (it biases ``eta`` by ``b / k``), wind, SLAM rotation/offset.
 """
 
 from __future__ import annotations
 
+import bisect
+import dataclasses
 import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from operator import attrgetter, itemgetter
 from typing import Literal, NamedTuple
 
 import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.geometry import interpolate_quat_wxyz, quat_wxyz_to_matrix
-from fgnav.datasets.types import Flight, Trajectory
+from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.types import AttitudeSeries, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import GRAVITY
 
@@ -330,6 +335,22 @@ class IIObserver:
         self._s[2], self._s[3] = map(float, self.options.scale0)
         self._s[4] = self._s[5] = 0.0
 
+    def snapshot(self) -> tuple:
+        """The observer's whole state (for :meth:`restore`)."""
+        return (
+            list(self._s),
+            self._u,
+            self.t,
+            self.t_last_slam,
+            self._has_slam,
+            self.capped_steps,
+        )
+
+    def restore(self, snap: tuple) -> None:
+        """Go back to a :meth:`snapshot`."""
+        s, self._u, self.t, self.t_last_slam, self._has_slam, self.capped_steps = snap
+        self._s = list(s)
+
 
 # ---------------------------------------------------------------------------------------------
 # Vertical velocity (y5) from the rangefinder
@@ -492,15 +513,32 @@ class ObserverOutput(NamedTuple):
     session: int
 
 
+class _Step(NamedTuple):
+    """One processed input sample in the stepper's history: its time and inputs, the state
+    before it, and the SLAM poses it took from the queue."""
+
+    t: float
+    inputs: tuple
+    before: tuple
+    popped: list
+
+
 class IIObserverStepper:
     """:class:`IIObserver` with the SLAM bookkeeping of :func:`run_ii_observer`, one input
     sample at a time: ``add_slam`` queues a SLAM pose, ``step`` applies the queued poses taken up
-    to the sample's time (propagating to each pose's time first, inputs interpolated between the
-    previous sample and this one) and propagates to the sample. The whole-flight function and the
-    event-fed :class:`fgnav.frontends.prior_stages.FrontendPriorStage` both run it.
+    to the sample's time, in capture order (propagating to each pose's time first, inputs
+    interpolated between the previous sample and this one) and propagates to the sample. The
+    event-fed :class:`fgnav.frontends.prior_stages.FrontendPriorStage` runs it (the seed-000
+    baseline and the smoother's observer priors).
 
-    A pose taken before the newest propagated time (arrived late) is applied at the current time
-    (delivery latency is not modelled, as in the module docstring) and counted ``slam_late``.
+    A pose taken before the newest propagated time arrived late. With ``history_s`` > 0 the
+    stepper keeps its state before each sample of the last ``history_s`` seconds (with the
+    sample's inputs and the poses it took): a late pose rolls it back to the sample at or after
+    the pose's time and the samples since are stepped again with the pose among them, so the state
+    is what in-order processing gives (seed 004's delay compensation, fig. 2; the outputs already
+    returned stay as they were: causal). Those poses are counted ``slam_delayed``. A pose older
+    than the history, or any late pose with ``history_s`` = 0, is applied at the current time
+    and counted ``slam_late``.
     """
 
     def __init__(
@@ -509,27 +547,94 @@ class IIObserverStepper:
         drag_k: tuple[float, float] | None,
         body_R_cam: np.ndarray,
         align_slam_axes: bool = False,
+        history_s: float = 0.0,
     ) -> None:
         self.options = options
         self.observer = IIObserver(options, drag_k=drag_k)
         self.body_R_cam = np.asarray(body_R_cam, dtype=float)
         self.align = align_slam_axes
+        self.history_s = float(history_s)
         self.counts = {
             "slam_used": 0,
             "slam_lost": 0,
             "slam_before_imu": 0,
             "scale_resets": 0,
         }
-        self._queue: deque = deque()
+        self._queue: list = []  # (t, slam_t_cam, slam_q_cam_wxyz, session) in capture order
         self._prev: tuple | None = None  # (t, acc, gyr, R, vz) of the previous sample
         self._t_first: float | None = None
         self._current: int | None = None
         self._world_R_slam = np.eye(3)
+        self._hist: deque[_Step] = deque()
 
     def add_slam(self, t: float, slam_t_cam, slam_q_cam_wxyz, session: int) -> None:
-        self._queue.append((float(t), slam_t_cam, slam_q_cam_wxyz, int(session)))
+        bisect.insort(
+            self._queue, (float(t), slam_t_cam, slam_q_cam_wxyz, int(session)), key=itemgetter(0)
+        )
 
     def step(self, t, acc, gyr, R, vz) -> ObserverOutput:
+        """One input sample (time [s], specific force, body rate, ``world_R_body``, world
+        vertical velocity): the observer's output at it."""
+        if self.history_s > 0:
+            self._replay_late()
+            before = self._snapshot()
+        popped: list = []
+        out = self._step(t, acc, gyr, R, vz, popped)
+        if self.history_s > 0:
+            hist = self._hist
+            hist.append(_Step(t, (acc, gyr, R, vz), before, popped))
+            while hist[0].t < t - self.history_s:
+                hist.popleft()
+        return out
+
+    def _snapshot(self) -> tuple:
+        return (
+            self.observer.snapshot(),
+            self._prev,
+            self._t_first,
+            self._current,
+            self._world_R_slam,
+            dict(self.counts),
+        )
+
+    def _restore(self, snap: tuple) -> None:
+        obs, self._prev, self._t_first, self._current, self._world_R_slam, counts = snap
+        self.observer.restore(obs)
+        # What the rolled-back steps counted is counted again as they are stepped again; the
+        # count of rolled-back poses is not part of the state.
+        delayed = self.counts.get("slam_delayed")
+        self.counts.clear()
+        self.counts.update(counts)
+        if delayed is not None:
+            self.counts["slam_delayed"] = delayed
+
+    def _replay_late(self) -> None:
+        """Roll back and step again for the queued poses older than the observer (class
+        docstring)."""
+        obs, queue, hist = self.observer, self._queue, self._hist
+        if not queue or not hist or not queue[0][0] < obs.t:
+            return
+        # Poses older than the history stay queued: applied at the current time (slam_late).
+        t_before = hist[0].before[0][2]  # the observer's time before the oldest kept sample
+        n_old = 0 if t_before is None else bisect.bisect_right(queue, t_before, key=itemgetter(0))
+        n_late = bisect.bisect_left(queue, obs.t, key=itemgetter(0)) - n_old
+        if n_late <= 0:
+            return
+        old, queue[:n_old] = queue[:n_old], []
+        k = bisect.bisect_left(hist, queue[0][0], key=attrgetter("t"))  # first sample at or after
+        steps = [hist.pop() for _ in range(len(hist) - k)][::-1]
+        self._restore(steps[0].before)
+        for st in steps:
+            for pose in st.popped:
+                bisect.insort(queue, pose, key=itemgetter(0))
+        for st in steps:
+            before, popped = self._snapshot(), []
+            self._step(st.t, *st.inputs, popped)
+            hist.append(_Step(st.t, st.inputs, before, popped))
+        queue[:0] = old
+        self.counts["slam_delayed"] = self.counts.get("slam_delayed", 0) + n_late
+
+    def _step(self, t, acc, gyr, R, vz, popped: list) -> ObserverOutput:
         obs = self.observer
         counts = self.counts
         if self._prev is None:
@@ -537,7 +642,9 @@ class IIObserverStepper:
             self._t_first = t
         prev = self._prev
         while self._queue and self._queue[0][0] <= t:
-            ts, p, q, sid = self._queue.popleft()
+            pose = self._queue.pop(0)
+            popped.append(pose)
+            ts, p, q, sid = pose
             if ts < self._t_first:
                 counts["slam_before_imu"] += 1
                 continue
@@ -681,7 +788,10 @@ def run_ii_observer(
     vertical: VerticalFilterOptions | None = None,
     align_slam_axes: bool = False,
 ) -> IIObserverResult:
-    """Run the observer over a flight, in time order (causal).
+    """The observer over a flight: its events replayed in time order into the event-fed stage
+    (:class:`fgnav.frontends.prior_stages.FrontendPriorStage`, observer only), the SLAM poses at
+    their capture times (no delivery latency; the seed-000 baseline,
+    :class:`fgnav.baselines.seed000.Seed000`, replays them at their arrival).
 
     Args:
         flight: needs ``imu`` and ``slam``; ``attitude`` unless ``world_q_body_wxyz`` is given;
@@ -689,10 +799,11 @@ def run_ii_observer(
             from 0, counted as ``height_is_relative``). SLAM samples with a negative session id
             (tracking lost) are skipped and counted; a new session id resets the scale.
         options: observer options; ``drag_k`` None -> ``flight.meta["drag_k"]``.
-        world_q_body_wxyz: (N, 4) attitude at the IMU times (e.g. from the attitude EKF); default:
-            ``flight.attitude`` interpolated.
-        world_vz: (N,) world vertical velocity at the IMU times [m/s]; default:
-            :func:`vertical_velocity_from_range`.
+        world_q_body_wxyz: (N, 4) attitude at the IMU times (e.g. from the attitude EKF),
+            replayed as the attitude stream; default: ``flight.attitude`` (interpolated at each
+            IMU sample once the samples around it have arrived).
+        world_vz: (N,) world vertical velocity at the IMU times [m/s] (an analysis input, e.g. the
+            truth); default: the rangefinder/accelerometer :class:`VerticalFilter`.
         vertical: options of the vertical filter.
         align_slam_axes: False: the paper's model, SLAM axes are world axes (``y2`` = SLAM x, y).
             True: each session's SLAM positions are first rotated into world axes with
@@ -702,31 +813,29 @@ def run_ii_observer(
             ``y2_dot`` enters the error dynamics) but shifts the output positions by
             ``offset / xi``; the camera lever arm is not compensated.
     """
+    from fgnav.datasets.events import replay, series_events, stream_events
+    from fgnav.frontends.prior_stages import FrontendPriorStage, PriorOptions
+
     options = options or IIObserverOptions()
     imu, slam = flight.imu, flight.slam
     if imu is None or slam is None:
         raise FlightDataError(f"{flight.name}: the I&I observer needs the imu and slam streams")
     drag = options.drag_k if options.drag_k is not None else flight.meta.get("drag_k")
-    if world_q_body_wxyz is None:
-        if flight.attitude is None:
+    attitude = flight.attitude
+    if world_q_body_wxyz is not None:
+        q = np.asarray(world_q_body_wxyz, dtype=float)
+        if q.shape != (len(imu), 4):
             raise FlightDataError(
-                f"{flight.name}: the I&I observer needs attitude (flight.attitude or the EKF's)"
+                f"{flight.name}: world_q_body_wxyz must be ({len(imu)}, 4) at the IMU times, "
+                f"got {q.shape}"
             )
-        world_q_body_wxyz = interpolate_quat_wxyz(
-            flight.attitude.t, flight.attitude.world_q_body_wxyz, imu.t
-        )
-    q = np.asarray(world_q_body_wxyz, dtype=float)
-    if q.shape != (len(imu), 4):
+        attitude = AttitudeSeries(t=imu.t, world_q_body_wxyz=q)
+    elif attitude is None:
         raise FlightDataError(
-            f"{flight.name}: world_q_body_wxyz must be ({len(imu)}, 4) at the IMU times, "
-            f"got {q.shape}"
+            f"{flight.name}: the I&I observer needs attitude (flight.attitude or the EKF's)"
         )
-    height = np.full(len(imu), np.nan)
-    if world_vz is None:
-        vv = vertical_velocity_from_range(flight, q, vertical)
-        world_vz, height = vv.world_vz, vv.height
-        counts_v = {f"range_{k}": v for k, v in vv.counts.items()}
-    else:
+    given = None
+    if world_vz is not None:
         world_vz = np.asarray(world_vz, dtype=float)
         if world_vz.shape != (len(imu),):
             raise FlightDataError(
@@ -737,49 +846,33 @@ def run_ii_observer(
         height = np.concatenate(
             [[0.0], np.cumsum(0.5 * (world_vz[1:] + world_vz[:-1]) * np.diff(imu.t))]
         )
-        counts_v = {"height_is_relative": 1}
-    body_R_cam = np.asarray(flight.calib.body_T_cam, dtype=float)[:3, :3]
-    stepper = IIObserverStepper(
-        options, None if drag is None else tuple(np.ravel(drag)[:2]), body_R_cam, align_slam_axes
+        rows = zip(world_vz.tolist(), height.tolist(), strict=True)
+        given = dict(zip(imu.t.tolist(), rows, strict=True)).__getitem__
+    elif flight.range is None:
+        raise FlightDataError(f"{flight.name}: vertical velocity needs the imu and range streams")
+    k = None if drag is None else tuple(float(x) for x in np.ravel(drag)[:2])
+    stage = FrontendPriorStage(
+        flight.calib,
+        PriorOptions(sources=("observer",), drag_k=k),
+        keep_history=True,
+        name=flight.name,
+        observer_options=options,
+        align_slam_axes=align_slam_axes,
+        vertical_options=vertical,
+        given_vertical=given,
     )
-    R_all = quat_wxyz_to_matrix(q)
-
-    n = len(imu)
-    eta = np.empty((n, 2))
-    xi = np.full((n, 2), np.nan)
-    vel = np.empty((n, 3))
-    pos = np.full((n, 3), np.nan)
-    sess = np.full(n, -1, dtype=int)
     t0 = time.perf_counter()
-    j = 0
-    acc, gyr = imu.body_accel, imu.body_omega
-    for i in range(n):
-        t = float(imu.t[i])
-        while j < len(slam) and slam.t[j] <= t:
-            stepper.add_slam(
-                float(slam.t[j]), slam.slam_t_cam[j], slam.slam_q_cam_wxyz[j], int(slam.session[j])
-            )
-            j += 1
-        o = stepper.step(t, acc[i], gyr[i], R_all[i], world_vz[i])
-        eta[i], vel[i] = o.eta, o.world_v_body
-        if o.session >= 0:
-            xi[i], sess[i], pos[i, :2] = o.xi, o.session, o.world_xy
-        pos[i, 2] = height[i]
-    obs, counts = stepper.observer, stepper.counts
-    counts["capped_scale_steps"] = obs.capped_steps
-    counts.update(counts_v)
-    runtime = time.perf_counter() - t0
-    log.info("I&I observer on %s: %s (%.2f s)", flight.name, counts, runtime)
-    return IIObserverResult(
-        t=imu.t.copy(),
-        eta=eta,
-        xi=xi,
-        world_v_body=vel,
-        world_t_body=pos,
-        session=sess,
-        world_q_body_wxyz=q,
-        counts=counts,
-        options=options,
-        drag_k=obs.k.copy(),
-        runtime_s=runtime,
+    streams = [
+        stream_events(flight, "imu"),
+        series_events(attitude, "attitude"),
+        stream_events(flight, "range") if given is None else iter(()),
+        stream_events(flight, "slam", 0.0),
+    ]
+    for ev in replay(streams):
+        stage.feed(ev)
+    stage.flush()
+    res = dataclasses.replace(
+        stage.observer_result(), options=options, runtime_s=time.perf_counter() - t0
     )
+    log.info("I&I observer on %s: %s (%.2f s)", flight.name, res.counts, res.runtime_s)
+    return res

@@ -20,8 +20,10 @@ stream once an attitude sample at or after it has arrived, so that the interpola
 2. the vertical filter (:class:`fgnav.frontends.ii_observer.VerticalFilter`): range readings
    taken up to the sample (a reading arriving after its sample was processed is applied at the
    next one), then the prediction to the next sample -> ``world_vz`` and the height;
-3. ``observer``: :class:`fgnav.frontends.ii_observer.IIObserverStepper` (full kinematics, SLAM
-   axes aligned by attitude, as :func:`fgnav.frontends.pipeline.observer_priors`);
+3. ``observer``: :class:`fgnav.frontends.ii_observer.IIObserverStepper` (by default full
+   kinematics, SLAM axes aligned by attitude, as :func:`fgnav.frontends.pipeline.observer_priors`;
+   the seed-000 baseline, :class:`fgnav.baselines.seed000.Seed000`, runs this stage with its own
+   observer, alignment and vertical filter options and the observer's delay compensation);
 4. ``ml-scale``: each SLAM pose whose time the processed IMU has passed joins its session's
    pairs: windows of ``PairOptions.window`` from the session's first pose, the poses nearest each
    window end (within ``max_gap``), the SLAM displacement rotated into world axes by the chordal
@@ -30,17 +32,20 @@ stream once an attitude sample at or after it has arrived, so that the interpola
    vertical component paired with the filtered height's change ->
    :class:`fgnav.frontends.scale_ml.MLScaleEstimator`.
 
-The whole-flight functions of :mod:`fgnav.frontends.pipeline` replay a flight into this stage
-(time order: the SLAM poses at their capture times) and read its full history
-(``keep_history``). Not modelled: the SLAM delivery latency inside the observer (a late pose is
-applied at the current time, counted ``slam_late``); the stage is rebuilt, not carried, when the
-smoother resets.
+The whole-flight functions of :mod:`fgnav.frontends.pipeline` and
+:func:`fgnav.frontends.ii_observer.run_ii_observer` replay a flight into this stage (time order:
+the SLAM poses at their capture times) and read its full history (``keep_history``). Not
+modelled by default: the SLAM delivery latency inside the observer (a late pose is applied at the
+current time, counted ``slam_late``; ``slam_history_s`` > 0 rolls the observer back instead, as
+the seed-000 baseline does); the stage is rebuilt, not carried, when the smoother resets.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +61,7 @@ from fgnav.frontends.ii_observer import (
     IIObserverResult,
     IIObserverStepper,
     VerticalFilter,
+    VerticalFilterOptions,
 )
 from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions, PairOptions, ScaleResult
 
@@ -144,6 +150,17 @@ class FrontendPriorStage:
         options: the ``[priors]`` options.
         keep_history: keep every output (the whole-flight functions read it).
         name: used in messages.
+        observer_options: the observer's gains and kinematics (default: full kinematics; its
+            ``drag_k`` is ``options.drag_k``). The seed-000 baseline gives its own.
+        align_slam_axes: rotate each SLAM session into world axes first (default; False: the
+            paper's model, SLAM axes are world axes).
+        vertical_options: the vertical filter's options.
+        slam_history_s: the observer's delay compensation history
+            (:class:`~fgnav.frontends.ii_observer.IIObserverStepper`; 0: a late SLAM pose is
+            applied at the current time).
+        given_vertical: the world vertical velocity [m/s] and height [m] at an IMU sample's
+            time, in place of the vertical filter (an analysis input, e.g. the truth, to test the
+            observer alone: :func:`~fgnav.frontends.ii_observer.run_ii_observer`'s ``world_vz``).
     """
 
     def __init__(
@@ -152,6 +169,12 @@ class FrontendPriorStage:
         options: PriorOptions,
         keep_history: bool = False,
         name: str = "priors",
+        *,
+        observer_options: IIObserverOptions | None = None,
+        align_slam_axes: bool = True,
+        vertical_options: VerticalFilterOptions | None = None,
+        slam_history_s: float = 0.0,
+        given_vertical: Callable[[float], tuple[float, float]] | None = None,
     ) -> None:
         self.options = options.check()
         self.calib = calib
@@ -160,13 +183,25 @@ class FrontendPriorStage:
         self.use_observer = "observer" in options.sources
         self.use_ml = "ml-scale" in options.sources
         self.body_R_cam = np.asarray(calib.body_T_cam, dtype=float)[:3, :3]
-        self.vertical = VerticalFilter(calib.body_T_range, calib.range_min, calib.range_max)
-        self.observer_options = IIObserverOptions(kinematics="full", drag_k=options.drag_k)
+        self.vertical = VerticalFilter(
+            calib.body_T_range, calib.range_min, calib.range_max, vertical_options
+        )
+        self.given_vertical = given_vertical
+        self.observer_options = dataclasses.replace(
+            observer_options or IIObserverOptions(kinematics="full"), drag_k=options.drag_k
+        )
         self.stepper = (
-            IIObserverStepper(self.observer_options, options.drag_k, self.body_R_cam, True)
+            IIObserverStepper(
+                self.observer_options,
+                options.drag_k,
+                self.body_R_cam,
+                align_slam_axes,
+                history_s=slam_history_s,
+            )
             if self.use_observer
             else None
         )
+        self.latest_row: tuple | None = None  # (ObserverOutput, q, height) of the newest sample
         sx, sy = ML_SCALE_SIGMAS
         self.ml_options = MLScaleOptions(sigma_slam=sx, sigma_metric=sy)
         self.pair_options = PairOptions(components="vertical")
@@ -268,7 +303,8 @@ class FrontendPriorStage:
         )
 
     def observer_result(self) -> IIObserverResult:
-        """The observer's history (``keep_history``) as :func:`run_ii_observer` returns it."""
+        """The observer's history (``keep_history``) as
+        :func:`~fgnav.frontends.ii_observer.run_ii_observer` returns it."""
         if not self.keep or self.stepper is None:
             raise FlightDataError(f"{self.name}: observer history not kept")
         rows = self._rows
@@ -280,9 +316,6 @@ class FrontendPriorStage:
             if o.session >= 0:
                 xi[i], sess[i], pos[i, :2] = o.xi, o.session, o.world_xy
             pos[i, 2] = h
-        counts = dict(self.stepper.counts)
-        counts["capped_scale_steps"] = self.stepper.observer.capped_steps
-        counts.update({f"range_{k}": v for k, v in self.vertical.counts.items()})
         return IIObserverResult(
             t=np.array([o.t for o, _, _ in rows]),
             eta=np.array([o.eta for o, _, _ in rows]).reshape(-1, 2),
@@ -291,10 +324,29 @@ class FrontendPriorStage:
             world_t_body=pos,
             session=sess,
             world_q_body_wxyz=np.array([q for _, q, _ in rows]).reshape(-1, 4),
-            counts=counts,
+            counts=self.observer_counts(),
             options=self.observer_options,
             drag_k=self.stepper.observer.k.copy(),
         )
+
+    def observer_counts(self) -> dict[str, int]:
+        """The observer's counts as :func:`~fgnav.frontends.ii_observer.run_ii_observer` reports
+        them (SLAM poses, capped scale steps, the vertical filter's range readings)."""
+        if self.stepper is None:
+            return {}
+        counts = dict(self.stepper.counts)
+        counts["capped_scale_steps"] = self.stepper.observer.capped_steps
+        if self.given_vertical is None:
+            counts.update({f"range_{k}": v for k, v in self.vertical.counts.items()})
+        else:
+            counts["height_is_relative"] = 1
+        return counts
+
+    @property
+    def attitude_mode(self) -> str | None:
+        """``"stream"`` (the attitude stream), ``"ekf"`` (the attitude EKF) or None (not
+        decided yet)."""
+        return self._mode
 
     @property
     def all_counts(self) -> dict[str, int]:
@@ -383,6 +435,8 @@ class FrontendPriorStage:
         if t_next is not None:
             vf.predict(t_next - t, R, acc)
         vz, h = vf.world_vz, vf.height
+        if self.given_vertical is not None:
+            vz, h = self.given_vertical(t)
         horizon = t - HISTORY_S
         self._hq.append((t, q))
         self._hh.append((t, h))
@@ -395,8 +449,9 @@ class FrontendPriorStage:
                 self._vel.append((t, o.world_v_body))
                 while self._vel and self._vel[0][0] < horizon:
                     self._vel.popleft()
+            self.latest_row = (o, q, h)
             if self.keep:
-                self._rows.append((o, q, h))
+                self._rows.append(self.latest_row)
         self._t_done = t
         while self._slam_ml and self._slam_ml[0].t <= t:
             self._ml_pose(self._slam_ml.popleft())

@@ -14,19 +14,21 @@ A factory ``make(calib, config) -> estimator`` builds one from the calibration a
 * ``online``: the push-API fixed-lag smoother (``[graph]``, ``[online]`` and ``[priors]``
   tables: the front-ends that supply priors run inside it on the link's events), imported
   when called;
-* ``msf-ekf``, ``ukf003``, ``cf-ekf``, ``ekf-flow002``: the event-fed filter baselines
-  (``[msf-ekf]``, ``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]``: the options classes
-  ``fgnav.methods`` fills for them) behind :class:`FilterLive` adapters (:class:`MsfLive`,
-  :class:`Ukf003Live`, :class:`CfEkfLive`, :class:`Flow002Live`), which give them the same
-  shape: their newest state as an ``OnlineState`` at an output rate on the IMU's clock.
+* ``msf-ekf``, ``ekf004``, ``ukf003``, ``cf-ekf``, ``ekf-flow002``: the event-fed filter
+  baselines (``[msf-ekf]``, ``[ekf004]``, ``[ukf003]``, ``[cf-ekf]``, ``[ekf-flow002]``: the
+  options classes ``fgnav.methods`` fills for them) behind :class:`FilterLive` adapters
+  (:class:`MsfLive`, :class:`Ekf004Live`, :class:`Ukf003Live`, :class:`CfEkfLive`,
+  :class:`Flow002Live`), which give them the same shape: their newest state as an
+  ``OnlineState`` at an output rate on the IMU's clock.
 
-Not here: ``ekf004`` (seed 004's EKF): ``Ekf004Runner`` is built from a ``Flight`` and chooses
-its attitude source, scale source and start condition from the streams that flight has; a live
-link learns which streams come only as messages arrive.
+Not here: ``ii-observer`` (no covariance, a calibrated drag coefficient; its
+:class:`~fgnav.baselines.seed000.Seed000` is event-fed) and ``ekf-vo002`` (images: not on the
+link).
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
@@ -90,6 +92,15 @@ def msf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
     return MsfLive(calib, _options(MsfOptions, config, "msf-ekf"))
 
 
+def ekf004(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
+    """Seed 004's EKF with the push API (:class:`Ekf004Live`), ``[ekf004]`` table (``drag_k``
+    from it, else the default: a live link has no flight metadata)."""
+    from fgnav.baselines.ekf004 import Ekf004Options
+    from fgnav.methods import _options
+
+    return Ekf004Live(calib, _options(Ekf004Options, config, "ekf004"))
+
+
 def ukf003(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
     """Seed 003's UKF with the push API (:class:`Ukf003Live`), ``[ukf003]`` table."""
     from fgnav.baselines.ukf003 import Ukf003Options
@@ -118,6 +129,7 @@ def ekf_flow002(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
 ESTIMATORS: dict[str, EstimatorFactory] = {
     "online": online_smoother,
     "msf-ekf": msf_ekf,
+    "ekf004": ekf004,
     "ukf003": ukf003,
     "cf-ekf": cf_ekf,
     "ekf-flow002": ekf_flow002,
@@ -129,6 +141,7 @@ DEFAULT_ESTIMATOR = "online"
 CONFIG_TABLES = {
     "online": ["graph", "online", "priors"],
     "msf-ekf": ["msf-ekf"],
+    "ekf004": ["ekf004"],
     "ukf003": ["ukf003"],
     "cf-ekf": ["cf-ekf"],
     "ekf-flow002": ["ekf-flow002"],
@@ -171,20 +184,36 @@ class FilterLive:
     ``info["live_counts"]``. A filter keeps its vehicle state across SLAM map resets, so
     ``reset_counter`` stays 0.
 
-    A subclass names ``USED_STREAMS`` and supplies :meth:`_feed` (feed the filter, return the time
-    of its newest state or None), :meth:`_state` (that state as an ``OnlineState``) and
-    :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from the filter's own).
-    A filter's newest output time is its ``output_t`` (cheap: :meth:`_feed` runs per event), the
-    output itself ``latest_output()`` (read at the output rate only).
+    A subclass names ``USED_STREAMS`` and its ``FILTER`` (built from ``options``, default the
+    filter's options class, and started with ``calib``; the output rate ``rate_hz``, default
+    ``RATE_HZ`` or else the options' ``output_rate_hz``) and supplies :meth:`_feed` (feed the
+    filter, return the time of its newest state or None), :meth:`_state` (that state as an
+    ``OnlineState``) and :meth:`_filter_counts` (``used``, ``late`` and ``dropped`` counts from
+    the filter's own). A filter's newest output time is its ``output_t`` (cheap: :meth:`_feed`
+    runs per event), the output itself ``latest_output()`` (read at the output rate only).
     """
 
     USED_STREAMS: tuple[str, ...] = ()
+    FILTER: tuple[str, str, str] = ("", "", "")
+    """The filter: its module, class and options class."""
+    RATE_HZ: float | None = None
+    """Default output rate [Hz]; None: the options' ``output_rate_hz``."""
 
-    def __init__(self, calib: Calibration, filt: Any, output_rate_hz: float, name: str) -> None:
+    def __init__(
+        self,
+        calib: Calibration,
+        options: Any = None,
+        name: str = "live",
+        rate_hz: float | None = None,
+    ) -> None:
+        module_name, filter_name, options_name = self.FILTER
+        module = importlib.import_module(module_name)
+        self.options = options or getattr(module, options_name)()
         self._calib = calib
-        self._filter = filt
+        self._filter = getattr(module, filter_name)(options=self.options)
         self._filter.start(calib, name)
-        self._dt_out = 1.0 / output_rate_hz
+        rate = rate_hz or self.RATE_HZ or self.options.output_rate_hz
+        self._dt_out = 1.0 / rate
         self._next_out: float | None = None
         self._received: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
@@ -285,12 +314,10 @@ class MsfLive(FilterLive):
     at each IMU sample, at ``output_rate_hz`` (default 20 Hz), once the filter has started."""
 
     USED_STREAMS = ("imu", "attitude", "slam", "range")
+    FILTER = ("fgnav.baselines.msf_ekf", "MsfEkf", "MsfOptions")
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
-        from fgnav.baselines.msf_ekf import MsfEkf, MsfOptions
-
-        self.options = options or MsfOptions()
-        super().__init__(calib, MsfEkf(self.options), self.options.output_rate_hz, name)
+        super().__init__(calib, options, name)
         self._imu_used = 0
         self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
 
@@ -329,6 +356,111 @@ class MsfLive(FilterLive):
         return used, {"slam_or_range": c.replayed}, dropped
 
 
+EKF004_RATE_HZ = 100.0
+""":class:`Ekf004Live`'s output rate [Hz] (a state per attitude sample of a 100 Hz AHRS)."""
+
+#: The link's stream of each measurement kind of :class:`~fgnav.baselines.ekf004.Ekf004Counts`
+#: (longest prefix first), and the link's names of two skip reasons.
+_EKF004_STREAMS = (
+    ("vertical_speed", "range"),
+    ("yaw_rate", "imu"),
+    ("attitude", "attitude"),
+    ("gyro", "imu"),
+    ("imu", "imu"),
+    ("yaw", "yaw"),
+    ("range", "range"),
+    ("slam", "slam"),
+    ("scale", "slam"),
+)
+_EKF004_SKIPS = {"range": "range:unusable", "vertical_speed": "range:vertical_speed_gap"}
+
+
+def _ekf004_key(kind: str, table: str) -> str:
+    """``"stream:reason"`` of a gated or skipped ``Ekf004Counts`` key."""
+    if table == "skipped" and kind in _EKF004_SKIPS:
+        return _EKF004_SKIPS[kind]
+    prefix, stream = next(((p, s) for p, s in _EKF004_STREAMS if kind.startswith(p)), (kind, kind))
+    if table == "gated":
+        return f"{stream}:gate" if kind == stream else f"{stream}:{kind}_gate"
+    rest = kind[len(prefix) :].lstrip("_") if prefix == stream else kind
+    return f"{stream}:{rest or kind}"
+
+
+class Ekf004Live(FilterLive):
+    """:class:`~fgnav.baselines.ekf004.Ekf004Runner` (seed 004's EKF with delay compensation)
+    with the push API (:class:`FilterLive`).
+
+    The runner holds the first ``fgnav.baselines.ekf004.SOURCES_WINDOW_S`` of events and decides
+    from them its ``"auto"`` attitude source (``ATTITUDE_QUATERNION`` among them: the stream,
+    else the attitude estimated from the IMU) and scale source (``ml`` with the stream, else
+    ``imu_fit``), and which of yaw and range its start waits for; ``[ekf004]
+    attitude_source`` / ``scale_source`` set them. Its states are the causal trajectory (the state
+    at each attitude sample, before later corrections; from the first scale fit on with
+    ``imu_fit``), at ``rate_hz``; the pose covariance maps the Euler-angle errors to the body
+    rotation (:meth:`~fgnav.baselines.ekf004.Ekf004.pose_cov`); no IMU biases (zero); the drag
+    coefficient is the fixed ``drag_k``; the SLAM scale that of the newest pose's session. It
+    runs in the link's FLU body (no internal thrust body as :func:`run_ekf004` for an x-up IMU).
+    A SLAM pose older than the filter counts as late (it is rolled back and replayed);
+    attitude samples are ``attitude:not_used`` when the attitude comes from the IMU.
+    """
+
+    USED_STREAMS = ("imu", "attitude", "yaw", "range", "slam")
+    FILTER = ("fgnav.baselines.ekf004", "Ekf004Runner", "Ekf004Options")
+    RATE_HZ = EKF004_RATE_HZ
+
+    def __init__(
+        self, calib: Calibration, options=None, name: str = "live", rate_hz: float | None = None
+    ) -> None:
+        super().__init__(calib, options, name, rate_hz)
+        self._late: Counter[str] = Counter()
+        self._session: int | None = None
+
+    def _feed(self, ev: Event) -> float | None:
+        f = self._filter
+        if isinstance(ev, SlamPose):
+            self._session = int(ev.session)
+            if f.latest() is not None and ev.t < f.ekf.t:
+                self._late["slam"] += 1
+        f.feed(ev)
+        return f.output_t
+
+    def _state(self, t: float) -> OnlineState:
+        from fgnav.baselines.ekf004 import IP, IR, IV, IY, state_covariances
+        from fgnav.datasets.geometry import rpy_to_matrix
+
+        _, x, P = self._filter.latest_output()
+        pose_cov, vel_cov = state_covariances(x, P)
+        sess = self._filter.sessions.get(self._session)
+        scale = {} if sess is None or sess.scale is None else {self._session: float(sess.scale)}
+        return self._online_state(
+            t,
+            make_pose(rpy_to_matrix(*x[IR : IY + 1]), x[IP : IP + 3]),
+            x[IV : IV + 3],
+            pose_cov,
+            vel_cov,
+            slam_scale=scale,
+            drag_k=np.array(self.options.drag_k, float),
+        )
+
+    def _filter_counts(self) -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        f = self._filter
+        c = f.counts
+        used = {
+            "imu": f.imu_used,
+            "attitude": c.used.get("attitude", 0) if f.attitude_source == "stream" else 0,
+            "yaw": c.used.get("yaw", 0),
+            "range": c.used.get("vertical_speed", 0),
+            "slam": c.used.get("slam", 0) + c.used.get("slam_reset", 0),
+        }
+        dropped: Counter[str] = Counter()
+        for table in ("gated", "skipped"):
+            for kind, n in getattr(c, table).items():
+                dropped[_ekf004_key(kind, table)] += n
+        if f.attitude_source == "imu":
+            dropped["attitude:not_used"] += self._received["attitude"]
+        return used, dict(self._late), dict(dropped)
+
+
 UKF003_LAG_S = 0.2
 """:class:`Ukf003Live` holds events back this long [s] (at least the SLAM latency: the simulated
 flights' 0.1 s plus jitter) so that each SLAM pose's camera trigger reaches the filter before the
@@ -358,6 +490,7 @@ class Ukf003Live(FilterLive):
     """
 
     USED_STREAMS = ("imu", "attitude", "slam", "range", "yaw")
+    FILTER = ("fgnav.baselines.ukf003", "Ukf003", "Ukf003Options")
 
     def __init__(
         self,
@@ -367,11 +500,8 @@ class Ukf003Live(FilterLive):
         lag_s: float = UKF003_LAG_S,
         rate_hz: float | None = None,
     ) -> None:
-        from fgnav.baselines.ukf003 import Ukf003, Ukf003Options
-
-        o = self.options = options or Ukf003Options()
         self.lag_s = float(lag_s)
-        super().__init__(calib, Ukf003(o), rate_hz or o.output_rate_hz, name)
+        super().__init__(calib, options, name, rate_hz)
         self._imu_used = 0
         self._held: list[Any] = []
         self._released = -math.inf  # arrival time of the newest event fed to the filter
@@ -476,12 +606,10 @@ class CfEkfLive(FilterLive):
     """
 
     USED_STREAMS = ("imu", "flow", "range")
+    FILTER = ("fgnav.baselines.cf_ekf", "CfEkf", "CfEkfOptions")
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
-        from fgnav.baselines.cf_ekf import CfEkf, CfEkfOptions
-
-        self.options = options or CfEkfOptions()
-        super().__init__(calib, CfEkf(self.options), self.options.output_rate_hz, name)
+        super().__init__(calib, options, name)
         self._imu_used = 0
 
     def _feed(self, ev: Event) -> float | None:
@@ -529,18 +657,8 @@ class Flow002Live(FilterLive):
     """
 
     USED_STREAMS = ("imu", "yaw", "range", "flow")
-
-    def __init__(
-        self,
-        calib: Calibration,
-        options=None,
-        name: str = "live",
-        rate_hz: float = EKF_FLOW002_RATE_HZ,
-    ) -> None:
-        from fgnav.baselines.seed002_flow import Seed002Flow, Seed002FlowOptions
-
-        self.options = options or Seed002FlowOptions()
-        super().__init__(calib, Seed002Flow(self.options), rate_hz, name)
+    FILTER = ("fgnav.baselines.seed002_flow", "Seed002Flow", "Seed002FlowOptions")
+    RATE_HZ = EKF_FLOW002_RATE_HZ
 
     def _feed(self, ev: Event) -> float | None:
         self._filter.feed(ev)

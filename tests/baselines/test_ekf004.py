@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.events import AttitudeSample, ImuSample, SlamPose, replay_flight
 from fgnav.datasets.geometry import (
     matrix_to_rpy,
     quat_wxyz_to_matrix,
@@ -21,6 +22,7 @@ from fgnav.datasets.types import Flight
 from testutil import truth_scale
 
 from fgnav.baselines.ekf004 import (
+    IP,
     IR,
     IV,
     IY,
@@ -225,10 +227,10 @@ def test_replay_equals_in_order_processing():
     late = _short_flight(0.25, 10.0)
     now = dataclasses.replace(late, slam=dataclasses.replace(late.slam, latency=None))
     opt = _options(late, scale_min_pairs=3)
-    a = Ekf004Runner(late, opt)
-    est_a = a.run()
-    b = Ekf004Runner(now, opt)
-    b.run()
+    a = Ekf004Runner(late.calib, opt)
+    est_a = a.run(late)
+    b = Ekf004Runner(now.calib, opt)
+    b.run(now)
     assert a.counts.replayed > 0 and b.counts.replayed == 0
     assert a.counts.used.get("slam", 0) > 50
     assert a.ekf.t == b.ekf.t
@@ -327,3 +329,63 @@ def test_euroc_mh01_flu_without_attitude(real_data):
     assert m.ate_rmse_m < 0.12
     assert abs(m.scale_final_err_pct[0]) < 2.0
     assert 1.0 < m.nees_pos < 10.0
+
+
+def test_runner_fed_events_decides_its_sources_from_what_arrived():
+    """Built from the calibration and fed the events one at a time, the runner is run_ekf004;
+    its "auto" sources come from the streams of the first SOURCES_WINDOW_S of events: an
+    attitude stream that starts later is not waited for (the attitude is estimated from the
+    IMU), unless the options say "stream"."""
+    f = _short_flight(0.1, 8.0)
+    opt = _options(f, scale_min_pairs=3)
+    ref = run_ekf004(f, opt)
+    r = Ekf004Runner(f.calib, opt, f.name)
+    assert r.latest() is None and r.latest_output() is None
+    for ev in replay_flight(f, ("imu", "yaw", "attitude", "range", "slam"), named_order=True):
+        r.feed(ev)
+    r.close()
+    est = r.result()
+    assert r.attitude_source == "stream" and r.scale_source == "ml"
+    assert r.expect_yaw and r.expect_range
+    np.testing.assert_array_equal(est.trajectory.world_t_body, ref.trajectory.world_t_body)
+    np.testing.assert_array_equal(est.pose_cov, ref.pose_cov)
+    t, x, P = r.latest_output()
+    assert t == est.trajectory.t[-1] and r.output_t == t
+    np.testing.assert_array_equal(x[IP : IP + 3], est.trajectory.world_t_body[-1])
+    assert r.latest().shape == (N_STATE,) and P.shape == (N_STATE, N_STATE)
+    # The attitude stream from 2 s on: after the window, so the IMU's attitude is used.
+    late_att = dataclasses.replace(f, attitude=f.attitude.between(2.0, np.inf))
+    auto = Ekf004Runner(f.calib, opt)
+    for ev in replay_flight(late_att, ("imu", "yaw", "attitude", "range", "slam")):
+        auto.feed(ev)
+    assert auto.attitude_source == "imu" and auto.scale_source == "imu_fit"
+    told = Ekf004Runner(f.calib, dataclasses.replace(opt, attitude_source="stream"))
+    for ev in replay_flight(late_att, ("imu", "yaw", "attitude", "range", "slam")):
+        told.feed(ev)
+    assert told.attitude_source == "stream" and told.counts.used["attitude"] > 500
+
+
+def test_runner_counts_late_and_out_of_order_events():
+    """An IMU sample and an attitude sample older than their stream's newest and a SLAM pose
+    older than the history: counted (rolled back and replayed, or skipped as too late), and
+    the filter goes on."""
+    f = _short_flight(0.1, 8.0)
+    opt = _options(f, scale_min_pairs=3)
+    events = list(replay_flight(f, ("imu", "yaw", "attitude", "range", "slam"), named_order=True))
+    k = next(i for i, e in enumerate(events) if e.arrival > 6.0)
+    old_imu = next(e for e in events if isinstance(e, ImuSample) and e.t > 5.9)
+    old_att = next(e for e in events if isinstance(e, AttitudeSample) and e.t > 5.9)
+    old_slam = next(e for e in events if isinstance(e, SlamPose) and e.t > 3.0)
+    events = [*events[:k], old_imu, old_att, old_slam._replace(arrival=6.0), *events[k:]]
+    r = Ekf004Runner(f.calib, opt)
+    for ev in events:
+        r.feed(ev)
+    r.close()
+    est = r.result()
+    c = r.counts
+    assert c.skipped["imu_out_of_order"] == 1 and c.skipped["attitude_out_of_order"] == 1
+    assert c.skipped["slam_too_late"] == 1 and c.late_beyond_history == 1
+    assert c.replayed > 0
+    assert np.all(np.isfinite(est.trajectory.world_t_body))
+    m = evaluate(est, f.ground_truth, alignment="se3")
+    assert m.ate_rmse_m < 0.1
