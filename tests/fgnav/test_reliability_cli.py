@@ -226,3 +226,40 @@ def test_empty_out_is_refused(cli_folder, tmp_path, capsys, monkeypatch, command
     assert e.value.code == 2
     assert "argument --out: empty path" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_every_option_refuses_a_value_of_the_wrong_type():
+    """Each option of every ``--config`` table, given a value of another type than it declares,
+    is one error naming it before anything runs (a string sigma crashed the online start; a
+    number for a switch was taken as true)."""
+    import dataclasses
+    import typing
+
+    from fgnav.datasets.errors import FgnavError
+
+    from fgnav.config import _field_types
+    from fgnav.methods import _BASELINE_OPTIONS, check_method_config
+    from fgnav.solvers.batch import BatchOptions
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.graph import GraphOptions
+
+    classes = {"graph": GraphOptions, "online": FixedLagOptions, "batch": BatchOptions}
+    for table, (module, name) in _BASELINE_OPTIONS.items():
+        classes[table] = getattr(__import__(module, fromlist=[name]), name)
+    wrong = {bool: "yes", int: "many", float: "much", str: 3}
+    checked = 0
+    for table, cls in classes.items():
+        hints = _field_types(cls)
+        for f in dataclasses.fields(cls):
+            hint = hints.get(f.name)
+            args = set(typing.get_args(hint)) - {type(None)} or {hint}
+            kinds = [k for k in args if k in wrong]
+            if len(kinds) != 1 or len(args) != 1:
+                continue  # unions of several types, tables, lists: not this test
+            value = wrong[kinds[0]]
+            with pytest.raises(FgnavError) as e:
+                check_method_config({table: {f.name: value}})
+            msg = str(e.value)
+            assert f"option {f.name} = {value!r}: expected" in msg and "\n" not in msg, msg
+            checked += 1
+    assert checked > 200
