@@ -81,11 +81,14 @@ def _field_types(cls: type) -> dict[str, Any]:
     except Exception:  # noqa: BLE001 - resolve field by field below
         pass
     out: dict[str, Any] = {}
-    module = vars(__import__(cls.__module__, fromlist=["_"]))
     for f in dataclasses.fields(cls):
+        # One field at a time, in the class's module (a throwaway class holding its annotation).
+        one = type(
+            "_Field", (), {"__annotations__": {f.name: f.type}, "__module__": cls.__module__}
+        )
         try:
-            out[f.name] = eval(f.type, module) if isinstance(f.type, str) else f.type  # noqa: S307
-        except Exception:  # noqa: BLE001
+            out[f.name] = typing.get_type_hints(one)[f.name]
+        except Exception:  # noqa: BLE001 - an annotation that cannot be resolved is not checked
             out[f.name] = Any
     return out
 
