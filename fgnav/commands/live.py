@@ -14,6 +14,10 @@ It stops on SIGINT/SIGTERM (Ctrl-C), after ``--duration`` wall seconds, or after
 writes ``estimate.tum``, ``states.csv`` and ``summary.json`` with the writers of ``fgnav online``
 (:func:`fgnav.eval.outputs.write_estimate`), the link's counts under ``summary.json``'s
 ``extra.live`` (keys: :meth:`fgnav.live.session.LiveResult.counts`), and prints the counts.
+With ``--batch`` every event is also kept (:class:`fgnav.solvers.collect.EventCollector`) and
+the whole session is smoothed by ``fgnav batch``'s solver at the end, into ``OUT/batch``
+(``[graph]``, ``[lm]``, ``[batch]`` tables), what was kept under ``summary.json``'s
+``extra.collected``.
 """
 
 from __future__ import annotations
@@ -39,7 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--config",
         default=None,
         help="TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
-        "own ([msf-ekf], [ekf004], [ukf003], [cf-ekf], [ekf-flow002])",
+        "own ([msf-ekf], [ekf004], [ukf003], [cf-ekf], [ekf-flow002]); with --batch also [lm] "
+        "and [batch]",
+    )
+    parser.add_argument(
+        "--batch",
+        action="store_true",
+        help="also keep every measurement received and, at the end, smooth the whole session "
+        "with the batch solver (written to OUT/batch, as fgnav batch writes a flight)",
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after S wall seconds (default: never)"
@@ -95,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.methods import SOURCE_KEY, load_method_config
 
     mavlink_dialect()  # pymavlink present, or a one-line error
-    check_tables(args.config, ["live", *sorted({t for v in CONFIG_TABLES.values() for t in v})])
+    tables = ["live", *sorted({t for v in CONFIG_TABLES.values() for t in v})]
+    check_tables(args.config, tables + (["graph", "lm", "batch", "priors"] if args.batch else []))
     config = load_method_config(args.config)
     options = options_from(
         LiveOptions,
@@ -111,7 +123,14 @@ def run(args: argparse.Namespace) -> int:
     if link.address.mode != "udpin":
         link.close()
         raise LinkError(f"--mavlink {args.mavlink}: fgnav live listens: use udpin:HOST:PORT")
-    session = LiveSession(link, estimator, calib, options)
+    record = None
+    if args.batch:
+        from fgnav.methods import check_method_config
+        from fgnav.solvers.collect import EventCollector
+
+        check_method_config({k: v for k, v in config.items() if k in ("graph", "lm", "batch")})
+        record = EventCollector(calib, name="live")
+    session = LiveSession(link, estimator, calib, options, record=record)
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: session.stop())
@@ -148,4 +167,30 @@ def run(args: argparse.Namespace) -> int:
     }
     paths = write_estimate(est, Path(args.out), extra=extra)
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    if record is not None:
+        _batch_at_exit(record, config, Path(args.out) / "batch")
     return 0
+
+
+def _batch_at_exit(record: Any, config: dict[str, Any], out: Path) -> None:
+    """``--batch``: the session's measurements as a flight, smoothed by the batch solver
+    (``fgnav batch``'s ``run_batch``), written to ``out``; a failure is one error line (the live
+    outputs are written already)."""
+    from fgnav.eval.outputs import summary_extra, write_estimate
+    from fgnav.methods import run_batch
+
+    flight = record.flight()
+    kept = record.counts()
+    print(
+        "batch: the session's measurements, "
+        + ", ".join(f"{s} {n}" for s, n in kept["kept"].items())
+        + (f"; left out {kept['dropped']}" if kept["dropped"] else "")
+    )
+    est = run_batch(flight, config)
+    extra = summary_extra(flight.name, est, "batch")
+    extra["collected"] = kept
+    paths = write_estimate(est, out, extra=extra)
+    print(
+        f"batch: {len(est.trajectory)} states over {flight.imu.duration:.1f} s; "
+        f"wrote {', '.join(str(p) for p in paths.values())}"
+    )

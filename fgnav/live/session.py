@@ -141,6 +141,8 @@ class LiveSession:
         estimator: the estimator to feed (push API).
         calib: the calibration (IMU noise for the rate variances, flow units).
         options: :class:`LiveOptions`.
+        record: also fed every event the link turns a message into, before the estimator
+            (``fgnav live --batch``: a :class:`fgnav.solvers.collect.EventCollector`).
     """
 
     def __init__(
@@ -149,9 +151,11 @@ class LiveSession:
         estimator: LiveEstimator,
         calib: Calibration,
         options: LiveOptions | None = None,
+        record: Any = None,
     ) -> None:
         self.link = link
         self.estimator = estimator
+        self.record = record
         self.calib = calib
         self.options = options or LiveOptions()
         o = self.options
@@ -211,6 +215,8 @@ class LiveSession:
         ev = self.inbound.event(msg)
         if ev is None:
             return
+        if self.record is not None:
+            self.record.feed(ev)
         if isinstance(ev, ImuSample) and (not self._imu_t or ev.t > self._imu_t[-1]):
             self._imu.append(ev)
             self._imu_t.append(ev.t)
