@@ -22,36 +22,18 @@ from typing import Any
 
 import numpy as np
 
+from fgnav.datasets import types as ft
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import (
-    STREAM_OF_EVENT,
-    AttitudeSample,
-    FlowSample,
-    ImageFrame,
-    ImuSample,
-    RangeReading,
-    SlamPose,
-    YawReading,
-)
-from fgnav.datasets.types import (
-    AttitudeSeries,
-    Calibration,
-    Flight,
-    FlowSeries,
-    ImuSeries,
-    RangeSeries,
-    SlamSeries,
-    YawSeries,
-)
+from fgnav.datasets.events import STREAM_OF_EVENT, ImageFrame, SlamPose
 
-#: The values each kept event type contributes, as one flat tuple of floats per event.
+#: The values each kept stream's event contributes, as one flat tuple of floats per event.
 _ROW = {
-    ImuSample: lambda e: (e.t, *e.body_omega, *e.body_accel),
-    AttitudeSample: lambda e: (e.t, *e.world_q_body_wxyz),
-    RangeReading: lambda e: (e.t, e.range, e.quality),
-    YawReading: lambda e: (e.t, e.yaw),
-    SlamPose: lambda e: (e.t, *e.slam_t_cam, *e.slam_q_cam_wxyz, e.session, e.arrival - e.t),
-    FlowSample: lambda e: (e.t, e.dt, *e.flow, e.quality),
+    "imu": lambda e: (e.t, *e.body_omega, *e.body_accel),
+    "attitude": lambda e: (e.t, *e.world_q_body_wxyz),
+    "range": lambda e: (e.t, e.range, e.quality),
+    "yaw": lambda e: (e.t, e.yaw),
+    "slam": lambda e: (e.t, *e.slam_t_cam, *e.slam_q_cam_wxyz, e.session, e.arrival - e.t),
+    "flow": lambda e: (e.t, e.dt, *e.flow, e.quality),
 }
 
 
@@ -70,7 +52,7 @@ class EventCollector:
         name: the flight's name.
     """
 
-    def __init__(self, calib: Calibration, name: str = "events") -> None:
+    def __init__(self, calib: ft.Calibration, name: str = "events") -> None:
         self.calib = calib
         self.name = name
         self._rows: dict[str, list[tuple[float, ...]]] = {}
@@ -84,10 +66,10 @@ class EventCollector:
         if isinstance(ev, ImageFrame):
             self._drop("images:not-collected")
             return
-        row_of = _ROW.get(type(ev))
+        stream = STREAM_OF_EVENT.get(type(ev))
+        row_of = _ROW.get(stream)
         if row_of is None:
             return
-        stream = STREAM_OF_EVENT[type(ev)]
         if isinstance(ev, SlamPose) and ev.session < 0:
             self._drop("slam:tracking-lost")
             return
@@ -117,25 +99,25 @@ class EventCollector:
             self.dropped[f"{stream}:duplicate-time"] = int(dup.sum())
         return a[~dup]
 
-    def flight(self) -> Flight:
+    def flight(self) -> ft.Flight:
         """The flight of every event kept so far (checked); an error naming what is missing
         when no IMU sample was kept."""
         streams: dict[str, Any] = {}
         imu = self._table("imu")
         if imu is None:
             raise FlightDataError(f"{self.name}: no IMU sample collected: nothing to solve")
-        streams["imu"] = ImuSeries(t=imu[:, 0], body_omega=imu[:, 1:4], body_accel=imu[:, 4:7])
+        streams["imu"] = ft.ImuSeries(t=imu[:, 0], body_omega=imu[:, 1:4], body_accel=imu[:, 4:7])
         if (a := self._table("attitude")) is not None:
             q = _unit(a[:, 1:5])
-            streams["attitude"] = AttitudeSeries(t=a[:, 0], world_q_body_wxyz=q)
+            streams["attitude"] = ft.AttitudeSeries(t=a[:, 0], world_q_body_wxyz=q)
         if (a := self._table("range")) is not None:
             quality = a[:, 2] if np.any(a[:, 2] >= 0) else None
-            streams["range"] = RangeSeries(t=a[:, 0], range=a[:, 1], quality=quality)
+            streams["range"] = ft.RangeSeries(t=a[:, 0], range=a[:, 1], quality=quality)
         if (a := self._table("yaw")) is not None:
-            streams["yaw"] = YawSeries(t=a[:, 0], yaw=a[:, 1])
+            streams["yaw"] = ft.YawSeries(t=a[:, 0], yaw=a[:, 1])
         if (a := self._table("slam")) is not None:
             q = _unit(a[:, 4:8])
-            streams["slam"] = SlamSeries(
+            streams["slam"] = ft.SlamSeries(
                 t=a[:, 0],
                 slam_t_cam=a[:, 1:4],
                 slam_q_cam_wxyz=q,
@@ -144,8 +126,8 @@ class EventCollector:
             )
         if (a := self._table("flow")) is not None:
             quality = a[:, 4] if np.any(a[:, 4] >= 0) else None
-            streams["flow"] = FlowSeries(t=a[:, 0], dt=a[:, 1], flow=a[:, 2:4], quality=quality)
+            streams["flow"] = ft.FlowSeries(t=a[:, 0], dt=a[:, 1], flow=a[:, 2:4], quality=quality)
         meta = {"source": "measurement events (fgnav.solvers.collect)", "collected": self.counts()}
-        return Flight(
+        return ft.Flight(
             name=self.name, source="events", calib=self.calib, meta=meta, **streams
         ).check()
