@@ -38,8 +38,11 @@ def options_from(
 ) -> T:
     """Build options dataclass ``cls`` from a config table plus non-None overrides.
 
-    Unknown keys raise an error naming them and listing the valid ones; values are checked by
-    :func:`check_option_values` (the error names the option, the file and table or the flag).
+    Unknown keys raise an error naming them and listing the valid ones; each value's type is
+    checked against the field's declaration (:func:`option_type_problem`: a bool for a switch, a
+    number for a float, an integer for an int, a list of the declared length for a tuple, a
+    table for nested options), then its value by :func:`option_value_problem` (the error names
+    the option, the file and table or the flag).
     """
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - names)
