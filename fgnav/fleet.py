@@ -132,12 +132,20 @@ def _is_manifest(p: Path) -> bool:
 def is_flight(p: Path) -> bool:
     """True when ``p`` is a flight ``fgnav info`` reads: a native flight folder (``meta.json``),
     a ROS 2 bag folder (``metadata.yaml``), an EuRoC folder, a log file (``*.ulg``, ``*.bag``,
-    ``*.db3``, ``*.mcap``) or a manifest (``*.toml`` with an ``[imu]`` table)."""
+    ``*.db3``, ``*.mcap``), a manifest (``*.toml`` with an ``[imu]`` table) or a Crazyflie
+    SD-card log (any name: recognised by its header and CRC; a file without the log's magic
+    first byte is not read further)."""
     if p.is_dir():
         return (p / "meta.json").is_file() or (p / "metadata.yaml").is_file() or _is_euroc(p)
     if p.suffix.lower() == ".toml":
         return _is_manifest(p)
-    return p.is_file() and p.suffix.lower() in FLIGHT_SUFFIXES
+    if not p.is_file():
+        return False
+    if p.suffix.lower() in FLIGHT_SUFFIXES:
+        return True
+    from fgnav.datasets.crazyflie import is_crazyflie_log
+
+    return is_crazyflie_log(p)
 
 
 def flight_name(p: Path) -> str:

@@ -125,6 +125,23 @@ def test_discover_folders_globs_and_errors(tmp_path):
     assert flight_name(tmp_path / "MH_01" / "mav0") == "MH_01"
 
 
+@pytest.mark.realdata
+def test_discover_finds_crazyflie_logs_without_a_suffix(real_data, tmp_path):
+    """A folder of Crazyflie SD-card logs (no file suffix) is scanned by content (it was "no
+    flights found in this folder"); its README and a damaged copy are not flights."""
+    import shutil
+
+    folder = tmp_path / "cf"
+    folder.mkdir()
+    src = real_data / "crazyflie_util_flowdeck"
+    shutil.copy(src / "0425-traj1", folder / "0425-traj1")
+    (folder / "README.md").write_text("# flights\n")
+    data = (src / "0425-traj3").read_bytes()
+    (folder / "0425-traj3-cut").write_bytes(data[: len(data) // 2])
+    found = discover([str(folder)])
+    assert [f.name for f in found] == ["0425-traj1"]
+
+
 def test_content_hash_follows_content_not_place(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     for d in (a, b):
