@@ -5,12 +5,17 @@ from __future__ import annotations
 import argparse
 
 
-def out_folder(text: str) -> str:
-    """``--out``'s type: a folder path, not empty (an unset shell variable, ``--out "$OUT"``,
-    would otherwise write the outputs into the current folder)."""
+def nonempty_path(text: str) -> str:
+    """The type of the commands' path arguments: not empty (an unset shell variable,
+    ``--out "$OUT"``, would write the outputs into the current folder, and ``--calib ""`` was
+    read as the folder ``.``)."""
     if not text.strip():
-        raise argparse.ArgumentTypeError("empty path: name the output folder")
+        raise argparse.ArgumentTypeError("empty path")
     return text
+
+
+out_folder = nonempty_path
+"""``--out``'s type (:func:`nonempty_path`)."""
 
 
 ESTIMATE_FILES = "output folder (estimate.tum, states.csv, summary.json)"

@@ -15,7 +15,7 @@ import logging
 import time
 from pathlib import Path
 
-from fgnav.commands import out_folder
+from fgnav.commands import nonempty_path, out_folder
 from fgnav.commands.compare import parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
 from fgnav.config import check_tables, load_config, options_from
@@ -46,7 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated methods (default: every method the flight allows)",
     )
     parser.add_argument(
-        "--config", default=None, help="TOML file: [simulate] and the per-method tables"
+        "--config",
+        type=nonempty_path,
+        default=None,
+        help="TOML file: [simulate] and the per-method tables",
     )
     parser.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
 

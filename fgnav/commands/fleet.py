@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgnav.commands import out_folder
+from fgnav.commands import nonempty_path, out_folder
 from fgnav.config import check_tables
 from fgnav.methods import METHOD_TABLES, check_method_config, load_method_config
 
@@ -38,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="batch",
         help="comma-separated methods of `fgnav compare` (default batch)",
     )
-    parser.add_argument("--config", default=None, help="TOML file with the per-method tables")
+    parser.add_argument(
+        "--config", type=nonempty_path, default=None, help="TOML file with the per-method tables"
+    )
     parser.add_argument(
         "--scheduler", default=None, help="address of a running Dask scheduler (tcp://HOST:PORT)"
     )

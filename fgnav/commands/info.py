@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from fgnav.commands import nonempty_path
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.load import SUPPORTED, load_flight
 from fgnav.info import flight_info
@@ -26,7 +27,7 @@ def parse_topics(pairs: list[str] | None) -> dict[str, str] | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("flight", help="flight input: " + "; ".join(SUPPORTED))
+    parser.add_argument("flight", type=nonempty_path, help="flight input: " + "; ".join(SUPPORTED))
     parser.add_argument(
         "--topics",
         nargs="+",

@@ -28,7 +28,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from fgnav.commands import add_out_argument
+from fgnav.commands import add_out_argument, nonempty_path
 
 HELP = "run the online estimator on a live MAVLink link (udpin:HOST:PORT)"
 
@@ -37,10 +37,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mavlink", required=True, help="udpin:HOST:PORT to listen on (e.g. udpin:127.0.0.1:14550)"
     )
-    parser.add_argument("--calib", required=True, help="calibration file (a flight's calib.yaml)")
+    parser.add_argument(
+        "--calib",
+        type=nonempty_path,
+        required=True,
+        help="calibration file (a flight's calib.yaml)",
+    )
     add_out_argument(parser)
     parser.add_argument(
         "--config",
+        type=nonempty_path,
         default=None,
         help="TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
         "own ([msf-ekf], [ekf004], [ukf003], [cf-ekf], [ekf-flow002]); with --batch also [lm] "

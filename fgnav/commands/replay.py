@@ -12,11 +12,15 @@ from __future__ import annotations
 import argparse
 import math
 
+from fgnav.commands import nonempty_path
+
 HELP = "send a flight as MAVLink messages to udpout:HOST:PORT (a stand-in autopilot)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("flight", help="flight folder, manifest or log (see `fgnav info`)")
+    parser.add_argument(
+        "flight", type=nonempty_path, help="flight folder, manifest or log (see `fgnav info`)"
+    )
     parser.add_argument(
         "--mavlink", required=True, help="udpout:HOST:PORT to send to (e.g. udpout:127.0.0.1:14550)"
     )
@@ -26,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1.0,
         help="times real time (default 1; 0: as fast as possible)",
     )
-    parser.add_argument("--record", default=None, help="TUM file for the ODOMETRY received back")
+    parser.add_argument(
+        "--record", type=nonempty_path, default=None, help="TUM file for the ODOMETRY received back"
+    )
     parser.add_argument(
         "--streams",
         default=None,

@@ -11,7 +11,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from fgnav.commands import out_folder
+from fgnav.commands import nonempty_path, out_folder
 from fgnav.config import load_config, options_from
 from fgnav.datasets.errors import FlightFormatError
 from fgnav.datasets.simulate import SCENARIOS, SimOptions, simulate_to_folder
@@ -30,7 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-images", action="store_true", help="do not render downward-camera images"
     )
     parser.add_argument(
-        "--config", default=None, help="TOML file with a [simulate] table of SimOptions fields"
+        "--config",
+        type=nonempty_path,
+        default=None,
+        help="TOML file with a [simulate] table of SimOptions fields",
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="replace an existing flight folder"

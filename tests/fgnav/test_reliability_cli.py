@@ -263,3 +263,22 @@ def test_every_option_refuses_a_value_of_the_wrong_type():
             assert f"option {f.name} = {value!r}: expected" in msg and "\n" not in msg, msg
             checked += 1
     assert checked > 200
+
+
+@pytest.mark.parametrize(
+    ("argv", "argument"),
+    [
+        (["info", ""], "flight"),
+        (["batch", "", "--out", "o"], "flight"),
+        (["online", "{flight}", "--out", "o", "--config", ""], "--config"),
+        (["live", "--mavlink", "udpin:127.0.0.1:9", "--calib", "", "--out", "o"], "--calib"),
+        (["replay", "{flight}", "--mavlink", "udpout:127.0.0.1:9", "--record", ""], "--record"),
+    ],
+)
+def test_empty_paths_are_refused(cli_folder, tmp_path, capsys, monkeypatch, argv, argument):
+    """An empty path argument is named (``--calib ""`` was read as the folder ``.``)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main([a.replace("{flight}", str(cli_folder)) for a in argv])
+    assert e.value.code == 2
+    assert f"argument {argument}: empty path" in capsys.readouterr().err
