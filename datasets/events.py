@@ -19,14 +19,24 @@ This module knows nothing of GTSAM.
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from operator import attrgetter
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from .types import CameraIntrinsics, Flight
+from .types import (
+    AttitudeSeries,
+    Calibration,
+    CameraIntrinsics,
+    Flight,
+    FlowSeries,
+    ImuSeries,
+    RangeSeries,
+    SlamSeries,
+    YawSeries,
+)
 
 
 class ImuSample(NamedTuple):
@@ -282,3 +292,48 @@ def replay_flight(
     if named_order and names is not None:
         return replay([found[n] for n in names if n in found])
     return replay(found)
+
+
+def flight_from_events(
+    calib: Calibration, name: str, events: Mapping[str, Sequence[Event]]
+) -> Flight:
+    """The inverse of :func:`replay_flight`: per-stream event lists (each in capture-time
+    order) back to a :class:`Flight` (``imu``, ``attitude``, ``yaw``, ``range``, ``slam``,
+    ``flow``; a SLAM pose's arrival minus its capture time becomes ``SlamSeries.latency``).
+    Not checked: the caller decides what to trust."""
+
+    def col(stream: str, field: str, shape: tuple[int, ...] = ()) -> np.ndarray:
+        return np.array([getattr(e, field) for e in events[stream]], dtype=float).reshape(
+            -1, *shape
+        )
+
+    series: dict[str, Any] = {}
+    have = {s for s, evs in events.items() if len(evs)}
+    if "imu" in have:
+        series["imu"] = ImuSeries(
+            col("imu", "t"), col("imu", "body_omega", (3,)), col("imu", "body_accel", (3,))
+        )
+    if "attitude" in have:
+        series["attitude"] = AttitudeSeries(
+            col("attitude", "t"), col("attitude", "world_q_body_wxyz", (4,))
+        )
+    if "yaw" in have:
+        series["yaw"] = YawSeries(col("yaw", "t"), col("yaw", "yaw"))
+    if "range" in have:
+        series["range"] = RangeSeries(
+            col("range", "t"), col("range", "range"), col("range", "quality")
+        )
+    if "slam" in have:
+        t = col("slam", "t")
+        series["slam"] = SlamSeries(
+            t,
+            col("slam", "slam_t_cam", (3,)),
+            col("slam", "slam_q_cam_wxyz", (4,)),
+            np.array([e.session for e in events["slam"]], dtype=int),
+            col("slam", "arrival") - t,
+        )
+    if "flow" in have:
+        series["flow"] = FlowSeries(
+            col("flow", "t"), col("flow", "dt"), col("flow", "flow", (2,)), col("flow", "quality")
+        )
+    return Flight(name, calib=calib, **series)

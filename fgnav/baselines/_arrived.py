@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import bisect
 
-import numpy as np
-
 from fgnav.datasets.events import (
     AttitudeSample,
     Event,
@@ -21,16 +19,9 @@ from fgnav.datasets.events import (
     RangeReading,
     SlamPose,
     YawReading,
+    flight_from_events,
 )
-from fgnav.datasets.types import (
-    AttitudeSeries,
-    Calibration,
-    Flight,
-    ImuSeries,
-    RangeSeries,
-    SlamSeries,
-    YawSeries,
-)
+from fgnav.datasets.types import Calibration, Flight
 
 TRIM_MIN_SAMPLES = 4096
 """IMU samples are dropped in blocks of at least this many (or half the history)."""
@@ -106,32 +97,14 @@ class Arrived:
 
     def flight(self, calib: Calibration, name: str) -> Flight:
         """What has arrived, as a flight (IMU, attitude, yaw, range, SLAM; no ground truth)."""
-        imu = ImuSeries(
-            np.asarray(self.imu_t),
-            np.array([e.body_omega for e in self.imu]).reshape(-1, 3),
-            np.array([e.body_accel for e in self.imu]).reshape(-1, 3),
+        return flight_from_events(
+            calib,
+            name,
+            {
+                "imu": self.imu,
+                "attitude": self.att,
+                "yaw": self.yaw,
+                "range": self.range,
+                "slam": self.slam,
+            },
         )
-        att = yaw = rng = None
-        if self.att:
-            att = AttitudeSeries(
-                np.array([e.t for e in self.att]),
-                np.array([e.world_q_body_wxyz for e in self.att]),
-            )
-        if self.yaw:
-            yaw = YawSeries(np.array([e.t for e in self.yaw]), np.array([e.yaw for e in self.yaw]))
-        if self.range:
-            rng = RangeSeries(
-                np.array([e.t for e in self.range]),
-                np.array([e.range for e in self.range]),
-                np.array([e.quality for e in self.range]),
-            )
-        slam = None
-        if self.slam:
-            slam = SlamSeries(
-                np.asarray(self.slam_t),
-                np.array([e.slam_t_cam for e in self.slam]).reshape(-1, 3),
-                np.array([e.slam_q_cam_wxyz for e in self.slam]).reshape(-1, 4),
-                np.array([e.session for e in self.slam], dtype=int),
-                np.array([e.arrival - e.t for e in self.slam]),
-            )
-        return Flight(name, imu=imu, attitude=att, yaw=yaw, range=rng, slam=slam, calib=calib)

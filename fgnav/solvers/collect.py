@@ -3,38 +3,30 @@
 DESIGN.md sec. 7: "the batch smoother collects them [the events] and solves once". The collector
 is fed the same events as the online smoother (a replay, or a live link: ``fgnav live --batch``)
 and turns what it kept into a :class:`~fgnav.datasets.types.Flight` for
-:func:`fgnav.methods.run_batch`, which then decides with the whole flight in hand (keyframes on
-the SLAM times, the accelerometer check on every keyframe, ...).
+:func:`fgnav.methods.run_batch` (through :func:`fgnav.datasets.events.flight_from_events`), which
+then decides with the whole flight in hand (keyframes on the SLAM times, the accelerometer check
+on every keyframe, ...).
 
 Kept: IMU samples, attitude samples, range and yaw readings, SLAM poses (their arrival minus
-their capture time becomes ``SlamSeries.latency``) and optical-flow samples. Not kept, counted:
-image frames (``images:not-collected``; a live link carries none), SLAM poses of a negative
-session (``slam:tracking-lost``), samples with a non-finite value (``<stream>:non-finite``).
-Order: each stream is sorted by its capture time, a sample with the time of one kept before it
-in that stream is dropped (``<stream>:duplicate-time``). Nothing else is judged here: the batch
-smoother's readers-side checks (``Flight.check``) and its own gates apply as to a file.
+their capture time becomes ``SlamSeries.latency``, at least 0) and optical-flow samples. Not
+kept, counted: image frames (``images:not-collected``; a live link carries none), SLAM poses of a
+negative session (``slam:tracking-lost``), samples with a non-finite value
+(``<stream>:non-finite``). Order: each stream is sorted by its capture time, a sample with the
+time of one kept before it in that stream is dropped (``<stream>:duplicate-time``). Quaternions
+that are not unit (a link's float32) are normalised. Nothing else is judged here: the flight's
+checks (``Flight.check``) and the batch smoother's own gates apply as to a file.
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from typing import Any
 
 import numpy as np
 
-from fgnav.datasets import types as ft
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import STREAM_OF_EVENT, ImageFrame, SlamPose
-
-#: The values each kept stream's event contributes, as one flat tuple of floats per event.
-_ROW = {
-    "imu": lambda e: (e.t, *e.body_omega, *e.body_accel),
-    "attitude": lambda e: (e.t, *e.world_q_body_wxyz),
-    "range": lambda e: (e.t, e.range, e.quality),
-    "yaw": lambda e: (e.t, e.yaw),
-    "slam": lambda e: (e.t, *e.slam_t_cam, *e.slam_q_cam_wxyz, e.session, e.arrival - e.t),
-    "flow": lambda e: (e.t, e.dt, *e.flow, e.quality),
-}
+from fgnav.datasets.events import STREAM_OF_EVENT, ImageFrame, SlamPose, flight_from_events
+from fgnav.datasets.types import Calibration, Flight
 
 
 def _unit(q: np.ndarray) -> np.ndarray:
@@ -52,10 +44,10 @@ class EventCollector:
         name: the flight's name.
     """
 
-    def __init__(self, calib: ft.Calibration, name: str = "events") -> None:
+    def __init__(self, calib: Calibration, name: str = "events") -> None:
         self.calib = calib
         self.name = name
-        self._rows: dict[str, list[tuple[float, ...]]] = {}
+        self._events: dict[str, list[Any]] = {}
         self.dropped: dict[str, int] = {}
 
     def _drop(self, key: str) -> None:
@@ -67,67 +59,47 @@ class EventCollector:
             self._drop("images:not-collected")
             return
         stream = STREAM_OF_EVENT.get(type(ev))
-        row_of = _ROW.get(stream)
-        if row_of is None:
+        if stream is None:
             return
         if isinstance(ev, SlamPose) and ev.session < 0:
             self._drop("slam:tracking-lost")
             return
-        row = tuple(float(x) for x in row_of(ev))
-        # Quality -1 (unknown) and the rest must be finite.
-        if not all(math.isfinite(x) for x in row):
+        # Every field of a kept event is a number or an array of them (quality -1: unknown).
+        if not all(np.all(np.isfinite(v)) for v in ev):
             self._drop(f"{stream}:non-finite")
             return
-        self._rows.setdefault(stream, []).append(row)
+        self._events.setdefault(stream, []).append(ev)
 
     def counts(self) -> dict[str, Any]:
         """Samples kept per stream and dropped by ``stream:reason``."""
         return {
-            "kept": {s: len(r) for s, r in sorted(self._rows.items())},
+            "kept": {s: len(e) for s, e in sorted(self._events.items())},
             "dropped": dict(sorted(self.dropped.items())),
         }
 
-    def _table(self, stream: str) -> np.ndarray | None:
-        rows = self._rows.get(stream)
-        if not rows:
-            return None
-        a = np.asarray(rows, dtype=float)
-        a = a[np.argsort(a[:, 0], kind="stable")]
-        dup = np.zeros(len(a), dtype=bool)
-        dup[1:] = a[1:, 0] == a[:-1, 0]
-        if dup.any():
-            self.dropped[f"{stream}:duplicate-time"] = int(dup.sum())
-        return a[~dup]
+    def _in_order(self, stream: str) -> list[Any]:
+        """The stream's events by capture time, a repeated time dropped (counted)."""
+        evs = sorted(self._events[stream], key=lambda e: e.t)
+        kept = [e for i, e in enumerate(evs) if i == 0 or e.t != evs[i - 1].t]
+        if len(kept) < len(evs):
+            self.dropped[f"{stream}:duplicate-time"] = len(evs) - len(kept)
+        return kept
 
-    def flight(self) -> ft.Flight:
+    def flight(self) -> Flight:
         """The flight of every event kept so far (checked); an error naming what is missing
         when no IMU sample was kept."""
-        streams: dict[str, Any] = {}
-        imu = self._table("imu")
-        if imu is None:
+        if not self._events.get("imu"):
             raise FlightDataError(f"{self.name}: no IMU sample collected: nothing to solve")
-        streams["imu"] = ft.ImuSeries(t=imu[:, 0], body_omega=imu[:, 1:4], body_accel=imu[:, 4:7])
-        if (a := self._table("attitude")) is not None:
-            q = _unit(a[:, 1:5])
-            streams["attitude"] = ft.AttitudeSeries(t=a[:, 0], world_q_body_wxyz=q)
-        if (a := self._table("range")) is not None:
-            quality = a[:, 2] if np.any(a[:, 2] >= 0) else None
-            streams["range"] = ft.RangeSeries(t=a[:, 0], range=a[:, 1], quality=quality)
-        if (a := self._table("yaw")) is not None:
-            streams["yaw"] = ft.YawSeries(t=a[:, 0], yaw=a[:, 1])
-        if (a := self._table("slam")) is not None:
-            q = _unit(a[:, 4:8])
-            streams["slam"] = ft.SlamSeries(
-                t=a[:, 0],
-                slam_t_cam=a[:, 1:4],
-                slam_q_cam_wxyz=q,
-                session=a[:, 8].astype(int),
-                latency=np.maximum(a[:, 9], 0.0),
+        f = flight_from_events(self.calib, self.name, {s: self._in_order(s) for s in self._events})
+        fixed: dict[str, Any] = {}
+        if f.attitude is not None:
+            q = _unit(f.attitude.world_q_body_wxyz)
+            fixed["attitude"] = dataclasses.replace(f.attitude, world_q_body_wxyz=q)
+        if f.slam is not None:
+            fixed["slam"] = dataclasses.replace(
+                f.slam,
+                slam_q_cam_wxyz=_unit(f.slam.slam_q_cam_wxyz),
+                latency=np.maximum(f.slam.latency, 0.0),
             )
-        if (a := self._table("flow")) is not None:
-            quality = a[:, 4] if np.any(a[:, 4] >= 0) else None
-            streams["flow"] = ft.FlowSeries(t=a[:, 0], dt=a[:, 1], flow=a[:, 2:4], quality=quality)
         meta = {"source": "measurement events (fgnav.solvers.collect)", "collected": self.counts()}
-        return ft.Flight(
-            name=self.name, source="events", calib=self.calib, meta=meta, **streams
-        ).check()
+        return dataclasses.replace(f, source="events", meta=meta, **fixed).check()
