@@ -1,4 +1,5 @@
-"""Reading a whole TOML or YAML file with the one-line errors of :mod:`fgnav.datasets.errors`."""
+"""Reading a whole TOML or YAML file, and its values, with the one-line errors of
+:mod:`fgnav.datasets.errors`."""
 
 from __future__ import annotations
 
@@ -35,3 +36,11 @@ def read_yaml(path: str | Path, what: str = "file") -> Any:
         return yaml.safe_load(p.read_text())
     except yaml.YAMLError as e:
         raise FlightFormatError(p, f"not valid YAML: {e}") from e
+
+
+def file_number(value: Any, key: str, path: Path) -> float:
+    """A value read from a file as a float, or an error naming the file and ``key``."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise FlightFormatError(path, f"{key}: expected a number, found {value!r}") from None

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from ._files import file_number
 from .errors import FlightDataError, FlightFormatError, note
 from .types import Calibration, CameraIntrinsics, ImuNoise
 
@@ -96,13 +97,6 @@ def _first(d: dict[str, Any], keys: tuple[str, ...], path: Path, required: bool 
     return None
 
 
-def _number(value: Any, key: str, path: Path) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise FlightFormatError(path, f"{key}: expected a number, found {value!r}") from None
-
-
 def opencv_matrix(value: Any, key: str, path: str | Path) -> np.ndarray:
     """An ``!!opencv-matrix`` mapping (``rows``, ``cols``, ``data``) -> (rows, cols) array."""
     p = Path(path)
@@ -144,11 +138,11 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
     intr = {}
     for name in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"):
         keys = (f"Camera1.{name}", f"Camera.{name}")
-        intr[name] = _number(_first(d, keys, p), keys[0], p)
+        intr[name] = file_number(_first(d, keys, p), keys[0], p)
     k3 = _first(d, ("Camera1.k3", "Camera.k3"), p, required=False)
     dist = [intr["k1"], intr["k2"], intr["p1"], intr["p2"]]
     if k3 is not None:
-        dist.append(_number(k3, "Camera1.k3", p))
+        dist.append(file_number(k3, "Camera1.k3", p))
     width = _first(d, ("Camera.width",), p)
     height = _first(d, ("Camera.height",), p)
     try:
@@ -171,7 +165,7 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
         missing = [v for v in _NOISE_KEYS.values() if v not in d]
         raise FlightFormatError(p, f"missing IMU noise key(s) {missing} (all four or none)")
     else:
-        imu_noise = ImuNoise(**{k: _number(d[v], v, p) for k, v in _NOISE_KEYS.items()})
+        imu_noise = ImuNoise(**{k: file_number(d[v], v, p) for k, v in _NOISE_KEYS.items()})
 
     T_raw = _first(d, ("IMU.T_b_c1", "Tbc"), p, required=False)
     if T_raw is None:

@@ -48,7 +48,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from ._files import read_yaml
+from ._files import file_number, read_yaml
 from .errors import FlightDataError, FlightFormatError
 from .types import (
     AttitudeSeries,
@@ -552,13 +552,10 @@ def calibration_from_dict(d: Any, path: Path) -> Calibration:
 
 
 def _number(v: Any, key: str, path: Path) -> float:
-    """A calibration value as a float, or an error naming the key."""
+    """A calibration value as a float (:func:`file_number`; YAML's true/false is not one)."""
     if isinstance(v, bool):
         raise FlightFormatError(path, f"{key}: expected a number, got {v!r}")
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        raise FlightFormatError(path, f"{key}: expected a number, got {v!r}") from None
+    return file_number(v, key, path)
 
 
 def read_calib_yaml(path: str | Path) -> Calibration:
