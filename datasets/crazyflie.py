@@ -458,17 +458,18 @@ def _record_starts(
     types: dict[int, EventType],
     first: int,
     path: Path,
-    end: int | None = None,
-    stop: list[Any] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    salvage: bool = False,
+) -> tuple[np.ndarray, np.ndarray, tuple[int, str] | None]:
     """Offsets and ids of every record (one pass over the ids; each id has a fixed size) up to
-    byte ``end`` (default: the CRC). A record that cannot be read (unknown id, cut off) is an
-    error, or, with a ``stop`` list, ends the pass: ``[offset, reason]`` are put in ``stop``."""
+    the CRC, and None. A record that cannot be read (unknown id, cut off) is an error; with
+    ``salvage`` (a file whose CRC does not match: its end may be records) every byte may be a
+    record and that record ends the pass, its ``(offset, reason)`` returned third."""
     head = 2 + np.dtype(STAMP_DTYPES[version][0]).itemsize
     size = [0] * 65536
     for e in types.values():
         size[e.id] = head + e.payload_dtype().itemsize
-    end = len(data) - CRC_BYTES if end is None else end
+    end = len(data) if salvage else len(data) - CRC_BYTES
+    stop = None
     starts: list[int] = []
     ids: list[int] = []
     add_start, add_id = starts.append, ids.append
@@ -494,14 +495,14 @@ def _record_starts(
                     f"{types[eid].name!r} needs {n} bytes, {end - off} left before the CRC"
                 )
         if problem is not None:
-            if stop is None:
+            if not salvage:
                 raise FlightFormatError(path, problem)
-            stop[:] = [off, problem]
+            stop = (off, problem)
             break
         add_start(off)
         add_id(eid)
         off += n
-    return np.asarray(starts, dtype=np.int64), np.asarray(ids, dtype=np.int64)
+    return np.asarray(starts, dtype=np.int64), np.asarray(ids, dtype=np.int64), stop
 
 
 def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieLog:
@@ -526,21 +527,18 @@ def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieL
     data = path.read_bytes()
     version, types, first = parse_header(data, path)
     problem = _crc_problem(data)
-    damage = None
     if problem and check_crc:
         raise FlightFormatError(path, problem + SALVAGE_HINT)
+    starts, ids, stop = _record_starts(data, version, types, first, path, bool(problem))
+    damage = None
     if problem:
-        stop: list[Any] = []
-        starts, ids = _record_starts(data, version, types, first, path, len(data), stop)
-        at = int(stop[0]) if stop else len(data)
+        at = stop[0] if stop else len(data)
         damage = {
             "crc": problem,
             "stopped_at_byte": at,
             "reason": stop[1] if stop else None,
             "bytes_dropped": len(data) - at,
         }
-    else:
-        starts, ids = _record_starts(data, version, types, first, path)
     buf = np.frombuffer(data, dtype=np.uint8)
     stamp_dtype = STAMP_DTYPES[version][0]
     records: dict[str, np.ndarray] = {}
