@@ -84,58 +84,6 @@ def online_smoother(calib: Calibration, config: Mapping[str, Any]) -> LiveEstima
     return OnlineSmoother(calib, fixed_lag_options(config), name="live", priors=priors)
 
 
-def msf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
-    """The MSF-style EKF baseline with the push API (:class:`MsfLive`), ``[msf-ekf]`` table."""
-    from fgnav.baselines.msf_ekf import MsfOptions
-    from fgnav.methods import _options
-
-    return MsfLive(calib, _options(MsfOptions, config, "msf-ekf"))
-
-
-def ekf004(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
-    """Seed 004's EKF with the push API (:class:`Ekf004Live`), ``[ekf004]`` table (``drag_k``
-    from it, else the default: a live link has no flight metadata)."""
-    from fgnav.baselines.ekf004 import Ekf004Options
-    from fgnav.methods import _options
-
-    return Ekf004Live(calib, _options(Ekf004Options, config, "ekf004"))
-
-
-def ukf003(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
-    """Seed 003's UKF with the push API (:class:`Ukf003Live`), ``[ukf003]`` table."""
-    from fgnav.baselines.ukf003 import Ukf003Options
-    from fgnav.methods import _options
-
-    return Ukf003Live(calib, _options(Ukf003Options, config, "ukf003"))
-
-
-def cf_ekf(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
-    """The Crazyflie EKF with the push API (:class:`CfEkfLive`), ``[cf-ekf]`` table."""
-    from fgnav.baselines.cf_ekf import CfEkfOptions
-    from fgnav.methods import _options
-
-    return CfEkfLive(calib, _options(CfEkfOptions, config, "cf-ekf"))
-
-
-def ekf_flow002(calib: Calibration, config: Mapping[str, Any]) -> LiveEstimator:
-    """Seed 002's EKF with flow dead reckoning with the push API (:class:`Flow002Live`),
-    ``[ekf-flow002]`` table."""
-    from fgnav.baselines.seed002_flow import Seed002FlowOptions
-    from fgnav.methods import _options
-
-    return Flow002Live(calib, _options(Seed002FlowOptions, config, "ekf-flow002"))
-
-
-ESTIMATORS: dict[str, EstimatorFactory] = {
-    "online": online_smoother,
-    "msf-ekf": msf_ekf,
-    "ekf004": ekf004,
-    "ukf003": ukf003,
-    "cf-ekf": cf_ekf,
-    "ekf-flow002": ekf_flow002,
-}
-"""Estimators by name (``fgnav live --estimator``)."""
-
 DEFAULT_ESTIMATOR = "online"
 
 CONFIG_TABLES = {
@@ -198,6 +146,19 @@ class FilterLive:
     """The filter: its module, class and options class."""
     RATE_HZ: float | None = None
     """Default output rate [Hz]; None: the options' ``output_rate_hz``."""
+    TABLE: str = ""
+    """The ``--config`` table of its options (the estimator's name)."""
+
+    @classmethod
+    def from_config(cls, calib: Calibration, config: Mapping[str, Any]) -> FilterLive:
+        """The adapter with its options from the ``[TABLE]`` table of ``config`` (the
+        :data:`ESTIMATORS` factory; a live link has no flight metadata: ``drag_k`` and the like
+        come from the table or the defaults)."""
+        from fgnav.methods import _options
+
+        module, _, options_name = cls.FILTER
+        options_cls = getattr(importlib.import_module(module), options_name)
+        return cls(calib, _options(options_cls, config, cls.TABLE))
 
     def __init__(
         self,
@@ -315,6 +276,7 @@ class MsfLive(FilterLive):
 
     USED_STREAMS = ("imu", "attitude", "slam", "range")
     FILTER = ("fgnav.baselines.msf_ekf", "MsfEkf", "MsfOptions")
+    TABLE = "msf-ekf"
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
         super().__init__(calib, options, name)
@@ -406,6 +368,7 @@ class Ekf004Live(FilterLive):
 
     USED_STREAMS = ("imu", "attitude", "yaw", "range", "slam")
     FILTER = ("fgnav.baselines.ekf004", "Ekf004Runner", "Ekf004Options")
+    TABLE = "ekf004"
     RATE_HZ = EKF004_RATE_HZ
 
     def __init__(
@@ -491,6 +454,7 @@ class Ukf003Live(FilterLive):
 
     USED_STREAMS = ("imu", "attitude", "slam", "range", "yaw")
     FILTER = ("fgnav.baselines.ukf003", "Ukf003", "Ukf003Options")
+    TABLE = "ukf003"
 
     def __init__(
         self,
@@ -607,6 +571,7 @@ class CfEkfLive(FilterLive):
 
     USED_STREAMS = ("imu", "flow", "range")
     FILTER = ("fgnav.baselines.cf_ekf", "CfEkf", "CfEkfOptions")
+    TABLE = "cf-ekf"
 
     def __init__(self, calib: Calibration, options=None, name: str = "live") -> None:
         super().__init__(calib, options, name)
@@ -658,6 +623,7 @@ class Flow002Live(FilterLive):
 
     USED_STREAMS = ("imu", "yaw", "range", "flow")
     FILTER = ("fgnav.baselines.seed002_flow", "Seed002Flow", "Seed002FlowOptions")
+    TABLE = "ekf-flow002"
     RATE_HZ = EKF_FLOW002_RATE_HZ
 
     def _feed(self, ev: Event) -> float | None:
@@ -687,3 +653,11 @@ class Flow002Live(FilterLive):
             "range:outlier": e.get("range_outlier", 0),
         }
         return used, {}, dropped
+
+
+ESTIMATORS: dict[str, EstimatorFactory] = {
+    "online": online_smoother,
+    **{a.TABLE: a.from_config for a in (MsfLive, Ekf004Live, Ukf003Live, CfEkfLive, Flow002Live)},
+}
+"""Estimators by name (``fgnav live --estimator``): the push-API smoother and the filter
+baselines behind :class:`FilterLive` adapters, each with its ``--config`` table."""
