@@ -505,6 +505,11 @@ class FaultDetectors:
         self._image_hash = h
         return ev
 
+    def named(self, det: str, detail: str) -> None:
+        """A fault an estimator found itself (e.g. the push engine's SLAM-orientation check),
+        counted under detector ``det`` and said once."""
+        self._count(det, detail)
+
     def slam_check(self, decision: dict[str, Any] | None) -> None:
         """The SLAM-vs-gyro check's decision (``time_offset_s``, ``body_R_cam_ok``)."""
         if not decision or "slam-check" in self._said:

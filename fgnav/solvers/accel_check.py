@@ -21,8 +21,15 @@ drag could explain**:
    plausible coefficient gives at this flight's speeds), at least ``signal_floor``.
 4. ``ratio = residual / signal``. Decisions:
 
-   - ``ratio > unusable_ratio``: **unusable**: the drag factor stays out; an IMU prediction may
-     then use the thrust axis only (``GraphOptions.accel_horizontal``).
+   - ``ratio > unusable_ratio``: **unusable**: the drag factor stays out; an IMU prediction
+     without SLAM may then use the thrust axis only (``GraphOptions.accel_horizontal``).
+     With SLAM the measured prediction stays: the check cannot tell an accelerometer dominated
+     by vibration (the Crazyflie's 1-3 m/s^2) from a drag model that does not fit (wind; a
+     hexacopter whose thrust is off body z), and SLAM positions observe what a wrong horizontal
+     force does to velocity and tilt. Measured 2026-12-07, push engine / batch: simulated
+     hover (60 s, gusts; ratio 1.2-1.5, residual 0.08 m/s^2) thrust-only 3.68 cm and SLAM scale
+     +50 %, measured 1.94 cm and +0.5 %; EuRoC MH_01 in a FLU body (ratio 3.4-4.4, the Firefly
+     carried and tilted on the floor) 0.312 / 0.153 m against 0.045 / 0.028 m.
    - ``weigh_ratio < ratio <= unusable_ratio``: **noisy**: drag stays in with its noise floor
      raised to ``residual`` (it weighs itself by its own misfit).
    - else **usable**.

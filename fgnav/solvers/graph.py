@@ -221,7 +221,8 @@ class GraphOptions:
         accel_horizontal: horizontal specific force in the IMU prediction: ``"measured"`` (the
             accelerometer), ``"thrust-only"`` (body x, y replaced by 0: thrust along body z,
             rotor drag neglected, as the Crazyflie firmware's in-flight prediction) or ``"auto"``
-            (thrust-only when the accelerometer check finds the horizontal channels unusable).
+            (thrust-only when the accelerometer check finds the horizontal channels unusable and
+            no SLAM is in use: :mod:`fgnav.solvers.accel_check`).
         thrust_only_sigma: the neglected horizontal specific force of the thrust-only prediction
             [m/s^2] (rotor drag: about 0.2-0.4 m/s^2 RMS on the Crazyflie flights, from Vicon):
             white noise of that size per keyframe mean plus an accelerometer-bias random walk on
@@ -781,7 +782,8 @@ class GraphBuilder:
         self.accel_check = chk
         if chk.decision == "undecided":
             return
-        if o.accel_horizontal == "auto" and chk.decision == "unusable":
+        if o.accel_horizontal == "auto" and chk.decision == "unusable" and not self.use_slam:
+            # (with SLAM the measured prediction stays: module docstring of accel_check)
             self.thrust_only = True
         if o.use_drag and o.drag_accel_check:
             if chk.decision == "unusable":

@@ -47,14 +47,21 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   latency) attaches at the start once it is made. The causal
   SLAM-vs-gyro check (:class:`fgnav.datasets.slam_gyro.SlamGyroCheck`) decides the file's rotation
   convention (an inverted file is named and used inverted), names a wrong ``body_T_cam`` rotation
-  and estimates the clock offset; once decided, the SLAM orientations become factors.
+  and estimates the clock offset; once decided, the SLAM orientations become factors. The
+  orientation check (``OnlineSmoother._orientation_check``, once a second) compares the
+  alignment rotation the SLAM orientations give through ``body_R_cam`` with the one the SLAM
+  positions and the IMU's motion give: relative rotations about one axis (a hover, yaw-only
+  turns) cannot show a wrong ``body_R_cam``, the positions can. A contradiction is named
+  (health detector ``body_T_cam-rotation``); the orientations are then not used and an
+  alignment seeded through them is re-seeded from the motion.
 - **Range** and **yaw**: interpolated to the keyframe time once the sample after it has arrived
   (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt.
 - **Drag**: mean accelerometer over the keyframe's window once the next keyframe has closed; off
   when the mean specific force of the first ``drag_check_s`` is more than
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
   (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
-  ``graph.accel_horizontal = "auto"``, the IMU prediction is thrust-only); said once; its noise
+  ``graph.accel_horizontal = "auto"`` and no SLAM in use, the IMU prediction is thrust-only);
+  said once; its noise
   floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
   the prediction is thrust-only from the start (when the start's specific force is along body
   +z) until the check finds the accelerometer usable in the air (no ground contact among its
@@ -284,6 +291,20 @@ SLAM_FIT_MOTION_MAX_REL_SE = 0.05
 #: While ``body_R_cam`` is unverified the motion's fit replaces the one through it when it fits
 #: the scale this many times better (and is ``SLAM_FIT_ROTATION_MAX_DEG`` away).
 SLAM_FIT_MOTION_BETTER = 1.5
+#: The SLAM orientations through ``body_R_cam`` (and the rotation convention) contradict the
+#: SLAM positions and the IMU (:meth:`OnlineSmoother._orientation_check`) when the motion-only
+#: fit passes the chain's gates with two directions, has a scale rel. s.e. of at most
+#: ``SLAM_MOTION_DOMINANT_MAX_REL_SE``, is ``SLAM_MOTION_DOMINANT_DEG`` or more from the fit
+#: through the orientations and fits the scale ``SLAM_MOTION_DOMINANT_BETTER`` times better (or
+#: the orientations give no positive scale). Measured on simulated hover (60 s, seed 1), every
+#: second from 8 s: right ``body_T_cam`` 0.8-6.8 deg apart, orientation s.e. / motion s.e.
+#: 0.99-1.01; an identity for the true rotation 173-180 deg apart, ratio 5-2800 (the motion's
+#: s.e. 0.05-0.08: the hover's small motion).
+SLAM_MOTION_DOMINANT_DEG = 30.0
+SLAM_MOTION_DOMINANT_BETTER = 3.0
+SLAM_MOTION_DOMINANT_MAX_REL_SE = 0.1
+#: Seconds between two orientation checks (two closed-form fits over the arrived poses).
+SLAM_ORIENTATION_CHECK_S = 1.0
 #: With the convention undecided, the motion's fit takes the inverse convention only when its
 #: scale rel. s.e. is under this fraction of the stated one's (turns about one axis fit both
 #: conventions' increments: the inverse's rotation came out 179 deg off on simulated rectangle).
@@ -527,6 +548,9 @@ class _Session:
     reseed_now: bool = False  # body_T_cam's rotation replaced: re-seed at the next pose
     next_reseed: float = -math.inf
     seed: tuple | None = None
+    # (slam_R_world, scale) of the motion's fit after the orientations were contradicted
+    # (_orient_contradicted): the provisional alignment is re-seeded with it at the next pose.
+    motion_seed: tuple | None = None
     # The provisional alignment's scale is the default (nothing known): a second pose long after
     # the first waits for the third (FixedLagOptions.slam_provisional_lone_gap_s).
     lone_hold: bool = False
@@ -793,6 +817,10 @@ class OnlineSmoother:
             "accel_horizontal": "thrust-only" if self._thrust_only else "measured",
             "slam_gyro_check": getattr(self, "slam_check", None),
             "slam_extrinsic_suspect": self._extrinsic_suspect,
+            "slam_orientation_check": {
+                "verdict": self._orient_verdict,
+                "contradiction": self._orient_found,
+            },
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "slam_rotation_convention": self._slam_conv,
@@ -900,6 +928,12 @@ class OnlineSmoother:
         self._sgc = None
         self._fit_motion_used = False
         self._misfit_try = -math.inf
+        # The SLAM orientations against the motion (_orientation_check): None while checked,
+        # "consistent" once confirmed, "contradicted" (the orientations unused: what was found
+        # in _orient_found) until the SLAM-vs-gyro check replaces body_R_cam.
+        self._orient_verdict: str | None = None
+        self._orient_found: dict[str, Any] | None = None
+        self._orient_next = -math.inf
         if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
 
@@ -1486,6 +1520,7 @@ class OnlineSmoother:
                     s.prov_factors.append((int(idx[pos]), row))
         self._read(k, wall)
         self._health_keyframe(k, g)
+        self._orientation_check(t_k)
         if self.factorization == "QR" and self.options.factorization.upper() != "QR":
             if (
                 t_k - self.t0 >= self.options.startup_qr_s
@@ -1804,7 +1839,8 @@ class OnlineSmoother:
         self._thrust_provisional = False
         if self.go.drag_accel_check and self._drag_on:
             self._drag_on = False
-        if self.go.accel_horizontal == "auto" and not was_thrust_only:
+        if self.go.accel_horizontal == "auto" and not was_thrust_only and not self.go.use_slam:
+            # (with SLAM the measured prediction stays: module docstring of accel_check)
             self._thrust_only = True
             if getattr(self, "_health", None) is not None:
                 self._health.horizontal_accel_free = True
@@ -2171,6 +2207,9 @@ class OnlineSmoother:
                 # Used by every SLAM factor and alignment fit made from now on (the position
                 # factors made before see only the translation, which is kept).
                 self.body_T_cam = make_pose(d.body_R_cam_fit, self.body_T_cam[:3, 3])
+                if self._orient_verdict == "contradicted":
+                    # The orientations through the fitted rotation are checked anew.
+                    self._orient_verdict, self._orient_next = None, -math.inf
                 # A provisional alignment seeded through the old rotation is seeded anew.
                 for s in self.sessions.values():
                     s.reseed_now = s.provisional is not None and not s.reseeded
@@ -2488,6 +2527,7 @@ class OnlineSmoother:
             self.go.use_slam_rotation is not False
             and key != s.provisional
             and self._slam_conv in ("as-is", "inverse")
+            and self._orient_verdict != "contradicted"
         ):
             # The camera orientation carried back to the keyframe with the gyro:
             # slam_R_cam(t_k) = slam_R_cam(t) body_R_cam^T Exp(-omega dt) body_R_cam.
@@ -2751,7 +2791,8 @@ class OnlineSmoother:
         # The fit's SLAM-frame rotation comes from the SLAM orientations: while the convention
         # check has not decided, try both conventions and keep the better fit (the wrong one
         # rotates the accelerations away from the SLAM motion: a poor fit).
-        fit = self._best_fit(t, p, q, imu, R, "orientations")
+        orient_bad = self._orient_verdict == "contradicted"
+        fit = None if orient_bad else self._best_fit(t, p, q, imu, R, "orientations")
         if fit is not None:
             log.debug(
                 "%s: SLAM fit over %.1f s: scale %.4f, excitation %.3f m, rel. s.e. %.3f",
@@ -2761,8 +2802,21 @@ class OnlineSmoother:
                 fit.excitation,
                 fit.scale_rel_se,
             )
+        alt = None
+        if orient_bad or self._orient_verdict is None or self._sgc is not None:
+            alt = self._best_fit(*inputs, "motion")
+        if not orient_bad and self._orient_verdict is None:
+            angle = self._motion_dominates(alt, fit)
+            if angle is not None:
+                self._orient_contradicted(s, alt, fit, angle, t[-1])
+                orient_bad = True
+        if orient_bad:
+            ok = self._fit_passes(alt) and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+            if ok:
+                self._use("slam:fit-rotation-from-motion")
+            return alt if ok else None
         if self._sgc is not None:
-            fit = self._fit_unverified_extrinsic(fit, inputs)
+            fit = self._fit_unverified_extrinsic(fit, alt)
         return fit if self._fit_passes(fit) else None
 
     def _best_fit(self, t, p, q, imu, R, rotation: str):
@@ -2830,7 +2884,7 @@ class OnlineSmoother:
             and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
         )
 
-    def _fit_unverified_extrinsic(self, fit, inputs):
+    def _fit_unverified_extrinsic(self, fit, alt):
         """While the SLAM-vs-gyro check has not verified ``body_R_cam``, the closed-form fit's
         rotation (from the SLAM orientations through ``body_R_cam``) is checked against the one
         the motion alone gives (:func:`init_slam_alignment` ``rotation="motion"``). The motion's
@@ -2840,8 +2894,7 @@ class OnlineSmoother:
         ``SLAM_FIT_ROTATION_MAX_DEG`` and the motion's fits the scale
         ``SLAM_FIT_MOTION_BETTER`` times better (a
         ``body_R_cam`` 90 deg off made the chain start 90 deg off and diverge, or held it back,
-        before the check decided)."""
-        alt = self._best_fit(*inputs, "motion")
+        before the check decided). ``alt``: the motion-only fit over the same poses."""
         if not self._motion_fit_ok(alt):
             return fit
         if fit is None:
@@ -2865,6 +2918,115 @@ class OnlineSmoother:
             )
         self._use("slam:fit-rotation-from-motion")
         return alt
+
+    def _motion_dominates(self, alt, fit) -> float | None:
+        """The angle [deg] between the motion-only fit ``alt`` and the fit through the SLAM
+        orientations ``fit`` when the motion's contradicts it (``SLAM_MOTION_DOMINANT_*``:
+        the chain's gates, two directions, a well-fitted scale, far apart and a much better
+        fit, or no positive scale through the orientations; ``inf`` then), else None."""
+        if (
+            not self._fit_passes(alt)
+            or alt.rotation_spread < SLAM_FIT_MOTION_MIN_SPREAD
+            or alt.scale_rel_se > SLAM_MOTION_DOMINANT_MAX_REL_SE
+        ):
+            return None
+        if fit is None:
+            return math.inf
+        angle = math.degrees(_norm(so3_log(alt.slam_R_world @ fit.slam_R_world.T)))
+        if angle < SLAM_MOTION_DOMINANT_DEG or not (
+            fit.scale_rel_se > SLAM_MOTION_DOMINANT_BETTER * alt.scale_rel_se
+        ):
+            return None
+        return angle
+
+    def _orientation_check(self, t: float) -> None:
+        """Do the SLAM orientations, through ``body_R_cam`` and the rotation convention, give
+        the alignment rotation the SLAM positions and the IMU's motion give? Once a second, on
+        every session's arrived poses (two closed-form fits, :func:`init_slam_alignment` with
+        ``rotation="orientations"`` and ``"motion"``), until the motion confirms them (within
+        ``SLAM_FIT_ROTATION_MAX_DEG``, its scale rel. s.e. under
+        ``SLAM_FIT_MOTION_MAX_REL_SE``) or contradicts them (:meth:`_motion_dominates`, then
+        :meth:`_orient_contradicted`). The SLAM-vs-gyro check compares relative rotations
+        only: with turns about one axis (a hover's wobble, yaw-only turns) a wrong
+        ``body_R_cam`` passes it, or passes as the inverse convention (simulated two-turns with
+        an identity ``body_T_cam``), and the alignment seeded through it cannot turn back
+        (hover: scale -63 %, nothing named)."""
+        if self._orient_verdict is not None or t < self._orient_next or self._axis:
+            return
+        self._orient_next = t + SLAM_ORIENTATION_CHECK_S
+        for s in self.sessions.values():
+            inputs = self._fit_inputs(s)
+            if inputs is None:
+                continue
+            alt = self._best_fit(*inputs, "motion")
+            if not self._fit_passes(alt) or alt.rotation_spread < SLAM_FIT_MOTION_MIN_SPREAD:
+                continue
+            fit = self._best_fit(*inputs, "orientations")
+            angle = self._motion_dominates(alt, fit)
+            if angle is not None:
+                self._orient_contradicted(s, alt, fit, angle, t)
+                return
+            if fit is not None and self._motion_fit_ok(alt):
+                a = math.degrees(_norm(so3_log(alt.slam_R_world @ fit.slam_R_world.T)))
+                if a <= SLAM_FIT_ROTATION_MAX_DEG:
+                    self._orient_verdict = "consistent"
+                    return
+
+    def _orient_contradicted(self, s: _Session, alt, fit, angle: float, t: float) -> None:
+        """The SLAM orientations contradict the motion (:meth:`_orientation_check`): named in a
+        warning, in ``info["slam_orientation_check"]`` and as the health detector
+        ``body_T_cam-rotation``; the orientations are no longer used (no SLAM rotation factors;
+        alignment fits from the motion); an alignment already seeded through them far from the
+        motion's rotation is re-seeded with the motion's: the provisional one at the next pose
+        (:meth:`_reseed_provisional`), a started chain through a rebuild of the window
+        (:meth:`_rebuild`, the reset counter rises) with the chain start's wide prior."""
+        orient_se = None if fit is None else float(fit.scale_rel_se)
+        self._orient_verdict = "contradicted"
+        self._orient_found = {
+            "t": float(t),
+            "angle_deg": None if math.isinf(angle) else round(angle, 1),
+            "motion_rel_se": round(float(alt.scale_rel_se), 4),
+            "orientation_rel_se": None if orient_se is None else round(orient_se, 4),
+            "realigned": False,
+        }
+        detail = (
+            "SLAM orientations through body_T_cam's rotation give an alignment "
+            + ("with no positive scale" if fit is None else f"{angle:.0f} deg")
+            + " from the one the SLAM positions and the IMU fit (scale rel. s.e. "
+            + ("-" if orient_se is None else f"{orient_se:.3f}")
+            + f" against {alt.scale_rel_se:.3f}) at t={t:.2f} s: body_T_cam's rotation (or "
+            "the SLAM rotation convention) is wrong; SLAM orientations no longer used"
+        )
+        if getattr(self, "_health", None) is not None and self._health.options.enabled:
+            self._health.detectors.named("body_T_cam-rotation", detail)  # said there, once
+        else:
+            log.warning("%s: %s", self.name, detail)
+        key = s.last_key
+        if key is None:
+            if s.provisional is not None:
+                s.motion_seed = (alt.slam_R_world, float(alt.scale))
+            return
+        cur = self.values.get(key)
+        if cur is None or not self._alive(key):
+            return
+        off = math.degrees(_norm(so3_log(alt.slam_R_world @ cur.rotation().matrix().T)))
+        if off < SLAM_MOTION_DOMINANT_DEG:
+            return
+        value = self._align_origin(s, make_slam_T_world(alt.scale, alt.slam_R_world, np.zeros(3)))
+        self.values[key] = value
+        s.chain = {s.last_seg: key}
+        rel = max(self.options.slam_init_scale_sigma_rel, float(alt.scale_rel_se))
+        self._orient_found["realigned"] = True
+        self._use("slam:realigned-from-motion")
+        log.warning(
+            "%s: SLAM alignment re-seeded from the motion (%.0f deg turned, scale %.4f -> "
+            "%.4f): window rebuilt",
+            self.name,
+            off,
+            float(cur.scale()),
+            float(alt.scale),
+        )
+        self._rebuild({}, {key: np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])})
 
     def _attitude_track(self, t: np.ndarray) -> np.ndarray | None:
         """World_R_body at times ``t``: the attitude stream, else the smoother's keyframes."""
@@ -3008,6 +3170,20 @@ class OnlineSmoother:
         newest pose). The old one's factors in the window move to the new one. A seed 180 deg
         off cannot be undone by the solver (simulated rectangle, 30 s: 123 m)."""
         old = self.values.get(s.provisional)
+        if s.motion_seed is not None and old is not None:
+            # The SLAM orientations contradicted the motion (_orient_contradicted).
+            seed, scale = s.motion_seed
+            s.motion_seed, s.reseeded = None, True
+            log.warning(
+                "%s: SLAM session %d: provisional alignment re-seeded with the rotation the "
+                "motion fits, scale %.4f",
+                self.name,
+                sess,
+                scale,
+            )
+            self._use("slam:provisional-reseeded")
+            self._retire_provisional(sess, s, (seed, scale), remove)
+            return
         if old is None or s.reseeded:
             return  # none, or its estimate dropped (out of the window for lag + 5 s)
         if s.reseed_now:
@@ -3500,10 +3676,16 @@ class OnlineSmoother:
             self._move_window("QR")
             self.factorization = "QR-stay"
 
-    def _rebuild(self, failed_stamps: dict[int, float] | None = None) -> None:
+    def _rebuild(
+        self,
+        failed_stamps: dict[int, float] | None = None,
+        slam_sigmas: dict[int, np.ndarray] | None = None,
+    ) -> None:
         """Fresh QR smoother with priors on the newest good state and the live slow variables
         (those of the window and those the failed update created); the failed update's
-        measurements are lost (counted as ``solver-failure:measurements-lost``)."""
+        measurements are lost (counted as ``solver-failure:measurements-lost``).
+        ``slam_sigmas``: the prior sigmas of these SLAM alignments (default
+        :meth:`_slam_rebuild_sigmas`)."""
         o = self.options
         live = [
             key
@@ -3529,7 +3711,10 @@ class OnlineSmoother:
             val = self.values[key]
             c = _chr(key)
             if c == "s":
-                noise = gtsam.noiseModel.Diagonal.Sigmas(self._slam_rebuild_sigmas(val))
+                sig = (slam_sigmas or {}).get(key)
+                if sig is None:
+                    sig = self._slam_rebuild_sigmas(val)
+                noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
                 g.add(self._slam_prior(key, val, noise))
             else:
                 vv = np.asarray(val, float)
