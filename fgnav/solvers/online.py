@@ -2994,8 +2994,9 @@ class OnlineSmoother:
             + ("with no positive scale" if fit is None else f"{angle:.0f} deg")
             + " from the one the SLAM positions and the IMU fit (scale rel. s.e. "
             + ("-" if orient_se is None else f"{orient_se:.3f}")
-            + f" against {alt.scale_rel_se:.3f}) at t={t:.2f} s: body_T_cam's rotation (or "
-            "the SLAM rotation convention) is wrong; SLAM orientations no longer used"
+            + f" against {alt.scale_rel_se:.3f}) at t={t:.2f} s: body_T_cam's rotation is wrong "
+            "(or the SLAM rotation convention, or a SLAM clock offset of 0.3 s or more); SLAM "
+            "orientations no longer used"
         )
         if getattr(self, "_health", None) is not None and self._health.options.enabled:
             self._health.detectors.named("body_T_cam-rotation", detail)  # said there, once
