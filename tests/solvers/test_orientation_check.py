@@ -83,3 +83,18 @@ def test_right_rotations_are_confirmed():
     est, ate, scale_err = _run(_flight("two-turns", 24.0, identity=False))
     assert est.info["slam_orientation_check"] == {"verdict": "consistent", "contradiction": None}
     assert abs(scale_err) < 1.0 and ate < 0.04  # -0.15 %, 2.70 cm
+
+
+def test_batch_hover_keeps_the_measured_accelerometer_with_slam():
+    """The batch graph's rule is the push engine's: thrust-only (the old "auto" outcome on this
+    hover) gave ATE 6.43 cm and a SLAM scale error of +527 %."""
+    from fgnav.solvers.batch import solve_batch
+
+    f = _flight("hover", 30.0, identity=False)
+    truth = {0: f.meta["truth"]["slam_sessions"]["0"]["scale"]}
+    est = solve_batch(f)
+    m = evaluate(est, f.ground_truth, truth_scale=truth)
+    assert est.info["accel_check"]["decision"] == "unusable"
+    assert est.info["accel_horizontal"] == "measured"
+    assert abs(m.scale_final_err_pct[0]) < 5.0  # 1.28 %
+    assert m.ate_rmse_m < 0.02  # 0.76 cm
