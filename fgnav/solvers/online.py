@@ -61,8 +61,7 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
   (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
   ``graph.accel_horizontal = "auto"`` and no SLAM in use, the IMU prediction is thrust-only);
-  said once; its noise
-  floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
+  said once; its noise floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
   the prediction is thrust-only from the start (when the start's specific force is along body
   +z) until the check finds the accelerometer usable in the air (no ground contact among its
   keyframes) or noisy over a full window: a vibrating accelerometer integrated while the check
