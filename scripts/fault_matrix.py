@@ -56,6 +56,7 @@ RECOVER_FACTOR = 2.0
 SILENT_ATE_MAX_M = 1.0
 SIM_SEED = 1
 SIM_DURATION_S = 24.0
+SIM_HOVER_DURATION_S = 30.0
 SIM_CAMERA_DURATION_S = 20.0
 
 
@@ -94,7 +95,12 @@ class Row:
 
 
 #: The row giving each base flight's nominal ATE.
-NOMINAL_ROWS = {"sim": "nominal", "mh01": "mh01:nominal", "sim-camera": "camera-nominal"}
+NOMINAL_ROWS = {
+    "sim": "nominal",
+    "mh01": "mh01:nominal",
+    "sim-camera": "camera-nominal",
+    "sim-hover": "hover:nominal",
+}
 OK = {"recovered", "named"}
 #: Acceptable where the batch solve may not converge: it says so and exits 1 (nothing written).
 OK_OR_STOP = {"recovered", "named", "error"}
@@ -140,6 +146,17 @@ class Context:
         return simulate(
             "two-turns", SIM_SEED, SimOptions(duration=SIM_DURATION_S, images=False, **sim_options)
         )
+
+    def hover(self):
+        """Simulated hover in gusts (``SIM_HOVER_DURATION_S``): little motion, no turns."""
+        if "hover" not in self._cache:
+            from fgnav.datasets.simulate.options import SimOptions
+            from fgnav.datasets.simulate.simulator import simulate
+
+            self._cache["hover"] = simulate(
+                "hover", SIM_SEED, SimOptions(duration=SIM_HOVER_DURATION_S, images=False)
+            )
+        return self._cache["hover"]
 
     def camera_folder(self) -> Path:
         """A 20 s simulated flight with the downward camera, as a native folder (PNG files)."""
@@ -579,6 +596,20 @@ def rows() -> list[Row]:
             "calibration body_T_cam replaced by the identity",
             {"batch": OK_OR_STOP, "online": OK},
             True,
+        ),
+        R(
+            "hover:nominal",
+            "sim-hover",
+            lambda c, d: _write(c.hover(), d),
+            "no fault (hover in gusts, 30 s)",
+            _both({"recovered"}),
+        ),
+        R(
+            "hover:body_T_cam-identity",
+            "sim-hover",
+            lambda c, d: _write(_body_T_cam_identity(c.hover()), d),
+            "hover: body_T_cam replaced by the identity (no turns for the SLAM-vs-gyro check)",
+            _both(OK),
         ),
         R(
             "gyro-saturated-0.5",
