@@ -28,8 +28,9 @@ drag could explain**:
      hexacopter whose thrust is off body z), and SLAM positions observe what a wrong horizontal
      force does to velocity and tilt. Measured 2026-12-07, push engine / batch: simulated
      hover (60 s, gusts; ratio 1.2-1.5, residual 0.08 m/s^2) thrust-only 3.68 cm and SLAM scale
-     +50 %, measured 1.94 cm and +0.5 % (batch, 30 s: 6.43 cm, +527 % against 0.76 cm, +1.3 %); EuRoC MH_01 in a FLU body (ratio 3.4-4.4, the Firefly
-     carried and tilted on the floor) 0.312 / 0.153 m against 0.045 / 0.028 m.
+     +50 %, measured 1.94 cm and +0.5 % (batch, 30 s: 6.43 cm, +527 % against 0.76 cm,
+     +1.3 %); EuRoC MH_01 in a FLU body (ratio 3.4-4.4, the Firefly carried and tilted on the
+     floor) 0.312 / 0.153 m against 0.045 / 0.028 m.
    - ``weigh_ratio < ratio <= unusable_ratio``: **noisy**: drag stays in with its noise floor
      raised to ``residual`` (it weighs itself by its own misfit).
    - else **usable**.

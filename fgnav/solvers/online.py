@@ -61,14 +61,14 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
   (:mod:`fgnav.solvers.accel_check`) finds the horizontal channels unusable (then, with
   ``graph.accel_horizontal = "auto"`` and no SLAM in use, the IMU prediction is thrust-only);
-  said once; its noise floor follows the running scatter of the keyframe means. With ``"auto"`` and no SLAM in use
-  the prediction is thrust-only from the start (when the start's specific force is along body
-  +z) until the check finds the accelerometer usable in the air (no ground contact among its
-  keyframes) or noisy over a full window: a vibrating accelerometer integrated while the check
-  decides tilted the Crazyflie's attitude by up to 14 deg on the ground. Without SLAM a
-  thrust-only prediction carries the drag dynamics (``graph.thrust_only_drag_sigma``: the x, y
-  bias tied to ``k u_xy``); with SLAM the bias walks freely, so that the health monitor's
-  accelerometer-bias judgement still names a wrong ``body_T_cam`` (fault matrix).
+  said once; its noise floor follows the running scatter of the keyframe means. With ``"auto"``
+  and no SLAM in use the prediction is thrust-only from the start (when the start's specific
+  force is along body +z) until the check finds the accelerometer usable in the air (no ground
+  contact among its keyframes) or noisy over a full window: a vibrating accelerometer integrated
+  while the check decides tilted the Crazyflie's attitude by up to 14 deg on the ground. Without
+  SLAM a thrust-only prediction carries the drag dynamics (``graph.thrust_only_drag_sigma``: the
+  x, y bias tied to ``k u_xy``); with SLAM (only with ``accel_horizontal = "thrust-only"``
+  given) the bias walks freely.
 - **Time rules**: a sample older than its stream's newest by less than ``clock_jump_s`` is
   rejected and counted (``<stream>:out-of-order``; equal stamps ``<stream>:duplicate``); an IMU
   stamp that goes back by more than that is a clock jump and resets the smoother
