@@ -929,7 +929,8 @@ class OnlineSmoother:
         self._misfit_try = -math.inf
         # The SLAM orientations against the motion (_orientation_check): None while checked,
         # "consistent" once confirmed, "contradicted" (the orientations unused: what was found
-        # in _orient_found) until the SLAM-vs-gyro check replaces body_R_cam.
+        # in _orient_found), "verified" once the SLAM-vs-gyro check has decided with two axes
+        # turned (_slam_check).
         self._orient_verdict: str | None = None
         self._orient_found: dict[str, Any] | None = None
         self._orient_next = -math.inf
@@ -2175,6 +2176,7 @@ class OnlineSmoother:
             "body_R_cam_error_deg": float(d.body_R_cam_error_deg),
             "time_offset_s": float(d.time_offset_s),
             "gyro_bias": np.asarray(d.gyro_bias).tolist(),
+            "axis_spread": float(d.axis_spread),
         }
         if adopt and d.convention == "inverse":
             log.warning(
@@ -2206,12 +2208,21 @@ class OnlineSmoother:
                 # Used by every SLAM factor and alignment fit made from now on (the position
                 # factors made before see only the translation, which is kept).
                 self.body_T_cam = make_pose(d.body_R_cam_fit, self.body_T_cam[:3, 3])
-                if self._orient_verdict == "contradicted":
-                    # The orientations through the fitted rotation are checked anew.
-                    self._orient_verdict, self._orient_next = None, -math.inf
                 # A provisional alignment seeded through the old rotation is seeded anew.
                 for s in self.sessions.values():
                     s.reseed_now = s.provisional is not None and not s.reseeded
+        from fgnav.datasets.slam_gyro import MIN_AXIS_SPREAD
+
+        if d.axis_spread >= MIN_AXIS_SPREAD and (
+            d.body_R_cam_ok or self.slam_check.get("body_R_cam_replaced")
+        ):
+            # Two axes turned: the rotations themselves have verified body_R_cam (or replaced
+            # it) and the convention; the orientation check, which leans on the positions and a
+            # motion fit that a SLAM clock offset also bends, has nothing left to find.
+            self._orient_verdict = "verified"
+        elif self._orient_verdict == "contradicted" and self.slam_check.get("body_R_cam_replaced"):
+            # The orientations through the fitted rotation are checked anew.
+            self._orient_verdict, self._orient_next = None, -math.inf
 
     def _camera_ready(self, ev: ImageFrame) -> bool:
         """Set up the homography VO stage at the first image (False: images not used, counted).
@@ -3026,7 +3037,17 @@ class OnlineSmoother:
             float(cur.scale()),
             float(alt.scale),
         )
-        self._rebuild({}, {key: np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])})
+        # The window's velocity and accelerometer bias were estimated through the wrong
+        # alignment: their priors are the start's, not a healthy rebuild's.
+        go = self.go
+        wide = dataclasses.replace(
+            self.options,
+            rebuild_vel_sigma=max(self.options.rebuild_vel_sigma, go.prior_velocity_sigma),
+            rebuild_accel_bias_sigma=max(
+                self.options.rebuild_accel_bias_sigma, go.prior_accel_bias_sigma
+            ),
+        )
+        self._rebuild({}, {key: np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])}, wide)
 
     def _attitude_track(self, t: np.ndarray) -> np.ndarray | None:
         """World_R_body at times ``t``: the attitude stream, else the smoother's keyframes."""
@@ -3680,12 +3701,14 @@ class OnlineSmoother:
         self,
         failed_stamps: dict[int, float] | None = None,
         slam_sigmas: dict[int, np.ndarray] | None = None,
+        priors: FixedLagOptions | None = None,
     ) -> None:
         """Fresh QR smoother with priors on the newest good state and the live slow variables
         (those of the window and those the failed update created); the failed update's
         measurements are lost (counted as ``solver-failure:measurements-lost``).
         ``slam_sigmas``: the prior sigmas of these SLAM alignments (default
-        :meth:`_slam_rebuild_sigmas`)."""
+        :meth:`_slam_rebuild_sigmas`); ``priors``: options whose ``rebuild_*`` sigmas the state
+        priors take (default the smoother's)."""
         o = self.options
         live = [
             key
@@ -3702,7 +3725,9 @@ class OnlineSmoother:
         stamps: dict[int, float] = {}
         t = self.t_kf[kg]
         g.push_back(
-            rebuild_state_priors(kg, self.values[X(kg)], self.values[V(kg)], self.values[B(kg)], o)
+            rebuild_state_priors(
+                kg, self.values[X(kg)], self.values[V(kg)], self.values[B(kg)], priors or o
+            )
         )
         for key in (X(kg), V(kg), B(kg)):
             v.insert(key, self.values[key])
