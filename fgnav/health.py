@@ -737,6 +737,13 @@ class HealthMonitor:
         )
         return snap
 
+    def discard_snapshots(self) -> None:
+        """Forget the healthy states kept so far: their slow variables are known wrong (a SLAM
+        alignment re-seeded after its orientations were contradicted), and a recovery must not
+        bring them back."""
+        self._snapshots.clear()
+        self._last_snapshot_t = -math.inf
+
     def healthy_snapshot(self) -> Snapshot | None:
         """The newest healthy snapshot from before the current alarm (None: none kept)."""
         lim = (self._alarm_since if self._alarm_since is not None else math.inf) - (

@@ -636,6 +636,12 @@ class OnlineSmoother:
         # The early SLAM-rotation misfit's suspicion (_suspect_extrinsic) outlives a reset, as
         # the check's decision does: the calibration is the same.
         self._extrinsic_suspect: dict[str, float] | None = None
+        # The SLAM orientations against the motion (_orientation_check): None while checked,
+        # "consistent" once confirmed, "contradicted" (the orientations unused: what was found
+        # in _orient_found), "verified" once the SLAM-vs-gyro check has decided with two axes
+        # turned (_slam_check). A property of the calibration: it outlives resets too.
+        self._orient_verdict: str | None = None
+        self._orient_found: dict[str, Any] | None = None
         # An IMU sample after a clock jump or gap, held until the next one says whether the
         # discontinuity is real or the stamp corrupted: (event, t, omega, accel).
         self._imu_suspect: tuple | None = None
@@ -927,12 +933,6 @@ class OnlineSmoother:
         self._sgc = None
         self._fit_motion_used = False
         self._misfit_try = -math.inf
-        # The SLAM orientations against the motion (_orientation_check): None while checked,
-        # "consistent" once confirmed, "contradicted" (the orientations unused: what was found
-        # in _orient_found), "verified" once the SLAM-vs-gyro check has decided with two axes
-        # turned (_slam_check).
-        self._orient_verdict: str | None = None
-        self._orient_found: dict[str, Any] | None = None
         self._orient_next = -math.inf
         if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
@@ -2964,7 +2964,9 @@ class OnlineSmoother:
         if self._orient_verdict is not None or t < self._orient_next or self._axis:
             return
         self._orient_next = t + SLAM_ORIENTATION_CHECK_S
-        for s in self.sessions.values():
+        for s in reversed(list(self.sessions.values())):
+            if not s.t or s.t[-1] < t - self.options.lag_s:
+                continue  # an ended session (a map reset's predecessor): nothing of it to act on
             inputs = self._fit_inputs(s)
             if inputs is None:
                 continue
@@ -3048,6 +3050,9 @@ class OnlineSmoother:
             ),
         )
         self._rebuild({}, {key: np.array([0.3, 0.3, 0.3, 10.0, 10.0, 10.0, rel])}, wide)
+        if getattr(self, "_health", None) is not None:
+            # The kept healthy states hold the old alignment: a recovery must not restore it.
+            self._health.discard_snapshots()
 
     def _attitude_track(self, t: np.ndarray) -> np.ndarray | None:
         """World_R_body at times ``t``: the attitude stream, else the smoother's keyframes."""
@@ -3262,6 +3267,10 @@ class OnlineSmoother:
         (:meth:`_data_scale`: a session whose first poses already move waits up to
         ``slam_provisional_wait_s`` for it), else ``slam_provisional_scale``."""
         o = self.options
+        if self._orient_verdict == "contradicted" and s.seed is None:
+            # The orientations were found wrong (_orient_contradicted): no rotation is seeded
+            # through them; the poses wait for the chain the motion's fit starts (_fit).
+            return False
         pose = self._pose_at(s.t[-1])
         slam_R_cam = quat_wxyz_to_matrix(s.q[-1])
         world_R_cam = pose.rotation().matrix() @ self.body_T_cam[:3, :3]
@@ -3305,7 +3314,11 @@ class OnlineSmoother:
                     sess,
                     scale,
                 )
-        value = make_slam_T_world(scale, R, s.p[-1] - scale * R @ self._cam_at(s.t[-1]))
+        origin = s.p[-1] - scale * R @ self._cam_at(s.t[-1])
+        if not (math.isfinite(scale) and np.isfinite(R).all() and np.isfinite(origin).all()):
+            self._drop("slam:provisional-non-finite")  # a diverged state: wait for a sane one
+            return False
+        value = make_slam_T_world(scale, R, origin)
         key = S(PROVISIONAL_BASE + self._n_prov)
         self._n_prov += 1
         sig = np.r_[
