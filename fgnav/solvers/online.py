@@ -302,6 +302,8 @@ SLAM_FIT_MOTION_BETTER = 1.5
 SLAM_MOTION_DOMINANT_DEG = 30.0
 SLAM_MOTION_DOMINANT_BETTER = 3.0
 SLAM_MOTION_DOMINANT_MAX_REL_SE = 0.1
+#: Keyframes between two prunings of the held-back SLAM poses (``OnlineSmoother._prune_held``).
+HELD_PRUNE_EVERY = 20
 #: Seconds between two orientation checks (two closed-form fits over the arrived poses).
 SLAM_ORIENTATION_CHECK_S = 1.0
 #: With the convention undecided, the motion's fit takes the inverse convention only when its
@@ -1521,6 +1523,8 @@ class OnlineSmoother:
         self._read(k, wall)
         self._health_keyframe(k, g)
         self._orientation_check(t_k)
+        if self._held and k % HELD_PRUNE_EVERY == 0:
+            self._prune_held()
         if self.factorization == "QR" and self.options.factorization.upper() != "QR":
             if (
                 t_k - self.t0 >= self.options.startup_qr_s
@@ -3348,6 +3352,16 @@ class OnlineSmoother:
                 self._pending.append(item)
             else:
                 self._drop("slam:before-alignment")
+
+    def _prune_held(self) -> None:
+        """Held-back SLAM poses whose keyframe has left the window can no longer attach: they
+        are dropped and counted (``slam:before-alignment``) now, not when their session's
+        alignment starts, which may be never (a session whose motion never passes the fit's
+        gates kept every pose in memory, uncounted until the end)."""
+        keep = [item for item in self._held if self._kf_alive(item[0])]
+        if len(keep) != len(self._held):
+            self._drop("slam:before-alignment", len(self._held) - len(keep))
+            self._held = keep
 
     def _prov_covered(self, s: _Session) -> np.ndarray:
         """Times of the session's arrived poses the smoother covers."""
