@@ -119,15 +119,19 @@ class Context:
     tmp: Path
     _cache: dict = field(default_factory=dict)
 
-    def sim(self):
-        if "sim" not in self._cache:
+    def _simulated(self, scenario: str, duration: float):
+        """A simulated flight without images (seed ``SIM_SEED``), built once."""
+        if scenario not in self._cache:
             from fgnav.datasets.simulate.options import SimOptions
             from fgnav.datasets.simulate.simulator import simulate
 
-            self._cache["sim"] = simulate(
-                "two-turns", SIM_SEED, SimOptions(duration=SIM_DURATION_S, images=False)
+            self._cache[scenario] = simulate(
+                scenario, SIM_SEED, SimOptions(duration=duration, images=False)
             )
-        return self._cache["sim"]
+        return self._cache[scenario]
+
+    def sim(self):
+        return self._simulated("two-turns", SIM_DURATION_S)
 
     def sim_folder(self) -> Path:
         """The nominal simulated flight as a native folder."""
@@ -149,14 +153,7 @@ class Context:
 
     def hover(self):
         """Simulated hover in gusts (``SIM_HOVER_DURATION_S``): little motion, no turns."""
-        if "hover" not in self._cache:
-            from fgnav.datasets.simulate.options import SimOptions
-            from fgnav.datasets.simulate.simulator import simulate
-
-            self._cache["hover"] = simulate(
-                "hover", SIM_SEED, SimOptions(duration=SIM_HOVER_DURATION_S, images=False)
-            )
-        return self._cache["hover"]
+        return self._simulated("hover", SIM_HOVER_DURATION_S)
 
     def camera_folder(self) -> Path:
         """A 20 s simulated flight with the downward camera, as a native folder (PNG files)."""

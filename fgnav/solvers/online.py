@@ -2825,7 +2825,7 @@ class OnlineSmoother:
                 self._orient_contradicted(s, alt, fit, angle, t[-1])
                 orient_bad = True
         if orient_bad:
-            ok = self._fit_passes(alt) and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+            ok = self._motion_fit_usable(alt)
             if ok:
                 self._use("slam:fit-rotation-from-motion")
             return alt if ok else None
@@ -2888,15 +2888,15 @@ class OnlineSmoother:
             and fit.n_pairs >= o.slam_init_min_pairs
         )
 
+    def _motion_fit_usable(self, alt) -> bool:
+        """A motion-only fit (``rotation="motion"``) passes the chain's gates and saw two
+        directions (``SLAM_FIT_MOTION_MIN_SPREAD``)."""
+        return self._fit_passes(alt) and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
+
     def _motion_fit_ok(self, alt) -> bool:
-        """A motion-only fit (``rotation="motion"``) determines the SLAM rotation: the chain's
-        gates, two directions (``SLAM_FIT_MOTION_MIN_SPREAD``) and a well-fitted scale
-        (``SLAM_FIT_MOTION_MAX_REL_SE``)."""
-        return (
-            self._fit_passes(alt)
-            and alt.rotation_spread >= SLAM_FIT_MOTION_MIN_SPREAD
-            and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
-        )
+        """A motion-only fit determines the SLAM rotation: :meth:`_motion_fit_usable` and a
+        well-fitted scale (``SLAM_FIT_MOTION_MAX_REL_SE``)."""
+        return self._motion_fit_usable(alt) and alt.scale_rel_se <= SLAM_FIT_MOTION_MAX_REL_SE
 
     def _fit_unverified_extrinsic(self, fit, alt):
         """While the SLAM-vs-gyro check has not verified ``body_R_cam``, the closed-form fit's
@@ -2938,11 +2938,7 @@ class OnlineSmoother:
         orientations ``fit`` when the motion's contradicts it (``SLAM_MOTION_DOMINANT_*``:
         the chain's gates, two directions, a well-fitted scale, far apart and a much better
         fit, or no positive scale through the orientations; ``inf`` then), else None."""
-        if (
-            not self._fit_passes(alt)
-            or alt.rotation_spread < SLAM_FIT_MOTION_MIN_SPREAD
-            or alt.scale_rel_se > SLAM_MOTION_DOMINANT_MAX_REL_SE
-        ):
+        if not self._motion_fit_usable(alt) or alt.scale_rel_se > SLAM_MOTION_DOMINANT_MAX_REL_SE:
             return None
         if fit is None:
             return math.inf
@@ -2975,7 +2971,7 @@ class OnlineSmoother:
             if inputs is None:
                 continue
             alt = self._best_fit(*inputs, "motion")
-            if not self._fit_passes(alt) or alt.rotation_spread < SLAM_FIT_MOTION_MIN_SPREAD:
+            if not self._motion_fit_usable(alt):
                 continue
             fit = self._best_fit(*inputs, "orientations")
             angle = self._motion_dominates(alt, fit)
@@ -3202,21 +3198,11 @@ class OnlineSmoother:
         old = self.values.get(s.provisional)
         if s.motion_seed is not None and old is not None:
             # The SLAM orientations contradicted the motion (_orient_contradicted).
-            seed, scale = s.motion_seed
-            s.motion_seed, s.reseeded = None, True
-            log.warning(
-                "%s: SLAM session %d: provisional alignment re-seeded with the rotation the "
-                "motion fits, scale %.4f",
-                self.name,
-                sess,
-                scale,
-            )
-            self._use("slam:provisional-reseeded")
-            self._retire_provisional(sess, s, (seed, scale), remove)
-            return
-        if old is None or s.reseeded:
+            (seed, scale), s.motion_seed = s.motion_seed, None
+            how = "with the rotation the motion fits (the SLAM orientations contradicted)"
+        elif old is None or s.reseeded:
             return  # none, or its estimate dropped (out of the window for lag + 5 s)
-        if s.reseed_now:
+        elif s.reseed_now:
             inputs = self._fit_inputs(s)
             fit = None if inputs is None else self._best_fit(*inputs, "orientations")
             seed = None if fit is None else fit.slam_R_world
