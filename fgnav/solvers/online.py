@@ -25,6 +25,10 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   before it, no attitude stream), attitude and velocity are the stretch's level attitude and rest
   integrated with the arrived IMU up to the start (``_from_still``), not a level on the moving
   vehicle's specific force.
+- **Range**: interpolated at each keyframe from its two bracketing readings; a reading outside
+  the innovation gate (``FixedLagOptions.range_gate_m``) of the keyframe's current estimate is
+  dropped, a run of them that agree is taken (``_range_consistent``). A new ground-height
+  variable starts from the median of the newest three readings.
 - **SLAM** (``graph.slam_model`` ``sim3``; the per-axis model below): a pose taken at ``t``
   attaches to the keyframe nearest ``t`` through
   :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body carried over
@@ -160,7 +164,12 @@ from fgnav.factors.slam_scale import (
     make_slam_T_world,
     slam_alignment_parts,
 )
-from fgnav.factors.tilted_range import gate_range, make_range_factor
+from fgnav.factors.tilted_range import (
+    MIN_COS_TILT,
+    gate_range,
+    make_range_factor,
+    tilted_range_error,
+)
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
@@ -251,6 +260,12 @@ LATE_WARN_N = 20
 #: a steady roll or pitch rate in flight passes the rate tests (simulated figure8 with its
 #: first 12 s of SLAM removed: 0.12 rad/s taken for the gyro bias, the start diverged).
 STILL_MAX_ATTITUDE_TURN = 0.02
+#: A new ground-height variable starts from the median of the newest three range readings of
+#: the last this many seconds (one could be an outlier: simulated two-turns seed 1's first is).
+GROUND_GUESS_S = 0.3
+#: The range innovation gate is at least this fraction of the reading (see
+#: ``FixedLagOptions.range_gate_m``).
+RANGE_GATE_REL = 0.1
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``, above every
 #: chain key (2^40: 11 million sessions of 100 000 segments).
 PROVISIONAL_BASE = 1 << 40
@@ -886,6 +901,8 @@ class OnlineSmoother:
         self._att: deque = deque()
         self._scalar: dict[str, deque] = {"range": deque(), "yaw": deque()}
         self._scalar_wait: dict[str, deque] = {"range": deque(), "yaw": deque()}
+        # Ground heights of the consecutive range readings the innovation gate refused.
+        self._range_run: deque = deque(maxlen=max(self.options.range_gate_run, 1))
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
         self._anchors: deque = deque()  # arrived image times not yet passed
@@ -1650,7 +1667,10 @@ class OnlineSmoother:
         pose = self.values.get(X(k))
         if not rng or pose is None:
             return 0.0
-        h = self._body_height(rng[-1][1], pose.rotation().matrix())
+        t_k = self.t_kf[k]
+        recent = [r for tr, r in rng if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:]
+        recent = recent or [rng[-1][1]]
+        h = self._body_height(float(np.median(recent)), pose.rotation().matrix())
         return float(pose.translation()[2] - h)
 
     def _body_height(self, range_m: float, world_R_body: np.ndarray) -> float:
@@ -2463,6 +2483,11 @@ class OnlineSmoother:
         if gk not in self.values or not self._alive(gk):
             self._drop("range:late")
             return
+        if pose is not None and not self._range_consistent(
+            float(r), pose, float(self.values[gk][0])
+        ):
+            self._drop("range:outlier")
+            return
         g.add(
             make_range_factor(
                 X(k), gk, float(r), self.body_T_range, self._noise(1, self.go.range_sigma)
@@ -2470,6 +2495,40 @@ class OnlineSmoother:
         )
         stamps[gk] = self.t_kf[self.k]
         self._use("range")
+
+    def _range_consistent(self, r: float, pose: gtsam.Pose3, ground: float) -> bool:
+        """The innovation gate of a range reading: within ``range_gate_m`` (or
+        ``RANGE_GATE_REL`` of the reading, if larger) of the range the keyframe's current
+        estimate and ground height predict. A run of ``range_gate_run`` gated readings that
+        agree with each other (their ground heights within the gate) is the estimate's error
+        or a step in the terrain, not outliers: the run's newest is taken (``range:gate-run``).
+
+        A single wrong reading, through the robust kernel's one Gauss-Newton step per update,
+        moved the window: simulated two-turns (seed 1; the first range reading, at the start,
+        1.81 m against 3.45) put the third keyframe 30 cm high at 3 m/s."""
+        o = self.options
+        if o.range_gate_m <= 0:
+            return True
+        e, _ = tilted_range_error(pose, np.array([ground]), r, self.body_T_range)
+        gate = max(o.range_gate_m, RANGE_GATE_REL * r)
+        if abs(float(e[0])) <= gate:
+            self._range_run.clear()
+            return True
+        run = self._range_run
+        run.append(ground + float(e[0]) * self._range_cos(pose))  # the reading's ground
+        if len(run) < o.range_gate_run:
+            return False
+        grounds = list(run)[-o.range_gate_run :]
+        if max(grounds) - min(grounds) > gate:
+            return False
+        run.clear()
+        self._use("range:gate-run")
+        return True
+
+    def _range_cos(self, pose: gtsam.Pose3) -> float:
+        """Cosine of the beam's tilt from the world's down axis (floored as the factor does)."""
+        beam = pose.rotation().matrix() @ self.body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        return max(-float(beam[2]), MIN_COS_TILT)
 
     def _suspect_extrinsic(self, t: float) -> None:
         """Before the check decides: a stated ``body_R_cam`` that maps the SLAM's rotations far

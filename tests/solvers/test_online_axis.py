@@ -33,14 +33,16 @@ def test_push_engine_circle_per_axis_with_camera() -> None:
     seed 1. Measured: ATE 0.38 cm (the prepared engine, not causal: 0.81 cm), final kx, ky
     0.2 / 0.4 % from the drifting truth (prepared 0.07 / 0.4 %), fit at t=3.0 s. The circle is
     flat (true z std below 0.5 mm): kz has no motion to be seen in and rests on its start fit,
-    the priors and the walks (-3.2 % with the ground walk 0.002 m/sqrt(s), -0.5 % with 0.01)."""
+    the priors and the walks (-3.2 % with the ground walk 0.002 m/sqrt(s), -0.5 % with 0.01), and
+    on the first ground height: -2.8 % from the newest range reading (1.7 cm off), -5.3 % from
+    the median of the newest three (0.2 cm off) with the range gate (2026-12-07)."""
     f, est, m = circle_axis_run(replay_online)
     assert est.info["engine"] == "push-api"
     assert m.ate_rmse_m < 0.008, m.ate_rmse_m
     k = est.series["slam_axis_scale"].value[-1]
     k_true = truth_axis_scale_at(f, est.trajectory.t[-1])
     np.testing.assert_allclose(k[:2], k_true[:2], rtol=0.01)
-    np.testing.assert_allclose(k[2], k_true[2], rtol=0.05)  # unobservable: see the docstring
+    np.testing.assert_allclose(k[2], k_true[2], rtol=0.08)  # unobservable: see the docstring
     assert est.slam_scale[0] == pytest.approx(float(np.cbrt(np.prod(k))))
     # Poses whose keyframe left the window before the fit are counted.
     assert 0 < est.info["dropped"]["slam:before-alignment"] < 60
