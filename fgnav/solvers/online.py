@@ -25,10 +25,6 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   before it, no attitude stream), attitude and velocity are the stretch's level attitude and rest
   integrated with the arrived IMU up to the start (``_from_still``), not a level on the moving
   vehicle's specific force.
-- **Range**: interpolated at each keyframe from its two bracketing readings; a reading outside
-  the innovation gate (``FixedLagOptions.range_gate_m``) of the keyframe's current estimate is
-  dropped, a run of them that agree is taken (``_range_consistent``). A new ground-height
-  variable starts from the median of the newest three readings.
 - **SLAM** (``graph.slam_model`` ``sim3``; the per-axis model below): a pose taken at ``t``
   attaches to the keyframe nearest ``t`` through
   :func:`fgnav.factors.slam_scale.make_slam_position_offset_factor` (the body carried over
@@ -51,7 +47,8 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   latency) attaches at the start once it is made. The causal
   SLAM-vs-gyro check (:class:`fgnav.datasets.slam_gyro.SlamGyroCheck`) decides the file's rotation
   convention (an inverted file is named and used inverted), names a wrong ``body_T_cam`` rotation
-  and estimates the clock offset; once decided, the SLAM orientations become factors. The
+  and estimates the clock offset; once decided, the SLAM orientations become factors, on the
+  provisional alignment too (a pose moved from it onto the chain keeps its rotation factor). The
   orientation check (``OnlineSmoother._orientation_check``, once a second) compares the
   alignment rotation the SLAM orientations give through ``body_R_cam`` with the one the SLAM
   positions and the IMU's motion give: relative rotations about one axis (a hover, yaw-only
@@ -59,7 +56,10 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   (health detector ``body_T_cam-rotation``); the orientations are then not used and an
   alignment seeded through them is re-seeded from the motion.
 - **Range** and **yaw**: interpolated to the keyframe time once the sample after it has arrived
-  (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt.
+  (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt, and on
+  its innovation against the keyframe's current estimate (``FixedLagOptions.range_gate_m``; a
+  run of refused readings that agree is taken: ``_range_consistent``). A new ground-height
+  variable starts from the median of the newest three readings.
 - **Drag**: mean accelerometer over the keyframe's window once the next keyframe has closed; off
   when the mean specific force of the first ``drag_check_s`` is more than
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
@@ -2590,21 +2590,25 @@ class OnlineSmoother:
                 self.go.gravity,
                 noise,
             )
+        # A pose re-attached from a provisional alignment (row -2) keeps the rotation factor it
+        # was given there: the provisional's rotation then ties the poses' orientations together.
+        conv = self._slam_conv
+        rot = (
+            row != -2
+            and self.go.use_slam_rotation is not False
+            and conv in ("as-is", "inverse")
+            and self._orient_verdict != "contradicted"
+        )
         if s.provisional is not None and key == s.provisional:
-            prov_new.append((g.size(), sess, (k, t, p, q)))
+            prov_new.append((g.size(), sess, (k, t, p, q, rot)))
         g.add(fac)
         stamps[key] = self.t_kf[self.k]
-        # A provisional pose moved onto the new chain (row -1) was counted when it first attached.
+        # A provisional pose moved onto the new chain (row < 0) was counted when it first attached.
         self._use("slam" if row >= 0 else "slam:reattached")
-        if (
-            self.go.use_slam_rotation is not False
-            and key != s.provisional
-            and self._slam_conv in ("as-is", "inverse")
-            and self._orient_verdict != "contradicted"
-        ):
+        if rot:
             # The camera orientation carried back to the keyframe with the gyro:
             # slam_R_cam(t_k) = slam_R_cam(t) body_R_cam^T Exp(-omega dt) body_R_cam.
-            R_meas = quat_wxyz_to_matrix(q * _CONJ if self._slam_conv == "inverse" else q)
+            R_meas = quat_wxyz_to_matrix(q * _CONJ if conv == "inverse" else q)
             if abs(dt) >= 1e-6:
                 i = self.imu.nearest(t)
                 w = self.values[B(self.k)].correctGyroscope(self.imu.w[i])
@@ -3301,10 +3305,10 @@ class OnlineSmoother:
         ``_pending``); ``seed`` (``(slam_R_world or None, scale)``) seeds that one
         (:meth:`_start_provisional`)."""
         queue = self._held if queue is None else queue
-        for idx, (k, tp, p, q) in s.prov_factors:
+        for idx, (k, tp, p, q, rot) in s.prov_factors:
             if self._kf_alive(k) and self._alive(s.provisional):
                 remove.append(idx)
-                queue.append((k, "slam", (sess, -1, tp, p, q)))
+                queue.append((k, "slam", (sess, -2 if rot else -1, tp, p, q)))
         s.prov_factors = []
         s.provisional = None
         s.seed = seed
