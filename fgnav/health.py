@@ -43,6 +43,10 @@ each counted by name in :meth:`FaultDetectors.report`:
   offset above ``slam_offset_tol_s`` (reported; ``[graph] slam_time_offset = "apply"`` applies it
   in batch).
 - ``body_T_cam-rotation``: the same check found the calibration's camera rotation wrong.
+- ``terrain-step`` (batch): the ground the range readings see (through the solved trajectory)
+  steps by more than ``terrain_step_m`` and stays there (:func:`terrain_steps`): the ground
+  height's walk is cut there and the flight solved again (the push engine cuts it causally, on a
+  run of readings its range gate refused that agree with each other).
 
 The detectors need a little of the estimate (speed, height, SLAM scale): a :class:`Context` the
 caller fills (the online smoother with its newest state, causally; the batch check with the
@@ -103,6 +107,7 @@ DETECTORS = (
     "camera-frozen",
     "slam-clock-offset",
     "body_T_cam-rotation",
+    "terrain-step",
     "divergence",
 )
 
@@ -150,6 +155,8 @@ class HealthOptions:
     slam_jump_min_m: float = 0.5
     slam_jump_max_dt_s: float = 1.0
     slam_jump_accel_max: float = 5.0
+    terrain_step_m: float = 0.2
+    terrain_step_n: int = 8
     range_stuck_s: float = 1.0
     range_stuck_motion_m: float = 0.15
     slam_offset_tol_s: float = 0.1
@@ -873,6 +880,13 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
     det.slam_check(info.get("slam_gyro_check"))
+    steps = terrain_steps(flight, est, o, stuck)
+    for t_step, jump in steps:
+        det.named(
+            "terrain-step",
+            f"the ground under the rangefinder steps by {jump:+.2f} m at t={t_step:.2f} s: "
+            "the ground height starts anew there",
+        )
     rep = det.report()
     n_sat = (info.get("factors") or {}).get("imu-saturated-intervals", 0)
     status = "ok"
@@ -890,8 +904,59 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         "dropped": dict(det.dropped),
         "downweighted": {"imu-saturated-intervals": n_sat} if n_sat else {},
         "error_per_factor": per_factor,
-        "_fixes": {"jumps": jumps, "stuck_range_t": stuck, "frozen_image_t": frozen},
+        "_fixes": {
+            "jumps": jumps,
+            "stuck_range_t": stuck,
+            "frozen_image_t": frozen,
+            "ground_steps_t": [t for t, _ in steps],
+        },
     }
+
+
+def terrain_steps(
+    flight: Any, est: Any, o: HealthOptions, skip_t: Iterable[float] = ()
+) -> list[tuple[float, float]]:
+    """Steps of the ground the range readings see through the solved trajectory: ``(time of the
+    first reading on the new level [s], step [m])``. Each reading's ground is the sensor's
+    height minus the reading times the beam's cosine; a step is where the median of the
+    ``terrain_step_n`` readings after differs by more than ``terrain_step_m`` from the median of
+    those before, each side's median deviation within a quarter of that (a lone spike moves
+    neither median;
+    a solve that bends towards the step spreads it over the readings around it, which the
+    largest jump of each run of candidates takes). ``skip_t``: readings already dropped."""
+    r = flight.range
+    tr = est.trajectory
+    n = o.terrain_step_n
+    if r is None or len(r.t) < 2 * n or tr is None or len(tr.t) < 2:
+        return []
+    calib = flight.calib
+    keep = (r.range >= calib.range_min) & (r.range <= calib.range_max)
+    keep &= (r.t >= tr.t[0]) & (r.t <= tr.t[-1]) & ~np.isin(r.t, np.asarray(list(skip_t)))
+    t, rng = np.asarray(r.t, float)[keep], np.asarray(r.range, float)[keep]
+    if len(t) < 2 * n:
+        return []
+    idx = np.clip(np.searchsorted(tr.t, t), 0, len(tr.t) - 1)
+    R = tr.world_R_body()[idx]
+    T = np.asarray(calib.body_T_range, float)
+    z = np.interp(t, tr.t, tr.world_t_body[:, 2]) + (R @ T[:3, 3])[:, 2]
+    cos = np.maximum(-(R @ T[:3, 2])[:, 2], 1e-3)
+    ground = z - rng * cos
+    cands: list[tuple[int, float]] = []
+    for i in range(n, len(ground) - n + 1):
+        before, after = ground[i - n : i], ground[i : i + n]
+        mb, ma = float(np.median(before)), float(np.median(after))
+        spread = max(np.median(np.abs(before - mb)), np.median(np.abs(after - ma)))
+        if abs(ma - mb) > o.terrain_step_m and spread < 0.25 * o.terrain_step_m:
+            cands.append((i, ma - mb))
+    out: list[tuple[float, float]] = []
+    run: list[tuple[int, float]] = []
+    for c in [*cands, (len(ground) + 2 * n, 0.0)]:  # (a sentinel closes the last run)
+        if run and c[0] - run[-1][0] > n:
+            i, jump = max(run, key=lambda x: abs(x[1]))
+            out.append((float(t[i]), jump))
+            run = []
+        run.append(c)
+    return out
 
 
 def constant_range_runs(flight: Any, min_s: float) -> list[tuple[int, int]]:
@@ -946,9 +1011,14 @@ def fixed_flight(flight: Any, fixes: dict[str, Any]) -> Any | None:
     """The flight with the detectors' fixes applied (SLAM poses after a jump in a new session,
     stuck range readings and frozen images removed), or None when there is nothing to fix."""
     jumps, stuck, frozen = fixes["jumps"], fixes["stuck_range_t"], fixes["frozen_image_t"]
-    if not (jumps or stuck or frozen):
+    steps = fixes.get("ground_steps_t") or []
+    if not (jumps or stuck or frozen or steps):
         return None
     changes: dict[str, Any] = {}
+    if steps:
+        from fgnav.solvers.graph import GROUND_STEPS_META_KEY
+
+        changes["meta"] = {**flight.meta, GROUND_STEPS_META_KEY: [float(x) for x in steps]}
     if jumps and flight.slam is not None:
         s = flight.slam
         sess = s.session.copy()

@@ -260,6 +260,12 @@ def _sim_reset(ctx: Context, folder: Path) -> Path:
     return _write(ctx.sim_with(slam_resets=(12.0,)), folder)
 
 
+def _sim_platform(ctx: Context, folder: Path) -> Path:
+    """The route's half at x > 0 (two-turns spans x -1.1..1.1 m) over a 0.5 m platform: each
+    edge a terrain step the rangefinder sees."""
+    return _write(ctx.sim_with(terrain_steps=((0.0, -1.0, 2.0, 3.5, 0.5),)), folder)
+
+
 def _sim_dropout(ctx: Context, folder: Path) -> Path:
     return _write(ctx.sim_with(slam_dropouts=((10.0, 13.0),)), folder)
 
@@ -675,6 +681,13 @@ def rows() -> list[Row]:
             sim,
             _sim_fault(_range_spikes),
             "5 % of range readings shortened to 20-50 %",
+            _both(OK),
+        ),
+        R(
+            "terrain-platform",
+            sim,
+            _sim_platform,
+            "half the route over a 0.5 m platform (terrain steps under the rangefinder)",
             _both(OK),
         ),
         R(

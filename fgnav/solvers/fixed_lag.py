@@ -428,8 +428,11 @@ class FixedLagOptions:
         range_gate_m, range_gate_run: push engine: a range reading whose innovation against
             the keyframe's current estimate and ground height exceeds ``range_gate_m`` (or 10 %
             of the reading, if larger; 0: no gate) is dropped (``range:outlier``); a run of
-            ``range_gate_run`` refused readings that agree with each other is taken (the
-            estimate's error or a terrain step; ``range:gate-run``). The robust kernel alone
+            ``range_gate_run`` refused readings that agree with each other is a step in the
+            terrain (or the height gone wrong): the ground-height variable starts anew from the
+            next keyframe (``range:terrain-step``; simulated rectangle over a 0.5 m platform:
+            causal ATE 18.2 -> 2.4 cm, the height within 3.2 cm instead of 0.65 m). The robust
+            kernel alone
             let one reading move the window through iSAM2's single Gauss-Newton step per
             update (simulated two-turns seed 1, the first reading 1.81 m against 3.45: the
             third keyframe 30 cm high).

@@ -77,6 +77,10 @@ DEFAULT_DRAG_K = 0.3
 SLAM_JUMP_ORIGIN_SIGMA_M = 10.0
 #: Relative sigma of the weak prior on a SLAM session's initial scale (closed-form fit).
 WEAK_SCALE_PRIOR_REL = 0.5
+#: ``flight.meta`` key of the terrain steps (times [s]) that cut the ground-height walk.
+GROUND_STEPS_META_KEY = "ground_steps"
+#: Index stride of the ground-height segments of successive ground epochs (terrain steps).
+GROUND_EPOCH_STRIDE = 1_000_000
 #: Integration noise of the preintegration (GTSAM examples use 1e-8) [m^2/s^2... per s].
 PREINTEGRATION_INTEGRATION_COV = 1e-8
 #: Initial-bias covariance used by GTSAM's CombinedImuFactor examples (biasAccOmegaInt).
@@ -628,7 +632,7 @@ class GraphBuilder:
         self._prepare_contact()
         self._prepare_yaw()
         self._prepare_drag()
-        self.ground_segment = self._segments(o.ground_segment_s) if self.use_range else None
+        self.ground_segment = self._ground_segments() if self.use_range else None
         if self.vision is not None:
             self.vision.associate(self.t_kf)
         self.flow = None
@@ -800,6 +804,18 @@ class GraphBuilder:
             chk.line(),
             "; IMU prediction thrust-only (body x, y specific force 0)" if self.thrust_only else "",
         )
+
+    def _ground_segments(self) -> np.ndarray:
+        """Ground-height segment index per keyframe: one per ``ground_segment_s``, counted anew
+        (``epoch * GROUND_EPOCH_STRIDE``) after each terrain step the flight declares
+        (``flight.meta["ground_steps"]``, times [s]; the batch's health check finds them), where
+        the ground's random walk is cut: the first segment of an epoch takes a prior."""
+        seg = self._segments(self.options.ground_segment_s)
+        steps = np.sort(np.asarray(self.flight.meta.get(GROUND_STEPS_META_KEY, ()), float))
+        if steps.size:
+            seg = seg + GROUND_EPOCH_STRIDE * np.searchsorted(steps, self.t_kf, side="right")
+        self._ground_set = {int(j) for j in seg}
+        return seg
 
     def _segments(self, seg_s: float | None) -> np.ndarray:
         if seg_s is None or seg_s <= 0:
@@ -1488,6 +1504,8 @@ class GraphBuilder:
         if c == "s":
             prev = self.slam_chain_prev.get(j)
             return None if prev is None else S(prev[0])
+        if c == "g" and j - 1 not in self._ground_set:
+            return None  # the first segment after a terrain step
         return gtsam.symbol(c, j - 1)
 
     def slam_walk_s(self, key: int) -> float:

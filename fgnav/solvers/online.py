@@ -58,8 +58,9 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
 - **Range** and **yaw**: interpolated to the keyframe time once the sample after it has arrived
   (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt, and on
   its innovation against the keyframe's current estimate (``FixedLagOptions.range_gate_m``; a
-  run of refused readings that agree is taken: ``_range_consistent``). A new ground-height
-  variable starts from the median of the newest three readings.
+  run of refused readings that agree is a terrain step: the ground height starts anew,
+  ``_range_consistent``). A new ground-height variable starts from the median of the newest
+  three readings.
 - **Drag**: mean accelerometer over the keyframe's window once the next keyframe has closed; off
   when the mean specific force of the first ``drag_check_s`` is more than
   ``graph.drag_thrust_max_angle_deg`` from body +z, or when the accelerometer check
@@ -186,6 +187,7 @@ from fgnav.solvers.fixed_lag import (
 from fgnav.solvers.flow import flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
+    GROUND_EPOCH_STRIDE,
     WEAK_SCALE_PRIOR_REL,
     choose_slam_model,
     gyro_bias_prior_sigmas,
@@ -903,6 +905,8 @@ class OnlineSmoother:
         self._scalar_wait: dict[str, deque] = {"range": deque(), "yaw": deque()}
         # Ground heights of the consecutive range readings the innovation gate refused.
         self._range_run: deque = deque(maxlen=max(self.options.range_gate_run, 1))
+        # Ground epochs after terrain steps: (first keyframe, epoch), in order.
+        self._g_epochs: list[tuple[int, int]] = []
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
         self._anchors: deque = deque()  # arrived image times not yet passed
@@ -1615,12 +1619,13 @@ class OnlineSmoother:
             if not on:
                 continue
             j = int((t_k - self.t0) / seg_s + 1e-9) if seg_s else 0
-            key = gtsam.symbol(c, j)
+            key = self._slow_key_at(c, seg_s, k)
             if key in self.values:
                 if self._alive(key) or key in stamps:
                     stamps[key] = t_k  # the current segment stays in the window
                 continue
-            prev = gtsam.symbol(c, j - 1) if j > 0 else None
+            # (the first segment of a ground epoch has no predecessor in it: a prior)
+            prev = key - 1 if j > 0 else None
             alive = prev is not None and self._alive(prev)
             if c == "d":
                 dim = 2 if go.drag_per_axis else 1
@@ -2064,7 +2069,15 @@ class OnlineSmoother:
         return math.sqrt(max((1.4826 * mad) ** 2 - white**2, 0.0))
 
     def _slow_key_at(self, c: str, seg_s: float | None, k: int) -> int:
+        """The drag (``c`` "d") or ground ("g") segment variable of keyframe k: one per
+        ``seg_s`` of flight; the ground's counted anew in each ground epoch (a terrain step,
+        :meth:`_range_consistent`), whose index is ``epoch * GROUND_EPOCH_STRIDE``."""
         j = int((self.t_kf[k] - self.t0) / seg_s + 1e-9) if seg_s else 0
+        if c == "g":
+            for k0, epoch in reversed(self._g_epochs):
+                if k >= k0:
+                    j += epoch * GROUND_EPOCH_STRIDE
+                    break
         return gtsam.symbol(c, j)
 
     # ------------------------------------------------------------------------------------------
@@ -2500,8 +2513,9 @@ class OnlineSmoother:
         """The innovation gate of a range reading: within ``range_gate_m`` (or
         ``RANGE_GATE_REL`` of the reading, if larger) of the range the keyframe's current
         estimate and ground height predict. A run of ``range_gate_run`` gated readings that
-        agree with each other (their ground heights within the gate) is the estimate's error
-        or a step in the terrain, not outliers: the run's newest is taken (``range:gate-run``).
+        agree with each other (their ground heights within the gate) is a step in the terrain
+        (or the height gone wrong), not outliers: a new ground epoch starts at the next
+        keyframe (``range:terrain-step``), its ground variable from the newest readings.
 
         A single wrong reading, through the robust kernel's one Gauss-Newton step per update,
         moved the window: simulated two-turns (seed 1; the first range reading, at the start,
@@ -2522,8 +2536,21 @@ class OnlineSmoother:
         if max(grounds) - min(grounds) > gate:
             return False
         run.clear()
-        self._use("range:gate-run")
-        return True
+        # The readings agree with each other, not with the ground: a step in the terrain (or
+        # the height gone wrong). The ground variable starts anew from the next keyframe, from
+        # the newest readings (the old one's walk would take minutes to follow).
+        self._g_epochs.append((self.k + 1, len(self._g_epochs) + 1))
+        self._use("range:terrain-step")
+        detail = (
+            f"the ground under the rangefinder steps by {float(np.median(grounds)) - ground:+.2f} "
+            f"m ({o.range_gate_run} readings agree): the ground height starts anew at "
+            f"t={self.t_kf[self.k]:.2f} s"
+        )
+        if getattr(self, "_health", None) is not None and self._health.options.enabled:
+            self._health.detectors.named("terrain-step", detail)  # said there, once
+        else:
+            log.info("%s: %s", self.name, detail)
+        return False
 
     def _range_cos(self, pose: gtsam.Pose3) -> float:
         """Cosine of the beam's tilt from the world's down axis (floored as the factor does)."""
