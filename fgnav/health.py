@@ -880,7 +880,9 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
     det.slam_check(info.get("slam_gyro_check"))
-    steps = terrain_steps(flight, est, o, stuck)
+    # (only where the solve used range factors: else a second solve would change nothing)
+    used_range = bool((info.get("factors") or {}).get("range"))
+    steps = terrain_steps(flight, est, o, stuck) if used_range else []
     for t_step, jump in steps:
         det.named(
             "terrain-step",
@@ -941,18 +943,21 @@ def terrain_steps(
     z = np.interp(t, tr.t, tr.world_t_body[:, 2]) + (R @ T[:3, 3])[:, 2]
     cos = np.maximum(-(R @ T[:3, 2])[:, 2], 1e-3)
     ground = z - rng * cos
-    cands: list[tuple[int, float]] = []
+    cands: list[tuple[int, float, float]] = []
     for i in range(n, len(ground) - n + 1):
         before, after = ground[i - n : i], ground[i : i + n]
         mb, ma = float(np.median(before)), float(np.median(after))
-        spread = max(np.median(np.abs(before - mb)), np.median(np.abs(after - ma)))
-        if abs(ma - mb) > o.terrain_step_m and spread < 0.25 * o.terrain_step_m:
-            cands.append((i, ma - mb))
+        spread = float(np.mean(np.abs(before - mb)) + np.mean(np.abs(after - ma)))
+        mad = max(np.median(np.abs(before - mb)), np.median(np.abs(after - ma)))
+        if abs(ma - mb) > o.terrain_step_m and mad < 0.25 * o.terrain_step_m:
+            cands.append((i, ma - mb, spread))
     out: list[tuple[float, float]] = []
-    run: list[tuple[int, float]] = []
-    for c in [*cands, (len(ground) + 2 * n, 0.0)]:  # (a sentinel closes the last run)
+    run: list[tuple[int, float, float]] = []
+    for c in [*cands, (len(ground) + 2 * n, 0.0, 0.0)]:  # (a sentinel closes the last run)
         if run and c[0] - run[-1][0] > n:
-            i, jump = max(run, key=lambda x: abs(x[1]))
+            # Every split within a few readings of the edge shows the whole jump: the edge is
+            # the one that leaves each side the tightest.
+            i, jump, _ = min(run, key=lambda x: x[2])
             out.append((float(t[i]), jump))
             run = []
         run.append(c)
@@ -1018,7 +1023,11 @@ def fixed_flight(flight: Any, fixes: dict[str, Any]) -> Any | None:
     if steps:
         from fgnav.solvers.graph import GROUND_STEPS_META_KEY
 
-        changes["meta"] = {**flight.meta, GROUND_STEPS_META_KEY: [float(x) for x in steps]}
+        known = [float(x) for x in flight.meta.get(GROUND_STEPS_META_KEY, ())]
+        changes["meta"] = {
+            **flight.meta,
+            GROUND_STEPS_META_KEY: sorted(set(known) | {float(x) for x in steps}),
+        }
     if jumps and flight.slam is not None:
         s = flight.slam
         sess = s.session.copy()

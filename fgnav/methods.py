@@ -355,7 +355,13 @@ def fixed_lag_options(config: Mapping[str, Any]):
 def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` and
     ``[priors]`` tables."""
-    from fgnav.health import check_batch, fixed_flight, stuck_range_candidates
+    from fgnav.health import (
+        HealthOptions,
+        check_batch,
+        fixed_flight,
+        stuck_range_candidates,
+        terrain_steps,
+    )
     from fgnav.solvers.batch import solve_batch
 
     opts = batch_options(config)
@@ -373,6 +379,17 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
             det = health["detectors"]
             det["range-stuck"] = det.get("range-stuck", 0) + n_stuck
             health["dropped"]["range:stuck"] = len(fixes["stuck_range_t"])
+            if fixes["ground_steps_t"]:
+                # A stuck run that unfreezes jumps like a step: the steps looked for again
+                # without the stuck readings.
+                fixes["ground_steps_t"] = [
+                    t
+                    for t, _ in terrain_steps(flight, est, HealthOptions(), fixes["stuck_range_t"])
+                ]
+                if fixes["ground_steps_t"]:
+                    det["terrain-step"] = len(fixes["ground_steps_t"])
+                else:
+                    det.pop("terrain-step", None)
     fixed = fixed_flight(flight, fixes)
     if fixed is not None:
         # The detectors' fixes (SLAM jumps as new sessions, stuck range readings and frozen

@@ -500,6 +500,14 @@ class FixedLagOptions:
     vo_process_delay_keyframes: int = 1
     lagged_output: bool = True
 
+    def validate(self) -> None:
+        """The rules a single value's check does not cover (run when the options are read)."""
+        if self.range_gate_run < 2:
+            raise ValueError(
+                f"FixedLagOptions.range_gate_run={self.range_gate_run}: expected >= 2 (readings "
+                "that agree with each other: a terrain step)"
+            )
+
 
 def relinearize_thresholds(o: FixedLagOptions, slow_dims: dict[str, int]) -> dict[str, np.ndarray]:
     """iSAM2's relinearisation threshold per variable symbol, one per tangent component:

@@ -128,7 +128,7 @@ import math
 import operator
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
@@ -268,6 +268,8 @@ GROUND_GUESS_S = 0.3
 #: The range innovation gate is at least this fraction of the reading (see
 #: ``FixedLagOptions.range_gate_m``).
 RANGE_GATE_REL = 0.1
+#: Range readings are gated only while the stream has been taken within this many seconds [s].
+RANGE_GATE_FRESH_S = 1.0
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``, above every
 #: chain key (2^40: 11 million sessions of 100 000 segments).
 PROVISIONAL_BASE = 1 << 40
@@ -556,7 +558,10 @@ class _Session:
     last_key: int | None = None
     last_seg: int = -1
     provisional: int | None = None  # key of the provisional alignment
-    prov_factors: list = None  # [(factor index, k, row)] still in the smoother
+    # [(factor index, (k, t, p, q, has a rotation factor, made with this one))] still in the
+    # smoother, and [(factor index, k)] of the rotation factors made on the provisional
+    prov_factors: list = None
+    prov_rot: list = field(default_factory=list)
     next_fit: float = -math.inf
     index: int = 0  # order of arrival: the chain's keys are S(index * SESSION_STRIDE + segment)
     carried: bool = False  # its chain starts from an alignment carried over an IMU gap
@@ -907,6 +912,7 @@ class OnlineSmoother:
         self._range_run: deque = deque(maxlen=max(self.options.range_gate_run, 1))
         # Ground epochs after terrain steps: (first keyframe, epoch), in order.
         self._g_epochs: list[tuple[int, int]] = []
+        self._range_ok_t = math.inf  # newest keyframe a range reading was taken at (the start's)
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
         self._anchors: deque = deque()  # arrived image times not yet passed
@@ -1541,6 +1547,8 @@ class OnlineSmoother:
                 s = self.sessions.get(sess)
                 if s is not None and s.provisional is not None:
                     s.prov_factors.append((int(idx[pos]), row))
+                    if row[5]:  # its rotation factor, added right after it
+                        s.prov_rot.append((int(idx[pos + 1]), row[0]))
         self._read(k, wall)
         self._health_keyframe(k, g)
         self._orientation_check(t_k)
@@ -2480,6 +2488,8 @@ class OnlineSmoother:
 
     def _range_factor(self, k: int, r: float, g, stamps) -> None:
         pose = self.values.get(X(k))
+        if pose is None and k in self._pose_hist:
+            pose = self._pose_hist[k][1]  # a reading for an older keyframe: its newest estimate
         R = pose.rotation().matrix() if pose is not None else np.eye(3)
         ok, reason = gate_range(
             float(r),
@@ -2523,10 +2533,14 @@ class OnlineSmoother:
         o = self.options
         if o.range_gate_m <= 0:
             return True
+        t_k = self.t_kf[self.k]
         e, _ = tilted_range_error(pose, np.array([ground]), r, self.body_T_range)
         gate = max(o.range_gate_m, RANGE_GATE_REL * r)
-        if abs(float(e[0])) <= gate:
+        if abs(float(e[0])) <= gate or t_k - self._range_ok_t > RANGE_GATE_FRESH_S:
+            # (after a pause of the range, above its limits or without readings, the height
+            # may have drifted: the readings are taken, the robust kernel weighs them)
             self._range_run.clear()
+            self._range_ok_t = t_k
             return True
         run = self._range_run
         run.append(ground + float(e[0]) * self._range_cos(pose))  # the reading's ground
@@ -2627,7 +2641,8 @@ class OnlineSmoother:
             and self._orient_verdict != "contradicted"
         )
         if s.provisional is not None and key == s.provisional:
-            prov_new.append((g.size(), sess, (k, t, p, q, rot)))
+            # (a row -2 pose re-attached to a new provisional has its rotation factor already)
+            prov_new.append((g.size(), sess, (k, t, p, q, rot or row == -2, rot)))
         g.add(fac)
         stamps[key] = self.t_kf[self.k]
         # A provisional pose moved onto the new chain (row < 0) was counted when it first attached.
@@ -3332,11 +3347,17 @@ class OnlineSmoother:
         ``_pending``); ``seed`` (``(slam_R_world or None, scale)``) seeds that one
         (:meth:`_start_provisional`)."""
         queue = self._held if queue is None else queue
-        for idx, (k, tp, p, q, rot) in s.prov_factors:
-            if self._kf_alive(k) and self._alive(s.provisional):
+        # Orientations found wrong (_orient_contradicted): the rotation factors made through
+        # them come off too; else they stay (a pose moved on keeps its own, row -2).
+        bad = self._orient_verdict == "contradicted"
+        alive = self._alive(s.provisional)
+        for idx, (k, tp, p, q, rot, _made) in s.prov_factors:
+            if self._kf_alive(k) and alive:
                 remove.append(idx)
-                queue.append((k, "slam", (sess, -2 if rot else -1, tp, p, q)))
-        s.prov_factors = []
+                queue.append((k, "slam", (sess, -2 if rot and not bad else -1, tp, p, q)))
+        if bad:
+            remove.extend(idx for idx, k in s.prov_rot if self._kf_alive(k) and alive)
+        s.prov_factors, s.prov_rot = [], []
         s.provisional = None
         s.seed = seed
 
@@ -3407,7 +3428,7 @@ class OnlineSmoother:
         g.add(gtsam.PriorFactorSimilarity3(key, value, gtsam.noiseModel.Diagonal.Sigmas(sig)))
         self._insert(key, value, g, stamps)
         s.provisional = key
-        s.prov_factors = []
+        s.prov_factors, s.prov_rot = [], []
         s.lone_hold = source == "default" and o.slam_provisional_lone_gap_s > 0
         self._prov_scales.append(
             {"session": int(sess), "t": float(s.t[-1]), "scale": float(scale), "from": source}
@@ -3791,6 +3812,7 @@ class OnlineSmoother:
         self.factorization = factorization
         for s in self.sessions.values():
             s.prov_factors = [(index[i], row) for i, row in s.prov_factors if i in index]
+            s.prov_rot = [(index[i], k) for i, k in s.prov_rot if i in index]
         return True
 
     def _switch_factorization(self) -> None:
@@ -3855,7 +3877,7 @@ class OnlineSmoother:
             v.insert(key, val)
             stamps[key] = self.t_kf[self.k]
         for s in self.sessions.values():
-            s.prov_factors = []
+            s.prov_factors, s.prov_rot = [], []
         # The newest keyframe (its IMU factor was in the failed update) is re-added from kg.
         self.stamp = dict(stamps)
         self.smoother.update(g, v, {key: self._block(ts) for key, ts in stamps.items()})

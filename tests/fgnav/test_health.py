@@ -506,3 +506,38 @@ def test_batch_slam_jump_session_continues_its_parents_alignment(two_turns):
     j_parent = max(j for (s, _), j in b.slam_var.items() if s == 0)
     assert b.slow_chain_previous(S(j_first)) == S(j_parent)
     assert j_first in b.slam_jump_keys and SLAM_JUMP_ORIGIN_SIGMA_M >= 1.0
+
+
+def _level_flight(t: np.ndarray):
+    """A still, level trajectory at the world origin (the ground the readings see is then
+    minus the reading, the rangefinder looking straight down)."""
+    from fgnav.datasets.types import Trajectory
+
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t), 1))
+    return Trajectory(t, np.zeros((len(t), 3)), q)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_terrain_steps_found_at_the_edge_and_not_on_spikes(noise):
+    """``terrain_steps`` on hand-made readings (20 Hz, a 0.5 m platform from 5.00 s, and a lone
+    spike at 8 s): the step is placed at its first reading on the new level (the split that
+    leaves each side tightest; the first candidate of the run was 0.15 s early), the spike is no
+    step, and readings the caller drops (``skip_t``) are not seen."""
+    from types import SimpleNamespace
+
+    from fgnav.datasets.types import Calibration, RangeSeries
+
+    from fgnav.health import terrain_steps
+
+    t = np.arange(200) * 0.05
+    r = np.full(200, 3.0)
+    r[100:] = 2.5
+    r += np.random.default_rng(3).normal(0.0, noise, 200)
+    r[160] = 1.2  # a spike at 8 s
+    body_T_range = np.diag([1.0, -1.0, -1.0, 1.0])  # beam (sensor +z) along body -z
+    calib = dataclasses.replace(Calibration(), body_T_range=body_T_range, range_max=10.0)
+    flight = SimpleNamespace(range=RangeSeries(t, r), calib=calib)
+    est = SimpleNamespace(trajectory=_level_flight(np.arange(0, 10.01, 0.01)))
+    (step,) = terrain_steps(flight, est, HealthOptions())
+    assert step[0] == pytest.approx(5.0) and step[1] == pytest.approx(0.5, abs=0.02)
+    assert terrain_steps(flight, est, HealthOptions(), t[100:]) == []  # the platform's dropped

@@ -104,3 +104,11 @@ def test_flying_over_a_platform():
     assert evaluate(batch, f.ground_truth).ate_rmse_m < 0.012
     start_height = f.ground_truth.world_t_body[0, 2]
     assert batch.ground_height == pytest.approx(-start_height + 0.5, abs=0.02)  # on the platform
+
+
+def test_range_gate_run_must_be_a_run():
+    from fgnav.config import OptionValueError
+    from fgnav.methods import fixed_lag_options
+
+    with pytest.raises(OptionValueError, match="range_gate_run=1: expected >= 2"):
+        fixed_lag_options({"online": {"range_gate_run": 1}})
