@@ -112,3 +112,28 @@ def test_range_gate_run_must_be_a_run():
 
     with pytest.raises(OptionValueError, match="range_gate_run=1: expected >= 2"):
         fixed_lag_options({"online": {"range_gate_run": 1}})
+
+
+def test_flow_deck_over_a_box():
+    """A flow-deck flight (IMU, optical flow and range: no SLAM; 20 s, seed 0) whose half is
+    flown over a 0.3 m box: the flow's metric velocity is the height above the ground, so the
+    ground height must follow the steps. Measured 2026-12-07, fixed-lag: ATE 6.4 cm, height
+    RMSE 0.85 cm, velocity RMSE 0.019 m/s, 3 steps named; without the gate 28.3 cm, 17.7 cm and
+    0.067 m/s (plain floor: 5.5 cm, 0.38 cm, 0.027 m/s)."""
+    from testutil import CRAZYFLIE_LIKE
+
+    from fgnav.eval.flow_table import flow_figures
+
+    plain = simulate("flowdeck", 0, SimOptions(duration=20.0, **CRAZYFLIE_LIKE))
+    p = plain.ground_truth.world_t_body
+    x0, x1 = p[:, 0].min(), p[:, 0].max()
+    box = (0.5 * (x0 + x1), p[:, 1].min() - 1, x1 + 1, p[:, 1].max() + 1, 0.3)
+    f = simulate("flowdeck", 0, SimOptions(duration=20.0, terrain_steps=(box,), **CRAZYFLIE_LIKE))
+    est = METHODS["fixed-lag"].run(f, {})
+    assert est.info["health"]["detectors"].get("terrain-step", 0) >= 2
+    r = flow_figures(est, f.ground_truth)
+    assert r["ate_m"] < 0.09 and r["height_rmse_m"] < 0.015 and r["hvel100_rmse_mps"] < 0.03, r
+    off = flow_figures(
+        METHODS["fixed-lag"].run(f, {"online": {"range_gate_m": 0.0}}), f.ground_truth
+    )
+    assert off["height_rmse_m"] > 0.1, off
