@@ -923,9 +923,9 @@ def terrain_steps(
     height minus the reading times the beam's cosine; a step is where the median of the
     ``terrain_step_n`` readings after differs by more than ``terrain_step_m`` from the median of
     those before, each side's median deviation within a quarter of that (a lone spike moves
-    neither median;
-    a solve that bends towards the step spreads it over the readings around it, which the
-    largest jump of each run of candidates takes). ``skip_t``: readings already dropped."""
+    neither median). Every split within a few readings of an edge shows the whole jump: of each
+    run of such splits the step is the one that leaves each side the tightest (least mean
+    deviation). ``skip_t``: readings already dropped."""
     r = flight.range
     tr = est.trajectory
     n = o.terrain_step_n
@@ -943,24 +943,24 @@ def terrain_steps(
     z = np.interp(t, tr.t, tr.world_t_body[:, 2]) + (R @ T[:3, 3])[:, 2]
     cos = np.maximum(-(R @ T[:3, 2])[:, 2], 1e-3)
     ground = z - rng * cos
-    cands: list[tuple[int, float, float]] = []
-    for i in range(n, len(ground) - n + 1):
-        before, after = ground[i - n : i], ground[i : i + n]
-        mb, ma = float(np.median(before)), float(np.median(after))
-        spread = float(np.mean(np.abs(before - mb)) + np.mean(np.abs(after - ma)))
-        mad = max(np.median(np.abs(before - mb)), np.median(np.abs(after - ma)))
-        if abs(ma - mb) > o.terrain_step_m and mad < 0.25 * o.terrain_step_m:
-            cands.append((i, ma - mb, spread))
+    # Window j holds readings j .. j+n-1: the split before reading i has window i-n before it
+    # and window i after it, i = n .. len - n.
+    win = np.lib.stride_tricks.sliding_window_view(ground, n)
+    med = np.median(win, axis=1)
+    dev = np.abs(win - med[:, None])
+    mad, mean_dev = np.median(dev, axis=1), dev.mean(axis=1)
+    jump = med[n:] - med[:-n]
+    ok = (np.abs(jump) > o.terrain_step_m) & (
+        np.maximum(mad[:-n], mad[n:]) < 0.25 * o.terrain_step_m
+    )
+    spread = mean_dev[:-n] + mean_dev[n:]
     out: list[tuple[float, float]] = []
-    run: list[tuple[int, float, float]] = []
-    for c in [*cands, (len(ground) + 2 * n, 0.0, 0.0)]:  # (a sentinel closes the last run)
-        if run and c[0] - run[-1][0] > n:
-            # Every split within a few readings of the edge shows the whole jump: the edge is
-            # the one that leaves each side the tightest.
-            i, jump, _ = min(run, key=lambda x: x[2])
-            out.append((float(t[i]), jump))
-            run = []
-        run.append(c)
+    cand = np.flatnonzero(ok)
+    if cand.size:
+        # Runs of splits no more than n readings apart.
+        for run in np.split(cand, np.flatnonzero(np.diff(cand) > n) + 1):
+            c = run[np.argmin(spread[run])]
+            out.append((float(t[c + n]), float(jump[c])))
     return out
 
 

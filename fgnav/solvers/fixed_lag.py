@@ -432,10 +432,9 @@ class FixedLagOptions:
             terrain (or the height gone wrong): the ground-height variable starts anew from the
             next keyframe (``range:terrain-step``; simulated rectangle over a 0.5 m platform:
             causal ATE 18.2 -> 2.4 cm, the height within 3.2 cm instead of 0.65 m). The robust
-            kernel alone
-            let one reading move the window through iSAM2's single Gauss-Newton step per
-            update (simulated two-turns seed 1, the first reading 1.81 m against 3.45: the
-            third keyframe 30 cm high).
+            kernel alone let one reading move the window through iSAM2's single Gauss-Newton
+            step per update (simulated two-turns seed 1, the first reading 1.81 m against 3.45:
+            the third keyframe 30 cm high).
         slam_check_max_s: with ``graph.slam_rotation = "auto"``, give the SLAM-vs-gyro check
             this much SLAM time to decide the rotation convention [s]; until it decides, the
             SLAM orientations are not used as factors.

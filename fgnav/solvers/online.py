@@ -165,12 +165,7 @@ from fgnav.factors.slam_scale import (
     make_slam_T_world,
     slam_alignment_parts,
 )
-from fgnav.factors.tilted_range import (
-    MIN_COS_TILT,
-    gate_range,
-    make_range_factor,
-    tilted_range_error,
-)
+from fgnav.factors.tilted_range import MIN_COS_TILT, gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
@@ -1682,9 +1677,11 @@ class OnlineSmoother:
             return 0.0
         t_k = self.t_kf[k]
         recent = [r for tr, r in rng if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:]
-        recent = recent or [rng[-1][1]]
-        h = self._body_height(float(np.median(recent)), pose.rotation().matrix())
-        return float(pose.translation()[2] - h)
+        return self._reading_ground(float(np.median(recent or [rng[-1][1]])), pose)
+
+    def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
+        """World z of the flat ground a range reading sees from ``pose``."""
+        return float(pose.translation()[2]) - self._body_height(range_m, pose.rotation().matrix())
 
     def _body_height(self, range_m: float, world_R_body: np.ndarray) -> float:
         """Height of the body origin above the ground a range reading sees (tilted beam, lever
@@ -2534,16 +2531,20 @@ class OnlineSmoother:
         if o.range_gate_m <= 0:
             return True
         t_k = self.t_kf[self.k]
-        e, _ = tilted_range_error(pose, np.array([ground]), r, self.body_T_range)
+        # The innovation along the beam: the reading's ground against the estimate's, over the
+        # beam's cosine (floored as the factor does).
+        seen = self._reading_ground(r, pose)
+        beam_z = float((pose.rotation().matrix() @ self.body_T_range[:3, 2])[2])
+        e = (seen - ground) / max(-beam_z, MIN_COS_TILT)
         gate = max(o.range_gate_m, RANGE_GATE_REL * r)
-        if abs(float(e[0])) <= gate or t_k - self._range_ok_t > RANGE_GATE_FRESH_S:
+        if abs(e) <= gate or t_k - self._range_ok_t > RANGE_GATE_FRESH_S:
             # (after a pause of the range, above its limits or without readings, the height
             # may have drifted: the readings are taken, the robust kernel weighs them)
             self._range_run.clear()
             self._range_ok_t = t_k
             return True
         run = self._range_run
-        run.append(ground + float(e[0]) * self._range_cos(pose))  # the reading's ground
+        run.append(seen)
         if len(run) < o.range_gate_run:
             return False
         grounds = list(run)[-o.range_gate_run :]
@@ -2565,11 +2566,6 @@ class OnlineSmoother:
         else:
             log.info("%s: %s", self.name, detail)
         return False
-
-    def _range_cos(self, pose: gtsam.Pose3) -> float:
-        """Cosine of the beam's tilt from the world's down axis (floored as the factor does)."""
-        beam = pose.rotation().matrix() @ self.body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
-        return max(-float(beam[2]), MIN_COS_TILT)
 
     def _suspect_extrinsic(self, t: float) -> None:
         """Before the check decides: a stated ``body_R_cam`` that maps the SLAM's rotations far
