@@ -925,7 +925,8 @@ def terrain_steps(
     those before, each side's median deviation within a quarter of that (a lone spike moves
     neither median). Every split within a few readings of an edge shows the whole jump: of each
     run of such splits the step is the one that leaves each side the tightest (least mean
-    deviation). ``skip_t``: readings already dropped."""
+    deviation); a run ends where the jump changes sign (a short raised stretch has two edges).
+    ``skip_t``: readings already dropped."""
     r = flight.range
     tr = est.trajectory
     n = o.terrain_step_n
@@ -957,8 +958,10 @@ def terrain_steps(
     out: list[tuple[float, float]] = []
     cand = np.flatnonzero(ok)
     if cand.size:
-        # Runs of splits no more than n readings apart.
-        for run in np.split(cand, np.flatnonzero(np.diff(cand) > n) + 1):
+        # Runs of splits no more than n readings apart, of one sign (the two edges of a
+        # raised stretch 8-14 readings long were one run: one step named, with one edge's sign).
+        brk = (np.diff(cand) > n) | (np.diff(np.sign(jump[cand])) != 0)
+        for run in np.split(cand, np.flatnonzero(brk) + 1):
             c = run[np.argmin(spread[run])]
             out.append((float(t[c + n]), float(jump[c])))
     return out

@@ -382,10 +382,13 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
             if fixes["ground_steps_t"]:
                 # A stuck run that unfreezes jumps like a step: the steps looked for again
                 # without the stuck readings.
-                fixes["ground_steps_t"] = [
+                steps = [
                     t
                     for t, _ in terrain_steps(flight, est, HealthOptions(), fixes["stuck_range_t"])
                 ]
+                if steps != fixes["ground_steps_t"]:
+                    probe = None  # solved with the old steps: the fixed flight is solved anew
+                fixes["ground_steps_t"] = steps
                 if fixes["ground_steps_t"]:
                     det["terrain-step"] = len(fixes["ground_steps_t"])
                 else:

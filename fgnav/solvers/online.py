@@ -59,7 +59,7 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   (bracketing gap at most ``graph.interp_max_gap_s``); range gated on limits and tilt, and on
   its innovation against the keyframe's current estimate (``FixedLagOptions.range_gate_m``; a
   run of refused readings that agree is a terrain step: the ground height starts anew,
-  ``_range_consistent``). A new ground-height variable starts from the median of the newest
+  ``_range_gate``). A new ground-height variable starts from the median of the newest
   three readings.
 - **Drag**: mean accelerometer over the keyframe's window once the next keyframe has closed; off
   when the mean specific force of the first ``drag_check_s`` is more than
@@ -907,7 +907,10 @@ class OnlineSmoother:
         self._range_run: deque = deque(maxlen=max(self.options.range_gate_run, 1))
         # Ground epochs after terrain steps: (first keyframe, epoch), in order.
         self._g_epochs: list[tuple[int, int]] = []
-        self._range_ok_t = math.inf  # newest keyframe a range reading was taken at (the start's)
+        # Newest keyframe a range reading within the limits reached the gate at (inf: the gate
+        # holds from the start; -inf: the ground was seeded without a reading, the next one
+        # seeds it anew).
+        self._range_seen_t = math.inf
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
         self._anchors: deque = deque()  # arrived image times not yet passed
@@ -1660,7 +1663,10 @@ class OnlineSmoother:
                         )
                     )
                 else:
-                    value = np.array([self._ground_guess(k)])
+                    guess, within = self._ground_guess(k)
+                    if not within:
+                        self._range_seen_t = -math.inf  # the next reading confirms it
+                    value = np.array([guess])
                     g.add(
                         gtsam.PriorFactorVector(
                             key, value, self._noise(1, go.ground_prior_sigma, False)
@@ -1670,14 +1676,24 @@ class OnlineSmoother:
             stamps[key] = t_k
             self.values[key] = np.asarray(value, float)
 
-    def _ground_guess(self, k: int) -> float:
+    def _ground_guess(self, k: int) -> tuple[float, bool]:
+        """World z of the ground under keyframe ``k`` from the arrived range readings (the
+        median of the newest three of the last ``GROUND_GUESS_S``, else the newest; 0 without
+        one), and whether they were within the sensor's limits. A reading below the minimum is
+        kept for the guess (a Crazyflie on the floor reads 12-25 mm under its 40 mm limit, and
+        that ground is right); the first reading within the limits confirms it or the ground
+        starts anew (:meth:`_range_gate`)."""
         rng = self._scalar["range"]
         pose = self.values.get(X(k))
         if not rng or pose is None:
-            return 0.0
+            return 0.0, False
         t_k = self.t_kf[k]
-        recent = [r for tr, r in rng if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:]
-        return self._reading_ground(float(np.median(recent or [rng[-1][1]])), pose)
+        recent = [r for tr, r in rng if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:] or [
+            rng[-1][1]
+        ]
+        lo, hi = self.calib.range_min, self.calib.range_max
+        r = float(np.median(recent))
+        return self._reading_ground(r, pose), all(lo <= x <= hi for x in recent)
 
     def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
         """World z of the flat ground a range reading sees from ``pose``."""
@@ -2076,7 +2092,7 @@ class OnlineSmoother:
     def _slow_key_at(self, c: str, seg_s: float | None, k: int) -> int:
         """The drag (``c`` "d") or ground ("g") segment variable of keyframe k: one per
         ``seg_s`` of flight; the ground's counted anew in each ground epoch (a terrain step,
-        :meth:`_range_consistent`), whose index is ``epoch * GROUND_EPOCH_STRIDE``."""
+        :meth:`_range_gate`), whose index is ``epoch * GROUND_EPOCH_STRIDE``."""
         j = int((self.t_kf[k] - self.t0) / seg_s + 1e-9) if seg_s else 0
         if c == "g":
             for k0, epoch in reversed(self._g_epochs):
@@ -2503,10 +2519,9 @@ class OnlineSmoother:
         if gk not in self.values or not self._alive(gk):
             self._drop("range:late")
             return
-        if pose is not None and not self._range_consistent(
-            float(r), pose, float(self.values[gk][0])
-        ):
-            self._drop("range:outlier")
+        why = None if pose is None else self._range_gate(float(r), pose, float(self.values[gk][0]))
+        if why is not None:
+            self._drop(why)
             return
         g.add(
             make_range_factor(
@@ -2516,20 +2531,24 @@ class OnlineSmoother:
         stamps[gk] = self.t_kf[self.k]
         self._use("range")
 
-    def _range_consistent(self, r: float, pose: gtsam.Pose3, ground: float) -> bool:
-        """The innovation gate of a range reading: within ``range_gate_m`` (or
-        ``RANGE_GATE_REL`` of the reading, if larger) of the range the keyframe's current
-        estimate and ground height predict. A run of ``range_gate_run`` gated readings that
-        agree with each other (their ground heights within the gate) is a step in the terrain
-        (or the height gone wrong), not outliers: a new ground epoch starts at the next
-        keyframe (``range:terrain-step``), its ground variable from the newest readings.
+    def _range_gate(self, r: float, pose: gtsam.Pose3, ground: float) -> str | None:
+        """The innovation gate of a range reading (None: taken, else why it is dropped): within
+        ``range_gate_m`` (or ``RANGE_GATE_REL`` of the reading, if larger) of the range the
+        keyframe's current estimate and ground height predict. A run of ``range_gate_run``
+        gated readings that agree with each other (their ground heights within the gate) is a
+        step in the terrain (or the height gone wrong), not outliers: a new ground epoch starts
+        at the next keyframe (``range:terrain-step``), its ground variable from the newest
+        readings. A ground seeded without a reading within the limits (a range that starts
+        late, or 0 readings below its minimum) that the first one contradicts starts anew the
+        same way, unnamed (``range:ground-seeded``): gated against the seed, that reading's
+        run was named a terrain step.
 
         A single wrong reading, through the robust kernel's one Gauss-Newton step per update,
         moved the window: simulated two-turns (seed 1; the first range reading, at the start,
         1.81 m against 3.45) put the third keyframe 30 cm high at 3 m/s."""
         o = self.options
         if o.range_gate_m <= 0:
-            return True
+            return None
         t_k = self.t_kf[self.k]
         # The innovation along the beam: the reading's ground against the estimate's, over the
         # beam's cosine (floored as the factor does).
@@ -2537,19 +2556,26 @@ class OnlineSmoother:
         beam_z = float((pose.rotation().matrix() @ self.body_T_range[:3, 2])[2])
         e = (seen - ground) / max(-beam_z, MIN_COS_TILT)
         gate = max(o.range_gate_m, RANGE_GATE_REL * r)
-        if abs(e) <= gate or t_k - self._range_ok_t > RANGE_GATE_FRESH_S:
-            # (after a pause of the range, above its limits or without readings, the height
-            # may have drifted: the readings are taken, the robust kernel weighs them)
+        # After a pause of the range (above its limits or without readings; refused readings
+        # are no pause) the height may have drifted: the reading is taken, the robust kernel
+        # weighs it. A pause counted from the last *taken* reading cut every run of refused
+        # readings longer than RANGE_GATE_FRESH_S: at 5 Hz keyframes no step was ever found.
+        seeded = self._range_seen_t > -math.inf
+        fresh = t_k - self._range_seen_t > RANGE_GATE_FRESH_S
+        self._range_seen_t = t_k
+        if abs(e) <= gate or (fresh and seeded):
             self._range_run.clear()
-            self._range_ok_t = t_k
-            return True
+            return None
+        if not seeded:
+            self._g_epochs.append((self.k + 1, len(self._g_epochs) + 1))
+            return "range:ground-seeded"
         run = self._range_run
         run.append(seen)
         if len(run) < o.range_gate_run:
-            return False
+            return "range:outlier"
         grounds = list(run)[-o.range_gate_run :]
         if max(grounds) - min(grounds) > gate:
-            return False
+            return "range:outlier"
         run.clear()
         # The readings agree with each other, not with the ground: a step in the terrain (or
         # the height gone wrong). The ground variable starts anew from the next keyframe, from
@@ -2565,7 +2591,7 @@ class OnlineSmoother:
             self._health.detectors.named("terrain-step", detail)  # said there, once
         else:
             log.info("%s: %s", self.name, detail)
-        return False
+        return "range:outlier"
 
     def _suspect_extrinsic(self, t: float) -> None:
         """Before the check decides: a stated ``body_R_cam`` that maps the SLAM's rotations far

@@ -541,3 +541,27 @@ def test_terrain_steps_found_at_the_edge_and_not_on_spikes(noise):
     (step,) = terrain_steps(flight, est, HealthOptions())
     assert step[0] == pytest.approx(5.0) and step[1] == pytest.approx(0.5, abs=0.02)
     assert terrain_steps(flight, est, HealthOptions(), t[100:]) == []  # the platform's dropped
+
+
+def test_terrain_steps_name_both_edges_of_a_short_raise():
+    """A raised stretch of 8-14 readings (20 Hz, 0.4 m): its two edges fell in one run of
+    candidate splits, and one step was named with one edge's sign (review, 2026-12-07). A run
+    now ends where the jump changes sign."""
+    from types import SimpleNamespace
+
+    from fgnav.datasets.types import Calibration, RangeSeries
+
+    from fgnav.health import terrain_steps
+
+    t = np.arange(200) * 0.05
+    body_T_range = np.diag([1.0, -1.0, -1.0, 1.0])
+    calib = dataclasses.replace(Calibration(), body_T_range=body_T_range, range_max=10.0)
+    est = SimpleNamespace(trajectory=_level_flight(np.arange(0, 10.01, 0.01)))
+    for n in (8, 10, 14, 20):
+        r = np.full(200, 3.0)
+        r[100 : 100 + n] = 2.6
+        steps = terrain_steps(
+            SimpleNamespace(range=RangeSeries(t, r), calib=calib), est, HealthOptions()
+        )
+        assert [s[0] for s in steps] == pytest.approx([5.0, 5.0 + 0.05 * n]), n
+        assert [s[1] for s in steps] == pytest.approx([0.4, -0.4], abs=0.02), n

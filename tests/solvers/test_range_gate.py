@@ -81,6 +81,50 @@ def test_a_persistent_offset_is_a_terrain_step(clean):
     assert est.ground_height == pytest.approx(-start_height - 0.5, abs=0.03)
 
 
+def test_a_terrain_step_at_a_low_keyframe_rate(clean):
+    """At 5 Hz keyframes the ``range_gate_run`` (5) refused readings of a step span a second:
+    the gate's pause rule, counted from the last *taken* reading, took the sixth ungated and
+    cleared the run, so no step was ever found (found by review, 2026-12-07: the ground 0.49 m
+    off at the end, one reading taken a second against the old ground). A pause is now one
+    without readings within the limits."""
+    r = clean.range.range.copy()
+    r[clean.range.t >= 4.0] += 0.5
+    f = _with_range(clean, r)
+    est = replay_online(
+        f, FixedLagOptions(graph=dataclasses.replace(FixedLagOptions().graph, keyframe_hz=5.0))
+    )
+    assert est.info["used"]["range:terrain-step"] == 1
+    assert _max_height_error(est, f, 8.0) < 0.05  # measured 0.017 m (0.43 m without the gate)
+    start_height = clean.ground_truth.world_t_body[0, 2]
+    assert est.ground_height == pytest.approx(-start_height - 0.5, abs=0.03)
+
+
+@pytest.mark.parametrize("below_min", [False, True])
+def test_a_range_that_starts_late_is_no_terrain_step(clean, below_min):
+    """No reading within the limits at the start (none yet, or readings below the sensor's
+    minimum while on the ground): the ground height is seeded with 0 and starts anew from the
+    first reading (``range:ground-seeded``). Gated against the seed, that reading's run was
+    named a terrain step of -3.45 m (review, 2026-12-07)."""
+    r0 = clean.range
+    if below_min:
+        r = r0.range.copy()
+        r[r0.t < 1.0] = 0.0
+        f = _with_range(clean, r)
+    else:
+        keep = r0.t >= 1.0
+        f = dataclasses.replace(
+            clean, range=dataclasses.replace(r0, t=r0.t[keep], range=r0.range[keep])
+        )
+    est = replay_online(f)
+    assert est.info["dropped"]["range:ground-seeded"] == 1
+    assert "range:terrain-step" not in est.info["used"]
+    assert "terrain-step" not in est.info["health"]["detectors"]
+    assert est.info["dropped"].get("range:outlier", 0) <= 2
+    assert _max_height_error(est, f, 8.0) < 0.06
+    start_height = clean.ground_truth.world_t_body[0, 2]
+    assert est.ground_height == pytest.approx(-start_height, abs=0.03)
+
+
 def test_flying_over_a_platform():
     """Rectangle (30 s, seed 1) whose right half is flown over a 0.5 m platform: each edge (at
     3.04, 13.08 and 23.04 s) is a terrain step. Measured 2026-12-07: causal ATE 2.38 cm, height
