@@ -360,3 +360,57 @@ def test_common_span_ate_scores_every_method_from_the_latest_causal_start(truth)
     assert ate["s"] < ate["f"] and set(ate) == {"s", "f", "b"}
     # No causal trajectory: no common span.
     assert common_span_ate({"b": batch}, {"b": False}, truth) == (None, {})
+
+
+def test_yaw_rmse_of_a_hover_is_the_estimates_not_the_position_fits():
+    """A hover (positions scattered by 1 cm) estimated with exact orientations and 1 cm of
+    position noise: the SE(3) fit's rotation is set by that noise (several degrees), and was reported as
+    the yaw RMSE (simulated hover, fixed-lag: 12.8 deg for an estimate within 0.3 deg; review
+    2026-12-07). The orientation metrics now use the rotation fitted to the orientations."""
+    from fgnav.eval.align import align
+
+    rng = np.random.default_rng(4)
+    n = 400
+    t = np.arange(n) * 0.05
+    p = rng.normal(0.0, 0.01, (n, 3))
+    R = np.stack([rpy_to_matrix(0.02 * math.sin(0.3 * k), 0.01, 0.5 + 0.001 * k) for k in t])
+    q = np.stack([matrix_to_quat_wxyz(r) for r in R])
+    truth = Trajectory(t, p, q)
+    est = Trajectory(t, p + rng.normal(0.0, 0.01, (n, 3)), q)
+    fit = align(est.world_t_body, truth.world_t_body, "se3")
+    fit_yaw = math.degrees(abs(math.atan2(fit.R[1, 0], fit.R[0, 0])))
+    assert fit_yaw > 1.0  # the position fit's rotation is noise
+    for mode in ("se3", "4dof", "sim3"):
+        m = evaluate(Estimate("x", est), truth, alignment=mode)
+        assert m.yaw_rmse_deg < 1e-6, mode
+
+
+def test_align_rotations_recovers_a_constant_rotation():
+    from fgnav.eval.align import align_rotations
+
+    rng = np.random.default_rng(5)
+    est_R = np.stack([rpy_to_matrix(*rng.uniform(-0.5, 0.5, 3)) for _ in range(50)])
+    off = rpy_to_matrix(0.1, -0.2, 2.5)
+    noise = np.stack([rpy_to_matrix(*rng.normal(0.0, 1e-3, 3)) for _ in range(50)])
+    gt_R = np.einsum("ij,njk,nkl->nil", off, est_R, noise)
+    assert np.allclose(align_rotations(est_R, gt_R), off, atol=1e-3)
+    yaw_only = rpy_to_matrix(0.0, 0.0, 2.5)
+    gt_yaw = np.einsum("ij,njk->nik", yaw_only, est_R)
+    assert np.allclose(align_rotations(est_R, gt_yaw, "4dof"), yaw_only, atol=1e-12)
+    assert np.array_equal(align_rotations(est_R, gt_R, "none"), np.eye(3))
+
+
+def test_common_span_ate_after_a_degenerate_alignment():
+    """A straight-line estimate's metrics carry the fallback mode "translation (degenerate
+    geometry)"; ``fgnav compare`` passed that mode back to ``align`` for the common span and
+    the whole comparison failed (simulated ``vertical`` flight; review 2026-12-07). Compare now
+    passes the method's own mode, and a span that cannot be aligned leaves that method out."""
+    t = np.arange(100) * 0.1
+    line = np.c_[np.zeros(100), np.zeros(100), 0.1 * t]
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (100, 1))
+    truth = Trajectory(t, line, q)
+    est = Trajectory(t, line + 0.01, q)
+    t_c, ates = common_span_ate({"a": est}, {"a": True}, truth, {"a": "se3"})
+    assert t_c == 0.0 and ates["a"] == pytest.approx(0.0, abs=1e-9)
+    _, ates = common_span_ate({"a": est}, {"a": True}, truth, {"a": "4dof"})
+    assert ates == {}  # no horizontal motion: the yaw is undetermined

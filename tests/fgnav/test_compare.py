@@ -324,3 +324,20 @@ def test_fixed_lag_and_its_lagged_output_come_from_one_replay(flight, monkeypatc
     assert len(calls) == 4
     compare(flight, ["fixed-lag"], progress=False)
     assert len(calls) == 5
+
+
+def test_compare_on_a_vertical_flight():
+    """A purely vertical simulated flight: every SE(3) alignment falls back to a translation
+    (the rotation about the line is undetermined); the comparison used to abort with
+    ``FlightDataError: unknown mode`` from the common-span ATE (review 2026-12-07)."""
+    from fgnav.datasets.simulate.options import SimOptions
+    from fgnav.datasets.simulate.simulator import simulate
+
+    from fgnav.compare import compare
+
+    f = simulate("vertical", 0, SimOptions(duration=10.0, images=False))
+    res = compare(f, ["batch", "ekf004"], progress=False)  # (the span: a causal method's)
+    run = res.runs["batch"]
+    assert run.metrics.alignment.startswith("translation")
+    assert run.ate_common_m == pytest.approx(run.metrics.ate_rmse_m, rel=0.05)
+    assert run.metrics.ate_rmse_m < 0.02
