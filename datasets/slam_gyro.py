@@ -79,6 +79,10 @@ CONVENTION_RATIO = 2.0
 EXTRINSIC_TOL_DEG = 5.0
 #: Fitting body_R_cam needs two excited axes: second/first singular value of the correlation.
 MIN_AXIS_SPREAD = 0.05
+#: The coarse clock offset counts only where the gyro's and the SLAM's rotation rates correlate
+#: at least this well there (simulated flights 0.90-0.999, EuRoC 0.83-0.96; a vertical flight
+#: 0.09-0.25).
+OFFSET_MIN_CORRELATION = 0.5
 
 
 class SlamConventionError(FgnavError, ValueError):
@@ -140,6 +144,11 @@ class SlamGyroDecision:
         time_offset_s: SLAM clock offset, ``t_imu = t_slam + offset`` [s].
         offset_correlation: correlation of the rate magnitudes at the coarse offset (NaN: not
             estimated, too little data).
+        time_offset_ok: the offset is determined: ``offset_correlation`` at least
+            :data:`OFFSET_MIN_CORRELATION`. Below it the rates did not vary enough to tell
+            (a simulated vertical flight: 0.09-0.25 and offsets of -0.53..+0.20 s on a
+            synchronous SLAM, named as a clock offset); the offset is then neither named nor
+            applied.
         gyro_bias: (3,) gyro bias [rad/s] fitted with ``convention``.
         n_pairs: rotation pairs used.
         rotation_rad: total rotation seen (non-overlapping pairs) [rad].
@@ -164,6 +173,10 @@ class SlamGyroDecision:
     rotation_rad: float
     axis_spread: float = float("nan")
 
+    @property
+    def time_offset_ok(self) -> bool:
+        return bool(self.offset_correlation >= OFFSET_MIN_CORRELATION)
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary."""
         return {
@@ -175,6 +188,8 @@ class SlamGyroDecision:
             "body_R_cam_error_deg": round(self.body_R_cam_error_deg, 2),
             "body_q_cam_fit_wxyz": np.round(matrix_to_quat_wxyz(self.body_R_cam_fit), 5).tolist(),
             "time_offset_s": round(self.time_offset_s, 4),
+            "time_offset_ok": self.time_offset_ok,
+            "offset_correlation": round(self.offset_correlation, 3),
             "gyro_bias": np.round(self.gyro_bias, 4).tolist(),
             "n_pairs": self.n_pairs,
             "axis_spread": round(self.axis_spread, 4),
@@ -729,8 +744,16 @@ def apply_slam_check(
     if invert:
         slam = invert_slam_rotations(slam)
     if isinstance(time_offset, str):
-        offset = d.time_offset_s if d is not None else 0.0
+        offset = d.time_offset_s if d is not None and d.time_offset_ok else 0.0
         applied = time_offset == "apply"
+        if d is not None and not d.time_offset_ok:
+            log.info(
+                "%s: SLAM clock offset not determined (rate correlation %.2f < %.2f: too little "
+                "rotation to tell)",
+                flight.name,
+                d.offset_correlation,
+                OFFSET_MIN_CORRELATION,
+            )
     else:
         offset, applied = float(time_offset), True
     log.info(

@@ -41,7 +41,7 @@ each counted by name in :meth:`FaultDetectors.report`:
   (``images:frozen``).
 - ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
   offset above ``slam_offset_tol_s`` (reported; ``[graph] slam_time_offset = "apply"`` applies it
-  in batch).
+  in batch); not where the rates correlate too little to tell (``time_offset_ok``).
 - ``body_T_cam-rotation``: the same check found the calibration's camera rotation wrong.
 - ``terrain-step`` (batch): the ground the range readings see (through the solved trajectory)
   steps by more than ``terrain_step_m`` and stays there (:func:`terrain_steps`): the ground
@@ -524,7 +524,8 @@ class FaultDetectors:
         self._said.add("slam-check")
         off = decision.get("time_offset_s")
         applied = decision.get("applied_time_offset_s") or 0.0
-        if off is not None and abs(off) > self.options.slam_offset_tol_s:
+        ok = decision.get("time_offset_ok", True)  # (False: too little rotation to tell)
+        if ok and off is not None and abs(off) > self.options.slam_offset_tol_s:
             self._count(
                 "slam-clock-offset",
                 f"SLAM clock offset {off:+.3f} s (t_imu = t_slam + offset) from the "

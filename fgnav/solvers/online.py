@@ -2221,7 +2221,7 @@ class OnlineSmoother:
         adopt = self._slam_conv is None
         if adopt:
             self._slam_conv = d.convention
-        if self.go.slam_time_offset == "apply" and math.isfinite(d.time_offset_s):
+        if self.go.slam_time_offset == "apply" and d.time_offset_ok:
             self._slam_offset = float(d.time_offset_s)
             log.info(
                 "%s: SLAM clock offset %+.4f s applied from t=%.2f s", self.name, d.time_offset_s, t
@@ -2233,6 +2233,7 @@ class OnlineSmoother:
             "body_R_cam_ok": bool(d.body_R_cam_ok),
             "body_R_cam_error_deg": float(d.body_R_cam_error_deg),
             "time_offset_s": float(d.time_offset_s),
+            "time_offset_ok": d.time_offset_ok,
             "gyro_bias": np.asarray(d.gyro_bias).tolist(),
             "axis_spread": float(d.axis_spread),
         }

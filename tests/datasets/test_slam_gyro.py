@@ -311,3 +311,17 @@ def test_stated_misfit_names_a_wrong_rotation_within_3s(scenario):
     wrong = _misfits(f, np.eye(3))
     first = next((t for t, m in wrong if m > 0.5), None)
     assert first is not None and first <= 3.0, wrong
+
+
+def test_no_clock_offset_is_named_where_the_rates_cannot_tell():
+    """A simulated vertical flight (synchronous SLAM, little rotation): the rate magnitudes
+    correlate at 0.09-0.25 and the coarse offset is noise (-0.53..+0.20 s); it was named as a
+    SLAM clock offset by the batch's health check. A flight with turns keeps its offset."""
+    from fgnav.datasets.slam_gyro import OFFSET_MIN_CORRELATION, check_flight
+
+    for seed in (0, 1):
+        d = check_flight(simulate("vertical", seed, SimOptions(duration=20, images=False)))
+        assert d.offset_correlation < OFFSET_MIN_CORRELATION and not d.time_offset_ok
+        assert d.summary()["time_offset_ok"] is False
+    d = check_flight(simulate("figure8", 0, SimOptions(duration=20, images=False)))
+    assert d.time_offset_ok and abs(d.time_offset_s) < 0.01

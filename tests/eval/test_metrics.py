@@ -364,9 +364,10 @@ def test_common_span_ate_scores_every_method_from_the_latest_causal_start(truth)
 
 def test_yaw_rmse_of_a_hover_is_the_estimates_not_the_position_fits():
     """A hover (positions scattered by 1 cm) estimated with exact orientations and 1 cm of
-    position noise: the SE(3) fit's rotation is set by that noise (several degrees), and was reported as
-    the yaw RMSE (simulated hover, fixed-lag: 12.8 deg for an estimate within 0.3 deg; review
-    2026-12-07). The orientation metrics now use the rotation fitted to the orientations."""
+    position noise: the SE(3) fit's rotation is set by that noise (over a degree), and was
+    reported as the yaw RMSE (simulated hover, fixed-lag: 12.8 deg for an estimate within 0.3
+    deg; review 2026-12-07). The orientation metrics now use the rotation fitted to the
+    orientations."""
     from fgnav.eval.align import align
 
     rng = np.random.default_rng(4)
