@@ -28,7 +28,8 @@ Messages in (-> :mod:`fgnav.datasets.events`):
 * ``HIGHRES_IMU`` (body FRD, m/s^2, rad/s) -> :class:`ImuSample` (body FLU);
 * ``ATTITUDE_QUATERNION`` (FRD body to NED, ``time_boot_ms``) -> :class:`AttitudeSample`;
 * ``DISTANCE_SENSOR`` with orientation ``MAV_SENSOR_ROTATION_PITCH_270`` (25, downward), cm ->
-  :class:`RangeReading` [m]; ``signal_quality`` 0 (unknown) -> -1, 1..100 -> 0..1;
+  :class:`RangeReading` [m]; ``signal_quality`` 0 (unknown) -> -1, 1 (invalid signal) dropped,
+  2..100 -> 0..1;
 * ``ODOMETRY`` with ``estimator_type = MAV_ESTIMATOR_TYPE_VISION`` -> :class:`SlamPose`:
   ``x, y, z, q`` are the SLAM camera pose ``slam_T_cam`` in the SLAM's own frame and scale,
   taken as they are whatever ``frame_id`` says (the SLAM alignment absorbs the frame);
@@ -232,8 +233,8 @@ def attitude_quaternion_fields(
 def range_from_distance_sensor(msg: Any, arrival: float | None = None) -> RangeReading:
     """``DISTANCE_SENSOR`` facing down (orientation 25) -> :class:`RangeReading` [m].
 
-    Other orientations, and readings outside the message's own ``[min_distance, max_distance]``
-    (a sensor's out-of-range code), are rejected.
+    Other orientations, readings outside the message's own ``[min_distance, max_distance]``
+    (a sensor's out-of-range code) and ``signal_quality`` 1 (invalid signal) are rejected.
     """
     if int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
         raise Rejected("range:orientation", f"orientation {int(msg.orientation)}, not 25 (down)")
@@ -245,7 +246,9 @@ def range_from_distance_sensor(msg: Any, arrival: float | None = None) -> RangeR
         )
     t = ms_to_s(msg.time_boot_ms)
     sq = int(getattr(msg, "signal_quality", 0))
-    quality = -1.0 if sq == 0 else (min(sq, 100) - 1) / 99.0
+    if sq == 1:  # MAVLink: 1 = invalid signal (0 = unknown, 100 = best)
+        raise Rejected("range:invalid_signal", "signal_quality 1")
+    quality = -1.0 if sq == 0 else (min(sq, 100) - 2) / 98.0
     return RangeReading(t, t if arrival is None else arrival, d / CM_PER_M, quality)
 
 
@@ -259,7 +262,7 @@ def distance_sensor_fields(
     ev: RangeReading, boot_offset: float, range_min: float = 0.0, range_max: float = math.inf
 ) -> dict[str, Any]:
     """Fields of ``DISTANCE_SENSOR`` (downward) for a range reading, rounded to 1 cm."""
-    sq = 0 if ev.quality < 0 else int(round(1 + 99 * min(max(ev.quality, 0.0), 1.0)))
+    sq = 0 if ev.quality < 0 else int(round(2 + 98 * min(max(ev.quality, 0.0), 1.0)))
     return dict(
         time_boot_ms=s_to_ms(ev.t - boot_offset),
         min_distance=_cm(range_min),

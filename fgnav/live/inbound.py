@@ -2,7 +2,9 @@
 
 :class:`Inbound` is the state the edge conversion needs across messages: the newest IMU time
 (which is the "now" of the boot clock, for arrival times), the SLAM session derived from
-``ODOMETRY.reset_counter``, and the counters of what was received, dropped and lost. The
+``ODOMETRY.reset_counter`` (per sending system and component, and only from vision ODOMETRY:
+the autopilot's own ODOMETRY, with its own counter, had started a new session at every pose),
+and the counters of what was received, dropped and lost. The
 conversions themselves are :mod:`fgnav.live.convert`.
 
 Arrival time. An event's ``arrival`` is when it reached fgnav, expressed on the boot clock: the
@@ -18,13 +20,16 @@ Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.sess
   of that stream, before any check;
 * ``dropped``: ``"stream:reason"`` -> n, messages of a stream that did not become events
   (reasons: ``not_updated``, ``other_instance``, ``non_finite``, ``invalid_quaternion``,
-  ``orientation``, ``out_of_sensor_limits``, ``estimator_type``, ``vio_echo``, ``no_valid_flow``,
-  ``no_interval``);
+  ``orientation``, ``out_of_sensor_limits``, ``invalid_signal``, ``estimator_type``,
+  ``vio_echo``, ``no_valid_flow``, ``no_interval``, ``off_clock``: a stamp more than
+  ``OFF_CLOCK_S`` from the newest IMU stamp, e.g. a bridge that stamps on the UNIX epoch, as
+  MAVROS does; such a stamp once kept fgnav's "now" at 1.7e9 s and lost every pose);
 * ``lost``: ``"sysid/compid"`` -> messages missing from the MAVLink sequence numbers.
 """
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from typing import Any
 
@@ -40,6 +45,9 @@ STREAM_OF_MESSAGE = {
     "OPTICAL_FLOW_RAD": "flow",
 }
 """The sensor stream each input message feeds."""
+
+OFF_CLOCK_S = 5.0
+"""A non-IMU stamp further than this from the newest IMU stamp is on another clock [s]."""
 
 
 class SequenceCounter:
@@ -80,7 +88,9 @@ class Inbound:
         self.newest_imu_t: float | None = None
         self.newest_stamp: float | None = None
         self.session = 0
-        self._reset_counter: int | None = None
+        # (sysid, compid) -> (its last reset_counter, its session)
+        self._slam_sources: dict[tuple[int, int], tuple[int, int]] = {}
+        self._imu_wall: float | None = None  # monotonic wall time of the newest IMU stamp
         self.messages: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
@@ -118,6 +128,10 @@ class Inbound:
         if isinstance(ev, ImuSample):
             if self.newest_imu_t is None or ev.t > self.newest_imu_t:
                 self.newest_imu_t = ev.t
+                self._imu_wall = time.monotonic()
+        elif self.newest_imu_t is not None and abs(ev.t - self.newest_imu_t) > OFF_CLOCK_S:
+            self.dropped[f"{stream}:off_clock"] += 1
+            return None
         if self.newest_stamp is None or ev.t > self.newest_stamp:
             self.newest_stamp = ev.t
         return ev
@@ -132,23 +146,34 @@ class Inbound:
         elif name == "DISTANCE_SENSOR":
             ev = convert.range_from_distance_sensor(msg)
         elif name == "ODOMETRY":
-            ev = convert.slam_from_odometry(msg, self._slam_session(int(msg.reset_counter)))
+            ev = convert.slam_from_odometry(msg, 0)  # checked before its session counts
+            ev = ev._replace(session=self._slam_session(_source(msg), int(msg.reset_counter)))
         else:
             ev = convert.flow_from_rad(msg, self.flow_pixels_per_rad)
         return ev._replace(arrival=self._arrival(ev.t))
 
-    def _slam_session(self, reset_counter: int) -> int:
-        """A changed ``reset_counter`` (a rise, or its wrap past 255) starts a new session."""
-        if self._reset_counter is not None and reset_counter != self._reset_counter:
+    def _slam_session(self, source: tuple[int, int], reset_counter: int) -> int:
+        """The session of a SLAM source's pose: a new source, or a changed ``reset_counter``
+        of one (a rise, or its wrap past 255), starts a new one."""
+        last = self._slam_sources.get(source)
+        if last is not None and last[0] == reset_counter:
+            return last[1]
+        if self._slam_sources:
             self.session += 1
-        self._reset_counter = reset_counter
+        self._slam_sources[source] = (reset_counter, self.session)
         return self.session
 
     def clock_ns(self) -> int | None:
-        """The boot clock's "now" as fgnav knows it (newest stamp received) [ns], or None."""
-        if self.newest_stamp is None:
+        """The boot clock's "now" as fgnav knows it [ns], or None: the newest IMU stamp plus
+        the wall time since it arrived (else the newest stamp received). Answered with the
+        stamp alone, PX4's offset took the sample's age (up to 20 ms at 50 Hz)."""
+        if self.newest_imu_t is not None and self._imu_wall is not None:
+            now = self.newest_imu_t + (time.monotonic() - self._imu_wall)
+        elif self.newest_stamp is not None:
+            now = self.newest_stamp
+        else:
             return None
-        return int(round(self.newest_stamp * convert.NS_PER_S))
+        return int(round(now * convert.NS_PER_S))
 
     def counts(self) -> dict[str, Any]:
         """The counters (see the module docstring), as plain dicts."""
@@ -157,5 +182,13 @@ class Inbound:
             "received": dict(sorted(self.received.items())),
             "dropped": dict(sorted(self.dropped.items())),
             "lost": dict(sorted(self.sequence.lost.items())),
-            "slam_sessions": self.session + 1 if self._reset_counter is not None else 0,
+            "slam_sessions": self.session + 1 if self._slam_sources else 0,
         }
+
+
+def _source(msg: Any) -> tuple[int, int]:
+    """(sysid, compid) of a parsed message ((0, 0) for one built by hand, never sent)."""
+    try:
+        return int(msg.get_srcSystem()), int(msg.get_srcComponent())
+    except (AttributeError, TypeError):
+        return 0, 0

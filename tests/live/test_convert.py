@@ -148,7 +148,7 @@ def test_range_centimetres_orientation_and_quality(wire):
     ev = RangeReading(2.0, 2.0, 1.2345, 0.5)
     f = convert.distance_sensor_fields(ev, 0.0, range_min=0.1, range_max=8.0)
     assert (f["current_distance"], f["min_distance"], f["max_distance"]) == (123, 10, 800)
-    assert f["orientation"] == 25 and f["signal_quality"] == 50  # 1 + 99 * 0.5, rounded
+    assert f["orientation"] == 25 and f["signal_quality"] == 51  # 2 + 98 * 0.5 (1: invalid)
     back = convert.range_from_distance_sensor(wire("distance_sensor", f))
     assert back.t == 2.0 and back.range == 1.23
     assert back.quality == pytest.approx(0.5, abs=0.01)
@@ -161,6 +161,11 @@ def test_range_centimetres_orientation_and_quality(wire):
     with pytest.raises(Rejected) as e:
         convert.range_from_distance_sensor(wire("distance_sensor", f | {"current_distance": 801}))
     assert e.value.reason == "range:out_of_sensor_limits"
+    with pytest.raises(Rejected) as e:  # MAVLink's "invalid signal"
+        convert.range_from_distance_sensor(wire("distance_sensor", f | {"signal_quality": 1}))
+    assert e.value.reason == "range:invalid_signal"
+    worst = convert.distance_sensor_fields(ev._replace(quality=0.0), 0.0)
+    assert worst["signal_quality"] == 2  # the worst valid reading is not sent as invalid
 
 
 def test_slam_pose_is_taken_as_is(wire):

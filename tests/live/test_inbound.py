@@ -74,7 +74,44 @@ def test_arrival_sessions_and_counts():
     assert c["dropped"] == {"slam:vio_echo": 1, "range:orientation": 1}
     assert c["messages"] == {"HIGHRES_IMU": 3, "ODOMETRY": 5, "DISTANCE_SENSOR": 1, "HEARTBEAT": 1}
     assert c["lost"] == {} and c["slam_sessions"] == 2
-    assert inb.clock_ns() == 600_000_000
+    # "Now": the newest IMU stamp plus the wall time since it came (not the SLAM's 0.6 s).
+    assert 510_000_000 <= inb.clock_ns() < 510_000_000 + 1_000_000_000
+
+
+def test_other_odometry_and_off_clock_stamps_leave_the_slam_alone():
+    """The autopilot's own ODOMETRY (estimator_type 8, its own reset_counter) interleaved
+    with the SLAM's: it had started a new SLAM session at every pose (review 2026-12-07:
+    two-turns ATE 0.029 -> 0.60 m). A second SLAM source has its own sessions; a pose stamped
+    on the UNIX epoch (MAVROS) is dropped as off the boot clock, and "now" stays right."""
+    tx, rx = new_mavlink(1, 1), new_mavlink(0, 0)
+    slam_tx, other_tx = new_mavlink(1, 191), new_mavlink(1, 197)
+    inb = Inbound()
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+
+    def feed(mav, name, fields):
+        msg = _through(mav, rx, name, fields)
+        inb.count(msg)
+        return inb.event(msg)
+
+    imu = ImuSample(2.0, 2.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))
+    feed(tx, "highres_imu", convert.highres_imu_fields(imu, 0))
+    pose = SlamPose(1.9, 1.9, np.zeros(3), q, 0)
+    autopilot = {**convert.vision_odometry_fields(pose, 0, 0), "estimator_type": 8}
+    sessions = []
+    for _ in range(5):
+        sessions.append(
+            feed(slam_tx, "odometry", convert.vision_odometry_fields(pose, 0, 1)).session
+        )
+        assert feed(tx, "odometry", autopilot) is None
+    assert sessions == [0] * 5
+    assert feed(other_tx, "odometry", convert.vision_odometry_fields(pose, 0, 1)).session == 1
+    assert feed(slam_tx, "odometry", convert.vision_odometry_fields(pose, 0, 1)).session == 0
+    epoch = pose._replace(t=1.7e9)
+    assert feed(slam_tx, "odometry", convert.vision_odometry_fields(epoch, 0, 1)) is None
+    c = inb.counts()
+    assert c["dropped"] == {"slam:estimator_type": 5, "slam:off_clock": 1}
+    assert c["slam_sessions"] == 2
+    assert inb.clock_ns() < 3_000_000_000
 
 
 def test_lost_messages_are_counted_from_sequence_numbers():
