@@ -25,3 +25,18 @@ ESTIMATE_FILES = "output folder (estimate.tum, states.csv, summary.json)"
 def add_out_argument(parser: argparse.ArgumentParser, help: str = ESTIMATE_FILES) -> None:
     """The required ``--out`` folder (:func:`out_folder`)."""
     parser.add_argument("--out", type=out_folder, required=True, help=help)
+
+
+FLIGHT_INPUT = "flight folder, manifest or log (see `fgnav info`)"
+"""The positional ``flight``'s help of the commands that read one flight (batch, online, compare,
+replay)."""
+
+
+def add_flight_argument(parser: argparse.ArgumentParser) -> None:
+    """The positional ``flight`` input (:func:`nonempty_path`)."""
+    parser.add_argument("flight", type=nonempty_path, help=FLIGHT_INPUT)
+
+
+def add_config_argument(parser: argparse.ArgumentParser, help: str) -> None:
+    """The optional ``--config`` TOML file (:func:`nonempty_path`); ``help`` names its tables."""
+    parser.add_argument("--config", type=nonempty_path, default=None, help=help)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from fgnav.commands import add_out_argument, nonempty_path
+from fgnav.commands import add_config_argument, add_flight_argument, add_out_argument
 from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.types import Flight
@@ -34,16 +34,9 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "flight", type=nonempty_path, help="flight folder, manifest or log (see `fgnav info`)"
-    )
+    add_flight_argument(parser)
     add_out_argument(parser)
-    parser.add_argument(
-        "--config",
-        type=nonempty_path,
-        default=None,
-        help="TOML file with [graph], [lm], [batch] and [priors] tables",
-    )
+    add_config_argument(parser, "TOML file with [graph], [lm], [batch] and [priors] tables")
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
     parser.add_argument(
         "--covariance",

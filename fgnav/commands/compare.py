@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fgnav.commands import nonempty_path, out_folder
+from fgnav.commands import add_config_argument, add_flight_argument, add_out_argument
 from fgnav.compare import CompareResult, compare
 from fgnav.config import check_tables
 from fgnav.coverage import compare_lines
@@ -51,12 +51,8 @@ def parse_methods(text: str | None) -> list[str] | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "flight", type=nonempty_path, help="flight folder, manifest or log (see `fgnav info`)"
-    )
-    parser.add_argument(
-        "--out", type=out_folder, required=True, help="output folder (report.md, compare.json)"
-    )
+    add_flight_argument(parser)
+    add_out_argument(parser, "output folder (report.md, compare.json)")
     parser.add_argument(
         "--methods",
         default=None,
@@ -64,9 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         + ", ".join(METHODS)
         + ")",
     )
-    parser.add_argument(
-        "--config", type=nonempty_path, default=None, help="TOML file with per-method tables"
-    )
+    add_config_argument(parser, "TOML file with per-method tables")
     parser.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 

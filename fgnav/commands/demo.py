@@ -15,7 +15,7 @@ import logging
 import time
 from pathlib import Path
 
-from fgnav.commands import nonempty_path, out_folder
+from fgnav.commands import add_config_argument, out_folder
 from fgnav.commands.compare import parse_methods, print_result
 from fgnav.compare import CompareResult, MethodRun, compare
 from fgnav.config import check_tables, load_config, options_from
@@ -45,12 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="comma-separated methods (default: every method the flight allows)",
     )
-    parser.add_argument(
-        "--config",
-        type=nonempty_path,
-        default=None,
-        help="TOML file: [simulate] and the per-method tables",
-    )
+    add_config_argument(parser, "TOML file: [simulate] and the per-method tables")
     parser.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-from fgnav.commands import nonempty_path, out_folder
+from fgnav.commands import add_config_argument, add_out_argument
 from fgnav.config import check_tables
 from fgnav.methods import METHOD_TABLES, check_method_config, load_method_config
 
@@ -30,17 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="INPUT",
         help="flight (log, manifest, flight folder), folder to scan, or quoted glob pattern",
     )
-    parser.add_argument(
-        "--out", type=out_folder, required=True, help="output folder (the table, per-flight runs)"
-    )
+    add_out_argument(parser, "output folder (the table, per-flight runs)")
     parser.add_argument(
         "--methods",
         default="batch",
         help="comma-separated methods of `fgnav compare` (default batch)",
     )
-    parser.add_argument(
-        "--config", type=nonempty_path, default=None, help="TOML file with the per-method tables"
-    )
+    add_config_argument(parser, "TOML file with the per-method tables")
     parser.add_argument(
         "--scheduler", default=None, help="address of a running Dask scheduler (tcp://HOST:PORT)"
     )

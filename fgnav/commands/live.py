@@ -28,7 +28,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from fgnav.commands import add_out_argument, nonempty_path
+from fgnav.commands import add_config_argument, add_out_argument, nonempty_path
 
 HELP = "run the online estimator on a live MAVLink link (udpin:HOST:PORT)"
 
@@ -44,11 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="calibration file (a flight's calib.yaml)",
     )
     add_out_argument(parser)
-    parser.add_argument(
-        "--config",
-        type=nonempty_path,
-        default=None,
-        help="TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
+    add_config_argument(
+        parser,
+        "TOML with [graph], [online], [priors], [live] tables and the --estimator filter's "
         "own ([msf-ekf], [ekf004], [ukf003], [cf-ekf], [ekf-flow002]); with --batch also [lm] "
         "and [batch]",
     )

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fgnav.commands import add_out_argument, nonempty_path
+from fgnav.commands import add_config_argument, add_flight_argument, add_out_argument
 from fgnav.commands.batch import add_priors_argument, method_config, score_and_write
 from fgnav.config import check_tables
 from fgnav.eval.outputs import summary_extra
@@ -34,17 +34,10 @@ HELP = "run the online fixed-lag smoother over a flight"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "flight", type=nonempty_path, help="flight folder, manifest or log (see `fgnav info`)"
-    )
+    add_flight_argument(parser)
     add_out_argument(parser)
     parser.add_argument("--lag", type=float, default=None, help="smoother lag [s] (default 2)")
-    parser.add_argument(
-        "--config",
-        type=nonempty_path,
-        default=None,
-        help="TOML file with [graph], [online] and [priors] tables",
-    )
+    add_config_argument(parser, "TOML file with [graph], [online] and [priors] tables")
     parser.add_argument("--keyframe-hz", type=float, default=None, help="keyframe rate [Hz]")
     add_priors_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

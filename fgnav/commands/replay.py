@@ -12,15 +12,13 @@ from __future__ import annotations
 import argparse
 import math
 
-from fgnav.commands import nonempty_path
+from fgnav.commands import add_flight_argument, nonempty_path
 
 HELP = "send a flight as MAVLink messages to udpout:HOST:PORT (a stand-in autopilot)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "flight", type=nonempty_path, help="flight folder, manifest or log (see `fgnav info`)"
-    )
+    add_flight_argument(parser)
     parser.add_argument(
         "--mavlink", required=True, help="udpout:HOST:PORT to send to (e.g. udpout:127.0.0.1:14550)"
     )

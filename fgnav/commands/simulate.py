@@ -11,7 +11,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from fgnav.commands import nonempty_path, out_folder
+from fgnav.commands import add_config_argument, add_out_argument
 from fgnav.config import load_config, options_from
 from fgnav.datasets.errors import FlightFormatError
 from fgnav.datasets.simulate import SCENARIOS, SimOptions, simulate_to_folder
@@ -23,18 +23,13 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, choices=SCENARIOS, help="flight plan")
-    parser.add_argument("--out", type=out_folder, required=True, help="flight folder to write")
+    add_out_argument(parser, "flight folder to write")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw")
     parser.add_argument("--duration", type=float, default=None, help="flight length [s]")
     parser.add_argument(
         "--no-images", action="store_true", help="do not render downward-camera images"
     )
-    parser.add_argument(
-        "--config",
-        type=nonempty_path,
-        default=None,
-        help="TOML file with a [simulate] table of SimOptions fields",
-    )
+    add_config_argument(parser, "TOML file with a [simulate] table of SimOptions fields")
     parser.add_argument(
         "--overwrite", action="store_true", help="replace an existing flight folder"
     )
