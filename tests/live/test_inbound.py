@@ -20,6 +20,18 @@ def _through(tx, rx, name, fields):
     return out[0]
 
 
+def _feeder(inb: Inbound):
+    """``feed(sender, message name, fields)``: the message through the wire into ``inb``."""
+    rx = new_mavlink(0, 0)
+
+    def feed(mav, name, fields):
+        msg = _through(mav, rx, name, fields)
+        inb.count(msg)
+        return inb.event(msg)
+
+    return feed
+
+
 def test_sequence_counter_counts_gaps_across_the_wrap():
     c = SequenceCounter()
     for seq in (250, 251, 253, 255, 0, 4):  # missing 252, 254, 1, 2, 3
@@ -34,12 +46,8 @@ def test_arrival_sessions_and_counts():
     tx, rx = new_mavlink(1, 1), new_mavlink(0, 0)
     slam_tx = new_mavlink(1, 191)
     inb = Inbound()
+    feed = _feeder(inb)
     q = np.array([1.0, 0.0, 0.0, 0.0])
-
-    def feed(mav, name, fields):
-        msg = _through(mav, rx, name, fields)
-        inb.count(msg)
-        return inb.event(msg)
 
     imu = ImuSample(0.0, 0.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))
     for k in range(3):
@@ -83,15 +91,11 @@ def test_other_odometry_and_off_clock_stamps_leave_the_slam_alone():
     with the SLAM's: it had started a new SLAM session at every pose (review 2026-12-07:
     two-turns ATE 0.029 -> 0.60 m). A second SLAM source has its own sessions; a pose stamped
     on the UNIX epoch (MAVROS) is dropped as off the boot clock, and "now" stays right."""
-    tx, rx = new_mavlink(1, 1), new_mavlink(0, 0)
+    tx = new_mavlink(1, 1)
     slam_tx, other_tx = new_mavlink(1, 191), new_mavlink(1, 197)
     inb = Inbound()
+    feed = _feeder(inb)
     q = np.array([1.0, 0.0, 0.0, 0.0])
-
-    def feed(mav, name, fields):
-        msg = _through(mav, rx, name, fields)
-        inb.count(msg)
-        return inb.event(msg)
 
     imu = ImuSample(2.0, 2.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))
     feed(tx, "highres_imu", convert.highres_imu_fields(imu, 0))
