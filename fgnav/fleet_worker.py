@@ -54,8 +54,11 @@ def error_reason(e: BaseException, memory_limit_mb: float | None = None) -> str:
 
     text = one_line(e)
     # Under RLIMIT_AS an extension whose allocation fails may return NULL without setting
-    # MemoryError: CPython then raises SystemError "error return without exception set".
-    alloc_failed = isinstance(e, SystemError) and "without exception set" in text
+    # MemoryError: CPython then raises SystemError "error return without exception set" (or,
+    # from a builtin such as compile(), "... returned NULL without setting an exception").
+    alloc_failed = isinstance(e, SystemError) and (
+        "without exception set" in text or "without setting an exception" in text
+    )
     if isinstance(e, MemoryError) or (
         memory_limit_mb and (alloc_failed or any(h in text.lower() for h in MEMORY_HINTS))
     ):

@@ -476,3 +476,6 @@ def test_allocation_failure_without_memory_error_is_named_under_a_limit():
     assert error_reason(e, 150).startswith("out of memory (--memory-limit 150 MB): SystemError")
     assert error_reason(e, None) == "SystemError: error return without exception set"
     assert error_reason(MemoryError(), 150).startswith("out of memory (--memory-limit 150 MB)")
+    # The wording of a builtin's failure (seen 2026-12-07: the child died inside compile()).
+    e = SystemError("<built-in function compile> returned NULL without setting an exception")
+    assert error_reason(e, 150).startswith("out of memory (--memory-limit 150 MB): SystemError")
