@@ -54,6 +54,12 @@ def strip_unit(name: str) -> str:
     return _UNIT.sub("", name).strip()
 
 
+def unit_of(name: str) -> str | None:
+    """``"omega_x [rad/s]"`` -> ``"rad/s"`` (None without a unit)."""
+    m = _UNIT.search(name)
+    return None if m is None else m.group(0).strip()[1:-1].strip()
+
+
 def split_line(line: str, sep: str | None) -> list[str]:
     """Tokens of one line: split on ``sep`` (whitespace when None), each token stripped."""
     if sep is None:
@@ -267,3 +273,47 @@ def drop_repeated_rows(
     note(log, notes, msg)
     keep = ~same
     return t[keep], values[keep], [ln for ln, k in zip(raw.lines, keep, strict=True) if k]
+
+
+def increasing_mask(t: np.ndarray) -> np.ndarray:
+    """Mask of samples strictly later than every earlier kept sample (``-inf``: a sample the
+    caller already leaves out). A lone stamp that jumps ahead of both neighbours while they are
+    in order (a flipped bit in a damaged log) is left out first: kept, it would hide every later
+    sample (a salvaged Crazyflie traj1 with one flipped bit lost 23 s of IMU to it; a PX4 ULog
+    with 200 bytes flipped, one IMU stamp at 1.8e13 s, lost every later sample and its batch
+    ran out of memory)."""
+    t = np.asarray(t, dtype=float)
+    keep = np.zeros(t.shape, dtype=bool)
+    idx = np.flatnonzero(t > -np.inf)
+    u = t[idx]
+    k = np.ones(u.shape, dtype=bool)
+    if u.size >= 3:
+        k[1:-1] = ~((u[1:-1] > u[2:]) & (u[:-2] < u[2:]))
+    if u.size >= 2:
+        k[0] = u[0] <= u[1] or (u.size >= 3 and u[0] < u[2])
+    if u.size:
+        uk = np.where(k, u, -np.inf)
+        k[1:] &= u[1:] > np.maximum.accumulate(uk)[:-1]
+    keep[idx] = k
+    return keep
+
+
+def clock_reset(
+    t: np.ndarray, keep: np.ndarray, min_run: int = 50, min_back_s: float = 1.0
+) -> tuple[int, float] | None:
+    """A clock reset in stamps ``t`` that :func:`increasing_mask` kept as ``keep``: the first
+    run of at least ``min_run`` consecutive samples left out after a step back of more than
+    ``min_back_s`` (a lone bad stamp leaves out one). Returns ``(index of its first sample, the
+    step back [s])`` or None. Left out quietly, such a run lost the time until the clock passed
+    its old value again, and the rest of the log was read on a shifted clock."""
+    dropped = np.flatnonzero(~keep)
+    if dropped.size < min_run:
+        return None
+    starts = dropped[np.r_[True, np.diff(dropped) > 1]]
+    ends = dropped[np.r_[np.diff(dropped) > 1, True]]
+    for a, b in zip(starts, ends, strict=True):
+        if b - a + 1 >= min_run and a > 0:
+            back = float(np.max(t[:a]) - t[a])
+            if back > min_back_s:
+                return int(a), back
+    return None

@@ -108,6 +108,7 @@ from typing import Any
 
 import numpy as np
 
+from ._tables import clock_reset, increasing_mask
 from .errors import FlightFormatError
 from .geometry import make_pose, velocity_from_positions
 from .types import (
@@ -597,22 +598,6 @@ def is_crazyflie_log(path: str | Path) -> bool:
 # ----------------------------------------------------------------------------------------------
 
 
-def _increasing(t: np.ndarray) -> np.ndarray:
-    """Mask of samples strictly later than every earlier kept sample. A lone stamp that jumps
-    ahead of both neighbours while they are in order (a flipped bit in a damaged log) is left
-    out first: kept, it would hide every later sample (a salvaged traj1 with one flipped bit
-    lost 23 s of IMU to it)."""
-    keep = np.ones(t.shape, dtype=bool)
-    if t.size >= 3:
-        keep[1:-1] = ~((t[1:-1] > t[2:]) & (t[:-2] < t[2:]))
-    if t.size >= 2:
-        keep[0] = t[0] <= t[1] or (t.size >= 3 and t[0] < t[2])
-    if t.size:
-        tk = np.where(keep, t, -np.inf)
-        keep[1:] &= t[1:] > np.maximum.accumulate(tk)[:-1]
-    return keep
-
-
 def _columns(rec: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     return np.column_stack([rec[n].astype(np.float64) for n in names])
 
@@ -650,8 +635,17 @@ def imu_from_log(cf: CrazyflieLog) -> tuple[ImuSeries, dict[str, Any]]:
     tg, ta = cf.time_s("estGyroscope"), cf.time_s("estAcceleration")
     gyro = _columns(g, GYRO_FIELDS) * DEG_TO_RAD
     acc = _columns(a, ACCEL_FIELDS) * FIRMWARE_GRAVITY
-    keep_g = _increasing(tg)
-    keep_a = _increasing(ta)
+    keep_g = increasing_mask(tg)
+    keep_a = increasing_mask(ta)
+    for event, t, keep in (("estGyroscope", tg, keep_g), ("estAcceleration", ta, keep_a)):
+        reset = clock_reset(t, keep)
+        if reset is not None:
+            i, back = reset
+            raise FlightFormatError(
+                cf.path,
+                f"{event}: the clock goes back {back:.3f} s at record {i} (t={t[i]:.3f} s), "
+                "a clock reset: split the log there",
+            )
     gi_all, ai_all = np.flatnonzero(keep_g), np.flatnonzero(keep_a)
     gi, ai = pair_imu(tg[gi_all], ta[ai_all])
     gi, ai = gi_all[gi], ai_all[ai]
@@ -675,6 +669,14 @@ def imu_from_log(cf: CrazyflieLog) -> tuple[ImuSeries, dict[str, Any]]:
             "max_abs": float(np.max(np.abs(dt_pair)) * 1e3),
         }
     gi, ai = gi[finite], ai[finite]
+    if gi.size < 2:
+        raise FlightFormatError(
+            cf.path,
+            f"estGyroscope/estAcceleration: {gi.size} usable IMU sample(s) of {tg.size} "
+            f"({notes['skipped_gyro_time_not_increasing']} gyro stamps not increasing, "
+            f"{notes['skipped_gyro_without_accel']} without an accelerometer sample, "
+            f"{notes['skipped_nonfinite']} non-finite)",
+        )
     return ImuSeries(t=tg[gi], body_omega=gyro[gi], body_accel=acc[ai]), notes
 
 
@@ -682,7 +684,7 @@ def flow_from_log(cf: CrazyflieLog) -> tuple[FlowSeries | None, dict[str, Any]]:
     """``estFlow`` -> integrated flow in fgnav's sensor frame (motion pixels; see module doc)."""
     rec = cf.require("estFlow", FLOW_FIELDS)
     t = cf.time_s("estFlow")
-    keep = _increasing(t)
+    keep = increasing_mask(t)
     notes: dict[str, Any] = {
         "samples": int(t.size),
         "skipped_time_not_increasing": int(np.count_nonzero(~keep)),
@@ -718,7 +720,7 @@ def range_from_log(cf: CrazyflieLog) -> tuple[RangeSeries | None, dict[str, Any]
     zero = r <= 0.0
     finite = np.isfinite(r)
     ok = finite & ~zero
-    keep = ok & _increasing(np.where(ok, t, -np.inf))
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     notes = {
         "samples": int(t.size),
         "skipped_zero": int(np.count_nonzero(zero)),
@@ -748,7 +750,7 @@ def ground_truth_from_log(cf: CrazyflieLog) -> tuple[Trajectory | None, dict[str
     finite = np.all(np.isfinite(vals), axis=1)
     bad_norm = finite & (np.abs(norm - 1.0) > 1e-3)
     ok = finite & ~bad_norm & ~repeat
-    keep = ok & _increasing(np.where(ok, t, -np.inf))
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     notes: dict[str, Any] = {
         "samples": int(t.size),
         "skipped_exact_repeat": int(np.count_nonzero(repeat)),

@@ -20,8 +20,8 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from .errors import FlightFormatError
-from .types import Flight
+from .errors import FlightDataError, FlightFormatError
+from .types import Flight, check_imu_clock
 
 SUPPORTED = (
     "fgnav flight folder (with meta.json)",
@@ -74,6 +74,16 @@ def load_flight(path: str | Path, topics: dict[str, str] | None = None) -> Fligh
     p = Path(path)
     if not p.exists():
         raise FlightFormatError(p, "no such file or folder")
+    flight = _load(p, topics)
+    if flight.imu is not None:
+        try:
+            check_imu_clock(f"{flight.name}.imu", flight.imu.t)
+        except FlightDataError as e:
+            raise FlightFormatError(p, str(e)) from e
+    return flight
+
+
+def _load(p: Path, topics: dict[str, str] | None) -> Flight:
     suffix = p.suffix.lower()
     is_bag = (p.is_file() and suffix in BAG_SUFFIXES) or (
         p.is_dir() and (p / "metadata.yaml").is_file()

@@ -63,6 +63,7 @@ from .types import (
     SlamSeries,
     Trajectory,
     YawSeries,
+    check_imu_interval,
 )
 
 log = logging.getLogger(__name__)
@@ -218,6 +219,15 @@ def read_stream_csv(path: str | Path, kind: str) -> Any:
         raise FlightFormatError(raw.path, f"missing column 't [s]' in the header {raw.header_raw}")
     known = {"t"} | {c for g in groups for c in g.columns}
     unknown = [h for h in header if h not in known]
+    bad = _wrong_units(raw.header_raw or [], kind)
+    if bad:
+        name, given, want = bad[0]
+        raise FlightFormatError(
+            raw.path,
+            f"column '{name}' is in [{given}], expected [{want}]: native files are SI (seconds, "
+            "m, m/s^2, rad/s, ...); convert the column",
+            line=1,
+        )
     if unknown:
         raise FlightFormatError(
             raw.path,
@@ -262,12 +272,37 @@ def read_stream_csv(path: str | Path, kind: str) -> Any:
 def _fast_header(first: str, kind: str) -> dict[str, int] | None:
     """Column index of a header line that the fast path reads (None: the careful reader)."""
     _, groups = LAYOUTS[kind]
-    header = [_tables.strip_unit(h) for h in _tables.split_line(first.strip(), ",")]
+    raw_header = _tables.split_line(first.strip(), ",")
+    header = [_tables.strip_unit(h) for h in raw_header]
     index = {name: j for j, name in enumerate(header)}
     known = {"t"} | {c for g in groups for c in g.columns}
-    if "t" not in index or any(h not in known for h in header):
+    if "t" not in index or any(h not in known for h in header) or _wrong_units(raw_header, kind):
         return None
     return index
+
+
+def _wrong_units(raw_header: list[str], kind: str) -> list[tuple[str, str, str]]:
+    """``(column, its unit, the unit expected)`` of the header's columns whose stated unit is
+    not fgnav's (a column without a unit is taken as fgnav's). Before, the units were
+    stripped unread: g and deg/s were taken as m/s^2 and rad/s."""
+    _, groups = LAYOUTS[kind]
+    want = {"t": "s"} | {c: g.unit for g in groups for c in g.columns}
+    out = []
+    for h in raw_header:
+        name, unit = _tables.strip_unit(h), _tables.unit_of(h)
+        if not unit or name not in want:
+            continue
+        if _UNIT_ALIAS.get(_norm_unit(unit), _norm_unit(unit)) != _norm_unit(want[name]):
+            out.append((name, unit, want[name]))
+    return out
+
+
+def _norm_unit(unit: str) -> str:
+    return unit.replace(" ", "").lower()
+
+
+#: Other spellings of fgnav's units in a header.
+_UNIT_ALIAS = {"m/s2": "m/s^2", "m/s**2": "m/s^2", "sec": "s", "1": "-", "slamunits": "slam"}
 
 
 def _loadtxt(source: Any, max_rows: int | None = None, header: bool = False) -> np.ndarray:
@@ -861,6 +896,14 @@ def open_flight_streams(folder: str | Path, chunk_rows: int = CHUNK_ROWS) -> Fli
             last = read_stream_csv(path, name)
         outline[name] = _ends(first, last)
         files[name] = path
+    if "imu" in outline and counts["imu"] > 1:
+        imu_t = outline["imu"].t
+        try:
+            check_imu_interval(
+                f"{meta['name']}.imu", (imu_t[-1] - imu_t[0]) / (counts["imu"] - 1), "mean"
+            )
+        except FlightDataError as e:  # (the online replay of ns stamps stepped for ever)
+            raise FlightFormatError(files["imu"], str(e)) from e
     flight = Flight(
         name=meta["name"], source=meta["source"], calib=calib, meta=meta["meta"], **outline
     )

@@ -61,6 +61,11 @@ class OffsetResult:
     correlations: np.ndarray
 
 
+#: The resampling grid of one signal holds at most this many samples (almost 6 days at the
+#: default 10 ms step; a flight's IMU stamped in ns asked for 7 TiB).
+MAX_GRID_SAMPLES = 5e7
+
+
 def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
     if n <= 1:
         return x
@@ -105,6 +110,12 @@ def estimate_time_offset(
             raise FlightDataError(f"signal {name}: expected matching 1-D times and values")
         if np.any(np.diff(t) <= 0):
             raise FlightDataError(f"signal {name}: times must be strictly increasing")
+        n_grid = (t[-1] - t[0]) / dt_s
+        if n_grid > MAX_GRID_SAMPLES:
+            raise FlightDataError(
+                f"signal {name}: {t[-1] - t[0]:.6g} s at a {dt_s:g} s step is {n_grid:.3g} grid "
+                f"samples (at most {MAX_GRID_SAMPLES:g}): stamps not in seconds, or a clock jump"
+            )
     grid = np.arange(t_a[0], t_a[-1], dt_s)
     n_smooth = int(round(smooth_s / dt_s))
     a = _moving_average(np.interp(grid, t_a, signal_a), n_smooth)

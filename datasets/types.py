@@ -45,6 +45,39 @@ def _check_time(name: str, t: np.ndarray) -> None:
         )
 
 
+#: An IMU's median sample interval lies in this range [s] (10 kHz to 5 Hz): outside it the
+#: stamps are not in seconds (ns stamps read as seconds: a 7 TiB allocation, or a hang online).
+IMU_DT_RANGE_S = (1e-4, 0.2)
+#: An IMU interval longer than this [s] is a clock jump, not a pause of the log.
+IMU_CLOCK_JUMP_S = 3600.0
+
+
+def check_imu_interval(name: str, dt: float, what: str = "median") -> None:
+    """One-line error for an IMU sample interval ``dt`` [s] outside ``IMU_DT_RANGE_S``."""
+    lo, hi = IMU_DT_RANGE_S
+    if not lo <= dt <= hi:
+        raise FlightDataError(
+            f"{name}.t: {what} sample interval {dt:.6g} s ({1.0 / dt:.3g} Hz) is not an IMU's "
+            f"({lo:g}-{hi:g} s): are the stamps in seconds (not ns, us or ms)?"
+        )
+
+
+def check_imu_clock(name: str, t: np.ndarray) -> None:
+    """One-line errors for IMU stamps not in seconds and for a clock jump inside the log (the
+    readers' check, :func:`fgnav.datasets.load.load_flight`; not :meth:`ImuSeries.check`,
+    which also sees outlines and hand-made series)."""
+    if t.size < 2:
+        return
+    dt = np.diff(t)
+    check_imu_interval(name, float(np.median(dt)))
+    i = int(np.argmax(dt))
+    if dt[i] > IMU_CLOCK_JUMP_S:
+        raise FlightDataError(
+            f"{name}.t: the clock jumps by {dt[i]:.6g} s between samples {i} and {i + 1} "
+            f"(t={t[i]:.6g} -> {t[i + 1]:.6g} s): split the log there"
+        )
+
+
 def _check_column(
     name: str, field_name: str, a: np.ndarray | None, n: int, width: int | None, optional=False
 ) -> None:

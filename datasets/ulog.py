@@ -63,6 +63,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from ._tables import increasing_mask
 from .errors import FlightFormatError
 from .frames import frd_to_flu, ned_q_frd_to_world_q_body, ned_to_enu
 from .geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
@@ -133,14 +134,6 @@ def _sample_time(d: Topic) -> np.ndarray:
     return np.asarray(d["timestamp"], dtype=float) * US_TO_S
 
 
-def _increasing(t: np.ndarray) -> np.ndarray:
-    """Boolean mask keeping samples whose time is strictly after every earlier kept sample."""
-    keep = np.ones(t.shape, dtype=bool)
-    if t.size:
-        keep[1:] = t[1:] > np.maximum.accumulate(t)[:-1]
-    return keep
-
-
 def imu_from_sensor_combined(d: Topic) -> tuple[ImuSeries, dict[str, Any]]:
     """``sensor_combined`` columns -> IMU in FLU at the gyro times.
 
@@ -170,7 +163,7 @@ def imu_from_sensor_combined(d: Topic) -> tuple[ImuSeries, dict[str, Any]]:
     else:
         notes["accel_time"] = "same as gyro (accelerometer_timestamp_relative all zero)"
     finite = np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1)
-    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
     notes["imu_samples_skipped_nonfinite"] = int(np.count_nonzero(~finite))
     notes["imu_samples_skipped_time_not_increasing"] = int(np.count_nonzero(finite & ~keep))
     return ImuSeries(t=t[keep], body_omega=gyro[keep], body_accel=accel[keep]), notes
@@ -182,7 +175,7 @@ def attitude_from_vehicle_attitude(d: Topic) -> tuple[AttitudeSeries, dict[str, 
     t = _sample_time(d)
     q = _vec(d, [f"q[{i}]" for i in range(4)])
     finite = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
-    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
     notes = {
         "attitude_samples_skipped_invalid": int(np.count_nonzero(~finite)),
         "attitude_samples_skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
@@ -214,7 +207,7 @@ def trajectory_from_local_position(
     finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(v), axis=1)
     inside = (t >= att.t[0]) & (t <= att.t[-1])
     keep = finite & inside
-    keep &= _increasing(np.where(keep, t, -np.inf))
+    keep &= increasing_mask(np.where(keep, t, -np.inf))
     notes: dict[str, Any] = {
         "samples": int(t.size),
         "kept": int(np.count_nonzero(keep)),
@@ -265,7 +258,7 @@ def range_from_distance_sensor(d: Topic) -> tuple[RangeSeries | None, float, flo
     q_raw = np.asarray(d.get("signal_quality", np.full(t.shape, -1)), dtype=float)
     quality = np.where(q_raw < 0, -1.0, q_raw / SIGNAL_QUALITY_PERCENT)
     finite = np.isfinite(r)
-    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
     rmin = np.asarray(d.get("min_distance", [0.0]), dtype=float)
     rmax = np.asarray(d.get("max_distance", [np.inf]), dtype=float)
     range_min = float(np.nanmax(rmin)) if rmin.size else 0.0
@@ -307,7 +300,7 @@ def trajectory_from_odometry(d: Topic) -> tuple[Trajectory | None, dict[str, Any
     finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(q), axis=1)
     if v is not None:
         finite &= np.all(np.isfinite(v), axis=1)
-    keep = finite & _increasing(np.where(finite, t, -np.inf))
+    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
     notes = {
         "samples": int(t.size),
         "skipped_nonfinite": int(np.count_nonzero(~finite)),
@@ -402,7 +395,7 @@ def flow_from_px4(
         "skipped_interval_over_1s": finite & (quality > 0) & (dt >= FLOW_MAX_INTERVAL_S),
     }
     ok = finite & (quality > 0) & (dt > 0) & (dt < FLOW_MAX_INTERVAL_S)
-    keep = ok & _increasing(np.where(ok, t, -np.inf))
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     reasons["skipped_time_not_increasing"] = ok & ~keep
     notes.update({k: int(np.count_nonzero(v)) for k, v in reasons.items()})
     kept = {k: (v[keep] if v.shape[:1] == t.shape else v) for k, v in c.items()}

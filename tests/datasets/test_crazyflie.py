@@ -652,3 +652,30 @@ def test_shipped_manifest(util_flights):
     assert set(f.streams()) == {"imu", "range", "flow", "ground_truth"}
     np.testing.assert_array_equal(f.flow.dt, raw.flow.dt)
     np.testing.assert_array_equal(f.calib.body_T_range, raw.calib.body_T_range)
+
+
+def test_a_clock_reset_and_a_stamp_less_imu_are_named(tmp_path):
+    """Stamps that go back 2 s in the middle and stay there (a clock reset, CRC valid): the
+    samples until the clock passed its old value were left out quietly and the rest read on a
+    shifted clock (a real flight went from 0.078 to 0.68 m ATE, health "ok"; review
+    2026-12-07). Every gyro and accelerometer stamp equal: the error said "empty keyframe
+    window"; it now counts the IMU samples left."""
+    recs, _ = flight_records(2)
+    cut = round(2.1 * 1_000_000)
+    reset = [(e, s - 2_000_000 if s >= cut and e in (1, 5) else s, v) for e, s, v in recs]
+    with pytest.raises(FlightFormatError, match=r"estGyroscope: the clock goes back 1\.999 s at "):
+        read_crazyflie(write_log(tmp_path / "reset", 2, reset))
+    same = [(e, 2_000_000 if e in (1, 5) else s, v) for e, s, v in recs]
+    with pytest.raises(FlightFormatError, match=r"1 usable IMU sample\(s\) of 200 \(199 gyro"):
+        read_crazyflie(write_log(tmp_path / "same", 2, same))
+
+
+def test_a_clock_jump_is_named_by_load_flight(tmp_path):
+    """Stamps 1e6 s later from the middle on (CRC valid): reading the log resampled the ground
+    truth's velocity across the jump and batch grew past 15 GB (review 2026-12-07)."""
+    recs, _ = flight_records(2)
+    cut = round(2.1 * 1_000_000)
+    jump = [(e, s + 10**12 if s >= cut else s, v) for e, s, v in recs]
+    path = write_log(tmp_path / "jump", 2, jump)
+    with pytest.raises(FlightFormatError, match=r"the clock jumps by 1e\+06 s between samples"):
+        load_flight(path)

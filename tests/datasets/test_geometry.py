@@ -85,3 +85,17 @@ def test_velocity_from_quantised_irregular_positions():
     assert np.sqrt(np.mean(err**2)) < 0.01  # a plain finite difference: ~0.2 m/s
     fd = np.gradient(p, t, axis=0)[inner] - v_true[inner]
     assert np.sqrt(np.mean(fd**2)) > 10 * np.sqrt(np.mean(err**2))
+
+
+def test_velocity_from_positions_does_not_resample_across_a_clock_jump():
+    """Pieces between gaps over a second are differentiated apart: a log with its clock jumping
+    by 1e6 s made the resampling grid 15 GB (review 2026-12-07)."""
+    from fgnav.datasets.geometry import velocity_from_positions
+
+    t0 = np.arange(0.0, 5.0, 0.004)
+    t = np.r_[t0, 1e6 + t0]
+    p = np.c_[np.r_[t0, 2.0 * t0], np.zeros(t.size)]
+    v = velocity_from_positions(t, p)
+    assert v.shape == p.shape
+    np.testing.assert_allclose(v[100:1100, 0], 1.0, atol=1e-6)
+    np.testing.assert_allclose(v[1350:2350, 0], 2.0, atol=1e-6)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -290,3 +291,28 @@ def test_bad_calibration_values_named(tmp_path, edit, needle):
         read_calib_yaml(bad)
     msg = str(e.value)
     assert needle in msg and msg.count(str(bad)) == 1 and "\n" not in msg
+
+
+def test_header_units_are_read_and_stamps_must_be_seconds(tmp_path):
+    """A native file whose header states other units (deg/s, g, ms, mm) was read as SI with the
+    units stripped; an IMU stamped in ns with a "[s]" header asked for 7 TiB in batch and made
+    the online replay step for ever (review 2026-12-07). Both are one-line errors now."""
+    from fgnav.datasets.load import load_flight
+    from fgnav.datasets.native import open_flight_streams, write_flight
+    from fgnav.datasets.types import Flight, ImuSeries
+
+    t = 0.005 * np.arange(400)
+    imu = ImuSeries(t, np.zeros((400, 3)), np.tile([0.0, 0.0, 9.81], (400, 1)))
+    good = write_flight(Flight(name="u", imu=imu), tmp_path / "good")
+    assert len(load_flight(good).imu) == 400
+    text = (good / "imu.csv").read_text()
+    deg = tmp_path / "deg"
+    write_flight(Flight(name="u", imu=imu), deg)
+    (deg / "imu.csv").write_text(text.replace("omega_x [rad/s]", "omega_x [deg/s]", 1))
+    with pytest.raises(FlightFormatError, match=r"imu\.csv:1: column 'omega_x' is in \[deg/s\]"):
+        load_flight(deg)
+    ns = tmp_path / "ns"
+    write_flight(Flight(name="u", imu=dataclasses.replace(imu, t=t * 1e9)), ns)
+    for read in (load_flight, open_flight_streams):
+        with pytest.raises(FlightFormatError, match=r"sample interval 5e\+06 s .* not an IMU's"):
+            read(ns)
