@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     except FgnavError as e:
         print(f"fgnav {args.command}: error: {e}", file=sys.stderr)
         return 1
-    except FileNotFoundError as e:
+    except OSError as e:  # (a file not found, a folder not writable, a full disk ...)
         print(f"fgnav {args.command}: error: {e}", file=sys.stderr)
         return 1
 

@@ -14,8 +14,20 @@ def nonempty_path(text: str) -> str:
     return text
 
 
-out_folder = nonempty_path
-"""``--out``'s type (:func:`nonempty_path`)."""
+def out_folder(text: str) -> str:
+    """``--out``'s type: a non-empty path (:func:`nonempty_path`) that is a folder or can become
+    one: an existing file, or a file where a parent folder should be, failed only when the
+    outputs were written, after the whole solve, with a traceback."""
+    from pathlib import Path
+
+    p = Path(nonempty_path(text))
+    for q in (p, *p.parents):
+        if q.exists():
+            if not q.is_dir():
+                what = "is" if q == p else f"is inside {q}, which is"
+                raise argparse.ArgumentTypeError(f"{text!r} {what} a file, not a folder")
+            break
+    return text
 
 
 ESTIMATE_FILES = "output folder (estimate.tum, states.csv, summary.json)"

@@ -228,6 +228,23 @@ def test_empty_out_is_refused(cli_folder, tmp_path, capsys, monkeypatch, command
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command", ["batch", "online", "compare", "fleet", "simulate"])
+def test_out_that_is_a_file_is_refused_before_anything_runs(cli_folder, tmp_path, capsys, command):
+    """``--out`` naming a file (or a path inside one) failed with a traceback when the outputs
+    were written, after the whole solve (review 2026-12-07)."""
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for out, said in ((f, "is a file"), (f / "sub", "is inside")):
+        argv = [command, "--out", str(out)] + (
+            ["--scenario", "hover"] if command == "simulate" else [str(cli_folder)]
+        )
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert "argument --out:" in err and said in err and "Traceback" not in err
+
+
 def test_every_option_refuses_a_value_of_the_wrong_type():
     """Each option of every ``--config`` table, given a value of another type than it declares,
     is one error naming it before anything runs (a string sigma crashed the online start; a
