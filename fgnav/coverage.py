@@ -164,8 +164,13 @@ def coverage(flight: Flight, est: Estimate) -> dict[str, Any]:
 
 def coverage_lines(flight: Flight, est: Estimate) -> list[str]:
     """End-of-run lines: losses by reason, short streams, and the scored part of the flight."""
+    from fgnav.info import reader_skips
+
     c = coverage(flight, est)
     out = loss_lines(est.info, online=est.causal)
+    skips = reader_skips(flight.meta)
+    if skips:  # (written to the reader's notes, and only `fgnav info` said them)
+        out.append("reader skipped: " + ", ".join(f"{n} {v:g}" for n, v in skips))
     out += [f"stream: {n}" for n in c["stream_notes"]]
     f0, f1 = c["flight_s"]
     if c["scored_s"] is not None:

@@ -259,13 +259,20 @@ def _notes(meta: dict[str, Any]) -> list[str]:
         out += [f"{k}: {v}" for k, v in notes.items()]
     elif notes:
         out.append(str(notes))
-    # Per-stream reader summaries (e.g. the ULog reader's meta["imu"]) with skip counts.
-    for key, value in meta.items():
-        if isinstance(value, dict):
-            for k, v in value.items():
-                if "skipped" in str(k) and isinstance(v, int | float) and v:
-                    out.append(f"{key}.{k} = {v}")
+    out += [f"{name} = {v}" for name, v in reader_skips(meta)]
     return out
+
+
+def reader_skips(meta: dict[str, Any]) -> list[tuple[str, int | float]]:
+    """The readers' non-zero skip counts of per-stream summaries (e.g. the ULog and Crazyflie
+    readers' ``meta["imu"]``), as ``("imu.skipped_...", n)``."""
+    return [
+        (f"{key}.{k}", v)
+        for key, value in meta.items()
+        if isinstance(value, dict)
+        for k, v in value.items()
+        if "skipped" in str(k) and isinstance(v, int | float) and not isinstance(v, bool) and v
+    ]
 
 
 def flight_info(flight: Flight) -> FlightInfo:

@@ -109,3 +109,16 @@ def test_euroc_imu_cut_at_half(real_data, tmp_path, capsys):
     assert "skipped (not used): 1831 (slam:after-last-keyframe 1831)" in printed
     assert "stream: imu ends at 92.0 s, 92.0 s before slam (ends 184.0 s)" in printed
     assert "scored: 1.1-92.0 s of the flight's 0.0-184.0 s" in printed
+
+
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_reader_skip_counts_are_printed(imu_cut_folder, tmp_path, capsys, command):
+    """The readers' skip counts (``meta[stream]["skipped_..."]``, e.g. the Crazyflie reader's
+    gyro stamps that went back) were written to the notes and said only by ``fgnav info``
+    (review 2026-12-07: a log with 9528 IMU samples left out gave "health: ok")."""
+    _, f = imu_cut_folder
+    meta = {**f.meta, "imu": {"skipped_time_not_increasing": 7, "skipped_nonfinite": 0}}
+    folder = write_flight(dataclasses.replace(f, meta=meta), tmp_path / "flight")
+    assert main([command, str(folder), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "reader skipped: imu.skipped_time_not_increasing 7\n" in text, text
