@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -160,8 +161,12 @@ def _check_table(manifest: Path, table: str, spec: Any, formats: tuple[str, ...]
         raise FlightFormatError(
             manifest, f"[{table}] time_unit = {spec['time_unit']!r}; valid: {', '.join(TIME_UNITS)}"
         )
-    if "time_offset_s" in spec and not isinstance(spec["time_offset_s"], int | float):
-        raise FlightFormatError(manifest, f"[{table}] time_offset_s: expected a number of seconds")
+    off = spec.get("time_offset_s", 0.0)
+    if isinstance(off, bool) or not isinstance(off, int | float) or not math.isfinite(off):
+        # (true was taken as 1 s, nan failed later naming the stream's first sample)
+        raise FlightFormatError(
+            manifest, f"[{table}] time_offset_s = {off!r}: expected a finite number of seconds"
+        )
     if "session" in spec and not isinstance(spec["session"], int):
         raise FlightFormatError(manifest, f"[{table}] session: expected an integer map id")
     for key in ("stream", "topic"):

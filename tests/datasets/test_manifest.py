@@ -171,8 +171,16 @@ def test_euroc_manifests_carry_the_in_flight_imu_noise(real_data):
         (lambda s: s.replace('root = "d"', 'root = "nowhere"'), r"root: folder .*nowhere not"),
         (lambda s: s.replace('name = "small"', ""), r"name: required"),
         (lambda s: s.replace("session = 3", "session = [3"), r"m\.toml: not valid TOML"),
+        (
+            lambda s: s.replace("time_offset_s = 0.5", "time_offset_s = nan"),
+            r"\[slam\] time_offset_s = nan: expected a finite number of seconds",
+        ),
+        (
+            lambda s: s.replace("time_offset_s = 0.5", "time_offset_s = true"),
+            r"\[slam\] time_offset_s = True: expected a finite number",
+        ),
     ],
-    ids=["format", "key", "table", "missing-file", "root", "name", "toml"],
+    ids=["format", "key", "table", "missing-file", "root", "name", "toml", "offset-nan", "bool"],
 )
 def test_bad_manifests_named(tmp_path, edit, match):
     _small_flight_files(tmp_path)
