@@ -7,7 +7,10 @@ the readings of one keyframe window into one
 :func:`fgnav.factors.optical_flow.make_optical_flow_factor`:
 
 1. **Clean** each reading: non-finite flow or interval (``flow:non-finite``), quality below
-   ``quality_min`` (``flow:gated:quality``; quality unknown, ``< 0``, is not tested).
+   ``quality_min`` (``flow:gated:quality``; quality unknown, ``< 0``, is not tested), an image
+   motion faster than ``max_rate_rad_s`` (``flow:implausible-rate``: a sensor's counter at its
+   rail, e.g. a PMW3901 delta of 32767 counts, 6900 rad/s on a Crazyflie; 200 such readings
+   took a real flight from 0.08 to 2.2 m ATE with health "ok").
 2. **Gate** the window (:func:`fgnav.factors.optical_flow.gate_flow`): the flow sensor's height
    above the ground (from the rangefinder, see below) outside ``[height_min, height_max]``
    (``flow:gated:height``; no range reading to tell it: ``flow:no-height``), or the optical axis
@@ -96,6 +99,9 @@ class FlowFactorOptions:
         min_readings: fewer accepted readings in a window: no factor (``flow:few-readings``).
         height_max_age_s: largest time between a keyframe and the range reading used for its
             height gate [s].
+        max_rate_rad_s: a reading whose image motion over its interval is faster than this
+            [rad/s] is no measurement (``flow:implausible-rate``; a PMW3901 tracks up to about
+            7 rad/s).
     """
 
     sigma_rad: float = 0.2 / 48.0
@@ -106,6 +112,7 @@ class FlowFactorOptions:
     quality_min: float = 0.5
     min_readings: int = 2
     height_max_age_s: float = 0.25
+    max_rate_rad_s: float = 20.0
 
     def check(self) -> FlowFactorOptions:
         if not self.sigma_rad > 0:
@@ -121,6 +128,8 @@ class FlowFactorOptions:
             raise FlightDataError(f"flow.max_tilt_deg={self.max_tilt_deg}: expected in (0, 90)")
         if int(self.min_readings) != self.min_readings or self.min_readings < 1:
             raise FlightDataError(f"flow.min_readings={self.min_readings}: expected >= 1")
+        if not self.max_rate_rad_s > 0:
+            raise FlightDataError(f"flow.max_rate_rad_s={self.max_rate_rad_s}: expected > 0")
         return self
 
 
@@ -278,12 +287,15 @@ def flow_keyframe_factor(
         return FlowFactorResult(None, "empty", {}, 0, arrival, nan)
     # 1. Clean the readings.
     kept: list[FlowSample] = []
+    max_flow_per_s = o.max_rate_rad_s * float(calib.flow_pixels_per_rad)
     for s in sorted(samples, key=lambda s: s.t):
         f = np.asarray(s.flow, float)
         if not (f.shape == (2,) and np.all(np.isfinite(f)) and np.isfinite(s.dt) and s.dt > 0):
             skipped["non-finite"] += 1
         elif s.quality >= 0 and s.quality < o.quality_min:
             skipped["gated:quality"] += 1
+        elif math.hypot(f[0], f[1]) > max_flow_per_s * s.dt:
+            skipped["implausible-rate"] += 1
         else:
             kept.append(s)
     # 2. Gate the window on height and tilt.

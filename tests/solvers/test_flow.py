@@ -116,6 +116,10 @@ def test_window_gates_count_readings_by_reason(clean_flight):
     assert r.reason == "ok" and r.n_used == 4 and r.skipped == {"gated:quality": 1}
     bad = [s[0]._replace(flow=np.array([np.nan, 0.0]))] + s[1:]
     assert flow_keyframe_factor(bad, *args, height=0.7).skipped == {"non-finite": 1}
+    # A counter at its rail (PMW3901: 32767 counts, 0.1 px each, over ~10 ms): no measurement.
+    rail = [s[0]._replace(flow=np.array([3276.7, 0.0]))] + s[1:]
+    r = flow_keyframe_factor(rail, *args, height=0.7)
+    assert r.reason == "ok" and r.n_used == 4 and r.skipped == {"implausible-rate": 1}
     r = flow_keyframe_factor(s, *args, height=0.05)
     assert (r.factor, r.reason, r.skipped) == (None, "gated:height", {"gated:height": 5})
     r = flow_keyframe_factor(s, *args, height=0.7, world_R_body=rpy_to_matrix(0.8, 0.0, 0.0))
