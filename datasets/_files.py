@@ -12,17 +12,22 @@ import yaml
 from .errors import FlightFormatError
 
 
-def _existing(path: str | Path, what: str) -> Path:
+def existing_file(path: str | Path, what: str = "file") -> Path:
+    """``path`` as a :class:`Path`; a one-line error when it does not exist or is not a file
+    (a folder given for a file was reported as not found)."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise FlightFormatError(p, f"{what} not found")
+    if not p.is_file():
+        raise FlightFormatError(p, f"is {'a folder' if p.is_dir() else 'not a file'}, not a {what}")
     return p
+
 
 
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
     """The TOML document at ``path``; a missing ``what`` or bad TOML is a one-line
     :class:`FlightFormatError` naming the file (and, from tomllib, the line and column)."""
-    p = _existing(path, what)
+    p = existing_file(path, what)
     try:
         return tomllib.loads(p.read_text())
     except tomllib.TOMLDecodeError as e:
@@ -31,7 +36,7 @@ def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
 
 def read_yaml(path: str | Path, what: str = "file") -> Any:
     """The YAML document at ``path`` (``yaml.safe_load``), with the errors of :func:`read_toml`."""
-    p = _existing(path, what)
+    p = existing_file(path, what)
     try:
         return yaml.safe_load(p.read_text())
     except yaml.YAMLError as e:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ._files import file_number
+from ._files import existing_file, file_number
 from .errors import FlightDataError, FlightFormatError, note
 from .types import Calibration, CameraIntrinsics, ImuNoise
 
@@ -65,9 +65,7 @@ def load_opencv_yaml(path: str | Path) -> dict[str, Any]:
     Raises:
         FlightFormatError: missing file or invalid YAML, naming file and line.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise FlightFormatError(p, "file not found")
+    p = existing_file(path, "calibration file")
     lines = p.read_text().splitlines()
     # Keep line numbers: blank out the directive instead of deleting it.
     lines = ["" if ln.lstrip().startswith("%YAML") else ln for ln in lines]

@@ -108,6 +108,7 @@ from typing import Any
 
 import numpy as np
 
+from ._files import existing_file
 from ._tables import clock_reset, increasing_mask
 from .errors import FlightFormatError
 from .geometry import make_pose, velocity_from_positions
@@ -522,9 +523,7 @@ def decode_crazyflie_log(path: str | Path, check_crc: bool = True) -> CrazyflieL
         FlightFormatError: one line naming the file and the byte offset / record: bad header,
             unknown version, CRC mismatch, unknown event id, truncated record.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FlightFormatError(path, "no such file (expected a Crazyflie SD-card log)")
+    path = existing_file(path, "Crazyflie SD-card log")
     data = path.read_bytes()
     version, types, first = parse_header(data, path)
     problem = _crc_problem(data)

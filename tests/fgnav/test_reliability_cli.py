@@ -299,3 +299,16 @@ def test_empty_paths_are_refused(cli_folder, tmp_path, capsys, monkeypatch, argv
         main([a.replace("{flight}", str(cli_folder)) for a in argv])
     assert e.value.code == 2
     assert f"argument {argument}: empty path" in capsys.readouterr().err
+
+
+def test_a_folder_where_a_file_is_expected_is_named(cli_folder, tmp_path, capsys):
+    """A folder given for a file (``--config``, a calibration, a Crazyflie log) was reported as
+    "not found" (review 2026-12-07)."""
+    from fgnav.datasets.crazyflie import decode_crazyflie_log
+    from fgnav.datasets.errors import FlightFormatError
+
+    argv = ["batch", str(cli_folder), "--config", str(tmp_path), "--out", str(tmp_path / "o")]
+    assert main(argv) == 1
+    assert f"{tmp_path}: is a folder, not a config file" in capsys.readouterr().err
+    with pytest.raises(FlightFormatError, match="is a folder, not a Crazyflie SD-card log"):
+        decode_crazyflie_log(tmp_path)
