@@ -598,6 +598,11 @@ class HealthMonitor:
         self.detectors = FaultDetectors(self.options, Context(), name)
         #: set by the smoother when its horizontal prediction is thrust-only (see ``sanity``)
         self.horizontal_accel_free = False
+        #: The position sigma a restart's prior allows [m] (its norm; the online smoother sets it
+        #: after an IMU gap, whose prior grows with the gap): above ``max_pos_sigma_m`` it is
+        #: the bound. A 60 s gap gave 1875 m at the restart, a "divergence" before the SLAM poses
+        #: re-anchored it, and the recovery dropped the carried SLAM alignment (ATE 1.8 m).
+        self.pos_sigma_allowed = 0.0
         self._win: dict[str, deque] = {}
         self._sums: dict[str, list] = {}  # sensor -> [sum of chi2, sum of dof] over its window
         self.status = "ok"
@@ -660,8 +665,9 @@ class HealthMonitor:
         if state.pose_cov is not None and np.isfinite(state.pose_cov).all():
             c = state.pose_cov
             sig = math.sqrt(max(float(c[3, 3]) + float(c[4, 4]) + float(c[5, 5]), 0.0))
-            if sig > o.max_pos_sigma_m:
-                bad.append(f"position sigma {sig:.1f} m > {o.max_pos_sigma_m:g}")
+            limit = max(o.max_pos_sigma_m, self.pos_sigma_allowed)
+            if sig > limit:
+                bad.append(f"position sigma {sig:.1f} m > {limit:g}")
         ab = [abs(x) for x in np.asarray(state.accel_bias, float).tolist()]
         # With a thrust-only horizontal prediction (the smoother's accelerometer check found the
         # horizontal channels unusable) the x, y "bias" absorbs their offsets (1-5 m/s^2 on the

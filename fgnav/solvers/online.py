@@ -1302,6 +1302,7 @@ class OnlineSmoother:
             # Integrated from rest (``_from_still``): its error grows with the time since.
             vel_sigma = min(vel_sigma, STILL_VEL_SIGMA + STILL_VEL_SIGMA_RATE * still_age)
         carry, self._carry = self._carry, None
+        self._health.pos_sigma_allowed = 0.0
         if carry is not None:
             # Restart after an IMU gap: the newest state before it, its priors widened by the gap.
             gap = max(t_start - carry["t"], 0.0)
@@ -1320,6 +1321,8 @@ class OnlineSmoother:
                 vel = vel if placed[1] is None else placed[1]
             pos_sigma += 0.5 * GAP_ACCEL_SIGMA * gap**2 + go.prior_velocity_sigma * gap
             vel_sigma += GAP_ACCEL_SIGMA * gap
+            # (the monitor's position-sigma bound: not a divergence, the gap's own ignorance)
+            self._health.pos_sigma_allowed = 2.0 * math.sqrt(3.0) * pos_sigma
             bias = (
                 carry["bias"]
                 if not bias_from_still

@@ -240,6 +240,17 @@ def test_monitor_chi2_window_divergence_and_recovery_snapshot():
     assert "health: diverged" in health_line(hm.report())
 
 
+def test_a_restart_after_a_long_gap_is_no_divergence():
+    """After an IMU gap the restart's position prior grows with the gap (60 s: 1875 m): the
+    monitor called it a divergence at the first keyframe, before the SLAM poses re-anchored
+    the position, and its recovery found no healthy state. The restart now sets the bound."""
+    hm = HealthMonitor()
+    st = dataclasses.replace(_state(0.0), pose_cov=np.diag([1e-4] * 3 + [1875.0**2] * 3))
+    assert hm.sanity(st) == ["position sigma 3247.6 m > 100"]
+    hm.pos_sigma_allowed = 2.0 * math.sqrt(3.0) * 1875.0
+    assert hm.sanity(st) == []
+
+
 # ----------------------------------------------------------------------------------------------
 # The push-API smoother with its monitor
 # ----------------------------------------------------------------------------------------------
