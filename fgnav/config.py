@@ -63,7 +63,26 @@ def options_from(
         if problem is not None:
             origin = "command line" if name in given else where
             raise OptionValueError(f"{origin}: option {name} = {value!r}: {problem}")
+        nested = _nested_options_class(hints.get(name, Any))
+        if nested is not None and isinstance(value, dict):
+            # A table for nested options is built into its dataclass (it was passed on as a
+            # dict: `[ii-observer.observer]` failed later in dataclasses.replace).
+            sub = f"{section}.{name}" if section else name
+            kwargs[name] = options_from(nested, value, source, sub)
     return cls(**kwargs)
+
+
+def _nested_options_class(hint: Any) -> type | None:
+    """The options dataclass a field declares (alone, or with None), else None (a field that
+    also takes a dict builds its options itself, e.g. ``GraphOptions.flow``)."""
+    members = (
+        typing.get_args(hint)
+        if typing.get_origin(hint) in (typing.Union, types.UnionType)
+        else (hint,)
+    )
+    classes = [m for m in members if isinstance(m, type) and dataclasses.is_dataclass(m)]
+    others = [m for m in members if m is not type(None) and m not in classes]
+    return classes[0] if len(classes) == 1 and not others else None
 
 
 def check_tables(path: str | Path | None, allowed: list[str]) -> None:

@@ -312,3 +312,19 @@ def test_a_folder_where_a_file_is_expected_is_named(cli_folder, tmp_path, capsys
     assert f"{tmp_path}: is a folder, not a config file" in capsys.readouterr().err
     with pytest.raises(FlightFormatError, match="is a folder, not a Crazyflie SD-card log"):
         decode_crazyflie_log(tmp_path)
+
+
+def test_a_nested_options_table_is_built_into_its_options():
+    """``[ii-observer.observer] kinematics = "full"`` passed the table on as a dict: the run
+    failed in ``dataclasses.replace`` with a TypeError (review 2026-12-07). It is now built into
+    ``IIObserverOptions`` and checked there (an unknown key named with its table)."""
+    from fgnav.datasets.errors import FlightFormatError
+
+    from fgnav.baselines.seed000 import Seed000Options
+    from fgnav.config import options_from
+    from fgnav.frontends.ii_observer import IIObserverOptions
+
+    o = options_from(Seed000Options, {"observer": {"kinematics": "full"}}, "c.toml", "ii-observer")
+    assert isinstance(o.observer, IIObserverOptions) and o.observer.kinematics == "full"
+    with pytest.raises(FlightFormatError, match=r"c\.toml \[ii-observer\.observer\]: unknown"):
+        options_from(Seed000Options, {"observer": {"kinematic": "full"}}, "c.toml", "ii-observer")
