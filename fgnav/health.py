@@ -18,6 +18,10 @@ each counted by name in :meth:`FaultDetectors.report`:
   down-weight the IMU factor of every keyframe interval holding flagged samples
   (:func:`fgnav.solvers.graph.saturated_pim_params`: the true value lies beyond the rail by an
   unknown amount, taken as ``saturation_sigma_rel`` x the rail, the same over the interval).
+- ``imu-dead``: an accelerometer reading exactly ``(0, 0, 0)`` for ``saturation_run`` samples
+  or more (a dead or zeroed sensor; a flying vehicle never reads an exact zero specific
+  force). Its samples from then on get :data:`DEAD_ACCEL_BIT` and the smoothers take the IMU
+  factors over them as missing about ``g`` on every axis (``saturated_pim_params``).
 - ``imu-gap``: an IMU interval longer than ``imu_gap_factor`` times the median interval and
   ``imu_gap_min_s``; those past the online smoother's ``max_imu_gap_s`` reset it (the chain is not
   integrated blindly; counted there as ``reset:imu-gap``).
@@ -97,9 +101,12 @@ DIVERGED_QUALITY = 10
 #: ``1 << (3 + i)``.
 SAT_GYRO_BITS = (1, 2, 4)
 SAT_ACCEL_BITS = (8, 16, 32)
+#: Flag of an IMU sample whose accelerometer reads exactly (0, 0, 0) in a run (``imu-dead``).
+DEAD_ACCEL_BIT = 64
 #: Detector names, in report order.
 DETECTORS = (
     "imu-saturation",
+    "imu-dead",
     "imu-gap",
     "slam-jump",
     "slam-reset",
@@ -231,6 +238,7 @@ class FaultDetectors:
         self._run = {"gyro": [0] * 3, "accel": [0] * 3}
         self._imu_med: float | None = None
         self._n_imu = 0
+        self._acc_zero_run = 0  # consecutive samples whose accelerometer reads (0, 0, 0)
         self._imu_kinds: tuple | None = None  # (kind, lo, hi, rail, run, bits) per sensor
         # Per axis (gyro x, y, z, accel x, y, z) the open interval of values that change no
         # detector state (inside the seen range, below the rail by a margin): most samples.
@@ -334,6 +342,18 @@ class FaultDetectors:
         self._n_imu += 1
         if last is None or t > last:
             self._imu_last = t
+        if a[0] == 0.0 and a[1] == 0.0 and a[2] == 0.0:
+            # A dead accelerometer (a flying vehicle never reads an exact zero specific force).
+            self._acc_zero_run += 1
+            n = self.options.saturation_run
+            if self._acc_zero_run >= n:
+                if self._acc_zero_run == n:
+                    self._count("imu-dead", f"accelerometer reads exactly 0 from t={t:.3f}", n)
+                else:
+                    self._count("imu-dead")
+                flags |= DEAD_ACCEL_BIT
+        else:
+            self._acc_zero_run = 0
         calm = self._imu_calm
         if calm is not None:
             w0, w1, w2 = w
@@ -346,8 +366,8 @@ class FaultDetectors:
                 and calm[8] < a1 < calm[9]
                 and calm[10] < a2 < calm[11]
             ):
-                return 0  # strictly inside every axis's calm interval: nothing to update
-        flags = self._imu_axes(t, w, a)
+                return flags  # strictly inside every axis's calm interval: nothing to update
+        flags |= self._imu_axes(t, w, a)
         self._imu_calm = self._calm_intervals()
         return flags
 

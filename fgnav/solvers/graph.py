@@ -486,7 +486,8 @@ def saturated_pim_params(
     over its pinned samples, added to the white-noise density as ``e^2 / T`` over the interval's
     length ``T`` (GTSAM integrates a density ``Q`` to the variance ``Q T``). The interval's IMU
     factor is thereby down-weighted on the pinned axes only; the others keep the calibration's
-    noise.
+    noise. A dead accelerometer's samples (:data:`~fgnav.health.DEAD_ACCEL_BIT`, reading
+    exactly 0) miss about ``g`` on every axis: ``e = sigma_rel g sum dt_i``.
 
     Args:
         base: the interval's parameters without saturation (not changed).
@@ -501,7 +502,7 @@ def saturated_pim_params(
     flags = np.asarray(flags)
     if not flags.any():
         return base
-    from fgnav.health import SAT_ACCEL_BITS, SAT_GYRO_BITS
+    from fgnav.health import DEAD_ACCEL_BIT, SAT_ACCEL_BITS, SAT_GYRO_BITS
 
     dt = np.asarray(dt, float)
     span = float(dt.sum())
@@ -515,6 +516,12 @@ def saturated_pim_params(
             for i, b in enumerate(bits)
         ]
         extra.append(np.square(e) / span)
+    dead = (flags & DEAD_ACCEL_BIT) != 0
+    if dead.any():
+        # A dead accelerometer (reading exactly 0): the specific force it missed is of the
+        # order of gravity on every axis, over the dead samples' time.
+        e = sigma_rel * abs(float(base.n_gravity[2])) * float(dt[dead].sum())
+        extra[1] = extra[1] + e * e / span
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(-float(base.n_gravity[2]))
     p.deserialize(base.serialize())
     p.setGyroscopeCovariance(base.getGyroscopeCovariance() + np.diag(extra[0]))

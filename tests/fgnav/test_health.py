@@ -576,3 +576,31 @@ def test_terrain_steps_name_both_edges_of_a_short_raise():
         )
         assert [s[0] for s in steps] == pytest.approx([5.0, 5.0 + 0.05 * n]), n
         assert [s[1] for s in steps] == pytest.approx([0.4, -0.4], abs=0.02), n
+
+
+def test_a_dead_accelerometer_is_named_and_its_intervals_down_weighted():
+    """A flow-deck flight (15 s) whose accelerometer reads exactly (0, 0, 0) from 6 to 9 s: the
+    IMU predicted free fall, batch 8.66 m (not converged) and fixed-lag 61.4 m with health "ok"
+    (review 2026-12-07; a real Crazyflie log so edited: 0.28 m and 230 m). Now ``imu-dead`` is
+    named and the IMU factors over the dead samples take about g of unknown specific force:
+    measured 0.024 / 0.040 m (nominal 0.017 / 0.034 m)."""
+    from testutil import CRAZYFLIE_LIKE
+
+    from fgnav.eval.flow_table import flow_figures
+    from fgnav.health import DEAD_ACCEL_BIT, imu_saturation_flags
+    from fgnav.methods import METHODS
+
+    f = simulate("flowdeck", 0, SimOptions(duration=15.0, **CRAZYFLIE_LIKE))
+    a = f.imu.body_accel.copy()
+    dead = (f.imu.t >= 6.0) & (f.imu.t < 9.0)
+    a[dead] = 0.0
+    flags = imu_saturation_flags(f.imu.t, f.imu.body_omega, a)
+    flagged = (flags & DEAD_ACCEL_BIT) != 0
+    assert flagged.sum() == dead.sum() - (HealthOptions().saturation_run - 1)
+    assert not flagged[~dead].any()
+    g = dataclasses.replace(f, imu=dataclasses.replace(f.imu, body_accel=a))
+    for method, bound in (("batch", 0.04), ("fixed-lag", 0.06)):
+        est = METHODS[method].run(g, {})
+        assert est.info["health"]["detectors"]["imu-dead"] == dead.sum()  # every dead sample
+        assert est.info["health"]["status"] == "ok"
+        assert flow_figures(est, g.ground_truth)["ate_m"] < bound, method
