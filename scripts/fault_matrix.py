@@ -212,6 +212,12 @@ def _accel_clipped(f, rail: float | None = None):
     return _replace(f, imu=dataclasses.replace(f.imu, body_accel=np.clip(a, -rail, rail)))
 
 
+def _accel_dead(f, t0: float = 10.0, t1: float = 13.0):
+    a = f.imu.body_accel.copy()
+    a[(f.imu.t >= t0) & (f.imu.t < t1)] = 0.0  # a dead (zeroed) accelerometer
+    return _replace(f, imu=dataclasses.replace(f.imu, body_accel=a))
+
+
 def _slam_jump(f, t_jump: float = 12.0, jump_m: float = 1.0):
     s = f.slam
     scale = float(f.meta["truth"]["slam_sessions"]["0"]["scale"])
@@ -627,6 +633,14 @@ def rows() -> list[Row]:
             sim,
             _sim_fault(_accel_clipped),
             "accelerometer clipped at its 97th |value| percentile",
+            _both(OK),
+            True,
+        ),
+        R(
+            "accel-dead",
+            sim,
+            _sim_fault(_accel_dead),
+            "accelerometer reads exactly 0 from 10 to 13 s",
             _both(OK),
             True,
         ),
