@@ -203,6 +203,11 @@ def _verdict(res_ms, rms_u, rms_f, k, b, n, white_sigma, limits: AccelLimits) ->
     )
 
 
+#: A row value above this (specific force [m/s^2], speed [m/s]) is no measurement: left out
+#: like a non-finite one.
+ROW_MAX = 1e6
+
+
 class RunningAccelCheck:
     """:func:`check_horizontal_accel` over the last ``capacity`` keyframe rows, kept as running
     sums (the push engine runs the check every few keyframes on a sliding window: the sums make
@@ -277,7 +282,8 @@ class RunningAccelCheck:
         i = self._i
         if self._n == self.capacity and self._ok[i]:
             self._account(self._rows[i].tolist(), -1.0)
-        ok = all(math.isfinite(x) for x in row)
+        # (a diverged estimate's velocities of 1e120 m/s overflowed the squares in check())
+        ok = all(math.isfinite(x) and abs(x) < ROW_MAX for x in row)
         if ok and self._ref is None:
             self._ref = row[:4]
         self._rows[i] = row

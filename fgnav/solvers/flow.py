@@ -6,7 +6,8 @@ intervals (10-12 ms on a Crazyflie, ``FlowSeries``); the keyframes are 10-20 Hz.
 the readings of one keyframe window into one
 :func:`fgnav.factors.optical_flow.make_optical_flow_factor`:
 
-1. **Clean** each reading: non-finite flow or interval (``flow:non-finite``), quality below
+1. **Clean** each reading: non-finite flow or interval (``flow:non-finite``), an interval not in
+   ``(0, FLOW_MAX_DT_S]`` (``flow:bad-interval``), quality below
    ``quality_min`` (``flow:gated:quality``; quality unknown, ``< 0``, is not tested), an image
    motion faster than ``max_rate_rad_s`` (``flow:implausible-rate``: a sensor's counter at its
    rail, e.g. a PMW3901 delta of 32767 counts, 6900 rad/s on a Crazyflie; 200 such readings
@@ -81,6 +82,9 @@ log = logging.getLogger(__name__)
 #: A reading continues the previous one (a run of correlated readings) when its interval starts
 #: within this fraction of its length of the previous reading's end.
 CONTIGUOUS_FRAC = 0.25
+#: A reading integrated over a longer interval [s] is no flow sensor's (``flow:bad-interval``;
+#: 1 s intervals on a fifth of the readings made a simulated flow deck diverge).
+FLOW_MAX_DT_S = 0.5
 
 
 @dataclass
@@ -168,8 +172,9 @@ class FlowFactorResult(NamedTuple):
     Attributes:
         factor: the factor on ``(X, V, G)``, or None.
         reason: ``"ok"``, or why there is no factor (``"empty"``, ``"gated:height"``,
-            ``"gated:tilt"``, ``"no-height"``, ``"few-readings"``).
-        skipped: readings not used, by reason (``"non-finite"``, ``"gated:quality"``, and the
+            ``"gated:tilt"``, ``"no-height"``, ``"few-readings"``, ``"no-imu"``).
+        skipped: readings not used, by reason (``"non-finite"``, ``"bad-interval"``,
+            ``"gated:quality"``, ``"implausible-rate"``, and the
             window's reason for all of its readings when it is gated).
         n_used: readings summed into the factor.
         arrival: arrival time of the newest reading used (or of the group) [s].
@@ -290,8 +295,10 @@ def flow_keyframe_factor(
     max_flow_per_s = o.max_rate_rad_s * float(calib.flow_pixels_per_rad)
     for s in sorted(samples, key=lambda s: s.t):
         f = np.asarray(s.flow, float)
-        if not (f.shape == (2,) and np.all(np.isfinite(f)) and np.isfinite(s.dt) and s.dt > 0):
+        if not (f.shape == (2,) and np.all(np.isfinite(f)) and np.isfinite(s.dt)):
             skipped["non-finite"] += 1
+        elif not 0.0 < s.dt <= FLOW_MAX_DT_S:
+            skipped["bad-interval"] += 1  # (a flow sensor integrates over 10-100 ms)
         elif s.quality >= 0 and s.quality < o.quality_min:
             skipped["gated:quality"] += 1
         elif math.hypot(f[0], f[1]) > max_flow_per_s * s.dt:
@@ -328,6 +335,11 @@ def flow_keyframe_factor(
         if kept:
             skipped["few-readings"] += len(kept)
         return FlowFactorResult(None, "few-readings", dict(skipped), 0, arrival, nan)
+    if len(imu_t) < 2:
+        # No IMU over the window (a dropout shorter than the smoother's gap limit): the
+        # rotational part cannot be removed (it raised from the gyro integral).
+        skipped["no-imu"] += len(kept)
+        return FlowFactorResult(None, "no-imu", dict(skipped), 0, arrival, nan)
     # 3. Sum the readings; mean rate over their intervals.
     ends = np.array([s.t for s in kept], float)
     dts = np.array([s.dt for s in kept], float)

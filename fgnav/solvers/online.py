@@ -1019,14 +1019,16 @@ class OnlineSmoother:
             return False
         last = self._t_last.get(stream, -math.inf)
         jump = self.options.clock_jump_s
-        if (
-            stream != "imu"
-            and t > self._t_imu_last + jump
-            and self._t_imu_last - self._jumped_at < 2.0 * jump + 1.0
-        ):
-            # Soon after an IMU clock jump, stamped far ahead of the new clock: taken before
-            # the jump (old clock).
-            self._drop(f"{stream}:stamped-before-clock-jump")
+        if stream != "imu" and t > self._t_imu_last + jump:
+            if self._t_imu_last - self._jumped_at < 2.0 * jump + 1.0:
+                # Soon after an IMU clock jump, stamped far ahead of the new clock: taken
+                # before the jump (old clock).
+                self._drop(f"{stream}:stamped-before-clock-jump")
+            else:
+                # Ahead of the IMU's clock by more than a jump: no reading of this flight (one
+                # flow reading stamped 1e6 s ahead was kept, held every buffer behind it and
+                # was counted late again at every keyframe: 13.9 million drops in 120 s).
+                self._drop(f"{stream}:future-time")
             return False
         if t < last:
             if last - t <= jump:
@@ -3944,6 +3946,17 @@ class OnlineSmoother:
             self._rebuild({})
             pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
             pose_cov = vel_cov = None
+        if not _finite_state(pose, vel, bias):
+            # A non-finite estimate is never an output (SLAM positions in units 1e4 per metre
+            # made NaN states, then raised in the next fit): rebuilt from the last good state.
+            self.n_failures += 1
+            self.failure_messages.append(f"non-finite estimate at t={self.t_kf[k]:.3f}")
+            self._rebuild({})
+            pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
+            pose_cov = vel_cov = None
+            if not _finite_state(pose, vel, bias):
+                self._drop("output:non-finite")
+                return
         # Keep only the newest keyframe state (and the slow variables).
         horizon = self.t_kf[k] - self.options.lag_s - 4 * self.period
         for kk in [kk for kk in self._state_kf if kk < k - 1]:
@@ -4152,7 +4165,17 @@ VO_MAX_IN_FLIGHT = 8
 ENGINES = ("auto", "push", "prepared")
 """Values of ``FixedLagOptions.engine``."""
 
+
 #: Streams the push engine replays from a flight (images and flow are counted as not used).
+def _finite_state(pose: gtsam.Pose3, vel: Any, bias: Any) -> bool:
+    """Every number of a keyframe state is finite."""
+    return bool(
+        np.isfinite(pose.matrix()).all()
+        and np.isfinite(np.asarray(vel, float)).all()
+        and np.isfinite(bias.vector()).all()
+    )
+
+
 PUSH_STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow")
 
 
