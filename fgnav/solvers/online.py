@@ -713,8 +713,10 @@ class OnlineSmoother:
                 self._drop("yaw:off")
         elif isinstance(ev, AttitudeSample):
             q = np.asarray(ev.world_q_body_wxyz, float)
-            n2 = float(q @ q)
-            if math.isfinite(n2) and abs(n2 - 1.0) < 0.2:
+            n2 = float(q @ q) if q.shape == (4,) else math.nan
+            if q.shape != (4,):
+                self._drop("attitude:bad-shape")
+            elif math.isfinite(n2) and abs(n2 - 1.0) < 0.2:
                 self._att.append((ev.t, q / math.sqrt(n2)))
                 self._trim(self._att)
                 self._use("attitude")
@@ -740,7 +742,9 @@ class OnlineSmoother:
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
         why = None
-        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        if p.shape != (3,) or q.shape != (4,):
+            why = "slam:bad-shape"
+        elif not (np.isfinite(p).all() and np.isfinite(q).all()):
             why = "slam:non-finite"
         elif float(np.abs(p).max()) > SLAM_MAX_COORD:
             why = "slam:implausible-position"
@@ -1071,6 +1075,9 @@ class OnlineSmoother:
         # overhead dominated this path). The detectors see only the samples that pass the value
         # and time checks (a 1e30 value is not a saturation, a corrupted stamp not a gap).
         wl, al = w.tolist(), a.tolist()
+        if len(wl) != 3 or len(al) != 3 or w.ndim != 1 or a.ndim != 1:
+            self._drop("imu:bad-shape")
+            return None
         w0, w1, w2 = wl
         a0, a1, a2 = al
         w_sq, a_sq = w0 * w0 + w1 * w1 + w2 * w2, a0 * a0 + a1 * a1 + a2 * a2
@@ -2328,6 +2335,15 @@ class OnlineSmoother:
         without a keyframe composed)."""
         if not self._camera_ready(ev):
             self._drop(self._vo_off)
+            return
+        img, cam = ev.image, ev.camera if ev.camera is not None else self.calib.camera
+        if img is not None and (
+            np.ndim(img) not in (2, 3)
+            or (cam is not None and tuple(np.shape(img)[:2]) != (cam.height, cam.width))
+        ):
+            # Not a frame of this camera (empty, or another size): the VO stage raised on it,
+            # in the event loop or its process.
+            self._drop("images:bad-frame")
             return
         self._anchors.append(float(ev.t))
         if self.t0 is None:

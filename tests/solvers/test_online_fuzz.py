@@ -84,3 +84,32 @@ def test_a_reading_stamped_far_ahead_of_the_imu_is_dropped():
     assert sm.dropped["flow:future-time"] == 1
     assert len(sm._flow) == len(clean._flow) and sm.used == clean.used
     assert "flow:late" not in sm.dropped
+
+
+def test_events_of_the_wrong_shape_and_foreign_frames_are_dropped_by_reason():
+    """An IMU rate of 2 values, an attitude quaternion of shape (1, 4), a SLAM position of 2
+    values, and camera frames of another size raised out of ``feed`` (the VO stage in the event
+    loop with a cv2.error; in its process as "the VO process failed")."""
+    from fgnav.datasets.events import AttitudeSample, ImageFrame
+
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    f = simulate("two-turns", 1, SimOptions(duration=6, images=False))
+    rng = np.random.default_rng(0)
+    sm = OnlineSmoother(f.calib, FixedLagOptions(vo_worker="inline"))
+    n = 0
+    for e in _events(f):
+        sm.feed(e)
+        if isinstance(e, AttitudeSample) and 1.0 < e.t and n < 20:
+            n += 1
+            q = np.asarray(e.world_q_body_wxyz)[None]
+            sm.feed(e._replace(world_q_body_wxyz=q, t=e.t + 1e-4))
+            img = rng.integers(0, 255, (480, 640), dtype=np.uint8)
+            sm.feed(ImageFrame(e.t, e.arrival, n, f.calib.camera, image=img))
+        if isinstance(e, ImuSample) and n == 20:
+            sm.feed(e._replace(body_omega=np.zeros(2), t=e.t + 1e-4))
+        if isinstance(e, SlamPose) and n == 20:
+            sm.feed(e._replace(slam_t_cam=np.zeros(2), t=e.t + 1e-4))
+    d = sm.result().info["dropped"]
+    assert d["attitude:bad-shape"] == 20 and d["images:bad-frame"] == 20
+    assert d["imu:bad-shape"] > 0 and d["slam:bad-shape"] > 0
