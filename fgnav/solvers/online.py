@@ -1023,7 +1023,7 @@ class OnlineSmoother:
             return False
         last = self._t_last.get(stream, -math.inf)
         jump = self.options.clock_jump_s
-        if stream != "imu" and t > self._t_imu_last + jump:
+        if stream != "imu" and self._t_imu_last > -math.inf and t > self._t_imu_last + jump:
             if self._t_imu_last - self._jumped_at < 2.0 * jump + 1.0:
                 # Soon after an IMU clock jump, stamped far ahead of the new clock: taken
                 # before the jump (old clock).
