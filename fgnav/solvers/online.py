@@ -263,6 +263,9 @@ GROUND_GUESS_S = 0.3
 #: The range innovation gate is at least this fraction of the reading (see
 #: ``FixedLagOptions.range_gate_m``).
 RANGE_GATE_REL = 0.1
+#: A non-IMU stamp this far ahead of the newest IMU stamp [s] is dropped (``<stream>:future-
+#: time``): no reading of the flight.
+FUTURE_STAMP_S = 600.0
 #: Range readings are gated only while the stream has been taken within this many seconds [s].
 RANGE_GATE_FRESH_S = 1.0
 #: Index offset of provisional SLAM-alignment keys ``S(PROVISIONAL_BASE + n)``, above every
@@ -1023,17 +1026,19 @@ class OnlineSmoother:
             return False
         last = self._t_last.get(stream, -math.inf)
         jump = self.options.clock_jump_s
-        if stream != "imu" and self._t_imu_last > -math.inf and t > self._t_imu_last + jump:
+        if stream != "imu" and t > self._t_imu_last + jump:
             if self._t_imu_last - self._jumped_at < 2.0 * jump + 1.0:
                 # Soon after an IMU clock jump, stamped far ahead of the new clock: taken
                 # before the jump (old clock).
                 self._drop(f"{stream}:stamped-before-clock-jump")
-            else:
-                # Ahead of the IMU's clock by more than a jump: no reading of this flight (one
-                # flow reading stamped 1e6 s ahead was kept, held every buffer behind it and
-                # was counted late again at every keyframe: 13.9 million drops in 120 s).
+                return False
+            if self._t_imu_last > -math.inf and t > self._t_imu_last + FUTURE_STAMP_S:
+                # No reading of this flight (one flow reading stamped 1e6 s ahead was kept,
+                # held every buffer behind it and was counted late again at every keyframe:
+                # 13.9 million drops in 120 s). Readings after an IMU that ended are not this:
+                # they are counted after the last keyframe.
                 self._drop(f"{stream}:future-time")
-            return False
+                return False
         if t < last:
             if last - t <= jump:
                 self._drop(f"{stream}:out-of-order")
