@@ -263,6 +263,8 @@ GROUND_GUESS_S = 0.3
 #: The range innovation gate is at least this fraction of the reading (see
 #: ``FixedLagOptions.range_gate_m``).
 RANGE_GATE_REL = 0.1
+#: A SLAM pose within this time [s] of the previous one is dropped (``slam:too-close``).
+MIN_SLAM_DT_S = 1e-3
 #: A non-IMU stamp this far ahead of the newest IMU stamp [s] is dropped (``<stream>:future-
 #: time``): no reading of the flight.
 FUTURE_STAMP_S = 600.0
@@ -1050,6 +1052,11 @@ class OnlineSmoother:
             return True  # IMU clock jump: handled by the caller
         if t == last:
             self._drop(f"{stream}:duplicate")
+            return False
+        if stream == "slam" and t - last < MIN_SLAM_DT_S:
+            # A burst (30 000 poses 1e-10 s apart made one IMU feed take 2.6 s): no SLAM runs
+            # at a kilohertz.
+            self._drop("slam:too-close")
             return False
         self._t_last[stream] = t
         return True

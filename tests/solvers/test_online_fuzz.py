@@ -113,3 +113,23 @@ def test_events_of_the_wrong_shape_and_foreign_frames_are_dropped_by_reason():
     d = sm.result().info["dropped"]
     assert d["attitude:bad-shape"] == 20 and d["images:bad-frame"] == 20
     assert d["imu:bad-shape"] > 0 and d["slam:bad-shape"] > 0
+
+
+def test_a_burst_of_slam_poses_is_dropped():
+    """10 000 copies of a SLAM pose 1e-10 s apart were all used: one IMU feed then took over a
+    second (2.6 s for 30 000). No SLAM runs at a kilohertz: ``slam:too-close``."""
+    import time
+
+    f = simulate("two-turns", 1, SimOptions(duration=8, images=False))
+    ev = _events(f)
+    i = next(j for j, e in enumerate(ev) if e.t > 5.0)
+    src = next(e for e in ev if isinstance(e, SlamPose) and e.t > 4.9)
+    burst = [src._replace(t=src.t + j * 1e-10) for j in range(1, 10_001)]
+    sm = OnlineSmoother(f.calib)
+    worst = 0.0
+    for e in ev[:i] + burst + ev[i:]:
+        w = time.perf_counter()
+        sm.feed(e)
+        worst = max(worst, time.perf_counter() - w)
+    assert sm.dropped["slam:too-close"] >= 9_999  # (the first may come before the source)
+    assert worst < 0.5  # measured 0.04 s (1.06 s before)
