@@ -721,7 +721,7 @@ class OnlineSmoother:
             n2 = float(q @ q) if q.shape == (4,) else math.nan
             if q.shape != (4,):
                 self._drop("attitude:bad-shape")
-            elif math.isfinite(n2) and abs(n2 - 1.0) < 0.2:
+            elif abs(n2 - 1.0) < 0.2:  # (False for NaN)
                 self._att.append((ev.t, q / math.sqrt(n2)))
                 self._trim(self._att)
                 self._use("attitude")
@@ -3955,33 +3955,30 @@ class OnlineSmoother:
 
     def _read(self, k: int, wall0: float) -> None:
         sm = self.smoother
+        failure = None
+        pose_cov = vel_cov = None
         try:
             pose = sm.calculateEstimatePose3(X(k))
             vel = np.asarray(sm.calculateEstimateVector(V(k)), float)
             bias = sm.calculateEstimateConstantBias(B(k))
-            pose_cov = vel_cov = None
-            if self.options.covariance:
+            if not _finite_state(pose, vel, bias):
+                # Never an output (SLAM positions in units 1e4 per metre made NaN states,
+                # then raised in the next fit): rebuilt from the last good state, as a failure.
+                failure = f"non-finite estimate at t={self.t_kf[k]:.3f}"
+            elif self.options.covariance:
                 try:
                     pose_cov, vel_cov = sm.marginalCovariances([X(k), V(k)])
                 except SOLVER_ERRORS:
                     # The estimate stands; only its marginal is not computable (GTSAM's
                     # "Indeterminate" on a near-singular window): reported as missing.
-                    pose_cov = vel_cov = None
                     self._drop("covariance:indeterminate")
         except SOLVER_ERRORS as e:
+            failure = " ".join(str(e).split())[:200]
+        if failure is not None:
             self.n_failures += 1
-            self.failure_messages.append(" ".join(str(e).split())[:200])
+            self.failure_messages.append(failure)
             self._rebuild({})
             pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
-            pose_cov = vel_cov = None
-        if not _finite_state(pose, vel, bias):
-            # A non-finite estimate is never an output (SLAM positions in units 1e4 per metre
-            # made NaN states, then raised in the next fit): rebuilt from the last good state.
-            self.n_failures += 1
-            self.failure_messages.append(f"non-finite estimate at t={self.t_kf[k]:.3f}")
-            self._rebuild({})
-            pose, vel, bias = self.values[X(k)], self.values[V(k)], self.values[B(k)]
-            pose_cov = vel_cov = None
             if not _finite_state(pose, vel, bias):
                 self._drop("output:non-finite")
                 return
@@ -4194,7 +4191,6 @@ ENGINES = ("auto", "push", "prepared")
 """Values of ``FixedLagOptions.engine``."""
 
 
-#: Streams the push engine replays from a flight (images and flow are counted as not used).
 def _finite_state(pose: gtsam.Pose3, vel: Any, bias: Any) -> bool:
     """Every number of a keyframe state is finite."""
     return bool(
@@ -4204,6 +4200,7 @@ def _finite_state(pose: gtsam.Pose3, vel: Any, bias: Any) -> bool:
     )
 
 
+#: Streams the push engine replays from a flight (images and flow are counted as not used).
 PUSH_STREAMS = ("imu", "attitude", "range", "yaw", "slam", "images", "flow")
 
 
