@@ -23,7 +23,6 @@ def existing_file(path: str | Path, what: str = "file") -> Path:
     return p
 
 
-
 def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
     """The TOML document at ``path``; a missing ``what`` or bad TOML is a one-line
     :class:`FlightFormatError` naming the file (and, from tomllib, the line and column)."""
