@@ -196,6 +196,7 @@ from fgnav.solvers.measurements import (
     fit_axis_scale,
     init_slam_alignment,
     level_rotation_from_accel,
+    slam_second_differences,
     world_specific_accel,
 )
 from fgnav.solvers.window import TimeOrderedSmoother
@@ -341,6 +342,13 @@ SLAM_RESEED_RETRY_S = 0.5
 #: flights' 0.3-2.1 (rectangle, figure8, circle; two-turns' yaw-only turns cannot tell it from
 #: the inverse convention: 0.07-0.12).
 SLAM_EXTRINSIC_SUSPECT_MISFIT = 0.5
+# The SLAM units check (OnlineSmoother._units_check): the provisional alignment's first
+# UNITS_POSES poses at the default scale; the median of a 3-D normal's norm in its per-axis
+# sigmas; the scale they give re-seeds the provisional above UNITS_MIN_RATIO times its own.
+UNITS_POSES = 10
+UNITS_MIN_POSES = 4
+UNITS_MAXWELL_MEDIAN = 1.5382
+UNITS_MIN_RATIO = 2.5
 
 
 _first = operator.itemgetter(0)
@@ -578,6 +586,11 @@ class _Session:
     # the first waits for the third (FixedLagOptions.slam_provisional_lone_gap_s).
     lone_hold: bool = False
     lone_waiting: bool = False
+    # The provisional alignment's scale came from the default (_units_check looks once) and
+    # where the seed's scale comes from (``_prov_scales``' "from").
+    units_pending: bool = False
+    units_seen: int = 0
+    seed_source: str = "re-seed"
 
 
 class OnlineSmoother:
@@ -2898,6 +2911,7 @@ class OnlineSmoother:
                 if not o.slam_provisional:
                     return None  # held back until the fit
                 self._renew_provisional(sess, s)
+                self._units_check(sess, s, remove)
                 self._reseed_provisional(sess, s, t_now, remove)
                 if s.provisional is None and not self._start_provisional(sess, s, g, stamps):
                     return None  # held back until the data gives the provisional scale
@@ -3345,6 +3359,80 @@ class OnlineSmoother:
             seed = (old.rotation().matrix(), float(old.scale()))
         self._retire_provisional(sess, s, seed, [])
 
+    def _units_check(self, sess, s: _Session, remove) -> None:
+        """A provisional alignment at the default scale (1 SLAM unit per metre) whose first
+        ``UNITS_POSES`` poses change their velocity far more than the IMU and
+        ``graph.slam_sigma_m`` can explain at its current scale is a SLAM in other units (or a
+        provisional scale gone astray): it is re-seeded, once, with the scale they give, named
+        in a warning and counted (``slam:provisional-units``). Looked at with each pose from the
+        ``UNITS_MIN_POSES``-th on, with a wider margin while the differences are few.
+
+        The SLAM noise is modelled as ``slam_sigma_m`` times the scale: at the default scale a
+        SLAM in centimetres had its noise 100x too tight, and the window diverged within a
+        second (simulated two-turns and figure8, 20 s: 364 m/s at 0.75 s), before the camera
+        had moved the ``slam_provisional_min_disp_m`` the data's scale (:meth:`_data_scale`)
+        needs. The test uses the poses' second differences
+        (:func:`fgnav.solvers.measurements.slam_second_differences`), which the velocity does
+        not enter: each gives the scale ``|d2_slam| / sqrt(|d2_imu|^2 + (m sigma c)^2)``, the
+        IMU's metric second difference and the noise's typical size (``c`` the difference's
+        noise gain, ``m`` the Maxwell median ``UNITS_MAXWELL_MEDIAN``); their median must exceed
+        ``UNITS_MIN_RATIO`` times the current scale. At a camera rate the noise term dominates
+        (the scale is the scatter's, as good as ``slam_sigma_m``), on low-rate keyframes the
+        motion (simulated two-turns, 3 Hz keyframes, seed 3: the provisional's scale had gone
+        to 0.50 against the true 1.54; re-seeded at 2.10, causal ATE 33 -> 3.9 cm). It only
+        seeds the linearisation point and the noise under the provisional's wide log-scale
+        prior. A SLAM in units much smaller than metres is not tested: its
+        scatter cannot be told from a SLAM quieter than ``slam_sigma_m``."""
+        if not s.units_pending or s.provisional is None:
+            return
+        ts = np.asarray(s.t)
+        i0 = int(np.searchsorted(ts, self._prov_t_first(s)))
+        # Poses whose keyframe exists (the IMU covers them).
+        i1 = int(np.searchsorted(ts, self.t_kf[self.k] + 1e-9))
+        n = min(i1 - i0, UNITS_POSES)
+        if n < UNITS_MIN_POSES or n <= s.units_seen:
+            return
+        s.units_seen = n
+        s.units_pending = n < UNITS_POSES
+        t, p = ts[i0 : i0 + n], np.asarray(s.p[i0 : i0 + n])
+        imu = self.imu.series(t[0] - 0.05, t[-1] + 0.05)
+        R = self._attitude_track(imu.t) if imu is not None else None
+        if R is None:
+            return
+        acc = world_specific_accel(imu, R, self.go.gravity)
+        acc -= np.einsum("nij,j->ni", R, self.values[B(self.k)].accelerometer())
+        d2 = slam_second_differences(t, p, imu.t, acc, float(np.median(np.diff(t))), 0.0)
+        if not len(d2.width):
+            return
+        # A difference's noise gain: sqrt(6) for equal intervals (2.8 for intervals 1:2).
+        typical = UNITS_MAXWELL_MEDIAN * self.go.slam_sigma_m * math.sqrt(6.0)
+        each = np.linalg.norm(d2.slam_d2, axis=1) / np.hypot(
+            np.linalg.norm(d2.world_d2, axis=1), typical
+        )
+        ratio = float(np.median(each))
+        current = self._scale_guess(s.provisional)
+        # While the differences are few, a wider margin (2.7x for 2, none from 7 on).
+        margin = max(1.0, UNITS_POSES / 1.25 / (len(each) + 1))
+        if not ratio > UNITS_MIN_RATIO * current * margin:
+            return
+        s.units_pending = False
+        log.warning(
+            "%s: SLAM session %d: its first %d poses change velocity %.3g times as much as the "
+            "IMU and graph.slam_sigma_m = %g m explain at the provisional scale %.4g units per "
+            "metre (a SLAM not in metres, or a provisional scale gone astray): re-seeded at "
+            "%.4g",
+            self.name,
+            sess,
+            n,
+            ratio / current,
+            self.go.slam_sigma_m,
+            current,
+            ratio,
+        )
+        self._use("slam:provisional-units")
+        s.seed_source = "units"
+        self._retire_provisional(sess, s, (None, ratio), remove)
+
     def _reseed_provisional(self, sess, s: _Session, t_now: float, remove) -> None:
         """Once the stated ``body_R_cam`` is suspected (:meth:`_suspect_extrinsic`), the
         provisional alignment seeded through it is replaced, once, by one seeded with the
@@ -3445,8 +3533,8 @@ class OnlineSmoother:
             # _reseed_provisional: the motion's rotation, or the one through the replaced
             # body_T_cam (None: the newest pose's, above), and the scale.
             R = R if s.seed[0] is None else s.seed[0]
-            scale, source = s.seed[1], "re-seed"
-            s.seed = None
+            scale, source = s.seed[1], s.seed_source
+            s.seed, s.seed_source = None, "re-seed"
         if scale is None and self._prov_n_covered(s) < o.slam_provisional_min_poses:
             return False  # held back: fewer poses than make the scale observable
         if scale is None:
@@ -3486,6 +3574,7 @@ class OnlineSmoother:
         s.provisional = key
         s.prov_factors, s.prov_rot = [], []
         s.lone_hold = source == "default" and o.slam_provisional_lone_gap_s > 0
+        s.units_pending, s.units_seen = source == "default", 0
         self._prov_scales.append(
             {"session": int(sess), "t": float(s.t[-1]), "scale": float(scale), "from": source}
         )
