@@ -1573,9 +1573,11 @@ class OnlineSmoother:
             _jacobians.LINEARIZED = None
         self._cur_stamps = {}
         # After a move of the window the new factors' indices are not this update's: such
-        # provisional factors stay on the provisional alignment (counted).
+        # provisional factors stay on the provisional alignment (an event, counted with the
+        # used kinds: the poses themselves were counted as used when they attached; as a drop
+        # they were counted twice).
         if prov_new and self.n_fallbacks != n_moves:
-            self._drop("slam:provisional-not-reattachable", len(prov_new))
+            self._use("slam:provisional-kept", len(prov_new))
         elif ok and prov_new:
             idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
             for pos, sess, row in prov_new:

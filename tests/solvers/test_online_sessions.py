@@ -64,3 +64,26 @@ def test_new_session_chain_starts_from_the_provisional_it_has_estimated(reset_fl
     assert new_ate < 0.5 * old_ate, (new_ate, old_ate)
     # The first session has no alignment before it: its chain starts from the fit alone.
     np.testing.assert_allclose(reference.slam_scale[0], old.slam_scale[0], rtol=1e-9)
+
+
+def test_every_slam_pose_is_counted_once_across_a_loss_and_a_new_session():
+    """SLAM lost 8-18 s, back as session 1 (review, 2026-12-07): a provisional factor made in the
+    update that moved the window to QR was counted as used and again as dropped
+    (``slam:provisional-not-reattachable``): 302 counted of 301 received. It stays in the graph:
+    now an event (``used["slam:provisional-kept"]``), not a drop."""
+    f = simulate("two-turns", seed=1, options=SimOptions(images=False, duration=25.0))
+    s = f.slam
+    keep = ~((s.t >= 8.0) & (s.t < 18.0))
+    sess = np.where(s.t[keep] >= 18.0, 1, s.session[keep])
+    slam = dataclasses.replace(
+        s,
+        t=s.t[keep],
+        slam_t_cam=s.slam_t_cam[keep],
+        slam_q_cam_wxyz=s.slam_q_cam_wxyz[keep],
+        session=sess,
+        latency=None if s.latency is None else s.latency[keep],
+    )
+    est = replay_online(dataclasses.replace(f, slam=slam), FixedLagOptions())
+    i = est.info
+    out = sum(v for k, v in {**i["dropped"], **i["skipped"]}.items() if k.startswith("slam"))
+    assert i["used"]["slam"] + out == i["received"]["slam"] == int(keep.sum())
