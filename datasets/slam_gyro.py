@@ -65,6 +65,9 @@ from .types import Flight, ImuSeries, SlamSeries
 
 log = logging.getLogger(__name__)
 
+#: The SLAM rate signal's samples (pair mid-times) further apart than this (or 3 median
+#: intervals) bound a gap the coarse clock offset leaves out.
+SLAM_RATE_MAX_GAP_S = 0.5
 #: Values of the ``slam_rotation`` option: decide from the gyro, keep as stated, invert.
 SLAM_ROTATION_MODES = ("auto", "as-is", "inverse")
 #: String values of the ``slam_time_offset`` option (else a number of seconds to add to SLAM
@@ -375,6 +378,8 @@ def _coarse_offset(
             o.max_offset_s,
             smooth_s=smooth,
             min_overlap_s=o.min_overlap_s,
+            # A tracking loss (no pair across it) is left out, not bridged.
+            max_gap_s=max(SLAM_RATE_MAX_GAP_S, 3.0 * float(np.median(np.diff(t_mid)))),
         )
     except FlightDataError:
         return 0.0, float("nan")

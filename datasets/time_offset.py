@@ -72,6 +72,23 @@ def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(x, np.ones(n) / n, mode="same")
 
 
+def _masked_average(x: np.ndarray, valid: np.ndarray, n: int) -> np.ndarray:
+    """Moving average of ``x`` over its ``valid`` samples only (the others are not filled)."""
+    if n <= 1:
+        return x
+    total = _moving_average(np.where(valid, x, 0.0), n)
+    count = _moving_average(valid.astype(float), n)
+    return np.where(count > 0, total / np.where(count > 0, count, 1.0), 0.0)
+
+
+def _outside_gaps(grid: np.ndarray, t: np.ndarray, max_gap_s: float | None) -> np.ndarray:
+    """Grid points not inside a gap longer than ``max_gap_s`` between samples ``t``."""
+    if max_gap_s is None:
+        return np.ones(grid.shape, bool)
+    j = np.clip(np.searchsorted(t, grid), 1, len(t) - 1)
+    return (t[j] - t[j - 1]) <= max_gap_s
+
+
 def estimate_time_offset(
     t_a: np.ndarray,
     signal_a: np.ndarray,
@@ -83,6 +100,7 @@ def estimate_time_offset(
     dt_s: float = 0.01,
     smooth_s: float = 0.0,
     min_overlap_s: float = 5.0,
+    max_gap_s: float | None = None,
 ) -> OffsetResult:
     """Clock offset between two recordings of one scalar signal, by cross-correlation.
 
@@ -95,6 +113,9 @@ def estimate_time_offset(
         dt_s: common grid step [s]; the offset is refined below it.
         smooth_s: moving-average width applied to both resampled signals [s] (0: none).
         min_overlap_s: candidate offsets overlapping less than this are not scored [s].
+        max_gap_s: a signal's samples more than this apart bound a gap, left out of the
+            correlation (None: gaps are bridged by a straight line). A SLAM tracking loss of
+            10 s bridged so correlated best at -0.47 s on a synchronous flight.
 
     Returns:
         The offset with ``t_a = t_b + offset_s``.
@@ -118,9 +139,11 @@ def estimate_time_offset(
             )
     grid = np.arange(t_a[0], t_a[-1], dt_s)
     n_smooth = int(round(smooth_s / dt_s))
-    a = _moving_average(np.interp(grid, t_a, signal_a), n_smooth)
+    ok_a = _outside_gaps(grid, t_a, max_gap_s)
+    a = _masked_average(np.interp(grid, t_a, signal_a), ok_a, n_smooth)
     b_grid = np.arange(t_b[0], t_b[-1], dt_s)
-    b = _moving_average(np.interp(b_grid, t_b, signal_b), n_smooth)
+    ok_b = _outside_gaps(b_grid, t_b, max_gap_s).astype(float)
+    b = _masked_average(np.interp(b_grid, t_b, signal_b), ok_b > 0, n_smooth)
 
     n_lags = int(np.ceil(max_offset_s / dt_s))
     lags = initial_offset_s + dt_s * np.arange(-n_lags, n_lags + 1)
@@ -129,7 +152,9 @@ def estimate_time_offset(
     for i, lag in enumerate(lags):
         # signal b on clock a: b(t_a - lag)
         tb = grid - lag
-        inside = (tb >= b_grid[0]) & (tb <= b_grid[-1])
+        inside = (tb >= b_grid[0]) & (tb <= b_grid[-1]) & ok_a
+        if max_gap_s is not None:
+            inside[inside] = np.interp(tb[inside], b_grid, ok_b) >= 1.0
         if np.count_nonzero(inside) < min_samples:
             continue
         bi = np.interp(tb[inside], b_grid, b)

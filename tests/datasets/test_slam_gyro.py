@@ -325,3 +325,30 @@ def test_no_clock_offset_is_named_where_the_rates_cannot_tell():
         assert d.summary()["time_offset_ok"] is False
     d = check_flight(simulate("figure8", 0, SimOptions(duration=20, images=False)))
     assert d.time_offset_ok and abs(d.time_offset_s) < 0.01
+
+
+def test_a_tracking_loss_is_no_clock_offset():
+    """No SLAM pose 8-18 s, stamps exact (review, 2026-12-07): the rate signal's gap was bridged
+    by a straight line, and the causal check named -0.47 s (``time_offset_ok``) on a
+    synchronous flight; with ``"apply"`` the causal ATE went 0.062 -> 0.162 m. Gaps are now
+    left out of the cross-correlation: -0.011 s."""
+    f = simulate("two-turns", seed=1, options=SimOptions(duration=25.0, images=False))
+    keep = ~((f.slam.t >= 8.0) & (f.slam.t < 18.0))
+    s = f.slam
+    lost = dataclasses.replace(
+        f,
+        slam=dataclasses.replace(
+            s,
+            t=s.t[keep],
+            slam_t_cam=s.slam_t_cam[keep],
+            slam_q_cam_wxyz=s.slam_q_cam_wxyz[keep],
+            session=s.session[keep],
+            latency=None if s.latency is None else s.latency[keep],
+        ),
+    )
+    check = SlamGyroCheck(np.asarray(f.calib.body_T_cam)[:3, :3])
+    for ev in replay_flight(lost, streams=("imu", "slam")):
+        check.add(ev)
+    d = check.decision()
+    assert d is not None and d.time_offset_ok
+    assert abs(d.time_offset_s) < 0.05, d.time_offset_s
