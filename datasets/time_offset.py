@@ -74,8 +74,8 @@ def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
 
 def _masked_average(x: np.ndarray, valid: np.ndarray, n: int) -> np.ndarray:
     """Moving average of ``x`` over its ``valid`` samples only (the others are not filled)."""
-    if n <= 1:
-        return x
+    if n <= 1 or valid.all():
+        return _moving_average(x, n)
     total = _moving_average(np.where(valid, x, 0.0), n)
     count = _moving_average(valid.astype(float), n)
     return np.where(count > 0, total / np.where(count > 0, count, 1.0), 0.0)
