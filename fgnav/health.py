@@ -30,6 +30,12 @@ each counted by name in :meth:`FaultDetectors.report`:
   exceeds the motion the IMU-propagated estimate allows, ``|v| dt + slam_jump_min_m + a_max
   dt^2 / 2``: a relocalisation. The poses after a jump continue as a new SLAM session (a new
   alignment, its scale started from the previous one's), so the jump is not fitted as motion.
+  After a pause longer than ``slam_jump_max_dt_s`` (lost tracking) the returning pose is
+  compared with the estimate instead (online, where the context gives both): its camera
+  position through the session's alignment against the newest estimate's, allowed
+  ``slam_jump_min_m`` plus ``slam_jump_gap_sigmas`` times the estimate's position sigma plus
+  the speed times the time between them: a relocalisation into a moved map (SLAM lost 8-14 s,
+  back 2 m away: simulated two-turns 0.87 m with health "ok" before).
 - ``slam-reset``: a SLAM pose of a session the input had not used before, after poses of
   another: a map reset (or a new map after lost tracking) that the input declares. Named, not
   fixed: every session has its own scale and alignment in the smoothers, so the scale is
@@ -162,6 +168,7 @@ class HealthOptions:
     slam_jump_min_m: float = 0.5
     slam_jump_max_dt_s: float = 1.0
     slam_jump_accel_max: float = 5.0
+    slam_jump_gap_sigmas: float = 4.0
     terrain_step_m: float = 0.2
     terrain_step_n: int = 8
     range_stuck_s: float = 1.0
@@ -203,12 +210,18 @@ class Context:
         slam_height: ``slam_height(session, slam_t_cam) -> world z of the camera`` [m] through
             the session's current alignment (None without one): a height that no range
             reading went into, for the stuck-rangefinder test.
+        slam_position: ``slam_position(session, slam_t_cam) -> world_t_cam`` (3,) [m] through
+            the session's current alignment (None without one).
+        camera: ``camera() -> (world_t_cam [m], its position sigma [m], time [s])`` of the
+            newest estimate (None without a covariance).
     """
 
     speed: Callable[[float], float | None] = lambda t: None
     height: Callable[[float], float | None] = lambda t: None
     scale: Callable[[int], float | None] = lambda s: None
     slam_height: Callable[[int, np.ndarray], float | None] = lambda s, p: None
+    slam_position: Callable[[int, np.ndarray], np.ndarray | None] = lambda s, p: None
+    camera: Callable[[], tuple[np.ndarray, float, float] | None] = lambda: None
 
 
 @dataclass
@@ -467,9 +480,35 @@ class FaultDetectors:
                         f"SLAM session {sess} moved {d:.2f} m in {dt * 1e3:.0f} ms at t={t:.2f} "
                         f"(the estimate allows {allowed:.2f} m): a new alignment from here",
                     )
+        elif prev is not None and t - prev[0] > o.slam_jump_max_dt_s:
+            moved = self._relocalised(virtual, p, t)
+            if moved is not None:
+                n += 1
+                self._slam_jumps[sess] = n
+                virtual = sess + JUMP_SESSION_BASE * n
+                self._count(
+                    "slam-jump",
+                    f"SLAM session {sess} is back after {t - prev[0]:.1f} s without a pose, "
+                    f"{moved[0]:.2f} m from the estimate at t={t:.2f} (it allows "
+                    f"{moved[1]:.2f} m): relocalised in a moved map, a new alignment from here",
+                )
         self._slam_prev[sess] = (t, p)
         self._slam_last = (virtual, p)
         return ev if virtual == sess else ev._replace(session=virtual)
+
+    def _relocalised(self, session: int, p: np.ndarray, t: float) -> tuple[float, float] | None:
+        """(distance, allowed) [m] when a pose returning after a pause lies further from the
+        newest estimate than it allows (see ``slam-jump`` in the module docstring), else None."""
+        o = self.options
+        world = self.context.slam_position(session, p)
+        cam = self.context.camera()
+        if world is None or cam is None or not np.isfinite(world).all():
+            return None
+        pos, sigma, t_est = cam
+        speed = self.context.speed(t) or 0.0
+        d = float(np.linalg.norm(world - pos))
+        allowed = o.slam_jump_min_m + o.slam_jump_gap_sigmas * sigma + speed * abs(t - t_est)
+        return (d, allowed) if d > allowed else None
 
     def _height(self, t: float) -> float | None:
         """The height the stuck-rangefinder test compares: from the newest SLAM pose through its

@@ -3656,9 +3656,34 @@ class OnlineSmoother:
             height=lambda t: float(self.out[-1].world_T_body[2, 3]) if self.latest() else None,
             scale=lambda s: self._session_scale.get(s),
             slam_height=self._slam_height,
+            slam_position=self._slam_world,
+            camera=self._camera_now,
         )
         self._health_checked = False
         self._health_on = self._health.options.enabled
+
+    def _slam_world(self, session: int, slam_t_cam: np.ndarray) -> np.ndarray | None:
+        """``world_t_cam`` [m] of a SLAM camera position through its session's newest
+        alignment (None without one)."""
+        s = self.sessions.get(session)
+        S = self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+        p = np.asarray(slam_t_cam, float)
+        if isinstance(S, np.ndarray):  # per-axis: slam_t = diag(k) world_t + o
+            return (p - S[3:6]) / S[:3]
+        if not isinstance(S, gtsam.Similarity3):
+            return None
+        _, scale, slam_R_world, slam_t_world = (S, *slam_alignment_parts(S))
+        return slam_R_world.T @ (p - slam_t_world) / scale
+
+    def _camera_now(self) -> tuple[np.ndarray, float, float] | None:
+        """The newest estimate's camera position [m], its position sigma (the root of the
+        covariance's trace) [m] and its time [s]; None without a covariance."""
+        st = self.latest()
+        if st is None or st.pose_cov is None:
+            return None
+        T = np.asarray(st.world_T_body)
+        sigma = math.sqrt(max(float(np.trace(np.asarray(st.pose_cov)[3:, 3:])), 0.0))
+        return T[:3, 3] + T[:3, :3] @ self.body_T_cam[:3, 3], sigma, float(st.t)
 
     def _slam_height(self, session: int, slam_t_cam: np.ndarray) -> float | None:
         """World z [m] of a SLAM camera position through its session's newest alignment."""
