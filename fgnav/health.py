@@ -35,7 +35,13 @@ each counted by name in :meth:`FaultDetectors.report`:
   position through the session's alignment against the newest estimate's, allowed
   ``slam_jump_min_m`` plus ``slam_jump_gap_sigmas`` times the estimate's position sigma plus
   the speed times the time between them: a relocalisation into a moved map (SLAM lost 8-14 s,
-  back 2 m away: simulated two-turns 0.87 m with health "ok" before).
+  back 2 m away: simulated two-turns 0.87 m with health "ok" before). A turn of the map (the
+  SLAM's orientation between two poses of a session, across a pause too, turning more or less
+  than the gyro over the same time by over ``slam_turn_jump_deg`` plus
+  ``slam_turn_drift_deg_per_s`` per second between them; online, where the context integrates
+  the gyro) is a jump too: the angle of a relative rotation does not depend on the file's
+  rotation convention, ``body_R_cam`` or a mirrored frame (a map turned 30 deg about the
+  current pose: simulated figure8 1.98 m with health "ok" before).
 - ``slam-reset``: a SLAM pose of a session the input had not used before, after poses of
   another: a map reset (or a new map after lost tracking) that the input declares. Named, not
   fixed: every session has its own scale and alignment in the smoothers, so the scale is
@@ -169,6 +175,8 @@ class HealthOptions:
     slam_jump_max_dt_s: float = 1.0
     slam_jump_accel_max: float = 5.0
     slam_jump_gap_sigmas: float = 4.0
+    slam_turn_jump_deg: float = 8.0
+    slam_turn_drift_deg_per_s: float = 1.0
     terrain_step_m: float = 0.2
     terrain_step_n: int = 8
     range_stuck_s: float = 1.0
@@ -214,6 +222,8 @@ class Context:
             the session's current alignment (None without one).
         camera: ``camera() -> (world_t_cam [m], its position sigma [m], time [s])`` of the
             newest estimate (None without a covariance).
+        gyro_turn: ``gyro_turn(t_a, t_b) -> angle`` [rad] of the body's rotation from ``t_a`` to
+            ``t_b`` integrated from the arrived gyro (bias removed; None: not covered).
     """
 
     speed: Callable[[float], float | None] = lambda t: None
@@ -222,6 +232,7 @@ class Context:
     slam_height: Callable[[int, np.ndarray], float | None] = lambda s, p: None
     slam_position: Callable[[int, np.ndarray], np.ndarray | None] = lambda s, p: None
     camera: Callable[[], tuple[np.ndarray, float, float] | None] = lambda: None
+    gyro_turn: Callable[[float, float], float | None] = lambda ta, tb: None
 
 
 @dataclass
@@ -257,6 +268,7 @@ class FaultDetectors:
         # detector state (inside the seen range, below the rail by a margin): most samples.
         self._imu_calm: tuple[float, ...] | None = None
         self._slam_prev: dict[int, tuple[float, np.ndarray]] = {}
+        self._slam_prev_q: dict[int, np.ndarray] = {}  # the newest orientation per session
         self._slam_jumps: dict[int, int] = {}
         self._range_val: float | None = None
         self._range_t0: float | None = None
@@ -492,9 +504,42 @@ class FaultDetectors:
                     f"{moved[0]:.2f} m from the estimate at t={t:.2f} (it allows "
                     f"{moved[1]:.2f} m): relocalised in a moved map, a new alignment from here",
                 )
+        q = np.asarray(ev.slam_q_cam_wxyz, float)
+        q_prev = self._slam_prev_q.get(sess)
+        if prev is not None and q_prev is not None and virtual == sess + JUMP_SESSION_BASE * n:
+            turned = self._turned(prev[0], q_prev, t, q)
+            if turned is not None:
+                n += 1
+                self._slam_jumps[sess] = n
+                virtual = sess + JUMP_SESSION_BASE * n
+                self._count(
+                    "slam-jump",
+                    f"SLAM session {sess} turned {turned[0]:.1f} deg in {t - prev[0]:.2f} s at "
+                    f"t={t:.2f} while the gyro turned {turned[1]:.1f} deg: the map turned, a new "
+                    "alignment from here",
+                )
+        if np.isfinite(q).all() and float(q @ q) > 0:
+            self._slam_prev_q[sess] = q / math.sqrt(float(q @ q))
         self._slam_prev[sess] = (t, p)
         self._slam_last = (virtual, p)
         return ev if virtual == sess else ev._replace(session=virtual)
+
+    def _turned(
+        self, t_prev: float, q_prev: np.ndarray, t: float, q: np.ndarray
+    ) -> tuple[float, float] | None:
+        """(SLAM turn, gyro turn) [deg] when the SLAM orientation's change from the previous
+        pose differs from the gyro's by more than the module docstring allows, else None."""
+        o = self.options
+        if not (np.isfinite(q).all() and float(q @ q) > 0):
+            return None
+        gyro = self.context.gyro_turn(t_prev, t)
+        if gyro is None:
+            return None
+        c = abs(float(q_prev @ q)) / math.sqrt(float(q @ q))
+        slam = 2.0 * math.degrees(math.acos(min(c, 1.0)))
+        gyro = math.degrees(gyro)
+        allowed = o.slam_turn_jump_deg + o.slam_turn_drift_deg_per_s * (t - t_prev)
+        return (slam, gyro) if abs(slam - gyro) > allowed else None
 
     def _relocalised(self, session: int, p: np.ndarray, t: float) -> tuple[float, float] | None:
         """(distance, allowed) [m] when a pose returning after a pause lies further from the

@@ -150,6 +150,7 @@ from fgnav.datasets.geometry import (
     matrix_to_quat_wxyz,
     quat_wxyz_to_matrix,
     slerp_rotations,
+    so3_exp,
     so3_log,
     wrap_angle,
 )
@@ -3658,6 +3659,7 @@ class OnlineSmoother:
             slam_height=self._slam_height,
             slam_position=self._slam_world,
             camera=self._camera_now,
+            gyro_turn=self._gyro_turn,
         )
         self._health_checked = False
         self._health_on = self._health.options.enabled
@@ -3674,6 +3676,27 @@ class OnlineSmoother:
             return None
         _, scale, slam_R_world, slam_t_world = (S, *slam_alignment_parts(S))
         return slam_R_world.T @ (p - slam_t_world) / scale
+
+    def _gyro_turn(self, ta: float, tb: float) -> float | None:
+        """Angle [rad] of the body's rotation from ``ta`` to ``tb`` through the arrived gyro,
+        the newest bias estimate removed (None: the IMU does not cover both ends)."""
+        imu = self.imu
+        if not imu.t or imu.t[0] > ta or imu.t[-1] < tb or tb <= ta:
+            return None
+        sl = imu.span(ta, tb)
+        t = np.r_[ta, imu.t[sl], tb]
+        if t.size > 2 and np.max(np.diff(t)) > 0.2:
+            return None  # an IMU gap
+        w = np.asarray(imu.w[max(sl.start - 1, 0) : sl.stop], float)
+        if len(w) < len(t) - 1:
+            return None
+        b = self.values.get(B(self.k))
+        if b is not None:
+            w = w - b.gyroscope()
+        R = np.eye(3)
+        for Ri in so3_exp(w[: len(t) - 1] * np.diff(t)[:, None]):
+            R = R @ Ri
+        return float(np.linalg.norm(so3_log(R)))
 
     def _camera_now(self) -> tuple[np.ndarray, float, float] | None:
         """The newest estimate's camera position [m], its position sigma (the root of the
