@@ -391,25 +391,28 @@ def _with_slow(
     t_kf = builder.t_kf
     if builder.use_slam:
         if builder.slam_model == "axis":
-            # One chain of per-axis scale segments (seed 000's model); the flight's scale is
-            # the last segment's geometric mean.
-            ts, ks, sgs = [], [], []
+            # A chain of per-axis scale segments per session (seed 000's model); a session's
+            # scale is its last segment's geometric mean.
+            ts, ks, sgs, sess_ids = [], [], [], []
             a = builder.slam_assoc
-            for (_sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
+            sess_of = builder.flight.slam.session[a.meas_index]
+            for (sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
                 if not values.exists(S(j)):
                     continue
-                rows = np.flatnonzero(builder.slam_chain == seg)
+                rows = np.flatnonzero((builder.slam_chain == seg) & (sess_of == sess))
                 ts.append(float(np.mean(t_kf[a.keyframe[rows]])) if len(rows) else t_kf[0])
                 ks.append(values.atVector(S(j))[:3])
                 sg = sigma.get(S(j))
                 sgs.append(np.full(3, np.nan) if sg is None else np.asarray(sg, float)[:3])
-            if ks:
+                sess_ids.append(sess)
                 k, sg = ks[-1], sgs[-1]
-                scale[0] = float(np.cbrt(np.prod(k)))
+                scale[sess] = float(np.cbrt(np.prod(k)))
                 if np.all(np.isfinite(sg)):
-                    scale_sigma[0] = float(scale[0] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+                    scale_sigma[sess] = float(scale[sess] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+            if ks:
+                order = np.argsort(ts, kind="stable")
                 series["slam_axis_scale"] = TimeSeries(
-                    np.asarray(ts), np.asarray(ks), np.asarray(sgs)
+                    np.asarray(ts)[order], np.asarray(ks)[order], np.asarray(sgs)[order]
                 )
         else:
             ts, vs, ss, sess_ids = [], [], [], []

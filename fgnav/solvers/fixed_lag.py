@@ -977,7 +977,7 @@ class FixedLagRunner:
         position onto the SLAM pose nearest in time (the world origin stays at the first
         keyframe)."""
         b = self.builder
-        k, rel_se = b.init_axis_fit(self.t_latest)
+        k, rel_se = b.init_axis_fit(self.t_latest, session)
         finite = rel_se[np.isfinite(rel_se)]
         if not len(finite) or finite.max() > self.options.slam_init_max_rel_se:
             log.debug(
@@ -1472,15 +1472,11 @@ class FixedLagRunner:
                     continue
                 j = int(name.split("#")[1])
                 v = rows[-1][1]
-                if b.slam_model == "axis":
-                    if rows[-1][0] >= self._last_t_of(0):
-                        slam_scale[0] = float(np.cbrt(np.prod(v[:3])))
-                        self._sess_last_t[0] = rows[-1][0]
-                else:
-                    sess = inv[j][0]
-                    if sess not in slam_scale or rows[-1][0] >= self._last_t_of(sess):
-                        slam_scale[sess] = float(v[0])
-                        self._sess_last_t[sess] = rows[-1][0]
+                sess = inv[j][0]
+                if sess not in slam_scale or rows[-1][0] >= self._last_t_of(sess):
+                    axis = b.slam_model == "axis"
+                    slam_scale[sess] = float(np.cbrt(np.prod(v[:3])) if axis else v[0])
+                    self._sess_last_t[sess] = rows[-1][0]
         if "drag_k" in by_kind:
             drag_k = np.asarray(sorted(by_kind["drag_k"], key=lambda r: r[0])[-1][1])
         if "ground_height" in by_kind:

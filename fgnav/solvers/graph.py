@@ -4,7 +4,7 @@ Variables (``fgnav.keys``, ../shared/DESIGN.md section 3): per keyframe k ``X(k)
 ``world_T_body``, ``V(k)`` ``world_v_body`` [m/s], ``B(k)`` IMU bias; slow variables with random
 walks between segments: ``S(j)`` SLAM alignment (``Similarity3`` ``slam_T_world``, a new chain per
 SLAM session, or for seed 000's per-axis model a Vector6 ``[kx, ky, kz, ox, oy, oz]``: per-axis
-scale and SLAM-origin offset, one chain for the flight), ``D(j)`` drag coefficient
+scale and SLAM-origin offset, one chain per session), ``D(j)`` drag coefficient
 (Vector1 ``k`` or Vector2 ``kx, ky``) [1/s], ``G(j)`` ground height (Vector1) [m].
 
 The builder emits the graph per keyframe so that the same code feeds the batch solver (everything
@@ -383,7 +383,7 @@ class InitialGuess:
     world_t_body: np.ndarray
     world_v_body: np.ndarray
     slam: dict[int, SlamAlignmentInit] = field(default_factory=dict)
-    axis_scale: np.ndarray | None = None
+    axis_scale: dict[int, np.ndarray] = field(default_factory=dict)  # per session [k, o]
     drag_k: np.ndarray | None = None
     ground_height: float | None = None
 
@@ -869,27 +869,22 @@ class GraphBuilder:
         # SLAM alignment variable of each association: session chain and segment within it.
         seg_s = self.options.slam_segment_s
         chain = np.zeros(len(a.meas_index), dtype=int)
-        if self.slam_model == "sim3":
-            sess = slam.session[a.meas_index]
-            for s in self.slam_sessions:
-                m = sess == s
-                if not m.any():
-                    continue
-                t_first = slam.t[a.meas_index[m][0]]
-                seg = np.floor((slam.t[a.meas_index[m]] - t_first) / seg_s + 1e-9).astype(int)
-                chain[m] = seg
-        elif len(a.meas_index):
-            # Seed 000's per-axis model: every session shares the per-axis scale, so one chain
-            # of segments over the flight (the scale drifts; a fixed-lag smoother also needs the
-            # segments to move the scale's linearisation point, see fixed_lag's docstring).
-            t_meas = slam.t[a.meas_index]
-            chain[:] = np.floor((t_meas - t_meas[0]) / seg_s + 1e-9).astype(int)
+        # One chain per session (a map reset declared by the input: a new scale and origin,
+        # for seed 000's per-axis model too).
+        sess = slam.session[a.meas_index]
+        for s in self.slam_sessions:
+            m = sess == s
+            if not m.any():
+                continue
+            t_first = slam.t[a.meas_index[m][0]]
+            seg = np.floor((slam.t[a.meas_index[m]] - t_first) / seg_s + 1e-9).astype(int)
+            chain[m] = seg
         self.slam_chain = chain
         self.slam_latency = slam.latency if slam.latency is not None else np.zeros(len(slam))
         # Variable index per (session, segment): contiguous integers in order of appearance.
         self.slam_var: dict[tuple[int, int], int] = {}
         for i, c in zip(a.meas_index, chain, strict=True):
-            key = (int(slam.session[i]), int(c)) if self.slam_model == "sim3" else (0, int(c))
+            key = (int(slam.session[i]), int(c))
             if key not in self.slam_var:
                 self.slam_var[key] = len(self.slam_var)
         # Chain predecessor of each segment: the session's previous segment that has a pose
@@ -1121,11 +1116,33 @@ class GraphBuilder:
                 pos[kfs] = p + offset
                 guess.slam[s] = init
         elif self.use_slam and self.slam_model == "axis":
-            kscale = self.init_axis_scale(t_limit)
-            guess.axis_scale = kscale
+            # Per session [k, o] (SLAM = diag(k) world_t_cam + o): the first session's origin at
+            # the world's; a later one's placed so that it starts at the previous one's last
+            # position, its scale its own fit (the previous session's when it has too little
+            # motion for one).
             a = self.slam_assoc
-            y = f.slam.slam_t_cam[a.meas_index]
-            pos[a.keyframe] = y / kscale - np.einsum("nij,j->ni", self.R_kf[a.keyframe], body_t_cam)
+            slam = f.slam
+            guess.axis_scale = {}
+            k_prev = None
+            for s in self.slam_sessions:
+                m = slam.session[a.meas_index] == s
+                if not m.any():
+                    continue
+                try:
+                    k = self.init_axis_scale(t_limit, session=s)
+                except FlightDataError:
+                    k = None
+                if k is None or not np.all(np.isfinite(k) & (k > 0)):
+                    k = k_prev if k_prev is not None else self.init_axis_scale(t_limit)
+                rows, kfs = a.meas_index[m], a.keyframe[m]
+                p = slam.slam_t_cam[rows] / k - np.einsum("nij,j->ni", self.R_kf[kfs], body_t_cam)
+                offset = np.zeros(3)
+                if np.isfinite(pos).any():
+                    prev = _fill_positions(pos[: kfs[0]], self.t_kf[: kfs[0]])
+                    offset = prev[-1] - p[0] if len(prev) else -p[0]
+                pos[kfs] = p + offset
+                guess.axis_scale[s] = np.r_[k, -k * offset]
+                k_prev = k
         if not np.isfinite(pos).any() and self.vision is not None:
             pos = self.vision.initial_positions(self.t_kf)
             if pos is None:
@@ -1236,17 +1253,24 @@ class GraphBuilder:
         v = scales.get(session) if isinstance(scales, dict) else None
         return None if v is None else float(np.atleast_1d(v)[0])
 
-    def init_axis_scale(self, t_limit: float | None = None) -> np.ndarray:
+    def init_axis_scale(
+        self, t_limit: float | None = None, session: int | None = None
+    ) -> np.ndarray:
         """Per-axis SLAM scale ``[kx, ky, kz]`` by least squares of second differences."""
-        return self.init_axis_fit(t_limit)[0]
+        return self.init_axis_fit(t_limit, session)[0]
 
-    def init_axis_fit(self, t_limit: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def init_axis_fit(
+        self, t_limit: float | None = None, session: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Per-axis SLAM scale ``[kx, ky, kz]`` by least squares of second differences (0.5 s
         half-width, 0.1 s step) and the relative standard error of each axis (inflated by
         ``sqrt(10)`` for the overlap of neighbouring second differences; inf for an axis without
-        motion, which starts at the mean of the others)."""
+        motion, which starts at the mean of the others); of one SLAM session's poses when
+        given (a map reset has its own scale), else of all."""
         slam = self.flight.slam
         m = np.ones(len(slam), bool) if t_limit is None else slam.t <= t_limit
+        if session is not None:
+            m &= slam.session == session
         world_a = world_specific_accel(self.imu, self.R_imu, self.options.gravity)
         k, rel_se, _ = fit_axis_scale(slam.t[m], slam.slam_t_cam[m], self.imu.t, world_a)
         if not np.isfinite(rel_se).all():
@@ -1324,8 +1348,7 @@ class GraphBuilder:
     def slam_key(self, assoc_row: int) -> int:
         slam = self.flight.slam
         i = self.slam_assoc.meas_index[assoc_row]
-        sess = 0 if self.slam_model == "axis" else int(slam.session[i])
-        return S(self.slam_var[(sess, int(self.slam_chain[assoc_row]))])
+        return S(self.slam_var[(int(slam.session[i]), int(self.slam_chain[assoc_row]))])
 
     def first_prior_factors(
         self, guess_R: np.ndarray, guess_t: np.ndarray, guess_v: np.ndarray
@@ -1789,9 +1812,9 @@ class GraphBuilder:
                 out[G(int(j))] = np.array([z])
         if self.use_slam:
             if self.slam_model == "axis":
-                # Initial positions are SLAM / k (see initial_guess): zero origin offset.
-                for j in self.slam_var.values():
-                    out[S(j)] = np.r_[np.asarray(guess.axis_scale, float), np.zeros(3)]
+                # Each session's [k, o] (see initial_guess).
+                for (sess, _seg), j in self.slam_var.items():
+                    out[S(j)] = np.asarray(guess.axis_scale[sess], float)
             else:
                 for (sess, _seg), j in self.slam_var.items():
                     init = guess.slam[sess]

@@ -109,8 +109,10 @@ marginalises it is the ``fixed-lag@lag`` output (``lagged_result()``).
   ``prior:observer-velocity``, ``prior:ml-scale``.
 
 - **Per-axis SLAM** (seed 000, ``graph.slam_model = "axis"``, or ``"auto"`` on a flight whose
-  SLAM input declares it, ``meta["slam_model"]``): every session feeds one chain of Vector6
-  ``[kx, ky, kz, ox, oy, oz]`` variables (per-axis scale, SLAM origin; SLAM axes = world axes),
+  SLAM input declares it, ``meta["slam_model"]``): each session (a map reset the input
+  declares, or a jump the health check splits off, has a new scale and origin) feeds its own
+  chain of Vector6 ``[kx, ky, kz, ox, oy, oz]`` variables (per-axis scale, SLAM origin; SLAM
+  axes = world axes),
   one per ``graph.slam_segment_s``, with the batch's relative random walk between them. It starts
   from the per-axis least-squares fit (:func:`fgnav.solvers.measurements.fit_axis_scale`) over
   the arrived poses once they span ``slam_init_window_s`` and the fit has
@@ -2213,7 +2215,7 @@ class OnlineSmoother:
             q = q * _CONJ
         if self._first_slam_t is None:
             self._first_slam_t = float(ev.t)
-        sess = 0 if self._axis else int(ev.session)
+        sess = int(ev.session)
         s = self.sessions.get(sess)
         if s is None:
             s = self.sessions[sess] = _Session(
@@ -2784,7 +2786,7 @@ class OnlineSmoother:
     def _axis_factor(self, k: int, payload, s: _Session, g, stamps) -> None:
         """A SLAM position under the per-axis model (held until the per-axis fit exists)."""
         _sess, _row, t, p, _q = payload
-        key = self._axis_key(s, t, g, stamps)
+        key = self._axis_key(_sess, s, t, g, stamps)
         if key is None:
             self._held.append((k, "slam", payload))
             return
@@ -2809,11 +2811,11 @@ class OnlineSmoother:
         stamps[key] = self.t_kf[self.k]
         self._use("slam")
 
-    def _axis_key(self, s: _Session, t: float, g, stamps) -> int | None:
+    def _axis_key(self, sess: int, s: _Session, t: float, g, stamps) -> int | None:
         """The per-axis alignment variable of a pose at ``t`` (None until the fit exists)."""
         o, go = self.options, self.go
-        if not s.chain and 0 in self._carried_align:
-            return self._carried_chain(0, s, t, g, stamps)
+        if not s.chain and sess in self._carried_align:
+            return self._carried_chain(sess, s, t, g, stamps)
         if not s.chain:
             t_now = self.t_kf[self.k]
             if not (t_now >= s.next_fit and s.t[-1] - s.t[0] >= o.slam_init_window_s):
@@ -3690,7 +3692,7 @@ class OnlineSmoother:
         w = np.asarray(imu.w[max(sl.start - 1, 0) : sl.stop], float)
         if len(w) < len(t) - 1:
             return None
-        b = self.values.get(B(self.k))
+        b = self.values.get(B(self.k)) if self.k >= 0 else None  # (-1: before a restart)
         if b is not None:
             w = w - b.gyroscope()
         R = np.eye(3)
