@@ -39,6 +39,7 @@ import subprocess
 import sys
 import time
 import tomllib
+import uuid
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -638,6 +639,12 @@ def run_context(opts: FleetOptions, n_run: int, timing: Mapping[str, Any]) -> st
     )
 
 
+def task_key(run_id: str, i: int, job: Mapping[str, Any]) -> str:
+    """Dask key of the ``i``-th flight of the fleet run ``run_id`` (readable in the dashboard,
+    unique across fleets sharing a scheduler)."""
+    return f"fleet-{job['flight']}-{i}-{run_id}"
+
+
 def _run_jobs(
     jobs: list[tuple[dict[str, Any], dict[str, Any]]],
     opts: FleetOptions,
@@ -657,8 +664,11 @@ def _run_jobs(
         timing["workers"] = len(client.scheduler_info().get("workers", {}))
         t1 = time.perf_counter()
         timing["startup_s"] = t1 - t0
+        # Keys unique to this fleet: another fleet on the same scheduler submitting the same
+        # key would be handed this one's result (Dask keys name results, not calls).
+        run_id = uuid.uuid4().hex
         futures = {
-            client.submit(run_flight_job, job, pure=False, key=f"fleet-{i}-{job['flight']}"): (
+            client.submit(run_flight_job, job, pure=False, key=task_key(run_id, i, job)): (
                 job,
                 ident,
             )

@@ -1,0 +1,74 @@
+"""``fgnav fleet`` robustness: fleets sharing a scheduler, a scheduler without workers or that
+loses them, bad ``--scheduler`` / limit values, damaged flights in a scanned folder, printed
+failures, Ctrl-C, duplicate methods and flights, ``--out`` inside a flight, ``--workers``."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from pathlib import Path
+
+import pytest
+from fgnav.datasets.simulate import SimOptions, simulate_to_folder
+
+from fgnav.fleet import FleetOptions, content_hash, run_fleet
+
+
+def _simulate(folder: Path, seed: int, scenario: str = "two-turns") -> Path:
+    return simulate_to_folder(
+        scenario, folder, seed=seed, options=SimOptions(duration=4.0, images=False)
+    )
+
+
+@pytest.fixture(scope="module")
+def twins(tmp_path_factory) -> tuple[Path, Path]:
+    """Two flights both named ``tt1`` with different content (a/tt1, b/tt1)."""
+    root = tmp_path_factory.mktemp("twins")
+    return _simulate(root / "a" / "tt1", 11), _simulate(root / "b" / "tt1", 12)
+
+
+@pytest.fixture
+def scheduler():
+    """A LocalCluster reached by address (threads, 2 workers, loopback, no dashboard)."""
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp://",
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+        silence_logs=logging.WARNING,
+    ) as cluster:
+        yield cluster
+
+
+def _opts(**kw) -> FleetOptions:
+    return FleetOptions(progress=False, **kw)
+
+
+def test_concurrent_fleets_on_one_scheduler_get_their_own_results(twins, scheduler, tmp_path):
+    """Two fleets on one scheduler, each with a flight named tt1 (different content) submitted
+    at once: each gets its own flight's result (the Dask keys were ``fleet-0-tt1`` in both, and
+    the second fleet got the first's estimate and no flight files)."""
+    outs = [tmp_path / "A", tmp_path / "B"]
+    res: dict[int, object] = {}
+
+    def go(k: int) -> None:
+        res[k] = run_fleet([str(twins[k])], outs[k], _opts(scheduler=scheduler.scheduler_address))
+
+    threads = [threading.Thread(target=go, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    rows = [res[k].rows[0] for k in (0, 1)]
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert rows[0]["ate_rmse_m"] != rows[1]["ate_rmse_m"]
+    for k, r in enumerate(rows):
+        assert r["input_hash"] == content_hash(twins[k])
+        summary = json.loads((outs[k] / r["out_dir"] / "summary.json").read_text())
+        assert summary["metrics"]["ate_rmse_m"] == r["ate_rmse_m"]
