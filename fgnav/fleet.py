@@ -541,6 +541,9 @@ def _dask_client(opts: FleetOptions):
         processes=True,
         host="127.0.0.1",
         dashboard_address=None,
+        # The scheduler's HTTP server (health, metrics) starts even without a dashboard, on 8787
+        # unless told otherwise (a warning when that port is taken): any free loopback port.
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
         silence_logs=logging.WARNING,
     )
     return Client(cluster), cluster

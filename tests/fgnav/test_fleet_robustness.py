@@ -72,3 +72,21 @@ def test_concurrent_fleets_on_one_scheduler_get_their_own_results(twins, schedul
         assert r["input_hash"] == content_hash(twins[k])
         summary = json.loads((outs[k] / r["out_dir"] / "summary.json").read_text())
         assert summary["metrics"]["ate_rmse_m"] == r["ate_rmse_m"]
+
+
+def test_local_cluster_leaves_port_8787_alone():
+    """The LocalCluster's scheduler bound its HTTP server to 8787 despite
+    ``dashboard_address=None`` (and warned when another Dask or Jupyter had it)."""
+    import warnings
+
+    from fgnav.fleet import _dask_client
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        client, cluster = _dask_client(_opts(workers=1))
+        try:
+            assert cluster.scheduler.http_server.port != 8787
+        finally:
+            client.close()
+            cluster.close()
+    assert not [w for w in caught if "8787" in str(w.message)]
