@@ -523,18 +523,103 @@ def _reusable(prev: Mapping[str, Any] | None, out: Path, flight_files: bool) -> 
     return bool(prev.get("out_dir")) and (out / prev["out_dir"] / "summary.json").is_file()
 
 
+#: Overall deadline of connecting to ``--scheduler`` (the connection, the handshake and the
+#: scheduler's first answer) [s].
+CONNECT_DEADLINE_S = 20.0
+
+
+def check_scheduler_address(address: str) -> str:
+    """``address`` when it reads as a Dask scheduler address (``tcp://HOST:PORT``; ``HOST:PORT``
+    means tcp; other Dask schemes: tls, ws, wss, ucx).
+
+    Raises:
+        FleetError: one line naming ``--scheduler``.
+    """
+    from distributed.comm import parse_address
+    from distributed.comm.registry import backends
+
+    usage = "expected tcp://HOST:PORT"
+    try:
+        scheme, loc = parse_address(address)
+    except ValueError as e:
+        raise FleetError(
+            f"--scheduler {address}: not a Dask scheduler address ({e}); {usage}"
+        ) from None
+    if scheme not in backends or scheme == "inproc":
+        known = ", ".join(b for b in backends if b != "inproc")
+        raise FleetError(
+            f"--scheduler {address}: {scheme}:// is not a Dask protocol ({known}); {usage}"
+        )
+    host, sep, port = loc.rpartition(":")
+    if scheme != "ucx" and (not sep or not host or not port.isdigit() or not 0 < int(port) < 65536):
+        raise FleetError(f"--scheduler {address}: no HOST:PORT in it; {usage}")
+    return address
+
+
+def _probe_scheduler(address: str, deadline_s: float) -> None:
+    """Ask the server at a ``tcp://`` ``address`` who it is, all within ``deadline_s``: Dask's
+    own connect does not bound the handshake (a web server at the port held it for minutes) nor
+    check what it reads (garbage asked numpy for exabytes).
+
+    Raises:
+        FleetError: nothing answered in time, the answer is not a Dask scheduler's.
+    """
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect
+
+    async def ask() -> Any:
+        comm = await connect(address, timeout=deadline_s)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    where = f"--scheduler {address}"
+    with ThreadPoolExecutor(1) as pool:  # (a thread of its own: the caller may run a loop)
+        try:
+            got = pool.submit(asyncio.run, asyncio.wait_for(ask(), deadline_s)).result()
+        except TimeoutError:
+            raise FleetError(
+                f"{where}: no Dask scheduler answered within {deadline_s:g} s (nothing listens,"
+                " or the port is not a Dask scheduler's)"
+            ) from None
+        except Exception as e:  # (a reply that is not Dask's protocol: any error of its parse)
+            msg = " ".join(str(e).split())[:120]
+            raise FleetError(
+                f"{where}: not a Dask scheduler (its reply does not read as one:"
+                f" {type(e).__name__}: {msg})"
+            ) from None
+    if not isinstance(got, dict) or got.get("type") != "Scheduler":
+        kind = got.get("type") if isinstance(got, dict) else type(got).__name__
+        raise FleetError(f"{where}: not a Dask scheduler (it is a {kind})")
+
+
 def _dask_client(opts: FleetOptions):
     """A Dask client: on ``opts.scheduler``, or on a loopback LocalCluster of single-threaded
-    worker processes."""
+    worker processes.
+
+    Raises:
+        FleetError: a bad address, nothing or no Dask scheduler answering there in
+            :data:`CONNECT_DEADLINE_S`.
+    """
     from distributed import Client, LocalCluster
 
     # The scheduler of a LocalCluster runs in this process: its INFO lines are not the user's.
     logging.getLogger("distributed").setLevel(logging.WARNING)
     if opts.scheduler:
+        address = check_scheduler_address(opts.scheduler)
+        if address.startswith("tcp://") or "://" not in address:
+            _probe_scheduler(address, CONNECT_DEADLINE_S)
         try:
-            return Client(opts.scheduler, timeout="20s"), None
-        except (OSError, TimeoutError) as e:
-            raise FleetError(f"--scheduler {opts.scheduler}: cannot connect ({e})") from e
+            return Client(address, timeout=f"{CONNECT_DEADLINE_S:g}s"), None
+        except Exception as e:
+            msg = " ".join(str(e).split())[:160]
+            raise FleetError(
+                f"--scheduler {address}: cannot connect ({type(e).__name__}: {msg})"
+            ) from None
     cluster = LocalCluster(
         n_workers=opts.workers or default_workers(),
         threads_per_worker=1,

@@ -90,3 +90,64 @@ def test_local_cluster_leaves_port_8787_alone():
             client.close()
             cluster.close()
     assert not [w for w in caught if "8787" in str(w.message)]
+
+
+@pytest.fixture
+def fake_servers():
+    """Two loopback TCP servers that are not Dask schedulers: one answers every connection with
+    HTTP bytes, one accepts and says nothing (as a web server waiting for a request)."""
+    import socket
+
+    socks, conns = [], []
+
+    def serve(s: socket.socket, reply: bytes) -> None:
+        while True:
+            try:
+                c, _ = s.accept()
+            except OSError:
+                return
+            conns.append(c)
+            if reply:
+                try:
+                    c.sendall(reply)
+                except OSError:
+                    pass
+
+    ports = []
+    for reply in (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n" * 4, b""):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        socks.append(s)
+        ports.append(s.getsockname()[1])
+        threading.Thread(target=serve, args=(s, reply), daemon=True).start()
+    yield ports
+    for c in socks + conns:
+        c.close()
+
+
+def test_bad_scheduler_values_are_one_line_errors(
+    twins, fake_servers, tmp_path, monkeypatch, capsys
+):
+    """``foo`` and ``http://...`` printed a ValueError traceback, a server answering garbage a
+    numpy allocation traceback, and a silent server (an HTTP port) held the client >200 s."""
+    import time
+
+    import fgnav.fleet
+    from fgnav.cli import main
+
+    monkeypatch.setattr(fgnav.fleet, "CONNECT_DEADLINE_S", 2.0)
+    garbage, silent = fake_servers
+    cases = {
+        "foo": "no HOST:PORT",
+        "http://127.0.0.1:8786": "http:// is not a Dask protocol",
+        f"tcp://127.0.0.1:{garbage}": "not a Dask scheduler",
+        f"tcp://127.0.0.1:{silent}": "no Dask scheduler answered within 2 s",
+    }
+    for address, why in cases.items():
+        t0 = time.monotonic()
+        argv = ["fleet", str(twins[0]), "--out", str(tmp_path / "o"), "--scheduler", address]
+        assert main([*argv, "--no-progress"]) == 1
+        assert time.monotonic() - t0 < 10
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--scheduler {address}: " in err[0] and why in err[0], err
