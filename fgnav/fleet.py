@@ -420,6 +420,10 @@ class FleetOptions:
         force: rerun flights a previous run already did.
         flight_files: write each run's ``estimate.tum``, ``states.csv``, ``summary.json``.
         progress: progress bar over completed flights.
+        worker_wait_s: how long to wait for a first Dask worker before submitting [s]
+            (then a :class:`FleetError`).
+        no_worker_s: how long the scheduler may have no worker at all while flights remain
+            (all died or were stopped) before those flights become ``crashed`` rows [s].
     """
 
     methods: tuple[str, ...] = ("batch",)
@@ -431,6 +435,8 @@ class FleetOptions:
     force: bool = False
     flight_files: bool = True
     progress: bool = True
+    worker_wait_s: float = 60.0
+    no_worker_s: float = 60.0
 
 
 @dataclass
@@ -749,6 +755,14 @@ def _run_jobs(
     client, cluster = _dask_client(opts)
     rows: list[dict[str, Any]] = []
     try:
+        where = f"--scheduler {opts.scheduler}" if opts.scheduler else "the LocalCluster"
+        try:
+            client.wait_for_workers(1, timeout=opts.worker_wait_s)
+        except TimeoutError:
+            raise FleetError(
+                f"{where}: no Dask worker joined within {opts.worker_wait_s:g} s"
+                " (start `dask worker ADDRESS`)"
+            ) from None
         timing["workers"] = len(client.scheduler_info().get("workers", {}))
         t1 = time.perf_counter()
         timing["startup_s"] = t1 - t0
@@ -764,15 +778,9 @@ def _run_jobs(
         }
         failed = 0
         with _progress(len(futures), opts.progress) as bar, open(journal, "a") as log_fh:
-            for fut in as_completed(futures):
-                job, ident = futures[fut]
-                try:
-                    got = fut.result()
-                except Exception as e:  # the task itself failed (lost worker, bad pickle)
-                    reason = f"Dask task failed: {type(e).__name__}: {' '.join(str(e).split())}"
-                    got = [
-                        {"method": m, "status": CRASHED, "reason": reason} for m in job["methods"]
-                    ]
+
+            def take(job: dict[str, Any], ident: dict[str, Any], got: list[dict]) -> None:
+                nonlocal failed
                 for r in got:
                     base = ident["out_base"]
                     written = r["status"] == OK and bool(base)
@@ -790,12 +798,60 @@ def _run_jobs(
                 failed += any(r["status"] in FAILED for r in got)
                 bar.set_postfix(failed=failed)
                 bar.update(1)
+
+            pending = as_completed(futures)
+            no_worker_since: float | None = None
+            next_check = 0.0
+            while not pending.is_empty():
+                batch = pending.next_batch(block=False)
+                for fut in batch:
+                    job, ident = futures.pop(fut)
+                    try:
+                        got = fut.result()
+                    except Exception as e:  # the task itself failed (lost worker, bad pickle)
+                        msg = " ".join(str(e).split())
+                        got = _crashed(job, f"Dask task failed: {type(e).__name__}: {msg}")
+                    take(job, ident, got)
+                if batch:
+                    continue
+                now = time.monotonic()
+                if now >= next_check:
+                    # A task whose worker died waits for another one: with none left, forever.
+                    next_check = now + min(1.0, opts.no_worker_s / 4)
+                    if _n_workers(client):
+                        no_worker_since = None
+                    elif no_worker_since is None:
+                        no_worker_since = now
+                    elif now - no_worker_since >= opts.no_worker_s:
+                        reason = (
+                            f"no Dask worker left for {opts.no_worker_s:g} s ({where}); the"
+                            " flight did not finish: rerun to resume"
+                        )
+                        log.warning("%s: %d flight(s) not finished", reason, len(futures))
+                        for fut, (job, ident) in list(futures.items()):
+                            fut.cancel()
+                            take(job, ident, _crashed(job, reason))
+                        futures.clear()
+                        break
+                time.sleep(0.05)
         timing["tasks_s"] = time.perf_counter() - t1
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
     return rows
+
+
+def _crashed(job: Mapping[str, Any], reason: str) -> list[dict[str, Any]]:
+    return [{"method": m, "status": CRASHED, "reason": reason} for m in job["methods"]]
+
+
+def _n_workers(client: Any) -> int:
+    """Workers the scheduler has now (0 when it does not answer)."""
+    try:
+        return len(client.nthreads())
+    except Exception:
+        return 0
 
 
 def _method_dir(name: str) -> str:

@@ -151,3 +151,55 @@ def test_bad_scheduler_values_are_one_line_errors(
         assert time.monotonic() - t0 < 10
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"--scheduler {address}: " in err[0] and why in err[0], err
+
+
+def _cluster(n_workers: int):
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp://",
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+        silence_logs=logging.WARNING,
+    )
+
+
+def test_a_scheduler_without_workers_is_a_one_line_error(twins, tmp_path):
+    """It waited forever, without a word."""
+    from fgnav.fleet import FleetError
+
+    with _cluster(0) as cluster:
+        opts = _opts(scheduler=cluster.scheduler_address, worker_wait_s=1.0)
+        with pytest.raises(FleetError, match=r"no Dask worker joined within 1 s") as e:
+            run_fleet([str(twins[0])], tmp_path / "o", opts)
+        assert "\n" not in str(e.value)
+
+
+def test_flights_left_when_every_worker_is_gone_are_crashed_rows(twins, tmp_path):
+    """All workers stopped mid-run: the fleet waited forever (the tasks wait for a worker); now
+    the unfinished flights are named ``crashed`` rows after ``no_worker_s``."""
+    import time
+
+    with _cluster(1) as cluster:
+        opts = _opts(scheduler=cluster.scheduler_address, no_worker_s=1.0)
+        res = {}
+        t = threading.Thread(
+            target=lambda: res.update(r=run_fleet([str(p) for p in twins], tmp_path / "o", opts))
+        )
+        t.start()
+        deadline = time.monotonic() + 30
+        while not any(ts.state == "processing" for ts in list(cluster.scheduler.tasks.values())):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        cluster.scale(0)
+        t.join(60)
+        assert not t.is_alive()
+    rows = res["r"].rows
+    assert len(rows) == 2 and all(r["flight"] == "tt1" for r in rows)
+    lost = [r for r in rows if r["status"] == "crashed"]
+    assert lost and all("no Dask worker left for 1 s" in r["reason"] for r in lost)
+    assert {r["input"] for r in rows} == {str(p) for p in twins}
