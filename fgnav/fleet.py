@@ -474,6 +474,29 @@ class FleetResult:
         )
 
 
+#: Largest ``--memory-limit`` [MiB]: RLIMIT_AS takes bytes below 2**63.
+MAX_MEMORY_LIMIT_MB = float(2**63 // 2**20 - 1)
+
+
+def check_limits(timeout_s: float | None, memory_limit_mb: float | None) -> None:
+    """``--timeout`` and ``--memory-limit`` are finite, positive and fit what they are passed
+    to (a wait's ``threading.TIMEOUT_MAX``, RLIMIT_AS's bytes below 2**63); None is no limit.
+
+    Raises:
+        FleetError: one line naming the option.
+    """
+    import threading
+
+    for flag, v, hi, unit in (
+        ("--timeout", timeout_s, threading.TIMEOUT_MAX, "s"),
+        ("--memory-limit", memory_limit_mb, MAX_MEMORY_LIMIT_MB, "MB"),
+    ):
+        if v is None:
+            continue
+        if not (isinstance(v, int | float) and math.isfinite(v) and 0 < v <= hi):
+            raise FleetError(f"{flag} must be a finite number > 0 and <= {hi:g} {unit}, got {v!r}")
+
+
 def _check_methods(methods: Iterable[str]) -> None:
     from fgnav.methods import METHODS, REFERENCE_PREFIX
 
@@ -653,6 +676,7 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
         FleetError: no flights, an unknown method, an unreachable scheduler.
     """
     opts = opts or FleetOptions()
+    check_limits(opts.timeout_s, opts.memory_limit_mb)
     _check_methods(opts.methods)
     out = Path(out)
     flights = discover(inputs)

@@ -61,16 +61,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fgnav.datasets.errors import FgnavError
-    from fgnav.fleet import FleetOptions, run_fleet
+    from fgnav.fleet import FleetOptions, check_limits, run_fleet
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    for flag, v in (
-        ("--workers", args.workers),
-        ("--timeout", args.timeout),
-        ("--memory-limit", args.memory_limit),
-    ):
-        if v is not None and v <= 0:
-            raise FgnavError(f"{flag} must be positive, got {v:g}")
+    if args.workers is not None and args.workers <= 0:
+        raise FgnavError(f"--workers must be positive, got {args.workers}")
+    check_limits(args.timeout, args.memory_limit)
     # The tables and their options checked here, before any worker starts (one line, exit 1).
     check_tables(args.config, list(METHOD_TABLES))
     config = load_method_config(args.config)

@@ -203,3 +203,27 @@ def test_flights_left_when_every_worker_is_gone_are_crashed_rows(twins, tmp_path
     lost = [r for r in rows if r["status"] == "crashed"]
     assert lost and all("no Dask worker left for 1 s" in r["reason"] for r in lost)
     assert {r["input"] for r in rows} == {str(p) for p in twins}
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--timeout", "nan"),
+        ("--timeout", "inf"),
+        ("--timeout", "1e300"),
+        ("--timeout", "-1"),
+        ("--memory-limit", "nan"),
+        ("--memory-limit", "inf"),
+        ("--memory-limit", "1e30"),
+        ("--memory-limit", "0"),
+    ],
+)
+def test_limits_must_be_finite_positive_and_fit(flag, value, twins, tmp_path, capsys):
+    """nan, inf and 1e300 passed the check; Dask printed a traceback and every run crashed."""
+    from fgnav.cli import main
+
+    argv = ["fleet", str(twins[0]), "--out", str(tmp_path / "o"), flag, value, "--no-progress"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{flag} must be a finite number > 0" in err[0], err
+    assert not (tmp_path / "o").exists()
