@@ -465,6 +465,18 @@ class FleetResult:
             out[r["status"]] = out.get(r["status"], 0) + 1
         return out
 
+    def failure_lines(self) -> list[str]:
+        """One line per failed row: ``flight (input) method: status: reason``."""
+        return [
+            f"{r['flight']} ({r['input']}) {r['method']}: {r['status']}: {r.get('reason') or ''}"
+            for r in self.rows
+            if r["status"] in FAILED
+        ]
+
+    def all_failed(self) -> bool:
+        """Every run failed (none ``ok`` or ``skipped``)."""
+        return bool(self.rows) and not any(r["status"] in DONE for r in self.rows)
+
     def summary_line(self) -> str:
         c = self.counts()
         parts = ", ".join(f"{n} {s}" for s, n in c.items())

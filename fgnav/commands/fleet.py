@@ -9,12 +9,15 @@ must then be a path shared by every worker and this client). Writes ``DIR/fleet.
 ``DIR/flights/<flight>-<hash>/<method>/``, and the journal ``DIR/fleet-runs.jsonl``. A rerun skips
 the runs already done with the same input content and options, found in ``fleet.json`` or the
 journal (``--force`` reruns them). Failed flights are rows of the table (status
-``error``, ``timeout``, ``crashed``): the exit code is 0 once the table is written.
+``error``, ``timeout``, ``crashed``), each also printed on stderr after the run, one line
+``flight (input) method: status: reason``. The exit code is 0 once the table is written, unless
+every run failed: then 1 (after the table and the summary line).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from fgnav.commands import add_config_argument, add_out_argument
 from fgnav.config import check_tables
@@ -83,5 +86,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     res = run_fleet(args.inputs, args.out, opts)
+    for line in res.failure_lines():
+        print(line, file=sys.stderr)
     print(res.summary_line())
-    return 0
+    return 1 if res.all_failed() else 0

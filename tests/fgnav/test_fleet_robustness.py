@@ -227,3 +227,26 @@ def test_limits_must_be_finite_positive_and_fit(flag, value, twins, tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{flag} must be a finite number > 0" in err[0], err
     assert not (tmp_path / "o").exists()
+
+
+def test_failures_are_printed_and_all_failed_exits_1(twins, scheduler, tmp_path, capsys):
+    """Failed rows were only counted and written; a fleet where every run failed exited 0."""
+    from fgnav.cli import main
+
+    bad = tmp_path / "bad.ulg"
+    bad.write_bytes(b"not a ulog")
+    out = str(tmp_path / "o")
+    addr = scheduler.scheduler_address
+    argv = ["fleet", str(bad), "--out", out, "--scheduler", addr, "--no-progress"]
+    assert main(argv) == 1
+    cap = capsys.readouterr()
+    err = [line for line in cap.err.splitlines() if line.startswith("bad (")]
+    assert len(err) == 1 and err[0].startswith(f"bad ({bad}) batch: error: ") and "ULog" in err[0]
+    assert "1 flights, 1 runs: 0 ok, 0 skipped, 1 error" in cap.out
+    assert (tmp_path / "o" / "fleet.csv").is_file()
+    # One good flight with the bad one: printed again, exit 0.
+    argv = ["fleet", str(bad), str(twins[0]), "--out", out, "--scheduler", addr, "--no-progress"]
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert [line for line in cap.err.splitlines() if line.startswith("bad (")] == err
+    assert "1 ok, 0 skipped, 1 error" in cap.out
