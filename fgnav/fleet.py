@@ -242,27 +242,35 @@ def _manifest_files(p: Path) -> list[Path]:
     return files
 
 
-def _files_of(p: Path) -> list[Path]:
+def _files_of(p: Path, exclude: Path | None = None) -> list[Path]:
+    """The files of a flight input, less those under ``exclude`` (the fleet's output folder)."""
+    skip = Path(os.path.abspath(exclude)) if exclude is not None else None
+
+    def kept(f: Path) -> bool:
+        return skip is None or not Path(os.path.abspath(f)).is_relative_to(skip)
+
     if p.is_dir():
-        return sorted(f for f in p.rglob("*") if f.is_file())
+        return sorted(f for f in p.rglob("*") if f.is_file() and kept(f))
     if p.suffix.lower() == ".toml":
         out: list[Path] = []
         for f in _manifest_files(p):
-            out += _files_of(f) if f != p else [f]
+            out += _files_of(f, exclude) if f != p else [f]
         return out
     return [p]
 
 
-def content_hash(path: Path) -> str:
+def content_hash(path: Path, exclude: Path | None = None) -> str:
     """sha256 (hex) of a flight input's content: the file; a folder's files (relative names and
     bytes); a manifest and the files it names. Unchanged content, same hash, wherever it lies.
+    Files under ``exclude`` are left out (the fleet's ``--out`` inside a flight folder: its own
+    outputs would change the hash, and a rerun would never skip).
 
     Raises:
         OSError: a file cannot be read.
     """
     h = hashlib.sha256()
     base = path if path.is_dir() else path.parent
-    for f in _files_of(path):
+    for f in _files_of(path, exclude):
         h.update(os.path.relpath(f, base).encode() + b"\0")
         if not f.exists():
             h.update(b"<missing>\0")
@@ -703,7 +711,7 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
     for f in flights:
         ident = {"flight": f.name, "input": f.input}
         try:
-            h = content_hash(f.path)
+            h = content_hash(f.path, exclude=out)
         except OSError as e:
             for m in opts.methods:
                 rows.append({**ident, "method": m, "status": ERROR, "reason": f"{f.path}: {e}"})

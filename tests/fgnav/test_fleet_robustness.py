@@ -250,3 +250,20 @@ def test_failures_are_printed_and_all_failed_exits_1(twins, scheduler, tmp_path,
     cap = capsys.readouterr()
     assert [line for line in cap.err.splitlines() if line.startswith("bad (")] == err
     assert "1 ok, 0 skipped, 1 error" in cap.out
+
+
+def test_out_inside_the_flight_folder_is_not_its_content(twins, scheduler, tmp_path):
+    """``--out`` inside the flight: the fleet's own outputs joined the flight's content hash, so
+    a rerun never skipped (and left one flights/ folder per run)."""
+    import shutil
+
+    flight = tmp_path / "tt1"
+    shutil.copytree(twins[0], flight)
+    h = content_hash(flight)
+    opts = _opts(scheduler=scheduler.scheduler_address)
+    first = run_fleet([str(flight)], flight / "fleet", opts).rows[0]
+    assert first["status"] == "ok" and first["input_hash"] == h
+    again = run_fleet([str(flight)], flight / "fleet", opts).rows[0]
+    assert again["status"] == "skipped" and again["input_hash"] == h
+    assert len(list((flight / "fleet" / "flights").iterdir())) == 1
+    assert content_hash(flight) != h  # (without the exclusion the outputs count)
