@@ -41,7 +41,7 @@ import time
 import tomllib
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -696,6 +696,8 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
         FleetError: no flights, an unknown method, an unreachable scheduler.
     """
     opts = opts or FleetOptions()
+    # A method named twice runs once (``batch,batch`` ran it twice per flight).
+    opts = replace(opts, methods=tuple(dict.fromkeys(opts.methods)))
     check_limits(opts.timeout_s, opts.memory_limit_mb)
     _check_methods(opts.methods)
     out = Path(out)
@@ -708,6 +710,10 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
     t_all = time.perf_counter()
     rows: list[dict[str, Any]] = []
     jobs: list[tuple[dict[str, Any], dict[str, Any]]] = []
+    # Copies of a flight (same name and content, two places): one job, whose rows each copy
+    # gets with its own input (both ran into one flights/<name>-<hash>/ folder at once).
+    first_of: dict[tuple[str, str], str] = {}
+    copies: list[tuple[dict[str, Any], str, list[str]]] = []
     for f in flights:
         ident = {"flight": f.name, "input": f.input}
         try:
@@ -725,6 +731,10 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
                 todo.append(m)
         if not todo:
             continue
+        if (f.name, h) in first_of:
+            copies.append((ident, first_of[(f.name, h)], todo))
+            continue
+        first_of[(f.name, h)] = f.input
         rel = f"flights/{f.name}-{h[:8]}" if opts.flight_files else ""
         job = {
             "flight": f.name,
@@ -739,6 +749,8 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
     timing = {"workers": 0, "startup_s": 0.0, "tasks_s": 0.0}
     if jobs:
         rows += _run_jobs(jobs, opts, o_hash, timing, out / JOURNAL)
+    for ident, of, todo in copies:
+        rows += [{**r, **ident} for r in rows if r["input"] == of and r["method"] in todo]
     order = {m: i for i, m in enumerate(opts.methods)}
     pos = {f.input: i for i, f in enumerate(flights)}
     rows.sort(key=lambda r: (pos.get(r["input"], 0), order.get(r["method"], 0)))

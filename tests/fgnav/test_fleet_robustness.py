@@ -267,3 +267,24 @@ def test_out_inside_the_flight_folder_is_not_its_content(twins, scheduler, tmp_p
     assert again["status"] == "skipped" and again["input_hash"] == h
     assert len(list((flight / "fleet" / "flights").iterdir())) == 1
     assert content_hash(flight) != h  # (without the exclusion the outputs count)
+
+
+def test_a_method_or_a_flight_named_twice_runs_once(twins, scheduler, tmp_path):
+    """``--methods batch,batch`` ran batch twice per flight; two copies of one flight (a/tt1 and
+    c/tt1, same content) ran at once into one flights/tt1-<hash>/ folder."""
+    import shutil
+
+    copy = tmp_path / "c" / "tt1"
+    shutil.copytree(twins[0], copy)
+    opts = _opts(scheduler=scheduler.scheduler_address, methods=("batch", "batch"))
+    res = run_fleet([str(twins[0]), str(copy), str(twins[1])], tmp_path / "o", opts)
+    assert [(r["input"], r["method"], r["status"]) for r in res.rows] == [
+        (str(twins[0]), "batch", "ok"),
+        (str(copy), "batch", "ok"),
+        (str(twins[1]), "batch", "ok"),
+    ]
+    a, c, b = res.rows
+    assert c["ate_rmse_m"] == a["ate_rmse_m"] and c["out_dir"] == a["out_dir"]
+    assert a["out_dir"] != b["out_dir"]  # (same name, other content: its own folder)
+    journal = (tmp_path / "o" / "fleet-runs.jsonl").read_text().splitlines()
+    assert len(journal) == 2  # two flights run, not three runs (nor six)
