@@ -646,7 +646,16 @@ def _probe_scheduler(address: str, deadline_s: float) -> None:
         raise FleetError(f"{where}: not a Dask scheduler (it is a {kind})")
 
 
-def _dask_client(opts: FleetOptions):
+def local_workers(requested: int | None, n_jobs: int) -> int:
+    """LocalCluster workers: ``requested`` (None: one per core), at most one per flight to run;
+    a log line when more than the cores are asked for (they then share them)."""
+    cores = default_workers()
+    if requested is not None and requested > cores:
+        log.warning("--workers %d: more than this machine's %d core(s)", requested, cores)
+    return max(1, min(requested or cores, n_jobs))
+
+
+def _dask_client(opts: FleetOptions, n_jobs: int):
     """A Dask client: on ``opts.scheduler``, or on a loopback LocalCluster of single-threaded
     worker processes.
 
@@ -670,7 +679,7 @@ def _dask_client(opts: FleetOptions):
                 f"--scheduler {address}: cannot connect ({type(e).__name__}: {msg})"
             ) from None
     cluster = LocalCluster(
-        n_workers=opts.workers or default_workers(),
+        n_workers=local_workers(opts.workers, n_jobs),
         threads_per_worker=1,
         processes=True,
         host="127.0.0.1",
@@ -808,7 +817,7 @@ def _run_jobs(
     t0 = time.perf_counter()
     from distributed import as_completed
 
-    client, cluster = _dask_client(opts)
+    client, cluster = _dask_client(opts, len(jobs))
     rows: list[dict[str, Any]] = []
     try:
         where = f"--scheduler {opts.scheduler}" if opts.scheduler else "the LocalCluster"

@@ -83,7 +83,7 @@ def test_local_cluster_leaves_port_8787_alone():
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        client, cluster = _dask_client(_opts(workers=1))
+        client, cluster = _dask_client(_opts(workers=1), 1)
         try:
             assert cluster.scheduler.http_server.port != 8787
         finally:
@@ -288,3 +288,20 @@ def test_a_method_or_a_flight_named_twice_runs_once(twins, scheduler, tmp_path):
     assert a["out_dir"] != b["out_dir"]  # (same name, other content: its own folder)
     journal = (tmp_path / "o" / "fleet-runs.jsonl").read_text().splitlines()
     assert len(journal) == 2  # two flights run, not three runs (nor six)
+
+
+def test_local_workers_are_capped_by_the_flights_and_warned_above_the_cores(caplog):
+    """``--workers 1000`` started 1000 worker processes for a handful of flights."""
+    from fgnav.fleet import default_workers, local_workers
+
+    cores = default_workers()
+    with caplog.at_level(logging.WARNING, logger="fgnav.fleet"):
+        assert local_workers(1000, 3) == 3
+    assert [r.getMessage() for r in caplog.records] == [
+        f"--workers 1000: more than this machine's {cores} core(s)"
+    ]
+    caplog.clear()
+    assert local_workers(None, 1000) == cores
+    assert local_workers(None, 1) == 1
+    assert local_workers(1, 5) == 1
+    assert not caplog.records
