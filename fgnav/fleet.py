@@ -864,7 +864,9 @@ def _run_jobs(
                 bar.set_postfix(failed=failed)
                 bar.update(1)
 
-            pending = as_completed(futures)
+            # On this client's loop: as_completed's default is the process's default client,
+            # another fleet's in the same process (its closing left these results untracked).
+            pending = as_completed(futures, loop=client.loop)
             no_worker_since: float | None = None
             next_check = 0.0
             while not pending.is_empty():
