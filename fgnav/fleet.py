@@ -149,6 +149,29 @@ def is_flight(p: Path) -> bool:
     return is_crazyflie_log(p)
 
 
+def _damaged_flight(p: Path) -> bool:
+    """A file a folder scan takes as a flight although it does not read as one, so that the
+    table names why: a manifest (``*.toml``) that is not valid TOML, or a file that starts as
+    a Crazyflie SD-card log (magic byte, version 1 or 2) but fails its header or CRC check (a
+    truncated copy). Before, the scan left both out without a word."""
+    if not p.is_file():
+        return False
+    if p.suffix.lower() == ".toml":
+        try:
+            tomllib.loads(p.read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return True
+        return False
+    from fgnav.datasets.crazyflie import MAGIC
+
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(3)
+    except OSError:
+        return False
+    return len(head) == 3 and head[0] == MAGIC and int.from_bytes(head[1:], "little") in (1, 2)
+
+
 def flight_name(p: Path) -> str:
     """Name of a flight in the table: its folder name (the parent of ``mav0``) or file stem."""
     p = Path(os.path.abspath(p))
@@ -158,7 +181,8 @@ def flight_name(p: Path) -> str:
 
 
 def _scan(folder: Path) -> list[Path]:
-    """Flights under ``folder`` (recursively; a flight folder is not searched further)."""
+    """Flights under ``folder`` (recursively; a flight folder is not searched further),
+    damaged ones included (:func:`_damaged_flight`: their rows say why)."""
     found: list[Path] = []
     for root, dirs, files in os.walk(folder):
         dirs.sort()
@@ -172,7 +196,9 @@ def _scan(folder: Path) -> list[Path]:
             else:
                 keep.append(d)
         dirs[:] = keep
-        found += [here / f for f in sorted(files) if is_flight(here / f)]
+        found += [
+            here / f for f in sorted(files) if is_flight(here / f) or _damaged_flight(here / f)
+        ]
     return found
 
 

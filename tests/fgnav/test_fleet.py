@@ -128,7 +128,9 @@ def test_discover_folders_globs_and_errors(tmp_path):
 @pytest.mark.realdata
 def test_discover_finds_crazyflie_logs_without_a_suffix(real_data, tmp_path):
     """A folder of Crazyflie SD-card logs (no file suffix) is scanned by content (it was "no
-    flights found in this folder"); its README and a damaged copy are not flights."""
+    flights found in this folder"); its README is not a flight. A damaged copy (truncated: CRC
+    mismatch) and a manifest that is not TOML are taken, so that their rows say why (review,
+    2026-12-07: the scan left them out, "1 flights, 1 ok"); a TOML without ``[imu]`` is not."""
     import shutil
 
     folder = tmp_path / "cf"
@@ -138,8 +140,10 @@ def test_discover_finds_crazyflie_logs_without_a_suffix(real_data, tmp_path):
     (folder / "README.md").write_text("# flights\n")
     data = (src / "0425-traj3").read_bytes()
     (folder / "0425-traj3-cut").write_bytes(data[: len(data) // 2])
+    (folder / "config.toml").write_text("[graph]\nkeyframe_hz = 10\n")
+    (folder / "typo.toml").write_text("[imu\nformat = 'euroc'\n")
     found = discover([str(folder)])
-    assert [f.name for f in found] == ["0425-traj1"]
+    assert [f.name for f in found] == ["0425-traj1", "0425-traj3-cut", "typo"]
 
 
 def test_content_hash_follows_content_not_place(tmp_path):
