@@ -3,7 +3,8 @@
 Each subcommand lives in ``fgnav/commands/<name>.py`` and defines ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``; ``run`` is a thin layer over a library call.
 A subcommand whose module does not exist yet is listed and says so when called.
-Known errors (:class:`fgnav.datasets.FgnavError`) print one line on stderr and exit with code 1.
+Known errors (:class:`fgnav.datasets.FgnavError`) print one line on stderr and exit with code 1;
+Ctrl-C prints one line and exits with code 130.
 """
 
 from __future__ import annotations
@@ -97,6 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # (a file not found, a folder not writable, a full disk ...)
         print(f"fgnav {args.command}: error: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt as e:  # Ctrl-C: one line (a command may say what it had done)
+        detail = f": {e}" if str(e) else ""
+        print(f"fgnav {args.command}: interrupted{detail}", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -689,7 +689,7 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
         FleetError: a bad address, nothing or no Dask scheduler answering there in
             :data:`CONNECT_DEADLINE_S`.
     """
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     # The scheduler of a LocalCluster runs in this process: its INFO lines are not the user's.
     logging.getLogger("distributed").setLevel(logging.WARNING)
@@ -704,7 +704,20 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
             raise FleetError(
                 f"--scheduler {address}: cannot connect ({type(e).__name__}: {msg})"
             ) from None
-    cluster = LocalCluster(
+    # The workers (spawned interpreters) inherit SIGINT ignored: a Ctrl-C reaches this process
+    # only, which closes the cluster (each worker printed its own traceback before).
+    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        cluster = _local_cluster(opts, n_jobs)
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+    return Client(cluster), cluster
+
+
+def _local_cluster(opts: FleetOptions, n_jobs: int):
+    from distributed import LocalCluster
+
+    return LocalCluster(
         n_workers=local_workers(opts.workers, n_jobs),
         threads_per_worker=1,
         processes=True,
@@ -715,7 +728,6 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
         scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
         silence_logs=logging.WARNING,
     )
-    return Client(cluster), cluster
 
 
 def _progress(total: int, enabled: bool):
@@ -928,6 +940,16 @@ def _run_jobs(
                         break
                 time.sleep(0.05)
         timing["tasks_s"] = time.perf_counter() - t1
+    except KeyboardInterrupt:
+        # Ctrl-C: the flights not done are cancelled (their children die with the workers,
+        # ``fleet_worker._die_with_parent``); the done ones are in the journal.
+        for fut in list(futures if "futures" in locals() else ()):
+            fut.cancel()
+        done = len({(r["flight"], r["input"]) for r in rows})
+        raise KeyboardInterrupt(
+            f"{done} of {len(jobs)} flight(s) done (their rows in {journal}); run the same "
+            "command again to resume"
+        ) from None
     finally:
         client.close()
         if cluster is not None:

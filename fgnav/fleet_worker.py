@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import time
 from typing import Any
@@ -153,8 +154,26 @@ def run_job(job: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def _die_with_parent() -> None:
+    """Linux: this child is killed when the Dask worker that started it dies (it runs in its own
+    session, so a Ctrl-C of the fleet or a closed cluster left it running to the end)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the call
+        os._exit(1)
+
+
 def main() -> int:
     """Read the job from stdin, write the rows as one JSON list to the real stdout."""
+    _die_with_parent()
     job = json.loads(sys.stdin.read())
     set_memory_limit(job.get("memory_limit_mb"))
     # Everything the library prints goes to stderr; fd 1 carries the JSON result only.

@@ -305,3 +305,42 @@ def test_local_workers_are_capped_by_the_flights_and_warned_above_the_cores(capl
     assert local_workers(None, 1) == 1
     assert local_workers(1, 5) == 1
     assert not caplog.records
+
+
+def test_ctrl_c_is_one_line_and_leaves_no_child(tmp_path):
+    """SIGINT to the fleet's process group, as a terminal's Ctrl-C (review, 2026-12-07): five
+    tracebacks (the client's and every worker's), and each flight's child interpreter, in its own
+    session, ran on. Now one line, exit 130, the workers ignore the SIGINT, the children die
+    with them, and the done flights are in the journal for the rerun."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    flights = [_simulate(tmp_path / "in" / f"f{i}", 20 + i, "figure8") for i in range(6)]
+    assert len(flights) == 6
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "fgnav.cli", "fleet", str(tmp_path / "in"), "--out", str(out)]
+    proc = subprocess.Popen(
+        [*cmd, "--workers", "1", "--no-progress"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    journal = out / "fleet-runs.jsonl"
+    t_end = time.monotonic() + 120
+    while time.monotonic() < t_end and not (journal.exists() and journal.read_text().strip()):
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("fgnav fleet: interrupted: ") and "of 6 flight(s) done" in last
+    time.sleep(1.0)
+    ps = subprocess.run(["ps", "-eo", "pid,pgid,cmd"], capture_output=True, text=True).stdout
+    assert not [ln for ln in ps.splitlines() if "fgnav.fleet_worker" in ln and str(out) in ln]
+    alive = [ln for ln in ps.splitlines() if "<defunct>" not in ln]  # (exited, not yet reaped)
+    assert not [ln for ln in alive if ln.split()[1:2] == [str(proc.pid)]]
