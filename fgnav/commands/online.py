@@ -10,7 +10,8 @@ Thin layer over the ``fixed-lag`` method of :mod:`fgnav.methods` (which assemble
 calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[graph]``,
 ``[online]`` and ``[priors]`` tables of ``--config`` (fields of
 :class:`~fgnav.solvers.graph.GraphOptions` and :class:`~fgnav.solvers.fixed_lag.FixedLagOptions`);
-``--lag`` overrides. A native flight folder without images that the push engine runs is read in
+``--lag`` overrides. A run whose estimate diverged and did not recover (health "diverged") is
+written, then exits 1 with one line saying so. A native flight folder without images that the push engine runs is read in
 chunks as it is replayed (:func:`fgnav.datasets.native.open_flight_streams`: bounded memory on
 a long flight; the ground truth is read after the run, for scoring). Prints the update latency
 (p50/p99) and how many times faster than real time the run was; scores the causal trajectory when
@@ -27,6 +28,7 @@ import numpy as np
 from fgnav.commands import add_config_argument, add_flight_argument, add_out_argument
 from fgnav.commands.batch import add_priors_argument, method_config, score_and_write
 from fgnav.config import check_tables
+from fgnav.datasets.errors import FgnavError
 from fgnav.eval.outputs import summary_extra
 from fgnav.methods import fixed_lag_options, run_fixed_lag
 
@@ -99,4 +101,10 @@ def run(args: argparse.Namespace) -> int:
             "more stamp blocks than keys per update: see FixedLagOptions.marginalize_every_s)"
         )
     score_and_write(flight, est, Path(args.out), summary_extra(flight.name, est, "online"))
+    if (info.get("health") or {}).get("status") == "diverged":
+        # As batch's not-converged (exit 1), but written: the log of a run that went wrong.
+        raise FgnavError(
+            f"{flight.name}: the estimate diverged and did not recover (health: diverged; "
+            f"written to {args.out} for inspection)"
+        )
     return 0

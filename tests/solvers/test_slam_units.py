@@ -68,3 +68,24 @@ def test_a_slam_in_metres_is_left_alone(scenario):
     f = simulate(scenario, seed=0, options=SimOptions(duration=12.0, images=False))
     est = replay_online(f, FixedLagOptions())
     assert _sources(est) == ["default"]
+
+
+def test_fgnav_online_exits_1_on_a_diverged_estimate(tmp_path, monkeypatch, capsys):
+    """Review, 2026-12-07: ``fgnav online`` exited 0 with health "diverged" (batch exits 1 when
+    it does not converge). The diverging centimetre SLAM of the control above, through the
+    command: one line, exit 1, the estimate written for inspection."""
+    from fgnav.datasets.simulate import simulate_to_folder
+    from testutil import command_cli
+
+    folder = simulate_to_folder(
+        "two-turns",
+        tmp_path / "cm",
+        seed=1,
+        options=SimOptions(duration=20.0, images=False, slam_scale=100.0),
+    )
+    monkeypatch.setattr(online, "UNITS_MIN_RATIO", math.inf)
+    out = tmp_path / "out"
+    assert command_cli("online", folder, out) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("fgnav online: error: ") and "diverged" in err
+    assert (out / "summary.json").exists()
