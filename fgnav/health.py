@@ -472,6 +472,7 @@ class FaultDetectors:
                 f"of session {last_sess}: a map reset declared by the input (a new scale and "
                 "alignment from here)",
             )
+        jump = None  # what names a jump at this pose (the first test that finds one)
         if prev is not None and 0 < t - prev[0] <= o.slam_jump_max_dt_s:
             dt = t - prev[0]
             scale = self.context.scale(virtual)
@@ -484,40 +485,32 @@ class FaultDetectors:
                 d = float(np.linalg.norm(p - prev[1])) / scale
                 allowed = speed * dt + o.slam_jump_min_m + 0.5 * o.slam_jump_accel_max * dt**2
                 if d > allowed:
-                    n += 1
-                    self._slam_jumps[sess] = n
-                    virtual = sess + JUMP_SESSION_BASE * n
-                    self._count(
-                        "slam-jump",
-                        f"SLAM session {sess} moved {d:.2f} m in {dt * 1e3:.0f} ms at t={t:.2f} "
-                        f"(the estimate allows {allowed:.2f} m): a new alignment from here",
+                    jump = (
+                        f"moved {d:.2f} m in {dt * 1e3:.0f} ms at t={t:.2f} (the estimate "
+                        f"allows {allowed:.2f} m)"
                     )
         elif prev is not None and t - prev[0] > o.slam_jump_max_dt_s:
             moved = self._relocalised(virtual, p, t)
             if moved is not None:
-                n += 1
-                self._slam_jumps[sess] = n
-                virtual = sess + JUMP_SESSION_BASE * n
-                self._count(
-                    "slam-jump",
-                    f"SLAM session {sess} is back after {t - prev[0]:.1f} s without a pose, "
-                    f"{moved[0]:.2f} m from the estimate at t={t:.2f} (it allows "
-                    f"{moved[1]:.2f} m): relocalised in a moved map, a new alignment from here",
+                jump = (
+                    f"is back after {t - prev[0]:.1f} s without a pose, {moved[0]:.2f} m from "
+                    f"the estimate at t={t:.2f} (it allows {moved[1]:.2f} m): relocalised in a "
+                    "moved map"
                 )
         q = np.asarray(ev.slam_q_cam_wxyz, float)
         q_prev = self._slam_prev_q.get(sess)
-        if prev is not None and q_prev is not None and virtual == sess + JUMP_SESSION_BASE * n:
+        if jump is None and prev is not None and q_prev is not None:
             turned = self._turned(prev[0], q_prev, t, q)
             if turned is not None:
-                n += 1
-                self._slam_jumps[sess] = n
-                virtual = sess + JUMP_SESSION_BASE * n
-                self._count(
-                    "slam-jump",
-                    f"SLAM session {sess} turned {turned[0]:.1f} deg in {t - prev[0]:.2f} s at "
-                    f"t={t:.2f} while the gyro turned {turned[1]:.1f} deg: the map turned, a new "
-                    "alignment from here",
+                jump = (
+                    f"turned {turned[0]:.1f} deg in {t - prev[0]:.2f} s at t={t:.2f} while the "
+                    f"gyro turned {turned[1]:.1f} deg: the map turned"
                 )
+        if jump is not None:
+            n += 1
+            self._slam_jumps[sess] = n
+            virtual = sess + JUMP_SESSION_BASE * n
+            self._count("slam-jump", f"SLAM session {sess} {jump}: a new alignment from here")
         if np.isfinite(q).all() and float(q @ q) > 0:
             self._slam_prev_q[sess] = q / math.sqrt(float(q @ q))
         self._slam_prev[sess] = (t, p)

@@ -31,18 +31,7 @@ def twins(tmp_path_factory) -> tuple[Path, Path]:
 @pytest.fixture
 def scheduler():
     """A LocalCluster reached by address (threads, 2 workers, loopback, no dashboard)."""
-    from distributed import LocalCluster
-
-    with LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        processes=False,
-        protocol="tcp://",
-        host="127.0.0.1",
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.WARNING,
-    ) as cluster:
+    with _cluster(2) as cluster:
         yield cluster
 
 
@@ -154,6 +143,7 @@ def test_bad_scheduler_values_are_one_line_errors(
 
 
 def _cluster(n_workers: int):
+    """A LocalCluster reached by address (threads, loopback, no dashboard)."""
     from distributed import LocalCluster
 
     return LocalCluster(
