@@ -73,15 +73,23 @@ def options_from(
 
 
 def _nested_options_class(hint: Any) -> type | None:
-    """The options dataclass a field declares (alone, or with None), else None (a field that
-    also takes a dict builds its options itself, e.g. ``GraphOptions.flow``)."""
+    """The options dataclass a field declares (alone, or with None or ``dict``, e.g.
+    ``GraphOptions.flow``: a table is built into it here, checked key by key and by type), else
+    None."""
     members = (
         typing.get_args(hint)
         if typing.get_origin(hint) in (typing.Union, types.UnionType)
         else (hint,)
     )
     classes = [m for m in members if isinstance(m, type) and dataclasses.is_dataclass(m)]
-    others = [m for m in members if m is not type(None) and m not in classes]
+    others = [
+        m
+        for m in members
+        if m is not type(None)
+        and m not in classes
+        and m is not dict
+        and typing.get_origin(m) is not dict
+    ]
     return classes[0] if len(classes) == 1 and not others else None
 
 

@@ -144,13 +144,11 @@ def flow_options(value: Any) -> FlowFactorOptions:
     if isinstance(value, FlowFactorOptions):
         return value.check()
     if isinstance(value, dict):
-        names = {f.name for f in dataclasses.fields(FlowFactorOptions)}
-        unknown = sorted(set(value) - names)
-        if unknown:
-            raise FlightDataError(
-                f"[graph.flow]: unknown option(s) {unknown}; valid: {sorted(names)}"
-            )
-        return FlowFactorOptions(**value).check()
+        from fgnav.config import options_from
+
+        # Unknown keys and values of the wrong type are one error naming them (a string sigma
+        # was a TypeError deep in the graph).
+        return options_from(FlowFactorOptions, value, "flow").check()
     raise FlightDataError(f"GraphOptions.flow: expected a table of flow options, got {value!r}")
 
 

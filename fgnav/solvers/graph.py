@@ -372,6 +372,16 @@ class GraphOptions:
                 f"GraphOptions.thrust_only_sigma={self.thrust_only_sigma}, thrust_only_tau_s="
                 f"{self.thrust_only_tau_s}: expected > 0"
             )
+        # The [graph.flow] and [graph.homography] tables (keys, types, values), before any flight
+        # is read (they were a TypeError or a cv2.error at the first factor).
+        if self.flow is not None:
+            from fgnav.solvers.flow import flow_options
+
+            flow_options(self.flow)
+        if self.homography is not None:
+            from fgnav.solvers.vision import homography_options
+
+            homography_options(self.homography)
         return self
 
 

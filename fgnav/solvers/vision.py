@@ -61,7 +61,6 @@ constrains the relative rotation, yaw included.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 import weakref
@@ -143,14 +142,12 @@ def homography_options(value: Any) -> HomographyFactorOptions:
     if isinstance(value, HomographyFactorOptions):
         return value.check()
     if isinstance(value, dict):
-        table = dict(value)
-        names = {f.name for f in dataclasses.fields(HomographyFactorOptions)}
-        unknown = sorted(set(table) - names)
-        if unknown:
-            raise FlightDataError(f"unknown homography option(s) {unknown}; valid: {sorted(names)}")
-        if isinstance(table.get("vo"), dict):
-            table["vo"] = HomographyVOOptions(**table["vo"])
-        return HomographyFactorOptions(**table).check()
+        from fgnav.config import options_from
+
+        # Unknown keys and values of the wrong type (also in its ``vo`` table) are one error
+        # naming them (they were a TypeError or a cv2.error in the VO).
+        opts = options_from(HomographyFactorOptions, value, "homography")
+        return opts.check()
     raise FlightDataError(
         f"GraphOptions.homography: expected HomographyFactorOptions, a table or None, got "
         f"{type(value).__name__}"

@@ -328,3 +328,30 @@ def test_a_nested_options_table_is_built_into_its_options():
     assert isinstance(o.observer, IIObserverOptions) and o.observer.kinematics == "full"
     with pytest.raises(FlightFormatError, match=r"c\.toml \[ii-observer\.observer\]: unknown"):
         options_from(Seed000Options, {"observer": {"kinematic": "full"}}, "c.toml", "ii-observer")
+
+
+@pytest.mark.parametrize("command", ["batch", "online", "compare"])
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        (
+            "[graph.flow]\nsigma_rad = 'x'\n",
+            "[graph]: flow: option sigma_rad = 'x': expected a num",
+        ),
+        ("[graph.flow]\nbogus = 1\n", "unknown option(s) ['bogus'] for FlowFactorOptions"),
+        ("[graph.flow]\nsigma_rad = -1.0\n", "sigma_rad = -1.0: expected > 0"),
+        ("[graph.homography]\nmin_inliers = 2.5\n", "option min_inliers = 2.5: expected an int"),
+        ("[graph.homography]\nbogus = 1\n", "for HomographyFactorOptions"),
+        ("[graph.homography.vo]\nmax_corners = 'x'\n", "homography [vo]: option max_corners"),
+        ("[graph.homography.vo]\nbogus = 1\n", "['bogus'] for HomographyVOOptions"),
+    ],
+)
+def test_flow_and_homography_tables_are_checked_up_front(tmp_path, capsys, command, table, needle):
+    """``[graph.flow]``, ``[graph.homography]`` and ``[graph.homography.vo]`` are checked (keys,
+    types, values) before the flight is read: a wrong type was a TypeError or a cv2.error at
+    the first factor (review 2026-12-07)."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err and needle in err

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from fgnav.datasets.errors import FlightDataError
+from fgnav.datasets.errors import FgnavError, FlightDataError
 from fgnav.datasets.simulate import SimOptions, simulate
 
 from fgnav.eval.metrics import evaluate
@@ -224,8 +224,11 @@ def test_gate_pair_reasons():
 def test_homography_options_from_a_table():
     o = homography_options({"min_inliers": 50, "vo": {"max_corners": 300}})
     assert o.min_inliers == 50 and o.vo.max_corners == 300
-    with pytest.raises(FlightDataError, match="unknown homography option"):
+    with pytest.raises(FgnavError, match=r"homography: unknown option\(s\) \['min_inlier'\]"):
         homography_options({"min_inlier": 50})
+    # Types are checked, also in the vo table (a string was a cv2.error in the VO).
+    with pytest.raises(FgnavError, match=r"homography \[vo\]: option max_corners = 'x'"):
+        homography_options({"vo": {"max_corners": "x"}})
 
 
 @pytest.mark.slow
