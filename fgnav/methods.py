@@ -206,9 +206,7 @@ def missing_reason(missing: list[str]) -> str:
 def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) -> Any:
     from fgnav.config import options_from
 
-    table = dict(config.get(section, {}))
-    if not isinstance(config.get(section, {}), Mapping):
-        raise MethodUnavailableError(f"config [{section}] must be a table")
+    table = config_table(config, section)
     # Values written in from command-line flags are passed as overrides, so an error names the
     # flag's value as coming from the command line.
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
@@ -218,6 +216,21 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     where = f"{source} [{section}]" if SOURCE_KEY in config else f"[{section}]"
     _self_check(options, where, tuple(flagged))
     return options
+
+
+def config_table(config: Mapping[str, Any], section: str) -> dict[str, Any]:
+    """A copy of the table ``section`` of ``config`` (``{}`` when absent); a scalar or a list
+    where a table belongs (``graph = 5``) is one error naming the file and the table (it was a
+    TypeError)."""
+    table = config.get(section, {})
+    if not isinstance(table, Mapping):
+        from fgnav.config import _kind
+
+        raise FlightFormatError(
+            str(config.get(SOURCE_KEY, "config")),
+            f"[{section}] must be a table, found {_kind(table)} ({section} = {table!r})",
+        )
+    return dict(table)
 
 
 def _self_check(options: Any, where: str, flagged: tuple[str, ...] = ()) -> None:
@@ -280,14 +293,20 @@ def check_method_config(config: Mapping[str, Any]) -> None:
     if "online" in config:
         fixed_lag_options(config)
     if "priors" in config:
-        from fgnav.frontends.prior_stages import prior_options
-
-        table = _priors_table(config)
-        # Without drag_k in the table the flight's calibration may give it (checked on the run).
-        _named_priors(config, prior_options, table, None if "drag_k" in table else (1.0, 1.0))
+        check_priors(config)
     for table, (module, name) in _BASELINE_OPTIONS.items():
         if table in config:
             _options(getattr(importlib.import_module(module), name), config, table)
+
+
+def check_priors(config: Mapping[str, Any]) -> None:
+    """Check the ``[priors]`` table without a flight (names and types of ``sources`` and
+    ``drag_k``), so that a bad value is one error before the flight is read."""
+    from fgnav.frontends.prior_stages import prior_options
+
+    table = _priors_table(config)
+    # Without drag_k in the table the flight's calibration may give it (checked on the run).
+    _named_priors(config, prior_options, table, None if "drag_k" in table else (1.0, 1.0))
 
 
 FLAGS_KEY = "__flags__"
@@ -317,9 +336,8 @@ def with_flags(config: Mapping[str, Any], **tables: Mapping[str, Any]) -> dict[s
     for section, flags in tables.items():
         given = {k: v for k, v in flags.items() if v is not None}
         if given:
-            table = out.setdefault(section, {})
-            if not isinstance(table, dict):
-                raise MethodUnavailableError(f"config [{section}] must be a table")
+            table = config_table(out, section)
+            out[section] = table
             table.update(given)
             marks[section] = sorted(set(marks.get(section, ())) | set(given))
     return out
@@ -336,6 +354,7 @@ def batch_options(config: Mapping[str, Any]):
     """:class:`~fgnav.solvers.batch.BatchOptions` from ``[graph]``, ``[lm]`` and ``[batch]``."""
     from fgnav.solvers.batch import BatchOptions, LMOptions
 
+    check_priors(config)
     return _options(
         BatchOptions,
         config,
@@ -349,6 +368,7 @@ def fixed_lag_options(config: Mapping[str, Any]):
     """:class:`~fgnav.solvers.fixed_lag.FixedLagOptions` from ``[graph]`` and ``[online]``."""
     from fgnav.solvers.fixed_lag import FixedLagOptions
 
+    check_priors(config)
     return _options(FixedLagOptions, config, "online", graph=graph_options(config))
 
 
@@ -570,7 +590,7 @@ def _named_priors(config: Mapping[str, Any], make: Callable, table: dict, drag_k
 
 
 def _priors_table(config: Mapping[str, Any]) -> dict[str, Any]:
-    table = dict(config.get("priors", {}))
+    table = config_table(config, "priors")
     unknown = sorted(set(table) - {"sources", "drag_k"})
     if unknown:
         raise FlightFormatError(
@@ -599,9 +619,12 @@ def frontend_priors(flight: Flight, config: Mapping[str, Any]):
     """Front-end priors of the smoothers from the ``[priors]`` table (``sources``, ``drag_k``);
     None when no source is named."""
     from fgnav.frontends.pipeline import frontend_priors as _priors
+    from fgnav.frontends.prior_stages import prior_drag_k, prior_sources
 
     table = _priors_table(config)
-    return _priors(flight, table.get("sources", []), drag_k=table.get("drag_k"))
+    sources = _named_priors(config, lambda t, drag_k: prior_sources(t.get("sources")), table, None)
+    drag_k = _named_priors(config, lambda t, drag_k: prior_drag_k(t.get("drag_k")), table, None)
+    return _priors(flight, sources, drag_k=drag_k)
 
 
 def _with_priors(est: Estimate, priors: Any) -> Estimate:
@@ -628,7 +651,7 @@ def run_ekf004(flight: Flight, config: Mapping[str, Any], progress: bool = False
     from fgnav.baselines.ekf004 import ATTITUDE_SOURCES, Ekf004Options
     from fgnav.baselines.ekf004 import run_ekf004 as _run
 
-    table = dict(config.get("ekf004", {}))
+    table = config_table(config, "ekf004")
     defaults = calibrated_drag_k(flight, table)
     fields = {k: v for k, v in defaults.items() if k != "drag_k_source"}
     est = _run(flight, _options(Ekf004Options, {"ekf004": {**fields, **table}}, "ekf004"))
@@ -663,7 +686,7 @@ def run_ii_observer(flight: Flight, config: Mapping[str, Any], progress: bool = 
     from fgnav.baselines.seed000 import Seed000Options, run_seed000
     from fgnav.solvers.graph import declared_slam_model
 
-    table = dict(config.get("ii-observer", {}))
+    table = config_table(config, "ii-observer")
     defaults: dict[str, Any] = {}
     if "align_slam_axes" not in table:
         defaults["align_slam_axes"] = declared_slam_model(flight) != "axis"

@@ -114,18 +114,52 @@ class PriorOptions:
         return self
 
 
+def prior_sources(value: Any) -> tuple[str, ...]:
+    """``[priors] sources`` as names: a list of names, or one name as a string (``"ml-scale"``
+    was read letter by letter); anything else is an error naming the option."""
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise FlightDataError(
+            f"[priors]: option sources = {value!r}: expected a list of front-end names "
+            f"(from {list(PRIOR_SOURCES)})"
+        )
+    return tuple(value)
+
+
+def prior_drag_k(value: Any) -> tuple[float, float] | None:
+    """``[priors] drag_k`` as ``(kx, ky)`` [1/s]: one number (both axes) or a list of one or two,
+    each finite and > 0; anything else is an error naming the option (a string, an empty list or
+    three values were a ValueError, an IndexError or silently cut to two)."""
+    if value is None:
+        return None
+    values = list(value) if isinstance(value, (list, tuple)) else [value]
+    ok = 1 <= len(values) <= 2 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        for v in values
+    )
+    if not ok:
+        raise FlightDataError(
+            f"[priors]: option drag_k = {value!r}: expected a number > 0 or a list of two "
+            "(kx, ky) [1/s]"
+        )
+    return float(values[0]), float(values[-1])
+
+
 def prior_options(table: Any, drag_k: Any = None) -> PriorOptions | None:
     """``PriorOptions`` from a ``[priors]`` table (``sources``, ``drag_k``); ``drag_k``: the
-    flight's calibrated value when the table has none. None without sources."""
+    flight's calibrated value when the table has none. None without sources. The table's values
+    are checked (:func:`prior_sources`, :func:`prior_drag_k`) also when there are no sources."""
     table = dict(table or {})
-    sources = tuple(table.get("sources", ()) or ())
+    sources = prior_sources(table.get("sources"))
+    k = prior_drag_k(table["drag_k"]) if "drag_k" in table else None
     if not sources:
         return None
-    k = table.get("drag_k", drag_k)
-    k = None if k is None else np.atleast_1d(np.asarray(k, dtype=float))
-    return PriorOptions(
-        sources=sources, drag_k=None if k is None else (float(k[0]), float(k[-1]))
-    ).check()
+    if k is None and drag_k is not None:
+        k = tuple(float(v) for v in np.atleast_1d(np.asarray(drag_k, dtype=float))[[0, -1]])
+    return PriorOptions(sources=sources, drag_k=k).check()
 
 
 class _MlSession:

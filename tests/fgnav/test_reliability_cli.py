@@ -355,3 +355,41 @@ def test_flow_and_homography_tables_are_checked_up_front(tmp_path, capsys, comma
     argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
     err = _one_line_error(capsys, argv)
     assert str(cfg) in err and needle in err
+
+
+@pytest.mark.parametrize("command", ["batch", "online", "compare"])
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        # A scalar where a table belongs was a TypeError in dict().
+        ("graph = 5\n", "[graph] must be a table, found an integer (graph = 5)"),
+        ("priors = 5\n", "[priors] must be a table, found an integer"),
+        ("graph = [1]\n", "[graph] must be a table, found a list"),
+        # [priors] values were not checked (a TypeError, a ValueError, an IndexError, or three
+        # drag coefficients cut to two).
+        ("[priors]\nsources = 5\n", "[priors]: option sources = 5: expected a list of front"),
+        ("[priors]\nsources = [1]\n", "option sources = [1]: expected a list of front-end"),
+        ("[priors]\ndrag_k = 'abc'\n", "[priors]: option drag_k = 'abc': expected a number > 0"),
+        ("[priors]\nsources = ['observer']\ndrag_k = []\n", "option drag_k = []: expected"),
+        ("[priors]\nsources = ['observer']\ndrag_k = nan\n", "option drag_k = nan: expected"),
+        ("[priors]\ndrag_k = [0.4, 0.5, 9.0]\n", "option drag_k = [0.4, 0.5, 9.0]: expected"),
+        ("[priors]\ndrag_k = [-0.4, 0.5]\n", "option drag_k = [-0.4, 0.5]: expected"),
+        ("[priors]\nsources = 'nosuch'\n", "unknown front-end prior(s) ['nosuch']"),
+    ],
+)
+def test_tables_and_priors_are_checked_up_front(tmp_path, capsys, command, table, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err and needle in err
+
+
+def test_one_prior_source_may_be_a_string():
+    """``sources = "ml-scale"`` is the one source (it was read letter by letter)."""
+    from fgnav.frontends.prior_stages import prior_options
+
+    assert prior_options({"sources": "ml-scale"}).sources == ("ml-scale",)
+    o = prior_options({"sources": ["observer"], "drag_k": 0.4})
+    assert o.drag_k == (0.4, 0.4)
+    assert prior_options({"sources": ["observer"]}, drag_k=[0.3, 0.5]).drag_k == (0.3, 0.5)
