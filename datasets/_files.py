@@ -23,23 +23,53 @@ def existing_file(path: str | Path, what: str = "file") -> Path:
     return p
 
 
-def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
-    """The TOML document at ``path``; a missing ``what`` or bad TOML is a one-line
-    :class:`FlightFormatError` naming the file (and, from tomllib, the line and column)."""
+def read_text(path: str | Path, what: str = "file") -> str:
+    """The text of the file ``path`` (UTF-8); a missing file or one that is not text (a binary
+    file given as a config or calibration: a UnicodeDecodeError) is a one-line
+    :class:`FlightFormatError` naming it."""
     p = existing_file(path, what)
     try:
-        return tomllib.loads(p.read_text())
+        return p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise FlightFormatError(
+            p, f"not a text {what}: byte {e.start} is not UTF-8 ({e.reason})"
+        ) from None
+    except OSError as e:
+        raise FlightFormatError(p, f"cannot read the {what}: {e.strerror or e}") from None
+
+
+def yaml_error(path: str | Path, e: yaml.YAMLError) -> FlightFormatError:
+    """YAML error ``e`` of the file ``path`` as one line: file:line, column and the problem
+    (PyYAML's own message is four lines with a copy of the text and a caret)."""
+    mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    context = getattr(e, "context", None)
+    where = f", column {mark.column + 1}" if mark is not None else ""
+    msg = f"not valid YAML{where}: {problem}" + (f" ({context})" if context else "")
+    return FlightFormatError(path, " ".join(msg.split()), line=mark.line + 1 if mark else None)
+
+
+def read_toml(path: str | Path, what: str = "file") -> dict[str, Any]:
+    """The TOML document at ``path``; a missing ``what``, a file that is not text or bad TOML is
+    a one-line :class:`FlightFormatError` naming the file (and, from tomllib, the line and
+    column)."""
+    p = existing_file(path, what)
+    text = read_text(p, what)
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise FlightFormatError(p, f"not valid TOML: {e}") from e
 
 
 def read_yaml(path: str | Path, what: str = "file") -> Any:
-    """The YAML document at ``path`` (``yaml.safe_load``), with the errors of :func:`read_toml`."""
+    """The YAML document at ``path`` (``yaml.safe_load``), with the errors of :func:`read_toml`
+    (a YAML error on one line: :func:`yaml_error`)."""
     p = existing_file(path, what)
+    text = read_text(p, what)
     try:
-        return yaml.safe_load(p.read_text())
+        return yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise FlightFormatError(p, f"not valid YAML: {e}") from e
+        raise yaml_error(p, e) from None
 
 
 def file_number(value: Any, key: str, path: Path) -> float:

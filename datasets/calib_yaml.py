@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ._files import existing_file, file_number
+from ._files import existing_file, file_number, read_text, yaml_error
 from .errors import FlightDataError, FlightFormatError, note
 from .types import Calibration, CameraIntrinsics, ImuNoise
 
@@ -66,17 +66,14 @@ def load_opencv_yaml(path: str | Path) -> dict[str, Any]:
         FlightFormatError: missing file or invalid YAML, naming file and line.
     """
     p = existing_file(path, "calibration file")
-    lines = p.read_text().splitlines()
+    lines = read_text(p, "calibration file").splitlines()
     # Keep line numbers: blank out the directive instead of deleting it.
     lines = ["" if ln.lstrip().startswith("%YAML") else ln for ln in lines]
     text = _OPENCV_TAG.sub("", "\n".join(lines))
     try:
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        raise FlightFormatError(
-            p, f"not valid YAML: {getattr(e, 'problem', e)}", line=mark.line + 1 if mark else None
-        ) from e
+        raise yaml_error(p, e) from None
     if not isinstance(d, dict):
         raise FlightFormatError(p, "expected a YAML mapping of settings")
     return d

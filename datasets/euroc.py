@@ -85,6 +85,7 @@ import numpy as np
 import yaml
 
 from . import _tables
+from ._files import read_text, yaml_error
 from .errors import FlightDataError, FlightFormatError, note
 from .frames import rotate_body_frame
 from .geometry import invert_pose
@@ -289,11 +290,12 @@ def read_euroc_images(
 
 
 def _read_sensor_yaml(path: Path) -> dict[str, Any]:
+    text = read_text(path, "sensor file")
     try:
-        text = path.read_text()
-        d = yaml.safe_load("\n".join(ln for ln in text.splitlines() if not ln.startswith("%")))
+        # The directive line is blanked, not removed, so that an error names the right line.
+        d = yaml.safe_load("\n".join("" if ln.startswith("%") else ln for ln in text.splitlines()))
     except yaml.YAMLError as e:
-        raise FlightFormatError(path, f"not valid YAML: {e}") from e
+        raise yaml_error(path, e) from None
     if not isinstance(d, dict):
         raise FlightFormatError(path, "expected a YAML mapping")
     return d

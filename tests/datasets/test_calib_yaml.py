@@ -86,3 +86,27 @@ def test_bad_files_named(tmp_path, edit, match):
     p.write_text(edit(OLD_STYLE))
     with pytest.raises(FlightFormatError, match=match):
         read_orbslam3_yaml(p)
+
+
+def test_binary_and_bad_yaml_files_are_one_line(tmp_path):
+    """A binary file given as a config, manifest or calibration was a UnicodeDecodeError; a YAML
+    error was four lines (PyYAML's copy of the text and a caret): now one line naming the file,
+    line and column (review 2026-12-07)."""
+    from fgnav.datasets._files import read_toml, read_yaml
+
+    binary = tmp_path / "x.bin"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe\x00")
+    for read in (read_toml, read_yaml, read_orbslam3_yaml):
+        with pytest.raises(FlightFormatError, match=r"x\.bin: not a text .*byte 0 is not UTF-8"):
+            read(binary)
+    bad = tmp_path / "calib.yaml"
+    bad.write_text("imu:\n  rate_hz: [1, 2\n  other: 3\n")
+    with pytest.raises(FlightFormatError) as e:
+        read_yaml(bad)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{bad}:3: not valid YAML, column 8: expected")
+    p = tmp_path / "old.yaml"
+    p.write_text(OLD_STYLE.replace("Camera.cx: 320.0", "Camera.cx: [320.0"))
+    with pytest.raises(FlightFormatError) as e:
+        read_orbslam3_yaml(p)
+    assert "\n" not in str(e.value) and "not valid YAML" in str(e.value)
