@@ -92,7 +92,7 @@ from .load import lazy_reader
 from .native import read_calib_yaml, read_stream_csv
 from .slam_gyro import SlamConventionError, check_modes
 from .tum import TIME_UNITS, read_tum, read_tum_slam
-from .types import Calibration, Flight, ImuNoise
+from .types import Calibration, Flight, ImuNoise, imu_noise_problem
 
 log = logging.getLogger(__name__)
 
@@ -197,10 +197,27 @@ def _imu_noise_override(manifest: Path, base: ImuNoise, spec: Any) -> ImuNoise:
         raise FlightFormatError(
             manifest, f"[calib.imu_noise] unknown key(s) {unknown}; valid: {', '.join(fields)}"
         )
+    flags = {f.name for f in dataclasses.fields(ImuNoise) if f.type in (bool, "bool")}
+    out: dict[str, Any] = {}
     for k, v in spec.items():
-        if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
-            raise FlightFormatError(manifest, f"[calib.imu_noise] {k}: expected a number > 0")
-    return dataclasses.replace(base, **{k: float(v) for k, v in spec.items()})
+        if k in flags:
+            if not isinstance(v, bool):
+                raise FlightFormatError(
+                    manifest, f"[calib.imu_noise] {k}: expected true or false (found {v!r})"
+                )
+            out[k] = v
+            continue
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise FlightFormatError(
+                manifest, f"[calib.imu_noise] {k}: expected a number > 0 (found {v!r})"
+            )
+        problem = imu_noise_problem(k, v)
+        if problem is None and not v > 0:
+            problem = "expected a number > 0"
+        if problem is not None:
+            raise FlightFormatError(manifest, f"[calib.imu_noise] {k}: {problem} (found {v!r})")
+        out[k] = float(v)
+    return dataclasses.replace(base, **out)
 
 
 def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:

@@ -480,6 +480,23 @@ class ImuNoise:
     rest_bias_removed: bool = False
 
 
+#: Largest IMU noise density or random walk accepted (SI units): a consumer MEMS gyro's density
+#: is ~1e-4 rad/s/sqrt(Hz), an accelerometer's ~1e-3 m/s^2/sqrt(Hz); 1e300 left the IMU factors
+#: without information.
+IMU_NOISE_MAX = 1e3
+
+
+def imu_noise_problem(field_name: str, value: float) -> str | None:
+    """What is wrong with an :class:`ImuNoise` number (None: nothing): densities must be finite,
+    >= 0 and at most :data:`IMU_NOISE_MAX`; random walks also > 0 (a zero bias walk fixes the
+    biases: the smoothers then stopped on an "indeterminate system")."""
+    if not (math.isfinite(value) and 0 <= value <= IMU_NOISE_MAX):
+        return f"expected a number in [0, {IMU_NOISE_MAX:g}]"
+    if field_name.endswith("random_walk") and not value > 0:
+        return f"expected a number > 0 (and <= {IMU_NOISE_MAX:g})"
+    return None
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
     """Fixed extrinsics and intrinsics.
@@ -527,9 +544,10 @@ class Calibration:
             raise FlightDataError(
                 f"{name}.flow_rate_gain: expected (a > 0, b) finite, got {self.flow_rate_gain}"
             )
-        if not (np.isfinite(self.flow_pixels_per_rad) and self.flow_pixels_per_rad > 0):
+        if not (np.isfinite(self.flow_pixels_per_rad) and 0 < self.flow_pixels_per_rad <= 1e6):
+            # 1e6: far above any sensor's (PMW3901 ~48 flow units/rad, a camera ~500 px/rad).
             raise FlightDataError(
-                f"{name}.flow_pixels_per_rad: expected a positive number, got "
+                f"{name}.flow_pixels_per_rad: expected a positive number up to 1e6, got "
                 f"{self.flow_pixels_per_rad}"
             )
         lo, hi = float(self.range_min), float(self.range_max)
@@ -542,8 +560,9 @@ class Calibration:
             v = getattr(self.imu_noise, f.name)
             if isinstance(v, bool):
                 continue
-            if not (math.isfinite(v) and v >= 0):
-                raise FlightDataError(f"{name}.imu_noise.{f.name}: expected >= 0, got {v}")
+            problem = imu_noise_problem(f.name, v)
+            if problem is not None:
+                raise FlightDataError(f"{name}.imu_noise.{f.name}: {problem}, got {v}")
         for stream, v in self.time_offsets.items():
             if not math.isfinite(v):
                 raise FlightDataError(f"{name}.time_offsets.{stream}: expected a finite offset")

@@ -6,6 +6,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -54,7 +55,7 @@ def options_from(
     kwargs = dict(table)
     given = {k: v for k, v in overrides.items() if v is not None}
     kwargs.update(given)
-    zero_ok = getattr(cls, "ZERO_MEANS_OFF", frozenset())
+    zero_ok = getattr(cls, "ZERO_MEANS_OFF", frozenset()) | ZERO_OK_OPTIONS
     hints = _field_types(cls)
     for name, value in kwargs.items():
         problem = option_type_problem(hints.get(name, Any), value)
@@ -235,8 +236,56 @@ POSITIVE_OPTIONS = frozenset(
         "slam_provisional_scale",
         "slam_provisional_min_poses",
         "slam_init_max_rel_se",
+        "max_imu_gap_s",
+        "init_imu_s",
+        "drag_scatter_n",
     }
 )
+
+#: Options whose 0 is their default and meaning besides a class's ``ZERO_MEANS_OFF`` (a sigma or
+#: walk of 0: none); writing the default was refused as "expected > 0".
+ZERO_OK_OPTIONS = frozenset({"slam_gap_origin_sigma_m", "slam_origin_rw_m"})
+
+#: Bounds ``(low, high)`` (inclusive; None: open) of option values that pass the sign rules yet
+#: make no sense, by exact option name. Each is generous: no sane value is refused.
+OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
+    # [m/s^2]: Earth's 9.78-9.83 (1e300 or 1e-300 made the IMU preintegration meaningless).
+    "gravity": (1.0, 100.0),
+    # GraphOptions.check names its own range (<= 1000; a minimum over the flight after reading).
+    "keyframe_hz": (None, None),
+    # A filter's largest prediction step [s]: 1e-300 split each IMU interval without end.
+    "max_predict_dt_s": (1e-4, None),
+    # IMU span averaged for the first attitude [s] (0 waited without end).
+    "init_imu_s": (1e-3, None),
+    # Simulated flight length [s] (1e9 s: 2e11 IMU samples), integration sub-steps per IMU sample.
+    "duration": (None, 1e5),
+    "substeps": (1, 1000),
+}
+
+#: Bounds of options by name pattern (see :data:`OPTION_BOUNDS`): noise sigmas, rates [Hz],
+#: segment lengths [s], noise densities and random walks. A sigma of 1e300 has no information
+#: (the solver's "indeterminate system"), one of 1e-300 an infinite one; a segment or rate of
+#: 1e-300 asks for 1e300 variables or samples.
+PATTERN_BOUNDS: tuple[tuple[Callable[[str], bool], tuple[float | None, float | None]], ...] = (
+    (lambda n: "sigma" in n, (1e-12, 1e6)),
+    (lambda n: n.endswith("_hz"), (1e-3, 1e5)),
+    (lambda n: n.endswith("segment_s"), (1e-3, None)),
+    (lambda n: n.endswith(("noise_density", "random_walk")), (None, 1e3)),
+)
+
+#: Largest integer option (a C++ ``int`` of GTSAM or OpenCV: larger overflowed in the binding).
+INT_MAX = 2**31 - 1
+
+
+def option_bounds(name: str) -> tuple[float | None, float | None]:
+    """The bounds :func:`option_value_problem` applies to option ``name`` (``(None, None)``:
+    none beyond the sign rules)."""
+    if name in OPTION_BOUNDS:
+        return OPTION_BOUNDS[name]
+    for matches, bounds in PATTERN_BOUNDS:
+        if matches(name):
+            return bounds
+    return (None, None)
 
 
 def option_value_problem(name: str, value: Any, zero_ok: bool = False) -> str | None:
@@ -246,7 +295,8 @@ def option_value_problem(name: str, value: Any, zero_ok: bool = False) -> str | 
     Every number (also inside tuples and lists) must be finite. Noise sigmas (``*sigma*``), rates
     (``*_hz``), random walks (``*_rw``, ``*_rw_m``), lags and segment lengths (``lag_s``,
     ``*segment_s``) and :data:`POSITIVE_OPTIONS` must be > 0; durations and lengths (``*_s``,
-    ``*_m``, offsets excepted) must be >= 0. Booleans, strings and None are not checked here.
+    ``*_m``, offsets excepted) must be >= 0; then the bounds of :func:`option_bounds` apply
+    (an integer at most :data:`INT_MAX`). Booleans, strings and None are not checked here.
     """
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return None
@@ -269,4 +319,13 @@ def option_value_problem(name: str, value: Any, zero_ok: bool = False) -> str | 
         return "expected >= 0 (0: off)" if zero_ok else "expected > 0"
     if name.endswith(("_s", "_m")) and "offset" not in name and value < 0:
         return "expected >= 0"
+    if isinstance(value, int) and abs(value) > INT_MAX:
+        return f"expected an integer up to {INT_MAX}"
+    lo, hi = option_bounds(name)
+    if value == 0 and zero_ok:
+        return None
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        if lo is not None and hi is not None:
+            return f"expected in [{lo:g}, {hi:g}]"
+        return f"expected >= {lo:g}" if lo is not None else f"expected <= {hi:g}"
     return None

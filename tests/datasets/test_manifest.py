@@ -119,6 +119,36 @@ def test_imu_noise_override_in_manifest(tmp_path):
         read_manifest_text(tmp_path, GOOD + calib + "[calib.imu_noise]\nacc = 0.01\n")
     with pytest.raises(FlightFormatError, match=r"gyro_noise_density: expected a number > 0"):
         read_manifest_text(tmp_path, GOOD + calib + "[calib.imu_noise]\ngyro_noise_density = 0\n")
+    # A switch is true or false (it was refused as "expected a number > 0"); absurd values and a
+    # zero random walk are refused (review 2026-12-07).
+    f = read_manifest_text(tmp_path, GOOD + calib + "[calib.imu_noise]\nrest_bias_removed = true\n")
+    assert f.calib.imu_noise.rest_bias_removed is True
+    for text, match in [
+        ("rest_bias_removed = 1", r"rest_bias_removed: expected true or false \(found 1\)"),
+        ("gyro_noise_density = 1e300", r"gyro_noise_density: expected a number in \[0, 1000\]"),
+        ("accel_random_walk = 0.0", r"accel_random_walk: expected a number > 0"),
+        ("gyro_random_walk = 'x'", r"gyro_random_walk: expected a number > 0 \(found 'x'\)"),
+    ]:
+        with pytest.raises(FlightFormatError, match=match):
+            read_manifest_text(tmp_path, GOOD + calib + f"[calib.imu_noise]\n{text}\n")
+
+
+def test_calibration_bounds():
+    """A calibration's IMU random walk must be > 0 (0 ended in an "indeterminate system"), its
+    noise numbers and flow scale not absurd (1e300 passed) (review 2026-12-07)."""
+    from fgnav.datasets.errors import FlightDataError
+    from fgnav.datasets.types import Calibration, ImuNoise
+
+    Calibration(imu_noise=ImuNoise(gyro_noise_density=0.0)).check()  # noise-free: allowed
+    for noise, match in [
+        (ImuNoise(gyro_random_walk=0.0), r"imu_noise\.gyro_random_walk: expected a number > 0"),
+        (ImuNoise(accel_random_walk=0.0), r"accel_random_walk: expected a number > 0"),
+        (ImuNoise(gyro_noise_density=1e300), r"gyro_noise_density: expected a number in \[0,"),
+    ]:
+        with pytest.raises(FlightDataError, match=match):
+            Calibration(imu_noise=noise).check()
+    with pytest.raises(FlightDataError, match=r"flow_pixels_per_rad: expected a positive number"):
+        Calibration(flow_pixels_per_rad=1e300).check()
 
 
 def read_manifest_text(folder, text: str) -> Flight:

@@ -393,3 +393,56 @@ def test_one_prior_source_may_be_a_string():
     o = prior_options({"sources": ["observer"], "drag_k": 0.4})
     assert o.drag_k == (0.4, 0.4)
     assert prior_options({"sources": ["observer"]}, drag_k=[0.3, 0.5]).drag_k == (0.3, 0.5)
+
+
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        ("[online]\nmax_imu_gap_s = 0\n", "[online]: option max_imu_gap_s = 0: expected > 0"),
+        ("[online]\ninit_imu_s = 0\n", "option init_imu_s = 0: expected > 0"),  # hung
+        ("[online]\ninit_imu_s = 1e-300\n", "option init_imu_s = 1e-300: expected >= 0.001"),
+        ("[online]\ndrag_scatter_n = 0\n", "option drag_scatter_n = 0: expected > 0"),
+        ("[graph]\ndrag_model_sigma = 1e300\n", "drag_model_sigma = 1e+300: expected in [1e-12,"),
+        ("[graph]\nprior_position_sigma = 1e300\n", "prior_position_sigma = 1e+300: expected"),
+        ("[graph]\nprior_gyro_bias_sigma = 1e300\n", "prior_gyro_bias_sigma = 1e+300: expec"),
+        ("[graph]\nground_segment_s = 1e-300\n", "ground_segment_s = 1e-300: expected >= 0.001"),
+        ("[graph]\ndrag_segment_s = 1e-300\n", "drag_segment_s = 1e-300: expected >= 0.001"),
+        ("[graph]\nslam_segment_s = 1e-300\n", "slam_segment_s = 1e-300: expected >= 0.001"),
+        ("[online]\nrelinearize_skip = 9223372036854775807\n", "expected an integer up to 21"),
+        ("[graph]\ngravity = 1e300\n", "option gravity = 1e+300: expected in [1, 100]"),
+        ("[graph]\ngravity = 1e-300\n", "option gravity = 1e-300: expected in [1, 100]"),
+        ("[ekf004]\nmax_predict_dt_s = 1e-300\n", "max_predict_dt_s = 1e-300: expected >= 0.0001"),
+    ],
+)
+def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
+    """Values > 0 and finite that crashed or hung a run (review 2026-12-07) are refused up front
+    by the bounds of :func:`fgnav.config.option_bounds`."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    argv = ["compare", str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err and needle in err
+
+
+def test_option_bounds_refuse_no_default():
+    """The bounds are generous: every options class's default passes them, and so do the
+    sigmas of 1e6 and segments of 1 ms (a sigma that large ran to the end on a flight)."""
+    import dataclasses
+
+    from fgnav.config import ZERO_OK_OPTIONS, option_bounds, option_value_problem
+    from fgnav.methods import _BASELINE_OPTIONS
+    from fgnav.solvers.batch import BatchOptions, LMOptions
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.graph import GraphOptions
+
+    classes = [GraphOptions, FixedLagOptions, BatchOptions, LMOptions, SimOptions]
+    classes += [getattr(__import__(m, fromlist=[n]), n) for m, n in _BASELINE_OPTIONS.values()]
+    for cls in classes:
+        zero_ok = getattr(cls, "ZERO_MEANS_OFF", frozenset()) | ZERO_OK_OPTIONS
+        for f in dataclasses.fields(cls):
+            if f.default is dataclasses.MISSING or option_bounds(f.name) == (None, None):
+                continue
+            assert option_value_problem(f.name, f.default, f.name in zero_ok) is None, f.name
+    assert option_value_problem("prior_position_sigma", 1e6) is None
+    assert option_value_problem("ground_segment_s", 1e-3) is None
+    assert option_value_problem("gravity", 9.81) is None
