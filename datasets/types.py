@@ -319,6 +319,10 @@ class FlowSeries(_Series):
         return self
 
 
+#: Numbers of distortion coefficients OpenCV accepts (0: none).
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole camera with optional radial-tangential distortion (OpenCV order k1 k2 p1 p2 [k3]).
@@ -348,6 +352,13 @@ class CameraIntrinsics:
             raise FlightDataError(f"{name}: non-finite intrinsics {vals}")
         if self.fx <= 0 or self.fy <= 0 or self.width <= 0 or self.height <= 0:
             raise FlightDataError(f"{name}: fx, fy, width, height must be positive")
+        if len(self.distortion) not in DISTORTION_COUNTS:
+            # OpenCV's undistortion takes these counts only (3 or 7 were a cv2.error).
+            raise FlightDataError(
+                f"{name}: {len(self.distortion)} distortion coefficients; expected "
+                + ", ".join(str(n) for n in DISTORTION_COUNTS)
+                + " (OpenCV order k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])"
+            )
         return self
 
 

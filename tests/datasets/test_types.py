@@ -91,3 +91,16 @@ def test_slam_session_and_latency_must_be_non_negative():
             np.zeros(n, int),
             np.array([0.1, -0.1, 0]),
         ).check()
+
+
+def test_camera_distortion_counts():
+    """Only the distortion lengths OpenCV takes are accepted (3 or 7 coefficients were a
+    cv2.error in the VO; review 2026-12-07)."""
+    from fgnav.datasets.types import DISTORTION_COUNTS, CameraIntrinsics
+
+    for n in DISTORTION_COUNTS:
+        CameraIntrinsics(200.0, 200.0, 16.0, 12.0, 32, 24, (0.01,) * n).check()
+    for n in (1, 3, 7, 9):
+        cam = CameraIntrinsics(200.0, 200.0, 16.0, 12.0, 32, 24, (0.01,) * n)
+        with pytest.raises(FlightDataError, match=rf"cam: {n} distortion coefficients; expected 0"):
+            cam.check("cam")
