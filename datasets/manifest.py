@@ -241,11 +241,15 @@ def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
     if axis is not None and (
         not isinstance(axis, list)
         or len(axis) != 3
-        or not all(isinstance(a, int | float) and not isinstance(a, bool) for a in axis)
+        or not all(
+            isinstance(a, int | float) and not isinstance(a, bool) and math.isfinite(a)
+            for a in axis
+        )
         or not any(axis)
     ):
         raise FlightFormatError(
-            manifest, f"[body] thrust_axis: expected 3 numbers (IMU frame), got {axis!r}"
+            manifest,
+            f"[body] thrust_axis: expected 3 finite numbers, not all 0 (IMU frame), got {axis!r}",
         )
     if frame == "imu":
         # The body stays; a given thrust axis is recorded for filters that need a thrust body.
@@ -366,6 +370,10 @@ def read_manifest(path: str | Path) -> Flight:
         )
     if not isinstance(doc.get("name"), str):
         raise FlightFormatError(manifest, "name: required (a string)")
+    if not isinstance(doc.get("root", "."), str):
+        raise FlightFormatError(
+            manifest, f"root = {doc['root']!r}: expected a folder path (a string)"
+        )
     root = (manifest.parent / doc.get("root", ".")).resolve()
     if not root.is_dir():
         raise FlightFormatError(manifest, f"root: folder {root} not found")

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -649,6 +650,12 @@ def check_modes(rotation: Any, time_offset: Any, source: str = "options") -> Non
             f"{source}: slam_rotation = {rotation!r}; valid: {', '.join(SLAM_ROTATION_MODES)}"
         )
     number = isinstance(time_offset, int | float) and not isinstance(time_offset, bool)
+    if number and not (math.isfinite(time_offset) and abs(time_offset) <= 1e6):
+        raise SlamConventionError(
+            f"{source}: slam_time_offset = {time_offset!r}; expected a number of seconds in "
+            "[-1e6, 1e6] "
+            f"or one of {', '.join(SLAM_TIME_OFFSET_MODES)}"
+        )
     if not number and time_offset not in SLAM_TIME_OFFSET_MODES:
         raise SlamConventionError(
             f"{source}: slam_time_offset = {time_offset!r}; valid: "

@@ -209,8 +209,31 @@ def test_euroc_manifests_carry_the_in_flight_imu_noise(real_data):
             lambda s: s.replace("time_offset_s = 0.5", "time_offset_s = true"),
             r"\[slam\] time_offset_s = True: expected a finite number",
         ),
+        # Review 2026-12-07: a TypeError, a SLAM offset nan named elsewhere, a nan axis taken.
+        (lambda s: s.replace('root = "d"', "root = 5"), r"m\.toml: root = 5: expected a folder"),
+        (
+            lambda s: s.replace("session = 3", "session = 3\nslam_time_offset = nan"),
+            r"m\.toml: \[slam\]: slam_time_offset = nan; expected a number of seconds",
+        ),
+        (
+            lambda s: s + "[body]\nthrust_axis = [nan, 0, 1]\n",
+            r"m\.toml: \[body\] thrust_axis: expected 3 finite numbers",
+        ),
     ],
-    ids=["format", "key", "table", "missing-file", "root", "name", "toml", "offset-nan", "bool"],
+    ids=[
+        "format",
+        "key",
+        "table",
+        "missing-file",
+        "root",
+        "name",
+        "toml",
+        "offset-nan",
+        "bool",
+        "root-int",
+        "slam-offset-nan",
+        "thrust-nan",
+    ],
 )
 def test_bad_manifests_named(tmp_path, edit, match):
     _small_flight_files(tmp_path)
