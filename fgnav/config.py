@@ -70,7 +70,12 @@ def options_from(
             # dict: `[ii-observer.observer]` failed later in dataclasses.replace).
             sub = f"{section}.{name}" if section else name
             kwargs[name] = options_from(nested, value, source, sub)
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except FgnavError as e:
+        # A rule between fields checked on construction (e.g. SimOptions.validate): named with
+        # the file and table too.
+        raise OptionValueError(f"{where}: {e}") from None
 
 
 def _nested_options_class(hint: Any) -> type | None:
@@ -270,7 +275,7 @@ PATTERN_BOUNDS: tuple[tuple[Callable[[str], bool], tuple[float | None, float | N
     (lambda n: "sigma" in n, (1e-12, 1e6)),
     (lambda n: n.endswith("_hz"), (1e-3, 1e5)),
     (lambda n: n.endswith("segment_s"), (1e-3, None)),
-    (lambda n: n.endswith(("noise_density", "random_walk")), (None, 1e3)),
+    (lambda n: n.endswith(("noise_density", "random_walk")), (0.0, 1e3)),
 )
 
 #: Largest integer option (a C++ ``int`` of GTSAM or OpenCV: larger overflowed in the binding).

@@ -248,6 +248,9 @@ class SimOptions:
                 raise bad(name, "a probability in [0, 1]")
         if not 0 <= self.range_min < self.range_max:
             raise bad("range_min", f"0 <= range_min < range_max={self.range_max}")
+        lo, hi = self.slam_scale_range
+        if not 0 < lo <= hi:
+            raise bad("slam_scale_range", "(low, high) with 0 < low <= high")
         if len(self.drag_k) != 2 or min(self.drag_k) < 0:
             raise bad("drag_k", "two non-negative coefficients (kx, ky) [1/s]")
         if self.slam_axis_scale not in (None, ()) and (
@@ -264,8 +267,9 @@ class SimOptions:
         for step in self.terrain_steps:
             if len(step) != 5 or not (step[2] > step[0] and step[3] > step[1]):
                 raise bad("terrain_steps", "boxes (x0, y0, x1, y1, height) with x1 > x0, y1 > y0")
-        if self.image_width < 16 or self.image_height < 16:
-            raise bad("image_width", "an image of at least 16 x 16 pixels")
+        for name in ("image_width", "image_height"):
+            if getattr(self, name) < 16:
+                raise bad(name, "an image of at least 16 x 16 pixels")
         if not 0 < self.camera_hfov_deg < 170:
             raise bad("camera_hfov_deg", "a horizontal field of view in (0, 170) degrees")
         if not self.texture_resolution_m > 0:
@@ -274,8 +278,10 @@ class SimOptions:
             raise bad("motion_blur_s", "a non-negative exposure time [s]")
         if not (math.isfinite(self.flow_pixels_per_rad) and self.flow_pixels_per_rad > 0):
             raise bad("flow_pixels_per_rad", "a positive number of flow units per radian")
-        if not self.flow_noise_px >= 0 or not self.flow_low_quality_noise_factor >= 0:
+        if not self.flow_noise_px >= 0:
             raise bad("flow_noise_px", "a non-negative noise [px]")
+        if not self.flow_low_quality_noise_factor >= 0:
+            raise bad("flow_low_quality_noise_factor", "a non-negative factor")
         if not -0.5 <= self.flow_noise_lag1 <= 0.0:
             raise bad("flow_noise_lag1", "a lag-1 correlation in [-0.5, 0]")
         if not 0 <= self.flow_height_min < self.flow_height_max:

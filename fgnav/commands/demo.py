@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         SimOptions,
         config.get("simulate", {}),
         source=str(args.config or "flags"),
+        section="simulate",
         duration=args.duration,
         images=False if args.no_images else None,
     )

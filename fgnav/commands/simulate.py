@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
         SimOptions,
         table,
         source=str(args.config or "flags"),
+        section="simulate",
         duration=args.duration,
         images=False if args.no_images else None,
     )

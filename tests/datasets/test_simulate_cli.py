@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from fgnav.datasets.native import read_flight
 from fgnav.datasets.simulate import SimOptions, simulate, simulate_to_folder
 
@@ -83,3 +84,34 @@ def test_cli_rejects_a_negative_seed(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "d"), "--seed", "-1", "--no-images"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["fgnav demo: error: seed -1: expected a non-negative integer"]
+
+
+@pytest.mark.parametrize(
+    ("table", "flags", "needle"),
+    [
+        ("imu_rate_hz = 1e300", [], "[simulate]: option imu_rate_hz = 1e+300: expected in [0.001"),
+        ("slam_rate_hz = 1e-300", [], "option slam_rate_hz = 1e-300: expected in [0.001, 100000]"),
+        (
+            "gyro_noise_density = -1.0",
+            [],
+            "option gyro_noise_density = -1.0: expected in [0, 1000]",
+        ),
+        ("substeps = 100000000", [], "option substeps = 100000000: expected in [1, 1000]"),
+        ("slam_scale_range = [-1.0, -1.0]", [], "slam_scale_range=(-1.0, -1.0): expected (low,"),
+        # The wrong field was named (image_width, flow_noise_px).
+        ("image_height = -1", [], "[simulate]: SimOptions.image_height=-1: expected an image"),
+        ("flow_low_quality_noise_factor = -1.0", [], "flow_low_quality_noise_factor=-1.0: exp"),
+        ("", ["--duration", "1e9"], "command line: option duration = 1000000000.0: expected <="),
+    ],
+)
+def test_cli_refuses_values_that_make_no_sense(tmp_path, capsys, table, flags, needle):
+    """Review 2026-12-07: these ran (for ever) or named another field; one line now, with the
+    file and table."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f"[simulate]\n{table}\n")
+    argv = ["simulate", "--scenario", "hover", "--out", str(tmp_path / "x"), "--config", str(cfg)]
+    assert main([*argv, "--no-images", *flags]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err, err
+    assert flags or str(cfg) in err
+    assert not (tmp_path / "x").exists()
