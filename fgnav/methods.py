@@ -207,6 +207,16 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     from fgnav.config import options_from
 
     table = config_table(config, section)
+    # Options built from tables of their own ([graph] for [online] and [batch], [lm] for
+    # [batch]): a sub-table or value here was silently replaced by them.
+    own = sorted(set(table) & set(overrides))
+    if own:
+        raise FlightFormatError(
+            str(config.get(SOURCE_KEY, "config")),
+            f"[{section}]: option(s) {own} are tables of their own: write "
+            + ", ".join(f"[{k}]" for k in own)
+            + f", not [{section}.{own[0]}] or {own[0]} = ... in [{section}]",
+        )
     # Values written in from command-line flags are passed as overrides, so an error names the
     # flag's value as coming from the command line.
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}

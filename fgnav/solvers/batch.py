@@ -85,6 +85,14 @@ class BatchOptions:
     covariance: str = "all"
     cov_pose_stride: int = 1
 
+    def validate(self) -> None:
+        """The choice of ``covariance`` (run when the options are read; a bad name computed
+        the covariances as "slow")."""
+        if self.covariance not in ("all", "slow", "none"):
+            raise ValueError(
+                f"BatchOptions.covariance={self.covariance!r}: expected all, slow or none"
+            )
+
 
 @dataclass
 class LMResult:

@@ -501,6 +501,24 @@ class FixedLagOptions:
 
     def validate(self) -> None:
         """The rules a single value's check does not cover (run when the options are read)."""
+        choices = {
+            "factorization": ("CHOLESKY", "QR"),
+            "fallback_factorization": ("CHOLESKY", "QR", None),
+            "smoother": SMOOTHERS,
+            "engine": ("auto", "push", "prepared"),  # fgnav.solvers.online.ENGINES
+            "vo_worker": ("inline", "process"),
+        }
+        for name, valid in choices.items():
+            value = getattr(self, name)
+            # The factorizations are matched without case, as _isam2_params takes them.
+            key = (
+                value.upper()
+                if name.endswith("factorization") and isinstance(value, str)
+                else value
+            )
+            if key not in valid:
+                shown = ", ".join("none" if v is None else str(v) for v in valid)
+                raise ValueError(f"FixedLagOptions.{name}={value!r}: expected one of {shown}")
         if self.range_gate_run < 2:
             raise ValueError(
                 f"FixedLagOptions.range_gate_run={self.range_gate_run}: expected >= 2 (readings "

@@ -446,3 +446,34 @@ def test_option_bounds_refuse_no_default():
     assert option_value_problem("prior_position_sigma", 1e6) is None
     assert option_value_problem("ground_segment_s", 1e-3) is None
     assert option_value_problem("gravity", 9.81) is None
+
+
+@pytest.mark.parametrize(
+    ("command", "table", "needle"),
+    [
+        ("batch", "[batch]\ncovariance = 'bogus'\n", "covariance='bogus': expected all, slow or"),
+        ("online", "[online]\nfactorization = 'bogus'\n", "factorization='bogus': expected one"),
+        ("online", "[online]\nfallback_factorization = 'x'\n", "fallback_factorization='x': exp"),
+        ("online", "[online]\nsmoother = 'bogus'\n", "smoother='bogus': expected one of time"),
+        # engine and vo_worker were refused after the flight was read (compare then ran batch
+        # and exited 0 with a FAILED row).
+        ("compare", "[online]\nengine = 'bogus'\n", "engine='bogus': expected one of auto, push"),
+        ("compare", "[online]\nvo_worker = 'bogus'\n", "vo_worker='bogus': expected one of in"),
+        # Sub-tables of options built from their own tables were silently replaced.
+        ("online", "[online.graph]\nkeyframe_hz = 5.0\n", "['graph'] are tables of their own"),
+        ("batch", "[batch.lm]\nmax_iterations = 5\n", "['lm'] are tables of their own: write [lm]"),
+        ("batch", "[batch]\ngraph = 'abc'\n", "[batch]: option(s) ['graph'] are tables of their"),
+    ],
+)
+def test_choices_and_sub_tables_are_checked_up_front(tmp_path, capsys, command, table, needle):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err and needle in err
+
+
+def test_factorization_names_are_matched_without_case():
+    from fgnav.methods import check_method_config
+
+    check_method_config({"online": {"factorization": "qr", "fallback_factorization": "cholesky"}})
