@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     from fgnav.live.estimators import CONFIG_TABLES, make_estimator
     from fgnav.live.link import LinkError, UdpLink, mavlink_dialect
     from fgnav.live.session import LiveError, LiveOptions, LiveSession
-    from fgnav.methods import SOURCE_KEY, load_method_config
+    from fgnav.methods import SOURCE_KEY, config_table, load_method_config
 
     mavlink_dialect()  # pymavlink present, or a one-line error
     tables = ["live", *sorted({t for v in CONFIG_TABLES.values() for t in v})]
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_method_config(args.config)
     options = options_from(
         LiveOptions,
-        dict(config.get("live", {})),
+        config_table(config, "live"),
         source=str(config.get(SOURCE_KEY, "config")),
         section="live",
         duration_s=args.duration,

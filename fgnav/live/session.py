@@ -78,6 +78,17 @@ class LiveOptions:
     imu_id: int = 0
     poll_s: float = 0.05
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """The MAVLink id ranges (a system id of 300 or a component id of -1 failed in the
+        first message's ``struct.pack``)."""
+        for name, lo in (("system_id", 1), ("component_id", 0), ("imu_id", 0)):
+            value = getattr(self, name)
+            if isinstance(value, int) and not isinstance(value, bool) and not lo <= value <= 255:
+                raise LiveError(f"LiveOptions.{name}={value}: expected an integer in [{lo}, 255]")
+
 
 @dataclass
 class LiveResult:

@@ -64,6 +64,10 @@ def test_msf_adapter_push_api():
         ("udpout:127.0.0.1:9", None, "fgnav live listens: use udpin:HOST:PORT"),
         ("udpin:127.0.0.1", None, "expected udpin:HOST:PORT"),
         ("udpin:127.0.0.1:9", "[live]\nidle_timeout = 3\n", "unknown option(s) ['idle_timeout']"),
+        # MAVLink ids out of range failed in struct.pack at the first message (review 2026-12-07).
+        ("udpin:127.0.0.1:9", "[live]\nsystem_id = 300\n", "[live]: LiveOptions.system_id=300: e"),
+        ("udpin:127.0.0.1:9", "[live]\ncomponent_id = -1\n", "component_id=-1: expected an int"),
+        ("udpin:127.0.0.1:9", "live = 5\n", "[live] must be a table, found an integer"),
     ],
 )
 def test_live_command_errors_are_one_line(tmp_path, capsys, link, config, needle):
