@@ -382,6 +382,21 @@ def fixed_lag_options(config: Mapping[str, Any]):
     return _options(FixedLagOptions, config, "online", graph=graph_options(config))
 
 
+def check_keyframe_count(flight: Flight, graph: Any) -> None:
+    """Refuse a keyframe rate that leaves fewer than 2 keyframes on the flight's IMU span (one
+    keyframe was "not scored", health ok, exit 0: ``--keyframe-hz 0.01`` on an 8 s flight)."""
+    imu = getattr(flight, "imu", None)
+    t = getattr(imu, "t", None)
+    if t is None or len(t) < 2:
+        return  # the solver names a flight without IMU
+    span = float(t[-1] - t[0])
+    if span * graph.keyframe_hz < 1.0:
+        raise FlightDataError(
+            f"{flight.name}: keyframe_hz={graph.keyframe_hz:g} leaves fewer than 2 keyframes on "
+            f"the flight's {span:.3g} s of IMU; expected keyframe_hz >= {1.0 / span:.3g}"
+        )
+
+
 def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False) -> Estimate:
     """The batch smoother (``fgnav batch``) with the ``[graph]``, ``[lm]``, ``[batch]`` and
     ``[priors]`` tables."""
@@ -395,6 +410,7 @@ def run_batch(flight: Flight, config: Mapping[str, Any], progress: bool = False)
     from fgnav.solvers.batch import solve_batch
 
     opts = batch_options(config)
+    check_keyframe_count(flight, opts.graph)
     priors = frontend_priors(flight, config)
     est = solve_batch(flight, opts, priors=priors, progress=progress)
     health = check_batch(flight, est)
@@ -502,6 +518,7 @@ def run_fixed_lag(
     from fgnav.solvers.online import replay_online, resolve_engine
 
     opts = fixed_lag_options(config)
+    check_keyframe_count(flight, opts.graph)
     engine = resolve_engine(opts)
     if engine == "push":
         if source is None and opts.lagged_output:
@@ -548,6 +565,7 @@ def _push_output(flight: Flight, config: Mapping[str, Any], progress: bool, lagg
         out = pending[3]
     else:
         opts = fixed_lag_options(config)
+        check_keyframe_count(flight, opts.graph)
         popts = online_prior_options(flight, config)
         sm = replay_smoother(flight, opts, progress=progress, priors=popts)
         outputs = {}

@@ -477,3 +477,18 @@ def test_factorization_names_are_matched_without_case():
     from fgnav.methods import check_method_config
 
     check_method_config({"online": {"factorization": "qr", "fallback_factorization": "cholesky"}})
+
+
+def test_a_lag_or_keyframe_rate_that_leaves_no_window_is_refused(cli_folder, tmp_path, capsys):
+    """``online --lag 0.001`` ran with an ATE 17x worse and health ok; ``--keyframe-hz 0.01``
+    made 1 keyframe, "not scored", exit 0 (review 2026-12-07)."""
+    out = tmp_path / "o"
+    err = _one_line_error(
+        capsys, ["online", str(tmp_path / "nosuch"), "--out", str(out), "--lag", "0.001"]
+    )
+    assert "command line: FixedLagOptions.lag_s=0.001: expected >= 2 / keyframe_hz = 0.1 s" in err
+    for command in ("batch", "online"):
+        flags = ["--keyframe-hz", "0.01"] + (["--lag", "300"] if command == "online" else [])
+        err = _one_line_error(capsys, [command, str(cli_folder), "--out", str(out), *flags])
+        assert "keyframe_hz=0.01 leaves fewer than 2 keyframes on the flight's" in err
+    assert not out.exists()
