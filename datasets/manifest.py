@@ -249,7 +249,7 @@ def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
     ):
         raise FlightFormatError(
             manifest,
-            f"[body] thrust_axis: expected 3 finite numbers, not all 0 (IMU frame), got {axis!r}",
+            f"[body] thrust_axis: expected 3 numbers (finite, not all 0; IMU frame), got {axis!r}",
         )
     if frame == "imu":
         # The body stays; a given thrust axis is recorded for filters that need a thrust body.
