@@ -273,6 +273,7 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
 #: 1e-300 asks for 1e300 variables or samples.
 PATTERN_BOUNDS: tuple[tuple[Callable[[str], bool], tuple[float | None, float | None]], ...] = (
     (lambda n: "sigma" in n, (1e-12, 1e6)),
+    (lambda n: n.endswith(("_rw", "_rw_m")), (1e-12, 1e6)),  # random walks, as the sigmas
     (lambda n: n.endswith("_hz"), (1e-3, 1e5)),
     (lambda n: n.endswith("segment_s"), (1e-3, None)),
     (lambda n: n.endswith(("noise_density", "random_walk")), (0.0, 1e3)),

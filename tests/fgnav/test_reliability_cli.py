@@ -410,6 +410,7 @@ def test_one_prior_source_may_be_a_string():
         ("[graph]\nslam_segment_s = 1e-300\n", "slam_segment_s = 1e-300: expected >= 0.001"),
         ("[online]\nrelinearize_skip = 9223372036854775807\n", "expected an integer up to 21"),
         ("[graph]\ngravity = 1e300\n", "option gravity = 1e+300: expected in [1, 100]"),
+        ("[graph]\nslam_scale_rw = 1e300\n", "option slam_scale_rw = 1e+300: expected in [1e-12"),
         ("[graph]\ngravity = 1e-300\n", "option gravity = 1e-300: expected in [1, 100]"),
         ("[ekf004]\nmax_predict_dt_s = 1e-300\n", "max_predict_dt_s = 1e-300: expected >= 0.0001"),
     ],
