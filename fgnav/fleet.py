@@ -37,6 +37,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 import tomllib
 import uuid
@@ -706,11 +707,15 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
             ) from None
     # The workers (spawned interpreters) inherit SIGINT ignored: a Ctrl-C reaches this process
     # only, which closes the cluster (each worker printed its own traceback before).
-    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # (Only the main thread may set a handler: run_fleet called from another thread starts the
+    # cluster as it is.)
+    main = threading.current_thread() is threading.main_thread()
+    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
         cluster = _local_cluster(opts, n_jobs)
     finally:
-        signal.signal(signal.SIGINT, old_int)
+        if main:
+            signal.signal(signal.SIGINT, old_int)
     return Client(cluster), cluster
 
 

@@ -11,11 +11,11 @@ calls :func:`fgnav.solvers.fixed_lag.run_fixed_lag`). Options come from the ``[g
 ``[online]`` and ``[priors]`` tables of ``--config`` (fields of
 :class:`~fgnav.solvers.graph.GraphOptions` and :class:`~fgnav.solvers.fixed_lag.FixedLagOptions`);
 ``--lag`` overrides. A run whose estimate diverged and did not recover (health "diverged") is
-written, then exits 1 with one line saying so. A native flight folder without images that the push engine runs is read in
-chunks as it is replayed (:func:`fgnav.datasets.native.open_flight_streams`: bounded memory on
-a long flight; the ground truth is read after the run, for scoring). Prints the update latency
-(p50/p99) and how many times faster than real time the run was; scores the causal trajectory when
-the flight has ground truth.
+written, then exits 1 with one line saying so. A native flight folder without images that the push
+engine runs is read in chunks as it is replayed (:func:`fgnav.datasets.native.open_flight_streams`:
+bounded memory on a long flight; the ground truth is read after the run, for scoring). Prints the
+update latency (p50/p99) and how many times faster than real time the run was; scores the causal
+trajectory when the flight has ground truth.
 """
 
 from __future__ import annotations

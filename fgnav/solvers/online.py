@@ -354,6 +354,11 @@ GYRO_TURN_SMALL_RAD = 0.15
 UNITS_MIN_POSES = 4
 UNITS_MAXWELL_MEDIAN = 1.5382
 UNITS_MIN_RATIO = 2.5
+#: ... above UNITS_NOISE_MIN_RATIO when the differences are the noise's (the IMU's under
+#: UNITS_MOTION_DOMINANT times the noise's typical size): a SLAM that many times noisier than
+#: slam_sigma_m in metres is no metric SLAM.
+UNITS_NOISE_MIN_RATIO = 8.0
+UNITS_MOTION_DOMINANT = 2.0
 
 
 _first = operator.itemgetter(0)
@@ -3367,12 +3372,11 @@ class OnlineSmoother:
         self._retire_provisional(sess, s, seed, [])
 
     def _units_check(self, sess, s: _Session, remove) -> None:
-        """A provisional alignment at the default scale (1 SLAM unit per metre) whose first
-        ``UNITS_POSES`` poses change their velocity far more than the IMU and
-        ``graph.slam_sigma_m`` can explain at its current scale is a SLAM in other units (or a
-        provisional scale gone astray): it is re-seeded, once, with the scale they give, named
-        in a warning and counted (``slam:provisional-units``). Looked at with each pose from the
-        ``UNITS_MIN_POSES``-th on, with a wider margin while the differences are few.
+        """A provisional alignment at the default scale (1 SLAM unit per metre) whose poses
+        change their velocity far more than the IMU and ``graph.slam_sigma_m`` can explain at
+        its current scale is a SLAM in other units (or a provisional scale gone astray): it is
+        re-seeded, once, with the scale they give, named in a warning and counted
+        (``slam:provisional-units``).
 
         The SLAM noise is modelled as ``slam_sigma_m`` times the scale: at the default scale a
         SLAM in centimetres had its noise 100x too tight, and the window diverged within a
@@ -3382,26 +3386,33 @@ class OnlineSmoother:
         (:func:`fgnav.solvers.measurements.slam_second_differences`), which the velocity does
         not enter: each gives the scale ``|d2_slam| / sqrt(|d2_imu|^2 + (m sigma c)^2)``, the
         IMU's metric second difference and the noise's typical size (``c`` the difference's
-        noise gain, ``m`` the Maxwell median ``UNITS_MAXWELL_MEDIAN``); their median must exceed
-        ``UNITS_MIN_RATIO`` times the current scale. At a camera rate the noise term dominates
-        (the scale is the scatter's, as good as ``slam_sigma_m``), on low-rate keyframes the
-        motion (simulated two-turns, 3 Hz keyframes, seed 3: the provisional's scale had gone
-        to 0.50 against the true 1.54; re-seeded at 2.10, causal ATE 33 -> 3.9 cm). It only
-        seeds the linearisation point and the noise under the provisional's wide log-scale
-        prior. A SLAM in units much smaller than metres is not tested: its
-        scatter cannot be told from a SLAM quieter than ``slam_sigma_m``."""
+        noise gain, ``m`` the Maxwell median ``UNITS_MAXWELL_MEDIAN``). Where the IMU's term
+        dominates (``UNITS_MOTION_DOMINANT``), the scale is the motion's and their median must
+        exceed ``UNITS_MIN_RATIO`` times the current scale; looked at with each pose, over the
+        newest ``UNITS_POSES``, while the provisional lasts (simulated two-turns, 3 Hz
+        keyframes, seed 3: the provisional's scale had gone to 0.50 in the hover against the
+        true 1.54; re-seeded once the vehicle moved). Where the noise dominates (a hover, a
+        camera rate), the scale is the scatter's, as good as ``slam_sigma_m``: only the first
+        ``UNITS_POSES`` poses (from the ``UNITS_MIN_POSES``-th, a wider margin while few) are
+        looked at, against the higher ``UNITS_NOISE_MIN_RATIO`` (a metric SLAM 2-4x noisier
+        than ``slam_sigma_m`` read 2.4-7.2 units per metre). It only seeds the linearisation
+        point and the noise under the provisional's wide log-scale prior. A SLAM in units much
+        smaller than metres is not tested in a hover: its scatter cannot be told from a SLAM
+        quieter than ``slam_sigma_m``."""
         if not s.units_pending or s.provisional is None:
             return
         ts = np.asarray(s.t)
         i0 = int(np.searchsorted(ts, self._prov_t_first(s)))
         # Poses whose keyframe exists (the IMU covers them).
         i1 = int(np.searchsorted(ts, self.t_kf[self.k] + 1e-9))
-        n = min(i1 - i0, UNITS_POSES)
-        if n < UNITS_MIN_POSES or n <= s.units_seen:
+        if i1 - i0 < UNITS_MIN_POSES or i1 <= s.units_seen:
             return
-        s.units_seen = n
-        s.units_pending = n < UNITS_POSES
-        t, p = ts[i0 : i0 + n], np.asarray(s.p[i0 : i0 + n])
+        s.units_seen = i1
+        # The first UNITS_POSES poses, then (motion only) the newest UNITS_POSES, while the
+        # provisional lasts: a hover at the start shows only the noise.
+        first = i1 - i0 <= UNITS_POSES
+        n = min(i1 - i0, UNITS_POSES)
+        t, p = ts[i1 - n : i1], np.asarray(s.p[i1 - n : i1])
         imu = self.imu.series(t[0] - 0.05, t[-1] + 0.05)
         R = self._attitude_track(imu.t) if imu is not None else None
         if R is None:
@@ -3416,15 +3427,26 @@ class OnlineSmoother:
         each = np.linalg.norm(d2.slam_d2, axis=1) / np.hypot(
             np.linalg.norm(d2.world_d2, axis=1), typical
         )
+        # Where the IMU's second difference dominates the noise's typical size, the scale is
+        # the motion's (slam_sigma_m does not enter): the lower bar. Else it is the scatter's,
+        # as good as slam_sigma_m: a metric SLAM 2-4x noisier than it read 2.4-7.2 units per
+        # metre (review; figure8 re-seeded, 0.089 -> 0.33 m), hence the higher bar.
+        motion = np.linalg.norm(d2.world_d2, axis=1) >= UNITS_MOTION_DOMINANT * typical
+        if int(motion.sum()) >= 2:
+            each, bar = each[motion], UNITS_MIN_RATIO
+        elif first:
+            bar = UNITS_NOISE_MIN_RATIO
+        else:
+            return
         ratio = float(np.median(each))
         current = self._scale_guess(s.provisional)
         # While the differences are few, a wider margin (2.7x for 2, none from 7 on).
         margin = max(1.0, UNITS_POSES / 1.25 / (len(each) + 1))
-        if not ratio > UNITS_MIN_RATIO * current * margin:
+        if not ratio > bar * current * margin:
             return
         s.units_pending = False
         log.warning(
-            "%s: SLAM session %d: its first %d poses change velocity %.3g times as much as the "
+            "%s: SLAM session %d: %d of its poses change velocity %.3g times as much as the "
             "IMU and graph.slam_sigma_m = %g m explain at the provisional scale %.4g units per "
             "metre (a SLAM not in metres, or a provisional scale gone astray): re-seeded at "
             "%.4g",
@@ -3709,12 +3731,22 @@ class OnlineSmoother:
 
     def _camera_now(self) -> tuple[np.ndarray, float, float] | None:
         """The newest estimate's camera position [m], its position sigma (the root of the
-        covariance's trace) [m] and its time [s]; None without a covariance."""
+        covariance's trace) [m] and its time [s]; None when no covariance is known. Without
+        ``FixedLagOptions.covariance`` the newest marginal is computed here (asked only for a
+        SLAM pose back after a pause: the relocalisation test was off without it)."""
         st = self.latest()
-        if st is None or st.pose_cov is None:
+        if st is None:
+            return None
+        cov = st.pose_cov
+        if cov is None and self.k >= 0 and st.t == self.t_kf.get(self.k):
+            try:
+                cov = self.smoother.marginalCovariances([X(self.k)])[0]
+            except SOLVER_ERRORS:
+                return None
+        if cov is None:
             return None
         T = np.asarray(st.world_T_body)
-        sigma = math.sqrt(max(float(np.trace(np.asarray(st.pose_cov)[3:, 3:])), 0.0))
+        sigma = math.sqrt(max(float(np.trace(np.asarray(cov)[3:, 3:])), 0.0))
         return T[:3, 3] + T[:3, :3] @ self.body_T_cam[:3, 3], sigma, float(st.t)
 
     def _slam_height(self, session: int, slam_t_cam: np.ndarray) -> float | None:

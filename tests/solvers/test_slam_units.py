@@ -44,20 +44,25 @@ def test_a_slam_in_centimetres_is_found_and_survived(centimetres):
 def test_without_the_check_the_centimetre_slam_diverges(centimetres, monkeypatch):
     """The failing control of the test above."""
     monkeypatch.setattr(online, "UNITS_MIN_RATIO", math.inf)
+    monkeypatch.setattr(online, "UNITS_NOISE_MIN_RATIO", math.inf)
     est = replay_online(centimetres, FixedLagOptions())
     assert "units" not in _sources(est)
     assert est.info["health"]["status"] != "ok", est.info["health"]
 
 
-def test_a_provisional_scale_gone_astray_on_keyframes():
-    """3 Hz keyframes (true scale 1.54): the provisional at the default scale had gone to 0.50
-    by the 6th keyframe; re-seeded at 2.10 (measured 2026-12-07: causal ATE 33.3 -> 3.9 cm)."""
+@pytest.mark.parametrize("noise_m", [0.02, 0.04])
+def test_a_noisier_metric_slam_is_left_alone(noise_m):
+    """A SLAM in metres 2-4x noisier than ``graph.slam_sigma_m`` (review, 2026-12-07): its
+    scatter read 2.4-7.2 units per metre, and the first form of the check re-seeded it
+    (figure8, 2 cm: 0.089 -> 0.33 m). Scatter alone now needs ``UNITS_NOISE_MIN_RATIO``."""
     f = simulate(
-        "two-turns", seed=3, options=SimOptions(duration=25.0, images=False, slam_rate_hz=3.0)
+        "figure8",
+        seed=0,
+        options=SimOptions(duration=15.0, images=False, slam_scale=1.0, slam_noise_m=noise_m),
     )
     est = replay_online(f, FixedLagOptions())
-    assert _sources(est)[:2] == ["default", "units"]
-    assert evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m < 0.08
+    assert _sources(est) == ["default"]
+    assert evaluate(est, f.ground_truth, alignment="se3").ate_rmse_m < 0.25
 
 
 @pytest.mark.parametrize("scenario", ["figure8", "hover"])
@@ -84,6 +89,7 @@ def test_fgnav_online_exits_1_on_a_diverged_estimate(tmp_path, monkeypatch, caps
         options=SimOptions(duration=20.0, images=False, slam_scale=100.0),
     )
     monkeypatch.setattr(online, "UNITS_MIN_RATIO", math.inf)
+    monkeypatch.setattr(online, "UNITS_NOISE_MIN_RATIO", math.inf)
     out = tmp_path / "out"
     assert command_cli("online", folder, out) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
