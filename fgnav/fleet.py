@@ -377,7 +377,9 @@ def run_flight_job(job: dict[str, Any]) -> list[dict[str, Any]]:
         without a result) and the reason; each with ``task_wall_s`` and ``worker``.
     """
     t0 = time.perf_counter()
-    env = {**os.environ, **SINGLE_THREAD_ENV}
+    from fgnav.fleet_worker import PARENT_PID_ENV
+
+    env = {**os.environ, **SINGLE_THREAD_ENV, PARENT_PID_ENV: str(os.getpid())}
     proc = subprocess.Popen(
         [sys.executable, "-X", "faulthandler", "-m", "fgnav.fleet_worker"],
         stdin=subprocess.PIPE,

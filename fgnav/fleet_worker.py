@@ -154,6 +154,10 @@ def run_job(job: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+#: The environment variable through which the Dask worker gives the child its own pid.
+PARENT_PID_ENV = "FGNAV_FLEET_PARENT_PID"
+
+
 def _die_with_parent() -> None:
     """Linux: this child is killed when the Dask worker that started it dies (it runs in its own
     session, so a Ctrl-C of the fleet or a closed cluster left it running to the end)."""
@@ -161,7 +165,9 @@ def _die_with_parent() -> None:
         return
     import ctypes
 
-    parent = os.getppid()
+    # The parent's pid as the parent gave it (read here it could already be init's, had the
+    # worker died while this interpreter started).
+    parent = int(os.environ.get(PARENT_PID_ENV, "0") or 0) or os.getppid()
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
