@@ -3711,9 +3711,13 @@ class OnlineSmoother:
             return None
         sl = imu.span(ta, tb)
         t = np.r_[ta, imu.t[sl], tb]
-        if t.size > 2 and np.max(np.diff(t)) > 0.2:
-            return None  # an IMU gap
+        if np.max(np.diff(t)) > 0.2:
+            return None  # an IMU gap (with or without samples between the two times)
+        # Zero-order hold: each interval turns at the sample at its start (the first, at the
+        # sample before ta; ta on the first sample: that one).
         w = np.asarray(imu.w[max(sl.start - 1, 0) : sl.stop], float)
+        if sl.start == 0:
+            w = np.vstack([w[:1], w])
         if len(w) < len(t) - 1:
             return None
         b = self.values.get(B(self.k)) if self.k >= 0 else None  # (-1: before a restart)
