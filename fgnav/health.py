@@ -105,8 +105,10 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: Session ids given to SLAM poses after a detected jump: ``session + JUMP_SESSION_BASE * n``.
-JUMP_SESSION_BASE = 1000
+#: Session ids given to SLAM poses after a detected jump: ``session + JUMP_SESSION_BASE * n``
+#: (2**40: an input's own ids stay below it; with 1000, an input id of 1000 or more was taken
+#: for a jump's split and never counted as a map reset).
+JUMP_SESSION_BASE = 1 << 40
 #: Quality (0-100) of the online states while the monitor says the estimate diverges.
 DIVERGED_QUALITY = 10
 #: Saturation flag bits of an IMU sample: gyro axis i is ``1 << i``, accelerometer axis i is
