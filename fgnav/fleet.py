@@ -534,8 +534,6 @@ def check_limits(timeout_s: float | None, memory_limit_mb: float | None) -> None
     Raises:
         FleetError: one line naming the option.
     """
-    import threading
-
     for flag, v, hi, unit in (
         ("--timeout", timeout_s, threading.TIMEOUT_MAX, "s"),
         ("--memory-limit", memory_limit_mb, MAX_MEMORY_LIMIT_MB, "MB"),
@@ -864,6 +862,7 @@ def _run_jobs(
 
     client, cluster = _dask_client(opts, len(jobs))
     rows: list[dict[str, Any]] = []
+    futures: dict[Any, tuple[dict[str, Any], dict[str, Any]]] = {}
     try:
         where = f"--scheduler {opts.scheduler}" if opts.scheduler else "the LocalCluster"
         try:
@@ -950,7 +949,7 @@ def _run_jobs(
     except KeyboardInterrupt:
         # Ctrl-C: the flights not done are cancelled (their children die with the workers,
         # ``fleet_worker._die_with_parent``); the done ones are in the journal.
-        for fut in list(futures if "futures" in locals() else ()):
+        for fut in list(futures):
             fut.cancel()
         done = len({(r["flight"], r["input"]) for r in rows})
         raise KeyboardInterrupt(

@@ -401,7 +401,7 @@ def _with_slow(
         if builder.slam_model == "axis":
             # A chain of per-axis scale segments per session (seed 000's model); a session's
             # scale is its last segment's geometric mean.
-            ts, ks, sgs, sess_ids = [], [], [], []
+            ts, ks, sgs = [], [], []
             a = builder.slam_assoc
             sess_of = builder.flight.slam.session[a.meas_index]
             for (sess, seg), j in sorted(builder.slam_var.items(), key=lambda kv: kv[1]):
@@ -412,7 +412,6 @@ def _with_slow(
                 ks.append(values.atVector(S(j))[:3])
                 sg = sigma.get(S(j))
                 sgs.append(np.full(3, np.nan) if sg is None else np.asarray(sg, float)[:3])
-                sess_ids.append(sess)
                 k, sg = ks[-1], sgs[-1]
                 scale[sess] = float(np.cbrt(np.prod(k)))
                 if np.all(np.isfinite(sg)):

@@ -78,6 +78,10 @@ log = logging.getLogger(__name__)
 SOLVER_ERRORS = (RuntimeError, IndexError, ValueError)
 #: Implementations of the window (``FixedLagOptions.smoother``).
 SMOOTHERS = ("time-ordered", "gtsam")
+#: Values of ``FixedLagOptions.engine`` (see :func:`fgnav.solvers.online.resolve_engine`).
+ENGINES = ("auto", "push", "prepared")
+#: Values of ``FixedLagOptions.vo_worker``.
+VO_WORKERS = ("inline", "process")
 #: The time-ordered window needs its stamp blocks (one ordering group each) to stay below the keys
 #: of one update's new factors (~9 on the benchmark): at most this many blocks per lag, else the
 #: runner uses GTSAM's smoother (0.25 s blocks under a 2 s lag: 2x the CPU of 1 s blocks).
@@ -505,8 +509,8 @@ class FixedLagOptions:
             "factorization": ("CHOLESKY", "QR"),
             "fallback_factorization": ("CHOLESKY", "QR", None),
             "smoother": SMOOTHERS,
-            "engine": ("auto", "push", "prepared"),  # fgnav.solvers.online.ENGINES
-            "vo_worker": ("inline", "process"),
+            "engine": ENGINES,
+            "vo_worker": VO_WORKERS,
         }
         for name, valid in choices.items():
             value = getattr(self, name)

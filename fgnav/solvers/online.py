@@ -175,7 +175,9 @@ from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
+    ENGINES,
     SOLVER_ERRORS,
+    VO_WORKERS,
     FixedLagOptions,
     _isam2_params,
     fixed_lag_estimate,
@@ -345,20 +347,20 @@ SLAM_RESEED_RETRY_S = 0.5
 #: flights' 0.3-2.1 (rectangle, figure8, circle; two-turns' yaw-only turns cannot tell it from
 #: the inverse convention: 0.07-0.12).
 SLAM_EXTRINSIC_SUSPECT_MISFIT = 0.5
-# The SLAM units check (OnlineSmoother._units_check): the provisional alignment's first
-# UNITS_POSES poses at the default scale; the median of a 3-D normal's norm in its per-axis
-# sigmas; the scale they give re-seeds the provisional above UNITS_MIN_RATIO times its own.
+# The SLAM units check (OnlineSmoother._units_check): second differences over the newest
+# UNITS_POSES poses of the provisional alignment (from UNITS_MIN_POSES on); the median of a 3-D
+# normal's norm in its per-axis sigmas; the scale they give re-seeds the provisional above
+# UNITS_MIN_RATIO times its own where the IMU's difference is UNITS_MOTION_DOMINANT times the
+# noise's typical size or more, above UNITS_NOISE_MIN_RATIO where the noise dominates (a SLAM
+# that many times noisier than slam_sigma_m in metres is no metric SLAM).
 UNITS_POSES = 10
-#: _gyro_turn: below this sum of |rotation vector| components the turn is their sum's norm
-GYRO_TURN_SMALL_RAD = 0.15
 UNITS_MIN_POSES = 4
 UNITS_MAXWELL_MEDIAN = 1.5382
 UNITS_MIN_RATIO = 2.5
-#: ... above UNITS_NOISE_MIN_RATIO when the differences are the noise's (the IMU's under
-#: UNITS_MOTION_DOMINANT times the noise's typical size): a SLAM that many times noisier than
-#: slam_sigma_m in metres is no metric SLAM.
 UNITS_NOISE_MIN_RATIO = 8.0
 UNITS_MOTION_DOMINANT = 2.0
+#: _gyro_turn: below this sum of |rotation vector| components the turn is their sum's norm.
+GYRO_TURN_SMALL_RAD = 0.15
 
 
 _first = operator.itemgetter(0)
@@ -596,8 +598,9 @@ class _Session:
     # the first waits for the third (FixedLagOptions.slam_provisional_lone_gap_s).
     lone_hold: bool = False
     lone_waiting: bool = False
-    # The provisional alignment's scale came from the default (_units_check looks once) and
-    # where the seed's scale comes from (``_prov_scales``' "from").
+    # The provisional alignment's scale is the default and _units_check still looks (with the
+    # poses up to index units_seen looked at); where the next seed's scale comes from
+    # (``_prov_scales``' "from").
     units_pending: bool = False
     units_seen: int = 0
     seed_source: str = "re-seed"
@@ -637,7 +640,7 @@ class OnlineSmoother:
             raise FlightDataError(
                 f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
             )
-        if self.options.vo_worker not in ("inline", "process"):
+        if self.options.vo_worker not in VO_WORKERS:
             raise FlightDataError(
                 f"{name}: online.vo_worker={self.options.vo_worker!r}: expected inline or process"
             )
@@ -998,7 +1001,7 @@ class OnlineSmoother:
 
             self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
-        self._height_parts: tuple | None = None  # (alignment, its parts) for _slam_height
+        self._height_parts: tuple | None = None  # (alignment, its parts): _sim3_parts
         self._height_last: tuple | None = None  # (session, position, height): _slam_height
         self._bad_since = -math.inf
         # The state carried over a restart after an IMU gap (see _carry_state).
@@ -3690,17 +3693,31 @@ class OnlineSmoother:
         self._health_checked = False
         self._health_on = self._health.options.enabled
 
+    def _alignment_of(self, session: int) -> Any:
+        """The newest alignment value of a session's chain (None without one)."""
+        s = self.sessions.get(session)
+        return self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+
+    def _sim3_parts(self, S: gtsam.Similarity3) -> tuple[float, np.ndarray, np.ndarray]:
+        """``(scale, slam_R_world, slam_t_world)`` of ``S``, kept with the object they came
+        from: the alignment changes at the slow-variable reads only, the range readings (50 Hz)
+        ask for every one (the newest height is then stale: ``_height_last`` cleared)."""
+        cached = self._height_parts
+        if cached is None or cached[0] is not S:
+            cached = self._height_parts = (S, *slam_alignment_parts(S))
+            self._height_last = None
+        return cached[1:]
+
     def _slam_world(self, session: int, slam_t_cam: np.ndarray) -> np.ndarray | None:
         """``world_t_cam`` [m] of a SLAM camera position through its session's newest
         alignment (None without one)."""
-        s = self.sessions.get(session)
-        S = self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+        S = self._alignment_of(session)
         p = np.asarray(slam_t_cam, float)
         if isinstance(S, np.ndarray):  # per-axis: slam_t = diag(k) world_t + o
             return (p - S[3:6]) / S[:3]
         if not isinstance(S, gtsam.Similarity3):
             return None
-        _, scale, slam_R_world, slam_t_world = (S, *slam_alignment_parts(S))
+        scale, slam_R_world, slam_t_world = self._sim3_parts(S)
         return slam_R_world.T @ (p - slam_t_world) / scale
 
     def _gyro_turn(self, ta: float, tb: float) -> float | None:
@@ -3755,24 +3772,18 @@ class OnlineSmoother:
 
     def _slam_height(self, session: int, slam_t_cam: np.ndarray) -> float | None:
         """World z [m] of a SLAM camera position through its session's newest alignment."""
-        s = self.sessions.get(session)
-        S = self.values.get(s.last_key) if s is not None and s.last_key is not None else None
+        S = self._alignment_of(session)
         if isinstance(S, np.ndarray):  # per-axis: slam_t = diag(k) world_t + o
             return float((slam_t_cam[2] - S[5]) / S[2])
         if not isinstance(S, gtsam.Similarity3):
             return None
-        # The alignment changes at the slow-variable reads only, the range readings (50 Hz)
-        # ask for every one: its parts kept with the object they came from, and the newest
-        # height with the position it came from (the health detectors ask again for the same
-        # SLAM pose at each new range value: 8782 calls for 3601 poses on the 180 s benchmark).
-        cached = self._height_parts
-        if cached is None or cached[0] is not S:
-            cached = self._height_parts = (S, *slam_alignment_parts(S))
-            self._height_last = None
+        # The newest height kept with the position it came from (the health detectors ask again
+        # for the same SLAM pose at each new range value: 8782 calls for 3601 poses on the 180 s
+        # benchmark); _sim3_parts clears it when the alignment changes.
+        scale, slam_R_world, slam_t_world = self._sim3_parts(S)
         last = self._height_last
         if last is not None and last[0] == session and last[1] is slam_t_cam:
             return last[2]
-        _, scale, slam_R_world, slam_t_world = cached
         h = float((slam_R_world.T @ (np.asarray(slam_t_cam) - slam_t_world) / scale)[2])
         self._height_last = (session, slam_t_cam, h)
         return h
@@ -4370,9 +4381,6 @@ VO_MAX_IN_FLIGHT = 8
 """Frames the VO process may hold before the next is sent (``vo_worker="process"``): 8 frames of
 320x240 fit the widened pipe to it, 8 replies (about 1 kB each) the 64 kB one back; normally
 1-3 are in flight."""
-
-ENGINES = ("auto", "push", "prepared")
-"""Values of ``FixedLagOptions.engine``."""
 
 
 def _finite_state(pose: gtsam.Pose3, vel: Any, bias: Any) -> bool:
