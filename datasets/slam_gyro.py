@@ -708,7 +708,7 @@ def apply_slam_check(
     SLAM times, a number adds that offset, ``"report"`` only logs it. The result is recorded in
     ``flight.meta["slam_gyro_check"]``; a flight that has it is returned unchanged.
     """
-    if flight.slam is None or flight.imu is None or META_KEY in flight.meta:
+    if flight.slam is None or flight.imu is None or {META_KEY, CAUSAL_META_KEY} & set(flight.meta):
         return flight
     rotation, time_offset = file_modes(flight, rotation, time_offset)
     check_modes(rotation, time_offset, "slam options")
@@ -780,3 +780,145 @@ def apply_slam_check(
     record["inverted"] = invert
     meta = {**flight.meta, META_KEY: record}
     return dataclasses.replace(flight, slam=slam, meta=meta, calib=calib)
+
+
+#: ``flight.meta`` key of the causally applied check (:func:`apply_slam_check_causal`).
+CAUSAL_META_KEY = "slam_gyro_check_causal"
+
+
+def apply_slam_check_causal(
+    flight: Flight,
+    rotation: str = "auto",
+    time_offset: str | float = "report",
+    extrinsic: str = "auto",
+    max_s: float = 300.0,
+) -> Flight:
+    """The ``slam_rotation`` / ``slam_time_offset`` / ``slam_extrinsic`` options applied as a
+    causal filter would apply them: each SLAM pose as decided when it *arrives*.
+
+    The :class:`SlamGyroCheck` is fed the IMU and SLAM in arrival order (capture time plus the
+    series' ``latency``). Poses arriving before its decision pass as stated; from the decision
+    on (the pose that completes it included): with ``"auto"`` the decided convention, with
+    ``extrinsic = "auto"`` and a ``body_T_cam`` rotation named wrong the orientation turned so
+    that the *given* ``body_T_cam`` yields the fitted body rotation
+    (``slam_R_cam' = slam_R_cam R_fit^T R_given``; the calibration is not changed, a filter
+    reads it once at its start), and with ``"apply"`` the clock offset (a pose whose shifted
+    time would not follow its predecessor's is left out and counted). ``"as-is"`` /
+    ``"inverse"`` and a numeric offset are given before the flight and apply to every pose.
+    Undecided after ``max_s`` of SLAM, or at the end: the rest as stated. This is what the
+    filter baselines get (the batch smoother gets :func:`apply_slam_check`, the push-API
+    smoother runs the same check itself). The record, with ``decided_at_s`` (arrival clock),
+    is ``flight.meta[CAUSAL_META_KEY]``; a flight checked either way is returned unchanged.
+    """
+    if (
+        flight.slam is None
+        or flight.imu is None
+        or META_KEY in flight.meta
+        or CAUSAL_META_KEY in flight.meta
+    ):
+        return flight
+    from .events import SlamPose, replay_flight
+
+    rotation, time_offset = file_modes(flight, rotation, time_offset)
+    check_modes(rotation, time_offset, "slam options")
+    check_extrinsic_mode(extrinsic, "slam options")
+    slam = flight.slam
+    n = len(slam)
+    decided_at = math.inf  # arrival time of the pose that completed the decision
+    d: SlamGyroDecision | None = None
+    if rotation == "auto" or time_offset == "apply" or extrinsic == "auto":
+        sgc = SlamGyroCheck(np.asarray(flight.calib.body_T_cam, float)[:3, :3])
+        t_first = None
+        for ev in replay_flight(flight, ("imu", "slam")):
+            sgc.add(ev)
+            if not isinstance(ev, SlamPose):
+                continue
+            t_first = ev.t if t_first is None else t_first
+            d = sgc.decision()
+            if d is not None:
+                decided_at = float(ev.arrival)
+                break
+            if ev.t - t_first > max_s:
+                break
+    record: dict[str, Any] = {
+        "slam_rotation": rotation,
+        "slam_time_offset": time_offset,
+        "decided_at_s": None,
+    }
+    q = np.array(slam.slam_q_cam_wxyz, float)
+    t = np.array(slam.t, float)
+    late = slam.latency
+    arrival = t + (np.zeros(n) if late is None else np.asarray(late, float))
+    invert = np.zeros(n, bool)
+    if rotation == "inverse":
+        invert[:] = True
+    after = arrival >= decided_at
+    offset = 0.0
+    if d is not None:
+        record.update(d.summary())
+        record["decided_at_s"] = decided_at
+        log.info(
+            "%s: SLAM-vs-gyro check decided at t=%.2f s (%s; the %d poses that arrived before "
+            "it taken as stated)",
+            flight.name,
+            decided_at,
+            d.convention,
+            int((~after).sum()),
+        )
+        if rotation == "auto" and d.convention == "inverse":
+            invert[after] = True
+            log.warning(
+                "%s: SLAM rotations are the inverse of the stated slam_R_cam (decided at t=%.2f "
+                "s): inverted from there",
+                flight.name,
+                decided_at,
+            )
+        if time_offset == "apply" and d.time_offset_ok:
+            offset = float(d.time_offset_s)
+    if not isinstance(time_offset, str):
+        offset, after = float(time_offset), np.ones(n, bool)
+    q[invert, 1:] *= -1.0
+    record["inverted_from"] = int(np.argmax(invert)) if invert.any() else None
+    record["body_R_cam_turned"] = False
+    if d is not None and not d.body_R_cam_ok and extrinsic == "auto":
+        given = np.asarray(flight.calib.body_T_cam, float)[:3, :3]
+        turn = np.asarray(d.body_R_cam_fit, float).T @ given
+        R = quat_wxyz_to_matrix(q[after]) @ turn
+        q[after] = matrix_to_quat_wxyz(R)
+        record["body_R_cam_turned"] = True
+        log.warning(
+            "%s: body_T_cam rotation %.1f deg from the one the gyro fits: SLAM orientations "
+            "turned to the fitted rotation from t=%.2f s (slam_extrinsic = 'auto')",
+            flight.name,
+            d.body_R_cam_error_deg,
+            decided_at,
+        )
+    keep = np.ones(n, bool)
+    if offset:
+        t[after] += offset
+        # arrival unchanged: a pose is not known earlier because its clock is corrected
+        keep[1:] = np.diff(t) > 0
+        for i in range(1, n):  # a pose left out must not break the order of the next
+            if keep[i] and not t[i] > t[:i][keep[:i]][-1]:
+                keep[i] = False
+        if not keep.all():
+            log.warning(
+                "%s: %d SLAM poses left out: the applied clock offset %+.4f s put them before "
+                "their predecessor",
+                flight.name,
+                int((~keep).sum()),
+                offset,
+            )
+    record["applied_time_offset_s"] = offset
+    record["left_out"] = int((~keep).sum())
+    new_late = None if late is None and not offset else np.maximum(arrival - t, 0.0)[keep]
+    slam = dataclasses.replace(
+        slam,
+        t=t[keep],
+        slam_t_cam=np.asarray(slam.slam_t_cam, float)[keep],
+        slam_q_cam_wxyz=q[keep],
+        session=np.asarray(slam.session)[keep],
+        latency=new_late,
+    )
+    meta = {**flight.meta, CAUSAL_META_KEY: record}
+    return dataclasses.replace(flight, slam=slam, meta=meta)

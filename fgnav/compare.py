@@ -512,6 +512,8 @@ def compare(
     # but the online smoother, which decides them causally from what has arrived.
     raw = flight
     flight = slam_checked(flight, cfg)
+    # The causal filters get each SLAM pose as decided when it arrived (as stated before).
+    causal_flight = None
     reg = METHODS if registry is None else registry
     t_all = time.perf_counter()
     runnable, skipped = available_methods(flight, methods, reg)
@@ -529,9 +531,15 @@ def compare(
         else:
             log.info("%s: running (%s)", name, method.description)
             try:
-                run.estimate = method.run(
-                    raw if name in CAUSAL_SLAM_CHECK else flight, cfg, progress
-                )
+                if name in CAUSAL_SLAM_CHECK:
+                    given_flight = raw
+                elif method.causal and "slam" in method.requires + method.optional:
+                    if causal_flight is None:
+                        causal_flight = slam_checked(raw, cfg, causal=True)
+                    given_flight = causal_flight
+                else:
+                    given_flight = flight
+                run.estimate = method.run(given_flight, cfg, progress)
             except MethodUnavailableError as e:  # known only once it looks at its options
                 res.skipped[name] = one_line(str(e))
                 log.info("%s: skipped: %s", name, res.skipped[name])

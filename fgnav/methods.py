@@ -130,23 +130,25 @@ class Method:
         config = dict(config or {})
         if "slam" in self.requires + self.optional and not self.name.startswith("fixed-lag"):
             # (the fixed-lag smoother checks the SLAM file itself: causally on the push engine)
-            flight = slam_checked(flight, config)
+            flight = slam_checked(flight, config, causal=self.causal)
         est = self.entry(flight, config, progress)
         if est.method != self.name:
             est = _renamed(est, self.name)
         return est.check()
 
 
-def slam_checked(flight: Flight, config: Mapping[str, Any]) -> Flight:
-    """The flight with the SLAM-vs-gyro options of the config's ``[graph]`` table applied
-    (:func:`fgnav.datasets.slam_gyro.apply_slam_check`), so that the filters get the SLAM
-    rotations and clock the smoothers use."""
-    from fgnav.datasets.slam_gyro import apply_slam_check
+def slam_checked(flight: Flight, config: Mapping[str, Any], causal: bool = False) -> Flight:
+    """The flight with the SLAM-vs-gyro options of the config's ``[graph]`` table applied, so
+    that the filters get the SLAM rotations and clock the smoothers use: over the whole flight
+    (:func:`fgnav.datasets.slam_gyro.apply_slam_check`, the batch's), or with ``causal`` each
+    pose as decided when it arrives (:func:`~fgnav.datasets.slam_gyro.apply_slam_check_causal`,
+    the causal filters': poses before the decision as stated)."""
+    from fgnav.datasets.slam_gyro import apply_slam_check, apply_slam_check_causal
 
     table = config.get("graph", {})
     if not isinstance(table, Mapping) or not table.get("use_slam", True):
         return flight
-    return apply_slam_check(
+    return (apply_slam_check_causal if causal else apply_slam_check)(
         flight,
         table.get("slam_rotation", "auto"),
         table.get("slam_time_offset", "report"),

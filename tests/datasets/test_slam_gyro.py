@@ -14,10 +14,12 @@ from fgnav.datasets.geometry import so3_exp, so3_log
 from fgnav.datasets.manifest import read_manifest
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.datasets.slam_gyro import (
+    CAUSAL_META_KEY,
     CONVENTION_RATIO,
     META_KEY,
     SlamGyroCheck,
     apply_slam_check,
+    apply_slam_check_causal,
     check_flight,
     invert_slam_rotations,
 )
@@ -352,3 +354,87 @@ def test_a_tracking_loss_is_no_clock_offset():
     d = check.decision()
     assert d is not None and d.time_offset_ok
     assert abs(d.time_offset_s) < 0.05, d.time_offset_s
+
+
+def _arrival(slam):
+    return slam.t + (0.0 if slam.latency is None else slam.latency)
+
+
+def test_causal_application_changes_only_poses_arriving_after_the_decision(sim_flight):
+    """The filters' form: each pose as decided when it arrived; before, as stated."""
+    bad = dataclasses.replace(sim_flight, slam=invert_slam_rotations(sim_flight.slam))
+    out = apply_slam_check_causal(bad)
+    rec = out.meta[CAUSAL_META_KEY]
+    t_d = rec["decided_at_s"]
+    assert rec["convention"] == "inverse"
+    # The decision is the incremental check's, made on what had arrived by then.
+    sgc = SlamGyroCheck(np.asarray(bad.calib.body_T_cam)[:3, :3])
+    t_seen = None
+    for ev in replay_flight(bad, ("imu", "slam")):
+        sgc.add(ev)
+        if type(ev).__name__ == "SlamPose" and sgc.decision() is not None:
+            t_seen = ev.arrival
+            break
+    assert t_d == t_seen and bad.slam.t[0] + 1.0 < t_d < bad.slam.t[-1] - 10.0
+    before = _arrival(bad.slam) < t_d
+    q_out, q_bad = out.slam.slam_q_cam_wxyz, bad.slam.slam_q_cam_wxyz
+    np.testing.assert_array_equal(q_out[before], q_bad[before])
+    dots = np.abs(np.sum(q_out[~before] * sim_flight.slam.slam_q_cam_wxyz[~before], axis=1))
+    np.testing.assert_allclose(dots, 1.0, atol=1e-12)
+    np.testing.assert_array_equal(out.slam.slam_t_cam, bad.slam.slam_t_cam)
+    # Applied once, and never on top of the whole-flight form (or the other way round).
+    assert apply_slam_check_causal(out) is out and apply_slam_check(out) is out
+    whole = apply_slam_check(bad)
+    assert apply_slam_check_causal(whole) is whole
+    # A file as stated passes unchanged.
+    same = apply_slam_check_causal(sim_flight)
+    np.testing.assert_array_equal(same.slam.slam_q_cam_wxyz, sim_flight.slam.slam_q_cam_wxyz)
+    np.testing.assert_array_equal(same.slam.t, sim_flight.slam.t)
+
+
+def test_causal_application_turns_orientations_to_the_fitted_body_R_cam(figure8_20s):
+    """A wrong ``body_T_cam`` rotation: from the decision the orientations are turned so that the
+    given rotation yields the fitted body orientation (the calibration is left as given)."""
+    f = figure8_20s
+    true_R = np.asarray(f.calib.body_T_cam)[:3, :3]
+    bad = _with_body_R_cam(f, np.eye(3))
+    out = apply_slam_check_causal(bad)
+    rec = out.meta[CAUSAL_META_KEY]
+    assert rec["body_R_cam_turned"]
+    np.testing.assert_array_equal(out.calib.body_T_cam, bad.calib.body_T_cam)
+    after = _arrival(out.slam) >= rec["decided_at_s"]
+    assert 0 < after.sum() < len(after)
+    from fgnav.datasets.geometry import quat_wxyz_to_matrix
+
+    # slam_R_body as a filter computes it from the given rotation vs the true one
+    got = quat_wxyz_to_matrix(out.slam.slam_q_cam_wxyz[after])  # @ identity^T
+    want = quat_wxyz_to_matrix(f.slam.slam_q_cam_wxyz[after]) @ true_R.T
+    err = np.degrees(np.linalg.norm(so3_log(np.transpose(got, (0, 2, 1)) @ want), axis=1))
+    assert err.max() < 1.0, err.max()
+    np.testing.assert_array_equal(
+        out.slam.slam_q_cam_wxyz[~after], bad.slam.slam_q_cam_wxyz[~after]
+    )
+
+
+def test_causal_application_applies_the_clock_offset_from_the_decision(sim_flight):
+    late = dataclasses.replace(
+        sim_flight, slam=dataclasses.replace(sim_flight.slam, t=sim_flight.slam.t - 0.3)
+    )
+    out = apply_slam_check_causal(late, "auto", "apply")
+    rec = out.meta[CAUSAL_META_KEY]
+    # the early decision's offset (the one the push engine applies), coarser than the whole
+    # flight's (0.3 +- 0.02 above)
+    assert rec["applied_time_offset_s"] == pytest.approx(0.3, abs=0.07)
+    off = rec["applied_time_offset_s"]
+    assert off == pytest.approx(rec["time_offset_s"], abs=1e-3)
+    assert np.all(np.diff(out.slam.t) > 0)
+    t_d = rec["decided_at_s"]
+    before = _arrival(late.slam) < t_d
+    np.testing.assert_array_equal(out.slam.t[: before.sum()], late.slam.t[before])
+    np.testing.assert_allclose(out.slam.t[before.sum() :], late.slam.t[~before] + off, atol=1e-12)
+    # nothing arrives earlier because its clock was corrected (a pose stamped later than it
+    # arrived arrives at its stamp)
+    arr_out, arr_in = _arrival(out.slam), _arrival(late.slam)
+    np.testing.assert_allclose(arr_out, np.maximum(arr_in, out.slam.t), atol=1e-9)
+    # "report" changes no time
+    np.testing.assert_array_equal(apply_slam_check_causal(late).slam.t, late.slam.t)

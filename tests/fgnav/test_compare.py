@@ -343,3 +343,43 @@ def test_compare_on_a_vertical_flight():
     assert run.metrics.ate_rmse_m < 0.02
     # Too little rotation to tell a SLAM clock offset: none named (it named -0.40 s here).
     assert "slam-clock-offset" not in run.estimate.info["health"]["detectors"]
+
+
+def test_causal_filters_get_the_slam_check_as_it_arrives_the_batch_the_whole_flights(flight):
+    """The SLAM-vs-gyro check reaches each method as it could know it: a causal filter gets each
+    pose as decided when it arrived (inverted SLAM rotations: as stated before the decision),
+    a non-causal method the whole flight's decision, the push engine the raw file."""
+    from fgnav.datasets.slam_gyro import (
+        CAUSAL_META_KEY,
+        META_KEY,
+        apply_slam_check_causal,
+        invert_slam_rotations,
+    )
+
+    seen = {}
+
+    def record(name):
+        def entry(f, config, progress=False):
+            seen[name] = f
+            raise RuntimeError("recorded")
+
+        return entry
+
+    reg = {
+        "causal-filter": Method("causal-filter", "", ("imu", "slam"), (), True, "fgnav.methods",
+                                record("causal-filter")),
+        "whole-flight": Method("whole-flight", "", ("imu", "slam"), (), False, "fgnav.methods",
+                               record("whole-flight")),
+    }  # fmt: skip
+    bad = dataclasses.replace(flight, slam=invert_slam_rotations(flight.slam))
+    compare(bad, list(reg), progress=False, registry=reg)
+    causal, whole = seen["causal-filter"], seen["whole-flight"]
+    assert CAUSAL_META_KEY in causal.meta and META_KEY not in causal.meta
+    assert META_KEY in whole.meta and CAUSAL_META_KEY not in whole.meta
+    np.testing.assert_array_equal(
+        causal.slam.slam_q_cam_wxyz, apply_slam_check_causal(bad).slam.slam_q_cam_wxyz
+    )
+    # the first poses as stated (inverted), all of the whole flight's undone
+    q0 = flight.slam.slam_q_cam_wxyz[0]
+    assert abs(causal.slam.slam_q_cam_wxyz[0] @ q0) < 1.0 - 1e-9
+    assert abs(whole.slam.slam_q_cam_wxyz[0] @ q0) == pytest.approx(1.0, abs=1e-12)
