@@ -409,10 +409,14 @@ def flight_info(flight: Flight) -> dict[str, Any]:
 def truth_slam_scales(flight: Flight) -> tuple[dict[int, float] | None, str]:
     """True SLAM scale per session and where it comes from.
 
-    Simulated flights: ``scale * (1 + scale_drift_per_s * (t_end - t_start))`` of each session in
-    ``meta["truth"]["slam_sessions"]`` (the scale at the session's last pose). Real flights with
-    SLAM and ground truth: :func:`slam_scale_vs_truth`. Otherwise None and the reason.
+    Flights without a SLAM stream: None (a simulated flight's metadata lists the sessions the
+    simulator drew even when the SLAM stream was left out). Simulated flights: ``scale * (1 +
+    scale_drift_per_s * (t_end - t_start))`` of each session in ``meta["truth"]["slam_sessions"]``
+    (the scale at the session's last pose). Real flights with SLAM and ground truth:
+    :func:`slam_scale_vs_truth`. Otherwise None and the reason.
     """
+    if flight.slam is None:  # (a simulated flight's metadata still lists the sessions it drew)
+        return None, "the flight has no SLAM stream"
     truth = flight.meta.get("truth") if isinstance(flight.meta, dict) else None
     sessions = truth.get("slam_sessions") if isinstance(truth, dict) else None
     if sessions:
@@ -422,8 +426,6 @@ def truth_slam_scales(flight: Flight) -> tuple[dict[int, float] | None, str]:
             t_end = float(v.get("t_end", v.get("t_start", 0.0)))
             out[int(sid)] = float(at[int(sid)](t_end))
         return out, "simulator truth, value at the session's end time (linear scale drift)"
-    if flight.slam is None:
-        return None, "the flight has no SLAM stream"
     if flight.ground_truth is None:
         return None, "the flight has no ground truth"
     from fgnav.eval.metrics import slam_scale_vs_truth
