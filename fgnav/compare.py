@@ -496,7 +496,7 @@ def compare(
         flight: the flight (checked).
         methods: method names (None: every method the flight allows, see
             :func:`fgnav.methods.available_methods`). Names the flight cannot feed are skipped
-            with the reason; unknown names raise.
+            with the reason; unknown names raise; a name given twice runs once.
         config: config tables by name (``[graph]``, ``[msf-ekf]`` ..., see :mod:`fgnav.methods`).
         progress: progress bars of the methods that have them.
         estimates: estimates already computed for some methods (scored, not re-run).
@@ -517,6 +517,8 @@ def compare(
     # The causal filters get each SLAM pose as decided when it arrived (as stated before).
     causal_flight = None
     reg = METHODS if registry is None else registry
+    if methods is not None:  # a name given twice runs once (as in fgnav fleet)
+        methods = list(dict.fromkeys(methods))
     t_all = time.perf_counter()
     runnable, skipped = available_methods(flight, methods, reg)
     for name, reason in skipped.items():

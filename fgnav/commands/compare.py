@@ -9,6 +9,8 @@ misses) or failed (with the error), and where ``report.md`` and ``compare.json``
 from __future__ import annotations
 
 import argparse
+import sys
+from collections import Counter
 from pathlib import Path
 
 from fgnav.commands import add_config_argument, add_flight_argument, add_out_argument
@@ -27,7 +29,8 @@ HELP = "run the smoothers and the filter baselines on a flight and compare them"
 
 
 def parse_methods(text: str | None) -> list[str] | None:
-    """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows).
+    """``"a,b"`` -> ``["a", "b"]`` (None: all methods the flight allows). A name given twice is
+    kept once, at its first place (as ``fgnav fleet`` does; :func:`repeated_methods` names them).
 
     Raises:
         MethodUnavailableError: a name that is neither a method nor ``ref:<reference>``, or no
@@ -47,7 +50,13 @@ def parse_methods(text: str | None) -> list[str] | None:
             raise MethodUnavailableError(
                 f"unknown method {m!r}; valid: {', '.join(METHODS)}, ref:<reference of the flight>"
             )
-    return names
+    return list(dict.fromkeys(names))
+
+
+def repeated_methods(text: str | None) -> dict[str, int]:
+    """``{name: count}`` of the names ``--methods`` gives more than once."""
+    names = [m.strip() for m in (text or "").split(",") if m.strip()]
+    return {m: n for m, n in Counter(names).items() if n > 1}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -88,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
     config = load_method_config(args.config)
     check_method_config(config)
     methods = parse_methods(args.methods)
+    for name, n in repeated_methods(args.methods).items():
+        print(
+            f"fgnav compare: note: --methods names {name} {n} times; it runs once", file=sys.stderr
+        )
     flight = load_flight(args.flight)
     result = compare(
         flight,

@@ -9,8 +9,10 @@ import json
 
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate
+from testutil import compare_cli
 
 from fgnav.compare import compare, truth_slam_scales
+from fgnav.methods import METHODS, reference_estimate
 
 
 @pytest.fixture(scope="module")
@@ -37,3 +39,40 @@ def test_no_slam_no_true_slam_scale(imu_only, tmp_path):
     report = paths["report"].read_text()
     assert "true SLAM scale: not available (the flight has no SLAM stream)" in report
     assert "session 0:" not in report
+
+
+def _counting(calls: list[str]):
+    """A method entry that records its call and replays the truth (fast)."""
+
+    def entry(flight, config, progress=False):
+        calls.append("run")
+        est = reference_estimate(
+            dataclasses.replace(flight, references={"truth": flight.ground_truth}), "truth", "x"
+        )
+        return dataclasses.replace(est, method="ekf004")
+
+    return entry
+
+
+def test_repeated_methods_run_once(cli_folder, tmp_path, capsys, monkeypatch):
+    """``--methods ekf004,ekf004,ekf004`` ran the method three times and kept one row: now it
+    runs once, with a one-line note (``fgnav fleet`` also runs a repeated name once)."""
+    calls: list[str] = []
+    monkeypatch.setitem(
+        METHODS, "ekf004", dataclasses.replace(METHODS["ekf004"], entry=_counting(calls))
+    )
+    rc = compare_cli(cli_folder, tmp_path / "out", "ekf004,ekf004, ekf004")
+    captured = capsys.readouterr()
+    assert rc == 0 and calls == ["run"]
+    assert captured.err.strip() == (
+        "fgnav compare: note: --methods names ekf004 3 times; it runs once"
+    )
+    data = json.loads((tmp_path / "out" / "compare.json").read_text())
+    assert [r["method"] for r in data["table"]] == ["ekf004"]
+    # The API does the same.
+    res = compare(
+        simulate("two-turns", 4, SimOptions(duration=4.0, images=False)),
+        ["ekf004"] * 2,
+        progress=False,
+    )
+    assert list(res.runs) == ["ekf004"] and calls == ["run", "run"]
