@@ -3,7 +3,9 @@
 Thin layer over :func:`fgnav.compare.compare`. ``--config`` is a TOML file whose tables configure
 the methods (``[graph]``, ``[lm]``, ``[batch]``, ``[online]``, ``[msf-ekf]``, ``[ekf004]`` ...,
 see :mod:`fgnav.methods`). Prints the comparison table, the methods skipped (with the stream each
-misses) or failed (with the error), and where ``report.md`` and ``compare.json`` are.
+misses) or failed (with the error), and where ``report.md`` and ``compare.json`` are. The exit
+code is 0 when at least one method produced an estimate (others may have failed or been skipped),
+1 when none did (after the table and files, with a one-line summary on stderr) or on an error.
 """
 
 from __future__ import annotations
@@ -111,4 +113,17 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     paths = result.write(out, figures=not args.no_figures)
     print_result(result, out, paths)
+    if not any(r.ok for r in result.runs.values()):  # (as fgnav fleet when every run failed)
+        print(f"fgnav compare: {no_result_summary(result)}", file=sys.stderr)
+        return 1
     return 0
+
+
+def no_result_summary(result: CompareResult) -> str:
+    """The one line of a comparison in which no method produced an estimate."""
+    failed, skipped = len(result.failed), len(result.skipped)
+    return (
+        f"no method produced a result ({failed} failed, {skipped} skipped"
+        + ("; see the lines above" if failed or skipped else "")
+        + ")"
+    )

@@ -76,3 +76,39 @@ def test_repeated_methods_run_once(cli_folder, tmp_path, capsys, monkeypatch):
         progress=False,
     )
     assert list(res.runs) == ["ekf004"] and calls == ["run", "run"]
+
+
+def _raises(flight, config, progress=False):
+    raise RuntimeError("deliberate failure")
+
+
+def test_exit_1_when_no_method_produced_a_row(cli_folder, tmp_path, capsys, monkeypatch):
+    """Every method failed or was skipped: the table and files are written, then one line on
+    stderr and exit 1 (it was exit 0, as ``fgnav fleet`` is not); one row is enough for 0."""
+    monkeypatch.setitem(METHODS, "msf-ekf", dataclasses.replace(METHODS["msf-ekf"], entry=_raises))
+    monkeypatch.setitem(METHODS, "ukf003", dataclasses.replace(METHODS["ukf003"], entry=_raises))
+    rc = compare_cli(cli_folder, tmp_path / "a", "msf-ekf,ukf003")
+    captured = capsys.readouterr()
+    assert rc == 1
+    assert "FAILED msf-ekf: RuntimeError: deliberate failure" in captured.out
+    assert captured.err.strip() == (
+        "fgnav compare: no method produced a result (2 failed, 0 skipped; see the lines above)"
+    )
+    assert (tmp_path / "a" / "report.md").is_file()
+    # Skipped only (the flight has no flow): exit 1 too.
+    rc = compare_cli(cli_folder, tmp_path / "b", "ekf-flow002,cf-ekf")
+    captured = capsys.readouterr()
+    assert rc == 1
+    assert "skipped cf-ekf: needs flow; the flight has none" in captured.out
+    assert captured.err.strip().splitlines() == [
+        "fgnav compare: no method produced a result (0 failed, 2 skipped; see the lines above)"
+    ]
+    # One method with a row: exit 0, the failure still printed.
+    calls: list[str] = []
+    monkeypatch.setitem(
+        METHODS, "ekf004", dataclasses.replace(METHODS["ekf004"], entry=_counting(calls))
+    )
+    rc = compare_cli(cli_folder, tmp_path / "c", "msf-ekf,ekf004")
+    captured = capsys.readouterr()
+    assert rc == 0 and calls == ["run"] and "no method produced" not in captured.err
+    assert "FAILED msf-ekf: RuntimeError: deliberate failure" in captured.out
