@@ -112,6 +112,8 @@ class MethodRun:
             "status": "ok" if self.ok else "failed",
             "causal": self.estimate.causal if self.ok else m.causal,
             "alignment": self.metrics.alignment if self.metrics else None,
+            # RPE, yaw RMSE and NEES left out (blank): see Method.positions_only
+            "positions_only": m.positions_only,
         }
         d = self.metrics.as_dict() if self.metrics else {}
         for key in ROW_METRICS:
@@ -462,10 +464,12 @@ def score_estimate(
     est: Estimate,
     alignment: str = "se3",
     delta_m: float = DEFAULT_RPE_DELTA_M,
+    positions_only: bool = False,
 ) -> Metrics | None:
     """Score ``est`` against the flight's ground truth (None when it has none): ``alignment``
-    (DESIGN.md section 9), the true SLAM scale when the estimate has one. One scoring for
-    ``fgnav batch``/``online``, ``compare`` and ``fleet``.
+    (DESIGN.md section 9), the true SLAM scale when the estimate has one, the positions only
+    when asked (:attr:`fgnav.methods.Method.positions_only`, the ``ref:<name>`` rows). One
+    scoring for ``fgnav batch``/``online``, ``compare`` and ``fleet``.
 
     Raises:
         FgnavError: the estimate cannot be matched to the truth (see :func:`evaluate`).
@@ -479,6 +483,7 @@ def score_estimate(
         truth_scale=truth_slam_scales(flight)[0] if has_scale(est) else None,
         delta_m=delta_m,
         truth_scale_at=truth_slam_scale_at(flight),
+        positions_only=positions_only,
     )
 
 
@@ -555,7 +560,11 @@ def compare(
         if run.ok and flight.ground_truth is not None:
             try:
                 run.metrics = score_estimate(
-                    flight, run.estimate, method.alignment, delta_m=res.rpe_delta_m
+                    flight,
+                    run.estimate,
+                    method.alignment,
+                    delta_m=res.rpe_delta_m,
+                    positions_only=method.positions_only,
                 )
             except Exception as e:  # scoring problems are reported per method
                 run.evaluation_error = f"{type(e).__name__}: {one_line(str(e))}"

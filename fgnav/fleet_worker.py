@@ -142,7 +142,9 @@ def run_job(job: dict[str, Any]) -> list[dict[str, Any]]:
         try:
             method = get_method(name, flight)
             est = method.run(flight, job.get("config") or {}, False)
-            metrics = score_estimate(flight, est, method.alignment)
+            metrics = score_estimate(
+                flight, est, method.alignment, positions_only=method.positions_only
+            )
             if job.get("out_dir"):
                 out = Path(job["out_dir"]) / method_dirname(name)
                 write_estimate(est, out, metrics, summary_extra(flight.name, est, "fleet"))

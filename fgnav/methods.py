@@ -80,6 +80,9 @@ class Method:
         any_of: alternative stream sets, at least one of which must be present besides
             ``requires`` (the smoothers: ``slam``, or ``images`` with ``range`` for the homography
             and rangefinder factors).
+        positions_only: score the positions only (the ``ref:<name>`` rows: another system's
+            trajectory whose orientations may be of another body frame, as the EuRoC V1_02
+            references'): the orientation-based metrics (RPE, yaw RMSE, NEES) are left out.
     """
 
     name: str
@@ -91,6 +94,7 @@ class Method:
     entry: Callable[[Flight, Mapping[str, Any], bool], Estimate]
     alignment: str = "se3"
     any_of: tuple[tuple[str, ...], ...] = ()
+    positions_only: bool = False
 
     def missing(self, flight: Flight) -> list[str]:
         """The required streams the flight does not have (``[]`` when it can run); for
@@ -804,18 +808,21 @@ def _reference_entry(ref: str, method: str) -> Entry:
 
 def reference_method(ref: str) -> Method:
     """The replay method of ``flight.references[ref]``: ``px4-ekf2`` for ``px4_ekf2``, else
-    ``ref:<ref>`` (e.g. another system's estimate given in a manifest)."""
+    ``ref:<ref>`` (e.g. another system's estimate given in a manifest), scored on its positions
+    only (``positions_only``: its body frame is not known to be the flight's; the EuRoC V1_02
+    references' orientations are of another one)."""
     if ref == "px4_ekf2":
         return METHODS["px4-ekf2"]
     name = f"{REFERENCE_PREFIX}{ref}"
     return Method(
         name,
-        f"trajectory {ref!r} recorded with the flight (nothing is run)",
+        f"trajectory {ref!r} recorded with the flight (nothing is run; scored on positions only)",
         (name,),
         (),
         False,
         __name__,
         _reference_entry(ref, name),
+        positions_only=True,
     )
 
 

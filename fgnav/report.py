@@ -161,6 +161,15 @@ def render_report(data: Mapping[str, Any]) -> str:
         "duration / run time. `-`: not available for that method.",
         "",
     ]
+    only = [r["method"] for r in data["table"] if r.get("positions_only")]
+    if only:
+        lines += [
+            f"{', '.join(only)}: another system's trajectory, scored on its positions only (its "
+            "body frame is not known to be the flight's; the EuRoC V1_02 references' "
+            "orientations are of another one): RPE, yaw RMSE and NEES, which use the "
+            "orientations, are left out (`-`).",
+            "",
+        ]
     ft = data.get("flow_table")
     if ft:
         lines += [

@@ -82,6 +82,9 @@ def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> No
     runs = {n: r.estimate for n, r in result.runs.items() if r.estimate is not None}
     for line in compare_lines(result.flight, runs):
         print(line)
+    only = [n for n, r in result.runs.items() if r.ok and r.method.positions_only]
+    if only and result.flight.ground_truth is not None:
+        print(f"{', '.join(only)}: scored on positions only (RPE, yaw RMSE and NEES left out)")
     for name, reason in result.skipped.items():
         print(f"skipped {name}: {reason}")
     for name, error in result.failed.items():

@@ -36,6 +36,11 @@ estimate's times, then aligning it with the stated mode, see :mod:`fgnav.eval.al
   independent; consecutive states of a smoother are not, so it is narrower than it should be.
 - **Timing**: median, 99th percentile and max of ``update_latency`` [s]; times real time =
   estimate duration / ``runtime_s``.
+- **Positions only** (``evaluate(..., positions_only=True)``, e.g. another system's trajectory
+  whose orientations are of another body frame): the metrics that use the estimate's
+  orientations are left out (NaN): RPE (relative poses), yaw RMSE and both NEES (the position
+  NEES rotates the body-frame covariance by the estimate's orientation). ATE, ATE 4-DoF and
+  velocity RMSE use positions and velocities only.
 """
 
 from __future__ import annotations
@@ -88,6 +93,7 @@ class Metrics:
     alignment: str
     align_scale: float = 1.0
     causal: bool = False
+    positions_only: bool = False
     n_est: int = 0
     n_matched: int = 0
     n_unmatched_before: int = 0
@@ -498,6 +504,7 @@ def evaluate(
     delta_m: float = DEFAULT_RPE_DELTA_M,
     max_gap_s: float = DEFAULT_MAX_GT_GAP_S,
     truth_scale_at: Mapping[int, Callable[[np.ndarray], np.ndarray]] | None = None,
+    positions_only: bool = False,
 ) -> Metrics:
     """Score an estimate against ground truth.
 
@@ -511,6 +518,8 @@ def evaluate(
             :func:`scale_errors`).
         delta_m: RPE segment length [m].
         max_gap_s: largest truth gap [s] interpolated across (see :func:`associate`).
+        positions_only: leave out the metrics that use the estimate's orientations (RPE, yaw
+            RMSE, NEES; see the module docstring).
 
     Returns:
         The :class:`Metrics`.
@@ -527,7 +536,13 @@ def evaluate(
     a_R = al.apply_rotations(est_R)
     gt_R = gt.world_R_body()
 
-    m = Metrics(method=estimate.method, alignment=al.mode, align_scale=al.s, causal=estimate.causal)
+    m = Metrics(
+        method=estimate.method,
+        alignment=al.mode,
+        align_scale=al.s,
+        causal=estimate.causal,
+        positions_only=positions_only,
+    )
     m.n_est = len(est)
     m.n_matched = assoc.n_matched
     m.n_unmatched_before = assoc.n_before
@@ -556,13 +571,15 @@ def evaluate(
     m.path_length_m = float(D[-1])
     m.rpe_delta_m = float(delta_m)
     pairs = rpe_pairs(gt.world_t_body, delta_m)
+    if positions_only:  # (relative poses use the orientations)
+        pairs = pairs[:0]
     m.rpe_n_pairs = int(pairs.shape[0])
     if pairs.shape[0]:
         rpe = rpe_translation_errors(gt.world_t_body, gt_R, a_xyz, a_R, pairs)
         d = D[pairs[:, 1]] - D[pairs[:, 0]]
         m.rpe_rmse_m = _rmse(rpe)
         m.rpe_pct = float(np.mean(100.0 * rpe / d))
-    else:
+    elif not positions_only:
         logger.warning(
             "evaluate[%s]: no RPE pair over %.1f m (true path %.1f m)",
             estimate.method,
@@ -585,10 +602,11 @@ def evaluate(
     # aligned by the rotation fitted to them (align_rotations), not the positions' fit.
     mode_R = alignment if alignment in ("none", "4dof") else "se3"
     o_R = np.einsum("ij,njk->nik", align_rotations(est_R, gt_R, mode_R), est_R)
-    dyaw = wrap_angle(yaw_of(np.einsum("nij,nkj->nik", o_R, gt_R)))
-    m.yaw_rmse_deg = math.degrees(_rmse(dyaw))
+    if not positions_only:
+        dyaw = wrap_angle(yaw_of(np.einsum("nij,nkj->nik", o_R, gt_R)))
+        m.yaw_rmse_deg = math.degrees(_rmse(dyaw))
 
-    if estimate.pose_cov is not None:
+    if estimate.pose_cov is not None and not positions_only:
         # Only samples with a covariance (solvers may compute it on a stride and leave NaN rows).
         has = np.all(np.isfinite(estimate.pose_cov[idx]), axis=(1, 2))
         if has.any():

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate
 from testutil import compare_cli
@@ -112,3 +113,67 @@ def test_exit_1_when_no_method_produced_a_row(cli_folder, tmp_path, capsys, monk
     captured = capsys.readouterr()
     assert rc == 0 and calls == ["run"] and "no method produced" not in captured.err
     assert "FAILED msf-ekf: RuntimeError: deliberate failure" in captured.out
+
+
+def _other_body_frame(flight, noise_m: float = 0.03):
+    """The truth at 20 Hz with seeded position noise and the orientations of another body frame
+    (90 deg about body y, as an x-up IMU frame against a z-up body)."""
+    from fgnav.datasets.geometry import matrix_to_quat_wxyz
+
+    gt = flight.ground_truth.select(np.arange(0, len(flight.ground_truth), 10))
+    rng = np.random.default_rng(1)
+    R_y = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    R = np.einsum("nij,jk->nik", gt.world_R_body(), R_y)
+    return dataclasses.replace(
+        gt,
+        world_t_body=gt.world_t_body + rng.normal(0.0, noise_m, gt.world_t_body.shape),
+        world_q_body_wxyz=matrix_to_quat_wxyz(R),
+        world_v_body=None,
+        gyro_bias=None,
+        accel_bias=None,
+    )
+
+
+def test_reference_rows_score_positions_only(flight, tmp_path):
+    """A ``ref:<name>`` row (another system's trajectory: EuRoC V1_02's VINS-Mono and SVO 2,
+    whose orientations are of another body frame) is scored on positions only: RPE, yaw RMSE
+    and NEES blank (``ref:vins_mono`` read RPE 31.7 % and yaw RMSE 44.3 deg); its ATE is the
+    same as a full scoring's."""
+    from fgnav.compare import score_estimate
+    from fgnav.report import COLUMNS
+
+    ref = _other_body_frame(flight)
+    fl = dataclasses.replace(flight, references={"vio": ref, "px4_ekf2": ref})
+    res = compare(fl, ["px4-ekf2", "ref:vio"], progress=False)
+    paths = res.write(tmp_path, figures=False)
+    data = json.loads(paths["json"].read_text())
+    rows = {r["method"]: r for r in data["table"]}
+    full, only = rows["px4-ekf2"], rows["ref:vio"]
+    assert only["positions_only"] is True and full["positions_only"] is False
+    assert only["ate_rmse_m"] == pytest.approx(full["ate_rmse_m"], rel=1e-12)
+    assert only["ate_4dof_m"] == pytest.approx(full["ate_4dof_m"], rel=1e-12)
+    assert 0.03 < only["ate_rmse_m"] < 0.06
+    # The px4-ekf2 row (the onboard estimate of the flight's own body) keeps its orientations:
+    # 90 deg of body rotation is 90 deg of yaw error there.
+    assert full["yaw_rmse_deg"] > 45.0
+    for key in ("rpe_pct", "yaw_rmse_deg", "nees_pos"):
+        assert only[key] is None, key
+    metrics = data["methods"]["ref:vio"]["metrics"]
+    assert metrics["positions_only"] is True and metrics["rpe_n_pairs"] == 0
+    assert metrics["nees_pose"] is None and metrics["rpe_rmse_m"] is None
+    # RPE over 2 m segments (the flight is shorter than 10 m): orientation-based, left out.
+    est = res.runs["ref:vio"].estimate
+    m_full = score_estimate(fl, est, delta_m=2.0)
+    m_pos = score_estimate(fl, est, delta_m=2.0, positions_only=True)
+    assert m_full.rpe_n_pairs > 10 and m_full.rpe_pct > 20.0
+    assert m_pos.rpe_n_pairs == 0 and np.isnan(m_pos.rpe_pct) and np.isnan(m_pos.yaw_rmse_deg)
+    assert m_pos.ate_rmse_m == m_full.ate_rmse_m and m_pos.ate_max_m == m_full.ate_max_m
+    # report.md: '-' in those cells, and the rows named as scored on positions only.
+    report = paths["report"].read_text()
+    line = next(x for x in report.splitlines() if x.startswith("| ref:vio |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    titles = [c.title for c in COLUMNS]
+    for title in ("RPE [%]", "yaw RMSE [deg]", "NEES"):
+        assert cells[titles.index(title)] == "-"
+    assert cells[titles.index("ATE [m]")] == f"{only['ate_rmse_m']:.3f}"
+    assert "ref:vio: another system's trajectory, scored on its positions only" in report
