@@ -70,6 +70,19 @@ ROW_METRICS = (
 )
 
 
+#: Plausibility flags (:func:`plausibility_flags`), after scoring; information only (the numbers
+#: and the exit code stay): the largest speed of a multirotor [m/s] (racing quadrotors reach
+#: 30-40 m/s; the flights here fly below 5 m/s) ...
+FLAG_MAX_SPEED_MPS = 50.0
+#: ... measured over spans of at least this long [s] (consecutive samples when they are further
+#: apart): a filter's position correction between two outputs 5 ms apart is no speed ...
+FLAG_SPEED_SPAN_S = 1.0
+#: ... and, with ground truth, an ATE above the larger of this [m] ...
+FLAG_ATE_MIN_M = 1.0
+#: ... and this fraction of the true path length over the scored span.
+FLAG_ATE_PATH_FRACTION = 0.1
+
+
 #: Top view: the truth's extent grown by this fraction on each side (a diverging estimate
 #: leaves the view instead of shrinking the others to a dot; the legend says so).
 TOP_VIEW_MARGIN = 0.25
@@ -88,6 +101,8 @@ class MethodRun:
         evaluation_error: why a finished estimate could not be scored.
         wall_s: wall time of the run and its scoring [s].
         reused: True when the estimate was given to :func:`compare` instead of computed there.
+        ate_common_m: ATE over the span every causal method covers [m].
+        flags: why the estimate is implausible (:func:`plausibility_flags`; empty when it is not).
     """
 
     method: Method
@@ -99,6 +114,8 @@ class MethodRun:
     wall_s: float = 0.0
     reused: bool = False
     ate_common_m: float | None = None
+    #: ``[{"code", "reason"}]`` of :func:`plausibility_flags` (empty: nothing implausible)
+    flags: list[dict[str, str]] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -125,6 +142,7 @@ class MethodRun:
         row["latency_p50_ms"] = float(1e3 * np.percentile(lat, 50)) if has_lat else None
         if self.ok and row["times_real_time"] is None and self.estimate.runtime_s > 0:
             row["times_real_time"] = self.estimate.trajectory.duration / self.estimate.runtime_s
+        row["flag"] = ",".join(f["code"] for f in self.flags) or None
         return to_jsonable(row)
 
 
@@ -202,6 +220,7 @@ class CompareResult:
                 "output": (outputs or {}).get(name),
             }
             if r.ok:
+                entry["flags"] = list(r.flags)
                 entry["estimate"] = summary_dict(r.estimate)
                 entry["estimate"]["runtime_s"] = r.estimate.runtime_s
                 entry["metrics"] = r.metrics.as_dict() if r.metrics else None
@@ -227,6 +246,13 @@ class CompareResult:
                 else self.common_span_start_s - flight_t0(self.flight)
             ),
             "table": self.rows(),
+            "flags": {n: [f["reason"] for f in r.flags] for n, r in self.runs.items() if r.flags},
+            "flag_bounds": {
+                "max_speed_mps": FLAG_MAX_SPEED_MPS,
+                "speed_span_s": FLAG_SPEED_SPAN_S,
+                "ate_min_m": FLAG_ATE_MIN_M,
+                "ate_path_fraction": FLAG_ATE_PATH_FRACTION,
+            },
             "flow_table": self.flow_table(),
             "methods": methods,
             "skipped": dict(self.skipped),
@@ -338,6 +364,82 @@ class CompareResult:
                 f"{', '.join(dropped)}: could not be matched to the truth (see per-method notes)"
             )
         return figs, errors
+
+
+def _fmt_big(x: float) -> str:
+    return f"{x:.3g}" if math.isfinite(x) else str(x)
+
+
+def max_speed(traj: Any, span_s: float = FLAG_SPEED_SPAN_S) -> tuple[float, float]:
+    """Largest speed [m/s] of the positions over spans of at least ``span_s`` (from each sample
+    to the first one ``span_s`` or more later; the first to the last sample on a shorter
+    trajectory) and the time [s] the span starts; ``(0, nan)`` with fewer than 2 samples.
+    Non-finite positions give ``inf`` (or NaN)."""
+    t = np.asarray(traj.t, dtype=float)
+    p = np.asarray(traj.world_t_body, dtype=float)
+    if t.size < 2 or not t[-1] > t[0]:
+        return 0.0, math.nan
+    j = np.searchsorted(t, t + span_s, side="left")
+    i = np.flatnonzero(j < t.size)
+    if i.size == 0:
+        i, j = np.array([0]), np.array([t.size - 1])
+    else:
+        j = j[i]
+    with np.errstate(over="ignore", invalid="ignore"):
+        v = np.linalg.norm(p[j] - p[i], axis=1) / (t[j] - t[i])
+    bad = ~np.isfinite(v)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        return (math.inf if not np.isnan(v[k]) else math.nan), float(t[i[k]])
+    k = int(np.argmax(v))
+    return float(v[k]), float(t[i[k]])
+
+
+def plausibility_flags(
+    est: Estimate, metrics: Metrics | None, t0: float = 0.0
+) -> list[dict[str, str]]:
+    """Why an estimate is implausible, as ``[{"code", "reason"}]`` (empty: nothing found).
+
+    Codes: ``non-finite`` (positions, velocities or the ATE not finite), ``speed`` (faster than
+    :data:`FLAG_MAX_SPEED_MPS` over spans of :data:`FLAG_SPEED_SPAN_S`, see :func:`max_speed`;
+    no ground truth needed), ``ate`` (with ground truth: ATE above the larger of
+    :data:`FLAG_ATE_MIN_M` and :data:`FLAG_ATE_PATH_FRACTION` of the true path). A diverged
+    filter's row used to print as any other (ATE 4920 m, 1.95e28 m, exit 0, no warning). ``t0``:
+    the flight's first time (times in the reasons are relative to it).
+    """
+    traj = est.trajectory
+    out: list[dict[str, str]] = []
+    bad = [
+        f"{name} ({int((~np.isfinite(a)).any(axis=1).sum())} of {len(a)} samples)"
+        for name, a in (("positions", traj.world_t_body), ("velocities", traj.world_v_body))
+        if a is not None and not np.isfinite(np.asarray(a, dtype=float)).all()
+    ]
+    if metrics is not None and not math.isfinite(metrics.ate_rmse_m):
+        bad.append(f"ATE ({metrics.ate_rmse_m})")
+    if bad:
+        out.append({"code": "non-finite", "reason": "non-finite " + ", ".join(bad)})
+    v, t_v = max_speed(traj)
+    if not v <= FLAG_MAX_SPEED_MPS:  # (NaN and inf included)
+        out.append(
+            {
+                "code": "speed",
+                "reason": f"speed {_fmt_big(v)} m/s over {FLAG_SPEED_SPAN_S:g} s from "
+                f"{t_v - t0:.1f} s (a multirotor flies below {FLAG_MAX_SPEED_MPS:g} m/s)",
+            }
+        )
+    if metrics is not None and math.isfinite(metrics.ate_rmse_m):
+        path = metrics.path_length_m if math.isfinite(metrics.path_length_m) else 0.0
+        bound = max(FLAG_ATE_MIN_M, FLAG_ATE_PATH_FRACTION * path)
+        if metrics.ate_rmse_m > bound:
+            out.append(
+                {
+                    "code": "ate",
+                    "reason": f"ATE {_fmt_big(metrics.ate_rmse_m)} m > {bound:.3g} m (the "
+                    f"larger of {FLAG_ATE_MIN_M:g} m and {100 * FLAG_ATE_PATH_FRACTION:g} % of "
+                    f"the {path:.3g} m true path)",
+                }
+            )
+    return out
 
 
 def held_to_end(est: Estimate, key: str) -> Estimate:
@@ -598,5 +700,11 @@ def compare(
         )
         for n, ate in ates.items():
             res.runs[n].ate_common_m = ate
+    t_first = flight_t0(flight)
+    for n, r in res.runs.items():
+        if r.ok:
+            r.flags = plausibility_flags(r.estimate, r.metrics, t_first)
+            for f in r.flags:
+                log.info("%s: implausible: %s", n, f["reason"])
     res.timings["total"] = time.perf_counter() - t_all
     return res

@@ -44,6 +44,7 @@ COLUMNS: tuple[Column, ...] = (
     Column("NEES", "nees_pos", "{:.2f}"),
     Column("time/update p50 [ms]", "latency_p50_ms", "{:.3f}"),
     Column("x real time", "times_real_time", "{:.1f}"),
+    Column("flag", "flag"),
 )
 
 #: Text of a value that is not available (no truth, no covariance, nothing timed ...).
@@ -158,9 +159,25 @@ def render_report(data: Mapping[str, Any]) -> str:
         f"per distance over {_fmt(data.get('rpe_delta_m'), '{:g}')} m segments; scale err: largest "
         "|final scale error| over SLAM sessions; NEES: mean position NEES (3 for a consistent "
         "estimator); time/update p50: median wall time of one update; x real time: flight "
-        "duration / run time. `-`: not available for that method.",
+        "duration / run time; flag: why the estimate is implausible (`non-finite`, `speed`, "
+        "`ate`, see below). `-`: not available for that method (no flag).",
         "",
     ]
+    flags = data.get("flags") or {}
+    if flags:
+        b = data.get("flag_bounds") or {}
+        lines += [
+            "## Implausible estimates",
+            "",
+            "Flagged after scoring (information only: the numbers are as computed): non-finite "
+            f"values, speeds above {_fmt(b.get('max_speed_mps'), '{:g}')} m/s over "
+            f"{_fmt(b.get('speed_span_s'), '{:g}')} s spans, or an ATE above the larger of "
+            f"{_fmt(b.get('ate_min_m'), '{:g}')} m and "
+            f"{_fmt(100 * b.get('ate_path_fraction', math.nan), '{:g}')} % of the true path.",
+            "",
+        ]
+        lines += [f"- **{name}**: {'; '.join(reasons)}" for name, reasons in flags.items()]
+        lines.append("")
     only = [r["method"] for r in data["table"] if r.get("positions_only")]
     if only:
         lines += [

@@ -3,9 +3,11 @@
 Thin layer over :func:`fgnav.compare.compare`. ``--config`` is a TOML file whose tables configure
 the methods (``[graph]``, ``[lm]``, ``[batch]``, ``[online]``, ``[msf-ekf]``, ``[ekf004]`` ...,
 see :mod:`fgnav.methods`). Prints the comparison table, the methods skipped (with the stream each
-misses) or failed (with the error), and where ``report.md`` and ``compare.json`` are. The exit
-code is 0 when at least one method produced an estimate (others may have failed or been skipped),
-1 when none did (after the table and files, with a one-line summary on stderr) or on an error.
+misses) or failed (with the error), a ``WARNING`` line per implausible estimate (the row's
+``flag``, :func:`fgnav.compare.plausibility_flags`), and where ``report.md`` and ``compare.json``
+are. The exit code is 0 when at least one method produced an estimate (others may have failed or
+been skipped, estimates may be flagged), 1 when none did (after the table and files, with a
+one-line summary on stderr) or on an error.
 """
 
 from __future__ import annotations
@@ -77,7 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> None:
-    """Print the table, skipped and failed methods, and the files written."""
+    """Print the table, skipped and failed methods, implausible estimates, and the files."""
     print(result.table())
     runs = {n: r.estimate for n, r in result.runs.items() if r.estimate is not None}
     for line in compare_lines(result.flight, runs):
@@ -89,6 +91,10 @@ def print_result(result: CompareResult, out: Path, paths: dict[str, Path]) -> No
         print(f"skipped {name}: {reason}")
     for name, error in result.failed.items():
         print(f"FAILED {name}: {error}")
+    for name, r in result.runs.items():
+        if r.flags:
+            reasons = "; ".join(f["reason"] for f in r.flags)
+            print(f"WARNING {name}: implausible estimate: {reasons}")
     if result.flight.ground_truth is None:
         print("no ground truth in this flight: accuracy columns are empty")
     print(f"report: {paths['report']}")

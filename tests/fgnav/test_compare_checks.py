@@ -42,7 +42,7 @@ def test_no_slam_no_true_slam_scale(imu_only, tmp_path):
     assert "session 0:" not in report
 
 
-def _counting(calls: list[str]):
+def _counting(calls: list[str], name: str = "ekf004"):
     """A method entry that records its call and replays the truth (fast)."""
 
     def entry(flight, config, progress=False):
@@ -50,7 +50,7 @@ def _counting(calls: list[str]):
         est = reference_estimate(
             dataclasses.replace(flight, references={"truth": flight.ground_truth}), "truth", "x"
         )
-        return dataclasses.replace(est, method="ekf004")
+        return dataclasses.replace(est, method=name)
 
     return entry
 
@@ -177,3 +177,85 @@ def test_reference_rows_score_positions_only(flight, tmp_path):
         assert cells[titles.index(title)] == "-"
     assert cells[titles.index("ATE [m]")] == f"{only['ate_rmse_m']:.3f}"
     assert "ref:vio: another system's trajectory, scored on its positions only" in report
+
+
+def _diverging(factor: float, t_from: float = 4.0):
+    """A method entry replaying the truth whose positions grow by ``factor`` per second after
+    ``t_from`` seconds (a diverged filter)."""
+
+    def entry(flight, config, progress=False):
+        est = reference_estimate(
+            dataclasses.replace(flight, references={"truth": flight.ground_truth}), "truth", "x"
+        )
+        traj = est.trajectory
+        dt = np.clip(traj.t - traj.t[0] - t_from, 0.0, None)
+        with np.errstate(over="ignore"):
+            grow = np.minimum(factor**dt, 1e300)
+        traj = dataclasses.replace(
+            traj, world_t_body=traj.world_t_body * grow[:, None], world_v_body=None
+        )
+        return dataclasses.replace(est, trajectory=traj, method="ekf004", causal=True)
+
+    return entry
+
+
+def test_plausibility_flags(flight):
+    """The flags: speed (no truth needed), ATE above max(1 m, 10 % of the path), non-finite."""
+    from fgnav.compare import FLAG_MAX_SPEED_MPS, max_speed, plausibility_flags
+    from fgnav.estimate import Estimate
+
+    truth = flight.ground_truth
+    ok = Estimate("ok", truth)
+    assert plausibility_flags(ok, None) == []
+    v, _ = max_speed(truth)
+    assert 0.5 < v < 5.0  # the simulator's two-turns
+    # A position jump of 20 cm between two outputs 5 ms apart is no speed (1 s spans) ...
+    p = truth.world_t_body.copy()
+    p[len(p) // 2 :] += 0.2
+    assert (
+        plausibility_flags(Estimate("jump", dataclasses.replace(truth, world_t_body=p)), None) == []
+    )
+    # ... 80 m is.
+    p[len(p) // 2 :] += 80.0
+    flags = plausibility_flags(Estimate("far", dataclasses.replace(truth, world_t_body=p)), None)
+    assert [f["code"] for f in flags] == ["speed"]
+    assert f"below {FLAG_MAX_SPEED_MPS:g} m/s" in flags[0]["reason"]
+
+
+def test_implausible_rows_flagged(flight, cli_folder, tmp_path, capsys, monkeypatch):
+    """Rows with ATE of 61 m ... 1.95e28 m printed as normal rows, exit 0, no warning: now a
+    WARNING line per such row, the row's ``flag``, compare.json's ``flags`` and report.md's
+    section say why; the numbers stay as computed and the exit code 0."""
+    reg = dict(METHODS)
+    reg["ekf004"] = dataclasses.replace(METHODS["ekf004"], entry=_diverging(10.0))
+    reg["msf-ekf"] = dataclasses.replace(METHODS["msf-ekf"], entry=_diverging(1e300, 6.0))
+    reg["ukf003"] = dataclasses.replace(METHODS["ukf003"], entry=_counting([], "ukf003"))
+    res = compare(flight, ["ekf004", "msf-ekf", "ukf003"], progress=False, registry=reg)
+    paths = res.write(tmp_path / "api", figures=False)
+    data = json.loads(paths["json"].read_text())
+    rows = {r["method"]: r for r in data["table"]}
+    assert rows["ekf004"]["flag"] == "speed,ate" and rows["ekf004"]["ate_rmse_m"] > 1e3
+    assert rows["msf-ekf"]["flag"] == "non-finite,speed" and rows["msf-ekf"]["ate_rmse_m"] is None
+    assert rows["ukf003"]["flag"] is None and rows["ukf003"]["ate_rmse_m"] < 1e-9
+    assert set(data["flags"]) == {"ekf004", "msf-ekf"}
+    assert data["flags"]["ekf004"][1].startswith("ATE ")
+    assert "m > 1 m (the larger of 1 m and 10 % of the" in data["flags"]["ekf004"][1]
+    assert data["methods"]["ukf003"]["flags"] == []
+    assert data["flag_bounds"]["max_speed_mps"] == 50.0
+    m = res.runs["ekf004"].metrics  # the number is the scoring's, unchanged
+    assert rows["ekf004"]["ate_rmse_m"] == pytest.approx(m.ate_rmse_m, rel=1e-15)
+    report = paths["report"].read_text()
+    assert "## Implausible estimates" in report
+    assert f"- **ekf004**: {'; '.join(data['flags']['ekf004'])}" in report
+    line = next(x for x in report.splitlines() if x.startswith("| ekf004 |"))
+    assert line.rstrip(" |").endswith("speed,ate")
+    # The command: WARNING lines, exit 0 (rows exist).
+    for name in ("ekf004", "msf-ekf"):
+        monkeypatch.setitem(METHODS, name, reg[name])
+    rc = compare_cli(cli_folder, tmp_path / "cli", "ekf004,msf-ekf")
+    out = capsys.readouterr().out
+    assert rc == 0
+    warn = [x for x in out.splitlines() if x.startswith("WARNING")]
+    assert len(warn) == 2
+    assert warn[0].startswith("WARNING ekf004: implausible estimate: speed ")
+    assert warn[1].startswith("WARNING msf-ekf: implausible estimate: non-finite ATE (inf)")
