@@ -30,7 +30,8 @@ data set; field names as the README gives them):
   estimator multiplies by this constant). Both are logged per IMU read, the accelerometer 20-60 us
   before the gyro; each gyro sample is paired with the nearest accelerometer sample within
   :data:`IMU_PAIR_TOLERANCE_S` (not interpolated: the shift is < 6 % of a sample period), at the
-  gyro's time. Unpaired samples are left out and counted.
+  gyro's time. Unpaired samples and implausible ones (beyond :data:`.types.IMU_MAX_RATE` /
+  :data:`.types.IMU_MAX_ACCEL`: corrupted values) are left out and counted.
 * ``estFlow`` (``motion.deltaX/Y``: PMW3901 counts) -> ``flight.flow``. The firmware's driver
   (``flowdeck_v1v2.c``) swaps and negates the axes (its model's x count is ``-deltaY``, its y
   count ``-deltaX``) and its model (``kalman_core/mm_flow.c``) takes the counts as 10x the
@@ -52,8 +53,10 @@ data set; field names as the README gives them):
   against 0.19-0.25 px on every flight), but they carry 1.28-1.46 loops of motion on average
   (1.3 after 2-loop steps, 1.6 after 3-loop steps on traj1): some reads in a gap do not clear
   the counts. Their interval is therefore uncertain by about 30 %; a factor may down-weight them.
+  Samples of :data:`FLOW_MAX_COUNTS` counts or more (corrupted) are left out and counted.
 * ``estTOF`` (``range.zrange`` mm, VL53L1x pointing down) -> ``flight.range`` in m. Readings of
-  0 mm (no valid target: seen on the ground and at landing) are left out and counted; other
+  0 mm (no valid target: seen on the ground and at landing) and of :data:`TOF_PLAUSIBLE_MAX_M`
+  or more (65535 mm: no reading) are left out and counted; other
   readings outside ``[range_min, range_max]`` are kept (the range factor gates them) and counted.
 * ``estPose`` (``locSrv.x/y/z`` m, ``locSrv.qx/qy/qz/qw``: the Vicon pose streamed to the
   vehicle) -> ``flight.ground_truth`` (quaternion reordered to ``[w, x, y, z]`` and
@@ -115,6 +118,8 @@ from .geometry import make_pose, velocity_from_positions
 from .types import (
     DOWNWARD_FLOW,
     DOWNWARD_RANGE,
+    IMU_MAX_ACCEL,
+    IMU_MAX_RATE,
     Calibration,
     Flight,
     FlowSeries,
@@ -122,6 +127,7 @@ from .types import (
     ImuSeries,
     RangeSeries,
     Trajectory,
+    imu_plausible,
 )
 
 log = logging.getLogger(__name__)
@@ -189,6 +195,15 @@ TOF_RANGE_MIN_M = 0.04
 TOF_RANGE_MAX_M = 4.0
 """VL53L1X datasheet ranging interval (4 cm to 4 m; the firmware runs it in medium distance mode
 with a 25 ms budget and drops readings >= 5 m)."""
+TOF_PLAUSIBLE_MAX_M = 5.0
+"""A ToF reading at or above this [m] is not a reading (the firmware drops readings >= 5 m before
+its estimator sees them; 65535 mm, the ``uint16`` maximum, is the VL53L1x's 'no reading'): left
+out and counted (``skipped_implausible``). Readings in ``(TOF_RANGE_MAX_M, 5 m)`` are kept and
+counted (``outside_min_max_kept``): the range factor gates them."""
+FLOW_MAX_COUNTS = 1000
+"""A flow sample with ``|motion.deltaX|`` or ``|motion.deltaY|`` at or above this many counts
+(100 motion pixels in one 10 ms read; the seven UTIL flights stay below 100 counts, and -32768,
+the ``int16`` minimum, is no count) is corrupted: left out and counted (``skipped_implausible``)."""
 STILL_MIN_S = 0.05
 """Shortest still window used for the IMU noise densities [s]."""
 STILL_GYRO_STD_DEG_S = 1.0
@@ -649,6 +664,7 @@ def imu_from_log(cf: CrazyflieLog) -> tuple[ImuSeries, dict[str, Any]]:
     gi, ai = pair_imu(tg[gi_all], ta[ai_all])
     gi, ai = gi_all[gi], ai_all[ai]
     finite = np.all(np.isfinite(gyro[gi]), axis=1) & np.all(np.isfinite(acc[ai]), axis=1)
+    plausible = imu_plausible(gyro[gi], acc[ai])
     notes: dict[str, Any] = {
         "gyro_samples": int(tg.size),
         "accel_samples": int(ta.size),
@@ -660,6 +676,7 @@ def imu_from_log(cf: CrazyflieLog) -> tuple[ImuSeries, dict[str, Any]]:
         "skipped_gyro_without_accel": int(gi_all.size - gi.size),
         "skipped_accel_without_gyro": int(ai_all.size - ai.size),
         "skipped_nonfinite": int(np.count_nonzero(~finite)),
+        "skipped_implausible": int(np.count_nonzero(finite & ~plausible)),
     }
     if gi.size:
         dt_pair = ta[ai] - tg[gi]
@@ -667,14 +684,15 @@ def imu_from_log(cf: CrazyflieLog) -> tuple[ImuSeries, dict[str, Any]]:
             "median": float(np.median(dt_pair) * 1e3),
             "max_abs": float(np.max(np.abs(dt_pair)) * 1e3),
         }
-    gi, ai = gi[finite], ai[finite]
+    gi, ai = gi[finite & plausible], ai[finite & plausible]
     if gi.size < 2:
         raise FlightFormatError(
             cf.path,
             f"estGyroscope/estAcceleration: {gi.size} usable IMU sample(s) of {tg.size} "
             f"({notes['skipped_gyro_time_not_increasing']} gyro stamps not increasing, "
             f"{notes['skipped_gyro_without_accel']} without an accelerometer sample, "
-            f"{notes['skipped_nonfinite']} non-finite)",
+            f"{notes['skipped_nonfinite']} non-finite, {notes['skipped_implausible']} beyond "
+            f"{IMU_MAX_RATE:g} rad/s or {IMU_MAX_ACCEL:g} m/s^2)",
         )
     return ImuSeries(t=tg[gi], body_omega=gyro[gi], body_accel=acc[ai]), notes
 
@@ -683,17 +701,20 @@ def flow_from_log(cf: CrazyflieLog) -> tuple[FlowSeries | None, dict[str, Any]]:
     """``estFlow`` -> integrated flow in fgnav's sensor frame (motion pixels; see module doc)."""
     rec = cf.require("estFlow", FLOW_FIELDS)
     t = cf.time_s("estFlow")
-    keep = increasing_mask(t)
+    dx = rec["motion.deltaX"].astype(np.float64)
+    dy = rec["motion.deltaY"].astype(np.float64)
+    ok = (np.abs(dx) < FLOW_MAX_COUNTS) & (np.abs(dy) < FLOW_MAX_COUNTS)
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     notes: dict[str, Any] = {
         "samples": int(t.size),
-        "skipped_time_not_increasing": int(np.count_nonzero(~keep)),
+        "skipped_implausible": int(np.count_nonzero(~ok)),
+        "skipped_time_not_increasing": int(np.count_nonzero(ok & ~keep)),
         "axes": "flow = 0.1 * [motion.deltaY, -motion.deltaX] (firmware model counts [-NX, NY])",
     }
     t = t[keep]
     if t.size == 0:
         return None, notes
-    dx = rec["motion.deltaX"][keep].astype(np.float64)
-    dy = rec["motion.deltaY"][keep].astype(np.float64)
+    dx, dy = dx[keep], dy[keep]
     flow = FLOW_RESOLUTION * np.column_stack([dy, -dx])
     step = np.diff(t)
     loop = float(np.median(step)) if step.size else 0.01
@@ -712,18 +733,20 @@ def flow_from_log(cf: CrazyflieLog) -> tuple[FlowSeries | None, dict[str, Any]]:
 
 
 def range_from_log(cf: CrazyflieLog) -> tuple[RangeSeries | None, dict[str, Any]]:
-    """``estTOF`` (mm) -> range [m]; zero readings left out."""
+    """``estTOF`` (mm) -> range [m]; zero readings and readings of 5 m or more left out."""
     rec = cf.require("estTOF", (TOF_FIELD,))
     t = cf.time_s("estTOF")
     r = rec[TOF_FIELD].astype(np.float64) * 1e-3
     zero = r <= 0.0
     finite = np.isfinite(r)
-    ok = finite & ~zero
+    implausible = finite & (r >= TOF_PLAUSIBLE_MAX_M)
+    ok = finite & ~zero & ~implausible
     keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     notes = {
         "samples": int(t.size),
         "skipped_zero": int(np.count_nonzero(zero)),
         "skipped_nonfinite": int(np.count_nonzero(~finite)),
+        "skipped_implausible": int(np.count_nonzero(implausible)),
         "skipped_time_not_increasing": int(np.count_nonzero(ok & ~keep)),
         "outside_min_max_kept": int(
             np.count_nonzero(keep & ((r < TOF_RANGE_MIN_M) | (r > TOF_RANGE_MAX_M)))

@@ -52,6 +52,27 @@ IMU_DT_RANGE_S = (1e-4, 0.2)
 IMU_CLOCK_JUMP_S = 3600.0
 
 
+#: Largest IMU sample a reader keeps [rad/s, m/s^2] (norm of the 3 axes): beyond any MEMS IMU's
+#: full scale (gyros: 2000-4000 deg/s, 35-70 rad/s; accelerometers: 16-32 g); a larger finite
+#: value is a corrupted sample (a MAVLink HIGHRES_IMU with 1e30 in a field overflowed the
+#: accelerometer check's sums; a Crazyflie log's gyro of 1e30 deg/s wrecked the batch). The
+#: binary readers skip such samples and count them (``skipped_implausible``); the online smoother
+#: drops them as ``imu:implausible``.
+IMU_MAX_RATE = 100.0
+IMU_MAX_ACCEL = 50.0 * 9.81
+
+
+def imu_plausible(body_omega: np.ndarray, body_accel: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows whose rate and specific-force norms are within :data:`IMU_MAX_RATE`
+    and :data:`IMU_MAX_ACCEL` (False for non-finite rows too)."""
+    w = np.asarray(body_omega, dtype=float)
+    a = np.asarray(body_accel, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        w_sq = np.sum(w * w, axis=-1)
+        a_sq = np.sum(a * a, axis=-1)
+        return (w_sq <= IMU_MAX_RATE**2) & (a_sq <= IMU_MAX_ACCEL**2)
+
+
 def check_imu_interval(name: str, dt: float, what: str = "median") -> None:
     """One-line error for an IMU sample interval ``dt`` [s] outside ``IMU_DT_RANGE_S``."""
     lo, hi = IMU_DT_RANGE_S

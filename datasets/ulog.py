@@ -9,7 +9,9 @@ boot into float seconds on the same clock (``t = timestamp_us * 1e-6``):
   FRD -> FLU remains. The IMU time is the gyro time ``timestamp``; the accelerometer sample time is
   ``timestamp + accelerometer_timestamp_relative``. When the relative offsets are not all zero the
   accelerometer is linearly interpolated onto the gyro times (samples whose offset is PX4's
-  "invalid" marker are left out of the interpolation and counted).
+  "invalid" marker are left out of the interpolation and counted). Non-finite samples and
+  implausible ones (beyond :data:`.types.IMU_MAX_RATE` / :data:`.types.IMU_MAX_ACCEL`: corrupted)
+  are left out and counted.
 * ``vehicle_attitude`` -> ``flight.attitude`` (onboard EKF2 attitude, ``timestamp_sample`` when
   logged).
 * ``vehicle_local_position`` -> ``flight.references["px4_ekf2"]``: onboard EKF2 position and
@@ -19,7 +21,7 @@ boot into float seconds on the same clock (``t = timestamp_us * 1e-6``):
   ``calib.body_T_range`` (from ``EKF2_RNG_POS_X/Y/Z`` and ``EKF2_RNG_PITCH``) and
   ``calib.range_min/max`` (from the message). ``signal_quality`` 0..100 -> quality 0..1, -1 stays
   "unknown". Readings outside ``[min_distance, max_distance]`` are kept (the range factor gates
-  them); non-finite ones are left out and counted.
+  them); non-finite and negative ones are left out and counted.
 * ``vehicle_visual_odometry``, ``vehicle_mocap_odometry``, ``vehicle_odometry`` ->
   ``flight.references["px4_<topic>"]`` (both the current ``position[3]``/``q[4]``/``velocity[3]``
   layout and the older ``x y z``/``vx vy vz`` one).
@@ -75,6 +77,7 @@ from .types import (
     ImuSeries,
     RangeSeries,
     Trajectory,
+    imu_plausible,
 )
 
 log = logging.getLogger(__name__)
@@ -163,9 +166,12 @@ def imu_from_sensor_combined(d: Topic) -> tuple[ImuSeries, dict[str, Any]]:
     else:
         notes["accel_time"] = "same as gyro (accelerometer_timestamp_relative all zero)"
     finite = np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1)
-    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
+    plausible = imu_plausible(gyro, accel)  # beyond any IMU's full scale: a corrupted sample
+    ok = finite & plausible
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     notes["imu_samples_skipped_nonfinite"] = int(np.count_nonzero(~finite))
-    notes["imu_samples_skipped_time_not_increasing"] = int(np.count_nonzero(finite & ~keep))
+    notes["imu_samples_skipped_implausible"] = int(np.count_nonzero(finite & ~plausible))
+    notes["imu_samples_skipped_time_not_increasing"] = int(np.count_nonzero(ok & ~keep))
     return ImuSeries(t=t[keep], body_omega=gyro[keep], body_accel=accel[keep]), notes
 
 
@@ -258,7 +264,9 @@ def range_from_distance_sensor(d: Topic) -> tuple[RangeSeries | None, float, flo
     q_raw = np.asarray(d.get("signal_quality", np.full(t.shape, -1)), dtype=float)
     quality = np.where(q_raw < 0, -1.0, q_raw / SIGNAL_QUALITY_PERCENT)
     finite = np.isfinite(r)
-    keep = finite & increasing_mask(np.where(finite, t, -np.inf))
+    negative = finite & (r < 0.0)  # no distance is negative: a corrupted sample
+    ok = finite & ~negative
+    keep = ok & increasing_mask(np.where(ok, t, -np.inf))
     rmin = np.asarray(d.get("min_distance", [0.0]), dtype=float)
     rmax = np.asarray(d.get("max_distance", [np.inf]), dtype=float)
     range_min = float(np.nanmax(rmin)) if rmin.size else 0.0
@@ -266,7 +274,8 @@ def range_from_distance_sensor(d: Topic) -> tuple[RangeSeries | None, float, flo
     notes = {
         "samples": int(t.size),
         "skipped_nonfinite": int(np.count_nonzero(~finite)),
-        "skipped_time_not_increasing": int(np.count_nonzero(finite & ~keep)),
+        "skipped_negative": int(np.count_nonzero(negative)),
+        "skipped_time_not_increasing": int(np.count_nonzero(ok & ~keep)),
         "outside_min_max_kept": int(np.count_nonzero(keep & ((r < range_min) | (r > range_max)))),
     }
     if not np.any(keep):

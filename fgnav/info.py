@@ -260,19 +260,38 @@ def _notes(meta: dict[str, Any]) -> list[str]:
     elif notes:
         out.append(str(notes))
     out += [f"{name} = {v}" for name, v in reader_skips(meta)]
+    out += [f"{name} = {v}" for name, v in reader_skips(meta, KEPT_COUNT_KEYS)]
     return out
 
 
-def reader_skips(meta: dict[str, Any]) -> list[tuple[str, int | float]]:
+KEPT_COUNT_KEYS = ("outside_min_max_kept",)
+"""Counts of samples a reader kept but flagged (a range outside the sensor's limits: the range
+factor gates it), printed beside the skip counts by ``fgnav info``."""
+
+
+def reader_skips(
+    meta: dict[str, Any], keys: tuple[str, ...] | None = None
+) -> list[tuple[str, int | float]]:
     """The readers' non-zero skip counts of per-stream summaries (e.g. the ULog and Crazyflie
-    readers' ``meta["imu"]``), as ``("imu.skipped_...", n)``."""
-    return [
-        (f"{key}.{k}", v)
-        for key, value in meta.items()
-        if isinstance(value, dict)
-        for k, v in value.items()
-        if "skipped" in str(k) and isinstance(v, int | float) and not isinstance(v, bool) and v
-    ]
+    readers' ``meta["imu"]``, the bag reader's ``meta["bag_streams"]["imu"]``), as
+    ``("imu.skipped_...", n)`` (nested summaries: ``"bag_streams.imu.repeated_stamp_skipped"``).
+    ``keys``: the count names to take instead (exact names), e.g. :data:`KEPT_COUNT_KEYS`."""
+
+    def take(k: Any, v: Any) -> bool:
+        if not isinstance(v, int | float) or isinstance(v, bool) or not v:
+            return False
+        return "skipped" in str(k) if keys is None else str(k) in keys
+
+    def walk(prefix: str, d: dict[Any, Any], depth: int) -> list[tuple[str, int | float]]:
+        out: list[tuple[str, int | float]] = []
+        for k, v in d.items():
+            if isinstance(v, dict) and depth < 2:
+                out += walk(f"{prefix}{k}.", v, depth + 1)
+            elif depth > 0 and take(k, v):
+                out.append((f"{prefix}{k}", v))
+        return out
+
+    return walk("", meta, 0)
 
 
 def flight_info(flight: Flight) -> FlightInfo:

@@ -156,7 +156,14 @@ from fgnav.datasets.geometry import (
     so3_log,
     wrap_angle,
 )
-from fgnav.datasets.types import Calibration, ImuSeries, SlamSeries, Trajectory
+from fgnav.datasets.types import (
+    IMU_MAX_ACCEL,
+    IMU_MAX_RATE,
+    Calibration,
+    ImuSeries,
+    SlamSeries,
+    Trajectory,
+)
 from fgnav.estimate import Estimate, OnlineState, TimeSeries
 from fgnav.factors import _jacobians
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
@@ -244,12 +251,9 @@ STILL_MAX_S = 2.0
 #: A mean rate above this [rad/s] on any axis is motion, not a gyro bias (MEMS gyro biases are
 #: below 0.1 rad/s: EuRoC's ADIS16448 about 0.08 on one axis).
 STILL_MAX_GYRO_BIAS = 0.2
-#: Largest IMU sample taken [rad/s, m/s^2]: beyond any MEMS IMU's full scale (gyros: 2000-4000
-#: deg/s, 35-70 rad/s; accelerometers: 16-32 g); a larger finite value is a corrupted sample
-#: (a MAVLink HIGHRES_IMU with 1e30 in a field overflowed the accelerometer check's sums),
-#: dropped as ``imu:implausible``.
-IMU_MAX_RATE = 100.0
-IMU_MAX_ACCEL = 50.0 * 9.81
+#: Largest IMU sample taken [rad/s, m/s^2]: ``fgnav.datasets.types.IMU_MAX_RATE`` and
+#: ``IMU_MAX_ACCEL`` (the readers skip the same samples); a larger one is dropped as
+#: ``imu:implausible``.
 _IMU_MAX_RATE_SQ, _IMU_MAX_ACCEL_SQ = IMU_MAX_RATE**2, IMU_MAX_ACCEL**2
 #: Largest SLAM position coordinate taken [SLAM units]: a map's units are arbitrary but its
 #: positions stay within some thousand units of its origin (metres-like in the monocular

@@ -679,3 +679,43 @@ def test_a_clock_jump_is_named_by_load_flight(tmp_path):
     path = write_log(tmp_path / "jump", 2, jump)
     with pytest.raises(FlightFormatError, match=r"the clock jumps by 1e\+06 s between samples"):
         load_flight(path)
+
+
+def test_implausible_imu_tof_and_flow_left_out_and_counted(tmp_path):
+    """A finite but absurd sample (gyro 1e30 deg/s, accel 9.8e30, ToF 65535 mm, flow count
+    -32768) is a corrupted one: left out, counted and printed by ``fgnav info``; a reading beyond
+    the ToF's limits but under 5 m is kept and its count printed too."""
+    from fgnav.info import flight_info
+
+    recs, truth = flight_records(2)
+    us = 1_000_000
+    t_gyro = {round(t * us) for t in truth["t_imu"][[20, 60]]}
+    t_acc = round(truth["t_imu"][100] * us)
+    t_flow = round(truth["t_flow"][3] * us)
+    tof = {round(truth["t_tof"][2] * us): 65535, round(truth["t_tof"][3] * us): 4500}
+    out = []
+    for eid, stamp, v in recs:
+        if eid == 5 and stamp in t_gyro:
+            v = (1e30, v[1], v[2])
+        elif eid == 1 and stamp == t_acc:
+            v = (v[0], v[1], 1e30)
+        elif eid == 4 and stamp == t_flow:
+            v = (-32768, v[1])
+        elif eid == 10 and stamp in tof:
+            v = (tof[stamp],)
+        out.append((eid, stamp, v))
+    f = read_crazyflie(write_log(tmp_path / "log", 2, out))
+    assert len(f.imu) == 197 and f.meta["imu"]["skipped_implausible"] == 3
+    assert np.all(np.abs(f.imu.body_omega) < 5.0) and np.all(np.abs(f.imu.body_accel) < 20.0)
+    assert len(f.flow) == 10 and f.meta["flow"]["skipped_implausible"] == 1
+    np.testing.assert_allclose(f.range.range, [0.512, 4.5])
+    assert f.meta["range"]["skipped_implausible"] == 1
+    assert f.meta["range"]["outside_min_max_kept"] == 1
+    notes = flight_info(f).notes
+    for line in (
+        "imu.skipped_implausible = 3",
+        "flow.skipped_implausible = 1",
+        "range.skipped_implausible = 1",
+        "range.outside_min_max_kept = 1",
+    ):
+        assert line in notes, notes

@@ -104,3 +104,16 @@ def test_camera_distortion_counts():
         cam = CameraIntrinsics(200.0, 200.0, 16.0, 12.0, 32, 24, (0.01,) * n)
         with pytest.raises(FlightDataError, match=rf"cam: {n} distortion coefficients; expected 0"):
             cam.check("cam")
+
+
+def test_imu_plausibility_limits_are_the_online_smoothers():
+    """The readers and the online smoother drop the same samples: one pair of constants."""
+    from fgnav.datasets import types
+
+    from fgnav.solvers import online
+
+    assert online.IMU_MAX_RATE is types.IMU_MAX_RATE
+    assert online.IMU_MAX_ACCEL is types.IMU_MAX_ACCEL
+    w = np.array([[1.0, 2.0, 3.0], [1e30, 0.0, 0.0], [0.0, 0.0, 0.0], [np.nan, 0, 0], [0, 99, 0]])
+    a = np.array([[0, 0, 9.81], [0, 0, 9.81], [0, 0, 9.8e30], [0, 0, 9.81], [0, 0, 490]])
+    np.testing.assert_array_equal(types.imu_plausible(w, a), [True, False, False, False, True])

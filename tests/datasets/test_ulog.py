@@ -597,3 +597,28 @@ def test_pyulog_prints_are_taken_and_said_once(real_data, tmp_path, capsys):
     notes = [n for n in f.meta["notes"] if "pyulog reports file corruption" in n]
     assert len(notes) == 1 and "no subscription found" in notes[0]
     assert len(f.imu) > 1000
+
+
+def test_sensor_combined_implausible_samples_left_out_and_counted():
+    """A finite but absurd sample (1e30 rad/s, 9.8e30 m/s^2: a corrupted value) is left out and
+    counted like a non-finite one."""
+    n = 20
+    d = _sensor_combined(n, np.zeros(n))
+    d["gyro_rad[1]"][5] = 1e30
+    d["accelerometer_m_s2[2]"][9] = -9.8e30
+    d["gyro_rad[0]"][12] = np.nan
+    imu, notes = imu_from_sensor_combined(d)
+    assert len(imu) == n - 3
+    assert notes["imu_samples_skipped_implausible"] == 2
+    assert notes["imu_samples_skipped_nonfinite"] == 1
+    assert np.all(np.abs(imu.body_omega) < 1.0) and np.all(np.abs(imu.body_accel) < 20.0)
+
+
+def test_distance_sensor_negative_reading_left_out_and_counted():
+    d = {
+        "timestamp": np.array([1, 2, 3], dtype=np.uint64) * 100_000,
+        "current_distance": np.array([1.0, -5.0, 2.0], dtype=np.float32),
+    }
+    rs, _, _, notes = range_from_distance_sensor(d)
+    np.testing.assert_allclose(rs.range, [1.0, 2.0])
+    assert notes["skipped_negative"] == 1
