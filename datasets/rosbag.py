@@ -37,7 +37,10 @@ rotation, rangefinder pointing down) and ``meta["notes"]`` says so.
 Time: the message's ``header.stamp`` (sensor time), never the bag's receive time, as float
 seconds. Messages whose stamp is zero (header not filled) use the receive time; they are counted
 in ``meta["bag_streams"][stream]``. Messages are sorted by stamp; repeated stamps are left out and
-counted.
+counted, and so are (same place) non-finite values (IMU, attitude, poses), IMU samples beyond
+:data:`.types.IMU_MAX_RATE` / :data:`.types.IMU_MAX_ACCEL` (corrupted) and negative ranges; ranges
+outside the message's ``min_range .. max_range`` are kept and counted. A message the bag cannot
+give or decode (a damaged bag) is an error naming the topic and the message's place in the file.
 
 Images are decoded with OpenCV into memory (``ImageSeries.frames``, grey ``(N, H, W)`` or BGR
 ``(N, H, W, 3)`` uint8); ``image_stride`` keeps every n-th frame of long bags.
@@ -65,6 +68,7 @@ from .types import (
     RangeSeries,
     SlamSeries,
     Trajectory,
+    imu_plausible,
 )
 
 log = logging.getLogger(__name__)
@@ -426,14 +430,29 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
         wanted.add(tf_topic)
     accs = {topic: _Acc([], []) for topic in wanted}
     conns = [c for c in reader.connections if c.topic in wanted]
-    for conn, receive_ns, raw in reader.messages(connections=conns):
-        msg = reader.deserialize(raw, conn.msgtype)
-        acc = accs[conn.topic]
-        if conn.topic == tf_topic:  # TFMessage has no header of its own
+    topic, n_read = None, 0
+    try:
+        for conn, receive_ns, raw in reader.messages(connections=conns):
+            topic = conn.topic
+            msg = reader.deserialize(raw, conn.msgtype)
+            topic = None
+            acc = accs[conn.topic]
+            n_read += 1
+            if conn.topic == tf_topic:  # TFMessage has no header of its own
+                acc.msgs.append(msg)
+                continue
+            acc.t.append(_stamp(msg, receive_ns, acc))
             acc.msgs.append(msg)
-            continue
-        acc.t.append(_stamp(msg, receive_ns, acc))
-        acc.msgs.append(msg)
+    except FlightFormatError:
+        raise
+    except Exception as e:  # rosbags raises assorted errors on a damaged bag: say where
+        what = (
+            f"cannot decode message {n_read} (from 0, in file order) on {topic}"
+            if topic is not None
+            else f"unreadable after {n_read} message(s) of the topics read"
+        )
+        why = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+        raise FlightFormatError(path, f"damaged bag: {what} ({why})") from e
 
     counts: dict[str, Any] = {}
     static: dict[tuple[str, str], np.ndarray] = {}
@@ -447,15 +466,14 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
 
     if "imu" in mapping:
         t, msgs = _ordered(accs[mapping["imu"]], "imu", counts)
-        streams["imu"] = ImuSeries(
-            t=t,
-            body_omega=np.array([_xyz(m.angular_velocity) for m in msgs], dtype=float).reshape(
-                -1, 3
-            ),
-            body_accel=np.array([_xyz(m.linear_acceleration) for m in msgs], dtype=float).reshape(
-                -1, 3
-            ),
-        )
+        w = np.array([_xyz(m.angular_velocity) for m in msgs], dtype=float).reshape(-1, 3)
+        a = np.array([_xyz(m.linear_acceleration) for m in msgs], dtype=float).reshape(-1, 3)
+        finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(a), axis=1)
+        plausible = imu_plausible(w, a)
+        counts["imu"]["nonfinite_skipped"] = int(np.count_nonzero(~finite))
+        counts["imu"]["implausible_skipped"] = int(np.count_nonzero(finite & ~plausible))
+        ok = finite & plausible
+        streams["imu"] = ImuSeries(t=t[ok], body_omega=w[ok], body_accel=a[ok])
         counts["imu"]["frame_id"] = msgs[0].header.frame_id if msgs else ""
         body_frame = counts["imu"]["frame_id"] or None
         has_orientation = bool(msgs) and all(
@@ -475,8 +493,11 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
             q = np.array([_wxyz(m.quaternion) for m in msgs], dtype=float)
         else:
             q = np.array([_pose_of(m, mt)[1] for m in msgs], dtype=float)
+        q = q.reshape(-1, 4)
+        finite = np.all(np.isfinite(q), axis=1)
+        counts["attitude"]["nonfinite_skipped"] = int(np.count_nonzero(~finite))
         streams["attitude"] = AttitudeSeries(
-            t=t, world_q_body_wxyz=_normalised(q.reshape(-1, 4), topic, path)
+            t=t[finite], world_q_body_wxyz=_normalised(q[finite], topic, path)
         )
 
     if "range" in mapping:
@@ -484,15 +505,22 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
         t, msgs = _ordered(accs[topic], "range", counts)
         r = np.array([m.range for m in msgs], dtype=float)
         finite = np.isfinite(r)
+        negative = finite & (r < 0.0)  # no range is negative: a corrupted message
+        ok = finite & ~negative
         counts["range"]["nonfinite_skipped"] = int(np.count_nonzero(~finite))
+        counts["range"]["negative_skipped"] = int(np.count_nonzero(negative))
         if msgs:
             calib_kwargs["range_min"] = float(msgs[0].min_range)
             calib_kwargs["range_max"] = float(msgs[0].max_range)
             counts["range"]["field_of_view_rad"] = float(msgs[0].field_of_view)
             counts["range"]["frame_id"] = msgs[0].header.frame_id
-        if np.any(finite):
+            lo, hi = calib_kwargs["range_min"], calib_kwargs["range_max"]
+            counts["range"]["outside_min_max_kept"] = int(
+                np.count_nonzero(ok & ((r < lo) | (r > hi)))
+            )
+        if np.any(ok):
             streams["range"] = RangeSeries(
-                t=t[finite], range=r[finite], quality=np.full(int(finite.sum()), -1.0)
+                t=t[ok], range=r[ok], quality=np.full(int(ok.sum()), -1.0)
             )
         T = _extrinsic(static, body_frame, counts["range"].get("frame_id"), "range", meta)
         if T is not None:
@@ -542,8 +570,16 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
         t, msgs = _ordered(accs[topic], stream, counts)
         poses = [_pose_of(m, mt) for m in msgs]
         pos = np.array([p for p, _ in poses], dtype=float).reshape(-1, 3)
-        q = _normalised(np.array([q for _, q in poses], dtype=float).reshape(-1, 4), topic, path)
+        q = np.array([q for _, q in poses], dtype=float).reshape(-1, 4)
+        finite = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(q), axis=1)
+        if mt == ODOMETRY:
+            v_body = np.array([_xyz(m.twist.twist.linear) for m in msgs], dtype=float).reshape(
+                -1, 3
+            )
+            finite &= np.all(np.isfinite(v_body), axis=1)
+        counts[stream]["nonfinite_skipped"] = int(np.count_nonzero(~finite))
         counts[stream]["frame_id"] = msgs[0].header.frame_id if msgs else ""
+        t, pos, q = t[finite], pos[finite], _normalised(q[finite], topic, path)
         if stream == "slam":
             streams["slam"] = SlamSeries(
                 t=t, slam_t_cam=pos, slam_q_cam_wxyz=q, session=np.zeros(t.size, dtype=np.int64)
@@ -551,10 +587,7 @@ def _read(reader, path, topics, camera, image_stride) -> Flight:
             continue
         vel = None
         if mt == ODOMETRY:
-            v_body = np.array([_xyz(m.twist.twist.linear) for m in msgs], dtype=float).reshape(
-                -1, 3
-            )
-            vel = np.einsum("nij,nj->ni", quat_wxyz_to_matrix(q), v_body)
+            vel = np.einsum("nij,nj->ni", quat_wxyz_to_matrix(q), v_body[finite])
         traj = Trajectory(t=t, world_t_body=pos, world_q_body_wxyz=q, world_v_body=vel)
         if stream == "ground_truth":
             streams["ground_truth"] = traj

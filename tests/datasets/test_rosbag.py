@@ -410,3 +410,61 @@ def test_extrinsics_from_tf_static(tmp_path):
         "body_T_range left at the Calibration default (the bag has no /tf_static)" in n
         for n in g.meta["notes"]
     )
+
+
+def test_bad_values_left_out_counted_and_printed(tmp_path):
+    """NaN and absurd (1e30 rad/s) IMU samples, a NaN pose and a negative range are left out
+    and counted in ``meta["bag_streams"]``, and ``fgnav info`` prints those nested counts (and
+    the ranges kept outside the message's limits)."""
+    from fgnav.info import flight_info
+
+    d = _data(3)
+    d["gyro"][3, 0] = np.nan
+    d["gyro"][5, 1] = 1e30
+    d["accel"][7, 2] = -9.8e30
+    d["range"][2] = -5.0
+    d["range"][4] = 9.0  # beyond max_range 8: kept, counted
+    d["pos"][1, 0] = np.nan
+    path = write_ros1(tmp_path / "bad.bag", d)
+    topics = {"imu": "/imu/data", "range": "/rangefinder", "slam": "/orb_slam/pose"}
+    topics["ground_truth"] = "/vicon/odom"
+    f = read_bag(path, topics)
+    counts = f.meta["bag_streams"]
+    assert len(f.imu) == N_IMU - 3 and np.all(np.isfinite(f.imu.body_omega))
+    assert counts["imu"]["nonfinite_skipped"] == 1 and counts["imu"]["implausible_skipped"] == 2
+    assert len(f.range) == N_RANGE - 1 and counts["range"]["negative_skipped"] == 1
+    assert counts["range"]["outside_min_max_kept"] == 1
+    assert len(f.slam) == N_POSE - 1 and counts["slam"]["nonfinite_skipped"] == 1
+    assert len(f.ground_truth) == N_POSE - 1 and counts["ground_truth"]["nonfinite_skipped"] == 1
+    notes = flight_info(f).notes
+    for line in (
+        "bag_streams.imu.nonfinite_skipped = 1",
+        "bag_streams.imu.implausible_skipped = 2",
+        "bag_streams.range.negative_skipped = 1",
+        "bag_streams.slam.nonfinite_skipped = 1",
+        "bag_streams.range.outside_min_max_kept = 1",
+    ):
+        assert line in notes, notes
+
+
+def test_damaged_message_is_a_one_line_error_naming_the_topic(tmp_path, monkeypatch):
+    """rosbags raises assorted errors (AssertionError, KeyError ...) on a damaged bag: one
+    FlightFormatError line naming the bag, the topic and the message's place."""
+    from rosbags.highlevel import AnyReader
+
+    path = write_ros1(tmp_path / "damaged.bag", _data(4))
+    real = AnyReader.deserialize
+    calls = {"n": 0}
+
+    def deserialize(self, raw, typename):
+        calls["n"] += 1
+        if calls["n"] == 6:
+            raise AssertionError
+        return real(self, raw, typename)
+
+    monkeypatch.setattr(AnyReader, "deserialize", deserialize)
+    with pytest.raises(FlightFormatError) as e:
+        read_bag(path, {"imu": "/imu/data"})
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(str(path)), msg
+    assert "damaged bag: cannot decode message 5" in msg and "/imu/data" in msg, msg
