@@ -65,11 +65,15 @@ IMU noise values, e.g. with densities measured in flight where the file has the 
 ``[flow]`` (``crazyflie``, ``ulog`` or ``native_csv``) is the optical-flow stream. Unknown keys,
 tables and formats are errors naming the manifest, table and key and listing the valid ones; a
 missing file is an error naming the resolved path.
-Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``.
+Reader notes (skipped lines, detected time units) go to ``flight.meta["notes"]``; a whole log's
+per-stream summaries that hold counts (samples skipped by reason, kept outside limits) go to
+``flight.meta["[<table>] <key>"]`` (``<table>``: the first table that read the log, ``<key>``:
+the log reader's ``meta`` key), where ``fgnav info`` finds them.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -274,6 +278,18 @@ def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
     return p
 
 
+def _has_counts(d: dict[Any, Any], depth: int = 0) -> bool:
+    """Whether a reader's summary holds a skip count (``skipped`` in the key) or a count of
+    samples kept outside limits (``*_kept``), at most two levels down."""
+    for k, v in d.items():
+        if isinstance(v, dict):
+            if depth < 1 and _has_counts(v, depth + 1):
+                return True
+        elif "skipped" in str(k) or str(k).endswith("_kept"):
+            return True
+    return False
+
+
 class _LogRef(NamedTuple):
     """One manifest table's view of a whole log: its format, file, table name, the stream it
     takes, the bag topic and (Crazyflie) whether the CRC must match."""
@@ -293,6 +309,10 @@ class _LogCache:
     def __init__(self, manifest: Path) -> None:
         self.manifest = manifest
         self.flights: dict[tuple[str, str, str, bool], Flight] = {}
+        self.counts: dict[str, Any] = {}
+        """The logs' per-stream summaries that hold counts (samples skipped by reason, kept
+        outside limits), as ``"[table] key"`` -> the log reader's ``meta[key]`` (``fgnav info``
+        and the runs' "reader skipped" line print them)."""
 
     def get(self, ref: _LogRef, notes: list[str]) -> Flight:
         key = (ref.fmt, str(ref.path), ref.topic or "", ref.check_crc)
@@ -311,6 +331,9 @@ class _LogCache:
                 notes += [f"[{ref.table}] {n}" for n in log_notes]
             elif isinstance(log_notes, dict):
                 notes += [f"[{ref.table}] {k}: {v}" for k, v in log_notes.items()]
+            for k, v in flight.meta.items():
+                if isinstance(v, dict) and _has_counts(v):
+                    self.counts[f"[{ref.table}] {k}"] = copy.deepcopy(v)
         return self.flights[key]
 
     def stream(self, ref: _LogRef, notes: list[str]) -> Any:
@@ -442,6 +465,7 @@ def read_manifest(path: str | Path) -> Flight:
         "manifest": str(manifest),
         "sources": sources,
         "notes": notes,
+        **logs.counts,
     }
     if "meta" in doc:
         meta["manifest_meta"] = doc["meta"]

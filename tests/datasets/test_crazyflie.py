@@ -719,3 +719,25 @@ def test_implausible_imu_tof_and_flow_left_out_and_counted(tmp_path):
         "range.outside_min_max_kept = 1",
     ):
         assert line in notes, notes
+
+
+def test_skip_counts_survive_a_manifest(tmp_path):
+    """A log read through a manifest keeps its reader's skip counts (only the notes were copied):
+    ``fgnav info`` prints the same counts, prefixed with the table that read the log."""
+    from fgnav.info import flight_info
+
+    recs, _ = flight_records(2)
+    write_log(tmp_path / "log", 2, recs)
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        'name = "m"\n[imu]\nformat = "crazyflie"\npath = "log"\n'
+        '[range]\nformat = "crazyflie"\npath = "log"\n'
+    )
+    f = read_manifest(manifest)
+    assert f.meta["[imu] range"]["skipped_zero"] == 1
+    notes = flight_info(f).notes
+    assert "[imu] range.skipped_zero = 1" in notes, notes
+    assert "[imu] ground_truth.skipped_exact_repeat = 1" in notes, notes
+    # The counts are JSON: the flight saves as a native folder and reads back.
+    write_flight(f, tmp_path / "native")
+    assert read_flight(tmp_path / "native").meta["[imu] range"]["skipped_zero"] == 1
