@@ -23,6 +23,19 @@ def existing_file(path: str | Path, what: str = "file") -> Path:
     return p
 
 
+def resolved(path: Path, owner: str | Path, what: str, line: int | None = None) -> Path:
+    """``path.resolve()``; a path that cannot be resolved (a symbolic link loop: RuntimeError
+    before Python 3.13, OSError after) is a one-line :class:`FlightFormatError` naming the file
+    ``owner`` that gave it, ``what`` (its key or field) and the path."""
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError) as e:
+        why = "a symbolic link loop" if "loop" in str(e).lower() else str(e)
+        raise FlightFormatError(
+            owner, f"{what}: cannot resolve {path} ({why})", line=line
+        ) from None
+
+
 def read_text(path: str | Path, what: str = "file") -> str:
     """The text of the file ``path`` (UTF-8); a missing file or one that is not text (a binary
     file given as a config or calibration: a UnicodeDecodeError) is a one-line

@@ -85,7 +85,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from ._files import read_text, yaml_error
+from ._files import read_text, resolved, yaml_error
 from .errors import FlightDataError, FlightFormatError, note
 from .frames import rotate_body_frame
 from .geometry import invert_pose
@@ -282,7 +282,7 @@ def read_euroc_images(
     folder = Path(path).parent / "data"
     paths = []
     for k, row in enumerate(raw.rows):
-        p = (folder / row[1]).resolve()
+        p = resolved(folder / row[1], raw.path, "image file", line=raw.lines[k])
         if not p.is_file():
             raise FlightFormatError(raw.path, f"image file {p} not found", line=raw.lines[k])
         paths.append(p)

@@ -82,7 +82,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ._files import read_toml
+from ._files import read_toml, resolved
 from .calib_yaml import read_orbslam3_yaml
 from .errors import FlightDataError, FlightFormatError
 from .euroc import (
@@ -272,7 +272,7 @@ def _check_body(manifest: Path, doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def _resolve(manifest: Path, root: Path, table: str, rel: str) -> Path:
-    p = (root / rel).resolve()
+    p = resolved(root / rel, manifest, f"[{table}] path")
     if not p.exists():
         raise FlightFormatError(manifest, f"[{table}] path: {p} not found")
     return p
@@ -384,7 +384,7 @@ def read_manifest(path: str | Path) -> Flight:
             the resolved path) or a bad data file (naming that file and line).
         FlightDataError: the assembled flight fails ``flight.check()``.
     """
-    manifest = Path(path).resolve()
+    manifest = resolved(Path(path), Path(path), "manifest file")
     doc = read_toml(manifest, "manifest file")
     unknown = [k for k in doc if k not in TOP_LEVEL_KEYS]
     if unknown:
@@ -397,7 +397,7 @@ def read_manifest(path: str | Path) -> Flight:
         raise FlightFormatError(
             manifest, f"root = {doc['root']!r}: expected a folder path (a string)"
         )
-    root = (manifest.parent / doc.get("root", ".")).resolve()
+    root = resolved(manifest.parent / doc.get("root", "."), manifest, "root")
     if not root.is_dir():
         raise FlightFormatError(manifest, f"root: folder {root} not found")
     body = _check_body(manifest, doc)

@@ -48,7 +48,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from ._files import file_number, read_yaml
+from ._files import file_number, read_yaml, resolved
 from .errors import FlightDataError, FlightFormatError
 from .types import (
     AttitudeSeries,
@@ -687,7 +687,7 @@ def _read_images(folder: Path, camera: CameraIntrinsics | None) -> ImageSeries:
     _tables.check_increasing(raw, t)
     paths = []
     for k, row in enumerate(raw.rows):
-        p = (folder / row[1]).resolve()
+        p = resolved(folder / row[1], path, "image file", line=raw.lines[k])
         if not p.is_file():
             raise FlightFormatError(path, f"image file {p} not found", line=raw.lines[k])
         paths.append(p)

@@ -339,3 +339,19 @@ def test_v102_manifests(real_data, name, n_kf, max_gap_s):
     assert f.ground_truth.world_v_body is not None
     assert set(f.references) == {"vins_mono", "svo2"}
     assert "slam_options" not in f.meta  # the ORB-SLAM3 inversion is detected, not configured
+
+
+def test_symlink_loop_path_is_named(tmp_path):
+    """A path that is a symbolic link loop: one line naming the manifest and the table's key
+    (``Path.resolve`` raised RuntimeError)."""
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    m = tmp_path / "m.toml"
+    m.write_text('name = "x"\n[slam]\nformat = "tum_slam"\npath = "loop"\n')
+    with pytest.raises(FlightFormatError) as e:
+        read_manifest(m)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(str(m)), msg
+    assert "[slam] path: cannot resolve" in msg and "symbolic link loop" in msg, msg
+    m.write_text('name = "x"\nroot = "loop"\n')
+    with pytest.raises(FlightFormatError, match="root: cannot resolve"):
+        read_manifest(m)
