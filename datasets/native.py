@@ -48,7 +48,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from ._files import file_number, read_yaml, resolved
+from ._files import file_number, read_text, read_yaml, resolved
 from .errors import FlightDataError, FlightFormatError
 from .types import (
     AttitudeSeries,
@@ -752,13 +752,23 @@ def is_native_folder(path: str | Path) -> bool:
     return p.is_dir() and (p / META_FILE).is_file()
 
 
+def _str_list(v: Any) -> bool:
+    return isinstance(v, list) and all(isinstance(x, str) for x in v)
+
+
+def _short(v: Any) -> str:
+    """A JSON value for an error line: ``json.dumps``, cut to 60 characters."""
+    text = json.dumps(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _read_header(root: Path) -> tuple[dict[str, Any], Any, Calibration]:
     """``meta.json`` and ``calib.yaml`` of a native folder, checked: (meta, calib dict, calib)."""
     meta_path = root / META_FILE
     if not meta_path.is_file():
         raise FlightFormatError(root, f"not an fgnav flight folder ({META_FILE} not found)")
     try:
-        meta = json.loads(meta_path.read_text())
+        meta = json.loads(read_text(meta_path, META_FILE))
     except json.JSONDecodeError as e:
         raise FlightFormatError(meta_path, f"not valid JSON: {e.msg}", line=e.lineno) from e
     required = ("format", "version", "name", "source", "streams", "references", "meta")
@@ -774,6 +784,17 @@ def _read_header(root: Path) -> tuple[dict[str, Any], Any, Calibration]:
             f"format version {meta['version']!r} is not supported (this fgnav reads up to "
             f"{FORMAT_VERSION})",
         )
+    for key, kind, ok in (
+        ("name", "a string", isinstance(meta["name"], str)),
+        ("source", "a string", isinstance(meta["source"], str)),
+        ("streams", "a list of stream names", _str_list(meta["streams"])),
+        ("references", "a list of reference names", _str_list(meta["references"])),
+        ("meta", "an object", isinstance(meta["meta"], dict)),
+    ):
+        if not ok:
+            raise FlightFormatError(
+                meta_path, f'"{key}": expected {kind}, found {_short(meta[key])}'
+            )
     valid = (*_STREAM_FILES, "images")
     unknown = [s for s in meta["streams"] if s not in valid]
     if unknown:

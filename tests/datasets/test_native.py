@@ -316,3 +316,40 @@ def test_header_units_are_read_and_stamps_must_be_seconds(tmp_path):
     for read in (load_flight, open_flight_streams):
         with pytest.raises(FlightFormatError, match=r"sample interval 5e\+06 s .* not an IMU's"):
             read(ns)
+
+
+@pytest.mark.parametrize(
+    "key, value, needle",
+    [
+        ("streams", 5, '"streams": expected a list of stream names, found 5'),
+        ("streams", "imu", '"streams": expected a list of stream names, found "imu"'),
+        ("references", 3, '"references": expected a list of reference names, found 3'),
+        ("references", {"a": 1}, '"references": expected a list of reference names'),
+        ("meta", "x", '"meta": expected an object, found "x"'),
+        ("meta", None, '"meta": expected an object, found null'),
+        ("name", 5, '"name": expected a string, found 5'),
+    ],
+)
+def test_meta_json_value_types_named(tmp_path, key, value, needle):
+    """A wrong value type in meta.json: one line naming meta.json and the key (TypeError and
+    AttributeError tracebacks in the reader, ``fgnav info`` and the online run), for the
+    whole-flight reader and the stream reader alike."""
+    from fgnav.datasets.native import open_flight_streams
+
+    folder = _write_min(tmp_path)
+    meta = json.loads((folder / "meta.json").read_text())
+    meta[key] = value
+    (folder / "meta.json").write_text(json.dumps(meta))
+    for read in (read_flight, open_flight_streams):
+        with pytest.raises(FlightFormatError) as e:
+            read(folder)
+        msg = str(e.value)
+        assert "\n" not in msg and msg.startswith(str(folder / "meta.json")), msg
+        assert needle in msg, msg
+
+
+def test_meta_json_not_text_named(tmp_path):
+    folder = _write_min(tmp_path)
+    (folder / "meta.json").write_bytes(b"\xff\xfe{}")
+    with pytest.raises(FlightFormatError, match=r"meta\.json: not a text meta\.json: byte 0"):
+        read_flight(folder)
