@@ -75,10 +75,16 @@ def _read_csv(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
+    except UnicodeDecodeError as exc:
+        raise FlightFormatError(
+            path, f"not a text file: byte {exc.start} is not UTF-8 ({exc.reason})"
+        ) from None
     except OSError as exc:
         raise FlightFormatError(path, f"cannot read ({exc})") from exc
     if not rows:
         raise FlightFormatError(path, "empty file", 1)
+    if len(rows) < 2:
+        raise FlightFormatError(path, "no data rows after the header", 1)
     header = [h.strip() for h in rows[0]]
     missing = [c for c in required if c not in header]
     if missing:

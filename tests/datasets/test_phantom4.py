@@ -142,3 +142,17 @@ def test_drag_identification_real(folder):
     )
     null = fit_linear_drag(shuffled, (0,))
     assert abs(null.k) < 3.0 * null.k_se_autocorr
+
+
+def test_header_only_and_binary_files_named(tmp_path):
+    """A header-only csv was a ValueError/IndexError traceback, a non-UTF-8 one a
+    UnicodeDecodeError: one line naming the file."""
+    folder = tmp_path / "path_1"
+    folder.mkdir()
+    header = "time,Euler_X,Euler_Y,Euler_Z,Acc_X,Acc_Y,Acc_Z,Gyr_X,Gyr_Y,Gyr_Z\n"
+    (folder / "IMU_1.csv").write_text(header)
+    with pytest.raises(FlightFormatError, match=r"IMU_1.csv:1: no data rows after the header"):
+        read_phantom4(folder, "IMU_1.csv")
+    (folder / "IMU_1.csv").write_bytes(b"\xff\xfe" + header.encode())
+    with pytest.raises(FlightFormatError, match=r"IMU_1.csv: not a text file: byte 0"):
+        read_phantom4(folder, "IMU_1.csv")
