@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -91,3 +92,13 @@ def file_number(value: Any, key: str, path: Path) -> float:
         return float(value)
     except (TypeError, ValueError):
         raise FlightFormatError(path, f"{key}: expected a number, found {value!r}") from None
+
+
+def file_count(value: Any, key: str, path: Path) -> int:
+    """A whole number read from a file (a size or count: ``1``, ``752``, ``752.0``), or an error
+    naming the file and ``key`` (a string, list, null, bool, fraction, ``.inf`` or ``.nan``: an
+    OverflowError or a silently truncated ``int()`` before)."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if not ok or not math.isfinite(value) or value != int(value):
+        raise FlightFormatError(path, f"{key}: expected a whole number, found {value!r}")
+    return int(value)

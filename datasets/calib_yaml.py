@@ -35,9 +35,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ._files import existing_file, file_number, read_text, yaml_error
+from ._files import existing_file, file_count, file_number, read_text, yaml_error
 from .errors import FlightDataError, FlightFormatError, note
-from .types import Calibration, CameraIntrinsics, ImuNoise
+from .types import Calibration, CameraIntrinsics, ImuNoise, imu_noise_problem
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,8 @@ def load_opencv_yaml(path: str | Path) -> dict[str, Any]:
         FlightFormatError: missing file or invalid YAML, naming file and line.
     """
     p = existing_file(path, "calibration file")
-    lines = read_text(p, "calibration file").splitlines()
+    # A UTF-8 byte-order mark (some editors write one) hid the %YAML directive below.
+    lines = read_text(p, "calibration file").removeprefix("\ufeff").splitlines()
     # Keep line numbers: blank out the directive instead of deleting it.
     lines = ["" if ln.lstrip().startswith("%YAML") else ln for ln in lines]
     text = _OPENCV_TAG.sub("", "\n".join(lines))
@@ -97,11 +98,12 @@ def opencv_matrix(value: Any, key: str, path: str | Path) -> np.ndarray:
     p = Path(path)
     if not isinstance(value, dict) or not {"rows", "cols", "data"} <= set(value):
         raise FlightFormatError(p, f"{key}: expected an opencv-matrix with rows, cols and data")
+    rows = file_count(value["rows"], f"{key}.rows", p)
+    cols = file_count(value["cols"], f"{key}.cols", p)
     try:
-        rows, cols = int(value["rows"]), int(value["cols"])
         a = np.asarray(value["data"], dtype=float)
     except (TypeError, ValueError) as e:
-        raise FlightFormatError(p, f"{key}: {e}") from e
+        raise FlightFormatError(p, f"{key}.data: {e}") from e
     if a.size != rows * cols:
         raise FlightFormatError(p, f"{key}: {a.size} values in data for a {rows}x{cols} matrix")
     return a.reshape(rows, cols)
@@ -138,14 +140,14 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
     dist = [intr["k1"], intr["k2"], intr["p1"], intr["p2"]]
     if k3 is not None:
         dist.append(file_number(k3, "Camera1.k3", p))
-    width = _first(d, ("Camera.width",), p)
-    height = _first(d, ("Camera.height",), p)
+    width = file_count(_first(d, ("Camera.width",), p), "Camera.width", p)
+    height = file_count(_first(d, ("Camera.height",), p), "Camera.height", p)
     try:
         camera = CameraIntrinsics(
-            intr["fx"], intr["fy"], intr["cx"], intr["cy"], int(width), int(height), tuple(dist)
-        ).check(str(p))
-    except (TypeError, ValueError) as e:
-        raise FlightFormatError(p, f"Camera.width/Camera.height: {e}") from e
+            intr["fx"], intr["fy"], intr["cx"], intr["cy"], width, height, tuple(dist)
+        ).check("camera (Camera1.fx/fy/cx/cy, Camera.width/height)")
+    except FlightDataError as e:
+        raise FlightFormatError(p, str(e)) from e
 
     present = {k: v for k, v in _NOISE_KEYS.items() if v in d}
     if not present:
@@ -160,22 +162,28 @@ def read_orbslam3_yaml(path: str | Path, *, notes: list[str] | None = None) -> C
         missing = [v for v in _NOISE_KEYS.values() if v not in d]
         raise FlightFormatError(p, f"missing IMU noise key(s) {missing} (all four or none)")
     else:
-        imu_noise = ImuNoise(**{k: file_number(d[v], v, p) for k, v in _NOISE_KEYS.items()})
+        values = {k: file_number(d[v], v, p) for k, v in _NOISE_KEYS.items()}
+        for k, v in _NOISE_KEYS.items():
+            problem = imu_noise_problem(k, values[k])
+            if problem is not None:
+                raise FlightFormatError(p, f"{v}: {problem}, got {values[k]}")
+        imu_noise = ImuNoise(**values)
 
     T_raw = _first(d, ("IMU.T_b_c1", "Tbc"), p, required=False)
+    T_key = "IMU.T_b_c1" if "IMU.T_b_c1" in d else "Tbc"
     if T_raw is None:
         body_T_cam = np.eye(4)
         note(log, notes, f"{p}: no IMU.T_b_c1; body_T_cam set to identity")
     else:
-        body_T_cam = opencv_matrix(T_raw, "IMU.T_b_c1", p)
+        body_T_cam = opencv_matrix(T_raw, T_key, p)
         if body_T_cam.shape != (4, 4):
-            raise FlightFormatError(p, f"IMU.T_b_c1: expected 4x4, got {body_T_cam.shape}")
+            raise FlightFormatError(p, f"{T_key}: expected 4x4, got {body_T_cam.shape}")
         body_T_cam = _repair_rotation(body_T_cam, p, notes)
     calib = Calibration(body_T_cam=body_T_cam, camera=camera, imu_noise=imu_noise)
     try:
-        return calib.check(str(p))
-    except FlightDataError as e:
-        raise FlightFormatError(p, f"IMU.T_b_c1: {e}") from e
+        return calib.check("calibration")
+    except FlightDataError as e:  # the fields above are checked: what is left is IMU.T_b_c1's
+        raise FlightFormatError(p, str(e).replace("calibration.body_T_cam", T_key)) from e
 
 
 def _repair_rotation(T: np.ndarray, path: Path, notes: list[str] | None) -> np.ndarray:

@@ -85,7 +85,7 @@ import numpy as np
 import yaml
 
 from . import _tables
-from ._files import read_text, resolved, yaml_error
+from ._files import file_count, file_number, read_text, resolved, yaml_error
 from .errors import FlightDataError, FlightFormatError, note
 from .frames import rotate_body_frame
 from .geometry import invert_pose
@@ -97,6 +97,7 @@ from .types import (
     ImuNoise,
     ImuSeries,
     Trajectory,
+    imu_noise_problem,
 )
 
 log = logging.getLogger(__name__)
@@ -319,13 +320,18 @@ def _imu_noise(d: dict[str, Any], path: Path) -> ImuNoise:
     missing = [v for v in keys.values() if v not in d]
     if missing:
         raise FlightFormatError(path, f"missing IMU noise key(s) {missing}")
-    return ImuNoise(**{k: float(d[v]) for k, v in keys.items()})
+    values = {k: file_number(d[v], v, path) for k, v in keys.items()}
+    for k, v in keys.items():
+        problem = imu_noise_problem(k, values[k])
+        if problem is not None:
+            raise FlightFormatError(path, f"{v}: {problem}, got {values[k]}")
+    return ImuNoise(**values)
 
 
 def _camera(d: dict[str, Any], path: Path) -> CameraIntrinsics:
     try:
         fx, fy, cx, cy = (float(x) for x in d["intrinsics"])
-        width, height = (int(x) for x in d["resolution"])
+        width, height = (file_count(x, "resolution", path) for x in d["resolution"])
         dist = tuple(float(x) for x in d.get("distortion_coefficients", ()))
     except (KeyError, TypeError, ValueError) as e:
         raise FlightFormatError(

@@ -77,7 +77,7 @@ def test_old_key_names_defaults_and_repair(tmp_path):
         (lambda s: s.replace('"PinHole"', '"KannalaBrandt8"'), r"KannalaBrandt8.*not supported"),
         (lambda s: s + "IMU.NoiseGyro: 1.7e-4\n", r"missing IMU noise key\(s\) \['IMU\.NoiseAcc'"),
         (lambda s: s.replace("0.0, 0.0, 0.0, 1.0]", "0.0, 0.0, 1.0]"), r"15 values .* 4x4"),
-        (lambda s: s.replace("-1.000001", "-1.5"), r"IMU\.T_b_c1: .*not a proper rotation"),
+        (lambda s: s.replace("-1.000001", "-1.5"), r"old\.yaml: Tbc: .*not a proper rotation"),
         (lambda s: s.replace("Camera.cx: 320.0", "Camera.cx: [320.0"), r"old\.yaml:\d+: not valid"),
     ],
 )
@@ -110,3 +110,51 @@ def test_binary_and_bad_yaml_files_are_one_line(tmp_path):
     with pytest.raises(FlightFormatError) as e:
         read_orbslam3_yaml(p)
     assert "\n" not in str(e.value) and "not valid YAML" in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda s: s.replace("rows: 4", "rows: .inf"), r"old\.yaml: Tbc\.rows: expected a whole"),
+        (lambda s: s.replace("cols: 4", "cols: [4]"), r"old\.yaml: Tbc\.cols: expected a whole"),
+        (lambda s: s.replace("width: 640", "width: .inf"), r"Camera\.width: expected a whole"),
+        (lambda s: s.replace("width: 640", "width: 640.5"), r"Camera\.width: expected a whole"),
+        (lambda s: s.replace("height: 480", "height: true"), r"Camera\.height: expected a whole"),
+        (lambda s: s.replace("fx: 400.0", "fx: 0.0"), r"old\.yaml: camera \(Camera1\.fx"),
+        (
+            lambda s: s + "IMU.NoiseGyro: .nan\nIMU.NoiseAcc: 1\nIMU.GyroWalk: 1\nIMU.AccWalk: 1\n",
+            r"old\.yaml: IMU\.NoiseGyro: expected a number in \[0, 1000\], got nan",
+        ),
+        (
+            lambda s: s.replace("0.0, 0.0, 1.0, 0.1,", "0.0, 0.0, 1.0, .nan,"),
+            r"old\.yaml: Tbc: expected a finite 4x4",
+        ),
+    ],
+    ids=[
+        "rows-inf",
+        "cols-list",
+        "width-inf",
+        "width-fraction",
+        "height-bool",
+        "fx-zero",
+        "noise-nan",
+        "T-nan",
+    ],
+)
+def test_wrong_value_types_name_the_key(tmp_path, edit, match):
+    """Wrong value types were OverflowError tracebacks (``.inf`` rows or width) or accepted
+    (``width: true`` read as 1); every calibration check failed as "IMU.T_b_c1:" (a NaN noise
+    or a zero fx too): each now names its own key, on one line."""
+    p = tmp_path / "old.yaml"
+    p.write_text(edit(OLD_STYLE))
+    with pytest.raises(FlightFormatError, match=match) as e:
+        read_orbslam3_yaml(p)
+    assert "\n" not in str(e.value)
+
+
+def test_byte_order_mark_is_read(tmp_path):
+    """A UTF-8 byte-order mark before ``%YAML:1.0`` hid the directive (a YAML error about a
+    directive): it is skipped, the file reads as without it."""
+    p = tmp_path / "bom.yaml"
+    p.write_text("\ufeff" + OLD_STYLE, encoding="utf-8")
+    assert read_orbslam3_yaml(p).camera.fx == 400.0

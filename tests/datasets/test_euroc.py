@@ -175,3 +175,30 @@ def test_synthetic_mav0_folder(tmp_path):
         read_euroc_folder(mav0)
     with pytest.raises(FlightFormatError, match="imu0/data.csv not found"):
         read_euroc_folder(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "value, match",
+    [
+        ("abc", r"expected a number, found 'abc'"),
+        ("[1, 2]", r"expected a number, found \[1, 2\]"),
+        ("null", r"expected a number, found None"),
+        (".nan", r"expected a number in \[0, 1000\], got nan"),
+    ],
+)
+def test_bad_imu_noise_in_sensor_yaml_named(tmp_path, value, match):
+    """A wrong value of an IMU noise key was a ValueError/TypeError traceback, a NaN one an
+    error naming the mav0 folder: one line naming sensor.yaml and the key."""
+    mav0 = tmp_path / "MH_98" / "mav0"
+    _write(mav0 / "imu0/data.csv", HEADER + _rows(20))
+    yaml_path = _write(
+        mav0 / "imu0/sensor.yaml",
+        f"sensor_type: imu\ngyroscope_noise_density: {value}\ngyroscope_random_walk: 1.9e-05\n"
+        "accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n",
+    )
+    with pytest.raises(FlightFormatError) as e:
+        read_euroc_folder(tmp_path / "MH_98")
+    msg = str(e.value)
+    assert msg.startswith(f"{yaml_path}: gyroscope_noise_density: "), msg
+    assert "\n" not in msg
+    assert __import__("re").search(match, msg), msg
