@@ -188,6 +188,8 @@ class NsTimes:
 
 NS_INT64_MAX = 2**63 - 1
 """Largest time stamp [ns] the readers take (numpy's int64)."""
+NS_EXPONENT_MAX = 100
+"""Largest exponent (either sign) of a time stamp in scientific notation: int64 ns need 18."""
 
 
 def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
@@ -207,6 +209,10 @@ def parse_ns(raw: RawTable, j: int = 0) -> NsTimes:
             sign, whole, frac, exp = m.groups()
             digits = int(whole + frac) * (-1 if sign == "-" else 1)
             exponent = int(exp) - len(frac)
+            if not -NS_EXPONENT_MAX <= int(exp) <= NS_EXPONENT_MAX:
+                # 1E-999999999 was a decimal.InvalidOperation traceback (and 1E+999999999 a
+                # power of ten of a billion digits).
+                raise cell_error(raw, k, j, f"time stamp {tok!r} ns out of range")
             d = Decimal(digits).scaleb(exponent)
             resolution = 10 ** (exponent + len(frac) - len(frac.rstrip("0")))
         else:

@@ -23,3 +23,20 @@ def test_increasing_mask_leaves_out_a_lone_jump_and_what_the_caller_left_out():
     i, back = clock_reset(r, keep)
     assert i == 1000 and back == pytest.approx(2.0 - 0.01, abs=1e-9)
     assert clock_reset(t, increasing_mask(t)) is None
+
+
+@pytest.mark.parametrize("tok", ["1E-999999999", "1.5E+999999999", "2e101"])
+def test_time_stamp_with_an_absurd_exponent_is_named(tok):
+    """``1E-999999999`` was a decimal.InvalidOperation traceback: one line naming file, line
+    and column."""
+    from pathlib import Path
+
+    from fgnav.datasets._tables import RawTable, parse_ns
+    from fgnav.datasets.errors import FlightFormatError
+
+    raw = RawTable(Path("x.csv"), ["timestamp"], ["timestamp [ns]"], [["1000"], [tok]], [2, 3])
+    with pytest.raises(FlightFormatError) as e:
+        parse_ns(raw)
+    assert str(e.value) == f"x.csv:3: column 1 ('timestamp'): time stamp {tok!r} ns out of range"
+    ok = RawTable(Path("x.csv"), None, None, [["1.40363657975856E+018"]], [1])
+    assert parse_ns(ok).ns == [1403636579758560000]
