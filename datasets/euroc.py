@@ -102,6 +102,9 @@ from .types import (
 
 log = logging.getLogger(__name__)
 
+IMU_UNITS = {"gyro": ("rad s^-1", "rads^-1", "rad/s"), "accel": ("m s^-2", "ms^-2", "m/s^2")}
+"""Units the IMU header may give (spaces ignored; a column without a unit is taken as these): a
+gyro in ``[deg s^-1]`` was read as rad/s."""
 IMU_COLUMNS = ("timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
 POSE_COLUMNS = 8
 STATE_COLUMNS = 17
@@ -229,6 +232,16 @@ def read_euroc_imu(path: str | Path, *, notes: list[str] | None = None) -> ImuSe
                 raw.path,
                 f"header column {j + 1} is {raw.header_raw[j]!r}, expected {expected!r} "
                 f"(EuRoC IMU: {', '.join(IMU_COLUMNS)})",
+                line=1,
+            )
+    for j, name in enumerate(raw.header_raw[1:], start=1):
+        unit = _tables.unit_of(name)
+        accepted = IMU_UNITS["gyro" if j <= 3 else "accel"]
+        if unit is not None and unit.replace(" ", "") not in accepted:
+            raise FlightFormatError(
+                raw.path,
+                f"header column {j + 1} {name!r}: unit [{unit}] is not read (EuRoC IMU units: "
+                "[rad s^-1] and [m s^-2]); convert the column or fix the header",
                 line=1,
             )
     t, v = _series_rows(raw, notes, "IMU")

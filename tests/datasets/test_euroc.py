@@ -202,3 +202,18 @@ def test_bad_imu_noise_in_sensor_yaml_named(tmp_path, value, match):
     assert msg.startswith(f"{yaml_path}: gyroscope_noise_density: "), msg
     assert "\n" not in msg
     assert __import__("re").search(match, msg), msg
+
+
+def test_imu_header_units_are_checked(tmp_path):
+    """A gyro column in [deg s^-1] was read as rad/s: a unit other than EuRoC's is refused on
+    one line naming the file, header line and column; no unit, or EuRoC's, reads as before."""
+    p = _write(tmp_path / "d.csv", HEADER.replace("w_RS_S_y [rad s^-1]", "w_RS_S_y [deg s^-1]"))
+    p.write_text(p.read_text() + _rows(3))
+    with pytest.raises(FlightFormatError) as e:
+        read_euroc_imu(p)
+    assert str(e.value).startswith(f"{p}:1: header column 3 'w_RS_S_y [deg s^-1]': unit [deg")
+    p = _write(tmp_path / "g.csv", HEADER.replace("a_RS_S_z [m s^-2]", "a_RS_S_z [g]") + _rows(3))
+    with pytest.raises(FlightFormatError, match=r"g\.csv:1: header column 7 .*unit \[g\]"):
+        read_euroc_imu(p)
+    bare = "#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z [m/s^2]\n"
+    assert len(read_euroc_imu(_write(tmp_path / "b.csv", bare + _rows(3)))) == 3
