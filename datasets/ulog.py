@@ -51,6 +51,10 @@ instance with the most samples, ties to the lowest id; ``"first"``: the lowest i
 and what else exists is in ``meta["px4_instances"]``; every topic and instance of the log, with
 sample counts, is in ``meta["px4_topics"]``. The accelerometer and gyro that ``sensor_combined``
 uses (``sensor_selection``) are named in ``meta["px4_imu_selection"]``.
+
+A damaged log: pyulog's corruption reports become one note and one warning line; a log cut inside
+a message (pyulog stops there without a word: :func:`ulog_cut_bytes`) gets a note and a warning
+line too, and reads up to its last whole message.
 """
 
 from __future__ import annotations
@@ -469,6 +473,26 @@ def _choose(
     return instances[chosen]
 
 
+ULOG_HEADER_BYTES = 16
+"""The ULog file header (magic, version, timestamp); messages follow: ``uint16`` payload size,
+``uint8`` type, payload."""
+
+
+def ulog_cut_bytes(path: Path) -> int:
+    """Bytes missing from the last message of a ULog (0: the file ends on a message boundary).
+
+    pyulog stops silently at a message cut short (a truncated file reads as a shorter flight):
+    this walks the message headers from the file header to the end. Meaningful only for a file
+    pyulog reads without corruption (a damaged size field sends the walk astray)."""
+    data = path.read_bytes()
+    pos, n = ULOG_HEADER_BYTES, len(data)
+    while pos + 3 <= n:
+        pos += 3 + int.from_bytes(data[pos : pos + 2], "little")
+    if pos < n:  # a message header cut inside its 3 bytes
+        return 3 - (n - pos)
+    return pos - n
+
+
 def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples") -> Flight:
     """Read a PX4 ULog into a :class:`Flight` in fgnav frames (see the module docstring).
 
@@ -533,6 +557,15 @@ def read_ulog(path: str | Path, instance_policy: InstancePolicy = "most_samples"
             msg += f" ({len(pyulog_lines)} message(s) from pyulog, the first: {pyulog_lines[0]!r})"
         meta["notes"].append(msg)
         log.warning("%s: %s", path, msg)
+    else:
+        cut = ulog_cut_bytes(path)
+        if cut:
+            msg = (
+                f"the file ends inside a message ({cut} byte(s) missing): cut short (a copy "
+                "interrupted, a log not closed?); read up to the last whole message"
+            )
+            meta["notes"].append(msg)
+            log.warning("%s: %s", path, msg)
 
     sc = _choose(by_topic.get("sensor_combined", {}), "sensor_combined", instance_policy, meta)
     if sc is None:

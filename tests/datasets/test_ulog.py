@@ -622,3 +622,29 @@ def test_distance_sensor_negative_reading_left_out_and_counted():
     rs, _, _, notes = range_from_distance_sensor(d)
     np.testing.assert_allclose(rs.range, [1.0, 2.0])
     assert notes["skipped_negative"] == 1
+
+
+def test_ulog_cut_bytes_walks_the_message_headers(tmp_path):
+    from fgnav.datasets.ulog import ulog_cut_bytes
+
+    msg = (5).to_bytes(2, "little") + b"D" + b"12345"
+    p = tmp_path / "x.ulg"
+    for body, cut in ((msg * 3, 0), (msg * 3 + msg[:6], 2), (msg * 3 + msg[:1], 2), (b"", 0)):
+        p.write_bytes(b"ULog\x01\x12\x35\x00" + bytes(8) + body)
+        assert ulog_cut_bytes(p) == cut, (body, cut)
+
+
+def test_truncated_ulog_is_said(real_data, tmp_path, caplog):
+    """A ULog cut inside a message read as a shorter flight with no word: one warning line and a
+    note; the whole log has neither."""
+    src = real_data / "px4_cubeorange_quad_flight" / "test.ulg"
+    whole = read_ulog(src)
+    assert not any("ends inside a message" in n for n in whole.meta["notes"])
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(src.read_bytes()[:486757])
+    with caplog.at_level("WARNING"):
+        f = read_ulog(cut)
+    notes = [n for n in f.meta["notes"] if "the file ends inside a message" in n]
+    assert len(notes) == 1, f.meta["notes"]
+    assert len(f.imu) < len(whole.imu)
+    assert sum("ends inside a message" in r.getMessage() for r in caplog.records) == 1
