@@ -265,6 +265,17 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     # Simulated flight length [s] (1e9 s: 2e11 IMU samples), integration sub-steps per IMU sample.
     "duration": (None, 1e5),
     "substeps": (1, 1000),
+    # [lm]: Levenberg-Marquardt iterations and stopping rules (2**31-1 iterations ran on without
+    # end where it did not converge; a relative decrease is at most 1, so rel_tol = 1e300 or an
+    # abs_tol of 1e300 stopped after one step, 18x worse, exit 0; abs_tol = -1 was taken).
+    "max_iterations": (1, 100_000),
+    "rel_tol": (None, 1.0),
+    "abs_tol": (0.0, 1e6),
+    # LM damping: 1e-300 retried ~300 damped solves per rejected step; 1e300 stopped at the
+    # initial guess (LMOptions.validate: lambda_factor > 1, lambda_init <= lambda_max).
+    "lambda_init": (1e-20, 1e20),
+    "lambda_min": (1e-20, 1e20),
+    "lambda_max": (1e-20, 1e20),
 }
 
 #: Bounds of options by name pattern (see :data:`OPTION_BOUNDS`): noise sigmas, rates [Hz],

@@ -68,6 +68,23 @@ class LMOptions:
     lambda_max: float = 1e8
     lambda_min: float = 1e-8
 
+    def validate(self) -> None:
+        """The rules between fields (run when the options are read; the single values' bounds
+        are :data:`fgnav.config.OPTION_BOUNDS`)."""
+        if not 1.0 < self.lambda_factor <= 1e6:
+            # <= 1: lambda never grew past lambda_max, a rejected step was retried without end.
+            raise ValueError(
+                f"LMOptions.lambda_factor={self.lambda_factor:g}: expected > 1 and <= 1e6 (the "
+                "damping must grow on a rejected step)"
+            )
+        if self.lambda_init > self.lambda_max:
+            # The first damped try was above lambda_max: the loop stopped at the initial guess
+            # and called it converged.
+            raise ValueError(
+                f"LMOptions.lambda_init={self.lambda_init:g}: expected <= lambda_max = "
+                f"{self.lambda_max:g}"
+            )
+
 
 @dataclass
 class BatchOptions:

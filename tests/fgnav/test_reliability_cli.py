@@ -413,6 +413,18 @@ def test_one_prior_source_may_be_a_string():
         ("[graph]\nslam_scale_rw = 1e300\n", "option slam_scale_rw = 1e+300: expected in [1e-12"),
         ("[graph]\ngravity = 1e-300\n", "option gravity = 1e-300: expected in [1, 100]"),
         ("[ekf004]\nmax_predict_dt_s = 1e-300\n", "max_predict_dt_s = 1e-300: expected >= 0.0001"),
+        # [lm] (review 2026-12-07, ninth session): a lambda_factor <= 1 retried a rejected step
+        # without end; lambda_init above lambda_max stopped at the initial guess, "converged".
+        ("[lm]\nlambda_factor = 0.5\n", "lambda_factor=0.5: expected > 1 and <= 1e6"),
+        ("[lm]\nlambda_factor = 1e300\n", "lambda_factor=1e+300: expected > 1 and <= 1e6"),
+        ("[lm]\nlambda_init = 1e3\nlambda_max = 1e2\n", "lambda_init=1000: expected <= lambda"),
+        ("[lm]\nlambda_init = 1e300\n", "option lambda_init = 1e+300: expected in [1e-20, 1e+20]"),
+        ("[lm]\nlambda_max = 1e-300\n", "option lambda_max = 1e-300: expected in [1e-20, 1e+20]"),
+        ("[lm]\nlambda_min = 1e300\n", "option lambda_min = 1e+300: expected in [1e-20, 1e+20]"),
+        ("[lm]\nmax_iterations = 2147483647\n", "max_iterations = 2147483647: expected in [1, 1"),
+        ("[lm]\nrel_tol = 1e300\n", "option rel_tol = 1e+300: expected <= 1"),
+        ("[lm]\nabs_tol = -1\n", "option abs_tol = -1: expected in [0, 1e+06]"),
+        ("[lm]\nabs_tol = 1e300\n", "option abs_tol = 1e+300: expected in [0, 1e+06]"),
     ],
 )
 def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
@@ -447,6 +459,13 @@ def test_option_bounds_refuse_no_default():
     assert option_value_problem("prior_position_sigma", 1e6) is None
     assert option_value_problem("ground_segment_s", 1e-3) is None
     assert option_value_problem("gravity", 9.81) is None
+    # [lm]: the widest sensible values pass (one iteration, no tolerance, little damping).
+    assert option_value_problem("max_iterations", 100_000) is None
+    assert option_value_problem("rel_tol", 1.0) is None
+    assert option_value_problem("abs_tol", 0.0) is None
+    assert option_value_problem("lambda_min", 1e-20) is None
+    LMOptions().validate()
+    LMOptions(lambda_factor=1.01, lambda_init=1e8).validate()
 
 
 @pytest.mark.parametrize(
