@@ -262,6 +262,9 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "max_predict_dt_s": (1e-4, None),
     # IMU span averaged for the first attitude [s] (0 waited without end).
     "init_imu_s": (1e-3, None),
+    # An IMU gap that resets the online smoother [s]: 1e-300 made every interval a gap (ATE 140x
+    # worse, exit 0); below a 1 kHz IMU's interval (the flight's own IMU: methods.check_online_imu).
+    "max_imu_gap_s": (1e-3, None),
     # Simulated flight length [s] (1e9 s: 2e11 IMU samples), integration sub-steps per IMU sample.
     "duration": (None, 1e5),
     "substeps": (1, 1000),

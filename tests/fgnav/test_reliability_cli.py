@@ -425,6 +425,7 @@ def test_one_prior_source_may_be_a_string():
         ("[lm]\nrel_tol = 1e300\n", "option rel_tol = 1e+300: expected <= 1"),
         ("[lm]\nabs_tol = -1\n", "option abs_tol = -1: expected in [0, 1e+06]"),
         ("[lm]\nabs_tol = 1e300\n", "option abs_tol = 1e+300: expected in [0, 1e+06]"),
+        ("[online]\nmax_imu_gap_s = 1e-300\n", "max_imu_gap_s = 1e-300: expected >= 0.001"),
     ],
 )
 def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
@@ -491,6 +492,28 @@ def test_choices_and_sub_tables_are_checked_up_front(tmp_path, capsys, command, 
     argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
     err = _one_line_error(capsys, argv)
     assert str(cfg) in err and needle in err
+
+
+def test_online_imu_spans_the_flight_cannot_meet_are_refused(cli_folder, tmp_path, capsys):
+    """``max_imu_gap_s`` below the IMU interval made every interval a gap (1e-300: 20x longer,
+    ATE 140x worse, exit 0); ``init_imu_s`` past the flight's IMU was "produced no state"
+    (review 2026-12-07, ninth session)."""
+    from fgnav.datasets.errors import FlightDataError
+    from fgnav.datasets.load import load_flight
+
+    from fgnav.methods import check_online_imu
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[online]\ninit_imu_s = 100\n")
+    argv = ["online", str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert "init_imu_s=100 is not shorter than the flight's 8 s of IMU; expected" in err
+    flight = load_flight(cli_folder)
+    with pytest.raises(FlightDataError, match=r"max_imu_gap_s=0.003 is below twice the flight's"):
+        check_online_imu(flight, FixedLagOptions(max_imu_gap_s=0.003))
+    check_online_imu(flight, FixedLagOptions())  # the defaults pass
+    check_online_imu(flight, FixedLagOptions(max_imu_gap_s=0.01, init_imu_s=7.9))
 
 
 def test_factorization_names_are_matched_without_case():
