@@ -244,6 +244,8 @@ POSITIVE_OPTIONS = frozenset(
         "max_imu_gap_s",
         "init_imu_s",
         "drag_scatter_n",
+        "max_scale_step",
+        "scale_floor",
     }
 )
 
@@ -279,6 +281,27 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "lambda_init": (1e-20, 1e20),
     "lambda_min": (1e-20, 1e20),
     "lambda_max": (1e-20, 1e20),
+    # Drag coefficients [1/s] (~0.1-1 on a multirotor): [1e300, 1e300] made ekf004 fail with an
+    # SVD that did not converge (list elements are checked against these too).
+    "drag_k": (0.0, 100.0),
+    "drag_k_init": (0.0, 100.0),
+    # The filters' initial SLAM scale (SLAM units per metre): 1e300 overflowed (msf-ekf), 0 or
+    # 1e-300 ran 25x worse.
+    "initial_scale": (1e-6, 1e6),
+    # [online] drag-check scatter buffer (2**31-1: a 32 GiB MemoryError traceback).
+    "drag_scatter_n": (1, 1_000_000),
+    # [ukf003] unscented-transform parameters (alpha 0 or 1e-300, kappa -1: ZeroDivisionError;
+    # 1e300: NaN sigma points).
+    "ut_alpha": (1e-4, 1.0),
+    "ut_beta": (0.0, 10.0),
+    "ut_kappa": (0.0, 100.0),
+    # [ii-observer.observer] gains, initial state and scale step/floor: 1e300 gave an empty
+    # estimate, 0 or -1 ATEs of 400-2500 m (or 3e59 m).
+    "gamma_v": (1e-3, 1e3),
+    "gamma_k": (1e-3, 1e3),
+    "eta0": (-1e3, 1e3),
+    "max_scale_step": (1e-6, 1e6),
+    "scale_floor": (1e-6, 1e6),
 }
 
 #: Bounds of options by name pattern (see :data:`OPTION_BOUNDS`): noise sigmas, rates [Hz],
@@ -291,6 +314,19 @@ PATTERN_BOUNDS: tuple[tuple[Callable[[str], bool], tuple[float | None, float | N
     (lambda n: n.endswith("_hz"), (1e-3, 1e5)),
     (lambda n: n.endswith("segment_s"), (1e-3, None)),
     (lambda n: n.endswith(("noise_density", "random_walk")), (0.0, 1e3)),
+    # The filters' process noises and walks by other names (accel_noise_xy, proc_noise_acc_z,
+    # scale_walk, alignment_walk_pos ...): 1e300 overflowed (OverflowError), -1 was taken.
+    (
+        lambda n: (
+            ("noise" in n and not n.endswith("_lag1"))  # (a correlation: in [-1, 1])
+            or n.endswith(("_walk", "_walk_m", "_walk_rot", "_walk_pos"))
+        ),
+        (0.0, 1e6),
+    ),
+    # Tilt and angle limits: 1e300 or -1 were taken; 0 or 1e-300 used no sample (ii-observer:
+    # an empty estimate).
+    (lambda n: n.endswith(("tilt_deg", "angle_deg", "cone_deg")), (0.1, 90.0)),
+    (lambda n: n.endswith(("tilt_rad", "max_tilt")), (1e-3, math.pi / 2)),
 )
 
 #: Largest integer option (a C++ ``int`` of GTSAM or OpenCV: larger overflowed in the binding).
@@ -322,7 +358,8 @@ def option_value_problem(name: str, value: Any, zero_ok: bool = False) -> str | 
         return None
     if isinstance(value, (list, tuple)):
         for v in value:
-            p = option_value_problem("", v)
+            # (the elements of a list of a bounded name, e.g. drag_k = [kx, ky], are bounded too)
+            p = option_value_problem(name if name in OPTION_BOUNDS else "", v)
             if p is not None:
                 return p
         return None

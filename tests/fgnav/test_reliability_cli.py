@@ -426,6 +426,38 @@ def test_one_prior_source_may_be_a_string():
         ("[lm]\nabs_tol = -1\n", "option abs_tol = -1: expected in [0, 1e+06]"),
         ("[lm]\nabs_tol = 1e300\n", "option abs_tol = 1e+300: expected in [0, 1e+06]"),
         ("[online]\nmax_imu_gap_s = 1e-300\n", "max_imu_gap_s = 1e-300: expected >= 0.001"),
+        ("[online]\ndrag_scatter_n = 2147483647\n", "drag_scatter_n = 2147483647: expected in"),
+        # The filters' process noises and walks, tilt limits, initial scale and drag_k: 1e300
+        # overflowed or failed an SVD (a FAILED row, exit 0), -1 or 0 were taken.
+        ("[msf-ekf]\nscale_walk = 1e300\n", "option scale_walk = 1e+300: expected in [0, 1e+06]"),
+        ("[ukf003]\naltimeter_bias_walk = -1\n", "altimeter_bias_walk = -1: expected in [0, 1e+"),
+        ("[ekf004]\naccel_noise_xy = 1e300\n", "accel_noise_xy = 1e+300: expected in [0, 1e+06]"),
+        ("[cf-ekf]\nproc_noise_acc_z = -1\n", "proc_noise_acc_z = -1: expected in [0, 1e+06]"),
+        ("[ii-observer.vertical]\naccel_noise = 1e300\n", "accel_noise = 1e+300: expected in"),
+        ("[msf-ekf]\ninitial_scale = 1e300\n", "initial_scale = 1e+300: expected in [1e-06, 1e+"),
+        ("[ukf003]\ninitial_scale = 0\n", "option initial_scale = 0: expected in [1e-06, 1e+06]"),
+        ("[ekf004]\ndrag_k = [1e300, 1e300]\n", "drag_k = [1e+300, 1e+300]: expected in [0, 100]"),
+        ("[ii-observer]\ndrag_k = [-1, -1]\n", "option drag_k = [-1, -1]: expected in [0, 100]"),
+        ("[graph]\nrange_max_tilt_deg = -1\n", "range_max_tilt_deg = -1: expected in [0.1, 90]"),
+        (
+            "[graph]\ndrag_max_tilt_deg = 1e300\n",
+            "drag_max_tilt_deg = 1e+300: expected in [0.1, 90",
+        ),
+        ("[cf-ekf]\ntof_cone_deg = 1e300\n", "tof_cone_deg = 1e+300: expected in [0.1, 90]"),
+        (
+            "[ekf004]\nrange_max_tilt_rad = 1e300\n",
+            "range_max_tilt_rad = 1e+300: expected in [0.001,",
+        ),
+        ("[ekf-vo002.ekf]\nmax_tilt = -1\n", "option max_tilt = -1: expected in [0.001, 1.5708]"),
+        ("[ii-observer.vertical]\nmax_tilt = 0\n", "max_tilt = 0: expected in [0.001, 1.5708]"),
+        ("[ukf003]\nut_alpha = 0\n", "option ut_alpha = 0: expected in [0.0001, 1]"),
+        ("[ukf003]\nut_kappa = -1\n", "option ut_kappa = -1: expected in [0, 100]"),
+        ("[ukf003]\nut_beta = 1e300\n", "option ut_beta = 1e+300: expected in [0, 10]"),
+        ("[ii-observer.observer]\ngamma_v = [0, 0]\n", "gamma_v = [0, 0]: expected in [0.001, 1"),
+        ("[ii-observer.observer]\ngamma_k = [1e300, 1e300]\n", "gamma_k = [1e+300, 1e+300]: exp"),
+        ("[ii-observer.observer]\neta0 = [1e300, 1e300]\n", "eta0 = [1e+300, 1e+300]: expected"),
+        ("[ii-observer.observer]\nmax_scale_step = -1\n", "max_scale_step = -1: expected > 0"),
+        ("[ii-observer.observer]\nscale_floor = 1e-300\n", "scale_floor = 1e-300: expected in"),
     ],
 )
 def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
@@ -466,6 +498,17 @@ def test_option_bounds_refuse_no_default():
     assert option_value_problem("abs_tol", 0.0) is None
     assert option_value_problem("lambda_min", 1e-20) is None
     LMOptions().validate()
+    # The nested options classes' defaults too ([ekf004.scale], [ekf-vo002.ekf] ...).
+    from fgnav.config import _field_types, _nested_options_class
+
+    nested = [_nested_options_class(h) for c in classes for h in _field_types(c).values()]
+    for cls in {n for n in nested if n is not None}:
+        for f in dataclasses.fields(cls):
+            if f.default is not dataclasses.MISSING:
+                assert option_value_problem(f.name, f.default) is None, (cls, f.name)
+    assert option_value_problem("drag_k", [0.0, 100.0]) is None
+    assert option_value_problem("flow_noise_lag1", -0.3) is None  # a correlation, not a noise
+    assert option_value_problem("range_max_tilt_deg", 90.0) is None
     LMOptions(lambda_factor=1.01, lambda_init=1e8).validate()
 
 
