@@ -60,7 +60,8 @@ def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
         ("compare", "[ii-observer]\ndrag_k = [0.4]\n", "drag_k = [0.4]: expected a list of 2"),
         # An options class's own validate()/check() runs before any method (ekf004 failed at
         # its start, after the other methods had run).
-        ("compare", "[ekf004]\nposition_noise = -1.0\n", "position_noise=-1.0: must be > 0"),
+        ("compare", "[ekf004]\nposition_noise = -1.0\n", "position_noise = -1.0: expected in [0"),
+        ("compare", "[ekf004]\nposition_noise = 0\n", "position_noise=0: must be > 0"),
         # Unknown tables and options.
         ("online", "[online]\nlag = 2.0\n", "unknown option(s) ['lag'] for FixedLagOptions"),
         ("batch", "[grpah]\nkeyframe_hz = 10.0\n", "unknown table(s) ['grpah']"),
