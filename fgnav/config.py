@@ -318,7 +318,8 @@ PATTERN_BOUNDS: tuple[tuple[Callable[[str], bool], tuple[float | None, float | N
     # scale_walk, alignment_walk_pos ...): 1e300 overflowed (OverflowError), -1 was taken.
     (
         lambda n: (
-            ("noise" in n and not n.endswith("_lag1"))  # (a correlation: in [-1, 1])
+            # (not a correlation or a factor: SimOptions checks flow_noise_lag1 and _factor)
+            ("noise" in n and not n.endswith(("_lag1", "_factor")))
             or n.endswith(("_walk", "_walk_m", "_walk_rot", "_walk_pos"))
         ),
         (0.0, 1e6),
