@@ -92,14 +92,19 @@ _LOSS_WORDS = ("skip", "reject", "drop", "gated", "too_old", "late", "waiting")
 
 def unused_counts(info: Mapping[str, Any]) -> dict[str, int]:
     """Every count of measurements a method did not use, by reason: the smoothers' ``skipped``
-    and ``dropped`` tables, and the entries of a filter's ``counts`` whose name says so
+    and ``dropped`` tables, and a filter baseline's ``unused`` table (``stream:reason -> count``,
+    the one convention of :mod:`fgnav.baselines._inputs`). An ``info`` without ``unused`` (a
+    summary written before it) falls back to the entries of ``counts`` whose name says so
     (``skipped`` / ``gated`` tables, ``*_rejected_*``, ``too_old`` ...)."""
     out: dict[str, int] = {}
     for table in ("skipped", "dropped"):
         for k, v in (info.get(table) or {}).items():
             out[k if table == "skipped" else f"dropped:{k}"] = int(v)
     counts = info.get("counts")
-    if isinstance(counts, Mapping):
+    unused = info.get("unused")
+    if isinstance(unused, Mapping):
+        out.update({str(k): int(v) for k, v in unused.items()})
+    elif isinstance(counts, Mapping):
         for k, v in counts.items():
             if isinstance(v, Mapping) and any(w in k for w in _LOSS_WORDS):
                 out.update({f"{k}:{kk}": int(n) for kk, n in v.items() if isinstance(n, int)})
