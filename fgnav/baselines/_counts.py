@@ -15,6 +15,8 @@ class SlamRangeCounts:
         session_resets: SLAM sessions (map resets) that restarted the alignment.
         range_updates, range_rejected_gate, range_rejected_tilt: range readings used / gated /
             rejected for the tilt of the beam.
+        gating_resets: times every SLAM pose was gated for ``slam_reset_s`` and the vehicle
+            state was re-initialised from the SLAM.
         extra: filter-specific counts.
     """
 
@@ -25,6 +27,7 @@ class SlamRangeCounts:
     range_updates: int = 0
     range_rejected_gate: int = 0
     range_rejected_tilt: int = 0
+    gating_resets: int = 0
     extra: dict = field(default_factory=dict)
 
     def gated(self, stream: str, ok: bool) -> bool:
@@ -34,3 +37,13 @@ class SlamRangeCounts:
         name = f"{stream}_updates" if ok else f"{stream}_rejected_gate"
         setattr(self, name, getattr(self, name) + 1)
         return ok
+
+    def unused(self) -> dict[str, int]:
+        """The shared counts of measurements not used, as ``stream:reason -> count``
+        (:mod:`fgnav.baselines._inputs`)."""
+        return {
+            "slam:gated": self.slam_rejected_gate,
+            "slam:waiting-reinit": self.slam_waiting_reinit,
+            "range:gated": self.range_rejected_gate,
+            "range:tilted": self.range_rejected_tilt,
+        }

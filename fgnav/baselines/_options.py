@@ -29,6 +29,10 @@ class SlamRangeOptions:
             initial_bias_sigma_accel [m/s^2]: initial standard deviations.
         scale_walk: random walk of ``s`` [relative / sqrt(s)].
         gate: Mahalanobis gating of every update.
+        slam_reset_s: when every SLAM pose has been gated for this long [s], the filter has
+            diverged (a corrupted IMU sample, an IMU or SLAM gap): the next gated pose
+            re-initialises the vehicle's position, velocity and attitude from the SLAM (counted
+            in ``gating_resets``, said as a warning), as ``ekf004``'s ``slam_reset_s`` does.
     """
 
     slam_position_sigma_m: float = 0.015
@@ -44,3 +48,13 @@ class SlamRangeOptions:
     initial_bias_sigma_accel: float = 0.2
     scale_walk: float = 1e-3
     gate: bool = True
+    slam_reset_s: float = 1.0
+
+    def check(self) -> None:
+        """Raise ``ValueError`` naming the first invalid option (the sign rules of
+        :func:`fgnav.config.option_value_problem` apply before)."""
+        if self.initial_scale is not None and not self.initial_scale > 0:
+            raise ValueError(
+                f"{type(self).__name__}.initial_scale={self.initial_scale!r}: expected > 0 "
+                "(SLAM units per metre) or unset (the closed-form fit)"
+            )

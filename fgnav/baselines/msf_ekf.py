@@ -17,11 +17,16 @@ state estimation for modular vision-inertial systems"; ethzasl_msf's pose sensor
 Error state (22): ``[dp(3) world, dv(3) world, dtheta(3) body (right perturbation),
 dbg(3), dba(3), ds(1), dphi_sw(3) (right perturbation of slam_R_world), dslam_t_world(3)]``.
 
-Measurements are Mahalanobis-gated (chi-square). Delayed measurements (SLAM poses arriving
-``latency`` seconds after their image time) are handled MSF-style with a state buffer: the filter
-restores the buffered state at the image time, applies the update and re-propagates the IMU to
-the present. The reported trajectory is causal: each output sample is what the filter knew at that
-time, before any later correction.
+Measurements are Mahalanobis-gated (chi-square). Corrupted IMU samples are dropped and counted
+(:mod:`fgnav.baselines._inputs`); over an IMU gap the covariance is widened
+(``GAP_ACCEL_SIGMA``, ``GAP_RATE_SIGMA``); when every SLAM pose has been gated for
+``slam_reset_s`` the filter has diverged, and the vehicle's position, velocity and attitude are
+re-initialised from the SLAM (``gating_resets``, a warning).
+
+Delayed measurements (SLAM poses arriving ``latency`` seconds after their image time) are handled
+MSF-style with a state buffer: the filter restores the buffered state at the image time, applies
+the update and re-propagates the IMU to the present. The reported trajectory is causal: each
+output sample is what the filter knew at that time, before any later correction.
 
 Not modelled: rotor drag (MSF has none), IMU-camera time offset and extrinsic calibration states,
 SLAM scale drift beyond a random walk.
@@ -39,6 +44,13 @@ import numpy as np
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._inputs import (
+    GAP_ACCEL_SIGMA,
+    GAP_RATE_SIGMA,
+    IMU_GAP_S,
+    Inputs,
+    unused_table,
+)
 from fgnav.baselines._options import SlamRangeOptions
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
@@ -86,6 +98,9 @@ FIT_RETRY_S = 0.5
 
 HISTORY_BEFORE_START_S = 40.0
 """Before the start, how much of the arrived data is kept for the fit (longest window 32 s)."""
+
+SLAM_VELOCITY_SPAN_S = 0.3
+"""A re-initialisation from the SLAM takes the velocity over at least this span of poses [s]."""
 
 # Chi-square quantiles (probability 0.999) for the gates, by measurement dimension.
 CHI2_999 = {1: 10.83, 3: 16.27, 6: 22.46}
@@ -492,6 +507,11 @@ class MsfEkf:
         q[IS] = (o.scale_walk * x.s) ** 2 * dt
         q[IPHI : IPHI + 3] = o.alignment_walk_rot**2 * dt
         q[ITSW : ITSW + 3] = o.alignment_walk_pos**2 * dt
+        if dt > IMU_GAP_S:
+            # An IMU gap: the held sample says little about the motion over it.
+            q[IP : IP + 3] += (0.5 * GAP_ACCEL_SIGMA * dt * dt) ** 2
+            q[IV : IV + 3] += (GAP_ACCEL_SIGMA * dt) ** 2
+            q[ITH : ITH + 3] += (GAP_RATE_SIGMA * dt) ** 2
         P = Phi @ x.P @ Phi.T
         P[np.diag_indices(N_ERR)] += q
         x.P = 0.5 * (P + P.T)
@@ -602,10 +622,15 @@ class MsfEkf:
         self._t0 = time.perf_counter()
         self._n_slam = 0
         self._n_range_out = 0
+        self._inputs = Inputs("msf-ekf", name)
+        self._slam_gated_since: float | None = None
 
     def feed(self, ev: Event) -> None:
         """One measurement event, in arrival order (IMU, attitude, SLAM pose, range)."""
+        if not self._inputs.take(ev):
+            return
         if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
             self._hist.add(ev)
             if self.x is None:
                 self._try_start(ev.arrival)
@@ -753,7 +778,10 @@ class MsfEkf:
             self._snap_times.clear()
             self._applied.clear()
             return
+        n_old = self.counts.too_old
         self._apply_at(ev.t, cur_t, lambda e=ev: self._measure(e))
+        if self.counts.too_old > n_old:
+            self._inputs.skip("slam:too-old" if isinstance(ev, SlamPose) else "range:too-old")
         self._lat.append(time.perf_counter() - w0)
         if isinstance(ev, SlamPose):
             for lst, v in zip(
@@ -783,6 +811,17 @@ class MsfEkf:
             )
         self.counts.extra["events_after_imu_end"] = len(self._queue)
         self.counts.extra["range_out_of_limits"] = self._n_range_out
+        after = {}
+        for e in self._queue:
+            k = "slam:after-imu-end" if isinstance(e, SlamPose) else "range:after-imu-end"
+            after[k] = after.get(k, 0) + 1
+        self._unused = unused_table(
+            self.counts.unused(),
+            self._inputs.unused,
+            after,
+            {"range:out-of-limits": self._n_range_out},
+        )
+        self._inputs_info = self._inputs.info(("slam", "range"))
         final = dict(self._final_scales)
         final[self._session] = (self.x.s, float(np.sqrt(self.x.P[IS, IS])))
         return self._estimate(
@@ -810,11 +849,61 @@ class MsfEkf:
 
     def _measure(self, ev: Event) -> None:
         if isinstance(ev, SlamPose):
-            self.update_slam(ev.slam_t_cam, quat_wxyz_to_matrix(ev.slam_q_cam_wxyz))
+            R = quat_wxyz_to_matrix(ev.slam_q_cam_wxyz)
+            if self.update_slam(ev.slam_t_cam, R):
+                self._slam_gated_since = None
+            elif self._slam_gated_since is None or ev.t < self._slam_gated_since:
+                self._slam_gated_since = float(ev.t)
+            elif ev.t - self._slam_gated_since >= self.opt.slam_reset_s:
+                self._reset_from_slam(ev, R)
         else:
             if self._ground is None:
                 self._init_ground(float(ev.range))
             self.update_range(float(ev.range))
+
+    def _reset_from_slam(self, ev: SlamPose, slam_R_cam: np.ndarray) -> None:
+        """Every SLAM pose gated for ``slam_reset_s``: the filter has diverged. Re-initialise
+        position, velocity (from the SLAM poses of the last ``SLAM_VELOCITY_SPAN_S``) and
+        attitude from the SLAM through the current alignment and scale; the biases keep their
+        values with their initial uncertainty. The buffered states (diverged) are dropped."""
+        x, o = self.x, self.opt
+        body_R_cam = self._body_T_cam[:3, :3]
+        body_t_cam = self._body_T_cam[:3, 3]
+        if o.use_slam_rotation:
+            x.R = x.slam_R_world.T @ slam_R_cam @ body_R_cam.T
+        world_t_cam = x.slam_R_world.T @ (np.asarray(ev.slam_t_cam, float) - x.slam_t_world) / x.s
+        x.p = world_t_cam - x.R @ body_t_cam
+        earlier = [
+            e
+            for e in self._hist.slam
+            if e.session == ev.session and e.t <= ev.t - SLAM_VELOCITY_SPAN_S
+        ]
+        x.v = np.zeros(3)
+        if earlier:
+            e = earlier[-1]
+            d = np.asarray(ev.slam_t_cam, float) - np.asarray(e.slam_t_cam, float)
+            x.v = x.slam_R_world.T @ d / (x.s * (ev.t - e.t))
+        P = x.P
+        P[:IS, :] = 0.0
+        P[:, :IS] = 0.0
+        P[IP : IP + 3, IP : IP + 3] = np.eye(3) * o.slam_position_sigma_m**2
+        P[IV : IV + 3, IV : IV + 3] = np.eye(3) * o.initial_velocity_sigma**2
+        P[ITH : ITH + 3, ITH : ITH + 3] = np.eye(3) * 0.05**2
+        P[IBG : IBG + 3, IBG : IBG + 3] = np.eye(3) * o.initial_bias_sigma_gyro**2
+        P[IBA : IBA + 3, IBA : IBA + 3] = np.eye(3) * o.initial_bias_sigma_accel**2
+        self._slam_gated_since = None
+        self.counts.gating_resets += 1
+        self._snaps.clear()
+        self._snap_times.clear()
+        self._applied.clear()
+        if self.counts.gating_resets == 1:
+            log.warning(
+                "msf-ekf: %s: every SLAM pose gated for %.1f s (the filter diverged) at %.2f s: "
+                "position, velocity and attitude re-initialised from the SLAM",
+                self._name,
+                o.slam_reset_s,
+                ev.t,
+            )
 
     def _init_ground(self, r: float) -> None:
         x = self.x
@@ -902,7 +991,12 @@ class MsfEkf:
             update_latency=np.asarray(lat),
             runtime_s=wall,
             causal=True,
-            info={"options": self.opt.__dict__.copy(), "counts": self.counts.__dict__.copy()},
+            info={
+                "options": self.opt.__dict__.copy(),
+                "counts": self.counts.__dict__.copy(),
+                "unused": self._unused,
+                **self._inputs_info,
+            },
         )
 
 

@@ -116,6 +116,13 @@ from scipy.linalg import cho_solve
 
 from fgnav.baselines._arrived import Arrived
 from fgnav.baselines._counts import SlamRangeCounts
+from fgnav.baselines._inputs import (
+    GAP_ACCEL_SIGMA,
+    GAP_RATE_SIGMA,
+    IMU_GAP_S,
+    Inputs,
+    unused_table,
+)
 from fgnav.baselines._options import SlamRangeOptions
 from fgnav.baselines.msf_ekf import (
     FIT_RETRY_S,
@@ -484,6 +491,15 @@ class Ukf003:
         E = euler_rate_matrix(xm[IPHI : IPHI + 3])
         Q[IPHI : IPHI + 3, IPHI : IPHI + 3] = E @ E.T * (nz.gyro_noise_density**2 * T)
         Q[IS, IS] = (o.scale_walk * xm[IS]) ** 2 * T
+        gaps = dts[dts > IMU_GAP_S]
+        if gaps.size:  # an IMU gap: the held sample says little about the motion over it
+            Q[IP : IP + 3, IP : IP + 3] += np.eye(3) * float(
+                np.sum((0.5 * GAP_ACCEL_SIGMA * gaps**2) ** 2)
+            )
+            Q[IV : IV + 3, IV : IV + 3] += np.eye(3) * float(np.sum((GAP_ACCEL_SIGMA * gaps) ** 2))
+            Q[IPHI : IPHI + 3, IPHI : IPHI + 3] += np.eye(3) * float(
+                np.sum((GAP_RATE_SIGMA * gaps) ** 2)
+            )
         if len(self.x) > N_MAIN:
             Pyx = (wc[:, None] * dY).T @ dX
             F = np.linalg.solve(Pxx, Pyx.T).T
@@ -740,17 +756,29 @@ class Ukf003:
         self._lat: list[float] = []
         self._t0 = time.perf_counter()
         self._started = False
+        self._redo = False
+        self._inputs = Inputs("ukf003", name)
+        self._slam_gated_since: float | None = None
 
     def feed(self, ev: Event) -> None:
         """One event in arrival order: IMU sample, camera trigger, SLAM pose, range, yaw or
-        attitude."""
+        attitude (a corrupted IMU sample is dropped and counted: :mod:`fgnav.baselines._inputs`).
+        """
         if not self._started:
+            if not self._inputs.take(ev):
+                return
+            if isinstance(ev, ImuSample):
+                self._inputs.imu_gap(ev)
             self._hist.add(ev)
             if isinstance(ev, CameraTrigger):
                 self._pre.append(ev)
             elif isinstance(ev, ImuSample):
                 self._try_start(ev.arrival)
             return
+        if not self._redo and not self._inputs.take(ev):
+            return
+        if isinstance(ev, ImuSample) and not self._redo:
+            self._inputs.imu_gap(ev)
         if isinstance(ev, ImuSample | SlamPose | AttitudeSample):
             self._hist.add(ev)  # for the scale guess of a new map
         if isinstance(ev, ImuSample):
@@ -911,8 +939,10 @@ class Ukf003:
         }
         redo = sorted(later + h.imu_from(t_start), key=lambda e: (e.arrival, rank[type(e)]))
         self._pre.clear()
+        self._redo = True  # (taken and counted when they arrived)
         for e in redo:
             self.feed(e)
+        self._redo = False
 
     def result(self) -> Estimate:
         """The causal estimate of everything fed so far."""
@@ -971,7 +1001,13 @@ class Ukf003:
             self.counts.slam_out_of_order += 1
             self.drop_clone(k_j)
             return
-        self.update_relative_slam(k_i, k_j, p_ref, R_ref, ev.slam_t_cam, R_j)
+        if self.update_relative_slam(k_i, k_j, p_ref, R_ref, ev.slam_t_cam, R_j):
+            self._slam_gated_since = None
+        elif self._slam_gated_since is None:
+            self._slam_gated_since = t_j
+        elif t_j - self._slam_gated_since >= self.opt.slam_reset_s:
+            self._reset_from_slam(ev, k_j, R_j)
+            return
         if t_j - t_ref < self.opt.keyframe_interval_s - 1e-9:
             self.drop_clone(k_j)  # same keyframe: the next pose is measured against it again
             return
@@ -983,6 +1019,57 @@ class Ukf003:
                 self.drop_clone(k)
         self.counts.keyframes += 1
         self._ref = (t_j, ev.slam_t_cam, R_j)
+
+    def _unused(self) -> dict[str, int]:
+        """``info["unused"]`` (:mod:`fgnav.baselines._inputs`)."""
+        c = self.counts
+        return unused_table(
+            c.unused(),
+            self._inputs.unused,
+            {
+                "range:out-of-limits": c.range_out_of_limits,
+                "slam:lost": c.slam_lost,
+                "slam:out-of-order": c.slam_out_of_order,
+                "slam:no-clone": c.slam_no_clone,
+                "yaw:gated": c.yaw_rejected_gate,
+                "attitude:gated": c.attitude_rejected_gate,
+            },
+        )
+
+    def _reset_from_slam(self, ev: SlamPose, k_j: int, R_j: np.ndarray) -> None:
+        """Every SLAM displacement gated for ``slam_reset_s``: the filter has diverged (its
+        velocity, from a corrupted IMU sample or a gap). The velocity restarts from the SLAM
+        displacement since the reference keyframe (through the scale, the extrinsics and the
+        attitude), with its initial uncertainty; the biases keep their values with theirs; this
+        pose becomes the reference keyframe (counted in ``gating_resets``, a warning)."""
+        o = self.opt
+        t_ref, p_ref, R_ref = self._ref
+        R_bc = self._body_T_cam[:3, :3]
+        world_R_body = euler_to_matrix(self.x[None, IPHI : IPHI + 3])[0]
+        # Displacement in the reference camera, then in the current body frame [m].
+        d_cam = R_ref.T @ (np.asarray(ev.slam_t_cam, float) - np.asarray(p_ref, float))
+        world_R_cam_ref = world_R_body @ R_bc @ R_j.T @ R_ref
+        v_world = world_R_cam_ref @ d_cam / (self.scale * max(float(ev.t) - t_ref, 1e-3))
+        main = np.r_[IPHI : IPHI + 3, IV : IV + 3, IBA : IBA + 3, IBG : IBG + 3]
+        self.x[IV : IV + 3] = world_R_body.T @ v_world
+        self.P[main, :] = 0.0
+        self.P[:, main] = 0.0
+        sa = o.initial_attitude_sigma
+        var = [sa**2] * 3 + [o.initial_velocity_sigma**2] * 3
+        var += [o.initial_bias_sigma_accel**2] * 3 + [o.initial_bias_sigma_gyro**2] * 3
+        self.P[main, main] = var
+        self._keep_only_clone(k_j)
+        self._ref = (float(ev.t), ev.slam_t_cam, R_j)
+        self._slam_gated_since = None
+        self.counts.gating_resets += 1
+        if self.counts.gating_resets == 1:
+            log.warning(
+                "ukf003: %s: every SLAM displacement gated for %.1f s (the filter diverged) at "
+                "%.2f s: velocity re-initialised from the SLAM",
+                self._name,
+                o.slam_reset_s,
+                ev.t,
+            )
 
     def _keep_only_clone(self, k: int) -> None:
         """Drop every clone except k, and those taken after it (pending images)."""
@@ -1091,6 +1178,8 @@ class Ukf003:
             info={
                 "options": dataclasses.asdict(self.opt),
                 "counts": dataclasses.asdict(self.counts),
+                "unused": self._unused(),
+                **self._inputs.info(("slam", "range", "yaw", "attitude")),
             },
         ).check()
 
