@@ -62,6 +62,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import Event, FlowSample, ImuSample, RangeReading, replay_flight
 from fgnav.datasets.geometry import (
@@ -363,10 +364,15 @@ class CfEkf:
         self._next_out = -np.inf
         self._lat: list[float] = []
         self._t0 = time.perf_counter()
+        self._inputs = Inputs("cf-ekf", name)
 
     def feed(self, ev: Event) -> None:
-        """One measurement event, in arrival order."""
+        """One measurement event, in arrival order (a corrupted IMU sample is dropped and
+        counted: :mod:`fgnav.baselines._inputs`)."""
+        if not self._inputs.take(ev):
+            return
         if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
             self._imu(ev)
         elif isinstance(ev, FlowSample):
             self._flow(ev)
@@ -457,6 +463,20 @@ class CfEkf:
         self.finalize()
         self._lat.append(time.perf_counter() - w0)
 
+    def unused(self) -> dict[str, int]:
+        """What was not used, ``stream:reason -> count`` (:mod:`fgnav.baselines._inputs`)."""
+        c = self.counts
+        return unused_table(
+            self._inputs.unused,
+            {
+                "flow:outlier": c.flow_outliers,
+                "flow:low-quality": c.flow_low_quality,
+                "flow:before-start": c.flow_before_start,
+                "range:outlier": c.tof_outliers,
+                "range:tilted": c.tof_tilted,
+            },
+        )
+
     def run(self, flight: Flight) -> Estimate:
         """Run over a flight's IMU, flow and range events in arrival order."""
         check_flight(flight)
@@ -497,6 +517,8 @@ class CfEkf:
             info={
                 "options": dataclasses.asdict(self.opt),
                 "counts": dataclasses.asdict(self.counts),
+                "unused": self.unused(),
+                **self._inputs.info(("flow", "range")),
             },
         ).check()
 

@@ -106,6 +106,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from fgnav.baselines._arrived import Arrived
+from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.baselines.msf_ekf import SCALE_INIT_WINDOWS_S, initial_fit
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
@@ -393,6 +394,18 @@ def check_flight(flight: Flight, opt: Ekf004Options) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
+#: The stream of each measurement kind of :class:`Ekf004Counts` (derived kinds: their source).
+_STREAM_OF_KIND = {
+    "imu": "imu",
+    "attitude": "attitude",
+    "yaw": "yaw",
+    "range": "range",
+    "slam": "slam",
+    "vertical_speed": "range",
+    "gyro": "imu",
+}
+
+
 @dataclass
 class Ekf004Counts:
     """What the filter did with each measurement kind (reported in ``Estimate.info``)."""
@@ -404,6 +417,35 @@ class Ekf004Counts:
     late_beyond_history: int = 0
     active: bool = True
     """False while replaying (a replayed measurement is counted once, when it first arrives)."""
+
+    def unused(self) -> dict[str, int]:
+        """The measurements not used, ``stream:reason -> count`` (:mod:`fgnav.baselines._inputs`):
+        ``gated`` by kind; ``skipped`` keys ``<stream>_<reason>`` (or ``<stream>``: its height
+        was rejected); the vertical speeds from range heights and the SLAM scale pairs are
+        counted under their stream (``range:vertical-speed``, ``slam:scale-pair`` ...)."""
+        out: dict[str, int] = {}
+
+        def put(key: str, n: int) -> None:
+            out[key] = out.get(key, 0) + int(n)
+
+        for kind, n in self.gated.items():
+            stream = _STREAM_OF_KIND.get(kind, kind)
+            put(
+                f"{stream}:gated" if stream == kind else f"{stream}:{kind}-gated".replace("_", "-"),
+                n,
+            )
+        kinds = sorted(_STREAM_OF_KIND, key=len, reverse=True)
+        for key, n in self.skipped.items():
+            kind = next((k for k in kinds if key == k or key.startswith(f"{k}_")), None)
+            if kind is None:  # scale_pair*, scale_estimate: SLAM poses not used for the scale
+                put(f"slam:{key.replace('_', '-')}", n)
+                continue
+            stream = _STREAM_OF_KIND[kind]
+            reason = key[len(kind) + 1 :] if key != kind else ("rejected" if kind == stream else "")
+            if kind != stream:
+                reason = f"{kind}-{reason}" if reason else kind
+            put(f"{stream}:{reason.replace('_', '-')}", n)
+        return out
 
     def add(self, table: str, kind: str, n: int = 1) -> None:
         if not self.active:
@@ -862,6 +904,7 @@ class Ekf004Runner:
         self.scale_v: list[float] = []
         self.scale_sid: list[int] = []
         self.latencies: list[float] = []
+        self._inputs = Inputs("ekf004", name)
         self.imu_used = 0  # IMU samples taken after the start (yaw rate, attitude EKF)
         self.t_first_output: float | None = None
         self._wall0 = time.perf_counter()
@@ -903,7 +946,12 @@ class Ekf004Runner:
     # -- events ----------------------------------------------------------------------------------
 
     def feed(self, ev: Event) -> None:
-        """One measurement event, in arrival order (IMU, attitude, yaw, range, SLAM pose)."""
+        """One measurement event, in arrival order (IMU, attitude, yaw, range, SLAM pose; a
+        corrupted IMU sample is dropped and counted: :mod:`fgnav.baselines._inputs`)."""
+        if not self._inputs.take(ev):
+            return
+        if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
         if self.attitude_source is not None:
             self._feed(ev)
             return
@@ -1291,6 +1339,8 @@ class Ekf004Runner:
         info = {
             "options": self.opt,
             "counts": self.counts,
+            "unused": unused_table(self._inputs.unused, self.counts.unused()),
+            **self._inputs.info(("slam", "range", "yaw", "attitude")),
             "drag_k_fixed_per_s": list(self.opt.drag_k),
             "attitude_source": ATTITUDE_SOURCES[self.attitude_source],
             "scale_source": self.scale_source,

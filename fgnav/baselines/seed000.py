@@ -46,14 +46,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import Event, replay_flight
+from fgnav.datasets.events import Event, ImuSample, replay_flight
 from fgnav.datasets.types import Calibration, Flight
 from fgnav.estimate import Estimate
 from fgnav.frontends.ii_observer import IIObserverOptions, VerticalFilterOptions
 from fgnav.frontends.prior_stages import FrontendPriorStage, PriorOptions
 
 log = logging.getLogger(__name__)
+
+#: The observer's and its stage's counts of measurements not used (``info["unused"]`` as
+#: ``stream:reason``, :mod:`fgnav.baselines._inputs`).
+_UNUSED_KEYS = (
+    "imu_out_of_order",
+    "imu_without_attitude",
+    "attitude_out_of_order",
+    "slam_before_imu",
+    "slam_lost",
+    "slam_late",
+    "range_late",
+    "range_out_of_limits",
+    "range_tilt",
+    "range_outlier",
+)
 
 
 @dataclass(frozen=True)
@@ -136,10 +152,15 @@ class Seed000:
             slam_history_s=o.slam_history_s,
         )
         self._t0 = time.perf_counter()
+        self._inputs = Inputs("ii-observer", name)
 
     def feed(self, ev: Event) -> None:
         """One event in arrival order (IMU, attitude, range, SLAM; yaw feeds the attitude EKF
         of a flight without attitude; others are ignored)."""
+        if not self._inputs.take(ev):
+            return
+        if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
         self.stage.feed(ev)
 
     def close(self) -> None:
@@ -181,9 +202,24 @@ class Seed000:
         """The causal estimate of everything processed so far (``Estimate(method="ii-observer",
         causal=True)``; rows without a position left out and counted in
         ``info["rows_without_position"]``, with every count of the observer and the stage)."""
-        est = self.stage.observer_result().to_estimate()
+        res = self.stage.observer_result()
+        counts = {**self.stage.observer_counts(), **self.stage.counts}
+        unused = unused_table(
+            self._inputs.unused,
+            {k.replace("_", ":", 1).replace("_", "-"): counts.get(k, 0) for k in _UNUSED_KEYS},
+        )
+        if not np.all(np.isfinite(res.world_t_body), axis=1).any():
+            got = ", ".join(f"{s} {n}" for s, n in sorted(self._inputs.received.items()))
+            lost = ", ".join(f"{k} {n}" for k, n in unused.items()) or "none"
+            raise FlightDataError(
+                f"{self.name}: the I&I observer has no position: it needs a SLAM pose and a "
+                f"range reading it can use (received: {got or 'nothing'}; not used: {lost})"
+            )
+        est = res.to_estimate()
         info = dict(est.info)
         info.update(self.stage.counts)
+        info["unused"] = unused
+        info.update(self._inputs.info(("slam", "range", "attitude")))
         info["attitude_source"] = self.stage.attitude_mode
         info["align_slam_axes"] = self.options.align_slam_axes
         info["wrapper_options"] = dataclasses.asdict(self.options)

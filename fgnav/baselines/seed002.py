@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     Event,
@@ -67,6 +68,27 @@ from fgnav.frontends.attitude_ekf import AttitudeEkfOptions, AttitudeEkfStage
 from fgnav.frontends.homography_vo import BUFFER_S, HomographyVOOptions, HomographyVoStage
 
 log = logging.getLogger(__name__)
+
+#: The VO's counts of frames not posed, and the attitude EKF's of measurements not used
+#: (``info["unused"]`` as ``stream:reason``, :mod:`fgnav.baselines._inputs`).
+_VO_UNUSED = (
+    "gaps",
+    "no_attitude",
+    "no_height",
+    "few_corners",
+    "few_tracked",
+    "few_inliers",
+    "no_homography",
+    "no_decomposition",
+)
+_EKF_UNUSED = {
+    "accel_gated": "imu:accel-gated",
+    "imu_late": "imu:late",
+    "late": "range+yaw:late",
+    "range_out_of_limits": "range:out-of-limits",
+    "range_tilt": "range:tilted",
+    "range_outlier": "range:outlier",
+}
 
 
 def _published_vo() -> HomographyVOOptions:
@@ -125,9 +147,15 @@ class Seed002Vo:
         self._ekf_no_height = 0
         self._out: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
         self._t0 = time.perf_counter()
+        self._inputs = Inputs("ekf-vo002", name)
 
     def feed(self, ev: Event) -> None:
-        """One event in arrival order (IMU, yaw, range, image; others ignored)."""
+        """One event in arrival order (IMU, yaw, range, image; others ignored; a corrupted IMU
+        sample is dropped and counted: :mod:`fgnav.baselines._inputs`)."""
+        if not self._inputs.take(ev):
+            return
+        if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
         if isinstance(ev, (ImuSample, YawReading, RangeReading)):
             for est in self._ekf.feed(ev):
                 h = est.height if math.isfinite(est.height) else None
@@ -261,6 +289,12 @@ class Seed002Vo:
             "ekf_counts": self.ekf_counts,
             "rows_without_pose": int(vo.counts.get("frames", 0) - len(traj)),
             "ekf_rows_without_height": self._ekf_no_height,
+            "unused": unused_table(
+                self._inputs.unused,
+                {f"images:{k.replace('_', '-')}": vo.counts.get(k, 0) for k in _VO_UNUSED},
+                {key: self.ekf_counts.get(k, 0) for k, key in _EKF_UNUSED.items()},
+            ),
+            **self._inputs.info(("range", "yaw", "images")),
         }
         log.info("seed 002 on %s: %d frames posed; VO %s", self._name, len(traj), vo.counts)
         return Estimate(
