@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import (
     Event,
@@ -65,6 +66,14 @@ from fgnav.frontends.attitude_ekf import (
 log = logging.getLogger(__name__)
 
 REQUIRED_STREAMS = ("imu", "flow", "range")
+
+#: The attitude-and-height EKF's counts of measurements it did not use, as ``info["unused"]``
+#: keys (:mod:`fgnav.baselines._inputs`).
+_EKF_UNUSED_KEYS = {
+    "accel_gated": "imu:accel-gated",
+    "range_tilt": "range:tilted",
+    "range_outlier": "range:outlier",
+}
 
 
 @dataclass
@@ -89,6 +98,15 @@ class Seed002FlowOptions:
     velocity_window_s: float = 0.1
     ground_height: float = 0.0
 
+    def check(self) -> None:
+        """Raise ``ValueError`` naming the first invalid option (the sign rules of
+        :func:`fgnav.config.option_value_problem` apply before)."""
+        for name in ("height_rate_tau_s", "velocity_window_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"Seed002FlowOptions.{name}={getattr(self, name)!r}: expected > 0 [s]"
+                )
+
 
 class Seed002Flow:
     """The attitude-and-height EKF plus flow dead reckoning (module docstring), event-fed:
@@ -98,6 +116,9 @@ class Seed002Flow:
         self.opt = options or Seed002FlowOptions()
         self.counts: dict[str, int] = {
             "flow_used": 0,
+            "flow_non_finite": 0,
+            "flow_bad_interval": 0,
+            "flow_implausible_rate": 0,
             "flow_low_quality": 0,
             "flow_no_height": 0,
             "flow_low": 0,
@@ -129,10 +150,20 @@ class Seed002Flow:
         self._out_q: list[np.ndarray] = []
         self._lat: list[float] = []
         self._t0 = time.perf_counter()
+        self._inputs = Inputs("ekf-flow002", name)
+        # The flow factors' plausibility bounds (imported here: fgnav.solvers.flow loads GTSAM).
+        from fgnav.solvers.flow import FLOW_MAX_DT_S, FlowFactorOptions
+
+        self._flow_max_dt = FLOW_MAX_DT_S
+        self._flow_max_rate = FlowFactorOptions.max_rate_rad_s
 
     def feed(self, ev: Event) -> None:
-        """One measurement event, in arrival order (IMU, yaw, range, flow; others ignored)."""
+        """One measurement event, in arrival order (IMU, yaw, range, flow; others ignored; a
+        corrupted IMU sample is dropped and counted: :mod:`fgnav.baselines._inputs`)."""
+        if not self._inputs.take(ev):
+            return
         if isinstance(ev, ImuSample):
+            self._inputs.imu_gap(ev)
             self._imu(ev)
         elif isinstance(ev, YawReading):
             if self._ekf is None:
@@ -239,6 +270,19 @@ class Seed002Flow:
         if self._ekf is None:
             cnt["flow_before_start"] += 1
             return
+        f = np.asarray(ev.flow, float)
+        dt = float(ev.dt)
+        # The flow-factor gate (fgnav.solvers.flow): a reading is image motion over its own
+        # interval, which a flow sensor integrates over 10-100 ms.
+        if not (f.shape == (2,) and np.all(np.isfinite(f)) and math.isfinite(dt)):
+            cnt["flow_non_finite"] += 1
+            return
+        if not 0.0 < dt <= self._flow_max_dt:
+            cnt["flow_bad_interval"] += 1
+            return
+        if math.hypot(f[0], f[1]) > self._flow_max_rate * self._ppr * dt:
+            cnt["flow_implausible_rate"] += 1
+            return
         if 0 <= ev.quality < o.quality_min:
             cnt["flow_low_quality"] += 1
             return
@@ -259,22 +303,42 @@ class Seed002Flow:
             cnt["flow_tilted"] += 1
             return
         d = h / cos_tilt
-        omega = self._mean_rate(ev.t - ev.dt, ev.t)
+        omega = self._mean_rate(ev.t - dt, ev.t)
         w_s = self._body_R_flow.T @ omega
         rot = np.array([-w_s[1], w_s[0]])
-        v_xy = -(np.asarray(ev.flow, float) / (self._ppr * ev.dt) - rot) * d
+        v_xy = -(f / (self._ppr * dt) - rot) * d
         a = R @ self._body_R_flow
         v_axis = (self._h_rate - a[2, 0] * v_xy[0] - a[2, 1] * v_xy[1]) / a[2, 2]
         body_v = self._body_R_flow @ np.r_[v_xy, v_axis] - np.cross(omega, self._body_t_flow)
         world_v = R @ body_v
-        t_from = ev.t - ev.dt if self._t_prev_used is None else self._t_prev_used
-        self._xy = self._xy + world_v[:2] * (ev.t - t_from)
+        # The velocity (of the reading's own interval dt, gated above: a dt of 1e-6 s made it
+        # 1e4 times the noise) is held since the previous used reading, so that readings
+        # skipped in between (tilt, height) leave no hole; at most FLOW_MAX_DT_S, the longest
+        # interval a reading may cover (after a long stretch without a used reading, over dt).
+        span = dt if self._t_prev_used is None else ev.t - self._t_prev_used
+        if not 0.0 < span <= self._flow_max_dt:
+            span = dt
+        self._xy = self._xy + world_v[:2] * span
         self._t_prev_used = ev.t
         self._out_t.append(float(ev.t))
         self._out_p.append(np.r_[self._xy, ekf.height + o.ground_height])
         self._out_q.append(ekf.world_q_body_wxyz)
         cnt["flow_used"] += 1
         self._lat.append(time.perf_counter() - w0)
+
+    def unused(self) -> dict[str, int]:
+        """What was not used, ``stream:reason -> count`` (:mod:`fgnav.baselines._inputs`)."""
+        c = self.counts
+        return unused_table(
+            self._inputs.unused,
+            {
+                f"flow:{k[len('flow_') :].replace('_', '-')}": v
+                for k, v in c.items()
+                if k.startswith("flow_") and k != "flow_used"
+            },
+            {"range:out-of-limits": c["range_out_of_limits"]},
+            {key: self.ekf_counts.get(k, 0) for k, key in _EKF_UNUSED_KEYS.items()},
+        )
 
     # -- whole flight -----------------------------------------------------------------------------
 
@@ -311,6 +375,8 @@ class Seed002Flow:
                 "options": dataclasses.asdict(self.opt),
                 "counts": dict(self.counts),
                 "ekf_counts": self.ekf_counts,
+                "unused": self.unused(),
+                **self._inputs.info(("flow", "range")),
             },
         ).check()
 
