@@ -403,6 +403,7 @@ _STREAM_OF_KIND = {
     "slam": "slam",
     "vertical_speed": "range",
     "gyro": "imu",
+    "yaw_rate": "imu",
 }
 
 
