@@ -190,8 +190,13 @@ def test_unused_counts_reads_the_unused_table():
 @pytest.mark.parametrize(
     "section,table,match",
     [
-        ("msf-ekf", {"initial_scale": -1.0}, r"MsfOptions\.initial_scale=-1\.0: expected > 0"),
-        ("ukf003", {"initial_scale": 0.0}, r"Ukf003Options\.initial_scale=0\.0: expected > 0"),
+        # (the config's bounds refuse these before the options' own check)
+        (
+            "msf-ekf",
+            {"initial_scale": -1.0},
+            r"\[msf-ekf\]: option initial_scale = -1\.0: expected",
+        ),
+        ("ukf003", {"initial_scale": 0.0}, r"\[ukf003\]: option initial_scale = 0\.0: expected"),
         ("ekf-flow002", {"height_rate_tau_s": 0.0}, r"height_rate_tau_s=0\.0: expected > 0"),
     ],
 )
