@@ -28,11 +28,12 @@ Messages in (-> :mod:`fgnav.datasets.events`):
 * ``HIGHRES_IMU`` (body FRD, m/s^2, rad/s) -> :class:`ImuSample` (body FLU);
 * ``ATTITUDE_QUATERNION`` (FRD body to NED, ``time_boot_ms``) -> :class:`AttitudeSample`;
 * ``DISTANCE_SENSOR`` with orientation ``MAV_SENSOR_ROTATION_PITCH_270`` (25, downward), cm ->
-  :class:`RangeReading` [m]; ``signal_quality`` 0 (unknown) -> -1, 1 (invalid signal) dropped,
-  2..100 -> 0..1;
+  :class:`RangeReading` [m]; 0 cm (no reading) dropped; ``signal_quality`` 0 (unknown) -> -1,
+  1 (invalid signal) dropped, 2..100 -> 0..1;
 * ``ODOMETRY`` with ``estimator_type = MAV_ESTIMATOR_TYPE_VISION`` -> :class:`SlamPose`:
   ``x, y, z, q`` are the SLAM camera pose ``slam_T_cam`` in the SLAM's own frame and scale,
   taken as they are whatever ``frame_id`` says (the SLAM alignment absorbs the frame);
+  ``quality`` -1 (the SLAM failed) dropped;
 * ``OPTICAL_FLOW_RAD`` -> :class:`FlowSample`. MAVLink: ``integrated_x`` is positive for a
   right-hand sensor rotation about x and negative for motion along +y; ``integrated_y`` positive
   for rotation about y and for motion along +x. fgnav's ``FlowSeries`` convention is
@@ -233,12 +234,16 @@ def attitude_quaternion_fields(
 def range_from_distance_sensor(msg: Any, arrival: float | None = None) -> RangeReading:
     """``DISTANCE_SENSOR`` facing down (orientation 25) -> :class:`RangeReading` [m].
 
-    Other orientations, readings outside the message's own ``[min_distance, max_distance]``
-    (a sensor's out-of-range code) and ``signal_quality`` 1 (invalid signal) are rejected.
+    Other orientations, 0 cm (many sensors' "no reading", whatever ``min_distance`` says; the
+    file readers leave zero ranges out too), readings outside the message's own
+    ``[min_distance, max_distance]`` (a sensor's out-of-range code) and ``signal_quality`` 1
+    (invalid signal) are rejected.
     """
     if int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
         raise Rejected("range:orientation", f"orientation {int(msg.orientation)}, not 25 (down)")
     d = int(msg.current_distance)
+    if d == 0:
+        raise Rejected("range:zero", "0 cm: no reading")
     if not int(msg.min_distance) <= d <= int(msg.max_distance):
         raise Rejected(
             "range:out_of_sensor_limits",
@@ -282,10 +287,13 @@ def distance_sensor_fields(
 def slam_from_odometry(msg: Any, session: int, arrival: float | None = None) -> SlamPose:
     """``ODOMETRY`` of a vision (SLAM) source -> :class:`SlamPose` in the SLAM's own frame.
 
-    ``session`` is the SLAM map id the caller derives from ``reset_counter``.
+    ``session`` is the SLAM map id the caller derives from ``reset_counter``. ``quality`` -1
+    (MAVLink: "odometry has failed"; 0 unknown, 1-100 worst to best) is rejected.
     """
     if int(msg.estimator_type) != MAV_ESTIMATOR_TYPE_VISION:
         raise Rejected("slam:estimator_type", f"estimator_type {int(msg.estimator_type)}")
+    if int(getattr(msg, "quality", 0)) < 0:
+        raise Rejected("slam:failed", f"quality {int(msg.quality)}: odometry has failed")
     t = us_to_s(msg.time_usec)
     p = _finite((msg.x, msg.y, msg.z), "slam")
     q = _unit_quat(msg.q, "slam")

@@ -182,6 +182,29 @@ def test_slam_pose_is_taken_as_is(wire):
         convert.slam_from_odometry(wire("odometry", f | {"estimator_type": 3}), session=0)
 
 
+def test_failed_slam_odometry_is_rejected(wire):
+    """ODOMETRY.quality: -1 = odometry has failed, 0 = unknown, 1..100 (common.xml); a failed
+    pose carrying garbage was fused as a good one."""
+    ev = SlamPose(3.0, 3.0, np.array([1.5, -2.0, 0.25]), np.array([1.0, 0.0, 0.0, 0.0]), 0)
+    f = convert.vision_odometry_fields(ev, boot_offset=0.0, reset_counter=0)
+    with pytest.raises(Rejected) as e:
+        convert.slam_from_odometry(wire("odometry", f | {"quality": -1}), session=0)
+    assert e.value.reason == "slam:failed"
+    for quality in (0, 1, 100):
+        convert.slam_from_odometry(wire("odometry", f | {"quality": quality}), session=0)
+
+
+def test_a_zero_range_is_no_reading(wire):
+    """DISTANCE_SENSOR at 0 cm is many sensors' "no reading", also with min_distance 0 (it was
+    taken as ground contact); the file readers leave zero ranges out too."""
+    f = convert.distance_sensor_fields(RangeReading(2.0, 2.0, 1.0), 0.0, 0.0, 8.0)
+    assert f["min_distance"] == 0
+    with pytest.raises(Rejected) as e:
+        convert.range_from_distance_sensor(wire("distance_sensor", f | {"current_distance": 0}))
+    assert e.value.reason == "range:zero"
+    assert convert.range_from_distance_sensor(wire("distance_sensor", f)).range == 1.0
+
+
 def test_flow_signs_follow_mavlink_text(wire):
     # Forward motion (sensor +x) over the ground: fgnav flow x = -v_x/d dt < 0; MAVLink's
     # integrated_y is positive for motion along +x (PX4: "forwards: +Y").
