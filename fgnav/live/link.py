@@ -9,13 +9,15 @@ Nothing is lost while the consumer is busy: a reader thread does nothing but ``r
 an unbounded queue (datagrams and their source address), and the socket's receive buffer is
 asked to be :data:`RCVBUF_BYTES` (the kernel caps it at ``net.core.rmem_max``). Parsing (by
 pymavlink's generated MAVLink 2 parser of the ``common`` dialect, one per peer so that streams
-never mix) and everything else happen on the consumer's thread. Messages that still go missing
-show up in the sequence-number counts (:class:`fgnav.live.inbound.SequenceCounter`).
+never mix, each datagram on its own) and everything else happen on the consumer's thread.
+Messages that still go missing show up in the sequence-number counts
+(:class:`fgnav.live.inbound.SequenceCounter`).
 """
 
 from __future__ import annotations
 
 import errno
+import logging
 import queue
 import socket
 import threading
@@ -24,6 +26,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from fgnav.datasets.errors import FgnavError
+
+log = logging.getLogger(__name__)
 
 RCVBUF_BYTES = 4 * 1024 * 1024
 """Receive buffer asked of the kernel [bytes] (Linux's default cap, ``rmem_max``, is 4 MiB)."""
@@ -122,6 +126,7 @@ class UdpLink:
         self.datagrams = 0
         self.bytes = 0
         self.send_errors = 0
+        self.read_errors = 0
         self.queue_max = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read, name="mavlink-reader", daemon=True)
@@ -143,10 +148,17 @@ class UdpLink:
                 continue
             except ConnectionRefusedError:  # udpout: nobody listening yet (ICMP unreachable)
                 continue
-            except OSError:
+            except OSError as e:
                 if self._stop.is_set():
                     return
-                raise
+                # Any other error of one read (a transient ENOBUFS, an ICMP error reported on
+                # a udpin socket ...): logged and counted, the thread goes on (it had died, the
+                # session then idled out with the datagrams after it unread).
+                self.read_errors += 1
+                if self.read_errors <= 3 or self.read_errors % 1000 == 0:
+                    log.warning("%s: read error %d: %s", self.address, self.read_errors, e)
+                time.sleep(0.01)
+                continue
             q.put((data, addr, time.monotonic()))
 
     def get(self, timeout: float) -> tuple[bytes, tuple[str, int], float] | None:
@@ -193,13 +205,31 @@ class UdpLink:
 
 
 class Parsers:
-    """One MAVLink parser per peer address (a stream parser must not mix two peers' bytes)."""
+    """One MAVLink parser per peer address (a stream parser must not mix two peers' bytes),
+    each datagram parsed on its own: a datagram holds whole messages, so the parser's buffer is
+    emptied before each (a stray ``FD FF`` had made it wait for a 255-byte payload and swallow
+    the valid messages of the following datagrams). ``truncated``: datagrams that ended inside
+    a message (the bytes left are dropped)."""
 
     def __init__(self) -> None:
         self._by_peer: dict[tuple[str, int], Any] = {}
+        self.truncated = 0
 
     def parse(self, data: bytes, peer: tuple[str, int]) -> list[Any]:
         p = self._by_peer.get(peer)
         if p is None:
             p = self._by_peer[peer] = new_mavlink(0, 0)
-        return p.parse_buffer(data) or []
+        _reset_parser(p)
+        out = p.parse_buffer(data) or []
+        if p.buf_len() > 0:
+            self.truncated += 1
+            _reset_parser(p)
+        return out
+
+
+def _reset_parser(p: Any) -> None:
+    """Empty a pymavlink parser's buffer (as its own constructor starts it)."""
+    p.buf = bytearray()
+    p.buf_index = 0
+    p.expected_length = mavlink_dialect().HEADER_LEN_V1 + 2
+    p.have_prefix_error = False
