@@ -93,6 +93,19 @@ def format_counts(counts: dict[str, Any]) -> list[str]:
     lines.append(f"dropped: {drop}")
     lost = ", ".join(f"{k}: {v}" for k, v in counts["lost"].items()) or "none"
     lines.append(f"lost (MAVLink sequence numbers, by sysid/compid): {lost}")
+    for key in ("duplicate", "reordered"):
+        if counts.get(key):
+            lines.append(f"{key}: " + ", ".join(f"{k}: {v}" for k, v in counts[key].items()))
+    notes = []
+    if counts.get("source"):
+        notes.append(f"following {counts['source']}")
+    if counts.get("slam_sessions"):
+        notes.append(f"SLAM sessions {counts['slam_sessions']}")
+    for key in ("clock_restarts", "clock_outliers"):
+        if counts.get(key):
+            notes.append(f"IMU {key.replace('_', ' ')} {counts[key]}")
+    if notes:
+        lines.append("; ".join(notes))
     left = ", ".join(f"{k} {v}" for k, v in counts.get("left", {}).items())
     if left:
         lines.append(f"left at the end (still waiting when the stream ended): {left}")
@@ -135,9 +148,10 @@ def run(args: argparse.Namespace) -> int:
         check_method_config({k: v for k, v in config.items() if k in ("graph", "lm", "batch")})
         record = EventCollector(calib, name="live")
     session = LiveSession(link, estimator, calib, options, record=record)
+    handlers: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: session.stop())
+            handlers[sig] = signal.signal(sig, lambda *_: session.stop())
     host, port = link.local_address
     idle = "no idle timeout"
     if options.idle_timeout_s:
@@ -147,7 +161,13 @@ def run(args: argparse.Namespace) -> int:
         "stop with Ctrl-C",
         flush=True,
     )
-    result = session.run()
+    try:
+        result = session.run()
+    finally:
+        # The session is over: Ctrl-C interrupts what follows (writing, --batch's solve; it had
+        # only asked the finished session to stop), one line and exit 130 (fgnav.cli).
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
     counts = result.counts()
     print(
         f"live: {result.exit_reason} after {result.wall_s:.1f} s wall; "
@@ -156,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
     for line in format_counts(counts):
         print(line)
     if result.estimate is None:
-        raise LiveError(f"no estimate written: {result.error}")
+        failed = f" (the session ended on {result.failure})" if result.failure else ""
+        raise LiveError(f"no estimate written: {result.error}{failed}")
     est = result.estimate
     extra = summary_extra("live", est, "live")
     extra["live"] = {
@@ -169,10 +190,20 @@ def run(args: argparse.Namespace) -> int:
         "options": vars(options),
         **counts,
     }
+    if result.failure:
+        extra["live"]["failure"] = result.failure
     paths = write_estimate(est, Path(args.out), extra=extra)
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    if result.failure:
+        # The estimate up to there is written; --batch is not run on a session that failed.
+        raise LiveError(f"the session ended on an unexpected {result.failure}")
     if record is not None:
-        _batch_at_exit(record, config, Path(args.out) / "batch")
+        try:
+            _batch_at_exit(record, config, Path(args.out) / "batch")
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(
+                f"the batch solve (the live outputs in {args.out} are written)"
+            ) from None
     return 0
 
 

@@ -42,6 +42,9 @@ from fgnav.datasets.geometry import make_pose, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
+OUTPUT_RESTART_S = 1.0
+"""A filter's output schedule starts again at a stamp this far before the next output [s]."""
+
 
 class LiveEstimatorError(FgnavError, RuntimeError):
     """The requested estimator cannot be built."""
@@ -189,12 +192,15 @@ class FilterLive:
         t = self._feed(ev)
         if t is None:
             return None
-        if self._next_out is None:
+        if self._next_out is None or t < self._next_out - OUTPUT_RESTART_S:
+            # The first state, or the clock went back (a restart): the schedule starts again.
             self._next_out = t
         if t < self._next_out:
             return None
-        while self._next_out <= t:
-            self._next_out += self._dt_out
+        # The next output time after t (a loop of += dt never ended on a stamp of 1.8e13 s).
+        self._next_out += (math.floor((t - self._next_out) / self._dt_out) + 1) * self._dt_out
+        if self._next_out <= t:
+            self._next_out = t + self._dt_out
         self._latest = self._state(t)
         return self._latest
 

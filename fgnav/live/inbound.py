@@ -13,22 +13,47 @@ only from its arrival on: ``fgnav.datasets.events``). So a SLAM pose stamped at 
 that arrives 100 ms later has ``arrival`` 100 ms after ``t``, measured by the IMU stream, never by
 fgnav's wall clock.
 
+One vehicle. fgnav follows one MAVLink system: the first whose ``HIGHRES_IMU`` (of ``imu_id``)
+it takes, or the ``source_system`` given (``[live] source_system``). Its components all count
+(the SLAM bridge is a component of the vehicle, e.g. 191); sensor messages of any other system
+(a second vehicle on the same link) are dropped as ``<stream>:other-system`` (a warning once
+per system), its ``TIMESYNC`` requests are not answered, and ``HIGHRES_IMU`` of another
+component of the system is ``imu:other_component``.
+
+The clock. The boot clock's "now" is the newest IMU stamp the clock took: the IMU stamps as the
+smoother's time rules take them (``fgnav.solvers.online``): the next sample within
+``MAX_IMU_GAP_S``; a stamp that jumps either way (or after a gap) is a candidate, taken when the
+next sample continues from it (a reboot: ``clock_restarts``; the link's clock goes back with
+it) and else ignored (``clock_outliers``: one sample stamped an hour ahead had held "now" there,
+every other stream off the clock). Everything is passed on to the estimator, whose own rules
+count the outlier.
+
 Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.session`):
 
 * ``messages``: per MAVLink message name, every message parsed (``BAD_DATA`` included);
 * ``received``: per stream (``imu``, ``attitude``, ``range``, ``slam``, ``flow``), the messages
-  of that stream, before any check;
+  of that stream, before any check (fgnav's own ODOMETRY echoed back included);
 * ``dropped``: ``"stream:reason"`` -> n, messages of a stream that did not become events
-  (reasons: ``not_updated``, ``other_instance``, ``non_finite``, ``invalid_quaternion``,
-  ``orientation``, ``out_of_sensor_limits``, ``invalid_signal``, ``estimator_type``,
-  ``vio_echo``, ``no_valid_flow``, ``no_interval``, ``off_clock``: a stamp more than
-  ``OFF_CLOCK_S`` from the newest IMU stamp, e.g. a bridge that stamps on the UNIX epoch, as
-  MAVROS does; such a stamp once kept fgnav's "now" at 1.7e9 s and lost every pose);
-* ``lost``: ``"sysid/compid"`` -> messages missing from the MAVLink sequence numbers.
+  (reasons: ``not_updated``, ``other_instance``, ``other_component``, ``other-system``,
+  ``duplicate`` (a repeated sequence number: the same datagram twice), ``non_finite``,
+  ``invalid_quaternion``, ``orientation``, ``out_of_sensor_limits``, ``zero`` (a 0 cm range:
+  no reading), ``invalid_signal``, ``estimator_type``, ``failed`` (``ODOMETRY.quality`` -1:
+  the SLAM says it failed), ``stale_session`` (a late pose of the SLAM's previous
+  ``reset_counter``), ``vio_echo``, ``no_valid_flow``, ``no_interval``, ``off_clock``: a stamp
+  more than ``OFF_CLOCK_S`` from the newest IMU stamp, e.g. a bridge that stamps on the UNIX
+  epoch, as MAVROS does; such a stamp once kept fgnav's "now" at 1.7e9 s and lost every pose);
+* ``lost``: ``"sysid/compid"`` -> messages missing from the MAVLink sequence numbers (of every
+  message with a header, those of other dialects, ``UNKNOWN_<id>``, by their raw header);
+  ``duplicate`` and ``reordered``: the same, messages repeated or late
+  (:class:`SequenceCounter`);
+* ``slam_sessions``: SLAM sessions started; ``source``: ``"sysid/compid"`` followed;
+  ``clock_restarts``, ``clock_outliers``: see "The clock".
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import time
 from collections import Counter
 from typing import Any
@@ -36,6 +61,8 @@ from typing import Any
 from fgnav.datasets.events import Event, ImuSample
 from fgnav.live import convert
 from fgnav.live.convert import Rejected
+
+log = logging.getLogger(__name__)
 
 STREAM_OF_MESSAGE = {
     "HIGHRES_IMU": "imu",
@@ -49,29 +76,90 @@ STREAM_OF_MESSAGE = {
 OFF_CLOCK_S = 5.0
 """A non-IMU stamp further than this from the newest IMU stamp is on another clock [s]."""
 
+CLOCK_JUMP_S = 1.0
+"""An IMU stamp further back than this is a clock jump (the smoother's ``clock_jump_s``) [s]."""
+
+MAX_IMU_GAP_S = 0.5
+"""An IMU stamp further ahead than this is a gap (the smoother's ``max_imu_gap_s``) [s]."""
+
+STALE_RESET_BACK = 16
+"""A SLAM ``reset_counter`` at most this far behind its source's (mod 256) soon after the change
+is a late pose of the old map, not a new session."""
+
+STALE_RESET_S = 2.0
+"""How long after a ``reset_counter`` change a pose of the old counter is late (boot clock) [s]."""
+
+INT64_MAX_NS = 2**63 - 1
+
+
+REORDER_WINDOW = 16
+"""A sequence number at most this far behind the newest of its source is a late (reordered)
+message, not 256 minus that many lost: UDP may reorder or repeat datagrams."""
+
 
 class SequenceCounter:
     """Messages lost per source, from MAVLink's 8-bit sequence numbers (as pymavlink's
-    ``mavutil`` counts them: a gap of ``(seq - expected) mod 256``)."""
+    ``mavutil`` counts them: a gap of ``(seq - expected) mod 256``), with two exceptions: the
+    newest number again with the same bytes is a ``duplicate`` (a repeated datagram; it counted
+    255 lost; with other bytes, a sender that does not advance its number: nothing counted) and a
+    number at most :data:`REORDER_WINDOW` behind the newest is ``reordered`` (a late message:
+    the one it had counted lost is taken back)."""
 
     def __init__(self) -> None:
         self._last: dict[tuple[int, int], int] = {}
+        self._last_bytes: dict[tuple[int, int], bytes | None] = {}
         self.lost: Counter[str] = Counter()
         self.seen: Counter[str] = Counter()
+        self.duplicate: Counter[str] = Counter()
+        self.reordered: Counter[str] = Counter()
 
-    def add(self, sysid: int, compid: int, seq: int) -> int:
-        """Record one message; returns how many were lost before it."""
+    def add(self, sysid: int, compid: int, seq: int, data: bytes | None = None) -> int:
+        """Record one message (``data``: its bytes, to tell a duplicate); returns how many were
+        lost before it (-1: a duplicate, -2: a reordered message)."""
         key = (int(sysid), int(compid))
         name = f"{key[0]}/{key[1]}"
         self.seen[name] += 1
         last = self._last.get(key)
-        self._last[key] = int(seq)
         if last is None:
+            self._last[key] = int(seq)
+            self._last_bytes[key] = data
             return 0
         gap = (int(seq) - (last + 1)) % 256
+        if gap == 255:
+            if data is not None and data != self._last_bytes.get(key):
+                self._last_bytes[key] = data
+                return 0  # another message with the same number
+            self.duplicate[name] += 1
+            return -1
+        if gap >= 256 - REORDER_WINDOW:
+            self.reordered[name] += 1
+            if self.lost[name] > 0:
+                self.lost[name] -= 1  # counted lost when the gap opened: it came late
+                if not self.lost[name]:
+                    del self.lost[name]
+            return -2
+        self._last[key] = int(seq)
+        self._last_bytes[key] = data
         if gap:
             self.lost[name] += gap
         return gap
+
+
+def header_ids(msg: Any) -> tuple[int, int, int] | None:
+    """(sysid, compid, seq) of a parsed message, from its raw header for a message of another
+    dialect (pymavlink's ``UNKNOWN_<id>`` reports source 0/0 and sequence 0), None for
+    ``BAD_DATA``."""
+    name = msg.get_type()
+    if name == "BAD_DATA":
+        return None
+    if name.startswith("UNKNOWN_"):
+        buf = bytes(getattr(msg, "data", b"") or b"")
+        if len(buf) >= 7 and buf[0] == 0xFD:  # MAVLink 2: FD len incompat compat seq sys comp
+            return buf[5], buf[6], buf[4]
+        if len(buf) >= 5 and buf[0] == 0xFE:  # MAVLink 1: FE len seq sys comp
+            return buf[3], buf[4], buf[2]
+        return None
+    return int(msg.get_srcSystem()), int(msg.get_srcComponent()), int(msg.get_seq())
 
 
 class Inbound:
@@ -80,17 +168,32 @@ class Inbound:
     Args:
         flow_pixels_per_rad: ``Calibration.flow_pixels_per_rad`` (flow events are in its units).
         imu_id: the ``HIGHRES_IMU.id`` used (others are dropped as ``imu:other_instance``).
+        source_system: the vehicle's MAVLink system id; 0: the first system to send
+            ``HIGHRES_IMU`` (see the module docstring, "One vehicle").
     """
 
-    def __init__(self, flow_pixels_per_rad: float = 1.0, imu_id: int = 0) -> None:
+    def __init__(
+        self, flow_pixels_per_rad: float = 1.0, imu_id: int = 0, source_system: int = 0
+    ) -> None:
         self.flow_pixels_per_rad = float(flow_pixels_per_rad)
         self.imu_id = int(imu_id)
+        self.source_system = int(source_system)
+        self.source: tuple[int, int] | None = None  # (sysid, compid) of the vehicle's IMU
+        self._warned_systems: set[int] = set()
         self.newest_imu_t: float | None = None
         self.newest_stamp: float | None = None
         self.session = 0
-        # (sysid, compid) -> (its last reset_counter, its session)
-        self._slam_sources: dict[tuple[int, int], tuple[int, int]] = {}
+        # (sysid, compid) -> (its last reset_counter, its session, boot time it began)
+        self._slam_sources: dict[tuple[int, int], tuple[int, int, float]] = {}
         self._imu_wall: float | None = None  # monotonic wall time of the newest IMU stamp
+        self._imu_candidate: float | None = None  # an IMU stamp off the clock, not yet confirmed
+        self.clock_restarts = 0
+        """Confirmed backward jumps of the IMU clock (an autopilot reboot)."""
+        self.clock_outliers = 0
+        """IMU stamps off the clock that the next sample did not confirm."""
+        self.imu_on_clock = False
+        """Whether the last IMU event became the clock's newest sample."""
+        self._duplicate = False
         self.messages: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
@@ -105,9 +208,28 @@ class Inbound:
         """Count a parsed message (type and sequence number); returns its type name."""
         name = msg.get_type()
         self.messages[name] += 1
-        if name != "BAD_DATA":
-            self.sequence.add(msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq())
+        ids = header_ids(msg)
+        self._duplicate = ids is not None and self.sequence.add(*ids, _bytes(msg)) == -1
         return name
+
+    def from_vehicle(self, msg: Any, what: str) -> bool:
+        """Whether ``msg`` comes from the vehicle fgnav follows; else it is counted as
+        ``<what>:other-system`` (and warned about once per system)."""
+        sysid = _source(msg)[0]
+        locked = self.source[0] if self.source is not None else self.source_system
+        if not locked or sysid == locked:
+            return True
+        self.dropped[f"{what}:other-system"] += 1
+        if sysid not in self._warned_systems:
+            self._warned_systems.add(sysid)
+            log.warning(
+                "MAVLink system %d ignored: fgnav follows system %d (%s; [live] source_system "
+                "chooses); its messages are counted as <stream>:other-system",
+                sysid,
+                locked,
+                "the first to send HIGHRES_IMU" if not self.source_system else "source_system",
+            )
+        return False
 
     def event(self, msg: Any) -> Event | None:
         """The event of a sensor message (None for other messages and for dropped ones, which
@@ -116,30 +238,82 @@ class Inbound:
         stream = STREAM_OF_MESSAGE.get(name)
         if stream is None:
             return None
+        self.received[stream] += 1
         if name == "ODOMETRY" and int(msg.estimator_type) == convert.MAV_ESTIMATOR_TYPE_VIO:
             self.dropped["slam:vio_echo"] += 1  # fgnav's own output, echoed back
             return None
-        self.received[stream] += 1
+        if not self.from_vehicle(msg, stream):
+            return None
+        if self._duplicate:  # the same message again (a repeated datagram)
+            self.dropped[f"{stream}:duplicate"] += 1
+            return None
         try:
             ev = self._convert(name, msg)
         except Rejected as e:
             self.dropped[e.reason] += 1
             return None
         if isinstance(ev, ImuSample):
-            if self.newest_imu_t is None or ev.t > self.newest_imu_t:
-                self.newest_imu_t = ev.t
-                self._imu_wall = time.monotonic()
-        elif self.newest_imu_t is not None and abs(ev.t - self.newest_imu_t) > OFF_CLOCK_S:
+            if self.source is None:
+                self.source = _source(msg)
+                log.info("MAVLink: following system %d (IMU of component %d)", *self.source)
+            self._imu_clock(ev.t)
+        elif self.newest_imu_t is not None and self._off_clock(ev.t):
             self.dropped[f"{stream}:off_clock"] += 1
             return None
         if self.newest_stamp is None or ev.t > self.newest_stamp:
             self.newest_stamp = ev.t
-        return ev
+        return ev._replace(arrival=self._arrival(ev.t))
+
+    def _off_clock(self, t: float) -> bool:
+        far = abs(t - self.newest_imu_t) > OFF_CLOCK_S
+        if far and self._imu_candidate is not None:  # the clock may be restarting
+            return abs(t - self._imu_candidate) > OFF_CLOCK_S
+        return far
+
+    def _imu_clock(self, t: float) -> None:
+        """The link's clock follows the IMU stamps as the smoother's time rules take them
+        (``fgnav.solvers.online``): the next sample within ``MAX_IMU_GAP_S``, a sample out of
+        order by less than ``CLOCK_JUMP_S`` leaves it, and any other stamp (a jump either way,
+        a gap) is a candidate that the next sample confirms (it continues from it: a reboot,
+        or the IMU back after a gap) or not (it continues the clock: the stamp was an outlier,
+        e.g. one sample stamped an hour ahead)."""
+        self.imu_on_clock = False
+        last = self.newest_imu_t
+        if last is None or 0.0 < t - last <= MAX_IMU_GAP_S:
+            if self._imu_candidate is not None:
+                self.clock_outliers += 1
+            self._take_imu(t)
+            return
+        if t <= last and last - t <= CLOCK_JUMP_S:
+            return  # out of order or repeated: the estimator counts it
+        cand = self._imu_candidate
+        if cand is not None and 0.0 < t - cand <= MAX_IMU_GAP_S:
+            if t < last:
+                self.clock_restarts += 1
+                log.warning(
+                    "MAVLink: the IMU clock went back %.3f s (%.3f -> %.3f s): a restart",
+                    last - t,
+                    last,
+                    t,
+                )
+            self._take_imu(t)
+            return
+        if cand is not None:
+            self.clock_outliers += 1
+        self._imu_candidate = t
+
+    def _take_imu(self, t: float) -> None:
+        self.newest_imu_t = t
+        self._imu_wall = time.monotonic()
+        self._imu_candidate = None
+        self.imu_on_clock = True
 
     def _convert(self, name: str, msg: Any) -> Event:
         if name == "HIGHRES_IMU":
             if int(getattr(msg, "id", 0)) != self.imu_id:
                 raise Rejected("imu:other_instance")
+            if self.source is not None and _source(msg)[1] != self.source[1]:
+                raise Rejected("imu:other_component")
             ev = convert.imu_from_highres(msg)
         elif name == "ATTITUDE_QUATERNION":
             ev = convert.attitude_from_quaternion(msg)
@@ -150,30 +324,43 @@ class Inbound:
             ev = ev._replace(session=self._slam_session(_source(msg), int(msg.reset_counter)))
         else:
             ev = convert.flow_from_rad(msg, self.flow_pixels_per_rad)
-        return ev._replace(arrival=self._arrival(ev.t))
+        return ev
 
     def _slam_session(self, source: tuple[int, int], reset_counter: int) -> int:
         """The session of a SLAM source's pose: a new source, or a changed ``reset_counter``
-        of one (a rise, or its wrap past 255), starts a new one."""
+        of one (a rise, or its wrap past 255), starts a new one; a counter at most
+        ``STALE_RESET_BACK`` behind the source's (mod 256) within ``STALE_RESET_S`` of its
+        change is a pose of the old map that came late: dropped (``slam:stale_session``)."""
+        now = self.newest_imu_t if self.newest_imu_t is not None else -math.inf
         last = self._slam_sources.get(source)
-        if last is not None and last[0] == reset_counter:
-            return last[1]
+        if last is not None:
+            if last[0] == reset_counter:
+                return last[1]
+            back = (last[0] - reset_counter) % 256
+            if 1 <= back <= STALE_RESET_BACK and now - last[2] <= STALE_RESET_S:
+                raise Rejected(
+                    "slam:stale_session", f"reset_counter {reset_counter} after {last[0]}"
+                )
         if self._slam_sources:
             self.session += 1
-        self._slam_sources[source] = (reset_counter, self.session)
+        self._slam_sources[source] = (reset_counter, self.session, now)
         return self.session
 
     def clock_ns(self) -> int | None:
         """The boot clock's "now" as fgnav knows it [ns], or None: the newest IMU stamp plus
         the wall time since it arrived (else the newest stamp received). Answered with the
-        stamp alone, PX4's offset took the sample's age (up to 20 ms at 50 Hz)."""
+        stamp alone, PX4's offset took the sample's age (up to 20 ms at 50 Hz). None too when
+        it does not fit TIMESYNC's int64 nanoseconds."""
         if self.newest_imu_t is not None and self._imu_wall is not None:
             now = self.newest_imu_t + (time.monotonic() - self._imu_wall)
         elif self.newest_stamp is not None:
             now = self.newest_stamp
         else:
             return None
-        return int(round(now * convert.NS_PER_S))
+        if not (math.isfinite(now) and 0.0 < now < INT64_MAX_NS / convert.NS_PER_S):
+            return None
+        ns = int(round(now * convert.NS_PER_S))
+        return ns if 0 < ns <= INT64_MAX_NS else None
 
     def counts(self) -> dict[str, Any]:
         """The counters (see the module docstring), as plain dicts."""
@@ -182,8 +369,22 @@ class Inbound:
             "received": dict(sorted(self.received.items())),
             "dropped": dict(sorted(self.dropped.items())),
             "lost": dict(sorted(self.sequence.lost.items())),
+            "duplicate": dict(sorted(self.sequence.duplicate.items())),
+            "reordered": dict(sorted(self.sequence.reordered.items())),
             "slam_sessions": self.session + 1 if self._slam_sources else 0,
+            "source": None if self.source is None else f"{self.source[0]}/{self.source[1]}",
+            "clock_restarts": self.clock_restarts,
+            "clock_outliers": self.clock_outliers,
         }
+
+
+def _bytes(msg: Any) -> bytes | None:
+    """The bytes a parsed message came in (None for one built by hand)."""
+    try:
+        buf = msg.get_msgbuf()
+    except (AttributeError, TypeError):
+        return None
+    return bytes(buf) if buf else None
 
 
 def _source(msg: Any) -> tuple[int, int]:

@@ -67,6 +67,8 @@ class LiveOptions:
         system_id, component_id: fgnav's MAVLink ids (default: system 1, component 197,
             ``MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY``).
         imu_id: the ``HIGHRES_IMU.id`` used.
+        source_system: the vehicle's MAVLink system id (0: the first system to send
+            ``HIGHRES_IMU``; other systems' messages are dropped as ``<stream>:other-system``).
         poll_s: the loop's longest wait for a datagram [s] (timers are checked between).
     """
 
@@ -76,6 +78,7 @@ class LiveOptions:
     system_id: int = 1
     component_id: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
     imu_id: int = 0
+    source_system: int = 0
     poll_s: float = 0.05
 
     def __post_init__(self) -> None:
@@ -84,7 +87,12 @@ class LiveOptions:
     def validate(self) -> None:
         """The MAVLink id ranges (a system id of 300 or a component id of -1 failed in the
         first message's ``struct.pack``)."""
-        for name, lo in (("system_id", 1), ("component_id", 0), ("imu_id", 0)):
+        for name, lo in (
+            ("system_id", 1),
+            ("component_id", 0),
+            ("imu_id", 0),
+            ("source_system", 0),
+        ):
             value = getattr(self, name)
             if isinstance(value, int) and not isinstance(value, bool) and not lo <= value <= 255:
                 raise LiveError(f"LiveOptions.{name}={value}: expected an integer in [{lo}, 255]")
@@ -99,10 +107,13 @@ class LiveResult:
         inbound: :meth:`fgnav.live.inbound.Inbound.counts` (messages, received, dropped, lost).
         estimator: the estimator's ``counts()`` (received, used, late, dropped).
         sent: messages sent by name.
-        exit_reason: ``"stopped"``, ``"duration"`` or ``"idle"``.
+        exit_reason: ``"stopped"``, ``"duration"``, ``"idle"`` or ``"error"`` (an unexpected
+            exception, named in ``failure``: the session ended there, its estimate kept).
         wall_s: wall time of the session [s].
         link: datagrams and bytes read, the largest queue depth, send errors, receive buffer.
         error: why there is no estimate, when there is none.
+        failure: the unexpected exception that ended the session (``"Type: message"``), if one
+            did.
     """
 
     estimate: Estimate | None
@@ -113,6 +124,7 @@ class LiveResult:
     wall_s: float
     link: dict[str, Any] = field(default_factory=dict)
     error: str | None = None
+    failure: str | None = None
 
     def counts(self) -> dict[str, Any]:
         """The counts written under ``summary.json``'s ``extra.live``:
@@ -122,7 +134,12 @@ class LiveResult:
         - ``used``, ``late``: per stream, as the estimator counts them;
         - ``dropped``: ``"stream:reason"`` -> n, at the edge (``fgnav.live.inbound``) and in
           the estimator, together; ``dropped_at_link``: those of the edge alone;
-        - ``lost``: ``"sysid/compid"`` -> messages missing by sequence number;
+        - ``lost``: ``"sysid/compid"`` -> messages missing by sequence number; ``duplicate``,
+          ``reordered``: messages repeated (the same sequence number again), or late;
+        - ``slam_sessions``: SLAM sessions started (``reset_counter`` changes, sources);
+        - ``source``: the ``"sysid/compid"`` followed (see :mod:`fgnav.live.inbound`);
+          ``clock_restarts``, ``clock_outliers``: the IMU clock's confirmed backward jumps and
+          the stamps it ignored;
         - ``left``: ``"stream:reason"`` -> measurements the estimator still held when the
           stream ended (after its last keyframe, or waiting for a SLAM alignment): its
           estimate's ``info["skipped"]``;
@@ -139,6 +156,12 @@ class LiveResult:
             "dropped": dict(sorted(dropped.items())),
             "dropped_at_link": self.inbound["dropped"],
             "lost": self.inbound["lost"],
+            "duplicate": self.inbound.get("duplicate", {}),
+            "reordered": self.inbound.get("reordered", {}),
+            "slam_sessions": self.inbound.get("slam_sessions", 0),
+            "source": self.inbound.get("source"),
+            "clock_restarts": self.inbound.get("clock_restarts", 0),
+            "clock_outliers": self.inbound.get("clock_outliers", 0),
             "left": dict((self.estimate.info.get("skipped") or {}) if self.estimate else {}),
             "sent": self.sent,
         }
@@ -170,7 +193,9 @@ class LiveSession:
         self.calib = calib
         self.options = options or LiveOptions()
         o = self.options
-        self.inbound = Inbound(calib.flow_pixels_per_rad, imu_id=o.imu_id)
+        self.inbound = Inbound(
+            calib.flow_pixels_per_rad, imu_id=o.imu_id, source_system=o.source_system
+        )
         self.mav = new_mavlink(o.system_id, o.component_id)
         self.sent: dict[str, int] = {}
         self._parsers = Parsers()
@@ -178,6 +203,8 @@ class LiveSession:
         self._imu: deque[ImuSample] = deque(maxlen=IMU_HISTORY)
         self._imu_t: deque[float] = deque(maxlen=IMU_HISTORY)
         self._estimator_errors: dict[str, int] = {}
+        self._restarts_seen = 0
+        self.failure: str | None = None
 
     def stop(self) -> None:
         """Ask the loop to finish (safe from a signal handler or another thread)."""
@@ -218,9 +245,9 @@ class LiveSession:
     def _handle(self, msg: Any, peer: tuple[str, int]) -> None:
         name = self.inbound.count(msg)
         if name == "TIMESYNC":
-            if msg.tc1 == 0:  # a request
-                now = self.inbound.clock_ns()
-                if now is not None and now > 0:
+            if msg.tc1 == 0 and self.inbound.from_vehicle(msg, "timesync"):  # a request
+                now = self.inbound.clock_ns()  # None: no clock yet, or none TIMESYNC carries
+                if now is not None:
                     self._send(self.mav.timesync_encode(now, msg.ts1), to=peer)
             return
         ev = self.inbound.event(msg)
@@ -228,9 +255,15 @@ class LiveSession:
             return
         if self.record is not None:
             self.record.feed(ev)
-        if isinstance(ev, ImuSample) and (not self._imu_t or ev.t > self._imu_t[-1]):
-            self._imu.append(ev)
-            self._imu_t.append(ev.t)
+        if isinstance(ev, ImuSample):
+            if self.inbound.clock_restarts != self._restarts_seen:
+                # The IMU clock restarted: the rates of the old clock say nothing of the new.
+                self._restarts_seen = self.inbound.clock_restarts
+                self._imu.clear()
+                self._imu_t.clear()
+            if self.inbound.imu_on_clock and (not self._imu_t or ev.t > self._imu_t[-1]):
+                self._imu.append(ev)
+                self._imu_t.append(ev.t)
         try:
             state = self.estimator.feed(ev)
         except FgnavError as e:  # a known failure on one event: counted, the link goes on
@@ -271,17 +304,29 @@ class LiveSession:
                     continue
                 data, peer, _ = item
                 last_datagram = time.monotonic()
-                for msg in self._parsers.parse(data, peer):
-                    self._handle(msg, peer)
+                try:
+                    for msg in self._parsers.parse(data, peer):
+                        self._handle(msg, peer)
+                except Exception as e:  # noqa: BLE001 - the session ends, its outputs kept
+                    self._fail("on a message", e)
+                    reason = "error"
+                    break
         finally:
             link.close()
         wall = time.monotonic() - wall0
         close = getattr(self.estimator, "close", None)
-        if callable(close):
+        if callable(close) and self.failure is None:
             # End of the stream: the smoother's held input (an IMU sample after a clock
             # discontinuity, the VO's last frames) is taken or counted.
-            close()
-        counts = self.estimator.counts()
+            try:
+                close()
+            except Exception as e:  # noqa: BLE001
+                self._fail("closing the estimator", e)
+        try:
+            counts = self.estimator.counts()
+        except Exception as e:  # noqa: BLE001
+            self._fail("counting", e)
+            counts = {}
         if self._estimator_errors:
             counts = dict(counts)
             dropped = dict(counts.get("dropped", {}))
@@ -293,6 +338,9 @@ class LiveSession:
             est = self.estimator.result()
         except FgnavError as e:
             error = str(e)
+        except Exception as e:  # noqa: BLE001
+            self._fail("on the estimate", e)
+            error = self.failure
         return LiveResult(
             estimate=est,
             inbound=self.inbound.counts(),
@@ -305,8 +353,17 @@ class LiveSession:
                 "bytes": link.bytes,
                 "queue_max": link.queue_max,
                 "send_errors": link.send_errors,
+                "read_errors": link.read_errors,
+                "truncated_datagrams": self._parsers.truncated,
                 "rcvbuf_bytes": link.rcvbuf_bytes,
                 "peers": [f"{h}:{p}" for h, p in link.peers],
             },
             error=error,
+            failure=self.failure,
         )
+
+    def _fail(self, where: str, e: Exception) -> None:
+        """An unexpected exception: the first is kept (one line; the traceback with -v)."""
+        log.debug("unexpected %s %s", type(e).__name__, where, exc_info=True)
+        if self.failure is None:
+            self.failure = f"{type(e).__name__} {where}: {e}"

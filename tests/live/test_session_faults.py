@@ -7,11 +7,13 @@ the reader thread on a read error; ``fgnav replay``'s note on a peer that stoppe
 from __future__ import annotations
 
 import errno
+import json
 import math
 import signal
 import socket
 import time
 
+import numpy as np
 import pytest
 
 pytest.importorskip("pymavlink")
@@ -22,7 +24,7 @@ from fgnav.datasets.native import read_flight  # noqa: E402
 from fgnav.live import convert  # noqa: E402
 from fgnav.live.estimators import MsfLive  # noqa: E402
 from fgnav.live.link import Parsers, UdpLink, new_mavlink, pack, parse_address  # noqa: E402
-from fgnav.live.session import LiveError  # noqa: E402
+from fgnav.live.session import LiveError, LiveOptions, LiveSession  # noqa: E402
 
 PEER = ("127.0.0.1", 40001)
 STREAMS = ("imu", "attitude", "range", "slam")
@@ -145,6 +147,25 @@ def _run_live_command(
     return main(args), str(tmp_path / "out")
 
 
+def test_an_unexpected_estimator_exception_keeps_the_outputs(
+    monkeypatch, cli_folder, flight, tmp_path, capsys, keep_signals
+):
+    """Any exception of the estimator (or of sending its state) ends the session: what there
+    is written, the error in one line, exit 1 (only FgnavError was caught: a traceback and no
+    outputs)."""
+    link = FakeLink(datagrams(flight))
+    boom = Boom(msf(flight.calib), n=len(link.items) // 2)
+    rc, out = _run_live_command(monkeypatch, cli_folder, tmp_path, link, boom)
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "ValueError on a message: math domain error (a bug)" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["extra"]["live"]["exit"] == "error"
+    assert "math domain error" in summary["extra"]["live"]["failure"]
+    assert (tmp_path / "out" / "estimate.tum").read_text().strip()
+
+
 class _StubEstimator:
     def __init__(self) -> None:
         self.events = []
@@ -158,6 +179,94 @@ class _StubEstimator:
 
     def result(self):
         raise LiveError("no estimate (a stub)")
+
+
+def test_a_garbage_imu_stamp_then_timesync(flight):
+    """HIGHRES_IMU with time_usec 0xFFFF000000000000, then TIMESYNC requests: answered on the
+    IMU's clock (the reply overflowed int64 in struct.pack: a traceback, no outputs)."""
+    tx = new_mavlink(1, 1)
+    state = {"done": False}
+
+    def mutate(ev, name, f):
+        if name == "highres_imu" and ev.t >= 4.0 and not state["done"]:
+            state["done"] = True
+            f["time_usec"] = 0xFFFF000000000000
+            return [tx.timesync_encode(0, 4_000_000_000)]
+        return None
+
+    bufs = datagrams(flight, 6.0, mutate)
+    link, stub = FakeLink(bufs), _StubEstimator()
+    res = LiveSession(link, stub, flight.calib, LiveOptions(idle_timeout_s=0.2)).run()
+    assert res.failure is None and res.exit_reason == "idle"
+    (reply,) = link.replies("TIMESYNC")
+    assert abs(reply.tc1 - 4_000_000_000) < 0.5e9 and reply.ts1 == 4_000_000_000
+    c = res.counts()
+    assert c["clock_outliers"] == 1 and c["clock_restarts"] == 0
+    assert not any(k.endswith(":off_clock") for k in c["dropped"])
+    assert c["slam_sessions"] == 1 and c["source"] == "1/1"
+    assert len(stub.events) == len(bufs) - 1  # every sensor message passed on
+    # A filter behind the link takes the stamp as it is: its output schedule looped for ever
+    # on it; now the session ends, its estimate kept (the filter's next state overflows the
+    # float32 fields of ODOMETRY: named as the failure, or none).
+    t0 = time.monotonic()
+    res = LiveSession(
+        FakeLink(bufs), msf(flight.calib), flight.calib, LiveOptions(idle_timeout_s=0.2)
+    ).run()
+    assert time.monotonic() - t0 < 60.0 and res.estimate is not None
+    assert res.failure is None or "OverflowError" in res.failure
+
+
+def test_angular_rates_follow_an_imu_clock_restart(flight):
+    """After the autopilot's clock restarts (9.5 s back) the rate sent with a state is the new
+    clock's IMU rate at its time (it was the old clock's sample nearest that time)."""
+    tx = new_mavlink(1, 1)
+    session = LiveSession(FakeLink(), _StubEstimator(), flight.calib)
+    parsers = Parsers()
+
+    def imu(t, w):
+        s = ImuSample(t, t, np.array(w, float), np.array([0.0, 0.0, 9.81]))
+        buf = pack(tx, tx.highres_imu_encode(**convert.highres_imu_fields(s, 0.0)))
+        for m in parsers.parse(buf, PEER):
+            session._handle(m, PEER)
+
+    for k in range(200):
+        imu(round(9.0 + 0.005 * k, 3), (0.5, 0.0, 0.0))
+    for k in range(100):
+        imu(round(0.5 + 0.005 * k, 3), (0.0, 0.0, -0.3))
+    omega, var = session._rate_at(0.7)
+    np.testing.assert_allclose(omega, [0.0, 0.0, -0.3], atol=1e-6)
+    assert var is not None and session._imu_t[0] >= 0.5
+    # One sample an hour ahead does not enter the history either.
+    imu(3600.0, (9.0, 9.0, 9.0))
+    imu(0.505 + 0.005 * 99, (0.0, 0.0, -0.3))
+    assert max(session._imu_t) <= 1.0
+
+
+def test_ctrl_c_in_the_batch_solve_ends_it(
+    monkeypatch, cli_folder, flight, tmp_path, capsys, keep_signals
+):
+    """--batch: after the live outputs are written, Ctrl-C interrupts the batch solve (one line,
+    exit 130); the session's own handler (asking the finished session to stop) had kept it."""
+    import fgnav.commands.live as live_cmd
+
+    seen = {}
+
+    def batch(record, config, out):
+        seen["handler"] = signal.getsignal(signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)
+        time.sleep(1.0)
+        seen["not interrupted"] = True
+
+    monkeypatch.setattr(live_cmd, "_batch_at_exit", batch)
+    link = FakeLink(datagrams(flight, 4.0))
+    rc, out = _run_live_command(
+        monkeypatch, cli_folder, tmp_path, link, msf(flight.calib), ["--batch"]
+    )
+    err = capsys.readouterr().err
+    assert rc == 130 and "not interrupted" not in seen
+    assert seen["handler"] is signal.default_int_handler
+    assert "interrupted: the batch solve (the live outputs in" in err
+    assert (tmp_path / "out" / "summary.json").exists()
 
 
 def test_each_datagram_is_parsed_on_its_own(flight):
