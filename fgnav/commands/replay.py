@@ -104,6 +104,14 @@ def run(args: argparse.Namespace) -> int:
         else "no TIMESYNC reply"
     )
     print(f"replay: received {n_odo} ODOMETRY, lost {lost}; {ts_txt}")
+    if res.send_errors:
+        print(
+            f"replay: WARNING: {res.send_errors} packets refused by the peer's host (nobody "
+            f"listening on {link.address}: the peer not started yet, or gone)"
+        )
+    stopped = res.peer_stopped()
+    if stopped:
+        print(f"replay: WARNING: {stopped}; did the peer die or stall?")
     if args.record is not None:
         if res.odometry is None:
             raise FlightDataError("--record: no ODOMETRY received back; nothing to write")
@@ -114,8 +122,11 @@ def run(args: argparse.Namespace) -> int:
             from fgnav.eval.metrics import evaluate
 
             m = evaluate(Estimate("live", res.odometry, causal=True), flight.ground_truth)
+            part = ""
+            if stopped:
+                part = f", on the first {res.covered_fraction():.0%} of the flight only"
             print(
                 f"replay: recorded ODOMETRY vs truth: ATE {m.ate_rmse_m:.4f} m RMSE "
-                f"({m.alignment} alignment)"
+                f"({m.alignment} alignment{part})"
             )
     return 0

@@ -62,6 +62,9 @@ MAV_COMP_ID_ONBOARD_COMPUTER = 191
 LINGER_MAX_S = 60.0
 """Longest wait for ODOMETRY after the last message [wall s]."""
 
+PEER_STOPPED_S = 2.0
+"""ODOMETRY that stopped more than this before the flight's end (and a tenth of it) is noted."""
+
 SLEEP_QUANTUM_S = 0.002
 """Longest single sleep while pacing, so timers and replies are serviced in between."""
 
@@ -107,7 +110,10 @@ class ReplayResult:
         timesync: replies received and the median ``tc1 - ts1`` [ms] (how far behind the
             peer's clock was when it answered).
         peer_heartbeat: whether the peer's HEARTBEAT was heard.
-        send_errors: packets the peer's host refused (nobody listening yet).
+        send_errors: packets the peer's host refused (nobody listening yet, or any more).
+        flight_start, flight_end: flight times [s] of the first and last message sent.
+        peer_quiet_s: wall seconds the peer had been silent (no message at all) when the last
+            message was sent (None: never heard).
     """
 
     boot_offset_s: float
@@ -121,6 +127,36 @@ class ReplayResult:
     timesync: dict[str, Any] = field(default_factory=dict)
     peer_heartbeat: bool = False
     send_errors: int = 0
+    flight_start: float = math.nan
+    flight_end: float = math.nan
+    peer_quiet_s: float | None = None
+
+    def peer_stopped(self) -> str | None:
+        """A one-line note when the peer's ODOMETRY stopped well before the flight's end (the
+        peer died or stalled: the record and its score cover only a part), else None. Well
+        before: more than :data:`PEER_STOPPED_S` and a tenth of the flight."""
+        span = self.flight_end - self.flight_start
+        if self.odometry is None or not span > 0:
+            return None
+        t_last = float(self.odometry.t[-1])
+        behind = self.flight_end - t_last
+        if not behind > max(PEER_STOPPED_S, 0.1 * span):
+            return None
+        quiet = ""
+        if self.peer_quiet_s is not None and self.peer_quiet_s > 1.0:
+            quiet = f"; nothing heard from it in the last {self.peer_quiet_s:.1f} s wall"
+        return (
+            f"the peer's ODOMETRY stopped {behind:.1f} s of flight before the end (the last at "
+            f"{t_last - self.flight_start:.1f} s of {span:.1f} s){quiet}: the record covers "
+            f"{self.covered_fraction():.0%} of the flight"
+        )
+
+    def covered_fraction(self) -> float:
+        """The part of the flight's span up to the last ODOMETRY received (0 without one)."""
+        span = self.flight_end - self.flight_start
+        if self.odometry is None or not span > 0:
+            return 0.0
+        return float(min(max((self.odometry.t[-1] - self.flight_start) / span, 0.0), 1.0))
 
     @property
     def speed(self) -> float:
@@ -154,6 +190,7 @@ class _Recorder:
         self.peer_heartbeat = False
         self.boot_now_s = 0.0
         self.last_odometry = -math.inf  # wall clock (monotonic) of the newest ODOMETRY
+        self.last_heard = -math.inf  # wall clock (monotonic) of the peer's newest message
 
     def drain(self) -> None:
         while True:
@@ -169,6 +206,7 @@ class _Recorder:
         self.received[name] += 1
         if name == "BAD_DATA":
             return
+        self.last_heard = time.monotonic()
         self.seq.add(msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq())
         if name == "HEARTBEAT":
             self.peer_heartbeat = True
@@ -317,6 +355,9 @@ class StandInAutopilot:
                 self._send(*self._message(ev))
             t_send_end = time.perf_counter()
             t_last = time.monotonic()
+            self._rec.drain()
+            heard = self._rec.last_heard
+            quiet = None if heard == -math.inf else max(t_last - heard, 0.0)
             while (now := time.monotonic()) < min(
                 max(t_last, self._rec.last_odometry) + o.linger_s, t_last + LINGER_MAX_S
             ):
@@ -341,4 +382,7 @@ class StandInAutopilot:
             },
             peer_heartbeat=rec.peer_heartbeat,
             send_errors=link.send_errors,
+            flight_start=math.nan if a_first is None else float(a_first),
+            flight_end=math.nan if a_last is None else float(a_last),
+            peer_quiet_s=quiet,
         )

@@ -20,10 +20,12 @@ pytest.importorskip("pymavlink")
 
 from fgnav.datasets.events import AttitudeSample, ImuSample, RangeReading, replay_flight  # noqa: E402
 from fgnav.datasets.native import read_flight  # noqa: E402
+from fgnav.datasets.types import Trajectory  # noqa: E402
 
 from fgnav.live import convert  # noqa: E402
 from fgnav.live.estimators import MsfLive  # noqa: E402
 from fgnav.live.link import Parsers, UdpLink, new_mavlink, pack, parse_address  # noqa: E402
+from fgnav.live.replay import ReplayResult  # noqa: E402
 from fgnav.live.session import LiveError, LiveOptions, LiveSession  # noqa: E402
 
 PEER = ("127.0.0.1", 40001)
@@ -308,3 +310,38 @@ def test_the_reader_thread_survives_a_read_error():
             item = link.get(timeout=3.0)
     assert item is not None and item[0] == b"hello"
     assert link.read_errors == 1
+
+
+def test_replay_notes_a_peer_that_stopped():
+    """fgnav live died at 4 s of a 20 s flight: fgnav replay says so, with the part the record
+    covers (it printed the score of the first 4 s as the flight's)."""
+    t = np.arange(0.0, 4.0, 0.05) + 100.0
+    traj = Trajectory(
+        t=t,
+        world_t_body=np.zeros((len(t), 3)),
+        world_q_body_wxyz=np.tile([1.0, 0, 0, 0], (len(t), 1)),
+    )
+    res = ReplayResult(
+        boot_offset_s=100.0,
+        sent={},
+        flight_s=20.0,
+        wall_s=10.0,
+        odometry=traj,
+        received={},
+        lost={},
+        send_errors=12,
+        flight_start=100.0,
+        flight_end=120.0,
+        peer_quiet_s=8.0,
+    )
+    note = res.peer_stopped()
+    assert note is not None and "stopped 16.0 s of flight before the end" in note
+    assert "covers 20% of the flight" in note and "8.0 s wall" in note
+    assert res.covered_fraction() == pytest.approx(0.1975)
+    full = Trajectory(
+        t=np.arange(100.0, 119.5, 0.05),
+        world_t_body=np.zeros((390, 3)),
+        world_q_body_wxyz=np.tile([1.0, 0, 0, 0], (390, 1)),
+    )
+    res.odometry = full
+    assert res.peer_stopped() is None
