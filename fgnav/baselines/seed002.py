@@ -65,22 +65,18 @@ from fgnav.datasets.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import AttitudeEkfOptions, AttitudeEkfStage
-from fgnav.frontends.homography_vo import BUFFER_S, HomographyVOOptions, HomographyVoStage
+from fgnav.frontends.homography_vo import (
+    BUFFER_S,
+    REJECT_REASONS,
+    HomographyVOOptions,
+    HomographyVoStage,
+)
 
 log = logging.getLogger(__name__)
 
 #: The VO's counts of frames not posed, and the attitude EKF's of measurements not used
 #: (``info["unused"]`` as ``stream:reason``, :mod:`fgnav.baselines._inputs`).
-_VO_UNUSED = (
-    "gaps",
-    "no_attitude",
-    "no_height",
-    "few_corners",
-    "few_tracked",
-    "few_inliers",
-    "no_homography",
-    "no_decomposition",
-)
+_VO_UNUSED = ("gaps", *REJECT_REASONS)
 _EKF_UNUSED = {
     "accel_gated": "imu:accel-gated",
     "imu_late": "imu:late",
