@@ -16,7 +16,7 @@ fgnav's wall clock.
 One vehicle. fgnav follows one MAVLink system: the first whose ``HIGHRES_IMU`` (of ``imu_id``)
 it takes, or the ``source_system`` given (``[live] source_system``). Its components all count
 (the SLAM bridge is a component of the vehicle, e.g. 191); sensor messages of any other system
-(a second vehicle on the same link) are dropped as ``<stream>:other-system`` (a warning once
+(a second vehicle on the same link) are dropped as ``<stream>:other_system`` (a warning once
 per system), its ``TIMESYNC`` requests are not answered, and ``HIGHRES_IMU`` of another
 component of the system is ``imu:other_component``.
 
@@ -34,7 +34,7 @@ Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.sess
 * ``received``: per stream (``imu``, ``attitude``, ``range``, ``slam``, ``flow``), the messages
   of that stream, before any check (fgnav's own ODOMETRY echoed back included);
 * ``dropped``: ``"stream:reason"`` -> n, messages of a stream that did not become events
-  (reasons: ``not_updated``, ``other_instance``, ``other_component``, ``other-system``,
+  (reasons: ``not_updated``, ``other_instance``, ``other_component``, ``other_system``,
   ``duplicate`` (a repeated sequence number: the same datagram twice), ``non_finite``,
   ``invalid_quaternion``, ``orientation``, ``out_of_sensor_limits``, ``zero`` (a 0 cm range:
   no reading), ``invalid_signal``, ``estimator_type``, ``failed`` (``ODOMETRY.quality`` -1:
@@ -214,17 +214,17 @@ class Inbound:
 
     def from_vehicle(self, msg: Any, what: str) -> bool:
         """Whether ``msg`` comes from the vehicle fgnav follows; else it is counted as
-        ``<what>:other-system`` (and warned about once per system)."""
+        ``<what>:other_system`` (and warned about once per system)."""
         sysid = _source(msg)[0]
         locked = self.source[0] if self.source is not None else self.source_system
         if not locked or sysid == locked:
             return True
-        self.dropped[f"{what}:other-system"] += 1
+        self.dropped[f"{what}:other_system"] += 1
         if sysid not in self._warned_systems:
             self._warned_systems.add(sysid)
             log.warning(
                 "MAVLink system %d ignored: fgnav follows system %d (%s; [live] source_system "
-                "chooses); its messages are counted as <stream>:other-system",
+                "chooses); its messages are counted as <stream>:other_system",
                 sysid,
                 locked,
                 "the first to send HIGHRES_IMU" if not self.source_system else "source_system",

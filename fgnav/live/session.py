@@ -68,7 +68,7 @@ class LiveOptions:
             ``MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY``).
         imu_id: the ``HIGHRES_IMU.id`` used.
         source_system: the vehicle's MAVLink system id (0: the first system to send
-            ``HIGHRES_IMU``; other systems' messages are dropped as ``<stream>:other-system``).
+            ``HIGHRES_IMU``; other systems' messages are dropped as ``<stream>:other_system``).
         poll_s: the loop's longest wait for a datagram [s] (timers are checked between).
     """
 

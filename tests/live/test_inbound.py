@@ -211,7 +211,7 @@ def test_the_clock_follows_a_confirmed_imu_restart():
 
 def test_a_second_vehicle_is_left_out():
     """Two autopilots on one link: the first system to send HIGHRES_IMU is followed, the
-    other's messages are counted as other-system (review: mixed in, ATE 0.03 -> meters)."""
+    other's messages are counted as other_system (review: mixed in, ATE 0.03 -> meters)."""
     v1, slam, v2 = new_mavlink(1, 1), new_mavlink(1, 191), new_mavlink(2, 1)
     inb = Inbound()
     feed = _feeder(inb)
@@ -228,8 +228,8 @@ def test_a_second_vehicle_is_left_out():
     assert feed(other_imu, "highres_imu", convert.highres_imu_fields(_imu(1.01), 0)) is None
     c = inb.counts()
     assert c["dropped"] == {
-        "imu:other-system": 1,
-        "range:other-system": 1,
+        "imu:other_system": 1,
+        "range:other_system": 1,
         "imu:other_component": 1,
     }
     assert c["source"] == "1/1" and inb.newest_imu_t == 1.005
