@@ -395,6 +395,7 @@ class MsfEkf:
 
     def __init__(self, options: MsfOptions | None = None) -> None:
         self.opt = options or MsfOptions()
+        self.opt.check()  # (the config path checks it before; here the Python API)
         self.x: _State | None = None
         self.counts = MsfCounts()
         self._body_T_cam = np.eye(4)

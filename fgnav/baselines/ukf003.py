@@ -328,6 +328,7 @@ class Ukf003:
 
     def __init__(self, options: Ukf003Options | None = None) -> None:
         self.opt = options or Ukf003Options()
+        self.opt.check()  # (the config path checks it before; here the Python API)
         self.counts = Ukf003Counts()
         self.x = np.zeros(N_MAIN)
         self.P = np.eye(N_MAIN)

@@ -43,7 +43,8 @@ from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
 OUTPUT_RESTART_S = 1.0
-"""A filter's output schedule starts again at a stamp this far before the next output [s]."""
+"""A filter's output schedule starts again at a stamp this far (or one output interval, if
+longer) before the next output [s]."""
 
 
 class LiveEstimatorError(FgnavError, RuntimeError):
@@ -192,7 +193,7 @@ class FilterLive:
         t = self._feed(ev)
         if t is None:
             return None
-        if self._next_out is None or t < self._next_out - OUTPUT_RESTART_S:
+        if self._next_out is None or t < self._next_out - max(OUTPUT_RESTART_S, self._dt_out):
             # The first state, or the clock went back (a restart): the schedule starts again.
             self._next_out = t
         if t < self._next_out:

@@ -330,14 +330,15 @@ class Inbound:
         """The session of a SLAM source's pose: a new source, or a changed ``reset_counter``
         of one (a rise, or its wrap past 255), starts a new one; a counter at most
         ``STALE_RESET_BACK`` behind the source's (mod 256) within ``STALE_RESET_S`` of its
-        change is a pose of the old map that came late: dropped (``slam:stale_session``)."""
+        change is a pose of the old map that came late: dropped (``slam:stale_session``). After
+        a clock restart (``now`` before the change) a lower counter is a new map."""
         now = self.newest_imu_t if self.newest_imu_t is not None else -math.inf
         last = self._slam_sources.get(source)
         if last is not None:
             if last[0] == reset_counter:
                 return last[1]
             back = (last[0] - reset_counter) % 256
-            if 1 <= back <= STALE_RESET_BACK and now - last[2] <= STALE_RESET_S:
+            if 1 <= back <= STALE_RESET_BACK and 0.0 <= now - last[2] <= STALE_RESET_S:
                 raise Rejected(
                     "slam:stale_session", f"reset_counter {reset_counter} after {last[0]}"
                 )

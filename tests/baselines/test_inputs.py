@@ -205,3 +205,16 @@ def test_bad_baseline_options_are_one_line_errors(section, table, match):
     with pytest.raises(OptionValueError, match=match) as e:
         check_method_config({section: table})
     assert "\n" not in str(e.value)
+
+
+def test_filters_check_their_options_from_the_python_api():
+    """initial_scale 0 failed deep in the run ('non-finite value at sample 21'), -1 ran to a
+    1.34 m ATE (review: only the config path checked it)."""
+    from fgnav.baselines.msf_ekf import MsfEkf, MsfOptions
+    from fgnav.baselines.ukf003 import Ukf003, Ukf003Options
+
+    for make, opts in ((MsfEkf, MsfOptions), (Ukf003, Ukf003Options)):
+        for bad in (0.0, -1.0):
+            with pytest.raises(ValueError, match=r"initial_scale=.*expected > 0"):
+                make(opts(initial_scale=bad))
+        make(opts(initial_scale=0.5))  # a valid one is taken

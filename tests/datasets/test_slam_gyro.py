@@ -414,6 +414,14 @@ def test_causal_application_turns_orientations_to_the_fitted_body_R_cam(figure8_
     np.testing.assert_array_equal(
         out.slam.slam_q_cam_wxyz[~after], bad.slam.slam_q_cam_wxyz[~after]
     )
+    # A given clock offset applies to every pose, the turn still only from the decision on
+    # (review: a numeric offset turned the poses that arrived before it too).
+    for given in (0.0, 0.001):
+        out2 = apply_slam_check_causal(bad, "auto", given)
+        np.testing.assert_array_equal(
+            out2.slam.slam_q_cam_wxyz[~after], bad.slam.slam_q_cam_wxyz[~after]
+        )
+        np.testing.assert_allclose(out2.slam.t, bad.slam.t + given, atol=1e-12)
 
 
 def test_causal_application_applies_the_clock_offset_from_the_decision(sim_flight):

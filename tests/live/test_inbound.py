@@ -333,3 +333,10 @@ def test_a_late_pose_of_the_previous_slam_map_starts_no_session():
     assert rcs == [3, 4, 5, None]
     assert inb.counts()["dropped"] == {"slam:stale_session": 2}
     assert inb.counts()["slam_sessions"] == 6
+    # After an autopilot reboot (the clock back to 1 s), a bridge coming back with a counter
+    # just below its last is a new map, not stale (review: 360 of 360 poses dropped).
+    for tt in (1.0, 1.005, 1.01):
+        feed(tx, "highres_imu", convert.highres_imu_fields(_imu(tt), 0))
+    assert inb.counts()["clock_restarts"] == 1
+    assert pose(0.95, 255).session == 6
+    assert inb.counts()["dropped"] == {"slam:stale_session": 2}
