@@ -55,7 +55,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from typing import Any
 
 from fgnav.datasets.events import Event, ImuSample
@@ -93,21 +93,50 @@ INT64_MAX_NS = 2**63 - 1
 
 
 REORDER_WINDOW = 16
-"""A sequence number at most this far behind the newest of its source is a late (reordered)
-message, not 256 minus that many lost: UDP may reorder or repeat datagrams."""
+"""A sequence number at most this far behind the newest of its source, missing from a gap
+counted there, is a late (reordered) message: UDP may reorder datagrams."""
+
+RECENT_MESSAGES = 64
+"""Messages remembered per source (sequence number and bytes) to tell a repeated one: fewer than
+256, so that a number come round again is not taken for a repeat."""
+
+
+class _Source:
+    """What :class:`SequenceCounter` remembers of one source."""
+
+    __slots__ = ("newest", "recent", "order", "missing")
+
+    def __init__(self, seq: int, data: bytes | None) -> None:
+        self.newest = seq
+        self.recent: set[tuple[int, bytes | None]] = {(seq, data)}
+        self.order: deque[tuple[int, bytes | None]] = deque([(seq, data)])
+        self.missing: set[int] = set()  # numbers of counted gaps, within the window
+
+    def remember(self, seq: int, data: bytes | None) -> None:
+        self.recent.add((seq, data))
+        self.order.append((seq, data))
+        if len(self.order) > RECENT_MESSAGES:
+            self.recent.discard(self.order.popleft())
 
 
 class SequenceCounter:
     """Messages lost per source, from MAVLink's 8-bit sequence numbers (as pymavlink's
-    ``mavutil`` counts them: a gap of ``(seq - expected) mod 256``), with two exceptions: the
-    newest number again with the same bytes is a ``duplicate`` (a repeated datagram; it counted
-    255 lost; with other bytes, a sender that does not advance its number: nothing counted) and a
-    number at most :data:`REORDER_WINDOW` behind the newest is ``reordered`` (a late message:
-    the one it had counted lost is taken back)."""
+    ``mavutil`` counts them: a gap of ``(seq - expected) mod 256``), with two exceptions:
+
+    * ``duplicate``: a message whose number and bytes match one of the source's last
+      :data:`RECENT_MESSAGES` (a repeated datagram: PX4 packs several messages in one, so all
+      of them come again, not only the newest; it had counted 255 lost). Identical bytes are
+      required: a sender that does not advance its number but sends other messages (pymavlink's
+      ``pack`` alone) loses nothing.
+    * ``reordered``: a number at most :data:`REORDER_WINDOW` behind the newest that a counted
+      gap left missing (a late datagram): delivered, and its own loss taken back.
+
+    Any other number (behind the newest, not missing, other bytes) opens a new gap of
+    ``(seq - newest - 1) mod 256``, as ``mavutil`` counts it: an outage of 240-255 messages, or
+    the sender's restart."""
 
     def __init__(self) -> None:
-        self._last: dict[tuple[int, int], int] = {}
-        self._last_bytes: dict[tuple[int, int], bytes | None] = {}
+        self._sources: dict[tuple[int, int], _Source] = {}
         self.lost: Counter[str] = Counter()
         self.seen: Counter[str] = Counter()
         self.duplicate: Counter[str] = Counter()
@@ -115,31 +144,32 @@ class SequenceCounter:
 
     def add(self, sysid: int, compid: int, seq: int, data: bytes | None = None) -> int:
         """Record one message (``data``: its bytes, to tell a duplicate); returns how many were
-        lost before it (-1: a duplicate, -2: a reordered message)."""
+        lost before it (-1: a duplicate, to drop; -2: a reordered message)."""
         key = (int(sysid), int(compid))
+        seq = int(seq) % 256
         name = f"{key[0]}/{key[1]}"
         self.seen[name] += 1
-        last = self._last.get(key)
-        if last is None:
-            self._last[key] = int(seq)
-            self._last_bytes[key] = data
+        src = self._sources.get(key)
+        if src is None:
+            self._sources[key] = _Source(seq, data)
             return 0
-        gap = (int(seq) - (last + 1)) % 256
-        if gap == 255:
-            if data is not None and data != self._last_bytes.get(key):
-                self._last_bytes[key] = data
-                return 0  # another message with the same number
+        if (seq, data) in src.recent:
             self.duplicate[name] += 1
             return -1
-        if gap >= 256 - REORDER_WINDOW:
+        src.remember(seq, data)
+        if seq == src.newest:
+            return 0  # another message with the same number
+        if seq in src.missing:
+            src.missing.discard(seq)
             self.reordered[name] += 1
-            if self.lost[name] > 0:
-                self.lost[name] -= 1  # counted lost when the gap opened: it came late
-                if not self.lost[name]:
-                    del self.lost[name]
+            self.lost[name] -= 1  # counted lost when the gap opened: it came late
+            if self.lost[name] <= 0:
+                del self.lost[name]
             return -2
-        self._last[key] = int(seq)
-        self._last_bytes[key] = data
+        gap = (seq - src.newest - 1) % 256
+        src.newest = seq
+        src.missing = {s for s in src.missing if (seq - s) % 256 <= REORDER_WINDOW}
+        src.missing.update((seq - k) % 256 for k in range(1, min(gap, REORDER_WINDOW) + 1))
         if gap:
             self.lost[name] += gap
         return gap

@@ -12,7 +12,7 @@ from fgnav.datasets.events import AttitudeSample, ImuSample, RangeReading, SlamP
 
 from fgnav.live import convert  # noqa: E402
 from fgnav.live.inbound import Inbound, SequenceCounter  # noqa: E402
-from fgnav.live.link import LinkError, new_mavlink, pack, parse_address  # noqa: E402
+from fgnav.live.link import LinkError, Parsers, new_mavlink, pack, parse_address  # noqa: E402
 
 
 def _through(tx, rx, name, fields):
@@ -270,6 +270,54 @@ def test_a_duplicated_datagram_is_dropped_not_lost():
     c = inb.counts()
     assert c["lost"] == {} and c["duplicate"] == {"1/1": 1}
     assert c["dropped"] == {"imu:duplicate": 1} and c["received"] == {"imu": 11}
+
+
+def test_a_repeated_datagram_of_several_messages_is_all_duplicate():
+    """PX4 packs several messages per datagram: when one comes twice, every message of it is a
+    duplicate (only the last one was; the others were 'reordered', delivered again, and took
+    back an unrelated earlier loss)."""
+    tx = new_mavlink(1, 1)
+    inb = Inbound()
+    parsers = Parsers()
+    dgs, k = [], 0
+    for i in range(9):
+        if i == 6:
+            tx.seq = (tx.seq + 3) % 256  # 3 messages really lost
+        fields = [convert.highres_imu_fields(_imu(round(0.005 * (k + j), 3)), 0) for j in range(4)]
+        dgs.append(b"".join(pack(tx, tx.highres_imu_encode(**f)) for f in fields))
+        k += 4
+    events = []
+    for d in dgs[:8] + [dgs[7]] + dgs[8:]:
+        for msg in parsers.parse(d, ("127.0.0.1", 14550)):
+            inb.count(msg)
+            ev = inb.event(msg)
+            if ev is not None:
+                events.append(ev.t)
+    c = inb.counts()
+    assert c["lost"] == {"1/1": 3} and c["duplicate"] == {"1/1": 4} and c["reordered"] == {}
+    assert c["dropped"] == {"imu:duplicate": 4} and len(events) == len(set(events)) == 36
+
+
+def test_late_datagrams_take_back_their_own_loss_and_long_outages_are_lost():
+    c = SequenceCounter()
+    for seq in range(10, 14):
+        c.add(1, 1, seq, bytes([seq]))
+    for seq in (18, 19, 20, 21, 14, 15, 16, 17):  # the datagram of 14-17 came late
+        c.add(1, 1, seq, bytes([seq]))
+    assert c.lost == {} and c.reordered == {"1/1": 4} and c.duplicate == {}
+    assert c.add(1, 1, 16, bytes([16])) == -1  # and once more: a duplicate
+    assert c.add(1, 1, 16, b"other") == 250  # not missing, other bytes: a gap (a restart)
+    # An outage of 245 messages lands 10 behind the newest: lost, not reordered.
+    c2 = SequenceCounter()
+    for seq in range(100, 121):
+        c2.add(2, 1, seq, bytes([seq]))
+    assert c2.add(2, 1, (120 + 246) % 256, b"new") == 245
+    assert c2.lost == {"2/1": 245} and c2.reordered == {}
+    # A late message of a gap taken back once only; a sender that never advances loses nothing.
+    c3 = SequenceCounter()
+    for seq, data in ((0, b"a"), (0, b"b"), (0, b"c"), (0, b"b"), (0, b"d")):
+        c3.add(3, 1, seq, data)
+    assert c3.lost == {} and c3.duplicate == {"3/1": 1} and c3.reordered == {}
 
 
 def test_messages_of_another_dialect_keep_their_sequence():
