@@ -9,9 +9,18 @@ Nothing is lost while the consumer is busy: a reader thread does nothing but ``r
 an unbounded queue (datagrams and their source address), and the socket's receive buffer is
 asked to be :data:`RCVBUF_BYTES` (the kernel caps it at ``net.core.rmem_max``). Parsing (by
 pymavlink's generated MAVLink 2 parser of the ``common`` dialect, one per peer so that streams
-never mix, each datagram on its own) and everything else happen on the consumer's thread.
-Messages that still go missing show up in the sequence-number counts
-(:class:`fgnav.live.inbound.SequenceCounter`).
+never mix) and everything else happen on the consumer's thread. Messages that still go missing
+show up in the sequence-number counts (:class:`fgnav.live.inbound.SequenceCounter`).
+
+Datagrams (:class:`Parsers`). An autopilot's datagram holds whole messages, but a byte-stream
+bridge (socat or ser2net from a telemetry radio) cuts the stream at arbitrary bytes, and stray
+bytes happen (``FD FF``: a MAVLink 2 start claiming a 255-byte payload, which had swallowed the
+valid messages of the datagrams after it). So a peer's bytes left at the end of a datagram (a
+partial frame) are kept; the next datagram is parsed on its own when it begins with a start
+byte (``0xFD``, ``0xFE``) and its first message, from its first byte, passes its CRC check (the
+leftover is then dropped and counted ``truncated``), else after the leftover. (A datagram that
+begins with a message of another dialect, whose CRC pymavlink cannot check, is parsed after the
+leftover.)
 """
 
 from __future__ import annotations
@@ -205,26 +214,45 @@ class UdpLink:
 
 
 class Parsers:
-    """One MAVLink parser per peer address (a stream parser must not mix two peers' bytes),
-    each datagram parsed on its own: a datagram holds whole messages, so the parser's buffer is
-    emptied before each (a stray ``FD FF`` had made it wait for a 255-byte payload and swallow
-    the valid messages of the following datagrams). ``truncated``: datagrams that ended inside
-    a message (the bytes left are dropped)."""
+    """One MAVLink parser per peer address (a stream parser must not mix two peers' bytes); see
+    the module docstring, "Datagrams", for the rule. ``truncated``: partial frames dropped (a
+    peer's leftover that the next datagram did not continue)."""
 
     def __init__(self) -> None:
         self._by_peer: dict[tuple[str, int], Any] = {}
+        self._leftover: dict[tuple[str, int], bytes] = {}
         self.truncated = 0
 
     def parse(self, data: bytes, peer: tuple[str, int]) -> list[Any]:
         p = self._by_peer.get(peer)
         if p is None:
             p = self._by_peer[peer] = new_mavlink(0, 0)
+        left = self._leftover.pop(peer, b"")
+        out: list[Any] | None = None
+        if left and data[:1] in (b"\xfd", b"\xfe"):
+            alone = _parse(p, data)
+            if alone and _crc_valid(alone[0]) and data.startswith(bytes(alone[0].get_msgbuf())):
+                self.truncated += 1  # a new frame starts here: the leftover was cut off
+                out = alone
+        if out is None:
+            out = _parse(p, left + data)
+        if p.buf_len() > 0:  # a partial frame at the end: kept for the next datagram
+            self._leftover[peer] = bytes(p.buf[p.buf_index :])
         _reset_parser(p)
-        out = p.parse_buffer(data) or []
-        if p.buf_len() > 0:
-            self.truncated += 1
-            _reset_parser(p)
         return out
+
+
+def _parse(p: Any, data: bytes) -> list[Any]:
+    """The messages of ``data`` from an empty parser (its leftover stays in its buffer)."""
+    _reset_parser(p)
+    return p.parse_buffer(data) or []
+
+
+def _crc_valid(msg: Any) -> bool:
+    """Whether a parsed message passed its CRC check (``BAD_DATA`` did not; ``UNKNOWN_<id>``, of
+    another dialect, was not checked)."""
+    name = msg.get_type()
+    return name != "BAD_DATA" and not name.startswith("UNKNOWN_")
 
 
 def _reset_parser(p: Any) -> None:

@@ -285,6 +285,27 @@ def test_each_datagram_is_parsed_on_its_own(flight):
     assert all(m.get_type() != "BAD_DATA" for m in got)
 
 
+@pytest.mark.parametrize("chunk", [256, 7])
+def test_a_byte_stream_cut_anywhere_is_parsed_whole(flight, chunk):
+    """A byte-stream bridge (socat/ser2net from a telemetry radio) cuts the stream at arbitrary
+    bytes: a message split across two datagrams is joined (each datagram parsed on its own had
+    lost 57 of 200), while stray bytes still swallow nothing; peers do not mix."""
+    bufs = datagrams(flight, 1.0)
+    stream = b"".join(bufs)
+    parsers = Parsers()
+    got, other = [], []
+    for i in range(0, len(stream), chunk):
+        got += parsers.parse(stream[i : i + chunk], PEER)
+        other += parsers.parse(stream[i : i + chunk], ("127.0.0.1", 40002))  # interleaved
+    assert len(got) == len(other) == len(bufs) and parsers.truncated == 0
+    assert [bytes(m.get_msgbuf()) for m in got] == bufs
+    # Stray bytes in the stream, then valid datagrams: all of them parsed.
+    parsers = Parsers()
+    got = parsers.parse(stream[:1000], PEER) + parsers.parse(b"\xfd\xff", PEER)
+    got += parsers.parse(bufs[40] + bufs[41], PEER)
+    assert [bytes(m.get_msgbuf()) for m in got[-2:]] == bufs[40:42] and parsers.truncated == 1
+
+
 def test_the_reader_thread_survives_a_read_error():
     """An unexpected OSError of one recvfrom (it killed the reader thread: the session then
     idled out, every datagram after it unread) is counted and the thread goes on."""
