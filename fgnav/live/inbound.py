@@ -35,7 +35,7 @@ Counter keys (``counts()``; written to ``summary.json`` by :mod:`fgnav.live.sess
   of that stream, before any check (fgnav's own ODOMETRY echoed back included);
 * ``dropped``: ``"stream:reason"`` -> n, messages of a stream that did not become events
   (reasons: ``not_updated``, ``other_instance``, ``other_component``, ``other_system``,
-  ``duplicate`` (a repeated sequence number: the same datagram twice), ``non_finite``,
+  ``duplicate`` (the number and bytes of a recent message: a datagram repeated), ``non_finite``,
   ``invalid_quaternion``, ``orientation``, ``out_of_sensor_limits``, ``zero`` (a 0 cm range:
   no reading), ``invalid_signal``, ``estimator_type``, ``failed`` (``ODOMETRY.quality`` -1:
   the SLAM says it failed), ``stale_session`` (a late pose of the SLAM's previous
