@@ -97,8 +97,8 @@ class Inputs:
         self.unused[key] += n
 
     def take(self, ev: Event) -> bool:
-        """Note one event; False for an IMU sample that is no measurement (counted: the caller
-        drops it)."""
+        """Note one event (an IMU sample's gap too, :meth:`imu_gap`); False for an IMU sample
+        that is no measurement (counted: the caller drops it)."""
         stream = STREAM_OF_EVENT.get(type(ev))
         if stream is not None:
             self.received[stream] += 1
@@ -107,6 +107,7 @@ class Inputs:
             if why is not None:
                 self.skip(f"imu:{why}")
                 return False
+            self.imu_gap(ev)
         t = float(ev.t)
         if stream is not None and math.isfinite(t):
             self.last_t[stream] = max(t, self.last_t.get(stream, -math.inf))

@@ -372,7 +372,6 @@ class CfEkf:
         if not self._inputs.take(ev):
             return
         if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
             self._imu(ev)
         elif isinstance(ev, FlowSample):
             self._flow(ev)

@@ -951,8 +951,6 @@ class Ekf004Runner:
         corrupted IMU sample is dropped and counted: :mod:`fgnav.baselines._inputs`)."""
         if not self._inputs.take(ev):
             return
-        if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
         if self.attitude_source is not None:
             self._feed(ev)
             return

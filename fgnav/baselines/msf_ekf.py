@@ -631,7 +631,6 @@ class MsfEkf:
         if not self._inputs.take(ev):
             return
         if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
             self._hist.add(ev)
             if self.x is None:
                 self._try_start(ev.arrival)

@@ -48,7 +48,7 @@ import numpy as np
 
 from fgnav.baselines._inputs import Inputs, unused_table
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import Event, ImuSample, replay_flight
+from fgnav.datasets.events import Event, replay_flight
 from fgnav.datasets.types import Calibration, Flight
 from fgnav.estimate import Estimate
 from fgnav.frontends.ii_observer import IIObserverOptions, VerticalFilterOptions
@@ -159,8 +159,6 @@ class Seed000:
         of a flight without attitude; others are ignored)."""
         if not self._inputs.take(ev):
             return
-        if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
         self.stage.feed(ev)
 
     def close(self) -> None:

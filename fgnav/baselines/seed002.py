@@ -150,8 +150,6 @@ class Seed002Vo:
         sample is dropped and counted: :mod:`fgnav.baselines._inputs`)."""
         if not self._inputs.take(ev):
             return
-        if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
         if isinstance(ev, (ImuSample, YawReading, RangeReading)):
             for est in self._ekf.feed(ev):
                 h = est.height if math.isfinite(est.height) else None

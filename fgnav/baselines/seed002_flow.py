@@ -163,7 +163,6 @@ class Seed002Flow:
         if not self._inputs.take(ev):
             return
         if isinstance(ev, ImuSample):
-            self._inputs.imu_gap(ev)
             self._imu(ev)
         elif isinstance(ev, YawReading):
             if self._ekf is None:

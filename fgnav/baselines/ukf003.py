@@ -768,8 +768,6 @@ class Ukf003:
         if not self._started:
             if not self._inputs.take(ev):
                 return
-            if isinstance(ev, ImuSample):
-                self._inputs.imu_gap(ev)
             self._hist.add(ev)
             if isinstance(ev, CameraTrigger):
                 self._pre.append(ev)
@@ -778,8 +776,6 @@ class Ukf003:
             return
         if not self._redo and not self._inputs.take(ev):
             return
-        if isinstance(ev, ImuSample) and not self._redo:
-            self._inputs.imu_gap(ev)
         if isinstance(ev, ImuSample | SlamPose | AttitudeSample):
             self._hist.add(ev)  # for the scale guess of a new map
         if isinstance(ev, ImuSample):
