@@ -42,6 +42,10 @@ from fgnav.datasets.geometry import make_pose, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
+#: An IMU stamp back by more than this [s], or ahead by more than ``IMU_GAP_S``, waits for the
+#: next sample to decide it (the push engine's ``clock_jump_s`` and ``max_imu_gap_s`` defaults).
+CLOCK_JUMP_S = 1.0
+IMU_GAP_S = 0.5
 OUTPUT_RESTART_S = 1.0
 """A filter's output schedule starts again at a stamp this far (or one output interval, if
 longer) before the next output [s]."""
@@ -183,9 +187,42 @@ class FilterLive:
         self._received: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
         self._latest: OnlineState | None = None
+        self._imu_last: float | None = None  # newest IMU stamp taken
+        self._suspect: list[Event] | None = None  # an IMU sample off the clock, events behind
 
     def feed(self, ev: Event) -> OnlineState | None:
+        """One event; an IMU sample off the clock (back by more than :data:`CLOCK_JUMP_S` or
+        ahead by more than :data:`IMU_GAP_S`) waits with the events behind it for the next
+        IMU sample, which decides it as the push engine does: kept when that one continues
+        from it, else dropped as ``imu:time-outlier`` (one stamp an hour ahead overflowed a
+        filter's state; review)."""
+        held = self._suspect
+        if held is None:
+            if isinstance(ev, ImuSample) and self._imu_last is not None:
+                dt = float(ev.t) - self._imu_last
+                if -dt > CLOCK_JUMP_S or dt > IMU_GAP_S:
+                    self._suspect = [ev]
+                    return None
+            return self._take(ev)
+        if not isinstance(ev, ImuSample):
+            held.append(ev)
+            return None
+        self._suspect = None
+        suspect, last, t = held[0], self._imu_last, float(ev.t)
+        out = None
+        if not (0.0 < t - last <= IMU_GAP_S) or 0.0 < t - float(suspect.t) <= t - last:
+            out = self._take(suspect)  # confirmed: a real gap or clock restart
+        else:
+            self._received["imu"] += 1
+            self._dropped["imu:time-outlier"] += 1
+        for e in (*held[1:], ev):
+            out = self._take(e) or out
+        return out
+
+    def _take(self, ev: Event) -> OnlineState | None:
         stream = STREAM_OF_EVENT[type(ev)]
+        if stream == "imu":
+            self._imu_last = float(ev.t)
         self._received[stream] += 1
         if stream not in self.USED_STREAMS:
             self._dropped[f"{stream}:not_used"] += 1
@@ -220,7 +257,14 @@ class FilterLive:
         }
 
     def close(self) -> None:
-        """The link stopped (nothing held here; :meth:`result` calls it too)."""
+        """The link stopped: a suspect IMU sample's events go on without it (:meth:`result`
+        calls it too)."""
+        held, self._suspect = self._suspect, None
+        if held:
+            self._received["imu"] += 1
+            self._dropped["imu:time-outlier"] += 1
+            for e in held[1:]:
+                self._take(e)
 
     def result(self) -> Estimate:
         self.close()
@@ -512,6 +556,7 @@ class Ukf003Live(FilterLive):
 
     def close(self) -> None:
         """Feed the filter every event still held (the link stopped)."""
+        super().close()
         self._release(math.inf)
 
     def _state(self, t: float) -> OnlineState:

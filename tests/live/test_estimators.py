@@ -95,3 +95,35 @@ def test_a_slow_output_rate_is_kept():
     t = np.array([s.t for s in states])
     assert 2 <= len(states) <= 4, len(states)  # the filter starts at about 6 s
     np.testing.assert_allclose(np.diff(t), 2.0, atol=0.01)
+
+
+def test_an_imu_stamp_off_the_clock_waits_for_the_next_sample():
+    """One IMU stamp an hour ahead (or 50 s back) is dropped as imu:time-outlier, the events
+    behind it fed on, the states as without it; a real 2 s gap (the next sample continues from
+    it) is kept (review: the stamp overflowed msf-ekf's state, and the session ended)."""
+    flight = simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False))
+    events = list(replay_flight(flight))
+    imu_k = [k for k, e in enumerate(events) if type(e).__name__ == "ImuSample"]
+
+    def run(evs):
+        est = MsfLive(flight.calib)
+        states = [s for ev in evs if (s := est.feed(ev)) is not None]
+        est.close()
+        return est, states
+
+    _, clean = run(events)
+    bad = list(events)
+    for k, shift in ((imu_k[1400], 3600.0), (imu_k[1800], -50.0)):
+        bad[k] = bad[k]._replace(t=bad[k].t + shift, arrival=bad[k].arrival + shift)
+    est, states = run(bad)
+    assert est.counts()["dropped"].get("imu:time-outlier") == 2
+    assert len(states) == len(clean)
+    for a, b in zip(states, clean, strict=True):
+        assert a.t == b.t
+        np.testing.assert_allclose(a.world_T_body, b.world_T_body, atol=0.05)
+    # A real gap: 2 s of IMU missing; the sample after it continues from it.
+    t_gap = events[imu_k[1400]].t
+    gap = [e for e in events if not (type(e).__name__ == "ImuSample" and t_gap < e.t < t_gap + 2)]
+    est, states = run(gap)
+    assert "imu:time-outlier" not in est.counts()["dropped"]
+    assert states[-1].t == clean[-1].t
