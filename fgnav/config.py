@@ -302,6 +302,41 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "eta0": (-1e3, 1e3),
     "max_scale_step": (1e-6, 1e6),
     "scale_floor": (1e-6, 1e6),
+    # [graph] robust kernel width (whitened; Huber 1.345): 1e-300 made every residual an outlier
+    # (batch did not converge, online ATE 100x worse, exit 0). Ground-contact height [m]: 1e300
+    # put every keyframe on the ground (zero velocity; batch did not converge).
+    "robust_k": (1e-2, None),
+    "contact_height_m": (None, 1.0),
+    # The homography VO (HomographyVOOptions, [graph.homography.vo] and [ekf-vo002.vo]): values
+    # OpenCV refuses (a cv2.error traceback: quality, corner distance or RANSAC confidence <= 0,
+    # LK window < 3, pyramid levels < 0 or 2**31-1, an interpolation flag other than 0-4), a
+    # corner distance of 1e300 (a segmentation fault), 2**31-1 corner pyramid levels (a hang),
+    # a block size of 2**31-1 (std::length_error), a guess correction of 1e300 (OverflowError)
+    # 0 LK iterations (batch did not converge, ekf-vo002 48x worse); a quality above 1 or a
+    # window of 2**31-1 found or tracked nothing (ekf-vo002: exit 0 without an estimate).
+    "max_corners": (0, None),
+    "corner_quality": (1e-6, 1.0),
+    "min_corner_distance_px": (0.0, 1e4),
+    "corner_block_size_px": (1, 1000),
+    "corner_pyramid_level": (0, 6),  # (a 64th of the image side: 4 gave no corner on 320 px)
+    "lk_window_px": (3, 1000),
+    "lk_pyramid_levels": (0, 10),
+    "flow_guess_levels": (0, 10),
+    "lk_max_iterations": (1, 100_000),
+    "flow_guess_max_correction_px": (0.0, 1e4),
+    # A RANSAC confidence of 1e-300 (ekf-vo002 39x worse), an inlier threshold of 1e-300 or a
+    # mask margin of -1 or 2**31-1 (no pair: ekf-vo002 exit 0 without an estimate).
+    "ransac_confidence": (0.5, 1.0),  # (< 1: HomographyVOOptions.check)
+    "ransac_threshold_px": (1e-3, 1e4),
+    "mask_margin_px": (0, 1000),
+    "rectify_interpolation": (0, 4),  # cv2.INTER_NEAREST ... INTER_LANCZOS4
+    # The flow filters: a quality (in [0, 1]) or sensor height floor of 1e300, an outlier limit
+    # <= 1e-300 [rad] dropped every reading (ekf-flow002 FAILED, cf-ekf 220x worse, exit 0); a
+    # ground height of 1e300 [m] (ekf-vo002, ekf-flow002) gave exit 0 without an estimate.
+    "quality_min": (None, 1.0),
+    "height_min": (None, 100.0),
+    "outlier_rad": (1e-2, None),
+    "ground_height": (-1e4, 1e4),
 }
 
 #: Bounds of options by name pattern (see :data:`OPTION_BOUNDS`): noise sigmas, rates [Hz],

@@ -110,6 +110,11 @@ class Seed002Options:
     height_from_ekf: bool = True
     ground_height: float = 0.0
 
+    def check(self) -> None:
+        """Raise ``ValueError`` on an inconsistent VO option (``[ekf-vo002.vo]``: its rules
+        between fields were not checked before the run)."""
+        self.vo.check()
+
 
 REQUIRED_STREAMS = ("imu", "range", "images")
 """Streams the baseline needs: IMU (EKF prediction and gravity), range (height: VO scale),

@@ -298,8 +298,20 @@ class HomographyVOOptions:
             raise ValueError(f"tilt_source: expected auto/attitude/vo, got {self.tilt_source!r}")
         if self.normalize_scale and not self.rectify:
             raise ValueError("normalize_scale needs rectify=True")
+        if not 0 < self.ransac_confidence < 1:
+            # (cv2.findHomography asserted it: 0, -1 or 1e300 were a cv2.error traceback)
+            raise ValueError(
+                f"ransac_confidence: expected > 0 and < 1, got {self.ransac_confidence!r}"
+            )
         if min(self.min_corners, self.min_tracked, self.min_inliers) < 4:
             raise ValueError("a homography needs at least 4 points: min_* must be >= 4")
+        most = max(self.min_corners, self.min_tracked, self.min_inliers)
+        if self.max_corners > 0 and most > self.max_corners:
+            # (every pair was rejected: ekf-vo002 exited 0 without an estimate)
+            raise ValueError(
+                f"min_corners/min_tracked/min_inliers: expected <= max_corners="
+                f"{self.max_corners} (a pair has no more points), got {most}"
+            )
         return self
 
 

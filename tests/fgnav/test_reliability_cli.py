@@ -459,6 +459,52 @@ def test_one_prior_source_may_be_a_string():
         ("[ii-observer.observer]\neta0 = [1e300, 1e300]\n", "eta0 = [1e+300, 1e+300]: expected"),
         ("[ii-observer.observer]\nmax_scale_step = -1\n", "max_scale_step = -1: expected > 0"),
         ("[ii-observer.observer]\nscale_floor = 1e-300\n", "scale_floor = 1e-300: expected in"),
+        # The second fuzz on runs: [graph], the VO ([graph.homography.vo], [ekf-vo002.vo]), flow.
+        ("[graph]\nrobust_k = 1e-300\n", "option robust_k = 1e-300: expected >= 0.01"),
+        ("[graph]\ncontact_height_m = 1e300\n", "contact_height_m = 1e+300: expected <= 1"),
+        ("[graph.homography.vo]\nmax_corners = -1\n", "max_corners = -1: expected >= 0"),
+        ("[ekf-vo002.vo]\ncorner_quality = 0\n", "corner_quality = 0: expected in [1e-06, 1]"),
+        ("[ekf-vo002.vo]\ncorner_quality = 1e300\n", "corner_quality = 1e+300: expected in"),
+        (
+            "[graph.homography.vo]\nmin_corner_distance_px = 1e300\n",
+            "min_corner_distance_px = 1e+300: expected in [0, 10000]",
+        ),
+        ("[ekf-vo002.vo]\nmin_corner_distance_px = -1\n", "min_corner_distance_px = -1: expe"),
+        (
+            "[graph.homography.vo]\ncorner_block_size_px = 2147483647\n",
+            "corner_block_size_px = 2147483647: expected in [1, 1000]",
+        ),
+        (
+            "[graph.homography.vo]\ncorner_pyramid_level = 2147483647\n",
+            "corner_pyramid_level = 2147483647: expected in [0, 6]",
+        ),
+        ("[graph.homography.vo]\nlk_window_px = 0\n", "lk_window_px = 0: expected in [3, 1000]"),
+        ("[ekf-vo002.vo]\nlk_pyramid_levels = -1\n", "lk_pyramid_levels = -1: expected in [0,"),
+        (
+            "[graph.homography.vo]\nflow_guess_levels = 2147483647\n",
+            "flow_guess_levels = 2147483647: expected in [0, 10]",
+        ),
+        ("[graph.homography.vo]\nlk_max_iterations = 0\n", "lk_max_iterations = 0: expected in"),
+        (
+            "[graph.homography.vo]\nflow_guess_max_correction_px = 1e300\n",
+            "flow_guess_max_correction_px = 1e+300: expected in [0, 10000]",
+        ),
+        ("[ekf-vo002.vo]\nransac_confidence = 0\n", "ransac_confidence = 0: expected in [0.5,"),
+        ("[graph.homography.vo]\nransac_confidence = 1\n", "ransac_confidence: expected > 0 an"),
+        ("[ekf-vo002.vo]\nransac_confidence = 1\n", "ransac_confidence: expected > 0 and <"),
+        ("[graph.homography.vo]\nrectify_interpolation = -1\n", "rectify_interpolation = -1"),
+        ("[ekf-vo002.vo]\nrectify_interpolation = 5\n", "rectify_interpolation = 5: expected"),
+        ("[ekf-vo002.vo]\nmin_inliers = 0\n", "min_* must be >= 4"),
+        ("[ekf-vo002.vo]\nmin_corners = 2147483647\n", "expected <= max_corners=200"),
+        ("[ekf-vo002.vo]\nransac_confidence = 1e-300\n", "expected in [0.5, 1]"),
+        ("[ekf-vo002.vo]\nransac_threshold_px = 1e-300\n", "ransac_threshold_px = 1e-300: ex"),
+        ("[graph.homography.vo]\nmask_margin_px = -1\n", "mask_margin_px = -1: expected in"),
+        ("[ekf-flow002]\nquality_min = 1e300\n", "quality_min = 1e+300: expected <= 1"),
+        ("[cf-ekf]\nquality_min = 1e300\n", "quality_min = 1e+300: expected <= 1"),
+        ("[ekf-flow002]\nheight_min = 1e300\n", "height_min = 1e+300: expected <= 100"),
+        ("[cf-ekf]\noutlier_rad = 0\n", "option outlier_rad = 0: expected >= 0.01"),
+        ("[ekf-vo002]\nground_height = 1e300\n", "ground_height = 1e+300: expected in [-1"),
+        ("[ekf-flow002]\nground_height = 1e300\n", "ground_height = 1e+300: expected in"),
     ],
 )
 def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
@@ -477,12 +523,16 @@ def test_option_bounds_refuse_no_default():
     import dataclasses
 
     from fgnav.config import ZERO_OK_OPTIONS, option_bounds, option_value_problem
+    from fgnav.frontends.homography_vo import HomographyVOOptions
     from fgnav.methods import _BASELINE_OPTIONS
     from fgnav.solvers.batch import BatchOptions, LMOptions
     from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.flow import FlowFactorOptions
     from fgnav.solvers.graph import GraphOptions
+    from fgnav.solvers.vision import HomographyFactorOptions
 
     classes = [GraphOptions, FixedLagOptions, BatchOptions, LMOptions, SimOptions]
+    classes += [HomographyVOOptions, FlowFactorOptions, HomographyFactorOptions]
     classes += [getattr(__import__(m, fromlist=[n]), n) for m, n in _BASELINE_OPTIONS.values()]
     for cls in classes:
         zero_ok = getattr(cls, "ZERO_MEANS_OFF", frozenset()) | ZERO_OK_OPTIONS
@@ -491,6 +541,13 @@ def test_option_bounds_refuse_no_default():
                 continue
             assert option_value_problem(f.name, f.default, f.name in zero_ok) is None, f.name
     assert option_value_problem("prior_position_sigma", 1e6) is None
+    # (ekf-vo002's published VO, a factory default, passes too)
+    from fgnav.baselines.seed002 import Seed002Options
+
+    vo = Seed002Options().vo
+    assert all(
+        option_value_problem(f.name, getattr(vo, f.name)) is None for f in dataclasses.fields(vo)
+    )
     assert option_value_problem("ground_segment_s", 1e-3) is None
     assert option_value_problem("gravity", 9.81) is None
     # [lm]: the widest sensible values pass (one iteration, no tolerance, little damping).
