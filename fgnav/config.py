@@ -331,11 +331,13 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "mask_margin_px": (0, 1000),
     "rectify_interpolation": (0, 4),  # cv2.INTER_NEAREST ... INTER_LANCZOS4
     # The flow filters: a quality (in [0, 1]) or sensor height floor of 1e300, an outlier limit
-    # <= 1e-300 [rad] dropped every reading (ekf-flow002 FAILED, cf-ekf 220x worse, exit 0); a
-    # ground height of 1e300 [m] (ekf-vo002, ekf-flow002) gave exit 0 without an estimate.
+    # <= 1e-300 [rad] dropped every reading (ekf-flow002 FAILED, cf-ekf 220x worse, exit 0), a
+    # time-of-flight limit of 0 or 1e-300 [m] every range reading (cf-ekf FAILED); a ground
+    # height of 1e300 [m] (ekf-vo002, ekf-flow002) gave exit 0 without an estimate.
     "quality_min": (None, 1.0),
     "height_min": (None, 100.0),
     "outlier_rad": (1e-2, None),
+    "tof_outlier_m": (0.05, None),
     "ground_height": (-1e4, 1e4),
 }
 

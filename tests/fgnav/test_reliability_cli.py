@@ -503,6 +503,7 @@ def test_one_prior_source_may_be_a_string():
         ("[cf-ekf]\nquality_min = 1e300\n", "quality_min = 1e+300: expected <= 1"),
         ("[ekf-flow002]\nheight_min = 1e300\n", "height_min = 1e+300: expected <= 100"),
         ("[cf-ekf]\noutlier_rad = 0\n", "option outlier_rad = 0: expected >= 0.01"),
+        ("[cf-ekf]\ntof_outlier_m = 1e-300\n", "tof_outlier_m = 1e-300: expected >= 0.05"),
         ("[ekf-vo002]\nground_height = 1e300\n", "ground_height = 1e+300: expected in [-1"),
         ("[ekf-flow002]\nground_height = 1e300\n", "ground_height = 1e+300: expected in"),
     ],
