@@ -102,6 +102,9 @@ BUFFER_S = 2.0
 RANSAC_METHODS = ("RANSAC", "USAC_DEFAULT", "USAC_FAST", "USAC_ACCURATE", "USAC_MAGSAC")
 
 #: Reasons a pair can be rejected (keys of :attr:`VOResult.counts`).
+# Frames all of a wrong size (none of the camera's size yet) that make the second warning.
+WRONG_SIZE_ALL_FRAMES = 5
+
 REJECT_REASONS = (
     "no_attitude",
     "no_height",
@@ -1309,6 +1312,8 @@ class HomographyVoStage:
         self._world_t_cam: np.ndarray | None = None
         self._world_R_body: np.ndarray | None = None
         self._psi = 0.0
+        self._size_bad = 0  # frames of another size than the camera's
+        self._size_good = False  # a frame of the camera's size has been seen
         # Outputs.
         self.counts: Counter[str] = Counter()
         self.measurements: list[HomographyMeasurement] = []
@@ -1381,6 +1386,9 @@ class HomographyVoStage:
                     logger.warning("%s: %s; skipped, counted as unreadable_image", self.name, e)
                 self.counts["unreadable_image"] += 1
                 return self._reject_frame(k, t, "unreadable_image", count=False)
+            if not self._size_ok(k, image):
+                self.counts["unreadable_image"] += 1
+                return self._reject_frame(k, t, "unreadable_image", count=False)
         else:
             return self._reject_frame(k, t, reason)
         if self._height_ref is None:
@@ -1442,6 +1450,40 @@ class HomographyVoStage:
         self._append_pose(t, body_height)
         self._ref = cur
         return m
+
+    def _size_ok(self, k: int, image: np.ndarray) -> bool:
+        """True when ``image`` has the camera's size. A frame of another size (another camera, a
+        resized file) would be tracked against the reference with the wrong camera matrix (or
+        abort OpenCV's optical flow): it is skipped and counted as ``unreadable_image``, with
+        one warning naming the sizes, and one more if every frame so far had a wrong size."""
+        cam = self.camera
+        shape = tuple(np.shape(image)[:2])
+        if np.ndim(image) in (2, 3) and shape == (int(cam.height), int(cam.width)):
+            self._size_good = True
+            return True
+        self._size_bad += 1
+        got = f"{shape[1]}x{shape[0]}" if len(shape) == 2 else f"shape {np.shape(image)}"
+        if self._size_bad == 1:
+            logger.warning(
+                "%s: image %d is %s px, the calibration's camera is %dx%d px; skipped, counted "
+                "as unreadable_image",
+                self.name,
+                k,
+                got,
+                cam.width,
+                cam.height,
+            )
+        if not self._size_good and self._size_bad == WRONG_SIZE_ALL_FRAMES:
+            logger.warning(
+                "%s: every image so far (%d) is %s px, not the calibration's %dx%d px: the "
+                "calibration is not this camera's; no frame is used",
+                self.name,
+                self._size_bad,
+                got,
+                cam.width,
+                cam.height,
+            )
+        return False
 
     def _reject_frame(self, k: int, t: float, reason: str, count: bool = True):
         if count:
@@ -1607,9 +1649,13 @@ class HomographyVoStage:
         """
         counts = self.counts
         if not self._posed:
+            if counts["frames"] and counts["unreadable_image"] == counts["frames"]:
+                why = "every image unreadable or not of the calibration camera's size"
+            else:
+                why = "no attitude/height at any image time"
             raise FlightDataError(
-                f"{self.name}: homography VO posed no frame of {counts['frames']} (no "
-                f"attitude/height at any image time: {dict(counts)})"
+                f"{self.name}: homography VO posed no frame of {counts['frames']} ({why}: "
+                f"{dict(counts)})"
             )
         counts["posed_frames"] = len(self._posed)
         for key in ("frames", "pairs", "valid_pairs", "gaps", *REJECT_REASONS):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import ImageFrame, replay_flight
 from fgnav.datasets.geometry import make_pose, matrix_to_quat_wxyz, rpy_to_matrix, yaw_of
 from fgnav.datasets.types import (
@@ -449,6 +450,47 @@ def test_stage_frame_by_frame_equals_the_batch_path(texture):
     t, T, _ = stage.latest_pose()
     assert t == flight.images.t[-1]
     np.testing.assert_array_equal(T[:3, 3], batch.estimate.trajectory.world_t_body[-1])
+
+
+def test_stage_skips_and_counts_a_frame_of_another_size(texture, caplog):
+    """A frame whose size is not the camera's (here half size, from a file: no size check
+    upstream) is skipped and counted as ``unreadable_image`` with one warning naming the sizes;
+    it aborted OpenCV's optical flow before. Every frame of a wrong size: one more warning, no
+    frame posed."""
+    import logging
+
+    flight, height = rendered_flight(texture, n=8)
+    world_R_body, _ = interpolate_attitude(flight.attitude, flight.images.t, 0.25)
+
+    def frames(small):
+        for k in range(len(flight.images)):
+            img = flight.images.frames[k]
+            if k in small:
+                img = cv2.resize(img, (CAM.width // 2, CAM.height // 2))
+            t = float(flight.images.t[k])
+            yield k, ImageFrame(t, t, k, CAM, image=img)
+
+    stage = HomographyVoStage(flight.calib, CAM)
+    with caplog.at_level(logging.WARNING, logger="fgnav.frontends.homography_vo"):
+        out = [stage.process(f, world_R_body[k], float(height.value[k])) for k, f in frames({3})]
+    assert stage.counts["unreadable_image"] == 1
+    assert out[3].reason == "unreadable_image" and not out[3].valid
+    assert out[4].index_i == 2 and out[4].valid  # the next frame pairs with the last good one
+    assert stage.counts["valid_pairs"] == 6
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 1
+    assert "image 3 is 160x120 px, the calibration's camera is 320x240" in msgs[0]
+
+    caplog.clear()
+    stage = HomographyVoStage(flight.calib, CAM)
+    with caplog.at_level(logging.WARNING, logger="fgnav.frontends.homography_vo"):
+        for k, f in frames(set(range(8))):
+            assert stage.process(f, world_R_body[k], float(height.value[k])) is None
+    assert stage.counts["unreadable_image"] == 8
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 2 and "every image so far (5) is 160x120 px" in msgs[1]
+    with pytest.raises(FlightDataError, match="not of the calibration camera's size"):
+        stage.result()
 
 
 @pytest.fixture(scope="module")
