@@ -403,6 +403,83 @@ def flow_sensor_height(
     return float(range_m * cos_range - (R @ body_T_range[:3, 3])[2] + (R @ body_T_flow[:3, 3])[2])
 
 
+#: Reasons a reading itself is rejected (not its window's height or tilt gate).
+READING_REJECT_REASONS = ("non-finite", "bad-interval", "gated:quality", "implausible-rate")
+#: Sensor time [s] over which every flow reading rejected makes a warning.
+FLOW_ALL_REJECTED_S = 5.0
+
+
+class FlowRejectWatch:
+    """Tells when a flow stream is rejected entirely: once every reading over
+    :data:`FLOW_ALL_REJECTED_S` of sensor time has been rejected by its own gates (quality,
+    interval, rate, non-finite; not the window's height or tilt gate), one warning naming the
+    counts by reason. Fed the readings of each window in time order (:meth:`add`; a window not
+    newer than the last is ignored, so a rebuild does not count twice).
+
+    :meth:`report` (``info["flow_all_rejected"]`` online, ``info["flow"]["all_rejected"]`` in
+    batch): None while a usable reading came within every span, else the first run of rejected
+    readings: ``since_s``, ``until_s`` (sensor time), ``readings``, ``reasons`` (counts), and
+    ``runs`` (how many such runs).
+    """
+
+    def __init__(self, name: str = "flow", span_s: float = FLOW_ALL_REJECTED_S) -> None:
+        self.name = name
+        self.span_s = float(span_s)
+        self._last = -math.inf
+        self._start: float | None = None
+        self._n = 0
+        self._reasons: Counter[str] = Counter()
+        self._first: dict[str, Any] | None = None
+        self._runs = 0
+        self._counted = False  # the current run has been counted in _runs
+
+    def add(self, t_first: float, t_last: float, n: int, skipped: dict[str, int]) -> None:
+        """A window of ``n`` readings from ``t_first`` to ``t_last`` [s] and its skip counts."""
+        if n <= 0 or not t_last > self._last:
+            return
+        self._last = float(t_last)
+        rejected = {r: int(skipped.get(r, 0)) for r in READING_REJECT_REASONS if skipped.get(r)}
+        if sum(rejected.values()) < n:
+            self._start, self._n, self._reasons, self._counted = None, 0, Counter(), False
+            return
+        if self._start is None:
+            self._start = float(t_first)
+        self._n += n
+        self._reasons.update(rejected)
+        if self._last - self._start < self.span_s:
+            return
+        if not self._counted:
+            self._counted = True
+            self._runs += 1
+        if self._first is None:
+            log.warning(
+                "%s: every flow reading rejected for %.1f s (%.2f-%.2f s, %d readings: %s); the "
+                "flow stream is not used",
+                self.name,
+                self._last - self._start,
+                self._start,
+                self._last,
+                self._n,
+                ", ".join(f"{r} {c}" for r, c in sorted(self._reasons.items())),
+            )
+        if self._first is None or self._first["since_s"] == self._start:
+            self._first = {
+                "since_s": self._start,
+                "until_s": self._last,
+                "readings": self._n,
+                "reasons": dict(self._reasons),
+            }
+
+    def restart(self) -> None:
+        """A new run of the stream (the smoother reset, its clock may restart): the current run
+        ends; the report of the first one is kept."""
+        self._last = -math.inf
+        self._start, self._n, self._reasons, self._counted = None, 0, Counter(), False
+
+    def report(self) -> dict[str, Any] | None:
+        return None if self._first is None else {**self._first, "runs": self._runs}
+
+
 class FlowFactors:
     """The flow windows of one flight, for :class:`fgnav.solvers.graph.GraphBuilder`.
 
@@ -423,6 +500,7 @@ class FlowFactors:
         self.by_keyframe: dict[int, np.ndarray] = {}
         self.height: dict[int, float | None] = {}
         self.counts: Counter[str] = Counter()
+        self.watch = FlowRejectWatch(flight.name)
 
     def associate(self, t_kf: np.ndarray, R_kf: np.ndarray) -> None:
         """Keyframe window of every reading and the flow-sensor height at each keyframe."""
@@ -516,6 +594,10 @@ class FlowFactors:
         )
         for reason, n in res.skipped.items():
             self._skip(f"flow:{reason}", n)
+        idx = self.by_keyframe.get(k)
+        if idx is not None and len(idx):
+            t = self.flow.t[idx]
+            self.watch.add(float(t.min()), float(t.max()), len(idx), res.skipped)
         if res.factor is not None:
             self.counts["flow-readings-used"] += res.n_used
         return res
@@ -551,4 +633,8 @@ class FlowFactors:
         return out
 
     def report(self) -> dict[str, Any]:
-        return {"options": dataclasses.asdict(self.options), **dict(self.counts)}
+        return {
+            "options": dataclasses.asdict(self.options),
+            **dict(self.counts),
+            "all_rejected": self.watch.report(),
+        }

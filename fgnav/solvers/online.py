@@ -191,7 +191,7 @@ from fgnav.solvers.fixed_lag import (
     rebuild_state_priors,
     try_move_window,
 )
-from fgnav.solvers.flow import flow_sensor_height
+from fgnav.solvers.flow import FlowRejectWatch, flow_sensor_height
 from fgnav.solvers.graph import (
     ACCEL_CHECK_MAX_TILT_DEG,
     GROUND_EPOCH_STRIDE,
@@ -640,6 +640,7 @@ class OnlineSmoother:
         self._trans_rw = go.slam_trans_rw_m if o.slam_trans_rw_m is None else o.slam_trans_rw_m
         self._scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
         self.name = name
+        self._flow_watch = FlowRejectWatch(name)  # a flow stream rejected entirely (kept on reset)
         if self.go.slam_model not in ("auto", "sim3", "axis"):
             raise FlightDataError(
                 f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
@@ -886,6 +887,7 @@ class OnlineSmoother:
             },
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
+            "flow_all_rejected": self._flow_watch.report(),
             "slam_rotation_convention": self._slam_conv,
             "slam_provisional_scales": list(self._prov_scales),
             "frontend_prior_stage": self._prior_report(),
@@ -964,6 +966,7 @@ class OnlineSmoother:
         self._vo_links: deque = deque()  # (t_i, t_j, H or None, inliers, rms) of the VO pairs
         self._hchain: list | None = None  # [keyframe, t end, H, inliers, sum rms^2, links]
         self._flow_done_t = -math.inf  # end of the last flow window made into a factor
+        self._flow_watch.restart()
         self._pending: list[tuple[int, str, Any]] = []  # (keyframe, kind, payload)
         self.sessions: dict[int, _Session] = {}
         self.values: dict[int, Any] = {}  # last good estimate of live keys
@@ -2094,6 +2097,8 @@ class OnlineSmoother:
         )
         for reason, n in res.skipped.items():
             self._drop(f"flow:{reason}", n)
+        ts = [r.t for r in samples]
+        self._flow_watch.add(min(ts), max(ts), len(samples), res.skipped)
         if res.factor is None or gk not in self.values or not self._alive(gk):
             if res.factor is not None:
                 self._drop("flow:late", res.n_used)

@@ -18,6 +18,7 @@ from fgnav.keys import G, V, X
 from fgnav.solvers.batch import BatchOptions, solve_batch
 from fgnav.solvers.flow import (
     FlowFactorOptions,
+    FlowRejectWatch,
     flow_keyframe_factor,
     flow_options,
     flow_sensor_height,
@@ -163,6 +164,7 @@ def test_builder_uses_flow_by_default_and_counts_skips(noisy_flight):
     assert rep["factors"]["flow"] >= 0.98 * b.K
     used = rep["flow"]["flow-readings-used"]
     assert used + sum(v for k, v in rep["skipped"].items() if k.startswith("flow:")) == len(f.flow)
+    assert rep["flow"]["all_rejected"] is None
     # Off when asked; refused without the rangefinder.
     assert GraphBuilder(f, GraphOptions(use_flow=False)).flow is None
     with pytest.raises(ObservabilityError, match="rangefinder"):
@@ -199,3 +201,54 @@ def test_batch_with_flow_and_range_observes_velocity_and_flow_helps(noisy_flight
         GraphBuilder(f, GraphOptions(use_flow=False, use_drag=False))
     no_drag = solve_batch(f, BatchOptions(graph=GraphOptions(use_drag=False), covariance="none"))
     assert _hvel_rmse(no_drag, f) < HVEL_RMSE_FLOW_BOUND
+
+
+def test_reject_watch_warns_once_when_every_reading_is_rejected_for_5_s(caplog):
+    """Windows of 10 readings every 0.1 s: all rejected from 1 s on -> one warning at 6 s naming
+    the counts; a window with a usable reading ends the run; a second run is counted, not
+    warned again; a window not newer than the last (a rebuild) is ignored."""
+    import logging
+
+    w = FlowRejectWatch("f")
+    with caplog.at_level(logging.WARNING, logger="fgnav.solvers.flow"):
+        for i in range(10):  # usable
+            w.add(0.1 * i, 0.1 * i + 0.09, 10, {"gated:quality": 3})
+        for i in range(10, 100):
+            w.add(0.1 * i, 0.1 * i + 0.09, 10, {"gated:quality": 6, "bad-interval": 4})
+            w.add(0.1 * i, 0.1 * i + 0.09, 10, {"gated:quality": 6, "bad-interval": 4})  # again
+            if i < 60:
+                assert w.report() is None
+        assert [r.getMessage() for r in caplog.records] == [
+            "f: every flow reading rejected for 5.1 s (1.00-6.09 s, 510 readings: bad-interval "
+            "204, gated:quality 306); the flow stream is not used"
+        ]
+        # Window gating (height, tilt) is not a rejection of the readings.
+        w.add(10.0, 10.09, 10, {"gated:height": 10})
+        for i in range(101, 170):
+            w.add(0.1 * i, 0.1 * i + 0.09, 5, {"non-finite": 5})
+    assert len(caplog.records) == 1
+    rep = w.report()
+    assert rep["since_s"] == 1.0 and rep["readings"] == 900 and rep["runs"] == 2
+    assert rep["reasons"] == {"gated:quality": 540, "bad-interval": 360}
+
+
+def test_builder_reports_a_flow_stream_rejected_entirely(noisy_flight, caplog):
+    """Quality 0 on every reading: one warning and ``info["flow"]["all_rejected"]``."""
+    import dataclasses
+    import logging
+
+    fl = noisy_flight.flow
+    f = dataclasses.replace(
+        noisy_flight, flow=dataclasses.replace(fl, quality=np.zeros_like(fl.quality))
+    )
+    b = GraphBuilder(f, GraphOptions())
+    with caplog.at_level(logging.WARNING, logger="fgnav.solvers.flow"):
+        b.build()
+        b.build()
+    msgs = [
+        r.getMessage() for r in caplog.records if "every flow reading rejected" in r.getMessage()
+    ]
+    assert len(msgs) == 1
+    rep = b.report()["flow"]["all_rejected"]
+    assert rep["runs"] == 1 and set(rep["reasons"]) == {"gated:quality"}
+    assert rep["until_s"] - rep["since_s"] > 15.0
