@@ -130,6 +130,7 @@ DETECTORS = (
     "body_T_cam-rotation",
     "terrain-step",
     "divergence",
+    "slam-scale-nonpositive",
 )
 
 
@@ -994,6 +995,12 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
             "terrain-step",
             f"the ground under the rangefinder steps by {jump:+.2f} m at t={t_step:.2f} s: "
             "the ground height starts anew there",
+        )
+    for sess, k in sorted((info.get("slam_axis_scale_nonpositive") or {}).items()):
+        det.named(
+            "slam-scale-nonpositive",
+            f"SLAM session {sess}: per-axis scale {', '.join(f'{v:.4g}' for v in k)} SLAM units "
+            "per metre, not positive on every axis",
         )
     rep = det.report()
     n_sat = (info.get("factors") or {}).get("imu-saturated-intervals", 0)

@@ -113,6 +113,9 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
             if sid in metrics.scale_mean_abs_err_pct:
                 err += f", mean |error| over time {metrics.scale_mean_abs_err_pct[sid]:.2f} %"
             err += ")"
+        axes = (est.info.get("slam_axis_scale_nonpositive") or {}).get(sid)
+        if axes is not None:
+            sig_txt += f" (per-axis {', '.join(f'{v:.5g}' for v in axes)}: not all positive)"
         print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
         k = ", ".join(f"{v:.4f}" for v in np.atleast_1d(est.drag_k))

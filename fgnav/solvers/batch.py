@@ -405,6 +405,18 @@ def estimate_from_values(
     return Estimate(method=method, trajectory=traj, info=builder.report())
 
 
+def axis_scale_summary(k: np.ndarray, sigma: np.ndarray) -> tuple[float, float | None]:
+    """A session's scale from its per-axis scales ``k`` (3,) and their sigmas (3,): the geometric
+    mean (the cube root of the product, negative when an odd number of axes are) and its sigma
+    (first order, never negative; None when a sigma is unknown or an axis is 0)."""
+    k = np.asarray(k, float)
+    sigma = np.asarray(sigma, float)
+    s = float(np.cbrt(np.prod(k)))
+    if not (np.all(np.isfinite(sigma)) and np.all(k != 0)):
+        return s, None
+    return s, float(abs(s) * np.sqrt(np.sum((sigma / k) ** 2)) / 3.0)
+
+
 def _with_slow(
     builder: GraphBuilder, values: gtsam.Values, est: Estimate, sigma: dict[int, np.ndarray]
 ) -> Estimate:
@@ -413,6 +425,7 @@ def _with_slow(
 
     series: dict[str, TimeSeries] = dict(est.series)
     scale, scale_sigma = {}, {}
+    nonpositive: dict[int, list[float]] = {}  # session -> its final per-axis scales
     t_kf = builder.t_kf
     if builder.use_slam:
         if builder.slam_model == "axis":
@@ -430,9 +443,13 @@ def _with_slow(
                 sg = sigma.get(S(j))
                 sgs.append(np.full(3, np.nan) if sg is None else np.asarray(sg, float)[:3])
                 k, sg = ks[-1], sgs[-1]
-                scale[sess] = float(np.cbrt(np.prod(k)))
-                if np.all(np.isfinite(sg)):
-                    scale_sigma[sess] = float(scale[sess] * np.sqrt(np.sum((sg / k) ** 2)) / 3.0)
+                scale[sess], s_sig = axis_scale_summary(k, sg)
+                if s_sig is not None:
+                    scale_sigma[sess] = s_sig
+                if not np.all(k > 0):
+                    nonpositive[sess] = [float(v) for v in k]
+                else:
+                    nonpositive.pop(sess, None)
             if ks:
                 order = np.argsort(ts, kind="stable")
                 series["slam_axis_scale"] = TimeSeries(
@@ -490,8 +507,21 @@ def _with_slow(
             series["ground_height"] = TimeSeries(
                 t_seg, vals, None if any(x is None for x in sg) else np.array([x[0] for x in sg])
             )
+    info = est.info
+    if nonpositive:
+        for sess, k in sorted(nonpositive.items()):
+            log.warning(
+                "%s: SLAM session %d: per-axis scale %s SLAM units per metre: not positive on "
+                "axis %s (the SLAM alignment failed; the scale summary is meaningless)",
+                builder.flight.name,
+                sess,
+                ", ".join(f"{v:.4g}" for v in k),
+                ", ".join("xyz"[i] for i in range(3) if not k[i] > 0),
+            )
+        info = {**info, "slam_axis_scale_nonpositive": {int(s): k for s, k in nonpositive.items()}}
     return replace(
         est,
+        info=info,
         slam_scale=scale,
         slam_scale_sigma=scale_sigma,
         drag_k=drag_k,

@@ -604,3 +604,32 @@ def test_a_dead_accelerometer_is_named_and_its_intervals_down_weighted():
         assert est.info["health"]["detectors"]["imu-dead"] == dead.sum()  # every dead sample
         assert est.info["health"]["status"] == "ok"
         assert flow_figures(est, g.ground_truth)["ate_m"] < bound, method
+
+
+def test_batch_nonpositive_axis_scale_is_a_named_fault():
+    """A per-axis SLAM scale <= 0 (a failed alignment: 'scale -0.079441 +/- -0.082', health ok
+    before): the summary's sigma is not negative and the batch health names it."""
+    from types import SimpleNamespace
+
+    from fgnav.health import check_batch
+    from fgnav.solvers.batch import axis_scale_summary
+
+    s, sig = axis_scale_summary(np.array([0.2, -0.05, 0.05]), np.array([0.01, 0.02, 0.01]))
+    assert s == pytest.approx(-np.cbrt(0.0005)) and sig > 0
+    assert axis_scale_summary(np.array([0.2, 0.0, 0.1]), np.full(3, 0.01))[1] is None
+    s, sig = axis_scale_summary(np.array([0.2, 0.2, 0.2]), np.array([0.02, 0.0, 0.0]))
+    assert (s, sig) == (pytest.approx(0.2), pytest.approx(0.02 / 3))
+
+    f = simulate("hover", seed=0, options=SimOptions(images=False, duration=3.0))
+    est = SimpleNamespace(
+        method="batch",
+        trajectory=f.ground_truth,
+        slam_scale={0: s},
+        info={"slam_axis_scale_nonpositive": {0: [0.2, -0.05, 0.05]}},
+    )
+    health = check_batch(f, est)
+    assert health["detectors"] == {"slam-scale-nonpositive": 1}
+    assert "not positive on every axis" in health["details"]["slam-scale-nonpositive"][0]
+    assert "slam-scale-nonpositive 1" in health_line(health)
+    est.info = {}
+    assert not check_batch(f, est)["detectors"]
