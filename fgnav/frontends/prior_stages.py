@@ -43,6 +43,7 @@ the seed-000 baseline does); the stage is rebuilt, not carried, when the smoothe
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections import deque
 from collections.abc import Callable
@@ -73,9 +74,20 @@ ML_SCALE_SIGMAS = (0.015, 0.02)
 ~1 cm at scale ~1 at both ends; rangefinder height after the vertical filter ~2 cm
 (scripts/reproduce_seed004.py uses the same)."""
 
+log = logging.getLogger(__name__)
+
 ATTITUDE_WAIT_S = 0.5
 """Without an attitude sample by this long after the first IMU sample the stage runs the
 attitude EKF [s]."""
+
+ATTITUDE_STALL_S = 1.0
+"""An attitude stream silent for this long of IMU time (the stage holding IMU samples for it)
+is declared stopped: one warning, and the attitude EKF takes over from the held samples on [s]."""
+
+HOLD_MAX_S = 10.0
+"""Input held unprocessed (IMU samples waiting for their attitude, range readings and SLAM poses
+waiting for the IMU) is dropped, counted, once older than this behind the newest of its stream
+[s]: the buffers stay bounded whatever stops."""
 
 HISTORY_S = 10.0
 """Attitude, height and velocity kept for late queries [s]."""
@@ -271,6 +283,8 @@ class FrontendPriorStage:
             self._imu.append(ev)
             self._feed_ekf(ev)
             self._decide()
+            self._check_stall(t)
+            self._trim(self._imu, t, "imu_held_too_long", lambda e: e.t)
             self._drain()
         elif isinstance(ev, AttitudeSample):
             q = np.asarray(ev.world_q_body_wxyz, dtype=float)
@@ -279,12 +293,19 @@ class FrontendPriorStage:
                 return
             if not np.all(np.isfinite(q)):
                 return
+            if self._mode == "ekf":
+                # (after the stream stopped and the EKF took over: not used)
+                self._count("attitude_after_fallback")
+                return
             self._att.append((float(ev.t), q / np.linalg.norm(q)))
+            if len(self._att) > 2 and self._att[1][0] < float(ev.t) - HOLD_MAX_S:
+                self._att.popleft()  # (no IMU to interpolate for: the IMU stopped)
             self._decide()
             self._drain()
         elif isinstance(ev, RangeReading):
             if math.isfinite(ev.range):
                 self._range.append((float(ev.t), float(ev.range)))
+                self._trim(self._range, float(ev.t), "range_held_too_long", lambda r: r[0])
             self._feed_ekf(ev)
         elif isinstance(ev, YawReading):
             self._feed_ekf(ev)
@@ -293,6 +314,7 @@ class FrontendPriorStage:
                 self.stepper.add_slam(ev.t, ev.slam_t_cam, ev.slam_q_cam_wxyz, ev.session)
             if self.use_ml:
                 self._slam_ml.append(ev)
+                self._trim(self._slam_ml, float(ev.t), "ml_slam_held_too_long", lambda e: e.t)
 
     def flush(self) -> None:
         """The end of the input: process the IMU samples still held (the last one without a
@@ -415,6 +437,38 @@ class FrontendPriorStage:
         elif final or self._t_last_imu >= self._t_first + ATTITUDE_WAIT_S:
             self._mode = "ekf"
 
+    def _trim(self, buf: deque, t: float, key: str, t_of: Callable[[Any], float]) -> None:
+        """Drop (counted as ``key``) what ``buf`` has held for more than ``HOLD_MAX_S`` behind
+        ``t``."""
+        while buf and t_of(buf[0]) < t - HOLD_MAX_S:
+            buf.popleft()
+            self._count(key)
+
+    def _check_stall(self, t: float) -> None:
+        """The attitude stream stopped (no sample for ``ATTITUDE_STALL_S`` of IMU time while IMU
+        samples wait for it): one warning, and the attitude EKF takes over, fed the held IMU
+        samples (it starts afresh: its start window's samples are dropped, counted as
+        ``imu_without_attitude``)."""
+        if self._mode != "stream" or not self._att or not self._imu:
+            return
+        t_att = self._att[-1][0]
+        if not (float(self._imu[0].t) > t_att and t - t_att > ATTITUDE_STALL_S):
+            return
+        log.warning(
+            "%s: the attitude stream stopped at t=%.3f s (no sample for %.1f s of IMU time): "
+            "the attitude EKF takes over",
+            self.name,
+            t_att,
+            t - t_att,
+        )
+        self._count("attitude_stream_stopped")
+        self._mode = "ekf"
+        self._att = deque()
+        self._ekf = AttitudeEkfStage(self.calib, name=f"{self.name}.attitude")
+        self._ekf_q = deque()
+        for ev in self._imu:
+            self._feed_ekf(ev)
+
     def _attitude(self, t: float, final: bool) -> np.ndarray | None:
         """``world_q_body_wxyz`` at IMU time ``t``, or None while it cannot be known yet."""
         if self._mode == "stream":
@@ -446,7 +500,7 @@ class FrontendPriorStage:
             t = float(ev.t)
             q = self._attitude(t, final)
             if q is None:
-                if final and self._mode == "ekf":
+                if self._mode == "ekf" and (final or (self._ekf_q and self._ekf_q[0][0] > t)):
                     self._imu.popleft()  # the EKF never gave this sample (its start window)
                     self._count("imu_without_attitude")
                     continue

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
-from fgnav.datasets.events import flight_streams, replay, replay_flight
+from fgnav.datasets.events import ImuSample, flight_streams, replay, replay_flight
 from fgnav.datasets.geometry import interpolate_quat_wxyz
 from fgnav.datasets.simulate import SimOptions, simulate
 
@@ -115,6 +115,49 @@ def test_stage_without_attitude_stream_runs_the_attitude_ekf(vertical):
     assert stage.all_counts.get("attitude_ekf") == 1
     assert stage.velocity_at(20.0, 0.05) is not None
     assert stage.scale(0) is not None
+
+
+def test_attitude_stream_that_stops_hands_over_to_the_ekf_and_buffers_stay_bounded(
+    vertical, caplog
+):
+    """The attitude stream stops at 6 s: the stage waited for it for ever (IMU, range and SLAM
+    buffered without bound, no output after 6 s). Now, after 1 s of IMU time without it: one
+    warning, the attitude EKF takes over, the stage keeps up; and with the IMU stopping too, the
+    range and SLAM buffers stay bounded."""
+    import logging
+
+    from fgnav.frontends.prior_stages import HOLD_MAX_S
+
+    att = vertical.attitude
+    keep = att.t <= 6.0
+    fl = dataclasses.replace(
+        vertical,
+        attitude=dataclasses.replace(
+            att, t=att.t[keep], world_q_body_wxyz=att.world_q_body_wxyz[keep]
+        ),
+    )
+    stage = FrontendPriorStage(fl.calib, _opts(fl))
+    with caplog.at_level(logging.WARNING, logger="fgnav.frontends.prior_stages"):
+        for ev in replay_flight(fl, ("imu", "attitude", "range", "yaw", "slam")):
+            stage.feed(ev)
+            assert len(stage._imu) < 2000 and len(stage._range) < 500
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 1 and "the attitude stream stopped at t=6.000 s" in msgs[0]
+    assert stage.attitude_mode == "ekf" and stage.counts["attitude_stream_stopped"] == 1
+    assert stage._t_done > 29.9
+    assert stage.velocity_at(25.0, 0.05) is not None
+    sc = stage.scale(0)
+    full, _ = _feed(vertical, _opts(vertical))
+    assert sc is not None and abs(sc[0] / full.scale(0)[0] - 1) < 0.02
+    # The IMU stops at 5 s as well: what arrives after is held at most HOLD_MAX_S.
+    stage = FrontendPriorStage(fl.calib, _opts(fl))
+    for ev in replay_flight(fl, ("imu", "attitude", "range", "yaw", "slam")):
+        if isinstance(ev, ImuSample) and ev.t > 5.0:
+            continue
+        stage.feed(ev)
+    assert stage._range[-1][0] - stage._range[0][0] <= HOLD_MAX_S
+    assert stage._slam_ml[-1].t - stage._slam_ml[0].t <= HOLD_MAX_S
+    assert stage.counts["range_held_too_long"] > 0 and stage.counts["ml_slam_held_too_long"] > 0
 
 
 def test_prior_options_from_table():
