@@ -27,12 +27,14 @@ fits the IMU-to-airframe rotation from the two attitude sources.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from ._files import read_text
 from .errors import FlightFormatError
 from .frames import align_rotation_sequences, ned_R_frd_to_world_R_body, ned_to_enu
 from .geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix, rpy_to_matrix
@@ -72,15 +74,7 @@ MAX_YAW_STEP_DEG = 30.0
 
 def _read_csv(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
     """Columns by header name (header cells stripped); every cell of a required column numeric."""
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
-    except UnicodeDecodeError as exc:
-        raise FlightFormatError(
-            path, f"not a text file: byte {exc.start} is not UTF-8 ({exc.reason})"
-        ) from None
-    except OSError as exc:
-        raise FlightFormatError(path, f"cannot read ({exc})") from exc
+    rows = list(csv.reader(io.StringIO(read_text(path).removeprefix("\ufeff"))))
     if not rows:
         raise FlightFormatError(path, "empty file", 1)
     if len(rows) < 2:

@@ -4,7 +4,7 @@ Each baseline passes the events it is fed through :class:`Inputs` before its mod
 
 * An IMU sample that is no measurement is not used, counted by reason: ``imu:bad-shape``,
   ``imu:non-finite``, ``imu:implausible`` (a rate or specific force beyond
-  :data:`~fgnav.solvers.measurements.IMU_MAX_RATE` / ``IMU_MAX_ACCEL``, the bound of the push-API
+  :data:`~fgnav.datasets.types.IMU_MAX_RATE` / ``IMU_MAX_ACCEL``, the bound of the push-API
   smoother). One such sample integrated by a filter had moved its state so far that its
   innovation gate refused every later SLAM pose.
 * An IMU gap longer than :data:`IMU_GAP_S` (the smoothers' ``max_imu_gap_s`` default) is counted
@@ -30,7 +30,7 @@ from typing import Any
 
 from fgnav.coverage import TRUNCATED_STREAM_S
 from fgnav.datasets.events import STREAM_OF_EVENT, Event, ImuSample
-from fgnav.solvers.measurements import IMU_MAX_ACCEL, IMU_MAX_RATE
+from fgnav.datasets.types import IMU_MAX_ACCEL, IMU_MAX_RATE
 
 log = logging.getLogger(__name__)
 

@@ -36,16 +36,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from fgnav.baselines._inputs import IMU_GAP_S
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.events import STREAM_OF_EVENT, Event, ImuSample, RangeReading, SlamPose
 from fgnav.datasets.geometry import make_pose, quat_wxyz_to_matrix
 from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
-#: An IMU stamp back by more than this [s], or ahead by more than ``IMU_GAP_S``, waits for the
-#: next sample to decide it (the push engine's ``clock_jump_s`` and ``max_imu_gap_s`` defaults).
+#: An IMU stamp back by more than this [s], or ahead by more than the filters' ``IMU_GAP_S``,
+#: waits for the next sample to decide it (the push engine's ``clock_jump_s`` and
+#: ``max_imu_gap_s`` defaults).
 CLOCK_JUMP_S = 1.0
-IMU_GAP_S = 0.5
 OUTPUT_RESTART_S = 1.0
 """A filter's output schedule starts again at a stamp this far (or one output interval, if
 longer) before the next output [s]."""

@@ -26,16 +26,9 @@ from fgnav.datasets.geometry import (
     yaw_of,
 )
 from fgnav.datasets.slam_gyro import pose_pairs
-from fgnav.datasets.types import IMU_MAX_ACCEL as _IMU_MAX_ACCEL
-from fgnav.datasets.types import IMU_MAX_RATE as _IMU_MAX_RATE
 from fgnav.datasets.types import AttitudeSeries, ImuSeries, SlamSeries
 
 log = logging.getLogger(__name__)
-
-#: Largest IMU sample taken [rad/s, m/s^2] (defined beside the series,
-#: :data:`fgnav.datasets.types.IMU_MAX_RATE`): the readers, the push-API smoother
-#: (``imu:implausible``) and the filter baselines (:mod:`fgnav.baselines._inputs`) drop larger.
-IMU_MAX_RATE, IMU_MAX_ACCEL = _IMU_MAX_RATE, _IMU_MAX_ACCEL
 
 
 # ----------------------------------------------------------------------------------------------
