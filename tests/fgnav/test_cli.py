@@ -58,3 +58,25 @@ def test_verbose_flag_adds_debug_lines():
     assert log_levels(parser.parse_args(["-vv", "info", "x"]).verbose) == (logging.DEBUG, None)
     r = run_cli("--help")
     assert "fgnav's DEBUG lines" in " ".join(r.stdout.split())
+
+
+def test_python_dash_m_fgnav_is_the_command():
+    """``python -m fgnav`` runs the same CLI as ``fgnav`` (it said "No module named
+    fgnav.__main__" before); an unknown command exits 2 as argparse does."""
+    import subprocess
+    import sys
+
+    from testutil import PROJECT_ROOT
+
+    r = subprocess.run(
+        [sys.executable, "-m", "fgnav", "--help"], capture_output=True, text=True, cwd=PROJECT_ROOT
+    )
+    assert r.returncode == 0, r.stderr
+    assert "usage: fgnav" in r.stdout and "simulate" in r.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "fgnav", "no-such-command"],
+        capture_output=True,
+        text=True,
+        cwd=PROJECT_ROOT,
+    )
+    assert bad.returncode == 2
