@@ -35,6 +35,7 @@ def options_from(
     table: dict[str, Any],
     source: str = "config",
     section: str | None = None,
+    elsewhere: tuple[str, ...] = (),
     **overrides,
 ) -> T:
     """Build options dataclass ``cls`` from a config table plus non-None overrides.
@@ -43,14 +44,17 @@ def options_from(
     checked against the field's declaration (:func:`option_type_problem`: a bool for a switch, a
     number for a float, an integer for an int, a list of the declared length for a tuple, a
     table for nested options), then its value by :func:`option_value_problem` (the error names
-    the option, the file and table or the flag).
+    the option, the file and table or the flag). ``elsewhere``: fields that come from tables
+    of their own (``graph`` of ``[online]`` is ``[graph]``), left out of the valid names shown.
     """
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - names)
     where = f"{source} [{section}]" if section else source
     if unknown:
         raise FlightFormatError(
-            where, f"unknown option(s) {unknown} for {cls.__name__}; valid: {sorted(names)}"
+            where,
+            f"unknown option(s) {unknown} for {cls.__name__}; "
+            f"valid: {sorted(names - set(elsewhere))}",
         )
     kwargs = dict(table)
     given = {k: v for k, v in overrides.items() if v is not None}

@@ -227,7 +227,15 @@ def _options(cls: type, config: Mapping[str, Any], section: str, **overrides) ->
     # flag's value as coming from the command line.
     flagged = {k: table.pop(k) for k in config.get(FLAGS_KEY, {}).get(section, ()) if k in table}
     source = str(config.get(SOURCE_KEY, "config"))
-    options = options_from(cls, table, source=source, section=section, **flagged, **overrides)
+    options = options_from(
+        cls,
+        table,
+        source=source,
+        section=section,
+        elsewhere=tuple(overrides),
+        **flagged,
+        **overrides,
+    )
     # A file names where the value may come from; without one it came from a flag or a default.
     where = f"{source} [{section}]" if SOURCE_KEY in config else f"[{section}]"
     _self_check(options, where, tuple(flagged))

@@ -86,6 +86,18 @@ def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table
     assert str(cfg) in err and needle in err
 
 
+def test_unknown_option_lists_only_keys_valid_in_that_table(cli_folder, tmp_path, capsys):
+    """An unknown ``[online]`` key's error lists the keys that table takes: not ``graph``, which
+    comes from ``[graph]`` (``[online.graph]`` and ``graph = ...`` in ``[online]`` are refused)."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[online]\nlagx = 2.0\n")
+    err = _one_line_error(
+        capsys, ["online", str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    )
+    valid = err.split("valid: ", 1)[1]
+    assert "'lag_s'" in valid and "'graph'" not in valid
+
+
 @pytest.mark.parametrize("command", ["batch", "online"])
 def test_observer_prior_without_a_drag_k_names_priors_once(cli_folder, tmp_path, capsys, command):
     """``--priors observer`` on a flight without a calibrated drag k: one line naming ``[priors]``
