@@ -37,5 +37,10 @@ test-fast: $(VENV)/.installed-test
 lint: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check fgnav factors datasets scripts tests
 
+# Every benchmark (scripts/bench_*.py) in turn, figures printed (about 10-15 minutes on 2 cores);
+# speed is measured here, never by timed tests.
+bench: $(VENV)/.installed
+	for s in scripts/bench_*.py; do echo "== $$s"; $(PY) $$s || exit 1; done
+
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -39,7 +39,9 @@ data set; field names as the README gives them):
   radian. Its model counts are ``NX = k dt (v_x cos / h - w_y)``, ``NY = k dt (v_y cos / h +
   w_x)`` in body FLU; fgnav's flow sensor frame (``DOWNWARD_FLOW``: x forward, y right, z down)
   has ``flow = k dt [-v_x / d - w_y, -v_y / d + w_x]`` in sensor axes, i.e. ``[-NX, NY]``, so
-  ``flow = 0.1 * [deltaY, -deltaX]`` and ``calib.flow_pixels_per_rad = 35 / 0.71674``.
+  ``flow = 0.1 * [deltaY, -deltaX]``; the firmware's ``35 / 0.71674`` = 48.83 pixels per
+  radian reads velocities 2.2 % small, so ``calib.flow_pixels_per_rad`` is the 47.8 fitted
+  against Vicon (:data:`FLOW_PIXELS_PER_RAD`).
   Integration interval: not logged. The firmware reads the sensor every ``vTaskDelay(10)``
   (about 9.9 ms) and enqueues (logs) only reads with valid motion; the sensor clears its counts
   on a read, so the current driver takes one loop as the interval of every sample (its 2021

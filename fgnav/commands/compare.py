@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="comma-separated methods (default: all the flight allows; known: "
         + ", ".join(METHODS)
-        + ")",
+        + ", ref:NAME for a reference trajectory the flight carries)",
     )
     add_config_argument(parser, "TOML file with per-method tables")
     parser.add_argument("--no-figures", action="store_true", help="do not draw the PNG figures")
