@@ -750,15 +750,22 @@ class GraphBuilder:
             )
         return pim_params(n, self.options.gravity, floor, acc_nd, acc_rw)
 
-    def _kf_accel_means(self) -> tuple[np.ndarray, np.ndarray]:
-        """Mean measured specific force (K, 3) over each keyframe's window (half the
-        neighbouring intervals) and the sample counts (K,)."""
+    def _kf_half_windows(self) -> np.ndarray:
+        """Half-width [s] (K,) of each keyframe's IMU window: half the shorter of its two
+        neighbouring intervals (the end keyframes: half their one interval; a lone keyframe:
+        half the keyframe period)."""
         period = np.diff(self.t_kf)
-        half = (
-            0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]])
-            if self.K > 1
-            else np.array([0.5 / self.options.keyframe_hz])
-        )
+        if self.K > 1:
+            return 0.5 * np.concatenate(
+                [[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]]
+            )
+        return np.array([0.5 / self.options.keyframe_hz])
+
+    def _kf_accel_means(self, half: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean measured specific force (K, 3) over each keyframe's window (``half``: its
+        half-widths, default :meth:`_kf_half_windows`) and the sample counts (K,)."""
+        if half is None:
+            half = self._kf_half_windows()
         return mean_in_windows(self.imu.t, self.imu.body_accel, self.t_kf, half)
 
     def _velocity_hint(self) -> np.ndarray | None:
@@ -1016,14 +1023,9 @@ class GraphBuilder:
     def _prepare_drag(self) -> None:
         if not self.use_drag:
             return
-        period = np.diff(self.t_kf)
-        half = (
-            0.5 * np.concatenate([[period[0]], np.minimum(period[1:], period[:-1]), [period[-1]]])
-            if self.K > 1
-            else np.array([0.5 / self.options.keyframe_hz])
-        )
+        half = self._kf_half_windows()
         o = self.options
-        means, counts = mean_in_windows(self.imu.t, self.imu.body_accel, self.t_kf, half)
+        means, counts = self._kf_accel_means(half)
         self.drag_mean = means[:, :2]
         n_none = int((counts == 0).sum())
         self._skip("drag:keyframes-without-imu-samples", n_none)

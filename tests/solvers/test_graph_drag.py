@@ -76,3 +76,24 @@ def test_marginal_query_failure_falls_back_to_regularised_covariances():
     covs = _marginal_covariances(Failing(), g.linearize(values), values, [x0], info)
     np.testing.assert_allclose(covs[x0], 0.25 * np.eye(2), rtol=1e-3)
     assert info["covariance_regularised"] is True
+
+
+def test_drag_windows_are_the_keyframe_accel_windows(flight):
+    """The drag factor's keyframe means and arrival times come from the same windows as the
+    other keyframe specific-force means: half the shorter neighbouring interval each side."""
+    b = GraphBuilder(flight, GraphOptions())
+    t = b.t_kf
+    gaps = np.diff(t)
+    half = 0.5 * np.concatenate([[gaps[0]], np.minimum(gaps[1:], gaps[:-1]), [gaps[-1]]])
+    np.testing.assert_array_equal(b._kf_half_windows(), half)
+    np.testing.assert_array_equal(b.drag_arrival, t + half)
+    # A direct mean of the IMU samples in [t - half, t + half] (no thrust-borne gate trips on
+    # this flight, so every keyframe with a sample keeps it).
+    imu_t, acc = flight.imu.t, flight.imu.body_accel
+    for k in (0, 1, len(t) // 2, len(t) - 1):
+        inside = (imu_t >= t[k] - half[k]) & (imu_t <= t[k] + half[k])
+        assert b.drag_count[k] == inside.sum() > 0
+        np.testing.assert_allclose(b.drag_mean[k], acc[inside, :2].mean(axis=0), atol=1e-12)
+    means, counts = b._kf_accel_means()
+    np.testing.assert_array_equal(means[:, :2], b.drag_mean)
+    np.testing.assert_array_equal(counts, b.drag_count)
