@@ -117,3 +117,39 @@ def test_imu_plausibility_limits_are_the_online_smoothers():
     w = np.array([[1.0, 2.0, 3.0], [1e30, 0.0, 0.0], [0.0, 0.0, 0.0], [np.nan, 0, 0], [0, 99, 0]])
     a = np.array([[0, 0, 9.81], [0, 0, 9.81], [0, 0, 9.8e30], [0, 0, 9.81], [0, 0, 490]])
     np.testing.assert_array_equal(types.imu_plausible(w, a), [True, False, False, False, True])
+
+
+def test_select_and_between_cut_every_row_column():
+    """``select`` (the tests' way to cut a stream) keeps the picked rows of every per-row column,
+    leaves an absent optional column absent and the per-series fields as they are."""
+    from pathlib import Path
+
+    from fgnav.datasets import CameraIntrinsics, ImageSeries
+
+    rng = np.random.default_rng(3)
+    n = 6
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    slam = SlamSeries(
+        np.arange(n) * 0.25,
+        rng.normal(size=(n, 3)),
+        q,
+        np.array([0, 0, 0, 1, 1, 1]),
+        latency=np.linspace(0.01, 0.06, n),
+    )
+    keep = np.array([True, False, True, True, False, True])
+    cut = slam.select(keep)
+    assert type(cut) is SlamSeries and len(cut) == 4
+    for name in ("t", "slam_t_cam", "slam_q_cam_wxyz", "session", "latency"):
+        np.testing.assert_array_equal(getattr(cut, name), getattr(slam, name)[keep])
+    no_latency = SlamSeries(slam.t, slam.slam_t_cam, q, slam.session)
+    assert no_latency.select(keep).latency is None
+    np.testing.assert_array_equal(slam.select(np.array([5, 0])).t, [1.25, 0.0])
+    np.testing.assert_array_equal(slam.between(0.25, 0.75).t, slam.t[1:4])
+    cam = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+    images = ImageSeries(
+        np.arange(3.0), paths=tuple(Path(f"{i}.png") for i in range(3)), camera=cam
+    )
+    picked = images.select(np.array([False, True, True]))
+    assert picked.paths == (Path("1.png"), Path("2.png")) and picked.camera is cam
+    assert picked.frames is None

@@ -550,13 +550,7 @@ def test_stage_without_attitude_at_an_image_counts_it(sim_start):
 
     flight = sim_start
     att = flight.attitude
-    keep = att.t <= 3.0
-    cut = dataclasses.replace(
-        flight,
-        attitude=dataclasses.replace(
-            att, t=att.t[keep], world_q_body_wxyz=att.world_q_body_wxyz[keep]
-        ),
-    )
+    cut = dataclasses.replace(flight, attitude=att.select(att.t <= 3.0))
     stage = HomographyVoStage(cut.calib)
     out = _feed_all(stage, replay_flight(cut, ["attitude", "range", "images"]))
     gap = stage.options.max_interp_gap_s

@@ -129,13 +129,7 @@ def test_attitude_stream_that_stops_hands_over_to_the_ekf_and_buffers_stay_bound
     from fgnav.frontends.prior_stages import HOLD_MAX_S
 
     att = vertical.attitude
-    keep = att.t <= 6.0
-    fl = dataclasses.replace(
-        vertical,
-        attitude=dataclasses.replace(
-            att, t=att.t[keep], world_q_body_wxyz=att.world_q_body_wxyz[keep]
-        ),
-    )
+    fl = dataclasses.replace(vertical, attitude=att.select(att.t <= 6.0))
     stage = FrontendPriorStage(fl.calib, _opts(fl))
     with caplog.at_level(logging.WARNING, logger="fgnav.frontends.prior_stages"):
         for ev in replay_flight(fl, ("imu", "attitude", "range", "yaw", "slam")):
