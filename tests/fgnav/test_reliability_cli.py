@@ -19,6 +19,17 @@ def _one_line_error(capsys, argv: list[str]) -> str:
     return err
 
 
+def _config_error(capsys, tmp_path, command: str, flight, table: str) -> str:
+    """``fgnav COMMAND FLIGHT --out TMP/o --config TMP/bad.toml`` with ``table`` as the config
+    file: exit 1 with one line (:func:`_one_line_error`) that names the file; that line."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(table)
+    argv = [command, str(flight), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err, err
+    return err
+
+
 @pytest.mark.parametrize(
     ("flags", "needle"),
     [
@@ -78,12 +89,7 @@ def test_bad_flag_values(cli_folder, tmp_path, capsys, flags, needle):
     ],
 )
 def test_bad_config_values_and_keys(cli_folder, tmp_path, capsys, command, table, needle):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    err = _one_line_error(
-        capsys, [command, str(cli_folder), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    )
-    assert str(cfg) in err and needle in err
+    assert needle in _config_error(capsys, tmp_path, command, cli_folder, table)
 
 
 def test_unknown_option_lists_only_keys_valid_in_that_table(cli_folder, tmp_path, capsys):
@@ -363,11 +369,7 @@ def test_flow_and_homography_tables_are_checked_up_front(tmp_path, capsys, comma
     """``[graph.flow]``, ``[graph.homography]`` and ``[graph.homography.vo]`` are checked (keys,
     types, values) before the flight is read: a wrong type was a TypeError or a cv2.error at
     the first factor (review 2026-12-07)."""
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    err = _one_line_error(capsys, argv)
-    assert str(cfg) in err and needle in err
+    assert needle in _config_error(capsys, tmp_path, command, tmp_path / "nosuch", table)
 
 
 @pytest.mark.parametrize("command", ["batch", "online", "compare"])
@@ -391,11 +393,7 @@ def test_flow_and_homography_tables_are_checked_up_front(tmp_path, capsys, comma
     ],
 )
 def test_tables_and_priors_are_checked_up_front(tmp_path, capsys, command, table, needle):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    err = _one_line_error(capsys, argv)
-    assert str(cfg) in err and needle in err
+    assert needle in _config_error(capsys, tmp_path, command, tmp_path / "nosuch", table)
 
 
 def test_one_prior_source_may_be_a_string():
@@ -523,11 +521,7 @@ def test_one_prior_source_may_be_a_string():
 def test_values_that_pass_the_sign_rules_but_make_no_sense(tmp_path, capsys, table, needle):
     """Values > 0 and finite that crashed or hung a run (review 2026-12-07) are refused up front
     by the bounds of :func:`fgnav.config.option_bounds`."""
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    argv = ["compare", str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    err = _one_line_error(capsys, argv)
-    assert str(cfg) in err and needle in err
+    assert needle in _config_error(capsys, tmp_path, "compare", tmp_path / "nosuch", table)
 
 
 def test_option_bounds_refuse_no_default():
@@ -601,11 +595,7 @@ def test_option_bounds_refuse_no_default():
     ],
 )
 def test_choices_and_sub_tables_are_checked_up_front(tmp_path, capsys, command, table, needle):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(table)
-    argv = [command, str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
-    err = _one_line_error(capsys, argv)
-    assert str(cfg) in err and needle in err
+    assert needle in _config_error(capsys, tmp_path, command, tmp_path / "nosuch", table)
 
 
 def test_online_imu_spans_the_flight_cannot_meet_are_refused(cli_folder, tmp_path, capsys):
