@@ -556,13 +556,18 @@ class Ekf004:
         if float(r @ S_inv @ r) > self._gate(r.size):
             self.counts.add("gated", kind)
             return False
+        self._correct(kind, r, PHt, S_inv)
+        return True
+
+    def _correct(self, kind: str, r: np.ndarray, PHt: np.ndarray, S_inv: np.ndarray) -> None:
+        """The EKF correction with gain ``PHt S^-1`` (yaw wrapped, ``P`` kept symmetric), counted
+        as used; no gate (:meth:`_gated_correction` gates first)."""
         K = PHt @ S_inv
         self.x = self.x + K @ r
         self.x[IY] = wrap_angle(self.x[IY])
         P = self.P - K @ PHt.T
         self.P = 0.5 * (P + P.T)
         self.counts.add("used", kind)
-        return True
 
     def update_state_components(
         self, kind: str, idx: list[int], r: np.ndarray, var: np.ndarray
@@ -660,13 +665,7 @@ class Ekf004:
         # on the ground or carried by hand); restart position and velocity from this pose.
         self.release_position(r[:3])
         PHt = self.P @ H.T
-        S = H @ PHt + Rm
-        K = PHt @ np.linalg.inv(S)
-        self.x = self.x + K @ r
-        self.x[IY] = wrap_angle(self.x[IY])
-        P = self.P - K @ PHt.T
-        self.P = 0.5 * (P + P.T)
-        self.counts.add("used", "slam_reset")
+        self._correct("slam_reset", r, PHt, np.linalg.inv(H @ PHt + Rm))
         self.slam_gated_since = None
         return True
 

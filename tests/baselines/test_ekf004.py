@@ -136,6 +136,44 @@ def test_selection_update_equals_generic_update():
         np.testing.assert_allclose(a.P, b.P, atol=1e-10)
 
 
+def test_slam_reset_applies_the_plain_correction_after_releasing_position():
+    """SLAM poses gated for ``slam_reset_s``: the next one restarts position and velocity
+    (released, then the ungated EKF correction), counted as ``slam_reset``."""
+    opt = Ekf004Options(slam_reset_s=1.0, use_slam_angles=False)
+    ekf = Ekf004(opt)
+    x0 = np.zeros(N_STATE)
+    x0[IV : IV + 3] = [0.4, -0.2, 0.1]
+    ekf.initialize(0.0, x0, np.eye(N_STATE) * 1e-4)
+    z = np.array([5.0, -3.0, 1.0])  # far outside the gate
+    assert not ekf.update_slam_pose(z, None)
+    ekf.t = 0.5
+    assert not ekf.update_slam_pose(z, None)
+    assert ekf.counts.gated == {"slam": 2} and "slam_reset" not in ekf.counts.used
+    ekf.t = 1.2
+    x_b, P_b = ekf.x.copy(), ekf.P.copy()
+    assert ekf.update_slam_pose(z, None)
+    assert ekf.counts.used == {"slam_reset": 1} and ekf.slam_gated_since is None
+    # Independently: release (zero velocity, position/velocity decoupled, position variance
+    # offset^2 + initial sigma^2), then K = P H^T (H P H^T + R)^-1 with H picking the position
+    # (no lever arm).
+    r = z - x_b[IP : IP + 3]
+    ip = np.r_[IP : IP + 3, IV : IV + 3]
+    P = P_b.copy()
+    P[ip, :] = 0.0
+    P[:, ip] = 0.0
+    P[IP : IP + 3, IP : IP + 3] = np.diag(r**2 + opt.initial_position_sigma**2)
+    P[IV : IV + 3, IV : IV + 3] = np.eye(3) * opt.initial_velocity_sigma**2
+    x = x_b.copy()
+    x[IV : IV + 3] = 0.0
+    H = np.zeros((3, N_STATE))
+    H[:, IP : IP + 3] = np.eye(3)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + np.eye(3) * opt.slam_position_sigma**2)
+    np.testing.assert_allclose(ekf.x, x + K @ r, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, P - K @ H @ P, atol=1e-12)
+    np.testing.assert_array_equal(ekf.P, ekf.P.T)
+    assert np.linalg.norm(ekf.x[IP : IP + 3] - z) < 0.01  # the pose is taken almost as it is
+
+
 def test_options_are_validated():
     with pytest.raises(FlightDataError, match="attitude_sigma"):
         Ekf004Options(attitude_sigma=0.0).validate()
