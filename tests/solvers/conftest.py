@@ -17,3 +17,9 @@ def two_turns_20s():
 def two_turns_12s():
     """12 s of the two-turns flight (hover, then the first turn), seed 1."""
     return simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False))
+
+
+@pytest.fixture(scope="session")
+def two_turns():
+    """The whole two-turns flight (the scenario's duration), all sensors except images, seed 1."""
+    return simulate("two-turns", seed=1, options=SimOptions(images=False))

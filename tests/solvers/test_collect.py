@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import ImageFrame, ImuSample, SlamPose, replay_flight
-from fgnav.datasets.simulate import SimOptions, simulate
 
 from fgnav.eval.metrics import evaluate
 from fgnav.methods import run_batch
@@ -15,14 +14,10 @@ from fgnav.solvers.collect import EventCollector
 STREAMS = ("imu", "attitude", "range", "yaw", "slam")
 
 
-@pytest.fixture(scope="module")
-def flight():
-    return simulate("two-turns", seed=1, options=SimOptions(duration=12.0, images=False))
-
-
-def test_replayed_events_give_the_flight_back_and_the_same_batch(flight):
+def test_replayed_events_give_the_flight_back_and_the_same_batch(two_turns_12s):
     """Events in arrival order (SLAM 0.1 s late) -> the same arrays (SLAM latency from arrival
     minus capture) -> the same batch solution as from the flight itself."""
+    flight = two_turns_12s
     c = EventCollector(flight.calib, "collected")
     for ev in replay_flight(flight, STREAMS):
         c.feed(ev)
@@ -46,9 +41,10 @@ def test_replayed_events_give_the_flight_back_and_the_same_batch(flight):
     assert ate == pytest.approx(direct, abs=1e-9) and ate < 0.02
 
 
-def test_order_duplicates_and_what_is_left_out(flight):
+def test_order_duplicates_and_what_is_left_out(two_turns_12s):
     """Any order is sorted per stream; a repeated stamp, a non-finite value, a tracking-lost
     pose and an image are left out, each counted by reason; no IMU is an error."""
+    flight = two_turns_12s
     c = EventCollector(flight.calib)
     with pytest.raises(FlightDataError, match="no IMU sample collected"):
         c.flight()

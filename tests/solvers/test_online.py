@@ -28,11 +28,6 @@ STREAMS = ("imu", "attitude", "range", "yaw", "slam")
 
 
 @pytest.fixture(scope="module")
-def two_turns():
-    return simulate("two-turns", seed=1, options=SimOptions(images=False))
-
-
-@pytest.fixture(scope="module")
 def push_run(two_turns):
     return replay_online(two_turns, FixedLagOptions())
 

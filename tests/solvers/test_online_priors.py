@@ -19,11 +19,6 @@ STREAMS = ("imu", "attitude", "range", "yaw", "slam")
 
 
 @pytest.fixture(scope="module")
-def two_turns():
-    return simulate("two-turns", seed=1, options=SimOptions(images=False))
-
-
-@pytest.fixture(scope="module")
 def vertical():
     return simulate("vertical", seed=1, options=SimOptions(images=False))
 
