@@ -625,7 +625,11 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
     """The ``[priors]`` table as :class:`fgnav.frontends.prior_stages.PriorOptions` for the
     push engine and the live link (None without sources). ``drag_k`` when the table has none:
     the flight's calibration ``flight.meta["drag_k"]`` (never its ground truth)."""
-    from fgnav.frontends.prior_stages import prior_options
+    from fgnav.frontends.prior_stages import (
+        PRIOR_STREAMS,
+        missing_streams_message,
+        prior_options,
+    )
 
     table = _priors_table(config)
     meta = getattr(flight, "meta", None)
@@ -633,13 +637,9 @@ def online_prior_options(flight: Flight | None, config: Mapping[str, Any]):
     opts = _named_priors(config, prior_options, table, k)
     if opts is not None and flight is not None:
         # A configuration fact (which streams the log has), as the whole-flight front-ends say.
-        for source in opts.sources:
-            missing = [n for n in ("imu", "slam", "range") if getattr(flight, n, None) is None]
-            if missing:
-                raise FlightDataError(
-                    f"{flight.name}: front-end prior '{source}' needs the {', '.join(missing)} "
-                    "stream(s)"
-                )
+        missing = [n for n in PRIOR_STREAMS if getattr(flight, n, None) is None]
+        if missing:
+            raise FlightDataError(missing_streams_message(flight.name, opts.sources, missing))
     return opts
 
 

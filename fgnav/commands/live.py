@@ -179,6 +179,13 @@ def run(args: argparse.Namespace) -> int:
         failed = f" (the session ended on {result.failure})" if result.failure else ""
         raise LiveError(f"no estimate written: {result.error}{failed}")
     est = result.estimate
+    stage = est.info.get("frontend_prior_stage") or {}
+    if stage.get("missing_streams"):
+        # As fgnav online refuses such a flight; the link could not be checked before it ran.
+        from fgnav.frontends.prior_stages import missing_streams_message
+
+        line = missing_streams_message("live", stage["sources"], stage["missing_streams"])
+        print(f"warning: {line}; the link carried none: no prior from it")
     extra = summary_extra("live", est, "live")
     extra["live"] = {
         "mavlink": str(link.address),

@@ -34,6 +34,7 @@ from fgnav.frontends.prior_stages import (
     PRIOR_SOURCES,
     FrontendPriorStage,
     PriorOptions,
+    missing_streams_message,
 )
 from fgnav.frontends.priors import (
     FrontendPriors,
@@ -67,9 +68,7 @@ def replay_stage(flight: Flight, options: PriorOptions) -> FrontendPriorStage:
 def _require(flight: Flight, source: str, streams: Sequence[str]) -> None:
     missing = [s for s in streams if getattr(flight, s) is None]
     if missing:
-        raise FlightDataError(
-            f"{flight.name}: front-end prior '{source}' needs the {', '.join(missing)} stream(s)"
-        )
+        raise FlightDataError(missing_streams_message(flight.name, [source], missing))
 
 
 def ml_scale_priors(flight: Flight) -> FrontendPriors:

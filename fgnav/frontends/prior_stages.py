@@ -69,6 +69,23 @@ from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions, PairOptio
 PRIOR_SOURCES = ("ml-scale", "observer")
 """Front-ends that can feed the smoother (see :mod:`fgnav.frontends.pipeline`)."""
 
+PRIOR_STREAMS = ("imu", "slam", "range")
+"""The streams every front-end prior needs (the observer's SLAM velocity and the ML scale's
+pairs both take the vertical filter's rangefinder height)."""
+
+PRIOR_STREAMS_WAIT_S = 5.0
+"""A link (``fgnav live``) that has carried this much IMU time [s] without one of
+:data:`PRIOR_STREAMS` gets the warning :func:`missing_streams_message` (a flight is checked before
+it runs)."""
+
+
+def missing_streams_message(name: str, sources: Any, missing: Any) -> str:
+    """``"NAME: front-end prior 'SOURCE' needs the slam, range stream(s)"`` (the first source):
+    the one line ``fgnav batch`` / ``online`` refuse a flight with and ``fgnav live`` warns
+    with."""
+    return f"{name}: front-end prior '{tuple(sources)[0]}' needs the {', '.join(missing)} stream(s)"
+
+
 ML_SCALE_SIGMAS = (0.015, 0.02)
 """Displacement noises ``(SLAM units, m)`` of the vertical scale pairs: SLAM position noise of
 ~1 cm at scale ~1 at both ends; rangefinder height after the vertical filter ~2 cm

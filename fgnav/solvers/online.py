@@ -668,6 +668,10 @@ class OnlineSmoother:
         self.received: dict[str, int] = {}
         self.used: dict[str, int] = {}
         self._late_warned: set[str] = set()  # streams whose late drops were said (_warn_late)
+        # [priors] sources fed by a link without a stream they need (a flight is checked before
+        # it runs: fgnav.methods.online_prior_options): said once (_watch_prior_streams).
+        self._prior_watch_t0: float | None = None
+        self._prior_watch_done = False
         self.dropped: dict[str, int] = {}
         self.n_failures = 0
         self.n_fallbacks = 0
@@ -1197,6 +1201,8 @@ class OnlineSmoother:
         used["imu"] = used.get("imu", 0) + 1
         if self._pstage is not None:
             self._pstage.feed(ev)
+            if not self._prior_watch_done:
+                self._watch_prior_streams(t)
         if self._sgc is not None:
             self._sgc.add_imu(t, w)
         if self._first_imu_t is None:
@@ -1653,6 +1659,32 @@ class OnlineSmoother:
         sigmas = np.r_[[1e3] * 6, [sig / s]]
         return gtsam.PriorFactorSimilarity3(key, mean, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
 
+    def _prior_streams_missing(self) -> list[str]:
+        """The streams of ``PRIOR_STREAMS`` the front-end priors need that have not arrived."""
+        from fgnav.frontends.prior_stages import PRIOR_STREAMS
+
+        return [s for s in PRIOR_STREAMS if s != "imu" and not self.received.get(s)]
+
+    def _watch_prior_streams(self, t: float) -> None:
+        """Once ``PRIOR_STREAMS_WAIT_S`` of IMU time has passed: the one line a flight without a
+        stream the ``[priors]`` sources need is refused with (``fgnav.methods``), as a warning
+        (a link cannot be checked before it runs: ``fgnav live`` with ``ml-scale`` and no
+        rangefinder gave no prior and said nothing)."""
+        from fgnav.frontends.prior_stages import PRIOR_STREAMS_WAIT_S, missing_streams_message
+
+        if self._prior_watch_t0 is None:
+            self._prior_watch_t0 = t
+        if t - self._prior_watch_t0 < PRIOR_STREAMS_WAIT_S:
+            return
+        self._prior_watch_done = True
+        missing = self._prior_streams_missing()
+        if missing:
+            log.warning(
+                "%s (none in the first %g s of IMU): no prior from it until they come",
+                missing_streams_message(self.name, self.prior_options.sources, missing),
+                PRIOR_STREAMS_WAIT_S,
+            )
+
     def _prior_report(self) -> dict[str, Any] | None:
         """The front-end prior stage: sources, the ML scale per session it has, its counts."""
         ps = self._pstage
@@ -1663,11 +1695,15 @@ class OnlineSmoother:
             sc = ps.scale(sess)
             if sc is not None:
                 scales[str(sess)] = {"scale": sc[0], "sigma": sc[1], "pairs": sc[2]}
-        return {
+        out = {
             "sources": list(self.prior_options.sources),
             "ml_scale": scales,
             "counts": ps.all_counts,
         }
+        missing = self._prior_streams_missing()
+        if missing:  # never arrived (see _watch_prior_streams)
+            out["missing_streams"] = missing
+        return out
 
     def _ml_scale(self, sess: int):
         """The ML-scale stage's ``(s, sigma, n_pairs)`` for a session, or None."""

@@ -72,14 +72,14 @@ class FakeLink:
         return out
 
 
-def datagrams(flight, t_max: float = math.inf, mutate=None) -> list[bytes]:
+def datagrams(flight, t_max: float = math.inf, mutate=None, streams=STREAMS) -> list[bytes]:
     """The flight's messages as fgnav replay packs them (one per datagram), up to ``t_max``;
     ``mutate(ev, name, fields)`` may change the fields or return a list of extra datagrams to
     send after the message."""
     tx, slam_tx = new_mavlink(1, 1), new_mavlink(1, 191)
     c = flight.calib
     out = []
-    for ev in replay_flight(flight, STREAMS):
+    for ev in replay_flight(flight, streams):
         if ev.arrival > t_max:
             break
         if isinstance(ev, ImuSample):
@@ -147,6 +147,39 @@ def _run_live_command(
     args = ["live", "--mavlink", "udpin:127.0.0.1:9", "--calib", str(cli_folder / "calib.yaml")]
     args += ["--out", str(tmp_path / "out"), "--idle-timeout", "0.3", *extra]
     return main(args), str(tmp_path / "out")
+
+
+@pytest.mark.parametrize("streams", [STREAMS, ("imu", "attitude", "slam")])
+def test_live_priors_check_the_streams_they_need(
+    monkeypatch, cli_folder, flight, tmp_path, capsys, caplog, keep_signals, streams
+):
+    """``fgnav live`` with ``[priors] sources = ['ml-scale']`` on a link without a rangefinder
+    says so in the one line ``fgnav online`` refuses such a flight with (it ran without a word,
+    no prior given), once after 5 s of IMU and again under the counts; with the range stream,
+    nothing is said."""
+    import fgnav.live.link
+    from fgnav.cli import main
+
+    link = FakeLink(datagrams(flight, streams=streams))
+    monkeypatch.setattr(fgnav.live.link, "UdpLink", lambda address: link)
+    cfg = tmp_path / "p.toml"
+    cfg.write_text("[priors]\nsources = ['ml-scale']\n")
+    args = ["live", "--mavlink", "udpin:127.0.0.1:9", "--calib", str(cli_folder / "calib.yaml")]
+    args += ["--out", str(tmp_path / "out"), "--idle-timeout", "0.3", "--config", str(cfg)]
+    with caplog.at_level("WARNING", logger="fgnav"):
+        assert main(args) == 0
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    stage = summary["info"]["frontend_prior_stage"]
+    assert stage["sources"] == ["ml-scale"]
+    line = "live: front-end prior 'ml-scale' needs the range stream(s)"
+    warned = [r.getMessage() for r in caplog.records if "front-end prior" in r.getMessage()]
+    if "range" in streams:
+        assert "missing_streams" not in stage and line not in out and warned == []
+    else:
+        assert stage["missing_streams"] == ["range"]
+        assert f"warning: {line}; the link carried none" in out
+        assert len(warned) == 1 and warned[0].startswith(f"{line} (none in the first 5 s")
 
 
 def test_an_unexpected_estimator_exception_keeps_the_outputs(
