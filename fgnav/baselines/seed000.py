@@ -51,7 +51,7 @@ from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import Event, replay_flight
 from fgnav.datasets.types import Calibration, Flight
 from fgnav.estimate import Estimate
-from fgnav.frontends.ii_observer import IIObserverOptions, VerticalFilterOptions
+from fgnav.frontends.ii_observer import IIObserverOptions, VerticalFilterOptions, drag_k_problem
 from fgnav.frontends.prior_stages import FrontendPriorStage, PriorOptions
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,20 @@ class Seed000Options:
     align_slam_axes: bool = False
     slam_history_s: float = 1.0
 
+    def check(self) -> Seed000Options:
+        """Raise ``FlightDataError`` naming a drag coefficient outside
+        :data:`~fgnav.frontends.ii_observer.OBSERVER_DRAG_K_RANGE` (the config's ``drag_k``
+        bound, [0, 100], is the filters', for which 0 is no drag)."""
+        for name, k in (("drag_k", self.drag_k), ("observer.drag_k", self.observer.drag_k)):
+            problem = None if k is None else drag_k_problem(k)
+            if problem is not None:
+                raise FlightDataError(f"Seed000Options.{name}={_fmt(k)}: {problem}")
+        return self
+
+
+def _fmt(k) -> str:
+    return "[" + ", ".join(f"{float(v):g}" for v in np.atleast_1d(np.asarray(k, float))) + "]"
+
 
 REQUIRED_STREAMS = ("imu", "slam", "attitude", "range")
 """Streams the observer baseline needs (eq. 3: imu; eq. 4: slam; y3: attitude; y5: range)."""
@@ -132,7 +146,7 @@ class Seed000:
 
     def start(self, calib: Calibration, name: str = "flight") -> None:
         """Prepare to be fed events of a vehicle with calibration ``calib``."""
-        o = self.options
+        o = self.options.check()
         k = o.drag_k if o.drag_k is not None else o.observer.drag_k
         if k is None:
             raise FlightDataError(

@@ -74,7 +74,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from operator import attrgetter, itemgetter
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -120,6 +120,24 @@ class IIObserverOptions:
     gravity: float = GRAVITY
 
 
+OBSERVER_DRAG_K_RANGE = (1e-2, 100.0)
+"""The ``mu/m`` [1/s] the observer takes (a multirotor's is about 0.1-1; the top is the filters'
+``drag_k`` bound): its horizontal velocity is the specific force over ``k``, so ``drag_k =
+[1e-300, 1e-300]`` ran to 1e14 m and 1e-3 to 4e13 m (two-turns, 20 s; 0.4 m at the truth)."""
+
+
+def drag_k_problem(k: Any) -> str | None:
+    """What is wrong with an observer drag coefficient ``(kx, ky)`` (None: nothing)."""
+    lo, hi = OBSERVER_DRAG_K_RANGE
+    try:
+        v = np.asarray(k, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        return "expected (kx, ky) [1/s]"
+    if v.size != 2 or not np.all(np.isfinite(v)) or np.any(v < lo) or np.any(v > hi):
+        return f"expected (kx, ky) in [{lo:g}, {hi:g}] [1/s]"
+    return None
+
+
 #: Layout of the flat input vector: specific force (3), body rate (3), world_R_body row-major (9),
 #: world vertical velocity (1).
 _N_INPUTS = 16
@@ -160,6 +178,9 @@ class IIObserver:
         self.k = np.asarray(k, dtype=float).reshape(2)
         if np.any(self.k <= 0):
             raise FlightDataError(f"I&I observer: drag_k must be positive, got {self.k}")
+        problem = drag_k_problem(self.k)
+        if problem is not None:  # (a flight's meta drag_k; the options check theirs)
+            raise FlightDataError(f"I&I observer: drag_k={list(self.k)}: {problem}")
         if options.kinematics not in ("published", "full"):
             raise FlightDataError(
                 f"IIObserverOptions.kinematics={options.kinematics!r}: expected 'published' or "

@@ -63,6 +63,7 @@ from fgnav.frontends.ii_observer import (
     IIObserverStepper,
     VerticalFilter,
     VerticalFilterOptions,
+    drag_k_problem,
 )
 from fgnav.frontends.scale_ml import MLScaleEstimator, MLScaleOptions, PairOptions, ScaleResult
 
@@ -174,7 +175,11 @@ def prior_drag_k(value: Any) -> tuple[float, float] | None:
             f"[priors]: option drag_k = {value!r}: expected a number > 0 or a list of two "
             "(kx, ky) [1/s]"
         )
-    return float(values[0]), float(values[-1])
+    k = float(values[0]), float(values[-1])
+    problem = drag_k_problem(k)  # (1e-300: the observer's velocity priors 1e14 m/s)
+    if problem is not None:
+        raise FlightDataError(f"[priors]: option drag_k = {value!r}: {problem}")
+    return k
 
 
 def prior_options(table: Any, drag_k: Any = None) -> PriorOptions | None:

@@ -449,6 +449,17 @@ def test_one_prior_source_may_be_a_string():
         ("[ukf003]\ninitial_scale = 0\n", "option initial_scale = 0: expected in [1e-06, 1e+06]"),
         ("[ekf004]\ndrag_k = [1e300, 1e300]\n", "drag_k = [1e+300, 1e+300]: expected in [0, 100]"),
         ("[ii-observer]\ndrag_k = [-1, -1]\n", "option drag_k = [-1, -1]: expected in [0, 100]"),
+        # The observer's velocity is the specific force over k: [1e-300, 1e-300] ran to 1e14 m
+        # (two-turns 20 s; 0.4 m at the truth), as online priors 30.9 m on circle (0.4: cm).
+        (
+            "[ii-observer]\ndrag_k = [1e-300, 1e-300]\n",
+            "Seed000Options.drag_k=[1e-300, 1e-300]: expected (kx, ky) in [0.01, 100] [1/s]",
+        ),
+        (
+            "[ii-observer.observer]\ndrag_k = [0.4, 1e-3]\n",
+            "Seed000Options.observer.drag_k=[0.4, 0.001]: expected (kx, ky) in [0.01, 100]",
+        ),
+        ("[priors]\ndrag_k = 1e-300\n", "option drag_k = 1e-300: expected (kx, ky) in [0.01, 1"),
         ("[graph]\nrange_max_tilt_deg = -1\n", "range_max_tilt_deg = -1: expected in [0.1, 90]"),
         (
             "[graph]\ndrag_max_tilt_deg = 1e300\n",
