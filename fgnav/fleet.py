@@ -59,6 +59,9 @@ COLUMN_DOC: dict[str, str] = {
     "method": "registry name (`fgnav.methods`)",
     "status": "ok, error, timeout, crashed, or skipped (ok in an earlier run: figures kept)",
     "reason": "one-line error; empty when ok or skipped",
+    "flag": "implausible estimate, as `fgnav compare` flags it (comma-separated codes: non-finite "
+    "values, speed above 50 m/s over 1 s, ATE above max(1 m, 10 % of the path)); empty: none",
+    "flags": "JSON list of the flags' reasons",
     "duration_s": "overlap of the flight's sensor streams [s]",
     "streams": "JSON list of the flight's streams",
     "ate_rmse_m": "ATE RMSE after the method's alignment [m] (ground truth only)",
@@ -81,7 +84,7 @@ COLUMN_DOC: dict[str, str] = {
 COLUMNS = tuple(COLUMN_DOC)
 
 #: Cells holding several values, written as compact JSON.
-JSON_COLUMNS = ("streams", "scale_err_pct", "slam_scale", "drag_k_per_s", "dropped")
+JSON_COLUMNS = ("flags", "streams", "scale_err_pct", "slam_scale", "drag_k_per_s", "dropped")
 
 #: Failed statuses (counted by the progress bar and the summary line).
 FAILED = (ERROR, TIMEOUT, CRASHED)
@@ -510,6 +513,16 @@ class FleetResult:
             if r["status"] in FAILED
         ]
 
+    def flagged_lines(self) -> list[str]:
+        """One line per finished run whose estimate is implausible (``fgnav compare``'s flags):
+        ``flight (input) method: implausible estimate: reasons``."""
+        return [
+            f"{r['flight']} ({r['input']}) {r['method']}: implausible estimate: "
+            + "; ".join(r.get("flags") or [r["flag"]])
+            for r in self.rows
+            if r["status"] in DONE and r.get("flag")
+        ]
+
     def all_failed(self) -> bool:
         """Every run failed (none ``ok`` or ``skipped``)."""
         return bool(self.rows) and not any(r["status"] in DONE for r in self.rows)
@@ -517,8 +530,10 @@ class FleetResult:
     def summary_line(self) -> str:
         c = self.counts()
         parts = ", ".join(f"{n} {s}" for s, n in c.items())
+        flagged = sum(1 for r in self.rows if r["status"] in DONE and r.get("flag"))
         return (
             f"fleet: {self.n_flights} flights, {len(self.rows)} runs: {parts}; "
+            f"{flagged} flagged implausible; "
             f"{self.wall_s:.1f} s on {self.workers} workers; table {self.files.get('csv', '')}"
         )
 
@@ -1158,6 +1173,7 @@ REPORT_COLUMNS = (
     "flight",
     "method",
     "status",
+    "flag",
     "duration_s",
     "ate_rmse_m",
     "scale_err_pct",
@@ -1224,6 +1240,10 @@ def write_report(rows: list[dict[str, Any]], out: Path, context: str = "") -> Pa
         if scored:
             worst = sorted(scored, key=lambda r: -r["ate_rmse_m"])[:N_WORST]
             lines += [markdown_table(worst), ""]
+    flagged = [dict(r, flags="; ".join(r.get("flags") or [])) for r in done if r.get("flag")]
+    if flagged:
+        cols = ("flight", "input", "method", "flag", "flags")
+        lines += ["## Implausible estimates", "", markdown_table(flagged, cols), ""]
     failed = [r for r in rows if r["status"] in FAILED]
     if failed:
         cols = ("flight", "input", "method", "status", "reason")

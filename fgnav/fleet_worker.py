@@ -71,10 +71,18 @@ def error_reason(e: BaseException, memory_limit_mb: float | None = None) -> str:
 
 
 def result_row(flight: Any, est: Any, metrics: Any) -> dict[str, Any]:
-    """The figures of one method's run on one flight (the table's per-run columns)."""
+    """The figures of one method's run on one flight (the table's per-run columns), with
+    ``fgnav compare``'s plausibility flags (:func:`fgnav.compare.plausibility_flags`: codes in
+    ``flag``, reasons in ``flags``)."""
+    from fgnav.compare import plausibility_flags
+    from fgnav.coverage import flight_t0
+
     info = est.info
     dropped = info.get("dropped", info.get("skipped", {}))
+    flags = plausibility_flags(est, metrics, flight_t0(flight))
     row: dict[str, Any] = {
+        "flag": ",".join(f["code"] for f in flags) or None,
+        "flags": [f["reason"] for f in flags] or None,
         "ate_rmse_m": None if metrics is None else metrics.ate_rmse_m,
         "scale_err_pct": None if metrics is None else dict(metrics.scale_final_err_pct),
         "slam_scale": dict(est.slam_scale) or None,

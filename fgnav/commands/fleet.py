@@ -10,7 +10,10 @@ must then be a path shared by every worker and this client). Writes ``DIR/fleet.
 the runs already done with the same input content and options, found in ``fleet.json`` or the
 journal (``--force`` reruns them). Failed flights are rows of the table (status
 ``error``, ``timeout``, ``crashed``), each also printed on stderr after the run, one line
-``flight (input) method: status: reason``. The exit code is 0 once the table is written, unless
+``flight (input) method: status: reason``. A finished run whose estimate ``fgnav compare``
+would flag implausible (:func:`fgnav.compare.plausibility_flags`) has the codes in the table's
+``flag`` column and the reasons in ``flags``, one ``WARNING`` line each after the run, and the
+summary line counts them. The exit code is 0 once the table is written, unless
 every run failed: then 1 (after the table and the summary line).
 """
 
@@ -88,5 +91,7 @@ def run(args: argparse.Namespace) -> int:
     res = run_fleet(args.inputs, args.out, opts)
     for line in res.failure_lines():
         print(line, file=sys.stderr)
+    for line in res.flagged_lines():  # as fgnav compare warns (the numbers and exit code stay)
+        print(f"WARNING {line}")
     print(res.summary_line())
     return 1 if res.all_failed() else 0
