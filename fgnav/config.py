@@ -240,6 +240,11 @@ POSITIVE_OPTIONS = frozenset(
         "rel_tol",
         "cov_pose_stride",
         "relinearize_skip",
+        # (ISAM2's relinearizeSkip: 0 on a start without an attitude stream killed the process
+        # with SIGFPE; -1 relinearised every update)
+        "startup_relinearize_skip",
+        # (checked by the push engine once the flight was read)
+        "vo_process_delay_keyframes",
         "slow_read_every",
         "fine_levels",
         "slam_provisional_scale",
@@ -262,8 +267,24 @@ ZERO_OK_OPTIONS = frozenset({"slam_gap_origin_sigma_m", "slam_origin_rw_m"})
 OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     # [m/s^2]: Earth's 9.78-9.83 (1e300 or 1e-300 made the IMU preintegration meaningless).
     "gravity": (1.0, 100.0),
-    # GraphOptions.check names its own range (<= 1000; a minimum over the flight after reading).
-    "keyframe_hz": (None, None),
+    # GraphOptions.check names its own top (<= 1000) and the run a minimum over the flight's
+    # span (methods.check_keyframe_count); 1e-300 was refused by the lag's rule only, naming
+    # lag_s (with lag_s = 1e300 not even that, until the flight was read).
+    "keyframe_hz": (1e-3, None),
+    # [online] ISAM2 relinearisation thresholds (tangent-space units: rad, m, m/s ...): below 0
+    # is 0 (every update) written otherwise; above 100 nothing ever relinearises.
+    "relinearize_threshold": (0.0, 100.0),
+    "relinearize_threshold_position": (0.0, 100.0),
+    "relinearize_threshold_slow": (0.0, 100.0),
+    "startup_relinearize_threshold": (0.0, 100.0),
+    # [online] window length [s]: the smoother lag and the marginalisation block; 1e300 kept
+    # every keyframe in the window, each update's cost growing with the flight (a 60 s flight
+    # 3.6x / 4.1x slower, quadratic in the flight's length).
+    "lag_s": (None, 1e3),
+    "marginalize_every_s": (None, 1e3),
+    # [online] scale of a provisional SLAM alignment (SLAM units per metre), as the filters'
+    # initial_scale: 1e-300 ran 13x worse (8 s two-turns 0.52 m against 0.039 m), health ok.
+    "slam_provisional_scale": (1e-6, 1e6),
     # A filter's largest prediction step [s]: 1e-300 split each IMU interval without end.
     "max_predict_dt_s": (1e-4, None),
     # IMU span averaged for the first attitude [s] (0 waited without end).

@@ -649,6 +649,11 @@ class OnlineSmoother:
             raise FlightDataError(
                 f"{name}: online.vo_worker={self.options.vo_worker!r}: expected inline or process"
             )
+        for skip in ("relinearize_skip", "startup_relinearize_skip"):
+            v = getattr(self.options, skip)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                # (ISAM2's relinearizeSkip: 0 killed the process with SIGFPE)
+                raise FlightDataError(f"{name}: online.{skip}={v!r}: expected an integer >= 1")
         if self.options.vo_process_delay_keyframes < 1:
             raise FlightDataError(
                 f"{name}: online.vo_process_delay_keyframes="

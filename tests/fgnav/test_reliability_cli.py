@@ -650,3 +650,65 @@ def test_a_lag_or_keyframe_rate_that_leaves_no_window_is_refused(cli_folder, tmp
         err = _one_line_error(capsys, [command, str(cli_folder), "--out", str(out), *flags])
         assert "keyframe_hz=0.01 leaves fewer than 2 keyframes on the flight's" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        # The relinearisation thresholds took any number (-1: 0 written otherwise; 1e300: never).
+        ("relinearize_threshold = -1\n", "option relinearize_threshold = -1: expected in [0, 100]"),
+        ("relinearize_threshold = 1e300\n", "relinearize_threshold = 1e+300: expected in [0, 100]"),
+        ("relinearize_threshold_position = -0.1\n", "relinearize_threshold_position = -0.1: ex"),
+        ("relinearize_threshold_slow = 1e300\n", "relinearize_threshold_slow = 1e+300: expec"),
+        ("startup_relinearize_threshold = -1\n", "startup_relinearize_threshold = -1: expected"),
+        # relinearizeSkip 0 killed the process with SIGFPE (a start without an attitude stream).
+        ("startup_relinearize_skip = 0\n", "option startup_relinearize_skip = 0: expected > 0"),
+        ("startup_relinearize_skip = -1\n", "option startup_relinearize_skip = -1: expected > 0"),
+        # Refused only once the flight was read.
+        ("vo_process_delay_keyframes = 0\n", "option vo_process_delay_keyframes = 0: expected > 0"),
+        # The window kept every keyframe (cost growing with the flight).
+        ("lag_s = 1e300\n", "option lag_s = 1e+300: expected <= 1000"),
+        ("marginalize_every_s = 1e300\n", "option marginalize_every_s = 1e+300: expected <= 1000"),
+        # 13x worse, health ok.
+        (
+            "slam_provisional_scale = 1e-300\n",
+            "slam_provisional_scale = 1e-300: expected in [1e-06",
+        ),
+    ],
+)
+def test_online_options_are_bounded_when_the_config_is_read(tmp_path, capsys, table, needle):
+    """``fgnav online --config F`` names the table and key of each in one line, exit 1, before
+    the flight is read (it does not exist here)."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[online]\n" + table)
+    argv = ["online", str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert err.startswith(f"fgnav online: error: {cfg} [online]: option ") and needle in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_keyframe_rate_is_bounded_when_the_config_is_read(tmp_path, capsys):
+    """``keyframe_hz = 1e-300`` was refused by the lag's rule only (naming lag_s), and with
+    ``lag_s = 1e300`` not before the flight was read."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[graph]\nkeyframe_hz = 1e-300\n[online]\nlag_s = 1000.0\n")
+    argv = ["online", str(tmp_path / "nosuch"), "--out", str(tmp_path / "o"), "--config", str(cfg)]
+    err = _one_line_error(capsys, argv)
+    assert str(cfg) in err and "[graph]: option keyframe_hz = 1e-300: expected >= 0.001" in err
+    flags = ["--keyframe-hz", "1e-300", "--lag", "1000"]
+    err = _one_line_error(capsys, ["online", str(tmp_path / "nosuch"), "--out", "o", *flags])
+    assert "command line: option keyframe_hz = 1e-300: expected >= 0.001" in err
+
+
+def test_push_engine_refuses_a_relinearize_skip_below_one():
+    """From the Python API too (relinearizeSkip 0: SIGFPE, the process gone)."""
+    from fgnav.datasets.errors import FlightDataError
+    from fgnav.datasets.types import Calibration
+
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+    from fgnav.solvers.online import OnlineSmoother
+
+    for skip in ("relinearize_skip", "startup_relinearize_skip"):
+        with pytest.raises(FlightDataError, match=f"online.{skip}=0: expected an integer >= 1"):
+            OnlineSmoother(Calibration(), FixedLagOptions(**{skip: 0}))
+    OnlineSmoother(Calibration(), FixedLagOptions(startup_relinearize_skip=1))
