@@ -285,6 +285,9 @@ OPTION_BOUNDS: dict[str, tuple[float | None, float | None]] = {
     # [online] scale of a provisional SLAM alignment (SLAM units per metre), as the filters'
     # initial_scale: 1e-300 ran 13x worse (8 s two-turns 0.52 m against 0.039 m), health ok.
     "slam_provisional_scale": (1e-6, 1e6),
+    # [online] the closed-form SLAM fit's largest relative standard error of the scale: above 1
+    # any fit passes (1e300: a start without an attitude stream 4x worse, 0.27 m against 0.067).
+    "slam_init_max_rel_se": (None, 1.0),
     # A filter's largest prediction step [s]: 1e-300 split each IMU interval without end.
     "max_predict_dt_s": (1e-4, None),
     # IMU span averaged for the first attitude [s] (0 waited without end).

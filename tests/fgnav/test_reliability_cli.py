@@ -669,6 +669,8 @@ def test_a_lag_or_keyframe_rate_that_leaves_no_window_is_refused(cli_folder, tmp
         # The window kept every keyframe (cost growing with the flight).
         ("lag_s = 1e300\n", "option lag_s = 1e+300: expected <= 1000"),
         ("marginalize_every_s = 1e300\n", "option marginalize_every_s = 1e+300: expected <= 1000"),
+        # 4x worse without an attitude stream.
+        ("slam_init_max_rel_se = 1e300\n", "option slam_init_max_rel_se = 1e+300: expected <= 1"),
         # 13x worse, health ok.
         (
             "slam_provisional_scale = 1e-300\n",
