@@ -161,6 +161,10 @@ log = logging.getLogger(__name__)
 
 # Main-state layout.
 IP, IPHI, IV, IBA, IBG, IZB, IS = 0, 3, 6, 9, 12, 15, 16
+
+ALIGN_HISTORY_S = 5.0
+"""The fused poses are kept this long [s] (a gating reset goes back ``slam_reset_s`` before the
+gating began: :meth:`Ukf003._good_before_gating`)."""
 N_MAIN = 17
 N_CLONE = 12
 """A clone holds ``[world_p_body (3), Phi (3), a (3), rho (3)]``: the pose at an image time and
@@ -760,6 +764,10 @@ class Ukf003:
         self._redo = False
         self._inputs = Inputs("ukf003", name)
         self._slam_gated_since: float | None = None
+        # Each pose whose displacement was fused, by time: (session, its SLAM pose, its clone's
+        # world position and attitude and the scale and its variance after the update), what a
+        # gating reset goes back to (_reset_from_slam); the last ALIGN_HISTORY_S of them.
+        self._good: dict[float, tuple] = {}
 
     def feed(self, ev: Event) -> None:
         """One event in arrival order: IMU sample, camera trigger, SLAM pose, range, yaw or
@@ -1000,6 +1008,12 @@ class Ukf003:
             return
         if self.update_relative_slam(k_i, k_j, p_ref, R_ref, ev.slam_t_cam, R_j):
             self._slam_gated_since = None
+            aj = N_MAIN + N_CLONE * k_j
+            pose = self.x[aj : aj + 6].copy()
+            slam_t = np.asarray(ev.slam_t_cam, float)
+            self._good[t_j] = (sid, slam_t, R_j, pose, self.scale, float(self.P[IS, IS]))
+            if min(self._good) < t_j - ALIGN_HISTORY_S:
+                self._good = {t: g for t, g in self._good.items() if t >= t_j - ALIGN_HISTORY_S}
         elif self._slam_gated_since is None:
             self._slam_gated_since = t_j
         elif t_j - self._slam_gated_since >= self.opt.slam_reset_s:
@@ -1038,8 +1052,18 @@ class Ukf003:
         velocity, from a corrupted IMU sample or a gap). The velocity restarts from the SLAM
         displacement since the reference keyframe (through the scale, the extrinsics and the
         attitude), with its initial uncertainty; the biases keep their values with theirs; this
-        pose becomes the reference keyframe (counted in ``gating_resets``, a warning)."""
+        pose becomes the reference keyframe (counted in ``gating_resets``, a warning). First the
+        scale goes back to its value ``slam_reset_s`` before the gating began and the position
+        to the SLAM displacement since the newest fused pose (:meth:`_good_before_gating`,
+        :meth:`_reset_position`)."""
         o = self.opt
+        # The scale and position as the poses fused before the fault left them (the ones
+        # fused between the fault and the gate's closing had moved them).
+        good = self._good_before_gating(int(ev.session))
+        if good is not None:
+            self._restore_scale(good)
+            newest = self._good[max(self._good)]
+            self._reset_position(ev, k_j, newest if newest[0] == int(ev.session) else good)
         t_ref, p_ref, R_ref = self._ref
         R_bc = self._body_T_cam[:3, :3]
         world_R_body = euler_to_matrix(self.x[None, IPHI : IPHI + 3])[0]
@@ -1067,6 +1091,51 @@ class Ukf003:
                 o.slam_reset_s,
                 ev.t,
             )
+
+    def _good_before_gating(self, session: int) -> tuple | None:
+        """The newest fused pose of this map ``slam_reset_s`` before the poses began to be
+        gated (those fused between the fault and the gate's closing had moved the scale and
+        the position: after one 150 m/s^2 accelerometer sample the restart kept both and the
+        estimate settled 0.44 m off); None without one."""
+        if self._slam_gated_since is None:
+            return None
+        t_back = self._slam_gated_since - self.opt.slam_reset_s
+        older = [t for t, g in self._good.items() if t <= t_back and g[0] == session]
+        return self._good[max(older)] if older else None
+
+    def _restore_scale(self, good: tuple) -> None:
+        """The scale and its variance of ``good`` (:meth:`_good_before_gating`), uncorrelated."""
+        self.x[IS] = good[4]
+        self.P[IS, :] = 0.0
+        self.P[:, IS] = 0.0
+        self.P[IS, IS] = good[5]
+        self.counts.extra["gating_scale_restored"] = (
+            self.counts.extra.get("gating_scale_restored", 0) + 1
+        )
+
+    def _reset_position(self, ev: SlamPose, k_j: int, good: tuple) -> None:
+        """A gating reset's position: the diverged filter's drift since the fused pose ``good``
+        (the newest of this map) replaced by the SLAM displacement since it, through the
+        (restored) scale and that pose's fused attitude, in the clone of this pose and in the
+        main state alike (the relative measurements never see an absolute position: a drift
+        kept as the new reference stayed for good). Their variances grow by the scale's and the
+        two poses' noise, as one shared error."""
+        _, t_g, R_g_slam, pose_g, _, _ = good
+        o = self.opt
+        R_bc, b_tc = self._body_T_cam[:3, :3], self._body_T_cam[:3, 3]
+        aj = N_MAIN + N_CLONE * k_j
+        R_g = euler_to_matrix(pose_g[None, 3:6])[0]
+        R_now = euler_to_matrix(self.x[None, aj + 3 : aj + 6])[0]
+        z_t = R_g_slam.T @ (np.asarray(ev.slam_t_cam, float) - t_g)  # camera g [SLAM units]
+        d = R_g @ (R_bc @ z_t / self.scale + b_tc) - R_now @ b_tc
+        delta = pose_g[0:3] + d - self.x[aj : aj + 3]
+        self.x[aj : aj + 3] += delta
+        self.x[IP : IP + 3] += delta
+        var = (np.linalg.norm(d) * self.scale_sigma / self.scale) ** 2
+        var += 2.0 * o.slam_position_sigma_m**2
+        both = np.r_[IP : IP + 3, aj : aj + 3]
+        self.P[np.ix_(both, both)] += var * np.kron(np.ones((2, 2)), np.eye(3))
+        self.counts.extra["gating_reset_shift_m"] = float(np.linalg.norm(delta))
 
     def _keep_only_clone(self, k: int) -> None:
         """Drop every clone except k, and those taken after it (pending images)."""
