@@ -195,6 +195,16 @@ def smoother_method(
     )
 
 
+def require_streams(name: str, flight: Flight) -> None:
+    """Raise :class:`MethodUnavailableError` naming the flight when it lacks the streams method
+    ``name`` needs: ``fgnav batch`` and ``fgnav online`` refuse what ``compare`` and ``fleet``
+    skip (an IMU-only flight ran to a 14 m online estimate with health "ok-after-recovery", and
+    30 LM iterations in batch)."""
+    missing = METHODS[name].missing(flight)
+    if missing:
+        raise MethodUnavailableError(f"{flight.name}: {name}: {missing_reason(missing)}")
+
+
 def missing_reason(missing: list[str]) -> str:
     """``"needs images; the flight has none"`` for the missing streams."""
     names = [STREAM_NAMES.get(s, s) for s in missing]

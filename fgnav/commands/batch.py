@@ -26,7 +26,13 @@ from fgnav.datasets.types import Flight
 from fgnav.estimate import Estimate
 from fgnav.eval.align import mode_label
 from fgnav.eval.outputs import summary_extra
-from fgnav.methods import batch_options, load_method_config, run_batch, with_flags
+from fgnav.methods import (
+    batch_options,
+    load_method_config,
+    require_streams,
+    run_batch,
+    with_flags,
+)
 
 HELP = "smooth a whole flight (batch solver)"
 
@@ -158,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
     config = method_config(args, batch={"covariance": args.covariance})
     batch_options(config)  # option values checked before the flight is read
     flight = load_flight(args.flight)
+    require_streams("batch", flight)
     est = run_batch(flight, config, progress=not args.no_progress)
     print(
         f"batch: {len(est.trajectory)} keyframes, {est.info['lm_iterations']} LM iterations, "

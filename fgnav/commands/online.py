@@ -30,7 +30,7 @@ from fgnav.commands.batch import add_priors_argument, method_config, score_and_w
 from fgnav.config import check_tables
 from fgnav.datasets.errors import FgnavError
 from fgnav.eval.outputs import summary_extra
-from fgnav.methods import fixed_lag_options, run_fixed_lag
+from fgnav.methods import fixed_lag_options, require_streams, run_fixed_lag
 
 HELP = "run the online fixed-lag smoother over a flight"
 
@@ -70,11 +70,13 @@ def run(args: argparse.Namespace) -> int:
     opts = fixed_lag_options(config)  # option values checked before the flight is read
     source = _streams(args.flight, config, opts)
     if source is not None:
+        require_streams("fixed-lag", source.outline)
         print("input: native folder read in chunks as it is replayed (bounded memory)")
         est = run_fixed_lag(source.outline, config, not args.no_progress, source=source)
         flight = source.scoring_flight()
     else:
         flight = load_flight(args.flight)
+        require_streams("fixed-lag", flight)
         est = run_fixed_lag(flight, config, progress=not args.no_progress)
     lat = est.update_latency
     info = est.info

@@ -714,3 +714,25 @@ def test_push_engine_refuses_a_relinearize_skip_below_one():
         with pytest.raises(FlightDataError, match=f"online.{skip}=0: expected an integer >= 1"):
             OnlineSmoother(Calibration(), FixedLagOptions(**{skip: 0}))
     OnlineSmoother(Calibration(), FixedLagOptions(startup_relinearize_skip=1))
+
+
+@pytest.mark.parametrize("command", ["batch", "online"])
+def test_a_flight_without_the_streams_a_smoother_needs_is_refused(
+    cli_folder, tmp_path, capsys, command
+):
+    """``fgnav batch`` / ``fgnav online`` on an IMU-only flight: one line naming the flight and
+    the missing stream, as ``compare`` and ``fleet`` skip it (online ran to a 14 m estimate on a
+    Crazyflie log with its flow and range removed, batch to 30 LM iterations)."""
+    import json
+    import shutil
+
+    flight = tmp_path / "imu-only"
+    flight.mkdir()
+    for name in ("imu.csv", "ground_truth.csv", "calib.yaml"):
+        shutil.copy(cli_folder / name, flight / name)
+    meta = json.loads((cli_folder / "meta.json").read_text())
+    meta["streams"] = ["imu", "ground_truth"]
+    (flight / "meta.json").write_text(json.dumps(meta))
+    err = _one_line_error(capsys, [command, str(flight), "--out", str(tmp_path / "o")])
+    assert "needs slam; the flight has none" in err and meta["name"] in err
+    assert not (tmp_path / "o" / "estimate.tum").exists()
