@@ -549,10 +549,13 @@ def init_slam_alignment(
     d = slam_second_differences(slam.t, slam.slam_t_cam, imu.t, world_a, h, step)
     slam_d2, world_d2, centers = d.slam_d2, d.world_d2, d.centers
     if len(slam_d2) < 6:
+        span = float(slam.t[-1] - slam.t[0]) if len(slam.t) else 0.0
         raise FlightDataError(
-            "SLAM scale initialisation: fewer than 6 acceleration pairs (session shorter than "
-            f"{2 * h + 6 * step:.1f} s); give an initial scale (front-end priors) or a longer "
-            "session"
+            f"SLAM scale initialisation: {len(slam_d2)} acceleration pair(s) from "
+            f"{len(slam.t)} SLAM pose(s) over {span:.1f} s, 6 needed (a pair is three poses "
+            f"{0.5 * h:g}-{2 * h:g} s apart, their middles {step:g} s apart: at least "
+            f"{2 * h + 5 * step:.1f} s of poses without longer gaps); "
+            "give an initial scale (front-end priors) or a longer session"
         )
     spread = float("nan")
     if rotation == "motion":
