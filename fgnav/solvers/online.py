@@ -913,7 +913,7 @@ class OnlineSmoother:
             pose_cov=pose_cov,
             vel_cov=vel_cov,
             slam_scale=dict(self._session_scale),
-            drag_k=last.drag_k,
+            drag_k=last.drag_k if self._drag_in_model() else None,
             ground_height=last.ground_height,
             series=series,
         )
@@ -4344,8 +4344,12 @@ class OnlineSmoother:
                 self._session_scale[sess] = sc
                 self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
         # The drag coefficient only once a drag factor has measured it (a drag variable made
-        # before the thrust check turned drag off holds its initial value: not an estimate).
-        drag_used = bool(self.used.get("drag") or self.used.get("drag-dynamics"))
+        # before the thrust check turned drag off holds its initial value: not an estimate),
+        # and only while drag is in the model (after a check turned it off the variable keeps
+        # what its first factors said: a hover's 0.25 / 0.35 1/s was reported as the estimate).
+        drag_used = self._drag_in_model() and bool(
+            self.used.get("drag") or self.used.get("drag-dynamics")
+        )
         for c, name in (("d", "drag_k"), ("g", "ground_height")):
             if c == "d" and not drag_used:
                 continue
@@ -4356,11 +4360,16 @@ class OnlineSmoother:
                     (t, v if len(v) > 1 else float(v[0]), 0, self._epoch)
                 )
 
+    def _drag_in_model(self) -> bool:
+        """Drag is in the model now: the measured-force drag factor is on, or the thrust-only
+        prediction's drag dynamics are."""
+        return bool(self._drag_on or self._drag_dynamics())
+
     def _state(self, k, pose, vel, bias, pose_cov, vel_cov) -> OnlineState:
         t = self.t_kf[k]
         drag = ground = None
         d = self.track.get("drag_k")
-        if d:
+        if d and self._drag_in_model():
             drag = np.atleast_1d(np.asarray(d[-1][1], float))
         gh = self.track.get("ground_height")
         if gh:

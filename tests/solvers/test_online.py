@@ -450,3 +450,18 @@ def test_drag_k_reported_only_when_a_drag_factor_measured_it(push_run):
     k = np.atleast_1d(push_run.drag_k)
     # Simulated 0.38, 0.42; ky is weakly observable on two-turns (mostly forward flight).
     assert abs(k[0] - 0.38) < 0.03 and 0.0 < k[-1] < 0.6, k
+
+
+def test_drag_k_not_reported_after_the_accelerometer_check_turned_drag_off():
+    """A simulated hover (seed 3, 20 s): drag goes on, and the accelerometer check turns it off
+    1.5 s in (too little speed for drag to explain the horizontal force). The drag variable then
+    keeps what its first factors said (0.25 / 0.35 1/s was reported as the estimate): no drag k
+    in the result, and none in the states after the decision."""
+    hover = simulate("hover", seed=3, options=SimOptions(images=False, duration=20.0))
+    est = replay_online(hover, FixedLagOptions())
+    assert est.info["drag"].startswith("off at t=")
+    assert est.drag_k is None
+    t_off = float(est.info["drag"].split("t=")[1].split(" s")[0])
+    d = est.series.get("drag_k")
+    if d is not None:
+        assert (np.asarray(d.t) <= est.trajectory.t[0] + t_off + 0.2).all()
