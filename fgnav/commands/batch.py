@@ -124,7 +124,14 @@ def score_and_write(flight: Flight, est: Estimate, out: Path, extra: dict[str, A
             sig_txt += f" (per-axis {', '.join(f'{v:.5g}' for v in axes)}: not all positive)"
         print(f"SLAM session {sid}: scale {s:.5g}{sig_txt} SLAM units per metre{err}")
     if est.drag_k is not None:
-        k = ", ".join(f"{v:.4f}" for v in np.atleast_1d(est.drag_k))
+        ks = np.atleast_1d(est.drag_k)
+        sig = None if est.drag_k_sigma is None else np.atleast_1d(est.drag_k_sigma)
+        if sig is not None and len(sig) == len(ks):
+            # With its sigma: a value that stayed at its prior (an unobserved axis, a vertical
+            # flight) reads as such (kx 0.003 +/- 0.2) instead of as a measurement.
+            k = ", ".join(f"{v:.4f} +/- {e:.2g}" for v, e in zip(ks, sig, strict=True))
+        else:
+            k = ", ".join(f"{v:.4f}" for v in ks)
         print(f"drag k: {k} 1/s")
     for line in coverage_lines(flight, est):
         print(line)

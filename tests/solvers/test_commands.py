@@ -29,6 +29,14 @@ def test_batch_command_writes_outputs(flight_folder, tmp_path, capsys):
     assert summary["method"] == "batch"
     assert summary["metrics"]["ate_rmse_m"] < 0.05
     assert summary["info"]["options"]["keyframe_hz"] == 10.0
+    # drag k is printed with its sigma: an axis left at its prior reads as such
+    import re
+
+    line = next(ln for ln in text.splitlines() if ln.startswith("drag k: "))
+    pairs = re.findall(r"(-?[\d.]+) \+/- ([\d.e-]+)", line)
+    assert len(pairs) == 2, line
+    sig = [float(e) for _, e in pairs]
+    assert summary["drag_k_sigma_per_s"] == pytest.approx(sig, rel=0.05)
 
 
 def test_online_command_prints_latency(flight_folder, tmp_path, capsys):
