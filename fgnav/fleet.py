@@ -206,17 +206,31 @@ def _scan(folder: Path) -> list[Path]:
     return found
 
 
-def discover(inputs: Sequence[str]) -> list[FlightInput]:
-    """The flights of the command line's inputs, in order, each once.
+@dataclass(frozen=True)
+class InputProblem:
+    """A command-line input that yields no flight: the ``input`` as given and the ``reason``
+    (one line naming it)."""
+
+    input: str
+    reason: str
+
+    @property
+    def name(self) -> str:
+        """Its ``flight`` cell: the folder or file name, or the pattern as given."""
+        return self.input if glob.has_magic(self.input) else flight_name(Path(self.input))
+
+
+def find_flights(inputs: Sequence[str]) -> tuple[list[FlightInput], list[InputProblem]]:
+    """The flights of the command line's inputs, in order, each once, and the inputs that yield
+    none (a path that does not exist, a folder without flights, a pattern that matches nothing
+    or only folders without flights), each once.
 
     Each input is a flight (taken as one even when its format is not recognised: reading it then
     fails with the reason, in the table) or a folder that is not a flight, scanned recursively;
     glob patterns (``logs/**/*.ulg``) are expanded here.
-
-    Raises:
-        FleetError: an input that does not exist, or a pattern or folder without flights.
     """
     out: list[FlightInput] = []
+    problems: list[InputProblem] = []
     seen: set[Path] = set()
 
     def add(p: Path, given: str) -> None:
@@ -225,26 +239,51 @@ def discover(inputs: Sequence[str]) -> list[FlightInput]:
             seen.add(key)
             out.append(FlightInput(flight_name(p), given, key))
 
+    def problem(given: str, reason: str) -> None:
+        if all(q.input != given for q in problems):
+            problems.append(InputProblem(given, f"{given}: {reason}"))
+
     for given in inputs:
-        if glob.has_magic(given):
+        pattern = glob.has_magic(given)
+        if pattern:
             matches = sorted(glob.glob(given, recursive=True))
             if not matches:
-                raise FleetError(f"{given}: no file or folder matches this pattern")
+                problem(given, "no file or folder matches this pattern")
+                continue
             paths = [Path(m) for m in matches]
         else:
             paths = [Path(given)]
+        if not paths[0].exists():  # (a pattern's matches exist)
+            problem(given, "no such file or folder")
+            continue
+        n = 0
         for p in paths:
-            if not p.exists():
-                raise FleetError(f"{p}: no such file or folder")
             if p.is_dir() and not is_flight(p):
                 flights = _scan(p)
-                if not flights and not glob.has_magic(given):
-                    raise FleetError(f"{p}: no flights found in this folder")
                 for f in flights:
                     add(f, str(f))
+                n += len(flights)
             else:
                 add(p, str(p))
-    return out
+                n += 1
+        if not n:
+            what = "this pattern's folders" if pattern else "this folder"
+            problem(given, f"no flights found in {what}")
+    return out, problems
+
+
+def discover(inputs: Sequence[str]) -> list[FlightInput]:
+    """The flights of the command line's inputs (:func:`find_flights`), strictly: an input
+    that yields no flight is an error.
+
+    Raises:
+        FleetError: the first input that does not exist, or a pattern or folder without
+            flights (:func:`run_fleet` makes these rows instead and runs the other flights).
+    """
+    flights, problems = find_flights(inputs)
+    if problems:
+        raise FleetError(problems[0].reason)
+    return flights
 
 
 # ----------------------------------------------------------------------------------------------
@@ -487,6 +526,7 @@ class FleetResult:
         wall_s: the whole call, hashing and table included [s].
         startup_s: connecting to the scheduler or starting the LocalCluster [s].
         tasks_s: first submission to last result [s] (0 when every run was skipped).
+        input_problems: the inputs that yield no flight (each has an ``error`` row per method).
     """
 
     rows: list[dict[str, Any]]
@@ -497,6 +537,7 @@ class FleetResult:
     startup_s: float = 0.0
     tasks_s: float = 0.0
     files: dict[str, Path] = field(default_factory=dict)
+    input_problems: list[InputProblem] = field(default_factory=list)
 
     def counts(self) -> dict[str, int]:
         """Rows per status."""
@@ -531,8 +572,10 @@ class FleetResult:
         c = self.counts()
         parts = ", ".join(f"{n} {s}" for s, n in c.items())
         flagged = sum(1 for r in self.rows if r["status"] in DONE and r.get("flag"))
+        n_bad = len(self.input_problems)
+        bad = f" (and {n_bad} input(s) without a flight)" if n_bad else ""
         return (
-            f"fleet: {self.n_flights} flights, {len(self.rows)} runs: {parts}; "
+            f"fleet: {self.n_flights} flights{bad}, {len(self.rows)} runs: {parts}; "
             f"{flagged} flagged implausible; "
             f"{self.wall_s:.1f} s on {self.workers} workers; table {self.files.get('csv', '')}"
         )
@@ -768,14 +811,22 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
     check_limits(opts.timeout_s, opts.memory_limit_mb)
     _check_methods(opts.methods)
     out = Path(out)
-    flights = discover(inputs)
+    flights, problems = find_flights(inputs)
     if not flights:
-        raise FleetError("no flights in the inputs")
+        if len(problems) == 1:
+            raise FleetError(problems[0].reason)
+        raise FleetError("no flights in the inputs: " + "; ".join(q.reason for q in problems))
     out.mkdir(parents=True, exist_ok=True)
     old = {} if opts.force else previous_rows(out)
     o_hash = {m: options_hash(m, opts.config) for m in opts.methods}
     t_all = time.perf_counter()
-    rows: list[dict[str, Any]] = []
+    # An input without a flight: one error row per method (as a file that is not a flight), the
+    # other inputs' flights run (the first such input stopped the whole fleet).
+    rows: list[dict[str, Any]] = [
+        {"flight": q.name, "input": q.input, "method": m, "status": ERROR, "reason": q.reason}
+        for q in problems
+        for m in opts.methods
+    ]
     jobs: list[tuple[dict[str, Any], dict[str, Any]]] = []
     # Copies of a flight (same name and content, two places): one job, whose rows each copy
     # gets with its own input (both ran into one flights/<name>-<hash>/ folder at once).
@@ -820,11 +871,15 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
         rows += [{**r, **ident} for r in rows if r["input"] == of and r["method"] in todo]
     order = {m: i for i, m in enumerate(opts.methods)}
     pos = {f.input: i for i, f in enumerate(flights)}
+    pos.update({q.input: len(flights) + i for i, q in enumerate(problems)})  # (last)
     rows.sort(key=lambda r: (pos.get(r["input"], 0), order.get(r["method"], 0)))
     rows = [{c: r.get(c) for c in COLUMNS} for r in rows]
     res = FleetResult(rows, out, len(flights), wall_s=time.perf_counter() - t_all, **timing)
+    res.input_problems = problems
     res.files = write_table(rows, out)
-    res.files["report"] = write_report(rows, out, run_context(opts, len(jobs), timing))
+    res.files["report"] = write_report(
+        rows, out, run_context(opts, len(jobs), timing), [q.input for q in problems]
+    )
     return res
 
 
@@ -1202,10 +1257,16 @@ def markdown_table(rows: list[dict[str, Any]], columns: Sequence[str] = REPORT_C
 N_WORST = 5
 
 
-def write_report(rows: list[dict[str, Any]], out: Path, context: str = "") -> Path:
+def write_report(
+    rows: list[dict[str, Any]],
+    out: Path,
+    context: str = "",
+    no_flight_inputs: Sequence[str] = (),
+) -> Path:
     """``fleet.md``: what ran (``context``, one line), counts, the distribution figures, the worst
     flights by ATE per method, the failed runs with their reasons, the whole table and the
-    meaning of the columns."""
+    meaning of the columns. ``no_flight_inputs``: inputs that yielded no flight (their rows are
+    ``error`` rows; they are not counted as flights)."""
     figs = _figures(rows, out)
     counts: dict[str, int] = {}
     for r in rows:
@@ -1215,8 +1276,12 @@ def write_report(rows: list[dict[str, Any]], out: Path, context: str = "") -> Pa
     lines = ["# Fleet report", ""]
     if context:
         lines += [context, ""]
+    n_bad = len(set(no_flight_inputs))
+    n_flights = len({r["input"] for r in rows} - set(no_flight_inputs))
     lines += [
-        f"{len({r['input'] for r in rows})} flights, {len(rows)} runs: "
+        f"{n_flights} flights"
+        + (f" and {n_bad} input(s) without a flight (see Failed runs)" if n_bad else "")
+        + f", {len(rows)} runs: "
         + ", ".join(f"{counts[s]} {s}" for s in order)
         + (
             " (`skipped`: done in an earlier run with the same input and options, figures kept)"

@@ -10,7 +10,10 @@ must then be a path shared by every worker and this client). Writes ``DIR/fleet.
 the runs already done with the same input content and options, found in ``fleet.json`` or the
 journal (``--force`` reruns them). Failed flights are rows of the table (status
 ``error``, ``timeout``, ``crashed``), each also printed on stderr after the run, one line
-``flight (input) method: status: reason``. A finished run whose estimate ``fgnav compare``
+``flight (input) method: status: reason``. An input that yields no flight (a path that does
+not exist, a folder without flights, a pattern that matches nothing) is an ``error`` row per
+method too, and the other inputs' flights run; only when no input yields a flight is it a
+one-line error (exit 1). A finished run whose estimate ``fgnav compare``
 would flag implausible (:func:`fgnav.compare.plausibility_flags`) has the codes in the table's
 ``flag`` column and the reasons in ``flags``, one ``WARNING`` line each after the run, and the
 summary line counts them. The exit code is 0 once the table is written, unless
