@@ -101,6 +101,15 @@ def _load(p: Path, topics: dict[str, str] | None) -> Flight:
             from .euroc import read_euroc_folder
 
             return read_euroc_folder(p)
+        from .native import META_FILE, lost_meta_json
+
+        if have := lost_meta_json(p):
+            raise FlightFormatError(
+                p,
+                f"no {META_FILE}: a native flight folder needs it (this one has "
+                + ", ".join(have)
+                + ")",
+            )
     elif suffix == ".toml":
         from .manifest import read_manifest
 

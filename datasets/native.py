@@ -752,6 +752,21 @@ def is_native_folder(path: str | Path) -> bool:
     return p.is_dir() and (p / META_FILE).is_file()
 
 
+#: Files of a native flight folder besides ``meta.json`` (:func:`lost_meta_json`).
+NATIVE_FILES = (CALIB_FILE, *_STREAM_FILES.values(), "images.csv")
+
+
+def lost_meta_json(path: str | Path) -> list[str]:
+    """The native files of a folder that looks like a native flight folder but has no
+    ``meta.json`` (it holds ``imu.csv``, or two of :data:`NATIVE_FILES`), in that order; empty
+    for any other path (a folder with ``meta.json``, one without native files, a file)."""
+    p = Path(path)
+    if not p.is_dir() or (p / META_FILE).exists():
+        return []
+    have = [f for f in NATIVE_FILES if (p / f).is_file()]
+    return have if "imu.csv" in have or len(have) >= 2 else []
+
+
 def _str_list(v: Any) -> bool:
     return isinstance(v, list) and all(isinstance(x, str) for x in v)
 

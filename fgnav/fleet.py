@@ -184,9 +184,18 @@ def flight_name(p: Path) -> str:
     return p.name if p.is_dir() else p.stem
 
 
+def _lost_meta(p: Path) -> bool:
+    """A folder that looks like a native flight folder but has no ``meta.json``
+    (:func:`fgnav.datasets.native.lost_meta_json`): taken as a flight, so that its row names
+    the missing file (the scan left it out without a word)."""
+    from fgnav.datasets.native import lost_meta_json
+
+    return bool(lost_meta_json(p))
+
+
 def _scan(folder: Path) -> list[Path]:
     """Flights under ``folder`` (recursively; a flight folder is not searched further),
-    damaged ones included (:func:`_damaged_flight`: their rows say why)."""
+    damaged ones included (:func:`_damaged_flight`, :func:`_lost_meta`: their rows say why)."""
     found: list[Path] = []
     for root, dirs, files in os.walk(folder):
         dirs.sort()
@@ -195,7 +204,7 @@ def _scan(folder: Path) -> list[Path]:
         for d in dirs:
             if d.startswith("."):
                 continue
-            if is_flight(here / d):
+            if is_flight(here / d) or _lost_meta(here / d):
                 found.append(here / d)
             else:
                 keep.append(d)
@@ -258,7 +267,7 @@ def find_flights(inputs: Sequence[str]) -> tuple[list[FlightInput], list[InputPr
             continue
         n = 0
         for p in paths:
-            if p.is_dir() and not is_flight(p):
+            if p.is_dir() and not is_flight(p) and not _lost_meta(p):
                 flights = _scan(p)
                 for f in flights:
                     add(f, str(f))

@@ -82,3 +82,32 @@ def test_unknown_and_missing(tmp_path):
     write_flight(Flight(name="nat", imu=_imu()), tmp_path / "f")
     with pytest.raises(FlightFormatError, match="--topics applies to ROS bags only"):
         load_flight(tmp_path / "f", topics={"imu": "/imu"})
+
+
+def test_native_folder_without_meta_json_names_the_missing_file(tmp_path):
+    """A native flight folder that lost its meta.json was "not a recognised flight input" (and
+    the fleet's folder scan left it out without a word); a folder with one unrelated native
+    file name is still not taken for a flight."""
+    from fgnav.datasets.native import lost_meta_json
+
+    write_flight(Flight(name="nat", imu=_imu()), tmp_path / "f")
+    assert lost_meta_json(tmp_path / "f") == []  # (has its meta.json)
+    (tmp_path / "f" / "meta.json").unlink()
+    assert lost_meta_json(tmp_path / "f") == ["calib.yaml", "imu.csv"]
+    with pytest.raises(
+        FlightFormatError,
+        match=r"/f: no meta\.json: a native flight folder needs it \(this one has calib\.yaml, "
+        r"imu\.csv\)$",
+    ):
+        load_flight(tmp_path / "f")
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "range.csv").write_text("t [s],range [m]\n0,1\n")
+    assert lost_meta_json(tmp_path / "g") == []
+    (tmp_path / "g" / "slam.csv").write_text("x\n")
+    assert lost_meta_json(tmp_path / "g") == ["range.csv", "slam.csv"]
+    (tmp_path / "h").mkdir()
+    (tmp_path / "h" / "imu.csv").write_text("x\n")
+    assert lost_meta_json(tmp_path / "h") == ["imu.csv"]
+    assert lost_meta_json(tmp_path / "h" / "imu.csv") == []
+    with pytest.raises(FlightFormatError, match="not a recognised flight input"):
+        load_flight(tmp_path / "g" / "range.csv")

@@ -1,6 +1,6 @@
 """``fgnav fleet`` inputs (review, 2026-12-08): an input that yields no flight (an empty folder, a
 pattern that matches nothing, a missing path) is an error row while the other inputs' flights
-run."""
+run; a native flight folder that lost its ``meta.json`` gets a row naming it."""
 
 from __future__ import annotations
 
@@ -32,7 +32,9 @@ def test_inputs_without_flights_are_listed_not_raised(flight, tmp_path):
     shutil.copytree(flight, good / "tt4")
     (tmp_path / "empty").mkdir()
     (tmp_path / "dirs" / "x").mkdir(parents=True)  # a pattern matching folders without flights
-    shutil.copytree(flight, tmp_path / "camp" / "tt4b")
+    lost = tmp_path / "camp" / "lost"
+    shutil.copytree(flight, lost)
+    (lost / "meta.json").unlink()
     inputs = [
         str(good),
         str(tmp_path / "empty"),
@@ -43,10 +45,7 @@ def test_inputs_without_flights_are_listed_not_raised(flight, tmp_path):
         str(tmp_path / "empty"),  # (an input given twice: one problem)
     ]
     flights, problems = find_flights(inputs)
-    assert [(f.name, f.path) for f in flights] == [
-        ("tt4", good / "tt4"),
-        ("tt4b", tmp_path / "camp" / "tt4b"),
-    ]
+    assert [(f.name, f.path) for f in flights] == [("tt4", good / "tt4"), ("lost", lost)]
     assert problems == [
         InputProblem(inputs[1], f"{inputs[1]}: no flights found in this folder"),
         InputProblem(inputs[2], f"{inputs[2]}: no file or folder matches this pattern"),
@@ -54,6 +53,8 @@ def test_inputs_without_flights_are_listed_not_raised(flight, tmp_path):
         InputProblem(inputs[4], f"{inputs[4]}: no flights found in this pattern's folders"),
     ]
     assert [q.name for q in problems] == ["empty", inputs[2], "missing", inputs[4]]
+    # The folder that lost its meta.json, given itself, is a flight too (its row says why).
+    assert [f.path for f in find_flights([str(lost)])[0]] == [lost]
     # discover() stays strict: the first input without flights is the error.
     with pytest.raises(FleetError, match="empty: no flights found in this folder"):
         discover(inputs)
@@ -91,9 +92,13 @@ def _cluster():
 @pytest.mark.slow
 def test_bad_inputs_are_rows_beside_the_flights_that_ran(flight, tmp_path, capsys):
     """``fgnav fleet GOOD EMPTY --out O`` stopped before any flight ran ("EMPTY: no flights
-    found in this folder")."""
+    found in this folder"), and the scan left a flight folder without meta.json out without a
+    word."""
     good = tmp_path / "good"
     shutil.copytree(flight, good / "tt4")
+    lost = good / "lost"
+    shutil.copytree(flight, lost)
+    (lost / "meta.json").unlink()
     (tmp_path / "empty").mkdir()
     empty, pattern = str(tmp_path / "empty"), str(tmp_path / "nothere" / "*.ulg")
     out = tmp_path / "o"
@@ -105,6 +110,8 @@ def test_bad_inputs_are_rows_beside_the_flights_that_ran(flight, tmp_path, capsy
     rows = json.loads((out / "fleet.json").read_text())
     got = [(r["flight"], r["input"], r["method"], r["status"]) for r in rows]
     assert got == [
+        ("lost", str(lost), "batch", "error"),
+        ("lost", str(lost), "fixed-lag", "error"),
         ("tt4", str(good / "tt4"), "batch", "ok"),
         ("tt4", str(good / "tt4"), "fixed-lag", "ok"),
         ("empty", empty, "batch", "error"),
@@ -112,16 +119,21 @@ def test_bad_inputs_are_rows_beside_the_flights_that_ran(flight, tmp_path, capsy
         (pattern, pattern, "batch", "error"),
         (pattern, pattern, "fixed-lag", "error"),
     ]
-    assert rows[0]["ate_rmse_m"] < 0.1
-    assert rows[2]["reason"] == f"{empty}: no flights found in this folder"
-    assert rows[4]["reason"] == f"{pattern}: no file or folder matches this pattern"
+    assert rows[0]["reason"] == (
+        f"{lost}: no meta.json: a native flight folder needs it (this one has calib.yaml, "
+        "imu.csv, attitude.csv, range.csv, yaw.csv, slam.csv, ground_truth.csv)"
+    )
+    assert rows[2]["ate_rmse_m"] < 0.1
+    assert rows[4]["reason"] == f"{empty}: no flights found in this folder"
+    assert rows[6]["reason"] == f"{pattern}: no file or folder matches this pattern"
     failed = cap.err.strip().splitlines()
     assert f"empty ({empty}) batch: error: {empty}: no flights found in this folder" in failed
-    assert len(failed) == 4, failed
-    summary = "fleet: 1 flights (and 2 input(s) without a flight), 6 runs: 2 ok, 0 skipped, 4 error"
+    assert f"lost ({lost}) fixed-lag: error: {lost}: no meta.json: " in "\n".join(failed)
+    assert len(failed) == 6, failed
+    summary = "fleet: 2 flights (and 2 input(s) without a flight), 8 runs: 2 ok, 0 skipped, 6 error"
     assert summary in cap.out
     report = (out / "fleet.md").read_text()
-    assert "1 flights and 2 input(s) without a flight (see Failed runs), 6 runs: 2 ok, 4 error" in (
+    assert "2 flights and 2 input(s) without a flight (see Failed runs), 8 runs: 2 ok, 6 error" in (
         report
     )
     assert f"| empty | {empty} | batch | error | {empty}: no flights found in this folder |" in (
