@@ -35,6 +35,7 @@ import math
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -673,15 +674,19 @@ CONNECT_DEADLINE_S = 20.0
 
 def check_scheduler_address(address: str) -> str:
     """``address`` when it reads as a Dask scheduler address (``tcp://HOST:PORT``; ``HOST:PORT``
-    means tcp; other Dask schemes: tls, ws, wss, ucx).
+    means tcp; other Dask schemes: tls, ws, wss, and ucx when Dask's UCX support is installed),
+    without contacting it: its form and that this Dask can use its protocol.
 
     Raises:
-        FleetError: one line naming ``--scheduler``.
+        FleetError: one line naming ``--scheduler`` (an empty address, no HOST:PORT, a scheme
+            that is not Dask's or that this installation cannot use).
     """
     from distributed.comm import parse_address
     from distributed.comm.registry import backends
 
     usage = "expected tcp://HOST:PORT"
+    if not address.strip():
+        raise FleetError(f"--scheduler {address!r}: an empty address; {usage}")
     try:
         scheme, loc = parse_address(address)
     except ValueError as e:
@@ -696,6 +701,16 @@ def check_scheduler_address(address: str) -> str:
     host, sep, port = loc.rpartition(":")
     if scheme != "ucx" and (not sep or not host or not port.isdigit() or not 0 < int(port) < 65536):
         raise FleetError(f"--scheduler {address}: no HOST:PORT in it; {usage}")
+    try:
+        # (ucx:// is registered even without its package: the connector is then abstract and
+        # the client failed with "TypeError: Can't instantiate abstract class UCXConnector".)
+        backends[scheme].get_connector()
+    except Exception as e:
+        msg = " ".join(str(e).split())[:120]
+        raise FleetError(
+            f"--scheduler {address}: the {scheme}:// protocol is not usable with this Dask"
+            f" installation ({type(e).__name__}: {msg}); {usage}"
+        ) from None
     return address
 
 
@@ -704,31 +719,66 @@ def _probe_scheduler(address: str, deadline_s: float) -> None:
     own connect does not bound the handshake (a web server at the port held it for minutes) nor
     check what it reads (garbage asked numpy for exabytes).
 
+    A plain TCP connection comes first, so that a refused one, an unknown host or a connection
+    timeout are named at once (Dask's connect retried a refused connection for the whole
+    deadline and its ``OSError`` read as a reply that is not a Dask scheduler's). (The
+    scheduler logs it at INFO: ``Connection from ... closed before handshake completed``.)
+
     Raises:
-        FleetError: nothing answered in time, the answer is not a Dask scheduler's.
+        FleetError: the host is unknown, the connection is refused or times out, nothing
+            answered in time, the answer is not a Dask scheduler's.
     """
     import asyncio
     from concurrent.futures import ThreadPoolExecutor
 
-    from distributed.comm import connect
+    from distributed.comm import connect, parse_address
+    from distributed.comm.addressing import parse_host_port
+
+    where = f"--scheduler {address}"
+    host, port = parse_host_port(parse_address(address)[1])
+    t0 = time.monotonic()
+    try:
+        # A plain TCP connection first: Dask's connect retries a refused one until its timeout
+        # (20 s) and then read "not a Dask scheduler (its reply ...: OSError: Timed out ...)".
+        socket.create_connection((host, port), timeout=deadline_s).close()
+    except socket.gaierror as e:
+        raise FleetError(f"{where}: host {host!r} not found ({e.strerror or e})") from None
+    except ConnectionRefusedError:
+        raise FleetError(
+            f"{where}: no Dask scheduler answers at {host} port {port} (connection refused:"
+            " nothing listens there)"
+        ) from None
+    except TimeoutError:
+        raise FleetError(
+            f"{where}: no Dask scheduler answers at {host} port {port} (connection timed out"
+            f" after {deadline_s:g} s)"
+        ) from None
+    except OSError as e:
+        raise FleetError(
+            f"{where}: no Dask scheduler answers at {host} port {port}"
+            f" ({e.strerror or type(e).__name__})"
+        ) from None
+    left_s = max(1.0, deadline_s - (time.monotonic() - t0))
 
     async def ask() -> Any:
-        comm = await connect(address, timeout=deadline_s)
+        comm = await connect(address, timeout=left_s)
         try:
             await comm.write({"op": "identity", "reply": True})
             return await comm.read()
         finally:
             comm.abort()
 
-    where = f"--scheduler {address}"
     with ThreadPoolExecutor(1) as pool:  # (a thread of its own: the caller may run a loop)
         try:
-            got = pool.submit(asyncio.run, asyncio.wait_for(ask(), deadline_s)).result()
+            got = pool.submit(asyncio.run, asyncio.wait_for(ask(), left_s)).result()
         except TimeoutError:
             raise FleetError(
-                f"{where}: no Dask scheduler answered within {deadline_s:g} s (nothing listens,"
-                " or the port is not a Dask scheduler's)"
+                f"{where}: no Dask scheduler answered within {deadline_s:g} s (the port accepts"
+                " connections but gives no Dask reply)"
             ) from None
+        except OSError as e:  # (Dask's connect gave up: the port closed in between)
+            msg = " ".join(str(e).split())[:120]
+            raise FleetError(f"{where}: no Dask scheduler answers there ({msg})") from None
         except Exception as e:  # (a reply that is not Dask's protocol: any error of its parse)
             msg = " ".join(str(e).split())[:120]
             raise FleetError(
@@ -761,7 +811,7 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
 
     # The scheduler of a LocalCluster runs in this process: its INFO lines are not the user's.
     logging.getLogger("distributed").setLevel(logging.WARNING)
-    if opts.scheduler:
+    if opts.scheduler is not None:
         address = check_scheduler_address(opts.scheduler)
         if address.startswith("tcp://") or "://" not in address:
             _probe_scheduler(address, CONNECT_DEADLINE_S)
@@ -819,6 +869,10 @@ def run_fleet(inputs: Sequence[str], out: str | Path, opts: FleetOptions | None 
     opts = replace(opts, methods=tuple(dict.fromkeys(opts.methods)))
     check_limits(opts.timeout_s, opts.memory_limit_mb)
     _check_methods(opts.methods)
+    if opts.scheduler is not None:
+        # Its form now (contacted only when something is to run: a rerun that reuses every row
+        # exited 0 with any address, "" ran on a LocalCluster).
+        check_scheduler_address(opts.scheduler)
     out = Path(out)
     flights, problems = find_flights(inputs)
     if not flights:

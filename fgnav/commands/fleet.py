@@ -16,7 +16,11 @@ method too, and the other inputs' flights run; only when no input yields a fligh
 one-line error (exit 1). A finished run whose estimate ``fgnav compare``
 would flag implausible (:func:`fgnav.compare.plausibility_flags`) has the codes in the table's
 ``flag`` column and the reasons in ``flags``, one ``WARNING`` line each after the run, and the
-summary line counts them. The exit code is 0 once the table is written, unless
+summary line counts them. ``--scheduler`` is checked before anything runs (not empty,
+``[tcp://]HOST:PORT`` or another Dask protocol this installation can use: tls, ws, wss; ucx only
+with Dask's UCX support) and contacted only when a flight is to run (a rerun that reuses every
+row does not): a refused connection, an unknown host or a server that is not a Dask scheduler is
+then a one-line error. The exit code is 0 once the table is written, unless
 every run failed: then 1 (after the table and the summary line).
 """
 

@@ -1,19 +1,30 @@
-"""``fgnav fleet`` inputs (review, 2026-12-08): an input that yields no flight (an empty folder, a
-pattern that matches nothing, a missing path) is an error row while the other inputs' flights
-run; a native flight folder that lost its ``meta.json`` gets a row naming it."""
+"""``fgnav fleet`` inputs and ``--scheduler`` (review, 2026-12-08): an input that yields no flight
+(an empty folder, a pattern that matches nothing, a missing path) is an error row while the other
+inputs' flights run; a native flight folder that lost its ``meta.json`` gets a row naming it;
+an empty, refused, UCX or (on a rerun with nothing to run) malformed ``--scheduler`` is a
+one-line error."""
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
+import socket
+import time
 from pathlib import Path
 
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate_to_folder
 
 from fgnav.cli import main
-from fgnav.fleet import FleetError, InputProblem, discover, find_flights
+from fgnav.fleet import (
+    FleetError,
+    InputProblem,
+    check_scheduler_address,
+    discover,
+    find_flights,
+)
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +36,25 @@ def flight(tmp_path_factory) -> Path:
         seed=4,
         options=SimOptions(duration=8.0, images=False),
     )
+
+
+def _ucx_usable() -> bool:
+    from distributed.comm.registry import backends
+
+    try:
+        backends["ucx"].get_connector()
+    except Exception:
+        return False
+    return True
+
+
+def _closed_port() -> int:
+    """A loopback port nothing listens on (bound, then closed)."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
 
 
 def test_inputs_without_flights_are_listed_not_raised(flight, tmp_path):
@@ -73,6 +103,46 @@ def test_only_inputs_without_flights_is_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("address", "why"),
+    [
+        ("", "--scheduler '': an empty address; expected tcp://HOST:PORT"),
+        ("  ", "--scheduler '  ': an empty address"),
+        ("ucx://127.0.0.1:8786", "the ucx:// protocol is not usable with this Dask installation"),
+    ],
+)
+def test_scheduler_address_checks_without_contact(address, why, flight, tmp_path, capsys):
+    """``""`` ran the fleet on a LocalCluster; ``ucx://`` (its package not installed) failed at
+    the connection with ``TypeError: Can't instantiate abstract class UCXConnector``."""
+    if address.startswith("ucx") and _ucx_usable():
+        pytest.skip("Dask's UCX support is installed here")
+    with pytest.raises(FleetError, match=re.escape(why)):
+        check_scheduler_address(address)
+    t0 = time.monotonic()
+    argv = ["fleet", str(flight), "--out", str(tmp_path / "o"), "--scheduler", address]
+    assert main([*argv, "--no-progress"]) == 1
+    assert time.monotonic() - t0 < 10
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and why in err[0], err
+    assert not (tmp_path / "o").exists()  # (nothing started, nothing written)
+
+
+def test_refused_scheduler_is_named_at_once(flight, tmp_path, capsys):
+    """Nothing listening: 20 s, then "not a Dask scheduler (its reply does not read as one:
+    OSError: Timed out trying to connect ...)" although nothing replied."""
+    port = _closed_port()
+    address = f"tcp://127.0.0.1:{port}"
+    t0 = time.monotonic()
+    argv = ["fleet", str(flight), "--out", str(tmp_path / "o"), "--scheduler", address]
+    assert main([*argv, "--no-progress"]) == 1
+    assert time.monotonic() - t0 < 10
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"fgnav fleet: error: --scheduler {address}: no Dask scheduler answers at 127.0.0.1 "
+        f"port {port} (connection refused: nothing listens there)"
+    ]
+
+
 def _cluster():
     """A LocalCluster reached by address (threads, 2 workers, loopback, no dashboard)."""
     from distributed import LocalCluster
@@ -90,10 +160,10 @@ def _cluster():
 
 
 @pytest.mark.slow
-def test_bad_inputs_are_rows_beside_the_flights_that_ran(flight, tmp_path, capsys):
+def test_bad_inputs_are_rows_and_the_rerun_checks_the_address(flight, tmp_path, capsys):
     """``fgnav fleet GOOD EMPTY --out O`` stopped before any flight ran ("EMPTY: no flights
     found in this folder"), and the scan left a flight folder without meta.json out without a
-    word."""
+    word; a rerun that reuses every row never looked at ``--scheduler`` (exit 0 with ``""``)."""
     good = tmp_path / "good"
     shutil.copytree(flight, good / "tt4")
     lost = good / "lost"
@@ -139,3 +209,16 @@ def test_bad_inputs_are_rows_beside_the_flights_that_ran(flight, tmp_path, capsy
     assert f"| empty | {empty} | batch | error | {empty}: no flights found in this folder |" in (
         report
     )
+    # A rerun of the good flight and the inputs without one: tt4's runs are reused, nothing to
+    # run. The address is checked all the same ...
+    argv = ["fleet", str(good / "tt4"), empty, pattern, "--out", str(out), "--no-progress"]
+    for bad in ("", "ucx://127.0.0.1:8786", "tcp://127.0.0.1"):
+        assert main([*argv, "--methods", "batch,fixed-lag", "--scheduler", bad]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"fgnav fleet: error: --scheduler {bad}"), err
+    # ... by its form only: a well-formed address nobody answers is not contacted then.
+    idle = f"tcp://127.0.0.1:{_closed_port()}"
+    assert main([*argv, "--methods", "batch,fixed-lag", "--scheduler", idle]) == 0
+    assert "6 runs: 0 ok, 2 skipped, 4 error" in capsys.readouterr().out
+    rows = json.loads((out / "fleet.json").read_text())
+    assert [r["status"] for r in rows] == ["skipped", "skipped", *["error"] * 4]
