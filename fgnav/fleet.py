@@ -714,32 +714,23 @@ def check_scheduler_address(address: str) -> str:
     return address
 
 
-def _probe_scheduler(address: str, deadline_s: float) -> None:
-    """Ask the server at a ``tcp://`` ``address`` who it is, all within ``deadline_s``: Dask's
-    own connect does not bound the handshake (a web server at the port held it for minutes) nor
-    check what it reads (garbage asked numpy for exabytes).
-
-    A plain TCP connection comes first, so that a refused one, an unknown host or a connection
-    timeout are named at once (Dask's connect retried a refused connection for the whole
-    deadline and its ``OSError`` read as a reply that is not a Dask scheduler's). (The
-    scheduler logs it at INFO: ``Connection from ... closed before handshake completed``.)
+def _tcp_reachable(address: str, deadline_s: float) -> None:
+    """Open (and close) a plain TCP connection to the HOST:PORT of a tcp, tls, ws or wss
+    ``address``, so that an unknown host, a refused connection or a connection timeout are named
+    at once: Dask's connect retries a refused connection for its whole timeout (20 s) and its
+    ``OSError`` then read as a reply that is not a Dask scheduler's (tcp) or "cannot connect"
+    (ws). (A Dask scheduler logs it at INFO: ``Connection from ... closed before handshake
+    completed``.)
 
     Raises:
-        FleetError: the host is unknown, the connection is refused or times out, nothing
-            answered in time, the answer is not a Dask scheduler's.
+        FleetError: one line naming ``--scheduler`` and why.
     """
-    import asyncio
-    from concurrent.futures import ThreadPoolExecutor
-
-    from distributed.comm import connect, parse_address
+    from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
 
     where = f"--scheduler {address}"
     host, port = parse_host_port(parse_address(address)[1])
-    t0 = time.monotonic()
     try:
-        # A plain TCP connection first: Dask's connect retries a refused one until its timeout
-        # (20 s) and then read "not a Dask scheduler (its reply ...: OSError: Timed out ...)".
         socket.create_connection((host, port), timeout=deadline_s).close()
     except socket.gaierror as e:
         raise FleetError(f"{where}: host {host!r} not found ({e.strerror or e})") from None
@@ -758,6 +749,26 @@ def _probe_scheduler(address: str, deadline_s: float) -> None:
             f"{where}: no Dask scheduler answers at {host} port {port}"
             f" ({e.strerror or type(e).__name__})"
         ) from None
+
+
+def _probe_scheduler(address: str, deadline_s: float) -> None:
+    """Ask the server at a ``tcp://`` ``address`` who it is, all within ``deadline_s``: Dask's
+    own connect does not bound the handshake (a web server at the port held it for minutes) nor
+    check what it reads (garbage asked numpy for exabytes). A plain TCP connection comes first
+    (:func:`_tcp_reachable`).
+
+    Raises:
+        FleetError: the host is unknown, the connection is refused or times out, nothing
+            answered in time, the answer is not a Dask scheduler's.
+    """
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect
+
+    where = f"--scheduler {address}"
+    t0 = time.monotonic()
+    _tcp_reachable(address, deadline_s)
     left_s = max(1.0, deadline_s - (time.monotonic() - t0))
 
     async def ask() -> Any:
@@ -815,6 +826,8 @@ def _dask_client(opts: FleetOptions, n_jobs: int):
         address = check_scheduler_address(opts.scheduler)
         if address.startswith("tcp://") or "://" not in address:
             _probe_scheduler(address, CONNECT_DEADLINE_S)
+        elif not address.startswith("ucx://"):  # (tls, ws, wss: TCP underneath)
+            _tcp_reachable(address, CONNECT_DEADLINE_S)
         try:
             return Client(address, timeout=f"{CONNECT_DEADLINE_S:g}s"), None
         except Exception as e:

@@ -127,11 +127,13 @@ def test_scheduler_address_checks_without_contact(address, why, flight, tmp_path
     assert not (tmp_path / "o").exists()  # (nothing started, nothing written)
 
 
-def test_refused_scheduler_is_named_at_once(flight, tmp_path, capsys):
+@pytest.mark.parametrize("scheme", ["tcp://", "", "ws://"])
+def test_refused_scheduler_is_named_at_once(scheme, flight, tmp_path, capsys):
     """Nothing listening: 20 s, then "not a Dask scheduler (its reply does not read as one:
-    OSError: Timed out trying to connect ...)" although nothing replied."""
+    OSError: Timed out trying to connect ...)" although nothing replied (ws://: 20 s, then
+    "cannot connect (OSError: Timed out ...)")."""
     port = _closed_port()
-    address = f"tcp://127.0.0.1:{port}"
+    address = f"{scheme}127.0.0.1:{port}"
     t0 = time.monotonic()
     argv = ["fleet", str(flight), "--out", str(tmp_path / "o"), "--scheduler", address]
     assert main([*argv, "--no-progress"]) == 1
