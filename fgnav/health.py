@@ -53,6 +53,17 @@ each counted by name in :meth:`FaultDetectors.report`:
   constant run the detector could not call stuck from the solve that contains it (that solve
   follows a stuck reading the more, the stiffer the ground-height walk) is tested on one more
   solve without its readings (:func:`stuck_range_candidates`, :func:`confirm_stuck_range`).
+- ``range-at-min``: a run of readings at the rangefinder's floor (within
+  :data:`fgnav.factors.tilted_range.RANGE_AT_MIN_TOL_M` of the calibration's ``range_min``: "at
+  or below the floor", not a distance; no such reading is a height factor, each is counted
+  ``range:at-min``) over ``range_stuck_s`` or more while the estimated height changed by more
+  than ``range_stuck_motion_m`` plus ``range_min`` (below its floor the sensor reads it whatever
+  the height up to ``range_min``: a take-off is not the fault). A rangefinder pinned at its
+  minimum for a whole flight was a height: simulated two-turns 0.137 / 0.152 m (batch /
+  online, nominal 0.007 / 0.027 m) with health "ok" before. Readings below ``range_min`` stay
+  out of range, not this, and once one has come the sensor does not clamp at its floor: its
+  readings at ``range_min`` are distances (a Crazyflie's time of flight reads 12-25 mm on the
+  floor, under its 40 mm limit, and 40 mm once on the way down in traj2).
 - ``camera-frozen``: an image identical (byte for byte) to the previous one; dropped
   (``images:frozen``).
 - ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
@@ -125,6 +136,7 @@ DETECTORS = (
     "slam-jump",
     "slam-reset",
     "range-stuck",
+    "range-at-min",
     "camera-frozen",
     "slam-clock-offset",
     "body_T_cam-rotation",
@@ -251,6 +263,8 @@ class FaultDetectors:
     options: HealthOptions = field(default_factory=HealthOptions)
     context: Context = field(default_factory=Context)
     name: str = "health"
+    #: the rangefinder's ``range_min`` [m] (None: unknown, no ``range-at-min`` test)
+    range_min: float | None = None
 
     def __post_init__(self) -> None:
         self.counts: dict[str, int] = {}
@@ -279,6 +293,14 @@ class FaultDetectors:
         self._range_stuck = False
         #: (start time, value) of each stuck range run declared
         self.stuck_runs: list[tuple[float, float]] = []
+        # The current run of readings at the rangefinder's floor: start time, the first height
+        # known in it (time, height, SLAM pose), whether it was named.
+        self._atmin_t0: float | None = None
+        self._atmin_h0: tuple[float, float, tuple[int, np.ndarray] | None] | None = None
+        self._atmin_named = False
+        self._range_below = False  # a reading below range_min seen
+        #: (start time, time named) of each run at the floor named ``range-at-min``
+        self.at_min_runs: list[tuple[float, float]] = []
         self._image_hash: bytes | None = None
         self._frozen = False
         self._said: set[str] = set()
@@ -566,6 +588,18 @@ class FaultDetectors:
         t = float(ev.t)
         if not math.isfinite(r):
             return ev
+        if self.range_min is not None:
+            from fgnav.factors.tilted_range import range_at_min
+
+            # (a sensor that has read below its floor does not clamp there: range_at_min)
+            self._range_below = self._range_below or r < self.range_min
+            if not self._range_below and range_at_min(r, self.range_min):
+                # No distance: the gates keep it out of the graph (range:at-min); a stuck
+                # run starts afresh after it.
+                self._range_val = None
+                self._at_min(r, t)
+                return ev
+            self._atmin_t0 = None
         if self._range_val is None or r != self._range_val:
             self._range_val, self._range_t0 = r, t
             self._range_h0 = self._height(t)
@@ -575,6 +609,13 @@ class FaultDetectors:
         if self._range_stuck:
             self._drop("range:stuck")
             return None
+        if self._range_slam0 is None:
+            # A run from before any SLAM pose or height was known (a rangefinder stuck from the
+            # start): compared from the first ones known in it (never tested before: simulated
+            # two-turns stuck at 2.0 m throughout, online 0.152 m with health "ok").
+            self._range_slam0 = self._slam_last
+        if self._range_h0 is None:
+            self._range_h0 = self._height(t)
         if t - self._range_t0 >= o.range_stuck_s:
             h0, h1 = self._range_h0, self._height(t)
             s0, s1 = self._range_slam0, self._slam_last
@@ -595,6 +636,38 @@ class FaultDetectors:
                 self._drop("range:stuck")
                 return None
         return ev
+
+    def _at_min(self, r: float, t: float) -> None:
+        """A reading at the rangefinder's floor: the ``range-at-min`` test of its run."""
+        o = self.options
+        if self._atmin_t0 is None:
+            self._atmin_t0, self._atmin_h0, self._atmin_named = t, None, False
+        if self._atmin_named:
+            return
+        h = self._height(t)
+        if h is None:
+            return
+        if self._atmin_h0 is None:
+            # The first height known in the run (a run from the start has none at its start).
+            self._atmin_h0 = (t, h, self._slam_last)
+            return
+        if t - self._atmin_t0 < o.range_stuck_s:
+            return
+        h0, s0, s1 = self._atmin_h0[1], self._atmin_h0[2], self._slam_last
+        if s0 is not None and s1 is not None and s0[0] == s1[0]:
+            # Both through the newest alignment (as the stuck test): its origin cancels.
+            a, b = self.context.slam_height(*s0), self.context.slam_height(*s1)
+            if a is not None and b is not None:
+                h0, h = a, b
+        if abs(h - h0) > o.range_stuck_motion_m + float(self.range_min or 0.0):
+            self._atmin_named = True
+            self.at_min_runs.append((self._atmin_t0, t))
+            self._count(
+                "range-at-min",
+                f"rangefinder at its minimum {r:.3f} m since t={self._atmin_t0:.2f} while the "
+                f"estimated height changed by {h - h0:+.2f} m: readings at the sensor's floor, "
+                "not heights (range:at-min)",
+            )
 
     def _image(self, ev) -> Any:
         h = _image_digest(ev)
@@ -960,6 +1033,8 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         scale=scale,
     )
     det = FaultDetectors(o, ctx, f"{est.method}: health")
+    if flight.range is not None:
+        det.range_min = float(flight.calib.range_min)
     jumps: list[tuple[float, int, int]] = []
     stuck: list[float] = []
     frozen: list[float] = []
@@ -986,6 +1061,14 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         stuck = sorted(set(stuck))
         det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
+    if det.range_min is not None:
+        from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, range_clamps
+
+        rv = np.asarray(flight.range.range, float)
+        n_min = int(((rv >= det.range_min) & (rv <= det.range_min + RANGE_AT_MIN_TOL_M)).sum())
+        n_min *= range_clamps(rv, det.range_min)
+        if n_min:
+            det.dropped["range:at-min"] = n_min
     det.slam_check(info.get("slam_gyro_check"))
     # (only where the solve used range factors: else a second solve would change nothing)
     used_range = bool((info.get("factors") or {}).get("range"))
@@ -1046,7 +1129,11 @@ def terrain_steps(
     if r is None or len(r.t) < 2 * n or tr is None or len(tr.t) < 2:
         return []
     calib = flight.calib
+    from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, range_clamps
+
     keep = (r.range >= calib.range_min) & (r.range <= calib.range_max)
+    if range_clamps(r.range, calib.range_min):  # (a reading at its floor sees no ground)
+        keep &= r.range > calib.range_min + RANGE_AT_MIN_TOL_M
     keep &= (r.t >= tr.t[0]) & (r.t <= tr.t[-1]) & ~np.isin(r.t, np.asarray(list(skip_t)))
     t, rng = np.asarray(r.t, float)[keep], np.asarray(r.range, float)[keep]
     if len(t) < 2 * n:
@@ -1087,10 +1174,18 @@ def constant_range_runs(flight: Any, min_s: float) -> list[tuple[int, int]]:
     t, r = np.asarray(flight.range.t, float), np.asarray(flight.range.range, float)
     starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
     ends = np.r_[starts[1:], len(r)]
+    from fgnav.factors.tilted_range import range_at_min, range_clamps
+
+    # (a run at the sensor's floor is no height factor: range-at-min, not stuck)
+    lo = getattr(getattr(flight, "calib", None), "range_min", None)
+    if lo is not None and not range_clamps(r, float(lo)):
+        lo = None
     return [
         (int(i), int(j))
         for i, j in zip(starts, ends, strict=True)
-        if np.isfinite(r[i]) and t[j - 1] - t[i] >= min_s
+        if np.isfinite(r[i])
+        and t[j - 1] - t[i] >= min_s
+        and not (lo is not None and range_at_min(float(r[i]), float(lo)))
     ]
 
 
@@ -1152,7 +1247,9 @@ def fixed_flight(flight: Any, fixes: dict[str, Any]) -> Any | None:
             sess[m] = np.maximum(sess[m], virtual)
         changes["slam"] = dataclasses.replace(s, session=sess)
     if stuck and flight.range is not None:
-        changes["range"] = flight.range.select(~np.isin(flight.range.t, np.asarray(stuck)))
+        keep = ~np.isin(flight.range.t, np.asarray(stuck))
+        # (every reading stuck: no range stream; an empty one was refused as a bad flight)
+        changes["range"] = flight.range.select(keep) if keep.any() else None
     if frozen and flight.images is not None:
         changes["images"] = flight.images.select(~np.isin(flight.images.t, np.asarray(frozen)))
     return dataclasses.replace(flight, **changes)

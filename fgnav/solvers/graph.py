@@ -960,7 +960,7 @@ class GraphBuilder:
         self.range_kf = np.array([], dtype=int)
         if not self.use_range:
             return
-        from fgnav.factors.tilted_range import gate_range
+        from fgnav.factors.tilted_range import gate_range, range_clamps
 
         f = self.flight
         rng = f.range
@@ -968,6 +968,7 @@ class GraphBuilder:
         body_T_range = np.asarray(f.calib.body_T_range, dtype=float)
         keep = []
         max_tilt = math.radians(self.options.range_max_tilt_deg)
+        clamps = range_clamps(rng.range, f.calib.range_min)
         for n, k in enumerate(kf):
             ok = True
             for i in (i0[n], i1[n]):
@@ -978,9 +979,11 @@ class GraphBuilder:
                     f.calib.range_min,
                     f.calib.range_max,
                     max_tilt,
+                    clamps,
                 )
                 if not good:
-                    self._skip(f"range:gated:{_reason_tag(reason)}")
+                    tag = _reason_tag(reason)  # (at the sensor's floor: range:at-min)
+                    self._skip("range:at-min" if tag == "at-min" else f"range:gated:{tag}")
                     ok = False
                     break
             keep.append(ok)

@@ -175,7 +175,12 @@ from fgnav.factors.slam_scale import (
     make_slam_T_world,
     slam_alignment_parts,
 )
-from fgnav.factors.tilted_range import MIN_COS_TILT, gate_range, make_range_factor
+from fgnav.factors.tilted_range import (
+    MIN_COS_TILT,
+    gate_range,
+    make_range_factor,
+    range_at_min,
+)
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
@@ -641,6 +646,9 @@ class OnlineSmoother:
         self._scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
         self.name = name
         self._flow_watch = FlowRejectWatch(name)  # a flow stream rejected entirely (kept on reset)
+        # A range reading below range_min has arrived: the sensor does not clamp at its floor
+        # (its readings at range_min are distances; see range_at_min). Kept on reset.
+        self._range_below_min = False
         if self.go.slam_model not in ("auto", "sim3", "axis"):
             raise FlightDataError(
                 f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
@@ -1793,7 +1801,14 @@ class OnlineSmoother:
         ]
         lo, hi = self.calib.range_min, self.calib.range_max
         r = float(np.median(recent))
-        return self._reading_ground(r, pose), all(lo <= x <= hi for x in recent)
+        return self._reading_ground(r, pose), all(
+            lo <= x <= hi and not self._at_floor(x) for x in recent
+        )
+
+    def _at_floor(self, r: float) -> bool:
+        """A range reading at the sensor's floor (``range_at_min``) while no reading below it
+        has arrived (a sensor that reads below ``range_min`` does not clamp there)."""
+        return not self._range_below_min and range_at_min(r, self.calib.range_min)
 
     def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
         """World z of the flat ground a range reading sees from ``pose``."""
@@ -2117,7 +2132,11 @@ class OnlineSmoother:
         R = pose.rotation().matrix()
         height = None
         rng = self._scalar["range"]
-        if rng and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s:
+        if (
+            rng
+            and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s
+            and not self._at_floor(rng[-1][1])  # no height at the sensor's floor
+        ):
             height = flow_sensor_height(
                 rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
             )
@@ -2212,6 +2231,8 @@ class OnlineSmoother:
             self._drop(f"{kind}:non-finite")
             return
         buf = self._scalar[kind]
+        if kind == "range" and value < self.calib.range_min:
+            self._range_below_min = True
         if kind == "yaw" and buf:
             value = buf[-1][1] + wrap_angle(value - buf[-1][1])  # unwrapped
         buf.append((t, float(value)))
@@ -2253,6 +2274,11 @@ class OnlineSmoother:
             self._drop(f"{kind}:keyframes-without-bracketing-samples")
             return
         (t0, v0), (t1, v1) = buf[i - 1], buf[i]
+        if kind == "range" and (self._at_floor(v0) or self._at_floor(v1)):
+            # A bracket at the sensor's floor is no distance: interpolated with a reading above
+            # it, it would make one up (as the batch graph, which gates both brackets).
+            self._drop("range:at-min")
+            return
         w = (tk - t0) / (t1 - t0)
         self._pending.append((k, kind, (1 - w) * v0 + w * v1))
 
@@ -2623,9 +2649,11 @@ class OnlineSmoother:
             self.calib.range_min,
             self.calib.range_max,
             math.radians(self.go.range_max_tilt_deg),
+            not self._range_below_min,
         )
         if not ok:
-            self._drop(f"range:gated:{reason.split(':')[0].split()[0]}")
+            tag = reason.split(":")[0].split()[0]
+            self._drop("range:at-min" if tag == "at-min" else f"range:gated:{tag}")
             return
         gk = self._slow_key_at("g", self.go.ground_segment_s, k)
         if gk not in self.values or not self._alive(gk):
@@ -3740,6 +3768,7 @@ class OnlineSmoother:
             camera=self._camera_now,
             gyro_turn=self._gyro_turn,
         )
+        self._health.detectors.range_min = float(self.calib.range_min)
         self._health_checked = False
         self._health_on = self._health.options.enabled
 
@@ -4022,7 +4051,9 @@ class OnlineSmoother:
     def _health_report(self) -> dict[str, Any]:
         rep = self._health.report()
         rep["dropped"] = {
-            r: n for r, n in self.dropped.items() if r in ("range:stuck", "images:frozen")
+            r: n
+            for r, n in self.dropped.items()
+            if r in ("range:stuck", "range:at-min", "images:frozen")
         }
         n_sat = self.used.get("imu:saturated-intervals", 0)
         rep["downweighted"] = {"imu-saturated-intervals": n_sat} if n_sat else {}
