@@ -64,6 +64,16 @@ each counted by name in :meth:`FaultDetectors.report`:
   out of range, not this, and once one has come the sensor does not clamp at its floor: its
   readings at ``range_min`` are distances (a Crazyflie's time of flight reads 12-25 mm on the
   floor, under its 40 mm limit, and 40 mm once on the way down in traj2).
+- ``flow-rejected``: every optical-flow reading rejected by its own gates for
+  :data:`fgnav.solvers.flow.FLOW_ALL_REJECTED_S` or more
+  (:class:`fgnav.solvers.flow.FlowRejectWatch`, which says it; counted once per run): the
+  stream gives no velocity. Before, only that warning and ``info["flow_all_rejected"]`` said
+  it, the health "ok" (a Crazyflie-like flow deck, every reading below the quality gate:
+  online 8.3 m, batch 0.053 m against 0.22 / 0.023 m).
+- ``flow-no-height``: an optical-flow stream with no height source (no rangefinder stream, or
+  ``use_range`` off): the flow measures velocity over height and gives no metric velocity
+  without one; the horizontal velocity is dead-reckoned (online: named once flow has arrived
+  for ``flow_no_height_s`` with no range reading; batch: from the flight's streams).
 - ``camera-frozen``: an image identical (byte for byte) to the previous one; dropped
   (``images:frozen``).
 - ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
@@ -88,6 +98,10 @@ and bias bounds. A sanity violation, or a chi-squared above ``chi2_alarm`` for
 ``info["health"]``, ``quality`` lowered to at most ``DIVERGED_QUALITY`` until healthy again) and
 recovered from the last healthy snapshot (at least ``diverge_after_s`` before the alarm began)
 by the smoother's rebuild, at most ``max_recoveries`` times and ``recovery_gap_s`` apart.
+
+A stream the estimate cannot use (``flow-rejected``, ``flow-no-height``: :data:`DEGRADING`) makes
+the status ``degraded`` (unless it diverged) and, while it lasts and no SLAM alignment or camera
+anchors the estimate, lowers ``quality`` to at most ``DEGRADED_QUALITY``.
 
 Batch: :func:`check_batch` replays the flight through the detectors with the solved trajectory as
 context and judges the solve itself (LM stopped at ``max_iterations`` while its last iteration
@@ -122,6 +136,11 @@ log = logging.getLogger(__name__)
 JUMP_SESSION_BASE = 1 << 40
 #: Quality (0-100) of the online states while the monitor says the estimate diverges.
 DIVERGED_QUALITY = 10
+#: Quality (0-100) of the online states while a degrading fault (:data:`DEGRADING`) lasts and
+#: nothing else anchors the position: below a dead-reckoned state's 30, above a diverged one's.
+DEGRADED_QUALITY = 20
+#: Faults that leave a stream unusable for the whole of their span: the status is ``degraded``.
+DEGRADING = ("flow-rejected", "flow-no-height")
 #: Saturation flag bits of an IMU sample: gyro axis i is ``1 << i``, accelerometer axis i is
 #: ``1 << (3 + i)``.
 SAT_GYRO_BITS = (1, 2, 4)
@@ -137,6 +156,8 @@ DETECTORS = (
     "slam-reset",
     "range-stuck",
     "range-at-min",
+    "flow-rejected",
+    "flow-no-height",
     "camera-frozen",
     "slam-clock-offset",
     "body_T_cam-rotation",
@@ -196,6 +217,7 @@ class HealthOptions:
     terrain_step_n: int = 8
     range_stuck_s: float = 1.0
     range_stuck_motion_m: float = 0.15
+    flow_no_height_s: float = 1.0
     slam_offset_tol_s: float = 0.1
     window_s: float = 2.0
     window_min_factors: int = 10
@@ -789,6 +811,8 @@ class HealthMonitor:
         self._snapshots: deque = deque(maxlen=16)
         self._last_snapshot_t = -math.inf
         self.events: list[dict[str, Any]] = []
+        #: the degrading faults (:data:`DEGRADING`) that last now
+        self.degraded: set[str] = set()
 
     def innovations(self, sensor: str, t: float, chi2: float, dof: int) -> None:
         """Whitened squared error ``chi2`` of a factor with ``dof`` rows at time ``t``."""
@@ -950,13 +974,41 @@ class HealthMonitor:
         self._alarm_since = None
         self._last_snapshot_t = -math.inf
 
-    def quality(self, q: int) -> int:
-        return min(q, DIVERGED_QUALITY) if self.status == "diverged" else q
+    def degrade(self, det: str, detail: str, say: bool = True) -> None:
+        """A degrading fault (:data:`DEGRADING`) begins: counted under ``det`` with ``detail``
+        (a warning the first time unless ``say`` is False: said elsewhere) and in force until
+        :meth:`restore`; nothing while it is in force."""
+        if det in self.degraded:
+            return
+        self.degraded.add(det)
+        if not say:
+            self.detectors._said.add(det)
+        self.detectors._count(det, detail)
+
+    def restore(self, det: str) -> None:
+        """The degrading fault ``det`` ended (the stream is usable again)."""
+        self.degraded.discard(det)
+
+    def quality(self, q: int, anchored: bool = False) -> int:
+        """``q`` lowered while the estimate diverges (``DIVERGED_QUALITY``), or while a degrading
+        fault lasts and nothing else anchors the position (``anchored``: a SLAM alignment or the
+        camera; ``DEGRADED_QUALITY``)."""
+        if self.status == "diverged":
+            return min(q, DIVERGED_QUALITY)
+        if self.degraded and not anchored:
+            return min(q, DEGRADED_QUALITY)
+        return q
+
+    def report_status(self) -> str:
+        """``status``, or ``degraded`` when a degrading fault was named and it did not diverge."""
+        if self.status != "diverged" and any(self.detectors.counts.get(d) for d in DEGRADING):
+            return "degraded"
+        return self.status
 
     def report(self) -> dict[str, Any]:
         rep = self.detectors.report()
         return {
-            "status": self.status,
+            "status": self.report_status(),
             **rep,
             "dropped": dict(self.detectors.dropped),
             "diverged": self.n_diverged,
@@ -1069,6 +1121,7 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         n_min *= range_clamps(rv, det.range_min)
         if n_min:
             det.dropped["range:at-min"] = n_min
+    _flow_faults(det, flight, info)
     det.slam_check(info.get("slam_gyro_check"))
     # (only where the solve used range factors: else a second solve would change nothing)
     used_range = bool((info.get("factors") or {}).get("range"))
@@ -1087,7 +1140,7 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         )
     rep = det.report()
     n_sat = (info.get("factors") or {}).get("imu-saturated-intervals", 0)
-    status = "ok"
+    status = "degraded" if any(det.counts.get(d) for d in DEGRADING) else "ok"
     errors = info.get("lm_errors") or []
     n_f = info.get("n_factors") or 0
     per_factor = 2.0 * errors[-1] / n_f if errors and n_f else None
@@ -1109,6 +1162,32 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
             "ground_steps_t": [t for t, _ in steps],
         },
     }
+
+
+def _flow_faults(det: FaultDetectors, flight: Any, info: dict[str, Any]) -> None:
+    """The batch's degrading flow faults: ``flow-rejected`` from the solve's reject watch
+    (``info["flow"]["all_rejected"]``, said there), ``flow-no-height`` for a flow stream with no
+    rangefinder stream or ``use_range`` off (said by the observability check)."""
+    rej = (info.get("flow") or {}).get("all_rejected")
+    if rej:
+        det._said.add("flow-rejected")
+        det._count(
+            "flow-rejected",
+            f"every flow reading rejected from t={rej['since_s']:.2f} to {rej['until_s']:.2f} s "
+            f"({', '.join(f'{r} {c}' for r, c in sorted(rej['reasons'].items()))}): the flow "
+            "gives no velocity",
+            int(rej.get("runs") or 1),
+        )
+    use_range = (info.get("options") or {}).get("use_range", True)
+    if flight.flow is not None and len(flight.flow) and (flight.range is None or not use_range):
+        det._said.add("flow-no-height")
+        det._count(
+            "flow-no-height",
+            "optical flow with no height source ("
+            + ("no rangefinder stream" if flight.range is None else "use_range is off")
+            + "): the flow gives no metric velocity; not used, the horizontal velocity and the "
+            "height are dead-reckoned",
+        )
 
 
 def terrain_steps(

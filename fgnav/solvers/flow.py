@@ -477,6 +477,20 @@ class FlowRejectWatch:
         self._last = -math.inf
         self._start, self._n, self._reasons, self._counted = None, 0, Counter(), False
 
+    @property
+    def rejecting(self) -> bool:
+        """A run of rejected readings longer than the span lasts now."""
+        return self._counted
+
+    def current(self) -> dict[str, Any]:
+        """The current run: ``since_s``, ``until_s``, ``readings``, ``reasons``."""
+        return {
+            "since_s": self._start,
+            "until_s": self._last,
+            "readings": self._n,
+            "reasons": dict(self._reasons),
+        }
+
     def report(self) -> dict[str, Any] | None:
         return None if self._first is None else {**self._first, "runs": self._runs}
 

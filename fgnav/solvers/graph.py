@@ -582,6 +582,20 @@ class GraphBuilder:
         from fgnav.solvers.flow import resolve_use_flow
         from fgnav.solvers.vision import resolve_use_homography
 
+        if (
+            o.use_flow is None
+            and flight.flow is not None
+            and len(flight.flow)
+            and not (o.use_range and flight.range is not None)
+        ):
+            # (health: flow-no-height)
+            log.warning(
+                "%s: an optical-flow stream and no height source (%s): the flow measures "
+                "velocity over height and gives no metric velocity without one; it is not used, "
+                "the horizontal velocity and the height are dead-reckoned (they drift)",
+                flight.name,
+                "no rangefinder stream" if flight.range is None else "use_range is off",
+            )
         o = self.options = replace(
             o,
             use_homography=resolve_use_homography(flight, o.use_homography, o.use_range),

@@ -646,6 +646,7 @@ class OnlineSmoother:
         self._scale_rw = go.slam_scale_rw if o.slam_scale_rw is None else o.slam_scale_rw
         self.name = name
         self._flow_watch = FlowRejectWatch(name)  # a flow stream rejected entirely (kept on reset)
+        self._flow_first_t: float | None = None  # the first flow reading's time (kept on reset)
         # A range reading below range_min has arrived: the sensor does not clamp at its floor
         # (its readings at range_min are distances; see range_at_min). Kept on reset.
         self._range_below_min = False
@@ -778,12 +779,16 @@ class OnlineSmoother:
         elif isinstance(ev, ImageFrame):
             self._on_image(ev)
         elif isinstance(ev, FlowSample):
+            if self._flow_first_t is None:
+                self._flow_first_t = float(ev.t)
             if self.go.use_flow is not False and self.go.use_range:
                 self._flow.append(ev)
                 while len(self._flow) > 2 and self._flow[0].t < self._t_imu_last - 5.0:
                     self._flow.popleft()
             else:
                 self._drop("flow:off")
+                if self.go.use_flow is not False:
+                    self._flow_no_height("use_range is off")
         else:
             self._drop(f"{stream}:not-used-online")
         return None
@@ -2159,6 +2164,7 @@ class OnlineSmoother:
             self._drop(f"flow:{reason}", n)
         ts = [r.t for r in samples]
         self._flow_watch.add(min(ts), max(ts), len(samples), res.skipped)
+        self._flow_health(res.reason, max(ts))
         if res.factor is None or gk not in self.values or not self._alive(gk):
             if res.factor is not None:
                 self._drop("flow:late", res.n_used)
@@ -2166,6 +2172,45 @@ class OnlineSmoother:
         g.add(res.factor)
         stamps[gk] = self.t_kf[self.k]
         self._use("flow", res.n_used)
+
+    def _flow_health(self, reason: str, t: float) -> None:
+        """The flow's degrading faults after a window (:data:`fgnav.health.DEGRADING`):
+        ``flow-rejected`` while the reject watch's run lasts; ``flow-no-height`` once flow has
+        arrived for ``flow_no_height_s`` with no range reading (a window without a height)."""
+        hm = self._health
+        if not hm.options.enabled:
+            return
+        if self._flow_watch.rejecting:
+            rep = self._flow_watch.current()
+            # (the watch said it in its own warning: counted, not said again)
+            hm.degrade(
+                "flow-rejected",
+                f"every flow reading rejected from t={rep['since_s']:.2f} s "
+                f"({', '.join(f'{r} {c}' for r, c in sorted(rep['reasons'].items()))}): the "
+                "flow gives no velocity",
+                say=False,
+            )
+        else:
+            hm.restore("flow-rejected")
+        if self.received.get("range"):
+            hm.restore("flow-no-height")
+        elif (
+            reason == "no-height"
+            and self._flow_first_t is not None
+            and t - self._flow_first_t >= hm.options.flow_no_height_s
+        ):
+            self._flow_no_height("no rangefinder reading has arrived")
+
+    def _flow_no_height(self, why: str) -> None:
+        """Name ``flow-no-height`` (said once): optical flow with no height source."""
+        if not self._health.options.enabled or "flow-no-height" in self._health.degraded:
+            return
+        self._health.degrade(
+            "flow-no-height",
+            f"optical flow arrives but {why}: no height source, and the flow measures velocity "
+            "over height, so it gives no metric velocity; it is not used and the horizontal "
+            "velocity and the height are dead-reckoned from the IMU (they drift)",
+        )
 
     def _contact_factor(self, j: int, g, stamps) -> None:
         """Ground contact at keyframe j (``graph.contact_height_m``, as the batch graph): the two
@@ -3915,7 +3960,7 @@ class OnlineSmoother:
                 continue  # a key not in the window (the update failed and was rebuilt)
             hm.innovations(sensor, t, float(e @ e), int(e.size))
         snap = hm.after_keyframe(self.out[-1], lambda: self._health_snapshot(k))
-        q = hm.quality(self.out[-1].quality)
+        q = hm.quality(self.out[-1].quality, any(s.chain for s in self.sessions.values()))
         if q != self.out[-1].quality:
             self.out[-1] = dataclasses.replace(self.out[-1], quality=q)
         if snap is not None:

@@ -1,10 +1,12 @@
 """Downward-sensor faults the health report names (fgnav.health): a rangefinder pinned at its
-floor (``range-at-min``); the detectors on hand-made readings, the push-API smoother and the
-batch on simulated flights (fixed seeds)."""
+floor (``range-at-min``), a wholly rejected optical-flow stream (``flow-rejected``) and a flow
+stream with no height source (``flow-no-height``); the detectors on hand-made readings, the
+push-API smoother and the batch on simulated flights (fixed seeds)."""
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import gtsam
 import numpy as np
@@ -12,10 +14,10 @@ import pytest
 from fgnav.datasets.events import RangeReading, replay_flight
 from fgnav.datasets.simulate import SimOptions, simulate
 from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, gate_range, range_clamps
-from testutil import require_real_data
+from testutil import CRAZYFLIE_LIKE, require_real_data
 
 from fgnav.compare import score_estimate
-from fgnav.health import Context, FaultDetectors
+from fgnav.health import DEGRADED_QUALITY, Context, FaultDetectors
 from fgnav.methods import run_batch
 from fgnav.solvers.fixed_lag import FixedLagOptions
 from fgnav.solvers.online import PUSH_STREAMS, OnlineSmoother
@@ -137,6 +139,58 @@ def test_online_range_stuck_from_the_first_reading_is_named(two_turns):
     h = est.info["health"]
     assert h["detectors"] == {"range-stuck": 1} and h["dropped"]["range:stuck"] > 250
     assert ate < 2.0 * ate0, (ate, ate0)  # measured 0.047 / 0.027 m
+
+
+@pytest.fixture(scope="module")
+def flow_deck():
+    """A Crazyflie-like flow-deck flight (seed 0, 12 s: IMU, flow, range)."""
+    return simulate("flowdeck", 0, SimOptions(duration=12.0, **CRAZYFLIE_LIKE))
+
+
+def test_flow_wholly_rejected_is_a_degrading_fault(flow_deck):
+    f = flow_deck
+    bad = dataclasses.replace(f, flow=dataclasses.replace(f.flow, quality=np.zeros(len(f.flow))))
+    sm, est, _ = _online(f)
+    assert est.info["health"]["status"] == "ok" and est.info["health"]["detectors"] == {}
+    assert {s.quality for s in sm.out} == {30}  # dead-reckoned position, no yaw source
+    sm, est, ate = _online(bad)
+    h = est.info["health"]
+    assert h["status"] == "degraded" and h["detectors"]["flow-rejected"] == 1
+    rej = est.info["flow_all_rejected"]
+    assert set(rej["reasons"]) == {"gated:quality"} and rej["since_s"] == pytest.approx(4.98)
+    # The quality drops once 5 s of rejected readings are seen (the smoother starts at 5 s).
+    q = {round(s.t, 2): s.quality for s in sm.out}
+    assert set(q.values()) == {30, DEGRADED_QUALITY}
+    assert min(t for t, v in q.items() if v == DEGRADED_QUALITY) == pytest.approx(10.05)
+    b = run_batch(bad, {})
+    assert b.info["health"]["status"] == "degraded"
+    assert b.info["health"]["detectors"] == {"flow-rejected": 1}
+
+
+def test_flow_without_a_height_source_is_named_at_the_start(flow_deck, caplog):
+    f = flow_deck
+    bad = dataclasses.replace(f, range=None)
+    with caplog.at_level(logging.WARNING):
+        sm, est, ate = _online(bad)
+    h = est.info["health"]
+    assert h["detectors"]["flow-no-height"] == 1
+    assert "no rangefinder reading has arrived" in h["details"]["flow-no-height"][0]
+    # Named at the first flow window (the start, 5 s: flow has arrived since 0 s): every state
+    # from then on says so in its quality (30 -> 20; 10 once it diverges).
+    q = [s.quality for s in sm.out]
+    assert q[0] == 30 and max(q[1:]) == DEGRADED_QUALITY and min(q) == 10
+    # Without a height or flow, the thrust-only prediction of this flight (no attitude stream)
+    # reaches 30 m/s at 9.8 s: named and recovered from, never silent (it was "ok" before).
+    assert h["detectors"] == {"flow-no-height": 1, "divergence": 1}
+    assert h["status"] == "diverged" and ate > 1.0
+    assert sum("flow-no-height" in r.message for r in caplog.records) == 1
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        b = run_batch(bad, {})
+    assert b.info["health"]["status"] == "degraded"
+    assert b.info["health"]["detectors"] == {"flow-no-height": 1}
+    line = [r.message for r in caplog.records if "no height source" in r.message]
+    assert len(line) == 1 and "(no rangefinder stream)" in line[0]
 
 
 def test_crazyflie_range_reads_below_its_floor_so_40mm_is_a_distance():
