@@ -58,6 +58,17 @@ SIM_SEED = 1
 SIM_DURATION_S = 24.0
 SIM_HOVER_DURATION_S = 30.0
 SIM_CAMERA_DURATION_S = 20.0
+SIM_FLOW_DURATION_S = 20.0
+#: The flow-deck base: a Crazyflie-like flight (IMU, optical flow, rangefinder; no camera, SLAM,
+#: attitude or yaw stream; the rangefinder as on the real flow-deck flights).
+SIM_FLOW_OPTIONS = dict(
+    images=False,
+    slam_rate_hz=0.0,
+    attitude_rate_hz=0.0,
+    yaw_rate_hz=0.0,
+    range_noise_m=0.008,
+    range_outlier_prob=0.0,
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -71,7 +82,8 @@ class Row:
 
     Attributes:
         name: row name.
-        base: ``"sim"``, ``"sim-camera"`` or ``"mh01"`` (the nominal flight it perturbs).
+        base: ``"sim"``, ``"sim-camera"``, ``"sim-hover"``, ``"sim-flow"`` or ``"mh01"`` (the
+            nominal flight it perturbs).
         build: ``build(ctx, folder) -> argv input`` (a flight path for the CLI), or for
             ``events:*`` rows ``build(ctx) -> (flight, events)``.
         what: one line describing the fault.
@@ -100,6 +112,7 @@ NOMINAL_ROWS = {
     "mh01": "mh01:nominal",
     "sim-camera": "camera-nominal",
     "sim-hover": "hover:nominal",
+    "sim-flow": "flow:nominal",
 }
 OK = {"recovered", "named"}
 #: Acceptable where the batch solve may not converge: it says so and exits 1 (nothing written).
@@ -154,6 +167,17 @@ class Context:
     def hover(self):
         """Simulated hover in gusts (``SIM_HOVER_DURATION_S``): little motion, no turns."""
         return self._simulated("hover", SIM_HOVER_DURATION_S)
+
+    def flow_deck(self):
+        """The flow-deck base flight (``SIM_FLOW_OPTIONS``, seed ``SIM_SEED``), built once."""
+        if "flow" not in self._cache:
+            from fgnav.datasets.simulate.options import SimOptions
+            from fgnav.datasets.simulate.simulator import simulate
+
+            self._cache["flow"] = simulate(
+                "flowdeck", SIM_SEED, SimOptions(duration=SIM_FLOW_DURATION_S, **SIM_FLOW_OPTIONS)
+            )
+        return self._cache["flow"]
 
     def camera_folder(self) -> Path:
         """A 20 s simulated flight with the downward camera, as a native folder (PNG files)."""
@@ -242,6 +266,29 @@ def _range_stuck(f, t_stuck: float = 8.0):
     i = int(np.searchsorted(r.t, t_stuck))
     v[i:] = v[i]
     return _replace(f, range=dataclasses.replace(r, range=v))
+
+
+def _range_at_min(f):
+    """Every range reading at the calibration's ``range_min`` (a rangefinder pinned at its
+    floor, which it reports for anything at or below it)."""
+    r = f.range
+    v = np.full(len(r), float(f.calib.range_min))
+    return _replace(f, range=dataclasses.replace(r, range=v))
+
+
+def _flow_fault(fn: Callable) -> Callable:
+    """A row builder from ``fn(flight) -> faulty flight`` on the flow-deck base."""
+
+    def build(ctx: Context, folder: Path) -> Path:
+        return _write(fn(ctx.flow_deck()), folder)
+
+    return build
+
+
+def _flow_rejected(f):
+    """Every flow reading's quality 0 (below the gate): a stream rejected entirely."""
+    fl = f.flow
+    return _replace(f, flow=dataclasses.replace(fl, quality=np.zeros(len(fl))))
 
 
 def _range_spikes(f, frac: float = 0.05):
@@ -691,6 +738,14 @@ def rows() -> list[Row]:
             True,
         ),
         R(
+            "range-at-min",
+            sim,
+            _sim_fault(_range_at_min),
+            "every range reading at the calibration's range_min (pinned at its floor)",
+            _both({"recovered"}),
+            True,
+        ),
+        R(
             "range-spikes",
             sim,
             _sim_fault(_range_spikes),
@@ -862,6 +917,28 @@ def rows() -> list[Row]:
             _events_fault("slam-out-of-order"),
             "10 % of SLAM poses delivered 150 ms late (after newer ones)",
             {"online": OK},
+        ),
+        R(
+            "flow:nominal",
+            "sim-flow",
+            lambda c, d: _write(c.flow_deck(), d),
+            "no fault (Crazyflie-like flow deck: IMU, flow, range)",
+            _both({"recovered"}),
+        ),
+        R(
+            "flow:rejected",
+            "sim-flow",
+            _flow_fault(_flow_rejected),
+            "flow deck: every flow reading's quality 0 (the stream rejected)",
+            _both({"named"}),
+        ),
+        R(
+            "flow:no-range",
+            "sim-flow",
+            _flow_fault(lambda f: _replace(f, range=None)),
+            "flow deck without its rangefinder stream (no height for the flow)",
+            {"batch": {"named"}, "online": {"named", "error"}},
+            True,
         ),
         R("mh01:nominal", "mh01", _mh01_nominal, "no fault", _both({"recovered"})),
         R(

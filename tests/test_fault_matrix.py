@@ -73,3 +73,11 @@ def test_quick_fault_matrix(tmp_path):
     assert "range-stuck 1" in det[("range-stuck-8s", "online")]
     assert by[("slam-jump-1m", "batch")]["outcome"] == "recovered"
     assert by[("file:imu-duplicate", "online")]["error"].startswith("fgnav online: error: ")
+    # A rangefinder pinned at its floor is named and no height (it was 0.137 / 0.152 m with
+    # health "ok": 20x / 5.6x nominal).
+    for cmd in ("batch", "online"):
+        assert "range-at-min 1" in det[("range-at-min", cmd)]
+        assert by[("range-at-min", cmd)]["outcome"] == "recovered"
+        # A flow deck without its rangefinder: named and marked (health "ok" before).
+        assert "flow-no-height 1" in det[("flow:no-range", cmd)]
+        assert "status degraded" in det[("flow:no-range", cmd)]
