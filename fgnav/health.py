@@ -1121,7 +1121,7 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         n_min *= range_clamps(rv, det.range_min)
         if n_min:
             det.dropped["range:at-min"] = n_min
-    _flow_faults(det, flight, info)
+    _flow_faults(det, info)
     det.slam_check(info.get("slam_gyro_check"))
     # (only where the solve used range factors: else a second solve would change nothing)
     used_range = bool((info.get("factors") or {}).get("range"))
@@ -1164,10 +1164,11 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
     }
 
 
-def _flow_faults(det: FaultDetectors, flight: Any, info: dict[str, Any]) -> None:
+def _flow_faults(det: FaultDetectors, info: dict[str, Any]) -> None:
     """The batch's degrading flow faults: ``flow-rejected`` from the solve's reject watch
-    (``info["flow"]["all_rejected"]``, said there), ``flow-no-height`` for a flow stream with no
-    rangefinder stream or ``use_range`` off (said by the observability check)."""
+    (``info["flow"]["all_rejected"]``, said there), ``flow-no-height`` where the graph builder
+    found a flow stream with no height source (``info["flow_no_height"]``, said there: no
+    rangefinder stream, or ``use_range`` off; not when ``use_flow`` is off)."""
     rej = (info.get("flow") or {}).get("all_rejected")
     if rej:
         det._said.add("flow-rejected")
@@ -1178,15 +1179,13 @@ def _flow_faults(det: FaultDetectors, flight: Any, info: dict[str, Any]) -> None
             "gives no velocity",
             int(rej.get("runs") or 1),
         )
-    use_range = (info.get("options") or {}).get("use_range", True)
-    if flight.flow is not None and len(flight.flow) and (flight.range is None or not use_range):
+    why = info.get("flow_no_height")
+    if why:
         det._said.add("flow-no-height")
         det._count(
             "flow-no-height",
-            "optical flow with no height source ("
-            + ("no rangefinder stream" if flight.range is None else "use_range is off")
-            + "): the flow gives no metric velocity; not used, the horizontal velocity and the "
-            "height are dead-reckoned",
+            f"optical flow with no height source ({why}): the flow gives no metric velocity; "
+            "not used, the horizontal velocity and the height are dead-reckoned",
         )
 
 

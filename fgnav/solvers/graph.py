@@ -582,19 +582,24 @@ class GraphBuilder:
         from fgnav.solvers.flow import resolve_use_flow
         from fgnav.solvers.vision import resolve_use_homography
 
+        #: why a flow stream (flow left to "auto") has no height source, else None (health:
+        #: flow-no-height)
+        self.flow_no_height: str | None = None
         if (
             o.use_flow is None
             and flight.flow is not None
             and len(flight.flow)
             and not (o.use_range and flight.range is not None)
         ):
-            # (health: flow-no-height)
+            self.flow_no_height = (
+                "no rangefinder stream" if flight.range is None else "use_range is off"
+            )
             log.warning(
                 "%s: an optical-flow stream and no height source (%s): the flow measures "
                 "velocity over height and gives no metric velocity without one; it is not used, "
                 "the horizontal velocity and the height are dead-reckoned (they drift)",
                 flight.name,
-                "no rangefinder stream" if flight.range is None else "use_range is off",
+                self.flow_no_height,
             )
         o = self.options = replace(
             o,
@@ -1897,6 +1902,7 @@ class GraphBuilder:
             "skipped": dict(self.skipped),
             "homography": self.vision.report() if self.vision is not None else None,
             "flow": self.flow.report() if self.flow is not None else None,
+            "flow_no_height": self.flow_no_height,
             "slam_gyro_check": self.flight.meta.get(SLAM_CHECK_META_KEY),
             "options": asdict(self.options),
         }

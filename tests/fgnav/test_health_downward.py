@@ -191,6 +191,9 @@ def test_flow_without_a_height_source_is_named_at_the_start(flow_deck, caplog):
     assert b.info["health"]["detectors"] == {"flow-no-height": 1}
     line = [r.message for r in caplog.records if "no height source" in r.message]
     assert len(line) == 1 and "(no rangefinder stream)" in line[0]
+    # Flow switched off by the configuration: nothing to name.
+    b = run_batch(bad, {"graph": {"use_flow": False}})
+    assert b.info["health"]["status"] == "ok" and b.info["health"]["detectors"] == {}
 
 
 def test_crazyflie_range_reads_below_its_floor_so_40mm_is_a_distance():
