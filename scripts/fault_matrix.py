@@ -622,6 +622,17 @@ def _events_fault(kind: str) -> Callable:
     return build
 
 
+def _events_flow_no_range(ctx: Context):
+    """The flow-deck base's events without its rangefinder stream, as a live link delivers them
+    (``fgnav online`` refuses the file: no height for the flow)."""
+    from fgnav.datasets.events import replay_flight
+
+    from fgnav.solvers.online import PUSH_STREAMS
+
+    f = _replace(ctx.flow_deck(), range=None)
+    return f, list(replay_flight(f, [n for n in PUSH_STREAMS if getattr(f, n) is not None]))
+
+
 # --- the table of rows ------------------------------------------------------------------------
 
 
@@ -937,7 +948,15 @@ def rows() -> list[Row]:
             "sim-flow",
             _flow_fault(lambda f: _replace(f, range=None)),
             "flow deck without its rangefinder stream (no height for the flow)",
-            {"batch": {"named"}, "online": {"named", "error"}},
+            _both(ERR),
+            True,
+        ),
+        R(
+            "events:flow-no-range",
+            "sim-flow",
+            _events_flow_no_range,
+            "flow deck without its rangefinder, fed to the push API (a live link)",
+            {"online": {"named"}},
             True,
         ),
         R("mh01:nominal", "mh01", _mh01_nominal, "no fault", _both({"recovered"})),
@@ -1201,7 +1220,7 @@ def _run_events_row(row: Row, ctx: Context, nominal: dict) -> Run:
     finally:
         root.handlers, _ = saved
         root.setLevel(saved[1])
-    nom = nominal.get(("sim", "online"))
+    nom = nominal.get((row.base, "online"))
     if tb:
         outcome, msg = "FAIL", tb.strip().splitlines()[-1]
     elif nom is not None and ate is not None and ate <= RECOVER_FACTOR * nom:

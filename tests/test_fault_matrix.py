@@ -78,6 +78,9 @@ def test_quick_fault_matrix(tmp_path):
     for cmd in ("batch", "online"):
         assert "range-at-min 1" in det[("range-at-min", cmd)]
         assert by[("range-at-min", cmd)]["outcome"] == "recovered"
-        # A flow deck without its rangefinder: named and marked (health "ok" before).
-        assert "flow-no-height 1" in det[("flow:no-range", cmd)]
-        assert "status degraded" in det[("flow:no-range", cmd)]
+        # A flow deck without its rangefinder: the commands refuse the file in one line ...
+        assert by[("flow:no-range", cmd)]["outcome"] == "error"
+    # ... and the push API, fed it as a live link would (waiting for a SLAM that never comes,
+    # then on the IMU alone), names it at the start; it diverges, named too, never silently.
+    assert "flow-no-height 1" in det[("events:flow-no-range", "online")]
+    assert by[("events:flow-no-range", "online")]["outcome"] == "named"
