@@ -23,7 +23,7 @@ Outcomes of one run (the row's ``expect`` says which are acceptable; ``FAIL`` ne
 Usage::
 
     .venv/bin/python scripts/fault_matrix.py            # every row (about 6-10 minutes)
-    .venv/bin/python scripts/fault_matrix.py --quick    # the test subset (< 2 minutes)
+    .venv/bin/python scripts/fault_matrix.py --quick    # the test subset (about 3 minutes)
     .venv/bin/python scripts/fault_matrix.py --only imu-gap-2s,slam-jump-1m --json out.json
 """
 
@@ -1332,7 +1332,7 @@ def table(runs: list[Run], descriptions: dict[str, str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="the test subset (< 2 minutes)")
+    ap.add_argument("--quick", action="store_true", help="the test subset (about 3 minutes)")
     ap.add_argument("--only", default=None, help="comma-separated row names")
     ap.add_argument("--no-mh01", action="store_true", help="skip the EuRoC MH_01 rows")
     ap.add_argument("--json", default=None, help="write the runs as JSON here")

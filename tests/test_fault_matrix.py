@@ -27,7 +27,7 @@ def test_quick_fault_matrix(tmp_path):
         ],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,  # about 3 min alone; the suite runs it beside another worker
     )
     assert "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
     runs = json.loads(out.read_text())
