@@ -104,7 +104,13 @@ class Method:
         if self.any_of:
             gaps = [[s for s in alt if s not in present] for alt in self.any_of]
             if all(gaps):
-                out += min(gaps, key=len)
+                # Closest first; on a tie the alternative the flight has more of (a flow deck
+                # without its rangefinder needs the range, not a SLAM stream).
+                n = min(
+                    range(len(gaps)),
+                    key=lambda i: (len(gaps[i]), len(gaps[i]) - len(self.any_of[i])),
+                )
+                out += gaps[n]
         return out
 
     def implementation_problem(self) -> str | None:

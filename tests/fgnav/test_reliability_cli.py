@@ -736,3 +736,19 @@ def test_a_flight_without_the_streams_a_smoother_needs_is_refused(
     err = _one_line_error(capsys, [command, str(flight), "--out", str(tmp_path / "o")])
     assert "needs slam; the flight has none" in err and meta["name"] in err
     assert not (tmp_path / "o" / "estimate.tum").exists()
+
+
+def test_a_flow_deck_without_its_rangefinder_is_told_it_needs_the_range():
+    """The smoothers need imu + slam, or images + range, or flow + range: a flow deck whose
+    rangefinder is gone needs the range (the message said "needs slam", the first of three
+    alternatives one stream short); an IMU-only flight still needs the SLAM."""
+    import dataclasses
+
+    from fgnav.datasets.simulate import SimOptions, simulate
+
+    from fgnav.methods import METHODS
+
+    f = simulate("flowdeck", seed=0, options=SimOptions(duration=3.0, images=False))
+    assert METHODS["batch"].missing(dataclasses.replace(f, range=None, slam=None)) == ["range"]
+    bare = dataclasses.replace(f, range=None, flow=None, slam=None)
+    assert METHODS["fixed-lag"].missing(bare) == ["slam"]
