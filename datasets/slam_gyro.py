@@ -36,8 +36,13 @@ with :mod:`.events` events; ``decision()`` is None until enough rotation has arr
 :func:`check_flight` runs the same core on a whole flight and :func:`apply_slam_check` applies the
 ``slam_rotation`` / ``slam_time_offset`` options to a flight (batch side).
 
-Not modelled: a time-varying clock offset (drift), a SLAM rotation that is neither as stated nor
-inverted (e.g. a mirrored frame), the camera's lever arm (rotations do not see it), gyro scale
+A mirrored (left-handed) SLAM frame is tested by :func:`check_mirror` (see the section above it),
+where the check names the inverse convention or a wrong ``body_T_cam`` rotation: on a yaw-only
+flight with a downward camera a flip of x or y looks like the inverse convention, a flip of z
+like a ``body_T_cam`` rotation 80 deg off.
+
+Not modelled: a time-varying clock offset (drift), another SLAM rotation that is neither as
+stated nor inverted, the camera's lever arm (rotations do not see it), gyro scale
 errors. The gyro bias is one constant over the data used.
 """
 
@@ -530,32 +535,74 @@ class SlamGyroCheck:
         self._slam_t: list[float] = []
         self._slam_q: list[np.ndarray] = []
         self._slam_s: list[int] = []
+        # Accelerometer and SLAM positions, when given to every sample (for mirror_verdict).
+        self._imu_a: list[np.ndarray] | None = []
+        self._slam_p: list[np.ndarray] | None = []
         self._decision: SlamGyroDecision | None = None
         self._last_try = -np.inf
 
-    def add_imu(self, t: float, body_omega: np.ndarray) -> None:
-        """One gyro sample (body frame) [rad/s] at time ``t`` [s]; times must increase."""
+    def add_imu(
+        self, t: float, body_omega: np.ndarray, body_accel: np.ndarray | None = None
+    ) -> None:
+        """One gyro sample (body frame) [rad/s] at time ``t`` [s]; times must increase. The
+        specific force ``body_accel`` [m/s^2], given with every sample, lets
+        :meth:`mirror_verdict` test the SLAM frame's handedness."""
         if self._imu_t and t <= self._imu_t[-1]:
             return
         self._imu_t.append(float(t))
         self._imu_w.append(np.asarray(body_omega, float))
+        if self._imu_a is not None:
+            if body_accel is None:
+                self._imu_a = None
+            else:
+                self._imu_a.append(np.asarray(body_accel, float))
 
-    def add_slam(self, t: float, slam_q_cam_wxyz: np.ndarray, session: int = 0) -> None:
-        """One SLAM orientation as stored (image time ``t`` [s, SLAM clock])."""
+    def add_slam(
+        self,
+        t: float,
+        slam_q_cam_wxyz: np.ndarray,
+        session: int = 0,
+        slam_t_cam: np.ndarray | None = None,
+    ) -> None:
+        """One SLAM orientation as stored (image time ``t`` [s, SLAM clock]); its position
+        ``slam_t_cam``, given with every pose, for :meth:`mirror_verdict`."""
         if self._slam_t and t <= self._slam_t[-1]:
             return
         self._slam_t.append(float(t))
         self._slam_q.append(np.asarray(slam_q_cam_wxyz, float))
         self._slam_s.append(int(session))
+        if self._slam_p is not None:
+            if slam_t_cam is None:
+                self._slam_p = None
+            else:
+                self._slam_p.append(np.asarray(slam_t_cam, float))
+
+    def mirror_verdict(self) -> MirrorVerdict | None:
+        """:func:`check_mirror` on what has arrived (None: too little data, or accelerometer or
+        positions not given with every sample)."""
+        if not self._imu_a or not self._slam_p or len(self._slam_t) < 3:
+            return None
+        imu = ImuSeries(
+            np.asarray(self._imu_t),
+            np.asarray(self._imu_w).reshape(-1, 3),
+            np.asarray(self._imu_a).reshape(-1, 3),
+        )
+        slam = SlamSeries(
+            t=np.asarray(self._slam_t),
+            slam_t_cam=np.asarray(self._slam_p).reshape(-1, 3),
+            slam_q_cam_wxyz=np.asarray(self._slam_q).reshape(-1, 4),
+            session=np.asarray(self._slam_s),
+        )
+        return check_mirror(imu, slam, self.body_R_cam, self.options)
 
     def add(self, event: Any) -> None:
         """An :mod:`.events` event: ``ImuSample`` and ``SlamPose`` are used, others ignored."""
         from .events import ImuSample, SlamPose
 
         if isinstance(event, ImuSample):
-            self.add_imu(event.t, event.body_omega)
+            self.add_imu(event.t, event.body_omega, event.body_accel)
         elif isinstance(event, SlamPose):
-            self.add_slam(event.t, event.slam_q_cam_wxyz, event.session)
+            self.add_slam(event.t, event.slam_q_cam_wxyz, event.session, event.slam_t_cam)
 
     def stated_misfit(
         self, min_pair_rad: float = STATED_MIN_PAIR_RAD, min_pairs: int = STATED_MIN_PAIRS
@@ -671,6 +718,14 @@ def check_extrinsic_mode(extrinsic: Any, source: str = "options") -> None:
         )
 
 
+def check_mirror_mode(mirror: Any, source: str = "options") -> None:
+    """Raise a one-line :class:`SlamConventionError` for a bad ``slam_mirror`` value."""
+    if mirror not in SLAM_MIRROR_MODES:
+        raise SlamConventionError(
+            f"{source}: slam_mirror = {mirror!r}; valid: {', '.join(SLAM_MIRROR_MODES)}"
+        )
+
+
 def invert_slam_rotations(slam: SlamSeries) -> SlamSeries:
     """The SLAM series with each orientation inverted (conjugate quaternion), positions kept."""
     q = np.array(slam.slam_q_cam_wxyz, float)
@@ -694,6 +749,7 @@ def apply_slam_check(
     rotation: str = "auto",
     time_offset: str | float = "report",
     extrinsic: str = "auto",
+    mirror: str = "auto",
 ) -> Flight:
     """Apply the ``slam_rotation`` / ``slam_time_offset`` options to a whole flight (batch).
 
@@ -705,7 +761,11 @@ def apply_slam_check(
     rotation given: the fitted one is 0.6-1.1 deg from the true one on MH_01 and both V1_02
     files; simulated two turns about body z, 12 deg given: 2.9 deg, the rotation about the
     unexcited axes kept from the given one). ``"apply"`` adds the estimated offset to the
-    SLAM times, a number adds that offset, ``"report"`` only logs it. The result is recorded in
+    SLAM times, a number adds that offset, ``"report"`` only logs it. With ``mirror = "auto"``,
+    a decision that names the inverse convention or a wrong ``body_T_cam`` rotation is tested
+    for a mirrored SLAM frame (:func:`check_mirror`): one whose axis is identified is
+    un-mirrored and checked again, one whose axis is not is not used (``slam`` None); one line
+    says so and ``record["mirrored"]`` names it. The result is recorded in
     ``flight.meta["slam_gyro_check"]``; a flight that has it is returned unchanged.
     """
     if flight.slam is None or flight.imu is None or {META_KEY, CAUSAL_META_KEY} & set(flight.meta):
@@ -713,13 +773,33 @@ def apply_slam_check(
     rotation, time_offset = file_modes(flight, rotation, time_offset)
     check_modes(rotation, time_offset, "slam options")
     check_extrinsic_mode(extrinsic, "slam options")
+    check_mirror_mode(mirror, "slam options")
     d = None
     if rotation == "auto" or isinstance(time_offset, str) or extrinsic == "auto":
         d = _flight_decision(flight)
         if d is None:
             log.info("%s: too few SLAM pose pairs for the SLAM-vs-gyro check", flight.name)
+    mirrored: dict[str, Any] | None = None
+    if (
+        d is not None
+        and mirror == "auto"
+        and rotation == "auto"
+        and (d.convention == "inverse" or not d.body_R_cam_ok)
+    ):
+        v = check_mirror(flight.imu, flight.slam, np.asarray(flight.calib.body_T_cam)[:3, :3])
+        if v is not None and v.mirrored:
+            mirrored = {"axis": None if v.axis is None else "xyz"[v.axis], "message": v.message()}
+            if v.axis is None:
+                log.warning("%s: %s: SLAM not used", flight.name, v.message())
+                meta = {**flight.meta, META_KEY: {**d.summary(), "mirrored": mirrored}}
+                return dataclasses.replace(flight, slam=None, meta=meta)
+            log.warning("%s: %s: un-mirrored (slam_mirror = 'auto')", flight.name, v.message())
+            flight = dataclasses.replace(flight, slam=unmirror_slam(flight.slam, v.axis))
+            d = _flight_decision(flight)
     slam = flight.slam
     record: dict[str, Any] = {"slam_rotation": rotation, "slam_time_offset": time_offset}
+    if mirrored is not None:
+        record["mirrored"] = mirrored
     invert = rotation == "inverse"
     if d is not None:
         record.update(d.summary())
@@ -933,3 +1013,232 @@ def apply_slam_check_causal(
     )
     meta = {**flight.meta, CAUSAL_META_KEY: record}
     return dataclasses.replace(flight, slam=slam, meta=meta)
+
+
+# ----------------------------------------------------------------------------------------------
+# Mirrored (left-handed) SLAM frame
+# ----------------------------------------------------------------------------------------------
+#
+# A bridge that flips one axis sign writes ``p' = D p`` and ``R' = D R D`` with ``D = diag`` of
+# ones and one -1 (axis a). ``D = -R_a(pi)``, so ``R' = R_a(pi) R R_a(pi)`` is a proper rotation:
+# a world turn (which the alignment absorbs) and a camera turn of 180 deg about camera axis a (a
+# ``body_R_cam`` 180 deg off to the gyro check, or on yaw-only flights about a downward camera's
+# optical axis the inverse convention), while ``p' = R_a(pi) (-p)`` needs a negative scale. The
+# rotations alone cannot tell a mirror from a camera really mounted 180 deg turned; the positions
+# can: :func:`position_scale` fits the SLAM's second differences to the accelerometer rotated
+# into the SLAM frame by the SLAM's own orientations and a ``body_R_cam``, whose scale is positive
+# for a right-handed frame and negative for a mirrored one.
+
+#: Values of the ``slam_mirror`` option: ``"auto"``, a mirrored frame whose axis is identified is
+#: un-mirrored (one warning line says so), one whose axis is not is not used; ``"off"``: not
+#: checked.
+SLAM_MIRROR_MODES = ("auto", "off")
+#: :func:`check_mirror`: a hypothesis's position scale counts when positive with a relative
+#: standard error at most this (simulated two-turns, seed 1: right hypotheses 0.04-0.06, wrong
+#: ones negative or above 2).
+MIRROR_MAX_REL_SE = 0.25
+#: :func:`check_mirror`: the winning hypothesis's gyro residual (given ``body_R_cam``) at most this
+#: many times the best residual any hypothesis fits (the noise floor), and every other counted
+#: hypothesis's at least this many times the winner's.
+MIRROR_RESIDUAL_RATIO = 1.5
+MIRROR_MARGIN = 2.0
+#: :func:`check_mirror`: a hypothesis counts only when its position fit explains the SLAM's
+#: second differences (R^2, gravity and bias fitted) within this of the best hypothesis's (the
+#: right one 0.84 at 12 s of simulated two-turns, a wrong convention 0.50-0.52 with a positive
+#: but noisy scale).
+MIRROR_R2_GAP = 0.1
+
+
+def mirror_rotations(R: np.ndarray, axis: int) -> np.ndarray:
+    """``D R D`` for each (N, 3, 3) rotation, ``D`` the identity with ``-1`` at ``axis``."""
+    D = np.ones(3)
+    D[axis] = -1.0
+    return R * D[None, :, None] * D[None, None, :]
+
+
+def unmirror_slam(slam: SlamSeries, axis: int) -> SlamSeries:
+    """The SLAM series with the sign of ``axis`` (0, 1, 2: x, y, z) flipped in the positions and
+    the orientations (``p -> D p``, ``R -> D R D``: its own inverse)."""
+    D = np.ones(3)
+    D[axis] = -1.0
+    q = np.array(slam.slam_q_cam_wxyz, float)
+    q[:, 1:] *= -D  # the rotation vector of D R D is -D times R's
+    return dataclasses.replace(
+        slam, slam_t_cam=np.asarray(slam.slam_t_cam, float) * D, slam_q_cam_wxyz=q
+    )
+
+
+def position_scale(
+    imu_t: np.ndarray,
+    body_accel: np.ndarray,
+    slam_t: np.ndarray,
+    slam_p: np.ndarray,
+    slam_R_cam: np.ndarray,
+    body_R_cam: np.ndarray,
+    session: np.ndarray | None = None,
+    h: float = 0.5,
+    step: float = 0.1,
+) -> tuple[float, float, int]:
+    """Scale [SLAM units per metre] of the SLAM positions against the accelerometer, rotated into
+    the SLAM frame through the SLAM's own orientations: second differences of the positions over
+    ``+-h`` (centres ``step`` apart, one session) against the hat-kernel integrals of
+    ``slam_R_cam(t) body_R_cam^T f(t)`` (``f`` the specific force), least squares jointly with the
+    gravity (a constant in the SLAM frame) and an accelerometer bias (body frame).
+
+    Returns:
+        ``(scale, rel_se, n, r2)``: negative for a mirrored frame; ``rel_se`` its relative
+        standard error (inf with fewer than 10 second differences); ``r2`` the share of the
+        second differences' variance the fit explains.
+    """
+    t = np.asarray(slam_t, float)
+    P = np.asarray(slam_p, float)
+    imu_t = np.asarray(imu_t, float)
+    sess = np.zeros(len(t), int) if session is None else np.asarray(session)
+    lo, hi = max(t[0], imu_t[0]) + h, min(t[-1], imu_t[-1]) - h
+    centres, last = [], -np.inf
+    for j in range(1, len(t) - 1):
+        if lo <= t[j] <= hi and t[j] - last >= step - 1e-9:
+            centres.append(j)
+            last = t[j]
+    if len(centres) < 10:
+        return float("nan"), math.inf, len(centres), 0.0
+    j = np.asarray(centres)
+    i = np.minimum(np.searchsorted(t, t[j] - h), j - 1)
+    k = np.maximum(np.minimum(np.searchsorted(t, t[j] + h), len(t) - 1), j + 1)
+    ok = (sess[i] == sess[j]) & (sess[k] == sess[j])
+    i, j, k = i[ok], j[ok], k[ok]
+    if len(j) < 10:
+        return float("nan"), math.inf, len(j), 0.0
+    h1, h2 = t[j] - t[i], t[k] - t[j]
+    w = 0.5 * (h1 + h2)
+    sd2 = w[:, None] * ((P[k] - P[j]) / h2[:, None] - (P[j] - P[i]) / h1[:, None])
+    Rs = slerp_rotations(t, np.asarray(slam_R_cam, float), imu_t)
+    v = Rs @ (np.asarray(body_R_cam, float).T @ np.asarray(body_accel, float)[:, :, None])
+    v = v[:, :, 0]
+    dt = np.diff(imu_t)[:, None]
+
+    def cum(a: np.ndarray) -> np.ndarray:
+        return np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]) * dt, 0)])
+
+    ca, cta = cum(v), cum(imu_t[:, None] * v)
+
+    def at(c: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(q, imu_t, c[:, a]) for a in range(3)])
+
+    ti, tj, tk = t[i][:, None], t[j][:, None], t[k][:, None]
+    rising = (at(cta, t[j]) - at(cta, t[i]) - ti * (at(ca, t[j]) - at(ca, t[i]))) / h1[:, None]
+    falling = (tk * (at(ca, t[k]) - at(ca, t[j])) - (at(cta, t[k]) - at(cta, t[j]))) / h2[:, None]
+    del tj
+    A = np.zeros((len(j), 3, 7))
+    A[:, :, 0] = w[:, None] * (rising + falling)
+    A[:, :, 1:4] = (w**2)[:, None, None] * np.eye(3)
+    A[:, :, 4:] = (w**2)[:, None, None] * (np.asarray(slam_R_cam, float)[j] @ body_R_cam.T)
+    A = A.reshape(-1, 7)
+    y = sd2.reshape(-1)
+    x, *_ = np.linalg.lstsq(A, y, rcond=None)
+    r = y - A @ x
+    cov = np.linalg.pinv(A.T @ A) * float(r @ r) / max(len(y) - 7, 1)
+    scale = float(x[0])
+    rel = float(np.sqrt(max(cov[0, 0], 0.0)) / abs(scale)) if scale else math.inf
+    tss = float(np.sum((y - y.mean()) ** 2))
+    r2 = 1.0 - float(r @ r) / tss if tss > 0 else 0.0
+    return scale, rel, len(j), r2
+
+
+@dataclass(frozen=True)
+class MirrorVerdict:
+    """Result of :func:`check_mirror`.
+
+    Attributes:
+        mirrored: the SLAM frame is left-handed.
+        axis: the flipped axis (0, 1, 2) when identified, else None.
+        hypotheses: ``"<convention>/<none|x|y|z>"`` -> ``(gyro residual with the given
+            body_R_cam [deg], position scale, its rel. s.e., the position fit's R^2)``.
+        convention: the winning hypothesis's rotation convention.
+        conclusive: False when no hypothesis won (too little motion yet, or none fits the gyro
+            through the given ``body_R_cam`` near the noise floor): not mirrored, so far.
+    """
+
+    mirrored: bool
+    axis: int | None
+    hypotheses: dict[str, tuple[float, float, float, float]]
+    convention: str = "as-is"
+    conclusive: bool = True
+
+    def message(self) -> str:
+        """One line naming the mirrored frame."""
+        if self.axis is None:
+            return (
+                "slam-mirrored: the SLAM frame is left-handed (an axis sign flipped; which one "
+                "the motion does not tell)"
+            )
+        return f"slam-mirrored: the SLAM frame is left-handed (axis {'xyz'[self.axis]} sign?)"
+
+
+def check_mirror(
+    imu: ImuSeries, slam: SlamSeries, body_R_cam: np.ndarray, options: SlamGyroOptions | None = None
+) -> MirrorVerdict | None:
+    """Is the SLAM frame mirrored? Eight hypotheses (the stated or inverse rotation convention,
+    times no axis or one of x, y, z flipped) are scored with the *given* ``body_R_cam``: the
+    gyro residual of the SLAM-vs-gyro check and the sign of :func:`position_scale`. Among those
+    with a positive, determined scale (rel. s.e. at most :data:`MIRROR_MAX_REL_SE`, R^2 within
+    :data:`MIRROR_R2_GAP` of the best) the one of
+    least residual wins when that residual is within :data:`MIRROR_RESIDUAL_RATIO` of the best any
+    hypothesis fits and every other counted one is :data:`MIRROR_MARGIN` times worse. A winning
+    flip is the mirror; flips tied within the margin (and no unflipped one among them): mirrored,
+    axis unknown. None: too little data to tell.
+    """
+    o = options or SlamGyroOptions()
+    X = np.asarray(body_R_cam, float)
+    imu_t = np.asarray(imu.t, float)
+    t = np.asarray(slam.t, float)
+    R0 = quat_wxyz_to_matrix(np.asarray(slam.slam_q_cam_wxyz, float))
+    P0 = np.asarray(slam.slam_t_cam, float)
+    sess = np.asarray(slam.session)
+    if len(imu_t) < 2 or len(t) < 3:
+        return None
+    # The gyro residuals with the given rotation (bias fitted; the coarse clock offset, which
+    # neither the convention nor a flip changes): one integration, the pairs once.
+    inside = (t > imu_t[0] + o.max_offset_s) & (t < imu_t[-1] - o.max_offset_s)
+    p0 = _pairs(t[inside], R0[inside], sess[inside], o)
+    if len(p0.t_i) < 4:
+        return None
+    omega = np.asarray(imu.body_omega, float)
+    offset, _ = _coarse_offset(imu_t, omega, p0, o)
+    core = _Core(imu_t, _integrate(imu_t, omega), p0, offset)
+    hyp: dict[str, tuple[float, float, float, float]] = {}
+    for flip in (None, 0, 1, 2):
+        R = R0 if flip is None else mirror_rotations(R0, flip)
+        D = np.ones(3)
+        if flip is not None:
+            D[flip] = -1.0
+        core.p = p = _pairs(t[inside], R[inside], sess[inside], o)
+        for conv in ("as-is", "inverse"):
+            C = _camera_increments(p, conv)
+            _, b = core._gauss_newton(C, so3_log(C), X, free_rotation=False)
+            resid = _median_deg(core.residuals(C, X, b))
+            RR = R if conv == "as-is" else np.transpose(R, (0, 2, 1))
+            s, rel, _, r2 = position_scale(imu_t, imu.body_accel, t, P0 * D, RR, X, sess)
+            name = f"{conv}/{'none' if flip is None else 'xyz'[flip]}"
+            hyp[name] = (resid, s, rel, r2)
+    floor = min(v[0] for v in hyp.values())
+    r2_max = max(v[3] for v in hyp.values())
+    counted = {
+        k: v
+        for k, v in hyp.items()
+        if v[1] > 0 and v[2] <= MIRROR_MAX_REL_SE and v[3] >= r2_max - MIRROR_R2_GAP
+    }
+    if not counted:
+        return MirrorVerdict(False, None, hyp, conclusive=False)
+    best = min(counted, key=lambda k: counted[k][0])
+    r_best = counted[best][0]
+    if r_best > MIRROR_RESIDUAL_RATIO * max(floor, 1e-9):
+        return MirrorVerdict(False, None, hyp, conclusive=False)
+    if best.endswith("/none"):
+        return MirrorVerdict(False, None, hyp, best.split("/")[0])
+    close = [k for k, v in counted.items() if k != best and v[0] < MIRROR_MARGIN * r_best]
+    if any(k.endswith("/none") for k in close):
+        return MirrorVerdict(False, None, hyp, conclusive=False)
+    axes = {best[-1]} | {k[-1] for k in close}
+    axis = "xyz".index(best[-1]) if len(axes) == 1 else None
+    return MirrorVerdict(True, axis, hyp, best.split("/")[0])

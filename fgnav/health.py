@@ -76,6 +76,11 @@ each counted by name in :meth:`FaultDetectors.report`:
   for ``flow_no_height_s`` with no range reading; batch: from the flight's streams).
 - ``camera-frozen``: an image identical (byte for byte) to the previous one; dropped
   (``images:frozen``).
+- ``slam-mirrored``: the SLAM frame is left-handed (one axis sign flipped by a bridge:
+  positions ``D p``, rotations ``D R D``), found where the SLAM-vs-gyro check names the inverse
+  convention or a wrong ``body_T_cam`` rotation (:func:`fgnav.datasets.slam_gyro.check_mirror`);
+  named instead of those, with the axis when the motion tells it (the SLAM then un-mirrored,
+  ``[graph] slam_mirror``).
 - ``slam-clock-offset``: the SLAM-vs-gyro check (:mod:`fgnav.datasets.slam_gyro`) found a clock
   offset above ``slam_offset_tol_s`` (reported; ``[graph] slam_time_offset = "apply"`` applies it
   in batch); not where the rates correlate too little to tell (``time_offset_ok``).
@@ -164,6 +169,7 @@ DETECTORS = (
     "terrain-step",
     "divergence",
     "slam-scale-nonpositive",
+    "slam-mirrored",
 )
 
 
@@ -727,6 +733,16 @@ class FaultDetectors:
                 "SLAM-vs-gyro check"
                 + (", applied" if applied else '; [graph] slam_time_offset = "apply" applies it'),
             )
+        mirrored = decision.get("mirrored")
+        if mirrored:
+            self._count(
+                "slam-mirrored",
+                str(mirrored.get("message", "the SLAM frame is left-handed")).removeprefix(
+                    "slam-mirrored: "
+                )
+                + (": un-mirrored" if mirrored.get("axis") else ": SLAM not used"),
+            )
+            return  # (the body_T_cam rotation it was named as is the mirror's)
         if decision.get("body_R_cam_ok") is False:
             self._count(
                 "body_T_cam-rotation",

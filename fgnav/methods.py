@@ -163,6 +163,7 @@ def slam_checked(flight: Flight, config: Mapping[str, Any], causal: bool = False
         table.get("slam_rotation", "auto"),
         table.get("slam_time_offset", "report"),
         table.get("slam_extrinsic", "auto"),
+        **({} if causal else {"mirror": table.get("slam_mirror", "auto")}),
     )
 
 

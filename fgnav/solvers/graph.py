@@ -38,7 +38,12 @@ import numpy as np
 from fgnav.datasets.errors import FgnavError, FlightDataError
 from fgnav.datasets.geometry import GRAVITY, slerp_rotations, wrap_angle
 from fgnav.datasets.slam_gyro import META_KEY as SLAM_CHECK_META_KEY
-from fgnav.datasets.slam_gyro import apply_slam_check, check_extrinsic_mode, check_modes
+from fgnav.datasets.slam_gyro import (
+    apply_slam_check,
+    check_extrinsic_mode,
+    check_mirror_mode,
+    check_modes,
+)
 from fgnav.datasets.types import Calibration, Flight, ImuSeries
 from fgnav.factors.accel_drag import make_accel_drag_factor, mean_accel_noise
 from fgnav.factors.slam_scale import (
@@ -154,6 +159,11 @@ class GraphOptions:
             rotation (one warning says so; the push engine from its causal decision on),
             ``"as-is"`` keeps it (named only). EuRoC MH_01 with an identity rotation given:
             the fitted one is 0.55 deg from the true one.
+        slam_mirror: a mirrored (left-handed) SLAM frame, tested when the SLAM-vs-gyro check
+            names the inverse convention or a wrong ``body_T_cam`` rotation
+            (:func:`fgnav.datasets.slam_gyro.check_mirror`): ``"auto"`` un-mirrors it when the
+            flipped axis is identified and leaves the SLAM out when not (one line names
+            ``slam-mirrored``); ``"off"`` does not test.
         slam_time_offset: SLAM clock offset, estimated from the gyro: ``"report"`` (logged only),
             ``"apply"`` (added to the SLAM times) or a number of seconds to add (not estimated).
             A manifest's ``[slam] slam_time_offset`` wins.
@@ -291,6 +301,7 @@ class GraphOptions:
     slam_rotation: str = "auto"
     slam_time_offset: str | float = "report"
     slam_extrinsic: str = "auto"
+    slam_mirror: str = "auto"
     slam_rot_sigma: float = 0.005
     slam_segment_s: float = 2.0
     slam_scale_rw: float = 1e-3
@@ -352,6 +363,7 @@ class GraphOptions:
             )
         check_modes(self.slam_rotation, self.slam_time_offset, "GraphOptions")
         check_extrinsic_mode(self.slam_extrinsic, "GraphOptions")
+        check_mirror_mode(self.slam_mirror, "GraphOptions")
         if not 0 < self.keyframe_hz <= KEYFRAME_HZ_MAX:
             raise FlightDataError(
                 f"GraphOptions.keyframe_hz={self.keyframe_hz}: expected > 0 and <= "
@@ -558,6 +570,7 @@ class GraphBuilder:
                 self.options.slam_rotation,
                 self.options.slam_time_offset,
                 self.options.slam_extrinsic,
+                self.options.slam_mirror,
             )
         self.flight = flight.check()
         self.priors = priors if self.options.use_frontend_priors else None

@@ -349,6 +349,13 @@ SLAM_MOTION_INVERSE_RATIO = 0.5
 #: provisional re-seed (a motion fit).
 SLAM_MISFIT_RETRY_S = 1.0
 SLAM_RESEED_RETRY_S = 0.5
+#: Added to the session id of the poses of a mirrored SLAM frame un-mirrored (a new alignment).
+MIRROR_SESSION_BASE = 1 << 40
+#: A mirror test inconclusive at the SLAM-vs-gyro decision is repeated every MIRROR_RETEST_S of
+#: SLAM for MIRROR_RETEST_FOR_S (each a few ms per second of data: the gyro residuals of eight
+#: hypotheses and their position fits).
+MIRROR_RETEST_S = 2.0
+MIRROR_RETEST_FOR_S = 30.0
 #: ``SlamGyroCheck.stated_misfit`` above which the stated ``body_R_cam`` is suspected before the
 #: check decides (named, see OnlineSmoother._suspect_extrinsic). Measured causally over the first
 #: 25 s: right rotations 0.01-0.05 on EuRoC MH_01 / V1_02 (both files), 0.03-0.14 on the
@@ -715,6 +722,14 @@ class OnlineSmoother:
         # turned (_slam_check). A property of the calibration: it outlives resets too.
         self._orient_verdict: str | None = None
         self._orient_found: dict[str, Any] | None = None
+        # A mirrored SLAM frame (_slam_check, slam_mirror = "auto"): the flipped axis whose sign
+        # every pose from the decision on gets back (in a session of its own), or "off" (axis
+        # not identified: the SLAM poses from then on dropped). Outlives resets.
+        self._mirror: int | str | None = None
+        self._mirror_named: dict[str, Any] | None = None
+        # The check kept after its decision while a mirror is still possible (_mirror_retest).
+        self._mirror_sgc = None
+        self._mirror_next = self._mirror_until = -math.inf
         # An IMU sample after a clock jump or gap, held until the next one says whether the
         # discontinuity is real or the stamp corrupted: (event, t, omega, accel).
         self._imu_suspect: tuple | None = None
@@ -1222,7 +1237,9 @@ class OnlineSmoother:
             if not self._prior_watch_done:
                 self._watch_prior_streams(t)
         if self._sgc is not None:
-            self._sgc.add_imu(t, w)
+            self._sgc.add_imu(t, w, a)
+        if self._mirror_sgc is not None:
+            self._mirror_sgc.add_imu(t, w, a)
         if self._first_imu_t is None:
             self._first_imu_t = t
         self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
@@ -2338,7 +2355,19 @@ class OnlineSmoother:
         p = np.asarray(ev.slam_t_cam, float)
         q = np.asarray(ev.slam_q_cam_wxyz, float)
         if self._sgc is not None:
-            self._slam_check(float(ev.t), q, int(ev.session))
+            self._slam_check(float(ev.t), q, int(ev.session), p)
+        elif self._mirror_sgc is not None:
+            self._mirror_retest(float(ev.t), q, int(ev.session), p)
+        if self._mirror is not None:
+            if self._mirror == "off":
+                self._drop("slam:mirrored")
+                return
+            # Un-mirrored: D p, D R D; a session of its own (the poses before the decision made
+            # their alignment mirrored).
+            D = np.ones(3)
+            D[self._mirror] = -1.0
+            p, q = p * D, np.concatenate([q[:1], -D * q[1:]])
+            ev = ev._replace(session=int(ev.session) + MIRROR_SESSION_BASE)
         # The payload keeps the orientation as stored: a convention decided while it waits
         # (the early SLAM-vs-gyro decision) applies when its factor is made (``_slam_factor``).
         q_stored = q
@@ -2372,12 +2401,21 @@ class OnlineSmoother:
             return
         self._slam_wait.append((t, payload))
 
-    def _slam_check(self, t: float, q: np.ndarray, session: int) -> None:
+    def _slam_check(self, t: float, q: np.ndarray, session: int, p: np.ndarray) -> None:
         """Feed the causal SLAM-vs-gyro check; act on its decision once (rotation convention,
-        ``body_T_cam`` rotation, clock offset: said in one line each and in ``info``)."""
+        ``body_T_cam`` rotation, clock offset: said in one line each and in ``info``). A
+        decision naming the inverse convention or a wrong ``body_T_cam`` rotation is first
+        tested for a mirrored SLAM frame (``graph.slam_mirror = "auto"``, :meth:`_mirror_test`)."""
         sgc = self._sgc
-        sgc.add_slam(t, q, session)
+        sgc.add_slam(t, q, session, p)
         d = sgc.decision()
+        if (
+            d is not None
+            and self._slam_conv is None
+            and self.go.slam_mirror == "auto"
+            and (d.convention == "inverse" or not d.body_R_cam_ok)
+        ):
+            d = self._mirror_test(sgc, d, t, at_decision=True)
         if d is None:
             self._suspect_extrinsic(t)
             if t - sgc._slam_t[0] > self.options.slam_check_max_s:
@@ -2400,6 +2438,7 @@ class OnlineSmoother:
                 "%s: SLAM clock offset %+.4f s applied from t=%.2f s", self.name, d.time_offset_s, t
             )
         self.slam_check = {
+            **({"mirrored": self._mirror_named} if self._mirror is not None else {}),
             "t": t,
             "convention": d.convention,
             "residual_deg": d.residual_deg,
@@ -2455,6 +2494,92 @@ class OnlineSmoother:
         elif self._orient_verdict == "contradicted" and self.slam_check.get("body_R_cam_replaced"):
             # The orientations through the fitted rotation are checked anew.
             self._orient_verdict, self._orient_next = None, -math.inf
+
+    def _mirror_test(self, sgc, d, t: float, at_decision: bool = False):
+        """:meth:`SlamGyroCheck.mirror_verdict` on what has arrived: a mirrored frame whose axis
+        is identified is un-mirrored from this pose on (and the decision made again on the
+        un-mirrored rotations); one whose axis is not leaves the SLAM unused from here. One
+        warning line says which. Inconclusive at the decision (too little motion for the
+        positions to tell: simulated two-turns' x flip at 10 s): the check is kept and the test
+        repeated every ``MIRROR_RETEST_S`` of SLAM for ``MIRROR_RETEST_FOR_S``
+        (:meth:`_mirror_retest`). Returns the decision to act on."""
+        v = sgc.mirror_verdict()
+        if v is None or not v.conclusive:
+            if at_decision:
+                self._mirror_sgc = sgc
+                self._mirror_next, self._mirror_until = t + MIRROR_RETEST_S, t + MIRROR_RETEST_FOR_S
+            return d
+        self._mirror_sgc = None
+        if not v.mirrored:
+            return d
+        from fgnav.datasets.slam_gyro import check_slam_gyro, mirror_rotations
+
+        axis = None if v.axis is None else "xyz"[v.axis]
+        self._mirror_named = {"axis": axis, "message": v.message(), "t": t}
+        if v.axis is None:
+            log.warning("%s: %s at t=%.2f s: SLAM not used from here", self.name, v.message(), t)
+            self._mirror = "off"
+            return d
+        log.warning(
+            "%s: %s at t=%.2f s: un-mirrored from here (slam_mirror = 'auto')",
+            self.name,
+            v.message(),
+            t,
+        )
+        self._mirror = v.axis
+        R = mirror_rotations(quat_wxyz_to_matrix(np.asarray(sgc._slam_q).reshape(-1, 4)), v.axis)
+        d2 = check_slam_gyro(
+            np.asarray(sgc._imu_t),
+            np.asarray(sgc._imu_w).reshape(-1, 3),
+            np.asarray(sgc._slam_t),
+            matrix_to_quat_wxyz(R),
+            sgc.body_R_cam,
+            np.asarray(sgc._slam_s),
+            sgc.options,
+            force=True,
+        )
+        return d2 if d2 is not None and d2.decided else d
+
+    def _mirror_retest(self, t: float, q: np.ndarray, session: int, p: np.ndarray) -> None:
+        """After a decision that named the inverse convention or a wrong ``body_T_cam`` rotation
+        with the mirror test inconclusive: the test again, rate-limited; a mirror found now is
+        un-mirrored from this pose on with the rotation convention and ``body_T_cam`` rotation
+        the un-mirrored rotations fit (the given one when it fits), and named."""
+        sgc = self._mirror_sgc
+        sgc.add_slam(t, q, session, p)
+        if t < self._mirror_next:
+            return
+        if t > self._mirror_until:
+            self._mirror_sgc = None
+            return
+        self._mirror_next = t + MIRROR_RETEST_S
+        d = self._mirror_test(sgc, None, t)
+        if self._mirror is None:
+            return
+        self._orient_verdict, self._orient_next = None, -math.inf
+        if d is not None:
+            self._slam_conv = d.convention
+            X = (
+                d.body_R_cam_fit
+                if not d.body_R_cam_ok and self.go.slam_extrinsic == "auto"
+                else None
+            )
+            given = np.asarray(self.calib.body_T_cam, float)
+            self.body_T_cam = make_pose(given[:3, :3] if X is None else X, given[:3, 3])
+            self.slam_check.update(
+                convention=d.convention,
+                residual_deg=d.residual_deg,
+                body_R_cam_ok=bool(d.body_R_cam_ok),
+                body_R_cam_error_deg=float(d.body_R_cam_error_deg),
+            )
+        self.slam_check["mirrored"] = self._mirror_named
+        if self._health_on and self._health_checked:  # (else said from slam_check)
+            m = self._mirror_named
+            self._health.detectors.named(
+                "slam-mirrored",
+                m["message"].removeprefix("slam-mirrored: ")
+                + (f": un-mirrored from t={t:.2f} s" if m["axis"] else ": SLAM not used"),
+            )
 
     def _camera_ready(self, ev: ImageFrame) -> bool:
         """Set up the homography VO stage at the first image (False: images not used, counted).
