@@ -502,6 +502,9 @@ def check_slam_gyro(
     )
 
 
+#: :class:`SlamGyroCheck` with ``window_s``: the data older than the window is dropped once this
+#: much [s] of it has gathered.
+WINDOW_TRIM_S = 10.0
 #: :meth:`SlamGyroCheck.stated_misfit`: pairs rotating at least this much [rad] count, and at
 #: least this many of them are needed.
 STATED_MIN_PAIR_RAD = 0.05
@@ -519,6 +522,9 @@ class SlamGyroCheck:
         body_R_cam: (3, 3) the given camera-to-body rotation.
         options: thresholds (:class:`SlamGyroOptions`).
         retry_s: SLAM time between two decision attempts [s].
+        window_s: keep only the newest ``window_s`` of SLAM (and the IMU from 1 s before it;
+            dropped in chunks of :data:`WINDOW_TRIM_S`), which bounds the work of an attempt
+            (it fits all that is kept: 0.25 s at 40 s of data) and the memory; None: all.
     """
 
     def __init__(
@@ -526,10 +532,12 @@ class SlamGyroCheck:
         body_R_cam: np.ndarray,
         options: SlamGyroOptions | None = None,
         retry_s: float = 1.0,
+        window_s: float | None = None,
     ) -> None:
         self.body_R_cam = np.asarray(body_R_cam, float)
         self.options = options or SlamGyroOptions()
         self.retry_s = retry_s
+        self.window_s = window_s
         self._imu_t: list[float] = []
         self._imu_w: list[np.ndarray] = []
         self._slam_t: list[float] = []
@@ -576,6 +584,21 @@ class SlamGyroCheck:
                 self._slam_p = None
             else:
                 self._slam_p.append(np.asarray(slam_t_cam, float))
+        if self.window_s is not None and t - self._slam_t[0] > self.window_s + WINDOW_TRIM_S:
+            self._trim(t - self.window_s)
+
+    def _trim(self, start: float) -> None:
+        """Drop the SLAM before ``start`` and the IMU before ``start - 1 s``."""
+        import bisect
+
+        k = bisect.bisect_left(self._slam_t, start)
+        for buf in (self._slam_t, self._slam_q, self._slam_s, self._slam_p):
+            if buf is not None:
+                del buf[:k]
+        k = bisect.bisect_left(self._imu_t, start - 1.0)
+        for buf in (self._imu_t, self._imu_w, self._imu_a):
+            if buf is not None:
+                del buf[:k]
 
     def mirror_verdict(self) -> MirrorVerdict | None:
         """:func:`check_mirror` on what has arrived (None: too little data, or accelerometer or

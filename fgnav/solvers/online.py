@@ -349,6 +349,14 @@ SLAM_MOTION_INVERSE_RATIO = 0.5
 #: provisional re-seed (a motion fit).
 SLAM_MISFIT_RETRY_S = 1.0
 SLAM_RESEED_RETRY_S = 0.5
+#: The causal SLAM-vs-gyro check (OnlineSmoother._slam_check) keeps the newest
+#: SLAM_CHECK_WINDOW_S of data (its attempts fit all of it: 0.25 s at 40 s of a hover, 0.07 s
+#: more for the early misfit; before, the cost grew with the flight, 2 s per attempt at 300 s);
+#: past SLAM_CHECK_GROWTH_AFTER_S of SLAM undecided its attempts are spaced by a tenth of the time
+#: so far (1 s before). The decisions seen come before either (EuRoC 4-12 s, the simulated
+#: flights 2-30 s, hover 48 s).
+SLAM_CHECK_WINDOW_S = 60.0
+SLAM_CHECK_GROWTH_AFTER_S = 60.0
 #: Added to the session id of the poses of a mirrored SLAM frame un-mirrored (a new alignment).
 MIRROR_SESSION_BASE = 1 << 40
 #: A mirror test inconclusive at the SLAM-vs-gyro decision is repeated every MIRROR_RETEST_S of
@@ -1037,13 +1045,14 @@ class OnlineSmoother:
             self.go.slam_rotation
         )
         self._sgc = None
+        self._sgc_first: float | None = None  # the check's first SLAM time
         self._fit_motion_used = False
         self._misfit_try = -math.inf
         self._orient_next = -math.inf
         if self.go.use_slam and (self._slam_conv is None or off == "apply"):
             from fgnav.datasets.slam_gyro import SlamGyroCheck
 
-            self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3])
+            self._sgc = SlamGyroCheck(self.body_T_cam[:3, :3], window_s=SLAM_CHECK_WINDOW_S)
         self._pose_hist: dict[int, tuple[float, gtsam.Pose3]] = {}
         self._height_parts: tuple | None = None  # (alignment, its parts): _sim3_parts
         self._height_last: tuple | None = None  # (session, position, height): _slam_height
@@ -2408,6 +2417,13 @@ class OnlineSmoother:
         tested for a mirrored SLAM frame (``graph.slam_mirror = "auto"``, :meth:`_mirror_test`)."""
         sgc = self._sgc
         sgc.add_slam(t, q, session, p)
+        if self._sgc_first is None:
+            self._sgc_first = t
+        elapsed = t - self._sgc_first
+        if elapsed > SLAM_CHECK_GROWTH_AFTER_S:
+            # An undecided check's attempts (and the early misfit's) spaced by a tenth of the
+            # SLAM time so far: each fits the newest SLAM_CHECK_WINDOW_S.
+            sgc.retry_s = max(1.0, 0.1 * elapsed)
         d = sgc.decision()
         if (
             d is not None
@@ -2418,7 +2434,7 @@ class OnlineSmoother:
             d = self._mirror_test(sgc, d, t, at_decision=True)
         if d is None:
             self._suspect_extrinsic(t)
-            if t - sgc._slam_t[0] > self.options.slam_check_max_s:
+            if elapsed > self.options.slam_check_max_s:
                 log.warning(
                     "%s: SLAM-vs-gyro check undecided after %.0f s of SLAM (too little "
                     "rotation): SLAM rotations taken as stated, not used as factors",
@@ -2914,7 +2930,9 @@ class OnlineSmoother:
         rotation IMU-only for 3 s (5.1 -> 55 cm). A right rotation with a SLAM clock 0.3 s off
         reads about 0.5 (simulated rectangle and circle): named, but the re-seed keeps a
         provisional whose rotation the motion confirms."""
-        if self._extrinsic_suspect is not None or t - self._misfit_try < SLAM_MISFIT_RETRY_S:
+        if self._extrinsic_suspect is not None or t - self._misfit_try < max(
+            SLAM_MISFIT_RETRY_S, self._sgc.retry_s
+        ):
             return
         self._misfit_try = t
         m = self._sgc.stated_misfit()
