@@ -183,7 +183,14 @@ from fgnav.factors.tilted_range import (
 )
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
-from fgnav.health import Context, HealthMonitor, HealthOptions, Snapshot, sensor_of
+from fgnav.health import (
+    Context,
+    HealthMonitor,
+    HealthOptions,
+    ScaleDriftWatch,
+    Snapshot,
+    sensor_of,
+)
 from fgnav.keys import B, S, V, X
 from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
@@ -1046,6 +1053,11 @@ class OnlineSmoother:
         )
         self._sgc = None
         self._sgc_first: float | None = None  # the check's first SLAM time
+        # The slam-scale-drift detector on the alignments' scales (_track_slow).
+        ho = self._health.options if self._health is not None else HealthOptions()
+        self._scale_watch = ScaleDriftWatch(
+            ho.slam_scale_drift_per_s, ho.slam_scale_drift_window_s, ho.slam_scale_drift_settle_s
+        )
         self._fit_motion_used = False
         self._misfit_try = -math.inf
         self._orient_next = -math.inf
@@ -4562,6 +4574,12 @@ class OnlineSmoother:
                     sc = float(v.scale())
                 self._session_scale[sess] = sc
                 self.track.setdefault("slam_scale", []).append((t, sc, sess, self._epoch))
+                msg = None if self._axis else self._scale_watch.feed(t, sess, sc)
+                if msg:
+                    if self._health_on:
+                        self._health.detectors.named("slam-scale-drift", msg)
+                    else:
+                        log.warning("%s: slam-scale-drift: %s", self.name, msg)
         # The drag coefficient only once a drag factor has measured it (a drag variable made
         # before the thrust check turned drag off holds its initial value: not an estimate),
         # and only while drag is in the model (after a check turned it off the variable keeps
