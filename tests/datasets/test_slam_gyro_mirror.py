@@ -108,3 +108,28 @@ def test_batch_step_unmirrors_and_names_it(flight, caplog):
 def test_clean_flight_record_unchanged(flight):
     rec = apply_slam_check(flight).meta[META_KEY]
     assert "mirrored" not in rec and rec["convention"] == "as-is"
+
+
+def test_unidentified_axis_leaves_the_slam_out(flight, monkeypatch, caplog):
+    """A mirror whose axis the motion does not tell (forced here: the tie of two flips):
+    the batch goes on without the SLAM and says so in one line."""
+    from fgnav.datasets import slam_gyro
+
+    from fgnav.solvers.batch import BatchOptions, solve_batch
+
+    monkeypatch.setattr(
+        slam_gyro, "check_mirror", lambda *a, **k: slam_gyro.MirrorVerdict(True, None, {})
+    )
+    f = _mirrored(flight, 1)
+    with caplog.at_level("WARNING"):
+        out = apply_slam_check(f)
+    assert out.slam is None and out.meta[META_KEY]["mirrored"]["axis"] is None
+    assert "which one the motion does not tell): SLAM not used" in caplog.text
+    est = solve_batch(f, BatchOptions())  # through GraphBuilder: no SLAM factors, no crash
+    assert est.info["factors"].get("slam", 0) == 0 and not est.slam_scale
+    det = FaultDetectors(HealthOptions())
+    det.slam_check(est.info["slam_gyro_check"])
+    assert det.report()["details"]["slam-mirrored"] == [
+        "the SLAM frame is left-handed (an axis sign flipped; which one the motion does not "
+        "tell): SLAM not used"
+    ]
