@@ -4577,7 +4577,8 @@ class OnlineSmoother:
                 msg = None if self._axis else self._scale_watch.feed(t, sess, sc)
                 if msg:
                     if self._health_on:
-                        self._health.detectors.named("slam-scale-drift", msg)
+                        if not self._health.detectors.scale_change_explained():
+                            self._health.detectors.named("slam-scale-drift", msg)
                     else:
                         log.warning("%s: slam-scale-drift: %s", self.name, msg)
         # The drag coefficient only once a drag factor has measured it (a drag variable made

@@ -75,3 +75,20 @@ def test_push_engine_names_the_drift_causally(flights):
     assert est.info["health"]["details"]["slam-scale-drift"][0].startswith(
         "SLAM session 0: scale grows 2.21 %/s over 10 s to t=17.45 s (bound 1.00 %/s"
     )
+
+
+def test_not_named_where_another_fault_moves_the_scale(flights):
+    """A 0.3 s SLAM clock offset moves the batch per-segment scales by 0.17 %/s (a 1 m jump
+    -0.23, a 2 s IMU gap -0.15, the 5 %/s drift +0.26): with the offset named, the drift is
+    not named on top of it (the fault matrix's slam-offset rows named both before)."""
+    clean, _ = flights
+    s = clean.slam
+    late = dataclasses.replace(clean, slam=dataclasses.replace(s, t=np.asarray(s.t) + 0.3))
+    h = check_batch(late, solve_batch(late, BatchOptions()))
+    assert "slam-clock-offset" in h["detectors"] and "slam-scale-drift" not in h["detectors"]
+    from fgnav.health import FaultDetectors
+
+    det = FaultDetectors(HealthOptions())
+    assert not det.scale_change_explained()
+    det.named("slam-jump", "a jump")
+    assert det.scale_change_explained()
