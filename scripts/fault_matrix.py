@@ -250,6 +250,20 @@ def _slam_jump(f, t_jump: float = 12.0, jump_m: float = 1.0):
     return _replace(f, slam=dataclasses.replace(s, slam_t_cam=p))
 
 
+def _slam_mirrored(f, axis: int = 1):
+    """A left-handed SLAM frame: the sign of one axis flipped (positions D p, rotations D R D)."""
+    from fgnav.datasets.slam_gyro import unmirror_slam  # (its own inverse)
+
+    return _replace(f, slam=unmirror_slam(f.slam, axis))
+
+
+def _slam_scale_drift(f, rate: float = 0.05):
+    """The SLAM scale running away: positions times (1 + rate t) [1/s]."""
+    s = f.slam
+    k = 1.0 + rate * (s.t - s.t[0])
+    return _replace(f, slam=dataclasses.replace(s, slam_t_cam=s.slam_t_cam * k[:, None]))
+
+
 def _slam_offset(f, dt: float = 0.3):
     s = f.slam
     return _replace(f, slam=dataclasses.replace(s, t=s.t + dt))
@@ -724,6 +738,20 @@ def rows() -> list[Row]:
             "SLAM positions jump by 1 m (metric) at 12 s",
             _both(OK),
             True,
+        ),
+        R(
+            "slam-mirrored-y",
+            sim,
+            _sim_fault(_slam_mirrored),
+            "SLAM frame left-handed (y sign flipped in positions and rotations)",
+            {"batch": OK, "online": {"named"}},
+        ),
+        R(
+            "slam-scale-drift-5pct",
+            sim,
+            _sim_fault(_slam_scale_drift),
+            "SLAM scale running away at 5 %/s (positions times 1 + 0.05 t)",
+            _both({"named"}),
         ),
         R(
             "slam-offset-0.3s",
