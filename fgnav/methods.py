@@ -104,12 +104,14 @@ class Method:
         if self.any_of:
             gaps = [[s for s in alt if s not in present] for alt in self.any_of]
             if all(gaps):
-                # Closest first; on a tie the alternative the flight has more of (a flow deck
-                # without its rangefinder needs the range, not a SLAM stream).
-                n = min(
-                    range(len(gaps)),
-                    key=lambda i: (len(gaps[i]), len(gaps[i]) - len(self.any_of[i])),
-                )
+                # Closest first; on a tie the alternative whose own stream the flight has (a
+                # flow deck without its rangefinder needs the range, not a SLAM stream; a
+                # stream two alternatives share decides nothing).
+                def own(i: int) -> int:
+                    others = {s for k, alt in enumerate(self.any_of) if k != i for s in alt}
+                    return sum(1 for s in self.any_of[i] if s in present and s not in others)
+
+                n = min(range(len(gaps)), key=lambda i: (len(gaps[i]), -own(i)))
                 out += gaps[n]
         return out
 
