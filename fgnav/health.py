@@ -217,7 +217,53 @@ def _init_feed_handlers() -> None:
 
 @dataclass
 class HealthOptions:
-    """Thresholds of the detectors and the monitor (see the module docstring)."""
+    """Thresholds of the detectors and the monitor (see the module docstring; every number > 0).
+
+    Attributes:
+        enabled: run the detectors and the monitor at all.
+        saturation_run: equal extreme values in a row that make an IMU axis pinned; also the
+            run of exact-zero accelerometer samples that makes ``imu-dead``.
+        saturation_min_gyro, saturation_min_accel: the rail must be above this [rad/s, m/s^2].
+        saturation_spread_gyro, saturation_spread_accel: the axis must have spanned this
+            (max - min) before its extreme counts as a rail [rad/s, m/s^2].
+        saturation_sigma_rel: sigma of a pinned sample's unknown excess over its rail, relative
+            to the rail value.
+        imu_gap_factor, imu_gap_min_s: an IMU interval above this many median intervals and
+            above this many seconds is an ``imu-gap``.
+        slam_jump_min_m: slack of the SLAM jump test [m] (``|v| dt + this + a dt^2 / 2``);
+            also the constant part of the test of a pose back after a pause.
+        slam_jump_max_dt_s: longest step between two poses tested as a step [s]; a longer
+            pause is tested against the estimate instead.
+        slam_jump_accel_max: the acceleration ``a`` of the jump test [m/s^2].
+        slam_jump_gap_sigmas: position sigmas of the estimate allowed to a pose back after a
+            pause.
+        slam_turn_jump_deg, slam_turn_drift_deg_per_s: a SLAM orientation change that differs
+            from the gyro's by more than this plus this per second is a turned map [deg].
+        terrain_step_m: a step of the ground the range readings see above this is a
+            ``terrain-step`` (batch) [m].
+        terrain_step_n: readings on each side whose medians are compared (batch).
+        range_stuck_s, range_stuck_motion_m: identical range readings for this long while the
+            estimated height moved more than this are ``range-stuck`` [s, m]; the same times
+            for ``range-at-min`` (the motion bound plus ``range_min``).
+        flow_no_height_s: flow without a range reading for this long is ``flow-no-height`` [s].
+        slam_offset_tol_s: a SLAM clock offset above this is named [s].
+        slam_scale_drift_per_s, slam_scale_drift_batch_per_s: a session's log-scale slope above
+            this is ``slam-scale-drift``, push engine and batch [1/s].
+        slam_scale_drift_window_s: the window of that slope [s].
+        slam_scale_drift_settle_s: time after a session's start left out of it [s].
+        window_s: window of the monitor's normalised chi-squared per sensor [s].
+        window_min_factors: factors the window needs before its chi-squared counts.
+        chi2_alarm: normalised chi-squared above which the window alarms.
+        max_speed_mps, max_pos_sigma_m, max_accel_bias, max_gyro_bias: state sanity bounds [m/s,
+            m, m/s^2, rad/s]; beyond one is a divergence.
+        diverge_after_s: an alarm that lasts this long is a divergence; the rebuild starts at
+            least this long before it began [s].
+        max_recoveries, recovery_gap_s: rebuilds at most, and at least this far apart [s].
+        batch_error_per_factor_max: a batch solution with ``2 error / factors`` above this is
+            not converged.
+        batch_stall_rel: LM stopped at its iteration limit while its error still fell by more
+            than this per iteration is not converged.
+    """
 
     enabled: bool = True
     saturation_run: int = 10
