@@ -186,6 +186,7 @@ DETECTORS = (
     "slam-scale-nonpositive",
     "slam-mirrored",
     "slam-scale-drift",
+    "covariance-unavailable",
 )
 
 
@@ -1301,9 +1302,23 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
             f"SLAM session {sess}: per-axis scale {', '.join(f'{v:.4g}' for v in k)} SLAM units "
             "per metre, not positive on every axis",
         )
+    no_cov = info.get("covariance", "none") != "none" and bool(info.get("covariance_unavailable"))
+    if no_cov:
+        det.named(
+            "covariance-unavailable",
+            "no marginal covariance (Cholesky, damped Cholesky and QR all failed: "
+            f"{info['covariance_unavailable']}); the estimate has no sigma",
+        )
     rep = det.report()
     n_sat = (info.get("factors") or {}).get("imu-saturated-intervals", 0)
-    status = "degraded" if any(det.counts.get(d) for d in DEGRADING) else "ok"
+    # A degraded estimate says so first; one without covariances next (both are detectors).
+    status = (
+        "degraded"
+        if any(det.counts.get(d) for d in DEGRADING)
+        else "no-covariance"
+        if no_cov
+        else "ok"
+    )
     errors = info.get("lm_errors") or []
     n_f = info.get("n_factors") or 0
     per_factor = 2.0 * errors[-1] / n_f if errors and n_f else None

@@ -633,3 +633,29 @@ def test_batch_nonpositive_axis_scale_is_a_named_fault():
     assert "slam-scale-nonpositive 1" in health_line(health)
     est.info = {}
     assert not check_batch(f, est)["detectors"]
+
+
+def test_batch_health_names_missing_covariances():
+    """A batch whose covariances could not be computed at all (asked for) says so: status
+    ``no-covariance`` and a named detector with GTSAM's whole message, not ``health: ok``."""
+    from types import SimpleNamespace
+
+    from fgnav.health import check_batch, health_line
+
+    f = simulate("hover", seed=0, options=SimOptions(images=False, duration=3.0))
+    msg = "Indeterminate linear system detected while working near variable 1 (Symbol: x1)."
+    est = SimpleNamespace(
+        method="batch",
+        trajectory=f.ground_truth,
+        slam_scale={},
+        info={"covariance": "all", "covariance_unavailable": msg},
+    )
+    health = check_batch(f, est)
+    assert health["status"] == "no-covariance"
+    assert health["detectors"] == {"covariance-unavailable": 1}
+    assert msg in health["details"]["covariance-unavailable"][0]
+    assert health_line(health).startswith(
+        "health: no-covariance; detectors: covariance-unavailable"
+    )
+    est.info = {"covariance": "none", "covariance_unavailable": msg}  # none asked: nothing missing
+    assert check_batch(f, est)["status"] == "ok"
