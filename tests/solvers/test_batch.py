@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import gtsam
 import numpy as np
@@ -214,3 +215,76 @@ def test_drag_off_when_body_z_is_not_the_thrust_axis(two_turns_12s):
     forced = GraphBuilder(tilted, GraphOptions(use_range=False, drag_thrust_check=False))
     assert forced.use_drag and forced.report()["drag_disabled"] is None
     assert GraphBuilder(f, GraphOptions()).use_drag
+
+
+def _stiff_pair() -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, int]:
+    """Two scalars tied by information 1e8 (sigma 1e-4), each with a prior of information 0.01
+    (sigma 10) at 0 and 2, the tie asking for b - a = 1: well posed (sum a + b seen with
+    information 0.02), but the second pivot is 0.02 / 1e8 = 2e-10 of its diagonal, below
+    GTSAM's 6.0e-8 limit: the shape of the last clique of a 900 s figure8."""
+    a, b = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
+    g = gtsam.NonlinearFactorGraph()
+    g.add(gtsam.PriorFactorVector(a, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 10.0)))
+    g.add(gtsam.PriorFactorVector(b, np.full(1, 2.0), gtsam.noiseModel.Isotropic.Sigma(1, 10.0)))
+    g.add(gtsam.BetweenFactorVector(a, b, np.ones(1), gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)))
+    v = gtsam.Values()
+    v.insert(a, np.zeros(1))
+    v.insert(b, np.zeros(1))
+    return g, v, a, b
+
+
+def test_cholesky_pivot_test_fails_a_well_posed_stiff_pair_and_qr_marginals_recover_it():
+    from fgnav.solvers.batch import QrMarginals, _marginals
+
+    # GTSAM's limit: [[1, c], [c, 1]] fails once the pivot 1 - c^2 is below 6.0e-8.
+    def chol_ok(pivot: float) -> bool:
+        c = math.sqrt(1.0 - pivot)
+        U = np.linalg.cholesky(np.array([[1.0, c], [c, 1.0]])).T
+        gfg = gtsam.GaussianFactorGraph()
+        gfg.add(gtsam.JacobianFactor(0, U, np.zeros(2), gtsam.noiseModel.Unit.Create(2)))
+        try:
+            gfg.optimize()
+        except RuntimeError:
+            return False
+        return True
+
+    assert chol_ok(6.2e-8) and not chol_ok(5.8e-8)
+    g, v, a, b = _stiff_pair()
+    lin = g.linearize(v)
+    with pytest.raises(RuntimeError, match="Indeterminate"):
+        lin.optimize()
+    # The exact marginal variance (the 2x2 information inverted by hand; numpy's inverse of it
+    # is off by 5e-7 relative): (1e8 + 0.01) / (2e8 * 0.01 + 0.01^2) = 50.0000000025.
+    var = (1e8 + 0.01) / (2e8 * 0.01 + 0.01**2)
+    marg, minfo = _marginals(lin, v)
+    assert isinstance(marg, QrMarginals)
+    assert minfo["covariance_qr"] and not minfo["covariance_regularised"]
+    assert minfo["covariance_indeterminate_near"] == "x0"  # the clique's first key
+    assert "covariance_unavailable" not in minfo
+    for key in (a, b):
+        got = float(marg.marginalCovariance(key)[0, 0])
+        assert got == pytest.approx(var, rel=1e-9)
+        assert math.sqrt(got) == pytest.approx(7.0711, abs=1e-4)
+
+
+def test_lm_qr_fallback_solves_the_stiff_pair_without_damping():
+    g, v, a, b = _stiff_pair()
+    # Least squares: a + b = 2 from the priors' means with b - a = 1: a = 0.5, b = 1.5, error
+    # 0.0025. QR: 2 iterations, no damping, exact. The damped Cholesky steps (the default) crawl
+    # along the stiff direction: 30 iterations (35 damped solves), not converged, error 0.0119,
+    # a = -0.47.
+    qr = levenberg_marquardt(g, v, LMOptions(qr_fallback=True))
+    assert qr.n_damped == 0 and qr.qr_after == "x0" and qr.converged
+    assert qr.iterations == 2
+    assert qr.values.atVector(a)[0] == pytest.approx(0.5, abs=1e-9)
+    assert qr.values.atVector(b)[0] == pytest.approx(1.5, abs=1e-9)
+    assert qr.errors[-1] == pytest.approx(0.0025, rel=1e-9)
+    damped = levenberg_marquardt(g, v, LMOptions())
+    assert damped.qr_after is None and damped.n_damped == 35 and not damped.converged
+    assert damped.errors[-1] == pytest.approx(0.0119, abs=1e-4)
+    # A really unconstrained pair (no priors) is still refused by QR (a non-finite step):
+    # damping takes over as before.
+    g2 = gtsam.NonlinearFactorGraph()
+    g2.add(gtsam.BetweenFactorVector(a, b, np.ones(1), gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
+    res = levenberg_marquardt(g2, v, LMOptions(qr_fallback=True))
+    assert res.errors[-1] < 1e-12 and res.n_damped >= 1
