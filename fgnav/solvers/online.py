@@ -709,6 +709,7 @@ class OnlineSmoother:
         self._prior_watch_t0: float | None = None
         self._prior_watch_done = False
         self.dropped: dict[str, int] = {}
+        self._slam_unused_said = False
         self.n_failures = 0
         self.n_fallbacks = 0
         self.failure_messages: list[str] = []
@@ -894,6 +895,7 @@ class OnlineSmoother:
                 f"{self.name}: the online smoother produced no state (no IMU, or no keyframe "
                 "closed)"
             )
+        self._say_slam_unused()
         traj = _trajectory(rows, _ROW)
         pose_cov = vel_cov = None
         if np.isfinite(rows[:, _ROW["P"]]).any():
@@ -940,6 +942,7 @@ class OnlineSmoother:
             "vo_time_s": getattr(self, "vo_busy_s", None),
             "vo_counts": dict(self._vo.counts) if self._vo is not None else None,
             "flow_all_rejected": self._flow_watch.report(),
+            "slam_unused": self._slam_unused_said,
             "slam_rotation_convention": self._slam_conv,
             "slam_provisional_scales": list(self._prov_scales),
             "frontend_prior_stage": self._prior_report(),
@@ -1209,6 +1212,29 @@ class OnlineSmoother:
             self._imu_suspect = (ev, t, w, a, (wl, al) if health else None)
             return None
         return self._imu_accept(ev, t, w, a, (wl, al) if health else None, last)
+
+    def _say_slam_unused(self) -> None:
+        """SLAM poses arrived and none was used (two poses, both before the start: the run
+        read as a SLAM-aided one, 0.29 m against 0.027 m, with health "ok"): said once, with the
+        reasons (``info["slam_unused"]``)."""
+        n = self.received.get("slam", 0)
+        if not n or any(k.startswith("slam") for k in self.used) or self._slam_unused_said:
+            return
+        self._slam_unused_said = True
+        why = ", ".join(f"{k} {v}" for k, v in sorted(self.dropped.items()) if k.startswith("slam"))
+        log.warning(
+            "%s: %d SLAM pose(s) arrived and none was used (%s): the estimate has no SLAM aiding",
+            self.name,
+            n,
+            why or "none reached a keyframe",
+        )
+
+    def _when(self, t: float) -> str:
+        """``"at 8.75 s after the start"`` (a log's absolute stamps, e.g. EuRoC's 1.4e9 s, read
+        as nothing in a message), or ``"before the start"``."""
+        if self.t0 is None or t < self.t0:
+            return "before the start"
+        return f"at {t - self.t0:.2f} s after the start"
 
     def _release_suspect_events(self) -> None:
         """The events held behind a suspect IMU sample, once it is decided, in their order."""
@@ -2480,17 +2506,19 @@ class OnlineSmoother:
         if adopt and d.convention == "inverse":
             log.warning(
                 "%s: SLAM rotations are the inverse of the stated slam_R_cam (gyro residual "
-                "%.2f deg inverted vs %.2f deg as stated, decided at t=%.2f s): using them "
+                "%.2f deg inverted vs %.2f deg as stated, decided %s): using them "
                 "inverted",
                 self.name,
                 d.residual_deg.get("inverse", float("nan")),
                 d.residual_deg.get("as-is", float("nan")),
-                t,
+                self._when(t),
             )
             for s in self.sessions.values():
                 s.q = [qq * _CONJ for qq in s.q]
         else:
-            log.info("%s: SLAM rotation convention as stated (decided at t=%.2f s)", self.name, t)
+            log.info(
+                "%s: SLAM rotation convention as stated (decided %s)", self.name, self._when(t)
+            )
         if not d.body_R_cam_ok:
             replace = self.go.slam_extrinsic == "auto"
             log.warning(

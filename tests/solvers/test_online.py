@@ -465,3 +465,20 @@ def test_drag_k_not_reported_after_the_accelerometer_check_turned_drag_off():
     d = est.series.get("drag_k")
     if d is not None:
         assert (np.asarray(d.t) <= est.trajectory.t[0] + t_off + 0.2).all()
+
+
+def test_slam_poses_that_all_miss_the_start_are_said(two_turns, push_run, caplog):
+    """Two SLAM poses, both before the start: nothing used them, and the run read as a
+    SLAM-aided one with health "ok" (0.29 m against 0.027 m); now one warning says so, with the
+    reason, and ``info["slam_unused"]``. The nominal run says nothing."""
+    import logging
+
+    slam = two_turns.slam
+    first = slam.select(np.arange(2))
+    cut = dataclasses.replace(two_turns, slam=first)
+    with caplog.at_level(logging.WARNING, logger="fgnav.solvers.online"):
+        est = replay_online(cut, FixedLagOptions())
+    said = [r.getMessage() for r in caplog.records if "none was used" in r.getMessage()]
+    assert len(said) == 1 and "2 SLAM pose(s)" in said[0] and "slam:" in said[0], said
+    assert est.info["slam_unused"] is True
+    assert push_run.info["slam_unused"] is False
