@@ -59,18 +59,6 @@ SIM_DURATION_S = 24.0
 SIM_HOVER_DURATION_S = 30.0
 SIM_CAMERA_DURATION_S = 20.0
 SIM_FLOW_DURATION_S = 20.0
-#: The flow-deck base: a Crazyflie-like flight (IMU, optical flow, rangefinder; no camera, SLAM,
-#: attitude or yaw stream; the rangefinder as on the real flow-deck flights).
-SIM_FLOW_OPTIONS = dict(
-    images=False,
-    slam_rate_hz=0.0,
-    attitude_rate_hz=0.0,
-    yaw_rate_hz=0.0,
-    range_noise_m=0.008,
-    range_outlier_prob=0.0,
-)
-
-
 # ----------------------------------------------------------------------------------------------
 # Rows
 # ----------------------------------------------------------------------------------------------
@@ -169,13 +157,14 @@ class Context:
         return self._simulated("hover", SIM_HOVER_DURATION_S)
 
     def flow_deck(self):
-        """The flow-deck base flight (``SIM_FLOW_OPTIONS``, seed ``SIM_SEED``), built once."""
+        """The flow-deck base flight (the simulator's Crazyflie-like options: IMU, optical flow,
+        rangefinder; seed ``SIM_SEED``), built once."""
         if "flow" not in self._cache:
-            from fgnav.datasets.simulate.options import SimOptions
+            from fgnav.datasets.simulate.options import CRAZYFLIE_LIKE, SimOptions
             from fgnav.datasets.simulate.simulator import simulate
 
             self._cache["flow"] = simulate(
-                "flowdeck", SIM_SEED, SimOptions(duration=SIM_FLOW_DURATION_S, **SIM_FLOW_OPTIONS)
+                "flowdeck", SIM_SEED, SimOptions(duration=SIM_FLOW_DURATION_S, **CRAZYFLIE_LIKE)
             )
         return self._cache["flow"]
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fgnav.datasets.simulate.options import CRAZYFLIE_LIKE  # noqa: F401 (re-exported)
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 REAL_DATA = PROJECT_ROOT.parent / "shared" / "data" / "real"
@@ -61,17 +62,22 @@ def require_real_data() -> Path:
     return REAL_DATA
 
 
-#: Simulator options of a Crazyflie-like flow-deck flight: no camera, SLAM, attitude or yaw
-#: stream; the rangefinder as measured on the real flow-deck flights (8 mm noise, no airborne
-#: outliers).
-CRAZYFLIE_LIKE = dict(
-    images=False,
-    slam_rate_hz=0.0,
-    attitude_rate_hz=0.0,
-    yaw_rate_hz=0.0,
-    range_noise_m=0.008,
-    range_outlier_prob=0.0,
-)
+def local_test_cluster(n_workers: int):
+    """A Dask LocalCluster reached by address (threads, loopback, no dashboard)."""
+    import logging
+
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp://",
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+        silence_logs=logging.WARNING,
+    )
 
 
 def two_turns_folder(tmp_path_factory, seed: int) -> Path:

@@ -7,11 +7,12 @@ SLAM (unknown scale, latency, resets), downward optical flow (``flowdeck``, or
 ``simulate_to_folder`` writes the flight in fgnav's native folder format.
 """
 
-from .options import SimOptions, SimulationError
+from .options import CRAZYFLIE_LIKE, SimOptions, SimulationError
 from .scenarios import SCENARIOS
 from .simulator import simulate, simulate_to_folder, world_T_cam_at
 
 __all__ = [
+    "CRAZYFLIE_LIKE",
     "SCENARIOS",
     "SimOptions",
     "SimulationError",

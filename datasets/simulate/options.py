@@ -290,3 +290,17 @@ class SimOptions:
             )
         if not math.isfinite(self.ground_height):
             raise bad("ground_height", "a finite height [m]")
+
+
+#: Keyword arguments of :class:`SimOptions` for a Crazyflie-like flow-deck flight (with the
+#: ``flowdeck`` scenario): IMU, optical flow and rangefinder only (no camera, SLAM, attitude or
+#: yaw stream), the rangefinder as measured on the real flow-deck flights (8 mm noise, no airborne
+#: outliers). Used by the fault matrix's flow-deck base and the tests.
+CRAZYFLIE_LIKE = dict(
+    images=False,
+    slam_rate_hz=0.0,
+    attitude_rate_hz=0.0,
+    yaw_rate_hz=0.0,
+    range_noise_m=0.008,
+    range_outlier_prob=0.0,
+)

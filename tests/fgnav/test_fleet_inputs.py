@@ -7,7 +7,6 @@ one-line error."""
 from __future__ import annotations
 
 import json
-import logging
 import re
 import shutil
 import socket
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate_to_folder
+from testutil import local_test_cluster
 
 from fgnav.cli import main
 from fgnav.fleet import (
@@ -145,22 +145,6 @@ def test_refused_scheduler_is_named_at_once(scheme, flight, tmp_path, capsys):
     ]
 
 
-def _cluster():
-    """A LocalCluster reached by address (threads, 2 workers, loopback, no dashboard)."""
-    from distributed import LocalCluster
-
-    return LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        processes=False,
-        protocol="tcp://",
-        host="127.0.0.1",
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.WARNING,
-    )
-
-
 @pytest.mark.slow
 def test_bad_inputs_are_rows_and_the_rerun_checks_the_address(flight, tmp_path, capsys):
     """``fgnav fleet GOOD EMPTY --out O`` stopped before any flight ran ("EMPTY: no flights
@@ -174,7 +158,7 @@ def test_bad_inputs_are_rows_and_the_rerun_checks_the_address(flight, tmp_path, 
     (tmp_path / "empty").mkdir()
     empty, pattern = str(tmp_path / "empty"), str(tmp_path / "nothere" / "*.ulg")
     out = tmp_path / "o"
-    with _cluster() as cluster:
+    with local_test_cluster(2) as cluster:
         addr = cluster.scheduler_address
         argv = ["fleet", str(good), empty, pattern, "--out", str(out), "--no-progress"]
         assert main([*argv, "--scheduler", addr, "--methods", "batch,fixed-lag"]) == 0

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from fgnav.datasets.simulate import SimOptions, simulate_to_folder
+from testutil import local_test_cluster
 
 from fgnav.fleet import FleetOptions, content_hash, run_fleet
 
@@ -31,7 +32,7 @@ def twins(tmp_path_factory) -> tuple[Path, Path]:
 @pytest.fixture
 def scheduler():
     """A LocalCluster reached by address (threads, 2 workers, loopback, no dashboard)."""
-    with _cluster(2) as cluster:
+    with local_test_cluster(2) as cluster:
         yield cluster
 
 
@@ -142,27 +143,11 @@ def test_bad_scheduler_values_are_one_line_errors(
         assert len(err) == 1 and f"--scheduler {address}: " in err[0] and why in err[0], err
 
 
-def _cluster(n_workers: int):
-    """A LocalCluster reached by address (threads, loopback, no dashboard)."""
-    from distributed import LocalCluster
-
-    return LocalCluster(
-        n_workers=n_workers,
-        threads_per_worker=1,
-        processes=False,
-        protocol="tcp://",
-        host="127.0.0.1",
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.WARNING,
-    )
-
-
 def test_a_scheduler_without_workers_is_a_one_line_error(twins, tmp_path):
     """It waited forever, without a word."""
     from fgnav.fleet import FleetError
 
-    with _cluster(0) as cluster:
+    with local_test_cluster(0) as cluster:
         opts = _opts(scheduler=cluster.scheduler_address, worker_wait_s=1.0)
         with pytest.raises(FleetError, match=r"no Dask worker joined within 1 s") as e:
             run_fleet([str(twins[0])], tmp_path / "o", opts)
@@ -174,7 +159,7 @@ def test_flights_left_when_every_worker_is_gone_are_crashed_rows(twins, tmp_path
     the unfinished flights are named ``crashed`` rows after ``no_worker_s``."""
     import time
 
-    with _cluster(1) as cluster:
+    with local_test_cluster(1) as cluster:
         opts = _opts(scheduler=cluster.scheduler_address, no_worker_s=1.0)
         res = {}
         t = threading.Thread(
