@@ -1091,6 +1091,32 @@ def unmirror_slam(slam: SlamSeries, axis: int) -> SlamSeries:
     )
 
 
+def hat_kernel_integrals(
+    imu_t: np.ndarray, a: np.ndarray, t_i: np.ndarray, t_j: np.ndarray, t_k: np.ndarray
+) -> np.ndarray:
+    """``int_i^j a (s - t_i) / h1 ds + int_j^k a (t_k - s) / h2 ds`` (P, 3) of the samples ``a``
+    (M, 3) at ``imu_t`` against the hat kernel rising from 0 at ``t_i`` to 1 at ``t_j`` and
+    falling to 0 at ``t_k`` (cumulative trapezoid sums of ``a`` and ``t a``, interpolated at the
+    three times): times ``w = (h1 + h2) / 2`` it matches a divided second difference of the
+    positions (:class:`fgnav.solvers.measurements.SecondDifferences`)."""
+    imu_t = np.asarray(imu_t, dtype=float)
+    dt = np.diff(imu_t)
+    ta = imu_t[:, None] * a
+    cum_a = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]) * dt[:, None], 0)])
+    cum_ta = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (ta[1:] + ta[:-1]) * dt[:, None], 0)])
+
+    def integral(cum: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, imu_t, cum[:, c]) for c in range(3)])
+
+    Ia_ij = integral(cum_a, t_j) - integral(cum_a, t_i)
+    Ita_ij = integral(cum_ta, t_j) - integral(cum_ta, t_i)
+    Ia_jk = integral(cum_a, t_k) - integral(cum_a, t_j)
+    Ita_jk = integral(cum_ta, t_k) - integral(cum_ta, t_j)
+    rising = (Ita_ij - t_i[:, None] * Ia_ij) / (t_j - t_i)[:, None]
+    falling = (t_k[:, None] * Ia_jk - Ita_jk) / (t_k - t_j)[:, None]
+    return rising + falling
+
+
 def position_scale(
     imu_t: np.ndarray,
     body_accel: np.ndarray,
@@ -1101,7 +1127,7 @@ def position_scale(
     session: np.ndarray | None = None,
     h: float = 0.5,
     step: float = 0.1,
-) -> tuple[float, float, int]:
+) -> tuple[float, float, int, float]:
     """Scale [SLAM units per metre] of the SLAM positions against the accelerometer, rotated into
     the SLAM frame through the SLAM's own orientations: second differences of the positions over
     ``+-h`` (centres ``step`` apart, one session) against the hat-kernel integrals of
@@ -1137,23 +1163,9 @@ def position_scale(
     sd2 = w[:, None] * ((P[k] - P[j]) / h2[:, None] - (P[j] - P[i]) / h1[:, None])
     Rs = slerp_rotations(t, np.asarray(slam_R_cam, float), imu_t)
     v = Rs @ (np.asarray(body_R_cam, float).T @ np.asarray(body_accel, float)[:, :, None])
-    v = v[:, :, 0]
-    dt = np.diff(imu_t)[:, None]
-
-    def cum(a: np.ndarray) -> np.ndarray:
-        return np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]) * dt, 0)])
-
-    ca, cta = cum(v), cum(imu_t[:, None] * v)
-
-    def at(c: np.ndarray, q: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.interp(q, imu_t, c[:, a]) for a in range(3)])
-
-    ti, tj, tk = t[i][:, None], t[j][:, None], t[k][:, None]
-    rising = (at(cta, t[j]) - at(cta, t[i]) - ti * (at(ca, t[j]) - at(ca, t[i]))) / h1[:, None]
-    falling = (tk * (at(ca, t[k]) - at(ca, t[j])) - (at(cta, t[k]) - at(cta, t[j]))) / h2[:, None]
-    del tj
+    hat = hat_kernel_integrals(imu_t, v[:, :, 0], t[i], t[j], t[k])
     A = np.zeros((len(j), 3, 7))
-    A[:, :, 0] = w[:, None] * (rising + falling)
+    A[:, :, 0] = w[:, None] * hat
     A[:, :, 1:4] = (w**2)[:, None, None] * np.eye(3)
     A[:, :, 4:] = (w**2)[:, None, None] * (np.asarray(slam_R_cam, float)[j] @ body_R_cam.T)
     A = A.reshape(-1, 7)

@@ -25,7 +25,7 @@ from fgnav.datasets.geometry import (
     so3_log,
     yaw_of,
 )
-from fgnav.datasets.slam_gyro import pose_pairs
+from fgnav.datasets.slam_gyro import hat_kernel_integrals, pose_pairs
 from fgnav.datasets.types import AttitudeSeries, ImuSeries, SlamSeries
 
 log = logging.getLogger(__name__)
@@ -398,31 +398,8 @@ def slam_second_differences(
     w = 0.5 * (h1 + h2)
     p = np.asarray(slam_t, dtype=float)
     slam_d2 = w[:, None] * ((p[k] - p[j]) / h2[:, None] - (p[j] - p[i]) / h1[:, None])
-    # Hat-kernel integral of the acceleration: cumulative trapezoid sums of a and of t a.
-    imu_t = np.asarray(imu_t, dtype=float)
-    dt = np.diff(imu_t)
-    ta = imu_t[:, None] * world_a
-    cum_a = np.vstack(
-        [np.zeros((1, 3)), np.cumsum(0.5 * (world_a[1:] + world_a[:-1]) * dt[:, None], 0)]
-    )
-    cum_ta = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (ta[1:] + ta[:-1]) * dt[:, None], 0)])
-
-    def integral(cum: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.interp(t, imu_t, cum[:, a]) for a in range(3)])
-
-    ti, tj, tk = t_slam[i], t_slam[j], t_slam[k]
-    Ia_ij, Ita_ij = (
-        integral(cum_a, tj) - integral(cum_a, ti),
-        integral(cum_ta, tj) - integral(cum_ta, ti),
-    )
-    Ia_jk, Ita_jk = (
-        integral(cum_a, tk) - integral(cum_a, tj),
-        integral(cum_ta, tk) - integral(cum_ta, tj),
-    )
-    # int_i^j a (s - t_i) / h1 ds + int_j^k a (t_k - s) / h2 ds
-    rising = (Ita_ij - ti[:, None] * Ia_ij) / h1[:, None]
-    falling = (tk[:, None] * Ia_jk - Ita_jk) / h2[:, None]
-    world_d2 = w[:, None] * (rising + falling)
+    tj = t_slam[j]
+    world_d2 = w[:, None] * hat_kernel_integrals(imu_t, world_a, t_slam[i], tj, t_slam[k])
     return SecondDifferences(slam_d2, world_d2, tj, w)
 
 
