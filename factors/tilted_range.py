@@ -26,8 +26,11 @@ Jacobians (right perturbation ``[omega, v]`` of the pose): with ``b = body_R_ran
 
 Noise: sensor sigma [m] (grows with range for many sensors); use a robust kernel (Huber/Cauchy)
 against obstacles under the vehicle. Gate every reading with ``gate_range`` before making a
-factor: out of the sensor's interval, at its floor (:func:`range_at_min`), beam not pointing down,
-or tilt above a limit -> no factor.
+factor: out of the sensor's interval, at its floor (:func:`range_at_min`) or at its maximum
+(:func:`range_at_max`), beam not pointing down, or tilt above a limit -> no factor. The limits are
+tested in one place, :func:`fgnav.datasets.range_limits.range_refusal` (``RangeLimits`` for a
+stream of readings), which every consumer of range readings calls (the smoothers, the flow and
+camera heights, the filter baselines, the health checks).
 During optimisation ``cos_tilt`` is floored at ``MIN_COS_TILT`` so that a bad intermediate
 attitude cannot divide by zero (the Jacobian of the floored value is zero).
 
@@ -41,6 +44,16 @@ import math
 
 import gtsam
 import numpy as np
+from fgnav.datasets.range_limits import (  # (the limits' home; re-exported here)
+    RANGE_AT_MAX_TOL_M,
+    RANGE_AT_MIN_TOL_M,
+    RANGE_LIMIT_TAGS,
+    RangeLimits,
+    range_at_max,
+    range_at_min,
+    range_clamps,
+    range_refusal,
+)
 from fgnav.factors._jacobians import (
     as_pose_matrix,
     custom_factor,
@@ -59,29 +72,21 @@ MIN_COS_TILT = float(np.cos(np.deg2rad(85.0)))
 
 _E_Z = np.array([0.0, 0.0, 1.0])
 
-#: A reading within this of the sensor's ``range_min`` [m] is at its floor (:func:`range_at_min`):
-#: half a millimetre, below the step of a millimetre-quantised sensor and far above the rounding
-#: of a written float.
-RANGE_AT_MIN_TOL_M = 5e-4
-
-
-def range_at_min(range_meas: float, range_min: float) -> bool:
-    """A reading at the sensor's floor: within :data:`RANGE_AT_MIN_TOL_M` above ``range_min``
-    (inclusive). A sensor that clamps to its minimum reports it for anything at or below it, so
-    the reading says "at or below the floor", not a distance; no height factor (counted
-    ``range:at-min``). Callers apply it while the sensor has reported no reading below
-    ``range_min`` (:func:`range_clamps`): one that has does not clamp, and its readings at
-    ``range_min`` are distances (a Crazyflie's time of flight reads 12-25 mm on the floor, under
-    its 40 mm limit, and 40 mm on the way down; out-of-range readings, which the ground-contact
-    test uses)."""
-    return range_min <= range_meas <= range_min + RANGE_AT_MIN_TOL_M
-
-
-def range_clamps(readings: np.ndarray, range_min: float) -> bool:
-    """Whether a rangefinder may clamp at its floor: none of ``readings`` (those seen so far,
-    causally) is below ``range_min`` (see :func:`range_at_min`)."""
-    r = np.asarray(readings, float)
-    return not bool((r < range_min).any())
+__all__ = [
+    "ERROR_DIM",
+    "MIN_COS_TILT",
+    "RANGE_AT_MAX_TOL_M",
+    "RANGE_AT_MIN_TOL_M",
+    "RANGE_LIMIT_TAGS",
+    "RangeLimits",
+    "gate_range",
+    "make_range_factor",
+    "range_at_max",
+    "range_at_min",
+    "range_clamps",
+    "range_refusal",
+    "tilted_range_error",
+]
 
 
 def tilted_range_error(
@@ -218,15 +223,18 @@ def gate_range(
 
     Returns:
         ``(True, "ok")`` or ``(False, reason)`` with a short reason naming the failed test and the
-        values (``"non-finite"``, ``"out of range"``, ``"at-min"``, ``"beam not pointing down"``,
-        ``"tilt"``).
+        values (``"non-finite"``, ``"out of range"``, ``"at-min"``, ``"at-max"``, ``"beam not
+        pointing down"``, ``"tilt"``); the limits are :func:`range_refusal`'s.
     """
-    if not np.isfinite(range_meas):
+    why = range_refusal(float(range_meas), range_min, range_max, clamps)
+    if why == "non-finite":
         return False, f"non-finite range {range_meas}"
-    if not range_min <= range_meas <= range_max:
+    if why == "out-of-range":
         return False, f"out of range: {range_meas:.3f} m not in [{range_min}, {range_max}] m"
-    if clamps and range_at_min(range_meas, range_min):
+    if why == "at-min":
         return False, f"at-min: {range_meas:.4f} m at the sensor's floor {range_min} m"
+    if why == "at-max":
+        return False, f"at-max: {range_meas:.4f} m at the sensor's maximum {range_max} m (no echo)"
     body_R_range, _ = pose_parts(body_T_range)
     cos_tilt = -float((np.asarray(world_R_body, dtype=float) @ body_R_range @ _E_Z)[2])
     if cos_tilt <= 0.0:

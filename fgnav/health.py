@@ -54,7 +54,7 @@ each counted by name in :meth:`FaultDetectors.report`:
   follows a stuck reading the more, the stiffer the ground-height walk) is tested on one more
   solve without its readings (:func:`stuck_range_candidates`, :func:`confirm_stuck_range`).
 - ``range-at-min``: a run of readings at the rangefinder's floor (within
-  :data:`fgnav.factors.tilted_range.RANGE_AT_MIN_TOL_M` of the calibration's ``range_min``: "at
+  :data:`fgnav.datasets.range_limits.RANGE_AT_MIN_TOL_M` of the calibration's ``range_min``: "at
   or below the floor", not a distance; no such reading is a height factor, each is counted
   ``range:at-min``) over ``range_stuck_s`` or more while the estimated height changed by more
   than ``range_stuck_motion_m`` plus ``range_min`` (below its floor the sensor reads it whatever
@@ -64,6 +64,10 @@ each counted by name in :meth:`FaultDetectors.report`:
   out of range, not this, and once one has come the sensor does not clamp at its floor: its
   readings at ``range_min`` are distances (a Crazyflie's time of flight reads 12-25 mm on the
   floor, under its 40 mm limit, and 40 mm once on the way down in traj2).
+  Readings at the rangefinder's maximum (:func:`fgnav.datasets.range_limits.range_at_max`: a
+  missing echo) are no heights either, counted ``range:at-max`` (in ``dropped``), and not tested
+  by ``range-stuck``: a vehicle above the sensor's reach reads its maximum, which is no fault
+  (every reading at 8 m on simulated two-turns was named range-stuck; no detector names them).
 - ``flow-rejected``: every optical-flow reading rejected by its own gates for
   :data:`fgnav.solvers.flow.FLOW_ALL_REJECTED_S` or more
   (:class:`fgnav.solvers.flow.FlowRejectWatch`, which says it; counted once per run): the
@@ -360,6 +364,9 @@ class FaultDetectors:
     name: str = "health"
     #: the rangefinder's ``range_min`` [m] (None: unknown, no ``range-at-min`` test)
     range_min: float | None = None
+    #: the rangefinder's ``range_max`` [m] (None: unknown; readings at it are no echo, not
+    #: tested for ``range-stuck``)
+    range_max: float | None = None
 
     def __post_init__(self) -> None:
         self.counts: dict[str, int] = {}
@@ -684,15 +691,21 @@ class FaultDetectors:
         if not math.isfinite(r):
             return ev
         if self.range_min is not None:
-            from fgnav.factors.tilted_range import range_at_min
+            from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, range_refusal
 
             # (a sensor that has read below its floor does not clamp there: range_at_min)
             self._range_below = self._range_below or r < self.range_min
-            if not self._range_below and range_at_min(r, self.range_min):
-                # No distance: the gates keep it out of the graph (range:at-min); a stuck
-                # run starts afresh after it.
+            hi = math.inf if self.range_max is None else self.range_max
+            why = range_refusal(r, self.range_min, hi, not self._range_below)
+            if why in RANGE_LIMIT_TAGS:
+                # No distance: the gates keep it out of the graph (range:at-min, range:at-max);
+                # a stuck run starts afresh after it. A run at the maximum (no echo: a vehicle
+                # above the sensor's reach) is not tested as stuck.
                 self._range_val = None
-                self._at_min(r, t)
+                if why == "at-min":
+                    self._at_min(r, t)
+                else:
+                    self._atmin_t0 = None
                 return ev
             self._atmin_t0 = None
         if self._range_val is None or r != self._range_val:
@@ -1234,6 +1247,7 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
     det = FaultDetectors(o, ctx, f"{est.method}: health")
     if flight.range is not None:
         det.range_min = float(flight.calib.range_min)
+        det.range_max = float(flight.calib.range_max)
     jumps: list[tuple[float, int, int]] = []
     stuck: list[float] = []
     frozen: list[float] = []
@@ -1261,13 +1275,14 @@ def check_batch(flight: Any, est: Any, options: HealthOptions | None = None) -> 
         det.dropped["range:stuck"] = len(stuck)
     info = est.info or {}
     if det.range_min is not None:
-        from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, range_clamps
+        from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 
         rv = np.asarray(flight.range.range, float)
-        n_min = int(((rv >= det.range_min) & (rv <= det.range_min + RANGE_AT_MIN_TOL_M)).sum())
-        n_min *= range_clamps(rv, det.range_min)
-        if n_min:
-            det.dropped["range:at-min"] = n_min
+        limits = RangeLimits.of_stream(rv, det.range_min, det.range_max)
+        why = [limits.refusal(float(x)) for x in rv]
+        for tag in RANGE_LIMIT_TAGS:
+            if why.count(tag):
+                det.dropped[f"range:{tag}"] = why.count(tag)
     _flow_faults(det, info)
     det.slam_check(info.get("slam_gyro_check"))
     # (only where the solve used range factors: else a second solve would change nothing)
@@ -1385,11 +1400,10 @@ def terrain_steps(
     if r is None or len(r.t) < 2 * n or tr is None or len(tr.t) < 2:
         return []
     calib = flight.calib
-    from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, range_clamps
+    from fgnav.datasets.range_limits import RangeLimits
 
-    keep = (r.range >= calib.range_min) & (r.range <= calib.range_max)
-    if range_clamps(r.range, calib.range_min):  # (a reading at its floor sees no ground)
-        keep &= r.range > calib.range_min + RANGE_AT_MIN_TOL_M
+    # (a reading at the sensor's floor or maximum sees no ground: range_refusal)
+    keep = RangeLimits.of_stream(r.range, calib.range_min, calib.range_max).mask(r.range)
     keep &= (r.t >= tr.t[0]) & (r.t <= tr.t[-1]) & ~np.isin(r.t, np.asarray(list(skip_t)))
     t, rng = np.asarray(r.t, float)[keep], np.asarray(r.range, float)[keep]
     if len(t) < 2 * n:
@@ -1430,18 +1444,21 @@ def constant_range_runs(flight: Any, min_s: float) -> list[tuple[int, int]]:
     t, r = np.asarray(flight.range.t, float), np.asarray(flight.range.range, float)
     starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
     ends = np.r_[starts[1:], len(r)]
-    from fgnav.factors.tilted_range import range_at_min, range_clamps
+    from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 
-    # (a run at the sensor's floor is no height factor: range-at-min, not stuck)
-    lo = getattr(getattr(flight, "calib", None), "range_min", None)
-    if lo is not None and not range_clamps(r, float(lo)):
-        lo = None
+    # (a run at the sensor's floor or maximum is no height factor: range-at-min or no echo,
+    # not stuck)
+    calib = getattr(flight, "calib", None)
+    lo = getattr(calib, "range_min", None)
+    limits = None
+    if lo is not None:
+        limits = RangeLimits.of_stream(r, lo, getattr(calib, "range_max", math.inf))
     return [
         (int(i), int(j))
         for i, j in zip(starts, ends, strict=True)
         if np.isfinite(r[i])
         and t[j - 1] - t[i] >= min_s
-        and not (lo is not None and range_at_min(float(r[i]), float(lo)))
+        and not (limits is not None and limits.refusal(float(r[i])) in RANGE_LIMIT_TAGS)
     ]
 
 

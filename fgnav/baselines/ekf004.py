@@ -127,6 +127,7 @@ from fgnav.datasets.geometry import (
     rpy_to_matrix,
     wrap_angle,
 )
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import AttitudeEkfOptions, AttitudeEkfStage
@@ -739,7 +740,7 @@ class _MetricOdometry:
         body_T_range = np.asarray(calib.body_T_range, dtype=float)
         self._beam = body_T_range[:3, :3] @ np.array([0.0, 0.0, 1.0])
         self._lever = body_T_range[:3, 3]
-        self._range_limits = (calib.range_min, calib.range_max)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
         self._att: deque[tuple[float, float, float, np.ndarray]] = deque()  # t, x, y, R
         self._v = (0.0, 0.0)
         self._rpy_prev: np.ndarray | None = None
@@ -773,19 +774,25 @@ class _MetricOdometry:
     def add_range(self, t: float, r: float) -> float | None:
         """Tilt-corrected body height [m] above the ground of one reading (the latest attitude
         that has arrived), or None when skipped: tilt, limits, or a spike (more than
-        ``range_outlier_m`` from the median of the last kept readings); counted ``range``.
+        ``range_outlier_m`` from the median of the last kept readings); counted ``range``
+        (``range_at_min``, ``range_at_max``: at the sensor's floor or maximum, no distance).
 
         The beam is the sensor's +z axis: ``h_sensor = -range (world_R_body body_R_range e3)_z``;
         the body height subtracts the lever arm ``(world_R_body body_t_range)_z``.
         """
         o = self.opt
         self.range_total += 1
+        self._range_limits.see(r)
+        why = self._range_limits.refusal(r)
+        if why in RANGE_LIMIT_TAGS:
+            self.range_skipped += 1
+            self.counts.add("skipped", f"range_{why.replace('-', '_')}")
+            return None
         R = self.R_latest
         h = None
-        if R is not None and math.isfinite(r):
+        if R is not None and why is None:
             cos_tilt = -float(R[2] @ self._beam)
-            lo, hi = self._range_limits
-            if cos_tilt > math.cos(o.range_max_tilt_rad) and lo <= r <= hi:
+            if cos_tilt > math.cos(o.range_max_tilt_rad):
                 h = r * cos_tilt - float(R[2] @ self._lever)
         w = self._h_window
         if h is not None and len(w) >= 3 and abs(h - float(np.median(w))) > o.range_outlier_m:

@@ -71,6 +71,7 @@ from fgnav.datasets.geometry import (
     so3_exp,
     so3_log,
 )
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import (
     Calibration,
     Flight,
@@ -629,6 +630,8 @@ class MsfEkf:
         self._t0 = time.perf_counter()
         self._n_slam = 0
         self._n_range_out = 0
+        self._n_range_at: dict[str, int] = {}  # "at-min", "at-max": no distance (range_refusal)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
         self._inputs = Inputs("msf-ekf", name)
         self._slam_gated_since: float | None = None
         # The alignment after each fused SLAM pose (its time -> s, slam_R_world, slam_t_world,
@@ -653,10 +656,14 @@ class MsfEkf:
             self._n_slam += 1
             self._hist.add(ev)
         elif isinstance(ev, RangeReading):
-            c = self._calib
             if not self.opt.use_range:
                 return
-            if not (c.range_min <= ev.range <= c.range_max):
+            self._range_limits.see(float(ev.range))
+            why = self._range_limits.refusal(float(ev.range))
+            if why in RANGE_LIMIT_TAGS:
+                self._n_range_at[why] = self._n_range_at.get(why, 0) + 1
+                return
+            if why is not None:
                 self._n_range_out += 1
                 return
             if self.x is None:
@@ -821,6 +828,8 @@ class MsfEkf:
             )
         self.counts.extra["events_after_imu_end"] = len(self._queue)
         self.counts.extra["range_out_of_limits"] = self._n_range_out
+        for why, n in self._n_range_at.items():
+            self.counts.extra[f"range_{why.replace('-', '_')}"] = n
         after = {}
         for e in self._queue:
             k = "slam:after-imu-end" if isinstance(e, SlamPose) else "range:after-imu-end"
@@ -830,6 +839,7 @@ class MsfEkf:
             self._inputs.unused,
             after,
             {"range:out-of-limits": self._n_range_out},
+            {f"range:{why}": n for why, n in self._n_range_at.items()},
         )
         self._inputs_info = self._inputs.info(("slam", "range"))
         final = dict(self._final_scales)

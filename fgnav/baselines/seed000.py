@@ -67,6 +67,8 @@ _UNUSED_KEYS = (
     "slam_late",
     "range_late",
     "range_out_of_limits",
+    "range_at_min",
+    "range_at_max",
     "range_tilt",
     "range_outlier",
 )

@@ -82,6 +82,8 @@ _EKF_UNUSED = {
     "imu_late": "imu:late",
     "late": "range+yaw:late",
     "range_out_of_limits": "range:out-of-limits",
+    "range_at_min": "range:at-min",
+    "range_at_max": "range:at-max",
     "range_tilt": "range:tilted",
     "range_outlier": "range:outlier",
 }

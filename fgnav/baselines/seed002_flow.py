@@ -54,6 +54,7 @@ from fgnav.datasets.events import (
     replay_flight,
 )
 from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import (
@@ -151,6 +152,7 @@ class Seed002Flow:
         self._lat: list[float] = []
         self._t0 = time.perf_counter()
         self._inputs = Inputs("ekf-flow002", name)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
         # The flow factors' plausibility bounds (imported here: fgnav.solvers.flow loads GTSAM).
         from fgnav.solvers.flow import FLOW_MAX_DT_S, FlowFactorOptions
 
@@ -239,10 +241,15 @@ class Seed002Flow:
             self._last = self._last._replace(t=t)
 
     def _range(self, ev: RangeReading) -> None:
-        c = self._calib
+        self._range_limits.see(float(ev.range))  # (every reading: its floor, range_clamps)
         if self._ekf is None:
             return
-        if not (np.isfinite(ev.range) and c.range_min <= ev.range <= c.range_max):
+        why = self._range_limits.refusal(float(ev.range))
+        if why in RANGE_LIMIT_TAGS:
+            key = f"range_{why.replace('-', '_')}"  # range_at_min, range_at_max: no distance
+            self.counts[key] = self.counts.get(key, 0) + 1
+            return
+        if why is not None:
             self.counts["range_out_of_limits"] += 1
             return
         self._predict_to(ev.t)
@@ -335,7 +342,11 @@ class Seed002Flow:
                 for k, v in c.items()
                 if k.startswith("flow_") and k != "flow_used"
             },
-            {"range:out-of-limits": c["range_out_of_limits"]},
+            {
+                "range:out-of-limits": c["range_out_of_limits"],
+                "range:at-min": c.get("range_at_min", 0),
+                "range:at-max": c.get("range_at_max", 0),
+            },
             {key: self.ekf_counts.get(k, 0) for k, key in _EKF_UNUSED_KEYS.items()},
         )
 

@@ -153,6 +153,7 @@ from fgnav.datasets.geometry import (
     so3_log,
     wrap_angle,
 )
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import Calibration, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries, run_in_thrust_body
 
@@ -763,6 +764,7 @@ class Ukf003:
         self._started = False
         self._redo = False
         self._inputs = Inputs("ukf003", name)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
         self._slam_gated_since: float | None = None
         # Each pose whose displacement was fused, by time: (session, its SLAM pose, its clone's
         # world position and attitude and the scale and its variance after the update), what a
@@ -815,10 +817,15 @@ class Ukf003:
             ):
                 lst.append(v)
         elif isinstance(ev, RangeReading):
-            c = self._calib
             if not self.opt.use_range:
                 return
-            if not (c.range_min <= ev.range <= c.range_max):
+            self._range_limits.see(float(ev.range))
+            why = self._range_limits.refusal(float(ev.range))
+            if why in RANGE_LIMIT_TAGS:
+                key = f"range_{why.replace('-', '_')}"  # range_at_min, range_at_max: no distance
+                self.counts.extra[key] = self.counts.extra.get(key, 0) + 1
+                return
+            if why is not None:
                 self.counts.range_out_of_limits += 1
                 return
             self.update_range(float(ev.range))
@@ -1039,6 +1046,8 @@ class Ukf003:
             self._inputs.unused,
             {
                 "range:out-of-limits": c.range_out_of_limits,
+                "range:at-min": c.extra.get("range_at_min", 0),
+                "range:at-max": c.extra.get("range_at_max", 0),
                 "slam:lost": c.slam_lost,
                 "slam:out-of-order": c.slam_out_of_order,
                 "slam:no-clone": c.slam_no_clone,
@@ -1199,9 +1208,8 @@ class Ukf003:
         if rng is None or not self.opt.use_range:
             return 0.0
         c = flight.calib
-        ok = np.flatnonzero(
-            (rng.range >= c.range_min) & (rng.range <= c.range_max) & (rng.t >= t_start)
-        )
+        usable = RangeLimits.of_stream(rng.range, c.range_min, c.range_max).mask(rng.range)
+        ok = np.flatnonzero(usable & (rng.t >= t_start))
         if ok.size == 0:
             return 0.0
         # Median of the first readings resists an obstacle spike.

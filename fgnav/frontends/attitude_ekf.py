@@ -64,6 +64,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
     yaw_of,
 )
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import AttitudeSeries, Calibration, Flight
 
 log = logging.getLogger(__name__)
@@ -490,7 +491,9 @@ class AttitudeEkfStage:
     reading keeps its innovation against the filter's yaw at its own time, from a short history,
     so the vehicle's turn since then is not taken for an error); an IMU sample older than the
     filter's time is skipped (counted ``imu_late``); range readings out of ``[range_min,
-    range_max]`` are skipped and counted (``range_out_of_limits``).
+    range_max]`` are skipped and counted (``range_out_of_limits``), as are those at the sensor's
+    floor or maximum (``range_at_min``, ``range_at_max``: no distance,
+    :func:`fgnav.datasets.range_limits.range_refusal`).
     """
 
     def __init__(
@@ -520,6 +523,7 @@ class AttitudeEkfStage:
         self._n_late = 0
         self._n_imu_late = 0
         self._yaw_hist: deque[tuple[float, float]] = deque(maxlen=YAW_HISTORY_SAMPLES)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -623,9 +627,13 @@ class AttitudeEkfStage:
                 yaw = yaw_now + wrap_angle(yaw - yaw_then)
             ekf.update_yaw(yaw)
             return []
-        c = self.calib
         r = float(ev.range)
-        if not (math.isfinite(r) and c.range_min <= r <= c.range_max):
+        self._range_limits.see(r)
+        why = self._range_limits.refusal(r)
+        if why in RANGE_LIMIT_TAGS:
+            key = f"range_{why.replace('-', '_')}"  # range_at_min, range_at_max
+            ekf.counts[key] = ekf.counts.get(key, 0) + 1
+        elif why is not None:
             ekf.counts["range_out_of_limits"] += 1
         elif not self._height_init:
             ekf.reset_height(r)
@@ -649,7 +657,7 @@ def run_attitude_ekf(
     Args:
         flight: needs ``imu``; uses ``yaw`` and ``range`` when present (and enabled); the range beam
             and lever arm come from ``flight.calib.body_T_range`` (beam = its z axis), readings out
-            of ``[range_min, range_max]`` are skipped and counted.
+            of ``[range_min, range_max]`` or at its floor or maximum are skipped and counted.
         options: EKF options (defaults when None).
         q0_wxyz: initial attitude; default roll/pitch from the first ``INIT_ACCEL_WINDOW_S`` of
             accelerometer data and yaw from the first yaw reading that has arrived by then.

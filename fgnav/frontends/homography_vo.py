@@ -79,6 +79,7 @@ from fgnav.datasets.geometry import (
     wrap_angle,
     yaw_of,
 )
+from fgnav.datasets.range_limits import RangeLimits
 from fgnav.datasets.types import (
     AttitudeSeries,
     Calibration,
@@ -89,7 +90,6 @@ from fgnav.datasets.types import (
     YawSeries,
 )
 from fgnav.estimate import Estimate, TimeSeries
-from fgnav.factors.tilted_range import RANGE_AT_MIN_TOL_M, range_at_min, range_clamps
 
 logger = logging.getLogger(__name__)
 
@@ -911,9 +911,9 @@ def height_from_range(
 
     ``h_body = range * cos(tilt) - (world_R_body body_t_range)_z`` with the beam along the
     sensor's +z axis and ``cos(tilt) = -(world_R_body body_R_range e_z)_z``. Readings outside
-    ``[calib.range_min, calib.range_max]`` or at its floor (``range_at_min``), without attitude,
-    or with the beam pointing above the
-    horizon are skipped and counted (logged). A running median over ``median_window`` readings
+    ``[calib.range_min, calib.range_max]``, at its floor (``range_at_min``) or at its maximum
+    (``range_at_max``: no echo), without attitude, or with the beam pointing above the horizon
+    are skipped and counted (logged). A running median over ``median_window`` readings
     (odd; 1 for none) removes isolated obstacle spikes (a box or a person under the vehicle).
     """
     rng = flight.range
@@ -926,9 +926,9 @@ def height_from_range(
     beam = world_R_body @ body_T_range[:3, 2]
     cos_tilt = -beam[:, 2]
     lever_z = (world_R_body @ body_T_range[:3, 3])[:, 2]
-    in_range = (rng.range >= flight.calib.range_min) & (rng.range <= flight.calib.range_max)
-    if range_clamps(rng.range, flight.calib.range_min):  # (at its floor: no height)
-        in_range &= rng.range > flight.calib.range_min + RANGE_AT_MIN_TOL_M
+    # (out of its limits, at its floor or at its maximum: no height, range_refusal)
+    c = flight.calib
+    in_range = RangeLimits.of_stream(rng.range, c.range_min, c.range_max).mask(rng.range)
     keep = ok & in_range & (cos_tilt > 0)
     skipped = int((~keep).sum())
     if skipped:
@@ -1320,7 +1320,7 @@ class HomographyVoStage:
         self._size_good = False  # a frame of the camera's size has been seen
         # Outputs.
         self.counts: Counter[str] = Counter()
-        self._range_below_min = False  # a reading below range_min seen (no clamping floor)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
         self.measurements: list[HomographyMeasurement] = []
         self._posed: list[tuple[float, np.ndarray, np.ndarray, float, float]] = []  # t R p yaw h
         self._n_posed = 0
@@ -1607,13 +1607,9 @@ class HomographyVoStage:
     def _add_range(self, ev: RangeReading) -> None:
         c = self.calib
         # (a reading below the floor: the sensor does not clamp there, see range_at_min)
-        self._range_below_min = self._range_below_min or ev.range < c.range_min
+        self._range_limits.see(ev.range)
         R = _value_at(self._att_t, self._att_R, ev.t, self.options.max_interp_gap_s, _slerp2)
-        if (
-            R is None
-            or not (c.range_min <= ev.range <= c.range_max)
-            or (not self._range_below_min and range_at_min(ev.range, c.range_min))
-        ):
+        if R is None or self._range_limits.refusal(float(ev.range)) is not None:
             self.counts["range_unusable"] += 1
             return
         body_T_range = np.asarray(c.body_T_range, float)

@@ -80,6 +80,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.geometry import quat_wxyz_to_matrix
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import AttitudeSeries, Flight, Trajectory
 from fgnav.estimate import Estimate, TimeSeries
 from fgnav.frontends.attitude_ekf import GRAVITY
@@ -432,7 +433,7 @@ class VerticalFilter:
         self.options = options or VerticalFilterOptions()
         T = np.asarray(body_T_range, dtype=float)
         self._beam, self._lever = T[:3, 2], T[:3, 3]
-        self._lo, self._hi = float(range_min), float(range_max)
+        self._limits = RangeLimits(range_min, range_max)
         self.x = np.zeros(2)
         self.P = np.diag([1e6, 1.0])
         self.started = False
@@ -448,7 +449,13 @@ class VerticalFilter:
 
     def update_range(self, r: float, R: np.ndarray) -> None:
         options, counts = self.options, self.counts
-        if not (self._lo <= r <= self._hi):
+        self._limits.see(r)
+        why = self._limits.refusal(r)
+        if why in RANGE_LIMIT_TAGS:
+            key = why.replace("-", "_")  # at_min, at_max: no distance (range_refusal)
+            counts[key] = counts.get(key, 0) + 1
+            return
+        if why is not None:
             counts["out_of_limits"] += 1
             return
         cos_tilt = -float(R[2] @ self._beam)

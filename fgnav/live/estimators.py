@@ -40,6 +40,7 @@ from fgnav.baselines._inputs import IMU_GAP_S
 from fgnav.datasets.errors import FgnavError
 from fgnav.datasets.events import STREAM_OF_EVENT, Event, ImuSample, RangeReading, SlamPose
 from fgnav.datasets.geometry import make_pose, quat_wxyz_to_matrix
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits
 from fgnav.datasets.types import Calibration
 from fgnav.estimate import Estimate, OnlineState
 
@@ -334,12 +335,17 @@ class MsfLive(FilterLive):
         super().__init__(calib, options, name)
         self._imu_used = 0
         self._session = 0  # newest SLAM session fed (the scale reported is the filter's one)
+        self._range_limits = RangeLimits(calib.range_min, calib.range_max)
 
     def _feed(self, ev: Event) -> float | None:
-        if isinstance(ev, RangeReading) and not (
-            self._calib.range_min <= ev.range <= self._calib.range_max
-        ):
-            self._dropped["range:out_of_limits"] += 1
+        if isinstance(ev, RangeReading):
+            # (the filter's own test, range_refusal)
+            self._range_limits.see(float(ev.range))
+            why = self._range_limits.refusal(float(ev.range))
+            if why in RANGE_LIMIT_TAGS:
+                self._dropped[f"range:{why.replace('-', '_')}"] += 1
+            elif why is not None:
+                self._dropped["range:out_of_limits"] += 1
         if isinstance(ev, SlamPose):
             self._session = int(ev.session)
         self._filter.feed(ev)
@@ -603,6 +609,8 @@ class Ukf003Live(FilterLive):
             "slam:no_clone": c.slam_no_clone,
             "slam:out_of_order": c.slam_out_of_order,
             "range:out_of_limits": c.range_out_of_limits,
+            "range:at_min": c.extra.get("range_at_min", 0),
+            "range:at_max": c.extra.get("range_at_max", 0),
             "yaw:gate": c.yaw_rejected_gate,
             "attitude:gate": c.attitude_rejected_gate,
         }
@@ -702,6 +710,8 @@ class Flow002Live(FilterLive):
             "flow:tilted": c["flow_tilted"],
             "flow:before_start": c["flow_before_start"],
             "range:out_of_limits": c["range_out_of_limits"],
+            "range:at_min": c.get("range_at_min", 0),
+            "range:at_max": c.get("range_at_max", 0),
             "range:tilt": e.get("range_tilt", 0),
             "range:outlier": e.get("range_outlier", 0),
         }

@@ -68,6 +68,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FlightDataError
 from fgnav.datasets.events import FlowSample
+from fgnav.datasets.range_limits import RangeLimits
 from fgnav.datasets.types import Calibration, Flight
 from fgnav.factors.optical_flow import (
     FlowMeasurement,
@@ -76,7 +77,6 @@ from fgnav.factors.optical_flow import (
     gate_flow,
     make_optical_flow_factor,
 )
-from fgnav.factors.tilted_range import range_at_min, range_clamps
 
 log = logging.getLogger(__name__)
 
@@ -546,7 +546,11 @@ class FlowFactors:
         T_range = np.asarray(self.flight.calib.body_T_range, float)
         T_flow = np.asarray(self.flight.calib.body_T_flow, float)
         calib = self.flight.calib
-        clamps = rng is not None and range_clamps(rng.range, calib.range_min)
+        limits = (
+            None
+            if rng is None
+            else RangeLimits.of_stream(rng.range, calib.range_min, calib.range_max)
+        )
         for j in self.by_keyframe:
             self.height[j] = None
             if rng is None or len(rng) == 0:
@@ -555,11 +559,8 @@ class FlowFactors:
             cand = [c for c in (i - 1, i) if 0 <= c < len(rng)]
             c = min(cand, key=lambda c: abs(rng.t[c] - t_kf[j]))
             r = float(rng.range[c])
-            if (
-                abs(rng.t[c] - t_kf[j]) > self.options.height_max_age_s
-                or not (calib.range_min <= r <= calib.range_max)
-                or (clamps and range_at_min(r, calib.range_min))  # at its floor: no height
-            ):
+            # (out of its limits, at its floor or at its maximum: no height, range_refusal)
+            if abs(rng.t[c] - t_kf[j]) > self.options.height_max_age_s or limits.refusal(r):
                 continue
             self.height[j] = flow_sensor_height(r, R_kf[j], T_range, T_flow)
 

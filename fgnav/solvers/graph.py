@@ -37,6 +37,7 @@ import numpy as np
 
 from fgnav.datasets.errors import FgnavError, FlightDataError
 from fgnav.datasets.geometry import GRAVITY, slerp_rotations, wrap_angle
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS
 from fgnav.datasets.slam_gyro import META_KEY as SLAM_CHECK_META_KEY
 from fgnav.datasets.slam_gyro import (
     apply_slam_check,
@@ -1014,8 +1015,9 @@ class GraphBuilder:
                     clamps,
                 )
                 if not good:
-                    tag = _reason_tag(reason)  # (at the sensor's floor: range:at-min)
-                    self._skip("range:at-min" if tag == "at-min" else f"range:gated:{tag}")
+                    # (at the sensor's floor or maximum: range:at-min, range:at-max)
+                    tag = _reason_tag(reason)
+                    self._skip(f"range:{tag}" if tag in RANGE_LIMIT_TAGS else f"range:gated:{tag}")
                     ok = False
                     break
             keep.append(ok)

@@ -156,6 +156,7 @@ from fgnav.datasets.geometry import (
     so3_log,
     wrap_angle,
 )
+from fgnav.datasets.range_limits import RANGE_LIMIT_TAGS, RangeLimits, range_at_max
 from fgnav.datasets.types import (
     IMU_MAX_ACCEL,
     IMU_MAX_RATE,
@@ -175,12 +176,7 @@ from fgnav.factors.slam_scale import (
     make_slam_T_world,
     slam_alignment_parts,
 )
-from fgnav.factors.tilted_range import (
-    MIN_COS_TILT,
-    gate_range,
-    make_range_factor,
-    range_at_min,
-)
+from fgnav.factors.tilted_range import MIN_COS_TILT, gate_range, make_range_factor
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import (
@@ -669,9 +665,10 @@ class OnlineSmoother:
         self.name = name
         self._flow_watch = FlowRejectWatch(name)  # a flow stream rejected entirely (kept on reset)
         self._flow_first_t: float | None = None  # the first flow reading's time (kept on reset)
-        # A range reading below range_min has arrived: the sensor does not clamp at its floor
-        # (its readings at range_min are distances; see range_at_min). Kept on reset.
-        self._range_below_min = False
+        # The rangefinder's limits (range_refusal): its floor clamps until a reading below
+        # range_min arrives (then its readings at range_min are distances; see range_at_min).
+        # Kept on reset.
+        self._range_limits = RangeLimits(self.calib.range_min, self.calib.range_max)
         if self.go.slam_model not in ("auto", "sim3", "axis"):
             raise FlightDataError(
                 f"{name}: graph.slam_model={self.go.slam_model!r}: expected auto, sim3 or axis"
@@ -1856,28 +1853,24 @@ class OnlineSmoother:
     def _ground_guess(self, k: int) -> tuple[float, bool]:
         """World z of the ground under keyframe ``k`` from the arrived range readings (the
         median of the newest three of the last ``GROUND_GUESS_S``, else the newest; 0 without
-        one), and whether they were within the sensor's limits. A reading below the minimum is
-        kept for the guess (a Crazyflie on the floor reads 12-25 mm under its 40 mm limit, and
-        that ground is right); the first reading within the limits confirms it or the ground
-        starts anew (:meth:`_range_gate`)."""
+        one), and whether they were all distances (:meth:`RangeLimits.refusal`). A reading below
+        the minimum is kept for the guess (a Crazyflie on the floor reads 12-25 mm under its 40
+        mm limit, and that ground is right); one at the sensor's maximum is not (no echo: it
+        says nothing of the ground, :func:`range_at_max`). The first reading within the limits
+        confirms the guess or the ground starts anew (:meth:`_range_gate`)."""
         rng = self._scalar["range"]
         pose = self.values.get(X(k))
-        if not rng or pose is None:
+        hi = self.calib.range_max
+        seen = [(tr, r) for tr, r in rng if not range_at_max(r, hi)]
+        if not seen or pose is None:
             return 0.0, False
         t_k = self.t_kf[k]
-        recent = [r for tr, r in rng if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:] or [
-            rng[-1][1]
+        recent = [r for tr, r in seen if t_k - GROUND_GUESS_S <= tr <= t_k + 1e-9][-3:] or [
+            seen[-1][1]
         ]
-        lo, hi = self.calib.range_min, self.calib.range_max
         r = float(np.median(recent))
-        return self._reading_ground(r, pose), all(
-            lo <= x <= hi and not self._at_floor(x) for x in recent
-        )
-
-    def _at_floor(self, r: float) -> bool:
-        """A range reading at the sensor's floor (``range_at_min``) while no reading below it
-        has arrived (a sensor that reads below ``range_min`` does not clamp there)."""
-        return not self._range_below_min and range_at_min(r, self.calib.range_min)
+        usable = self._range_limits.usable
+        return self._reading_ground(r, pose), all(map(usable, recent))
 
     def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
         """World z of the flat ground a range reading sees from ``pose``."""
@@ -2204,7 +2197,8 @@ class OnlineSmoother:
         if (
             rng
             and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s
-            and not self._at_floor(rng[-1][1])  # no height at the sensor's floor
+            # (no height at the sensor's floor or its maximum: range_refusal)
+            and self._range_limits.refusal(rng[-1][1]) not in RANGE_LIMIT_TAGS
         ):
             height = flow_sensor_height(
                 rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
@@ -2340,8 +2334,8 @@ class OnlineSmoother:
             self._drop(f"{kind}:non-finite")
             return
         buf = self._scalar[kind]
-        if kind == "range" and value < self.calib.range_min:
-            self._range_below_min = True
+        if kind == "range":
+            self._range_limits.see(value)
         if kind == "yaw" and buf:
             value = buf[-1][1] + wrap_angle(value - buf[-1][1])  # unwrapped
         buf.append((t, float(value)))
@@ -2383,11 +2377,16 @@ class OnlineSmoother:
             self._drop(f"{kind}:keyframes-without-bracketing-samples")
             return
         (t0, v0), (t1, v1) = buf[i - 1], buf[i]
-        if kind == "range" and (self._at_floor(v0) or self._at_floor(v1)):
-            # A bracket at the sensor's floor is no distance: interpolated with a reading above
-            # it, it would make one up (as the batch graph, which gates both brackets).
-            self._drop("range:at-min")
-            return
+        if kind == "range":
+            # A bracket at the sensor's floor or maximum is no distance: interpolated with a
+            # reading beside it, it would make one up (as the batch graph, which gates both
+            # brackets).
+            why = self._range_limits.refusal(v0)
+            if why not in RANGE_LIMIT_TAGS:
+                why = self._range_limits.refusal(v1)
+            if why in RANGE_LIMIT_TAGS:
+                self._drop(f"range:{why}")
+                return
         w = (tk - t0) / (t1 - t0)
         self._pending.append((k, kind, (1 - w) * v0 + w * v1))
 
@@ -2875,11 +2874,11 @@ class OnlineSmoother:
             self.calib.range_min,
             self.calib.range_max,
             math.radians(self.go.range_max_tilt_deg),
-            not self._range_below_min,
+            self._range_limits.clamps,
         )
         if not ok:
             tag = reason.split(":")[0].split()[0]
-            self._drop("range:at-min" if tag == "at-min" else f"range:gated:{tag}")
+            self._drop(f"range:{tag}" if tag in RANGE_LIMIT_TAGS else f"range:gated:{tag}")
             return
         gk = self._slow_key_at("g", self.go.ground_segment_s, k)
         if gk not in self.values or not self._alive(gk):
@@ -3997,6 +3996,7 @@ class OnlineSmoother:
             gyro_turn=self._gyro_turn,
         )
         self._health.detectors.range_min = float(self.calib.range_min)
+        self._health.detectors.range_max = float(self.calib.range_max)
         self._health_checked = False
         self._health_on = self._health.options.enabled
 
@@ -4281,7 +4281,7 @@ class OnlineSmoother:
         rep["dropped"] = {
             r: n
             for r, n in self.dropped.items()
-            if r in ("range:stuck", "range:at-min", "images:frozen")
+            if r in ("range:stuck", "range:at-min", "range:at-max", "images:frozen")
         }
         n_sat = self.used.get("imu:saturated-intervals", 0)
         rep["downweighted"] = {"imu-saturated-intervals": n_sat} if n_sat else {}
