@@ -279,6 +279,14 @@ def _range_at_min(f):
     return _replace(f, range=dataclasses.replace(r, range=v))
 
 
+def _range_at_max(f):
+    """Every third range reading at the calibration's ``range_max`` (a rangefinder that reports
+    its maximum for a missing echo, intermittently: a poor surface)."""
+    r = f.range
+    v = np.where(np.arange(len(r)) % 3 == 0, float(f.calib.range_max), r.range)
+    return _replace(f, range=dataclasses.replace(r, range=v))
+
+
 def _flow_fault(fn: Callable) -> Callable:
     """A row builder from ``fn(flight) -> faulty flight`` on the flow-deck base."""
 
@@ -772,6 +780,13 @@ def rows() -> list[Row]:
             "every range reading at the calibration's range_min (pinned at its floor)",
             _both({"recovered"}),
             True,
+        ),
+        R(
+            "range-at-max",
+            sim,
+            _sim_fault(_range_at_max),
+            "every third range reading at the calibration's range_max (missing echoes)",
+            _both({"recovered"}),
         ),
         R(
             "range-spikes",

@@ -47,6 +47,10 @@ class SimOptions:
         range_rate_hz, range_noise_m, range_min, range_max: downward rangefinder; readings outside
             ``[range_min, range_max]`` are not delivered (counted in ``meta``).
         range_dropout_prob: probability that a reading is missing.
+        range_no_echo_at_max: a reading without an echo (a dropout, or the ground beyond
+            ``range_max``) is delivered as ``range_max`` instead of left out, as many
+            rangefinders report it (:func:`fgnav.datasets.range_limits.range_at_max`; counted
+            ``range_no_echo_at_max`` in ``meta``).
         range_outlier_prob: probability of an obstacle spike (reading shortened to a uniform
             fraction ``range_outlier_fraction`` of the true range); times kept in the truth.
         body_t_range: rangefinder lever arm in body [m]; its beam is along body -z.
@@ -142,6 +146,7 @@ class SimOptions:
     range_min: float = 0.1
     range_max: float = 8.0
     range_dropout_prob: float = 0.02
+    range_no_echo_at_max: bool = False
     range_outlier_prob: float = 0.01
     range_outlier_fraction: tuple[float, float] = (0.2, 0.8)
     body_t_range: tuple[float, float, float] = DEFAULT_BODY_T_RANGE

@@ -182,7 +182,9 @@ def simulate_range(
 
     True reading: distance along the beam to the ground (``height_of_sensor / cos(tilt)`` on flat
     ground). Then: Gaussian noise, dropouts (missing readings), obstacle spikes (reading times a
-    uniform fraction), and readings outside ``[range_min, range_max]`` are not delivered.
+    uniform fraction), and readings outside ``[range_min, range_max]`` are not delivered; with
+    ``range_no_echo_at_max`` a dropout or a reading beyond ``range_max`` (no echo) is delivered
+    as ``range_max`` instead (truth ``range_no_echo_at_max``: how many).
 
     Returns:
         The series (None when off or empty) and the truth: ``range_outlier_t`` (times of the
@@ -208,6 +210,13 @@ def simulate_range(
         dropped = rng.random(n) < opts.range_dropout_prob
         keep &= ~dropped
         truth["range_dropouts"] = int(dropped.sum())
+    if opts.range_no_echo_at_max:
+        # No echo (a dropout, or no ground within range_max): the sensor reports its maximum.
+        no_echo = ~keep | ~np.isfinite(r) | (r > opts.range_max)
+        r = np.where(no_echo, opts.range_max, r)
+        outlier &= ~no_echo
+        keep |= no_echo
+        truth["range_no_echo_at_max"] = int(no_echo.sum())
     in_limits = np.isfinite(r) & (r >= opts.range_min) & (r <= opts.range_max)
     truth["range_out_of_limits"] = int((keep & ~in_limits).sum())
     keep &= in_limits

@@ -1,6 +1,6 @@
-"""A range reading at the sensor's maximum is no distance (a missing echo): the batch and push
-smoothers and a filter baseline on simulated two-turns flights (seed 1, 24 s) with readings at
-``range_max`` (fixed seeds)."""
+"""A range reading at the sensor's maximum is no distance (a missing echo): the simulator's
+``range_no_echo_at_max``, the batch and push smoothers and a filter baseline on simulated
+two-turns flights (seed 1, 24 s) with readings at ``range_max`` (fixed seeds)."""
 
 from __future__ import annotations
 
@@ -39,6 +39,19 @@ def two_turns():
     every = _with_range(f, np.full(len(r), hi))
     ate = (score_estimate(f, run_batch(f, {})).ate_rmse_m, score_estimate(f, _online(f)).ate_rmse_m)
     return f, ate, third, every
+
+
+def test_simulated_missing_echoes_are_reported_at_the_maximum():
+    """``range_no_echo_at_max``: the dropouts are delivered as ``range_max``; every other
+    reading is the default flight's (the same random draws)."""
+    opts = SimOptions(duration=8.0, images=False, range_dropout_prob=0.2)
+    f = simulate("two-turns", 1, opts)
+    g = simulate("two-turns", 1, dataclasses.replace(opts, range_no_echo_at_max=True))
+    at_max = g.range.range == g.calib.range_max
+    assert int(at_max.sum()) == g.meta["notes"]["range_no_echo_at_max"] == 47
+    assert len(g.range) == len(f.range) + 47
+    np.testing.assert_array_equal(g.range.t[~at_max], f.range.t)
+    np.testing.assert_array_equal(g.range.range[~at_max], f.range.range)
 
 
 def test_batch_takes_no_height_from_readings_at_the_maximum(two_turns):
