@@ -191,6 +191,7 @@ from fgnav.keys import B, S, V, X
 from fgnav.solvers.accel_check import AccelLimits, RunningAccelCheck
 from fgnav.solvers.fixed_lag import (
     ENGINES,
+    SLAM_FIT_IMU_MARGIN_S,
     SOLVER_ERRORS,
     VO_WORKERS,
     FixedLagOptions,
@@ -3178,12 +3179,13 @@ class OnlineSmoother:
         if not self.imu.t:
             return None
         t_all = np.asarray(s.t)
-        keep = (t_all >= self.imu.t[0] + 0.6) & (t_all <= self.imu.t[-1])
+        keep = (t_all >= self.imu.t[0] + SLAM_FIT_IMU_MARGIN_S) & (t_all <= self.imu.t[-1])
         keep &= t_all >= t_all[-1] - o.slam_fit_max_s
         if keep.sum() < 8:
             return None
         t = t_all[keep]
-        imu = self.imu.series(t[0] - 0.6, t[-1] + 0.6)
+        margin = SLAM_FIT_IMU_MARGIN_S
+        imu = self.imu.series(t[0] - margin, t[-1] + margin)
         R = self._attitude_track(imu.t) if imu is not None else None
         if R is None:
             return None
@@ -3363,12 +3365,13 @@ class OnlineSmoother:
         t_min = self.imu.t[0]
         if len(self._att) < 2 and self._pose_hist:
             t_min = max(t_min, self._pose_hist[min(self._pose_hist)][0])
-        keep = (t_all >= t_min + 0.6) & (t_all <= self.imu.t[-1])
+        keep = (t_all >= t_min + SLAM_FIT_IMU_MARGIN_S) & (t_all <= self.imu.t[-1])
         keep &= t_all >= t_all[-1] - self.options.slam_fit_max_s
         if keep.sum() < 8:
             return None
         t = t_all[keep]
-        imu = self.imu.series(t[0] - 0.6, t[-1] + 0.6)
+        margin = SLAM_FIT_IMU_MARGIN_S
+        imu = self.imu.series(t[0] - margin, t[-1] + margin)
         if imu is None:
             return None
         R = self._attitude_track(imu.t)

@@ -652,6 +652,32 @@ def test_a_lag_or_keyframe_rate_that_leaves_no_window_is_refused(cli_folder, tmp
     assert not out.exists()
 
 
+def test_a_history_shorter_than_the_slam_fit_is_refused(tmp_path, capsys):
+    """``[online] history_s = 0`` ran (simulated two-turns / circle, seed 1, 24 s, no camera:
+    causal ATE 2.3x / 4.1x nominal, health "ok"): the history must hold the span a closed-form
+    SLAM fit uses (``slam_fit_max_s``) and its IMU margin. One line, exit 1, before the flight is
+    read; a longer fit asks for a longer history; from the Python API the same rule."""
+    from fgnav.solvers.fixed_lag import FixedLagOptions
+
+    out = tmp_path / "o"
+    for table, needle in (
+        ("history_s = 0\n", "history_s=0: expected >= slam_fit_max_s + 0.6 = 20.6 s (the IMU"),
+        ("history_s = 20.5\n", "history_s=20.5: expected >= slam_fit_max_s + 0.6 = 20.6 s"),
+        ("slam_fit_max_s = 40.0\n", "history_s=30: expected >= slam_fit_max_s + 0.6 = 40.6 s"),
+    ):
+        cfg = tmp_path / "bad.toml"
+        cfg.write_text("[online]\n" + table)
+        argv = ["online", str(tmp_path / "nosuch"), "--out", str(out), "--config", str(cfg)]
+        err = _one_line_error(capsys, argv)
+        assert err.startswith(f"fgnav online: error: {cfg} [online]: FixedLagOptions.")
+        assert needle in err, err
+    assert not out.exists()
+    with pytest.raises(ValueError, match=r"history_s=5: expected >= slam_fit_max_s \+ 0.6"):
+        FixedLagOptions(history_s=5.0).validate()
+    FixedLagOptions(history_s=20.6).validate()
+    FixedLagOptions(history_s=40.6, slam_fit_max_s=40.0).validate()
+
+
 @pytest.mark.parametrize(
     ("table", "needle"),
     [
