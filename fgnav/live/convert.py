@@ -236,8 +236,11 @@ def range_from_distance_sensor(msg: Any, arrival: float | None = None) -> RangeR
 
     Other orientations, 0 cm (many sensors' "no reading", whatever ``min_distance`` says; the
     file readers leave zero ranges out too), readings outside the message's own
-    ``[min_distance, max_distance]`` (a sensor's out-of-range code) and ``signal_quality`` 1
-    (invalid signal) are rejected.
+    ``[min_distance, max_distance]`` (a sensor's out-of-range code), a reading at
+    ``max_distance`` (a missing echo reported as the maximum: ``range:at_max``, as the
+    estimators refuse one at the calibration's ``range_max``, ``range_at_max``, which they
+    cannot where the calibration has no maximum) and ``signal_quality`` 1 (invalid signal) are
+    rejected.
     """
     if int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
         raise Rejected("range:orientation", f"orientation {int(msg.orientation)}, not 25 (down)")
@@ -249,6 +252,8 @@ def range_from_distance_sensor(msg: Any, arrival: float | None = None) -> RangeR
             "range:out_of_sensor_limits",
             f"{d} cm outside [{int(msg.min_distance)}, {int(msg.max_distance)}] cm",
         )
+    if d == int(msg.max_distance):
+        raise Rejected("range:at_max", f"{d} cm at max_distance: no echo")
     t = ms_to_s(msg.time_boot_ms)
     sq = int(getattr(msg, "signal_quality", 0))
     if sq == 1:  # MAVLink: 1 = invalid signal (0 = unknown, 100 = best)

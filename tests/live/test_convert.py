@@ -161,6 +161,12 @@ def test_range_centimetres_orientation_and_quality(wire):
     with pytest.raises(Rejected) as e:
         convert.range_from_distance_sensor(wire("distance_sensor", f | {"current_distance": 801}))
     assert e.value.reason == "range:out_of_sensor_limits"
+    with pytest.raises(Rejected) as e:  # a missing echo reported as the maximum
+        convert.range_from_distance_sensor(wire("distance_sensor", f | {"current_distance": 800}))
+    assert e.value.reason == "range:at_max"
+    assert convert.range_from_distance_sensor(
+        wire("distance_sensor", f | {"current_distance": 799})
+    )
     with pytest.raises(Rejected) as e:  # MAVLink's "invalid signal"
         convert.range_from_distance_sensor(wire("distance_sensor", f | {"signal_quality": 1}))
     assert e.value.reason == "range:invalid_signal"
