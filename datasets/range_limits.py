@@ -62,9 +62,9 @@ def range_at_max(range_meas: float, range_max: float) -> bool:
     a missing echo taken for a distance pulls the height to the maximum (simulated two-turns,
     every third reading at its 8 m maximum: batch ATE 4.2x nominal with health "ok", ekf004
     24 m against 0.035; two 4 s runs of them: batch 2.8x, online 1.7x, named ``range-stuck``).
-    The floor's exception came from data (a Crazyflie's
-    time of flight reads under its 40 mm limit on the floor, and 40 mm on the way down, where a
-    landing needs heights); no shared flight comes near its maximum (Crazyflie: 1.99 m of 4 m)."""
+    The floor's exception came from data (a Crazyflie's time of flight reads under its 40 mm
+    limit on the floor, and 40 mm on the way down, where a landing needs heights); no shared
+    flight comes near its maximum (Crazyflie: 1.99 m of 4 m)."""
     return range_max - RANGE_AT_MAX_TOL_M <= range_meas <= range_max
 
 
