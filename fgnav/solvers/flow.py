@@ -37,9 +37,13 @@ k+1 (half a period before the first and after the last keyframe): the window is 
 ``t_k``, so the state at ``t_k`` stands for the window with no lag. Readings outside every window
 are ``flow:outside-keyframes``.
 
-**Height for the gate**: the nearest raw range reading within ``height_max_age_s`` of the
-keyframe, through the attitude at the keyframe: ``h_flow = r cos(tilt_range) - (R t_range)_z +
-(R t_flow)_z`` (sensor lever arms ``body_T_range``, ``body_T_flow``).
+**Height for the gate**: the nearest range reading within ``height_max_age_s`` of the keyframe
+that is a distance (:func:`fgnav.datasets.range_limits.range_refusal`: a refused reading, out of
+the sensor's limits, at its floor or at its maximum, is passed over for a usable neighbour within
+that age: every third reading at the maximum on the simulated flow deck took the batch from 0.026
+to 0.052 m ATE when only the nearest reading was looked at, 0.025 m now), through the attitude at
+the keyframe: ``h_flow = r cos(tilt_range) - (R t_range)_z + (R t_flow)_z`` (sensor lever arms
+``body_T_range``, ``body_T_flow``).
 
 **Ground**: the factor's ground is the ground-height variable ``G`` of the keyframe's segment,
 the one the rangefinder measures: flow gives ``v / h``, the rangefinder ``h``; together the
@@ -103,7 +107,7 @@ class FlowFactorOptions:
             is not tested.
         min_readings: fewer accepted readings in a window: no factor (``flow:few-readings``).
         height_max_age_s: largest time between a keyframe and the range reading used for its
-            height gate [s].
+            height gate [s] (the nearest reading within the sensor's limits, ``range_refusal``).
         max_rate_rad_s: a reading whose image motion over its interval is faster than this
             [rad/s] is no measurement (``flow:implausible-rate``; a PMW3901 tracks up to about
             7 rad/s).
@@ -551,17 +555,20 @@ class FlowFactors:
             if rng is None
             else RangeLimits.of_stream(rng.range, calib.range_min, calib.range_max)
         )
+        # The readings that are distances (range_refusal: not out of the limits, at the floor
+        # or at the maximum); the nearest of them within height_max_age_s gives the height.
+        usable = np.array([], dtype=int) if rng is None else np.flatnonzero(limits.mask(rng.range))
+        t_use = np.asarray(rng.t, float)[usable] if len(usable) else np.array([])
         for j in self.by_keyframe:
             self.height[j] = None
-            if rng is None or len(rng) == 0:
+            if len(usable) == 0:
                 continue
-            i = int(np.searchsorted(rng.t, t_kf[j]))
-            cand = [c for c in (i - 1, i) if 0 <= c < len(rng)]
-            c = min(cand, key=lambda c: abs(rng.t[c] - t_kf[j]))
-            r = float(rng.range[c])
-            # (out of its limits, at its floor or at its maximum: no height, range_refusal)
-            if abs(rng.t[c] - t_kf[j]) > self.options.height_max_age_s or limits.refusal(r):
+            i = int(np.searchsorted(t_use, t_kf[j]))
+            cand = [c for c in (i - 1, i) if 0 <= c < len(usable)]
+            c = min(cand, key=lambda c: abs(t_use[c] - t_kf[j]))
+            if abs(t_use[c] - t_kf[j]) > self.options.height_max_age_s:
                 continue
+            r = float(rng.range[usable[c]])
             self.height[j] = flow_sensor_height(r, R_kf[j], T_range, T_flow)
 
     def keyframes(self) -> list[int]:
