@@ -2198,15 +2198,18 @@ class OnlineSmoother:
         R = pose.rotation().matrix()
         height = None
         rng = self._scalar["range"]
-        if (
-            rng
-            and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s
-            # (no height at the sensor's floor or its maximum: range_refusal)
-            and self._range_limits.refusal(rng[-1][1]) not in RANGE_LIMIT_TAGS
-        ):
-            height = flow_sensor_height(
-                rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
-            )
+        if rng and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s:
+            # The whole test of the sensor's limits, as the batch graph's (range_refusal with
+            # the stream's clamp state): out of [range_min, range_max], at the floor or at the
+            # maximum, no height (counted range:flow-height:<reason>). Only the floor and the
+            # maximum were tested: a reading under the floor or beyond the maximum was a height.
+            why = self._range_limits.refusal(rng[-1][1])
+            if why is None:
+                height = flow_sensor_height(
+                    rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
+                )
+            else:
+                self._drop(f"range:flow-height:{why}")
         s = self.imu.span(lo - 0.05, hi + 0.05)
         res = flow_keyframe_factor(
             samples,

@@ -15,6 +15,7 @@ from fgnav.datasets.simulate.options import CRAZYFLIE_LIKE
 from fgnav.compare import score_estimate
 from fgnav.methods import run_batch
 from fgnav.solvers.graph import GraphBuilder, GraphOptions
+from fgnav.solvers.online import replay_online
 
 
 def _with_range(f, values):
@@ -64,3 +65,21 @@ def test_no_usable_reading_within_the_age_is_no_height(flow_deck):
         age = float(np.min(np.abs(t_use - b.t_kf[k])))
         assert (h is None) == (age > 0.25), (b.t_kf[k], age, h)
     assert sum(h is None for h in b.flow.height.values()) > 25
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.5])
+def test_online_flow_height_tests_the_whole_interval(flow_deck, factor):
+    """The push engine's flow height: readings from 8 to 10 s out of the sensor's limits (half
+    its 0.1 m floor, a glitching time of flight, or 1.5 x its 8 m maximum, a driver passing raw
+    readings on). Before, only the floor and the maximum were tested: each such reading was a
+    height (the windows gated on it, ``flow:gated:height``); now ``range_refusal`` refuses it as
+    the batch does, counted ``range:flow-height:out-of-range`` (a window each)."""
+    f = flow_deck
+    t, r = f.range.t, f.range.range
+    lo, hi = float(f.calib.range_min), float(f.calib.range_max)
+    bad = _with_range(f, np.where((t >= 8.0) & (t < 10.0), factor * (lo if factor < 1 else hi), r))
+    est = replay_online(bad)
+    d = est.info["dropped"]
+    assert "flow:gated:height" not in d
+    assert d["range:flow-height:out-of-range"] == 39
+    assert "range:flow-height:out-of-range" not in replay_online(f).info["dropped"]
