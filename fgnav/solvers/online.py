@@ -2197,19 +2197,28 @@ class OnlineSmoother:
         pose = self._pose_at(t_j)
         R = pose.rotation().matrix()
         height = None
-        rng = self._scalar["range"]
-        if rng and abs(rng[-1][0] - t_j) <= flow_options(self.go.flow).height_max_age_s:
-            # The whole test of the sensor's limits, as the batch graph's (range_refusal with
-            # the stream's clamp state): out of [range_min, range_max], at the floor or at the
-            # maximum, no height (counted range:flow-height:<reason>). Only the floor and the
-            # maximum were tested: a reading under the floor or beyond the maximum was a height.
-            why = self._range_limits.refusal(rng[-1][1])
-            if why is None:
+        # The newest range reading within height_max_age_s of t_j that is a distance: the whole
+        # test of the sensor's limits, as the batch graph's (range_refusal with the stream's
+        # clamp state; only the floor and the maximum were tested, so a reading under the floor
+        # or beyond the maximum was a height). A refused reading is passed over for an older
+        # usable one within the age, as the batch takes the nearest usable; none: no height,
+        # counted range:flow-height:<reason of the newest refused>.
+        age = flow_options(self.go.flow).height_max_age_s
+        why = None
+        for t_r, r in reversed(self._scalar["range"]):
+            if t_r - t_j > age:
+                continue
+            if t_j - t_r > age:
+                break
+            refused = self._range_limits.refusal(r)
+            if refused is None:
                 height = flow_sensor_height(
-                    rng[-1][1], R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
+                    r, R, self.body_T_range, np.asarray(self.calib.body_T_flow, float)
                 )
-            else:
-                self._drop(f"range:flow-height:{why}")
+                break
+            why = why or refused
+        if height is None and why is not None:
+            self._drop(f"range:flow-height:{why}")
         s = self.imu.span(lo - 0.05, hi + 0.05)
         res = flow_keyframe_factor(
             samples,
