@@ -51,6 +51,9 @@ class SimOptions:
             ``range_max``) is delivered as ``range_max`` instead of left out, as many
             rangefinders report it (:func:`fgnav.datasets.range_limits.range_at_max`; counted
             ``range_no_echo_at_max`` in ``meta``).
+        range_blind: spans ``(t0, t1)`` [s] in which the rangefinder gets no echo whatever the
+            height (a blinded, covered or failed sensor): its readings there are missing, or
+            ``range_max`` with ``range_no_echo_at_max`` (counted ``range_blind`` in ``meta``).
         range_outlier_prob: probability of an obstacle spike (reading shortened to a uniform
             fraction ``range_outlier_fraction`` of the true range); times kept in the truth.
         body_t_range: rangefinder lever arm in body [m]; its beam is along body -z.
@@ -147,6 +150,7 @@ class SimOptions:
     range_max: float = 8.0
     range_dropout_prob: float = 0.02
     range_no_echo_at_max: bool = False
+    range_blind: tuple[tuple[float, float], ...] = ()
     range_outlier_prob: float = 0.01
     range_outlier_fraction: tuple[float, float] = (0.2, 0.8)
     body_t_range: tuple[float, float, float] = DEFAULT_BODY_T_RANGE
@@ -266,9 +270,10 @@ class SimOptions:
             raise bad("slam_origin_rw_m", "a non-negative walk density [m/sqrt(s)]")
         if self.slam_scale is not None and not self.slam_scale > 0:
             raise bad("slam_scale", "a positive scale (SLAM units per metre)")
-        for t0, t1 in self.slam_dropouts:
-            if not t1 > t0:
-                raise bad("slam_dropouts", "intervals (t0, t1) with t1 > t0")
+        for name in ("slam_dropouts", "range_blind"):
+            for t0, t1 in getattr(self, name):
+                if not t1 > t0:
+                    raise bad(name, "intervals (t0, t1) with t1 > t0")
         for step in self.terrain_steps:
             if len(step) != 5 or not (step[2] > step[0] and step[3] > step[1]):
                 raise bad("terrain_steps", "boxes (x0, y0, x1, y1, height) with x1 > x0, y1 > y0")

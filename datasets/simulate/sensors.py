@@ -182,9 +182,10 @@ def simulate_range(
 
     True reading: distance along the beam to the ground (``height_of_sensor / cos(tilt)`` on flat
     ground). Then: Gaussian noise, dropouts (missing readings), obstacle spikes (reading times a
-    uniform fraction), and readings outside ``[range_min, range_max]`` are not delivered; with
-    ``range_no_echo_at_max`` a dropout or a reading beyond ``range_max`` (no echo) is delivered
-    as ``range_max`` instead (truth ``range_no_echo_at_max``: how many).
+    uniform fraction), and readings outside ``[range_min, range_max]`` are not delivered; in a
+    ``range_blind`` span no reading has an echo (truth ``range_blind``: how many); with
+    ``range_no_echo_at_max`` a dropout, a blinded reading or a reading beyond ``range_max`` (no
+    echo) is delivered as ``range_max`` instead (truth ``range_no_echo_at_max``: how many).
 
     Returns:
         The series (None when off or empty) and the truth: ``range_outlier_t`` (times of the
@@ -210,6 +211,15 @@ def simulate_range(
         dropped = rng.random(n) < opts.range_dropout_prob
         keep &= ~dropped
         truth["range_dropouts"] = int(dropped.sum())
+    if opts.range_blind:
+        # A blinded sensor: no echo in these spans (after the random draws, which stay those of
+        # the flight without it).
+        t_r = vehicle.t[idx]
+        blind = np.zeros(n, bool)
+        for t0, t1 in opts.range_blind:
+            blind |= (t_r >= t0) & (t_r < t1)
+        r = np.where(blind, np.inf, r)
+        truth["range_blind"] = int(blind.sum())
     if opts.range_no_echo_at_max:
         # No echo (a dropout, or no ground within range_max): the sensor reports its maximum.
         no_echo = ~keep | ~np.isfinite(r) | (r > opts.range_max)

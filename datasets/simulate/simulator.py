@@ -277,7 +277,7 @@ def simulate(
     notes = {
         "range_dropouts": range_truth["range_dropouts"],
         "range_out_of_limits": range_truth["range_out_of_limits"],
-        **{k: v for k, v in range_truth.items() if k == "range_no_echo_at_max"},
+        **{k: v for k, v in range_truth.items() if k in ("range_no_echo_at_max", "range_blind")},
         **(dict(flow_truth) if flow_rate > 0 else {}),
         "slam_sessions": len(sessions),
         "slam_lost": n_slam_grid - (len(slam) if slam is not None else 0),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -248,6 +249,25 @@ def test_range_sees_terrain_steps_and_limits():
     )
     assert np.all(on_box)
     assert f.meta["notes"]["range_out_of_limits"] > 0
+
+
+def test_a_blinded_rangefinder_gets_no_echo_in_its_spans():
+    """``range_blind``: no reading in the span (counted), or ``range_max`` for each with
+    ``range_no_echo_at_max``; every reading outside it is the flight's without the option."""
+    opts = SimOptions(images=False, duration=6.0)
+    f = simulate("two-turns", seed=0, options=opts)
+    blind = SimOptions(images=False, duration=6.0, range_blind=((2.0, 3.0),))
+    g = simulate("two-turns", seed=0, options=blind)
+    span = (g.range.t >= 2.0) & (g.range.t < 3.0)
+    assert not span.any() and g.meta["notes"]["range_blind"] == 25
+    out = (f.range.t < 2.0) | (f.range.t >= 3.0)
+    np.testing.assert_array_equal(g.range.t, f.range.t[out])
+    np.testing.assert_array_equal(g.range.range, f.range.range[out])
+    h = simulate("two-turns", seed=0, options=dataclasses.replace(blind, range_no_echo_at_max=True))
+    span = (h.range.t >= 2.0) & (h.range.t < 3.0)
+    assert span.sum() == 25 and np.all(h.range.range[span] == h.calib.range_max)
+    with pytest.raises(SimulationError, match="range_blind"):
+        SimOptions(range_blind=((3.0, 2.0),))
 
 
 # ---------------------------------------------------------------------------------------------
