@@ -1008,6 +1008,8 @@ class OnlineSmoother:
         # holds from the start; -inf: the ground was seeded without a reading, the next one
         # seeds it anew).
         self._range_seen_t = math.inf
+        # A range factor is on the current ground chain (the health's range_expected).
+        self._ground_measured = False
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._kf_index: deque = deque()  # (time, keyframe) of the kept keyframes, in order
         self._anchors: deque = deque()  # arrived image times not yet passed
@@ -1842,6 +1844,7 @@ class OnlineSmoother:
                     )
                 else:
                     guess, within = self._ground_guess(k)
+                    self._ground_measured = False  # (until a range factor is on it)
                     if not within:
                         self._range_seen_t = -math.inf  # the next reading confirms it
                     value = np.array([guess])
@@ -1875,6 +1878,24 @@ class OnlineSmoother:
         r = float(np.median(recent))
         usable = self._range_limits.usable
         return self._reading_ground(r, pose), all(map(usable, recent))
+
+    def _range_expected(self, t: float) -> float | None:
+        """The reading the newest state predicts (the health's ``range-at-max``): the distance
+        along the beam from the rangefinder to the ground height, None while no range factor is
+        on the current ground chain (its value is a guess) or the beam points 85 deg or more
+        from down."""
+        if not self._ground_measured or not self.out:
+            return None
+        s = self.out[-1]
+        if s.ground_height is None:
+            return None
+        T = np.asarray(s.world_T_body, float)
+        R = T[:3, :3]
+        cos = -float((R @ self.body_T_range[:3, 2])[2])
+        if cos < MIN_COS_TILT:
+            return None
+        z = float(T[2, 3] + (R @ self.body_T_range[:3, 3])[2])
+        return (z - float(s.ground_height)) / cos
 
     def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
         """World z of the flat ground a range reading sees from ``pose``."""
@@ -2912,6 +2933,7 @@ class OnlineSmoother:
         )
         stamps[gk] = self.t_kf[self.k]
         self._use("range")
+        self._ground_measured = True
 
     def _range_gate(self, r: float, pose: gtsam.Pose3, ground: float) -> str | None:
         """The innovation gate of a range reading (None: taken, else why it is dropped): within
@@ -4013,6 +4035,7 @@ class OnlineSmoother:
             slam_position=self._slam_world,
             camera=self._camera_now,
             gyro_turn=self._gyro_turn,
+            range_expected=self._range_expected,
         )
         self._health.detectors.range_min = float(self.calib.range_min)
         self._health.detectors.range_max = float(self.calib.range_max)
