@@ -16,6 +16,8 @@ Outcomes of one run (the row's ``expect`` says which are acceptable; ``FAIL`` ne
 - ``recovered``: exit 0 and ATE within ``RECOVER_FACTOR`` x the nominal flight's;
 - ``named``: the fault is named on screen (a WARNING line or the health line) *and* in
   ``summary.json`` (``info.health`` detectors or status, solver / LM status), whatever the ATE;
+  a row that declares the detectors that must name its fault (``names``) is ``named`` when they
+  do, whatever the ATE, and otherwise classified as any other;
 - ``error``: exit 1 with one line on stderr naming the problem, no traceback, nothing written;
 - ``FAIL``: a traceback, or an ATE above ``RECOVER_FACTOR`` x nominal with nothing named, or an
   ATE above 1 m with exit 0 and no warning.
@@ -81,6 +83,9 @@ class Row:
         extra_args: more CLI flags.
         names_input: a bad input file: an ``error`` outcome must name a file of the row's
             input (its path), not only the flight (``file:*`` rows are so by default).
+        names: detectors that must name the fault: a run whose ``summary.json`` and screen name
+            every one of them is ``named`` whatever its ATE (a fault named but not fixed, whose
+            ATE stays within ``RECOVER_FACTOR``), else it is classified as any other run.
     """
 
     name: str
@@ -92,6 +97,7 @@ class Row:
     config: str | None = None
     extra_args: tuple[str, ...] = ()
     names_input: bool = False
+    names: tuple[str, ...] = ()
 
 
 #: The row giving each base flight's nominal ATE.
@@ -167,6 +173,17 @@ class Context:
                 "flowdeck", SIM_SEED, SimOptions(duration=SIM_FLOW_DURATION_S, **CRAZYFLIE_LIKE)
             )
         return self._cache["flow"]
+
+    def flow_deck_with(self, **sim_options):
+        """The flow-deck base flight with more simulator options (the same random draws)."""
+        from fgnav.datasets.simulate.options import CRAZYFLIE_LIKE, SimOptions
+        from fgnav.datasets.simulate.simulator import simulate
+
+        return simulate(
+            "flowdeck",
+            SIM_SEED,
+            SimOptions(duration=SIM_FLOW_DURATION_S, **CRAZYFLIE_LIKE, **sim_options),
+        )
 
     def camera_folder(self) -> Path:
         """A 20 s simulated flight with the downward camera, as a native folder (PNG files)."""
@@ -300,6 +317,13 @@ def _flow_rejected(f):
     """Every flow reading's quality 0 (below the gate): a stream rejected entirely."""
     fl = f.flow
     return _replace(f, flow=dataclasses.replace(fl, quality=np.zeros(len(fl))))
+
+
+def _range_blind(ctx: Context, folder: Path) -> Path:
+    """The flow deck's rangefinder blinded from 8 to 13 s (no echo at 0.4-1.3 m over the floor,
+    within its 8 m reach), reporting its maximum for it (the simulator's ``range_blind`` and
+    ``range_no_echo_at_max``: its other readings are the base flight's)."""
+    return _write(ctx.flow_deck_with(range_no_echo_at_max=True, range_blind=((8.0, 13.0),)), folder)
 
 
 def _range_spikes(f, frac: float = 0.05):
@@ -969,6 +993,15 @@ def rows() -> list[Row]:
             _both({"recovered"}),
         ),
         R(
+            "flow:range-blind-5s",
+            "sim-flow",
+            _range_blind,
+            "flow deck: rangefinder blinded 8-13 s at 0.4-1.3 m, reporting its 8 m maximum",
+            _both({"named"}),
+            True,
+            names=("range-at-max",),
+        ),
+        R(
             "flow:rejected",
             "sim-flow",
             _flow_fault(_flow_rejected),
@@ -1148,6 +1181,12 @@ def _classify(
         return "error", ate, detectors, err_lines[-1][:160]
     screen_named = bool(warnings) or "health:" in stdout
     named = screen_named and bool(detectors or (summary and _summary_warns(summary)))
+    if (
+        row.names
+        and screen_named
+        and all(any(d.split()[0] == n for d in detectors) for n in row.names)
+    ):
+        return "named", ate, detectors, None
     if ate is not None and nominal is not None and ate <= RECOVER_FACTOR * nominal:
         outcome = "recovered" if code == 0 else ("named" if named else "FAIL")
         return outcome, ate, detectors, None

@@ -84,3 +84,8 @@ def test_quick_fault_matrix(tmp_path):
     # then on the IMU alone), names it at the start; it diverges, named too, never silently.
     assert "flow-no-height 1" in det[("events:flow-no-range", "online")]
     assert by[("events:flow-no-range", "online")]["outcome"] == "named"
+    # A flow deck's rangefinder blinded 5 s at low height, reporting its maximum (no echo), is
+    # named (it was health "ok", ATE 1.6x / 1.4x nominal: within the recovery bound).
+    for cmd in ("batch", "online"):
+        assert det[("flow:range-blind-5s", cmd)] == "range-at-max 1"
+        assert by[("flow:range-blind-5s", cmd)]["outcome"] == "named"
