@@ -326,6 +326,13 @@ def _range_blind(ctx: Context, folder: Path) -> Path:
     return _write(ctx.flow_deck_with(range_no_echo_at_max=True, range_blind=((8.0, 13.0),)), folder)
 
 
+def _range_silent(ctx: Context, folder: Path) -> Path:
+    """The flow deck's rangefinder silent from 8 to 13 s (no reading at all at 0.4-1.3 m over
+    the floor: the simulator's ``range_blind`` without ``range_no_echo_at_max``; its other
+    readings are the base flight's)."""
+    return _write(ctx.flow_deck_with(range_blind=((8.0, 13.0),)), folder)
+
+
 def _range_spikes(f, frac: float = 0.05):
     r = f.range
     rng = np.random.default_rng(7)
@@ -1000,6 +1007,15 @@ def rows() -> list[Row]:
             _both({"named"}),
             True,
             names=("range-at-max",),
+        ),
+        R(
+            "flow:range-silent-5s",
+            "sim-flow",
+            _range_silent,
+            "flow deck: rangefinder silent 8-13 s at 0.4-1.3 m (no readings at all)",
+            _both({"named"}),
+            True,
+            names=("range-silent",),
         ),
         R(
             "flow:rejected",

@@ -89,3 +89,7 @@ def test_quick_fault_matrix(tmp_path):
     for cmd in ("batch", "online"):
         assert det[("flow:range-blind-5s", cmd)] == "range-at-max 1"
         assert by[("flow:range-blind-5s", cmd)]["outcome"] == "named"
+    # One that delivers no reading at all for 5 s is named too (health "ok", ATE 1.6x / 1.3x).
+    for cmd in ("batch", "online"):
+        assert det[("flow:range-silent-5s", cmd)] == "range-silent 1"
+        assert by[("flow:range-silent-5s", cmd)]["outcome"] == "named"
