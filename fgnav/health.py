@@ -663,7 +663,8 @@ class FaultDetectors:
                 ) or self.context.scale(sess)
             speed = self.context.speed(t)
             if scale and speed is not None and scale > 0:
-                d = float(np.linalg.norm(p - prev[1])) / scale
+                dp = p - prev[1]
+                d = math.sqrt(float(dp.dot(dp))) / scale  # (np.linalg.norm's arithmetic)
                 allowed = speed * dt + o.slam_jump_min_m + 0.5 * o.slam_jump_accel_max * dt**2
                 if d > allowed:
                     jump = (
@@ -679,9 +680,11 @@ class FaultDetectors:
                     "moved map"
                 )
         q = np.asarray(ev.slam_q_cam_wxyz, float)
+        # Its squared norm, once: NaN unless every component is finite (then never > 0).
+        qq = float(q @ q) if np.isfinite(q).all() else math.nan
         q_prev = self._slam_prev_q.get(sess)
         if jump is None and prev is not None and q_prev is not None:
-            turned = self._turned(prev[0], q_prev, t, q)
+            turned = self._turned(prev[0], q_prev, t, q, qq)
             if turned is not None:
                 jump = (
                     f"turned {turned[0]:.1f} deg in {t - prev[0]:.2f} s at t={t:.2f} while the "
@@ -692,24 +695,25 @@ class FaultDetectors:
             self._slam_jumps[sess] = n
             virtual = sess + JUMP_SESSION_BASE * n
             self._count("slam-jump", f"SLAM session {sess} {jump}: a new alignment from here")
-        if np.isfinite(q).all() and float(q @ q) > 0:
-            self._slam_prev_q[sess] = q / math.sqrt(float(q @ q))
+        if qq > 0:
+            self._slam_prev_q[sess] = q / math.sqrt(qq)
         self._slam_prev[sess] = (t, p)
         self._slam_last = (virtual, p)
         return ev if virtual == sess else ev._replace(session=virtual)
 
     def _turned(
-        self, t_prev: float, q_prev: np.ndarray, t: float, q: np.ndarray
+        self, t_prev: float, q_prev: np.ndarray, t: float, q: np.ndarray, qq: float
     ) -> tuple[float, float] | None:
         """(SLAM turn, gyro turn) [deg] when the SLAM orientation's change from the previous
-        pose differs from the gyro's by more than the module docstring allows, else None."""
+        pose differs from the gyro's by more than the module docstring allows, else None
+        (``qq``: ``q @ q``, NaN when a component of ``q`` is not finite)."""
         o = self.options
-        if not (np.isfinite(q).all() and float(q @ q) > 0):
+        if not qq > 0:
             return None
         gyro = self.context.gyro_turn(t_prev, t)
         if gyro is None:
             return None
-        c = abs(float(q_prev @ q)) / math.sqrt(float(q @ q))
+        c = abs(float(q_prev @ q)) / math.sqrt(qq)
         slam = 2.0 * math.degrees(math.acos(min(c, 1.0)))
         gyro = math.degrees(gyro)
         allowed = o.slam_turn_jump_deg + o.slam_turn_drift_deg_per_s * (t - t_prev)

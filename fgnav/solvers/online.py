@@ -4073,23 +4073,28 @@ class OnlineSmoother:
         """Angle [rad] of the body's rotation from ``ta`` to ``tb`` through the arrived gyro,
         the newest bias estimate removed (None: the IMU does not cover both ends)."""
         imu = self.imu
-        if not imu.t or imu.t[0] > ta or imu.t[-1] < tb or tb <= ta:
+        ts = imu.t
+        if not ts or ts[0] > ta or ts[-1] < tb or tb <= ta:
             return None
-        sl = imu.span(ta, tb)
-        t = np.r_[ta, imu.t[sl], tb]
-        if np.max(np.diff(t)) > 0.2:
+        # (the interval lengths on plain floats, the rates in one array: the same numbers as
+        # np.diff over np.r_[ta, samples, tb] without numpy's per-call overhead, per SLAM pose)
+        i0, i1 = bisect.bisect_left(ts, ta), bisect.bisect_right(ts, tb)
+        t = [ta, *ts[i0:i1], tb]
+        dt = [t1 - t0 for t0, t1 in zip(t[:-1], t[1:], strict=True)]
+        if max(dt) > 0.2:
             return None  # an IMU gap (with or without samples between the two times)
         # Zero-order hold: each interval turns at the sample at its start (the first, at the
         # sample before ta; ta on the first sample: that one).
-        w = np.asarray(imu.w[max(sl.start - 1, 0) : sl.stop], float)
-        if sl.start == 0:
-            w = np.vstack([w[:1], w])
-        if len(w) < len(t) - 1:
+        rows = imu.w[max(i0 - 1, 0) : i1]
+        if i0 == 0:
+            rows = rows[:1] + rows
+        if len(rows) < len(dt):
             return None
+        w = np.array(rows[: len(dt)], float)
         b = self.values.get(B(self.k)) if self.k >= 0 else None  # (-1: before a restart)
         if b is not None:
             w = w - b.gyroscope()
-        phi = w[: len(t) - 1] * np.diff(t)[:, None]
+        phi = w * np.array(dt)[:, None]
         if float(np.abs(phi).sum()) < GYRO_TURN_SMALL_RAD:
             # Small turns (consecutive poses): the summed rotation vector, off by at most half
             # the square of the turn (0.6 deg at 0.15 rad) against the product of exponentials.
