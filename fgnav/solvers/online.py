@@ -395,6 +395,7 @@ GYRO_TURN_SMALL_RAD = 0.15
 
 
 _first = operator.itemgetter(0)
+_second = operator.itemgetter(1)
 
 
 #: ``ndarray.sum``'s reduction without its Python wrapper (the same arithmetic).
@@ -565,19 +566,26 @@ class _Imu:
         self.t: list[float] = []
         self.w: list[np.ndarray] = []
         self.a: list[np.ndarray] = []
+        # The specific forces again as lists of floats (the keyframe means sum them without
+        # numpy's per-call overhead on a few samples).
+        self.a_list: list[list[float]] = []
         self.sat: list[int] = []  # saturation flags (fgnav.health.SAT_GYRO_BITS, ...)
 
-    def add(self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0) -> None:
+    def add(
+        self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0, a_list: list | None = None
+    ) -> None:
+        """One sample (``a_list``: ``a.tolist()`` when the caller has it)."""
         self.t.append(t)
         self.w.append(w)
         self.a.append(a)
+        self.a_list.append(a.tolist() if a_list is None else a_list)
         self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
         t = self.t
         if len(t) > 1000 and t[1000] < t_keep:  # else bisect_left(t, t_keep) <= 1000
             i = bisect.bisect_left(t, t_keep)
-            del t[:i], self.w[:i], self.a[:i], self.sat[:i]
+            del t[:i], self.w[:i], self.a[:i], self.a_list[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -1292,7 +1300,13 @@ class OnlineSmoother:
             self._mirror_sgc.add_imu(t, w, a)
         if self._first_imu_t is None:
             self._first_imu_t = t
-        self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
+        self.imu.add(
+            t,
+            w,
+            a,
+            self._health.detectors.imu_flags if self._health_on else 0,
+            values[1] if values is not None else None,
+        )
         self._t_imu_last = t
         if self.t0 is None:
             self._try_start(t)
@@ -1379,16 +1393,22 @@ class OnlineSmoother:
         i1 = bisect.bisect_left(t, tb)
         if i1 <= i0 or i0 >= len(t):
             return None, 0, 0.0
-        ts = np.asarray(t[i0 : i1 + 1] if i1 < len(t) else [*t[i0:i1], tb])
-        s0 = np.maximum(ts[:-1], ta)
-        s1 = np.minimum(ts[1:], tb)
-        d = np.maximum(s1 - s0, 0.0)
-        # (np.add.reduce: ndarray.sum's own reduction, without its Python wrapper)
-        dur = float(_add_reduce(d))
+        ends = t[i0 + 1 : i1 + 1] if i1 < len(t) else [*t[i0 + 1 : i1], tb]
+        # Each sample's share of [ta, tb] (to the next sample, clipped to the span).
+        d = [max(min(e, tb) - max(s, ta), 0.0) for s, e in zip(t[i0:i1], ends, strict=True)]
+        # (np.add.reduce: ndarray.sum's own pairwise reduction, without its Python wrapper)
+        dur = float(_add_reduce(np.array(d)))
         if dur <= 0:
             return None, 0, 0.0
-        acc = np.asarray(self.imu.a[i0:i1])
-        return _add_reduce(d[:, None] * acc, 0) / dur, int(np.count_nonzero(d > 0)), dur
+        # The weighted sum on plain floats: numpy's sum over the samples axis (not the array's
+        # contiguous one) adds the rows one after the other from 0.0, as here.
+        sx = sy = sz = 0.0
+        for di, (ax, ay, az) in zip(d, self.imu.a_list[i0:i1], strict=True):
+            sx += di * ax
+            sy += di * ay
+            sz += di * az
+        n = sum(1 for di in d if di > 0)
+        return np.array([sx / dur, sy / dur, sz / dur]), n, dur
 
     def _try_start(self, t: float) -> None:
         """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
@@ -2857,11 +2877,10 @@ class OnlineSmoother:
     def _kf_near(self, t: float) -> int:
         """The kept keyframe nearest ``t``."""
         idx = self._kf_index
-        ts = [r[0] for r in idx]
-        i = bisect.bisect_left(ts, t)
-        if i >= len(ts):
+        i = bisect.bisect_left(idx, t, key=_first)  # (no list of the kept times)
+        if i >= len(idx):
             return idx[-1][1]
-        if i > 0 and t - ts[i - 1] <= ts[i] - t:
+        if i > 0 and t - idx[i - 1][0] <= idx[i][0] - t:
             return idx[i - 1][1]
         return idx[i][1]
 
@@ -4586,11 +4605,12 @@ class OnlineSmoother:
         # Keys leave in marginalisation blocks: read those the next update will marginalise.
         cut = self._block(self.t_kf[k] + self.period) - self.options.lag_s
         sm = self.smoother
-        for t_j, j in list(self._kf_index):
-            # (read ones first: keyframes are in time order, so a later one read is also
-            # past the cut when this one is)
-            if j <= self._lag_done:
-                continue
+        idx = self._kf_index
+        # (the keyframes read already come first: keyframes are kept in time order, so the
+        # scan starts after them)
+        first = bisect.bisect_right(idx, self._lag_done, key=_second)
+        for i in range(first, len(idx)):
+            t_j, j = idx[i]
             if self._block(t_j) > cut + 1e-6:
                 break
             self._lag_done = j
@@ -4756,11 +4776,13 @@ VO_MAX_IN_FLIGHT = 8
 
 
 def _finite_state(pose: gtsam.Pose3, vel: Any, bias: Any) -> bool:
-    """Every number of a keyframe state is finite."""
-    return bool(
-        np.isfinite(pose.matrix()).all()
-        and np.isfinite(np.asarray(vel, float)).all()
-        and np.isfinite(bias.vector()).all()
+    """Every number of a keyframe state is finite (``np.isfinite(...).all()`` of each, on plain
+    floats: numpy's per-call overhead on 25 numbers was most of its time, per keyframe)."""
+    isfinite = math.isfinite
+    return (
+        all(map(isfinite, pose.matrix().ravel().tolist()))
+        and all(map(isfinite, np.asarray(vel, float).ravel().tolist()))
+        and all(map(isfinite, bias.vector().tolist()))
     )
 
 
