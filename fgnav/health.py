@@ -1146,14 +1146,15 @@ class HealthMonitor:
         v = np.asarray(state.world_v_body, float).tolist()
         p = np.asarray(state.world_T_body, float)[:3, 3].tolist()
         isfinite = math.isfinite
-        if not all(isfinite(x) for x in (*v, *p)):
+        if not all(map(isfinite, (*v, *p))):
             return ["non-finite state"]
         sp = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         if sp > o.max_speed_mps:
             bad.append(f"speed {sp:.1f} m/s > {o.max_speed_mps:g}")
-        if state.pose_cov is not None and np.isfinite(state.pose_cov).all():
-            c = state.pose_cov
-            sig = math.sqrt(max(float(c[3, 3]) + float(c[4, 4]) + float(c[5, 5]), 0.0))
+        c = None if state.pose_cov is None else np.asarray(state.pose_cov, float).ravel().tolist()
+        if c is not None and all(map(isfinite, c)):
+            # (the 6x6 covariance's position diagonal, row-major: entries 21, 28 and 35)
+            sig = math.sqrt(max(c[21] + c[28] + c[35], 0.0))
             limit = max(o.max_pos_sigma_m, self.pos_sigma_allowed)
             if sig > limit:
                 bad.append(f"position sigma {sig:.1f} m > {limit:g}")

@@ -394,6 +394,9 @@ UNITS_MOTION_DOMINANT = 2.0
 GYRO_TURN_SMALL_RAD = 0.15
 
 
+#: ``cos`` of the accelerometer check's largest tilt (a keyframe tilted more is left out).
+_COS_ACCEL_CHECK_MAX_TILT = math.cos(math.radians(ACCEL_CHECK_MAX_TILT_DEG))
+
 _first = operator.itemgetter(0)
 _second = operator.itemgetter(1)
 
@@ -2000,21 +2003,22 @@ class OnlineSmoother:
             self._drop("drag:no-imu-in-interval")
             return
         norm_mean = _norm(mean)
-        cos_tilt = mean[2] / max(norm_mean, 1e-12)
+        f_x, f_y, f_z = mean.tolist()  # (plain floats for the scalar tests and the check's row)
+        cos_tilt = f_z / max(norm_mean, 1e-12)
         sigma_a = self.calib.imu_noise.accel_noise_density * math.sqrt(max(n / dur, 1.0))
         if (
             check
             and self._accel_check_open()
             and (
                 norm_mean > 0.5 * self.go.gravity
-                and cos_tilt >= math.cos(math.radians(ACCEL_CHECK_MAX_TILT_DEG))
+                and cos_tilt >= _COS_ACCEL_CHECK_MAX_TILT
                 and X(j) in self.values
                 and V(j) in self.values
             )
         ):
             R = self.values[X(j)].rotation().matrix()
-            u = R.T @ np.asarray(self.values[V(j)], float)
-            self._accel_rows.append((mean[0], mean[1], u[0], u[1], sigma_a / math.sqrt(n)))
+            u_x, u_y, _ = (R.T @ np.asarray(self.values[V(j)], float)).tolist()
+            self._accel_rows.append((f_x, f_y, u_x, u_y, sigma_a / math.sqrt(n)))
             first = self._accel_check is None or self._accel_check.decision == "undecided"
             if len(self._accel_rows) >= ONLINE_ACCEL_CHECK_MIN_KEYFRAMES and (first or j % 5 == 0):
                 self._accel_decide(t_j)
@@ -2035,7 +2039,8 @@ class OnlineSmoother:
         if cos_tilt < math.cos(math.radians(self.go.drag_max_tilt_deg)):
             self._drop("drag:not-thrust-borne")
             return
-        self._drag_means.append(mean[:2])
+        f_xy = mean[:2]
+        self._drag_means.append(f_xy)
         if self.go.drag_sigma_from_data and len(self._drag_means) >= 20 and j % 20 == 0:
             self._drag_sigma = max(self.go.drag_model_sigma, self._drag_scatter())
             chk = self._accel_check
@@ -2052,7 +2057,7 @@ class OnlineSmoother:
         if dk not in self.values or not self._alive(dk):
             self._drop("drag:late")
             return
-        g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, mean[:2], noise))
+        g.add(make_accel_drag_factor(X(j), V(j), B(j), dk, f_xy, noise))
         stamps[dk] = self.t_kf[self.k]
         self._use("drag")
 
