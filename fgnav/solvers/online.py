@@ -569,26 +569,19 @@ class _Imu:
         self.t: list[float] = []
         self.w: list[np.ndarray] = []
         self.a: list[np.ndarray] = []
-        # The specific forces again as lists of floats (the keyframe means sum them without
-        # numpy's per-call overhead on a few samples).
-        self.a_list: list[list[float]] = []
         self.sat: list[int] = []  # saturation flags (fgnav.health.SAT_GYRO_BITS, ...)
 
-    def add(
-        self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0, a_list: list | None = None
-    ) -> None:
-        """One sample (``a_list``: ``a.tolist()`` when the caller has it)."""
+    def add(self, t: float, w: np.ndarray, a: np.ndarray, sat: int = 0) -> None:
         self.t.append(t)
         self.w.append(w)
         self.a.append(a)
-        self.a_list.append(a.tolist() if a_list is None else a_list)
         self.sat.append(sat)
 
     def trim(self, t_keep: float) -> None:
         t = self.t
         if len(t) > 1000 and t[1000] < t_keep:  # else bisect_left(t, t_keep) <= 1000
             i = bisect.bisect_left(t, t_keep)
-            del t[:i], self.w[:i], self.a[:i], self.a_list[:i], self.sat[:i]
+            del t[:i], self.w[:i], self.a[:i], self.sat[:i]
 
     def span(self, ta: float, tb: float) -> slice:
         return slice(bisect.bisect_left(self.t, ta), bisect.bisect_right(self.t, tb))
@@ -1305,13 +1298,7 @@ class OnlineSmoother:
             self._mirror_sgc.add_imu(t, w, a)
         if self._first_imu_t is None:
             self._first_imu_t = t
-        self.imu.add(
-            t,
-            w,
-            a,
-            self._health.detectors.imu_flags if self._health_on else 0,
-            values[1] if values is not None else None,
-        )
+        self.imu.add(t, w, a, self._health.detectors.imu_flags if self._health_on else 0)
         self._t_imu_last = t
         if self.t0 is None:
             self._try_start(t)
@@ -1398,22 +1385,16 @@ class OnlineSmoother:
         i1 = bisect.bisect_left(t, tb)
         if i1 <= i0 or i0 >= len(t):
             return None, 0, 0.0
-        ends = t[i0 + 1 : i1 + 1] if i1 < len(t) else [*t[i0 + 1 : i1], tb]
-        # Each sample's share of [ta, tb] (to the next sample, clipped to the span).
-        d = [max(min(e, tb) - max(s, ta), 0.0) for s, e in zip(t[i0:i1], ends, strict=True)]
-        # (np.add.reduce: ndarray.sum's own pairwise reduction, without its Python wrapper)
-        dur = float(_add_reduce(np.array(d)))
+        ts = np.asarray(t[i0 : i1 + 1] if i1 < len(t) else [*t[i0:i1], tb])
+        s0 = np.maximum(ts[:-1], ta)
+        s1 = np.minimum(ts[1:], tb)
+        d = np.maximum(s1 - s0, 0.0)
+        # (np.add.reduce: ndarray.sum's own reduction, without its Python wrapper)
+        dur = float(_add_reduce(d))
         if dur <= 0:
             return None, 0, 0.0
-        # The weighted sum on plain floats: numpy's sum over the samples axis (not the array's
-        # contiguous one) adds the rows one after the other from 0.0, as here.
-        sx = sy = sz = 0.0
-        for di, (ax, ay, az) in zip(d, self.imu.a_list[i0:i1], strict=True):
-            sx += di * ax
-            sy += di * ay
-            sz += di * az
-        n = sum(1 for di in d if di > 0)
-        return np.array([sx / dur, sy / dur, sz / dur]), n, dur
+        acc = np.asarray(self.imu.a[i0:i1])
+        return _add_reduce(d[:, None] * acc, 0) / dur, int(np.count_nonzero(d > 0)), dur
 
     def _try_start(self, t: float) -> None:
         """Initialise at the first SLAM pose (or at the IMU after ``start_wait_s``)."""
