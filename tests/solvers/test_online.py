@@ -482,3 +482,54 @@ def test_slam_poses_that_all_miss_the_start_are_said(two_turns, push_run, caplog
     assert len(said) == 1 and "2 SLAM pose(s)" in said[0] and "slam:" in said[0], said
     assert est.info["slam_unused"] is True
     assert push_run.info["slam_unused"] is False
+
+
+def _gyro_turn_reference(sm: OnlineSmoother, ta: float, tb: float) -> float | None:
+    """The gyro turn written with numpy throughout (the form before its plain-float rewrite)."""
+    from fgnav.datasets.geometry import so3_exp, so3_log
+
+    from fgnav.keys import B
+    from fgnav.solvers.online import GYRO_TURN_SMALL_RAD
+
+    imu = sm.imu
+    if not imu.t or imu.t[0] > ta or imu.t[-1] < tb or tb <= ta:
+        return None
+    sl = imu.span(ta, tb)
+    t = np.r_[ta, imu.t[sl], tb]
+    if np.max(np.diff(t)) > 0.2:
+        return None
+    w = np.asarray(imu.w[max(sl.start - 1, 0) : sl.stop], float)
+    if sl.start == 0:
+        w = np.vstack([w[:1], w])
+    if len(w) < len(t) - 1:
+        return None
+    b = sm.values.get(B(sm.k)) if sm.k >= 0 else None
+    if b is not None:
+        w = w - b.gyroscope()
+    phi = w[: len(t) - 1] * np.diff(t)[:, None]
+    if float(np.abs(phi).sum()) < GYRO_TURN_SMALL_RAD:
+        v = phi.sum(axis=0)
+        return math.sqrt(v.dot(v))
+    R = np.eye(3)
+    for Ri in so3_exp(phi):
+        R = R @ Ri
+    return float(np.linalg.norm(so3_log(R)))
+
+
+def test_gyro_turn_is_the_numpy_formula_bit_for_bit(two_turns_12s):
+    """The SLAM jump detector's gyro turn (interval lengths on plain floats) gives the same
+    bits as the numpy formula, on spans within, across and outside the kept IMU, short
+    (consecutive SLAM poses) and long (the product of exponentials)."""
+    sm = feed_all(replay_flight(two_turns_12s, STREAMS), two_turns_12s.calib, FixedLagOptions())
+    t = np.asarray(sm.imu.t)
+    rng = np.random.default_rng(0)
+    n_long = 0
+    for _ in range(3000):
+        ta = float(rng.uniform(t[0] - 0.1, t[-1]))
+        if rng.random() < 0.3:
+            ta = float(t[rng.integers(len(t))])  # on a sample
+        tb = ta + float(rng.choice([0.05, 0.1, 0.3, 1.0, rng.uniform(0.0, 0.5)]))
+        got, want = sm._gyro_turn(ta, tb), _gyro_turn_reference(sm, ta, tb)
+        assert got == want or (got is None and want is None), (ta, tb, got, want)
+        n_long += want is not None and want > 0.3
+    assert n_long > 50  # the product-of-exponentials branch was exercised
