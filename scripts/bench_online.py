@@ -26,6 +26,23 @@ marginalisation 2 %: GTSAM's part about 43 %; the SLAM-vs-gyro check's fits in t
 the rest is Python spread thinly (no line above 2 % of the run). 60x would need that Python cut to
 about a quarter, out of reach of such trimming.
 
+No camera, 2026-12-08 (branch speed: more per-keyframe and per-pose Python on plain floats, every
+output byte-identical). This VM's CPU speed swung 1.5x between runs that day (reference workload
+51-97 ms), so the figures are instruction counts of the replay alone (valgrind): 180 s 26.45 ->
+25.61 G (-3.2 %); 60 s -2.8 %, with 7.5 % fewer instruction-cache and 3.2 % fewer data-cache misses
+(fewer numpy calls). CPU time: old and new alternating in one process, paired ratios 0.84-1.07
+(median 0.99); the script back to back in a quiet spell (reference 51-55 ms): 39.2x -> 42.4x and
+37.6x -> 39.4x CPU, smoother CPU / reference 90.1 -> 81.3 and 89.3 -> 83.3. Where the 60 s
+replay's instructions go (callgrind): the Python interpreter 30 %, numpy 21 %, malloc/memset 13 %,
+GTSAM/Eigen 21 %, OpenBLAS 8 % (numpy's 3x3 products each a dgemm call: 717k of them, mostly the
+SLAM-vs-gyro check's stacked products in the first 13 s); by GTSAM call: iSAM2's update 24 % (of
+it the CustomFactor callbacks 9 %: a SLAM position factor's linearisation 28 us, 20 us of it its
+Jacobians' numpy), the joint marginal 6 %, the newest estimate's back-substitution 6 %. In the
+quiet spell ``--speed-limit``'s window (IMU, attitude, SLAM; no range, drag) ran at 47-53x with
+the custom factors and 60-77x with built-in ones, the full benchmark at 38-40x: 60x needs about
+1.5x less CPU per keyframe, which Python trims at this level do not give (less GTSAM work per
+keyframe, e.g. the newest marginal from the root clique, or factors in C++, would).
+
     .venv/bin/python scripts/bench_online.py [--camera] [--vo-worker process|inline]
         [--duration 180] [--keyframe-hz 20]
         [--lag 2] [--marginalize-every 1] [--factorization CHOLESKY|QR]
