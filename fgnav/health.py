@@ -145,9 +145,12 @@ and bias bounds. A sanity violation, or a chi-squared above ``chi2_alarm`` for
 recovered from the last healthy snapshot (at least ``diverge_after_s`` before the alarm began)
 by the smoother's rebuild, at most ``max_recoveries`` times and ``recovery_gap_s`` apart.
 
-A stream the estimate cannot use (``flow-rejected``, ``flow-no-height``: :data:`DEGRADING`) makes
-the status ``degraded`` (unless it diverged) and, while it lasts and no SLAM alignment or camera
-anchors the estimate, lowers ``quality`` to at most ``DEGRADED_QUALITY``.
+A stream the estimate cannot use (``flow-rejected``, ``flow-no-height``, and a rangefinder at its
+floor, at its maximum or silent while airborne: ``range-at-min``, ``range-at-max``,
+``range-silent``; :data:`DEGRADING`) makes the status ``degraded`` (unless it diverged) and,
+while it lasts and no SLAM alignment or camera anchors the estimate, lowers ``quality`` to at
+most ``DEGRADED_QUALITY`` (a rangefinder fault lasts until a usable reading, or for
+``range-silent`` any reading, arrives).
 
 Batch: :func:`check_batch` replays the flight through the detectors with the solved trajectory as
 context and judges the solve itself (LM stopped at ``max_iterations`` while its last iteration
@@ -185,8 +188,15 @@ DIVERGED_QUALITY = 10
 #: Quality (0-100) of the online states while a degrading fault (:data:`DEGRADING`) lasts and
 #: nothing else anchors the position: below a dead-reckoned state's 30, above a diverged one's.
 DEGRADED_QUALITY = 20
-#: Faults that leave a stream unusable for the whole of their span: the status is ``degraded``.
-DEGRADING = ("flow-rejected", "flow-no-height")
+#: Faults that leave a stream unusable for the whole of their span: the status is ``degraded``
+#: (the rangefinder's: while airborne, no height from it; see :attr:`FaultDetectors.lasting`).
+DEGRADING = (
+    "flow-rejected",
+    "flow-no-height",
+    "range-at-min",
+    "range-at-max",
+    "range-silent",
+)
 #: Saturation flag bits of an IMU sample: gyro axis i is ``1 << i``, accelerometer axis i is
 #: ``1 << (3 + i)``.
 SAT_GYRO_BITS = (1, 2, 4)
@@ -453,6 +463,9 @@ class FaultDetectors:
         # tested for silence (inf: no reading yet, or the gap was judged).
         self._range_last: tuple[float, float] | None = None
         self._silent_due = math.inf
+        #: the rangefinder's degrading faults (:data:`DEGRADING`) that last now: named, and no
+        #: usable reading (or, for ``range-silent``, none at all) since
+        self.lasting: set[str] = set()
         #: (time of the last reading, time named) of each gap named ``range-silent``
         self.silent_runs: list[tuple[float, float]] = []
         self._image_hash: bytes | None = None
@@ -749,6 +762,7 @@ class FaultDetectors:
         if self._range_last is None or t >= self._range_last[0]:
             self._range_last = (t, r)
             self._silent_due = t + o.range_gap_s
+        self.lasting.discard("range-silent")
         if not math.isfinite(r):
             return ev
         if self.range_min is not None:
@@ -765,12 +779,15 @@ class FaultDetectors:
                 self._range_val = None
                 if why == "at-min":
                     self._atmax_t0 = None
+                    self.lasting.discard("range-at-max")
                     self._at_min(r, t)
                 else:
                     self._atmin_t0 = None
+                    self.lasting.discard("range-at-min")
                     self._at_max(r, t)
                 return ev
             self._atmin_t0 = self._atmax_t0 = None
+            self.lasting.difference_update(("range-at-min", "range-at-max"))
         if self._range_val is None or r != self._range_val:
             self._range_val, self._range_t0 = r, t
             self._range_h0 = self._height(t)
@@ -833,6 +850,7 @@ class FaultDetectors:
         if abs(h - h0) > o.range_stuck_motion_m + float(self.range_min or 0.0):
             self._atmin_named = True
             self.at_min_runs.append((self._atmin_t0, t))
+            self.lasting.add("range-at-min")
             self._count(
                 "range-at-min",
                 f"rangefinder at its minimum {r:.3f} m since t={self._atmin_t0:.2f} while the "
@@ -861,6 +879,7 @@ class FaultDetectors:
             return
         self._atmax_named = True
         self.at_max_runs.append((self._atmax_t0, t))
+        self.lasting.add("range-at-max")
         self._count(
             "range-at-max",
             f"rangefinder at its maximum {r:.3f} m (no echo) since t={self._atmax_t0:.2f} while "
@@ -897,6 +916,7 @@ class FaultDetectors:
             self._silent_due = t + self.options.range_gap_s
             return
         self.silent_runs.append((t_r, t))
+        self.lasting.add("range-silent")
         where = (
             f"; the estimate puts the ground {e:.2f} m away along its beam"
             if e is not None and math.isfinite(e)
@@ -1288,7 +1308,7 @@ class HealthMonitor:
         camera; ``DEGRADED_QUALITY``)."""
         if self.status == "diverged":
             return min(q, DIVERGED_QUALITY)
-        if self.degraded and not anchored:
+        if (self.degraded or self.detectors.lasting) and not anchored:
             return min(q, DEGRADED_QUALITY)
         return q
 

@@ -94,7 +94,7 @@ def test_online_range_pinned_at_min_is_named_and_no_height(two_turns):
     _, _, ate0 = _online(f)
     sm, est, ate = _online(bad)
     h = est.info["health"]
-    assert h["detectors"] == {"range-at-min": 1} and h["status"] == "ok"
+    assert h["detectors"] == {"range-at-min": 1} and h["status"] == "degraded"
     assert est.info["dropped"]["range:at-min"] == h["dropped"]["range:at-min"] > 400
     assert "range" not in est.info["used"]
     assert ate < 1.3 * ate0, (ate, ate0)  # measured 0.032 / 0.027 m
@@ -107,7 +107,7 @@ def test_batch_range_pinned_at_min_is_named_and_no_height(two_turns):
     ate0 = score_estimate(f, run_batch(f, {})).ate_rmse_m
     est = run_batch(bad, {})
     h = est.info["health"]
-    assert h["detectors"] == {"range-at-min": 1} and h["status"] == "ok"
+    assert h["detectors"] == {"range-at-min": 1} and h["status"] == "degraded"
     assert h["dropped"] == {"range:at-min": len(bad.range)}
     assert est.info["factors"].get("range", 0) == 0
     assert score_estimate(bad, est).ate_rmse_m < 1.3 * ate0  # measured 0.0071 / 0.0070 m

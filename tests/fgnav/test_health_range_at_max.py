@@ -99,10 +99,10 @@ def blinded():
 def test_a_blinded_rangefinder_is_named(blinded, command):
     """Before: readings at the maximum were refused and nothing named (batch / online ATE 0.040
     / 0.099 m against 0.026 / 0.071 nominal, health "ok"); now ``range-at-max`` names it once,
-    the status stays "ok" as for ``range-at-min`` (the ATE is unchanged: named, not fixed)."""
+    the status is "degraded" as for ``range-at-min`` (the ATE is unchanged: named, not fixed)."""
     est = run_batch(blinded, {}) if command == "batch" else replay_online(blinded)
     h = est.info["health"]
-    assert h["detectors"] == {"range-at-max": 1} and h["status"] == "ok"
+    assert h["detectors"] == {"range-at-max": 1} and h["status"] == "degraded"
     detail = h["details"]["range-at-max"][0]
     assert detail.startswith("rangefinder at its maximum 8.000 m (no echo) since t=8.0")
     assert "range-at-max 1" in health_line(h)

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fgnav.datasets.events import ImuSample, RangeReading
+from fgnav.datasets.events import ImuSample, RangeReading, replay_flight
 from fgnav.datasets.simulate import SimOptions, simulate
 from testutil import CRAZYFLIE_LIKE
 
-from fgnav.health import Context, FaultDetectors, HealthOptions, health_line
+from fgnav.health import DEGRADED_QUALITY, Context, FaultDetectors, HealthOptions, health_line
 from fgnav.methods import run_batch
-from fgnav.solvers.online import replay_online
+from fgnav.solvers.fixed_lag import FixedLagOptions
+from fgnav.solvers.online import PUSH_STREAMS, OnlineSmoother, replay_online
 
 W, A = np.zeros(3), np.array([0.0, 0.0, 9.81])
 
@@ -60,6 +61,18 @@ def test_a_silent_rangefinder_is_named_once_per_gap_on_the_imu_clock():
     assert det.dropped == {}
 
 
+def test_a_silent_rangefinder_lowers_the_quality_while_it_lasts(silent):
+    """Online: the states' quality is at most ``DEGRADED_QUALITY`` from the naming (8.96 s)
+    until the next reading (13 s); above it before and after."""
+    sm = OnlineSmoother(silent.calib, FixedLagOptions(), silent.name)
+    for ev in replay_flight(silent, [n for n in PUSH_STREAMS if getattr(silent, n) is not None]):
+        sm.feed(ev)
+    q = [(s.t, s.quality) for s in sm.out]
+    assert all(v <= DEGRADED_QUALITY for t, v in q if 9.0 <= t < 12.9)
+    assert min(v for t, v in q if 6.0 <= t < 8.9) > DEGRADED_QUALITY
+    assert min(v for t, v in q if t > 13.5) > DEGRADED_QUALITY
+
+
 @pytest.mark.parametrize(
     ("kwargs", "readings", "t1", "why"),
     [
@@ -99,12 +112,13 @@ def silent():
 @pytest.mark.parametrize("command", ["batch", "online"])
 def test_a_silent_rangefinder_is_named(silent, command):
     """Before: batch / online ATE 0.040 / 0.091 m (0.026 / 0.071 nominal) and nothing named;
-    now ``range-silent`` names it once, 1 s after the last reading, the status stays "ok"
-    (named, not fixed, as ``range-at-max``)."""
+    now ``range-silent`` names it once, 1 s after the last reading, and the status is
+    "degraded" (named, not fixed, as ``range-at-max``); online, the states' quality says so
+    from the naming until the next reading (no SLAM or camera anchors this flight)."""
     assert not ((silent.range.t > 8.0) & (silent.range.t < 13.0)).any()
     est = run_batch(silent, {}) if command == "batch" else replay_online(silent)
     h = est.info["health"]
-    assert h["detectors"] == {"range-silent": 1} and h["status"] == "ok"
+    assert h["detectors"] == {"range-silent": 1} and h["status"] == "degraded"
     assert h["details"]["range-silent"][0].startswith(
         "no range reading for 1.00 s since t=7.96 (the last 0.553 m, within the sensor's reach; "
         "the estimate puts the ground 0.6"
