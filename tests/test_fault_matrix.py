@@ -85,11 +85,12 @@ def test_quick_fault_matrix(tmp_path):
     assert "flow-no-height 1" in det[("events:flow-no-range", "online")]
     assert by[("events:flow-no-range", "online")]["outcome"] == "named"
     # A flow deck's rangefinder blinded 5 s at low height, reporting its maximum (no echo), is
-    # named (it was health "ok", ATE 1.6x / 1.4x nominal: within the recovery bound).
+    # named and the status degraded (it was health "ok", ATE 1.6x / 1.4x nominal: within the
+    # recovery bound).
     for cmd in ("batch", "online"):
-        assert det[("flow:range-blind-5s", cmd)] == "range-at-max 1"
+        assert det[("flow:range-blind-5s", cmd)] == "range-at-max 1 status degraded"
         assert by[("flow:range-blind-5s", cmd)]["outcome"] == "named"
     # One that delivers no reading at all for 5 s is named too (health "ok", ATE 1.6x / 1.3x).
     for cmd in ("batch", "online"):
-        assert det[("flow:range-silent-5s", cmd)] == "range-silent 1"
+        assert det[("flow:range-silent-5s", cmd)] == "range-silent 1 status degraded"
         assert by[("flow:range-silent-5s", cmd)]["outcome"] == "named"
