@@ -849,10 +849,10 @@ class FaultDetectors:
                 h0, h = a, b
         if abs(h - h0) > o.range_stuck_motion_m + float(self.range_min or 0.0):
             self._atmin_named = True
-            self.at_min_runs.append((self._atmin_t0, t))
-            self.lasting.add("range-at-min")
-            self._count(
+            self._name_range_fault(
                 "range-at-min",
+                self.at_min_runs,
+                (self._atmin_t0, t),
                 f"rangefinder at its minimum {r:.3f} m since t={self._atmin_t0:.2f} while the "
                 f"estimated height changed by {h - h0:+.2f} m: readings at the sensor's floor, "
                 "not heights (range:at-min)",
@@ -872,25 +872,33 @@ class FaultDetectors:
         if self._atmax_tk is None:
             self._atmax_tk = t  # the first prediction known in the run
         self._atmax_hi = max(self._atmax_hi, e)
-        bound = self.range_max * (1.0 - o.range_at_max_margin_rel) - o.range_stuck_motion_m
+        bound = self._reach()[1]
         # (a prediction near or above the maximum once in the run: the vehicle may be above the
         # sensor's reach, which is no fault)
         if self._atmax_hi >= bound or t - self._atmax_tk < o.range_stuck_s:
             return
         self._atmax_named = True
-        self.at_max_runs.append((self._atmax_t0, t))
-        self.lasting.add("range-at-max")
-        self._count(
+        self._name_range_fault(
             "range-at-max",
+            self.at_max_runs,
+            (self._atmax_t0, t),
             f"rangefinder at its maximum {r:.3f} m (no echo) since t={self._atmax_t0:.2f} while "
             f"the estimate put the ground at most {self._atmax_hi:.2f} m away along its beam, "
             f"well within its reach (below {bound:.2f} m): a blinded or failed sensor; its "
             "readings are no heights (range:at-max)",
         )
 
+    def _name_range_fault(self, det: str, runs: list, run: tuple, detail: str) -> None:
+        """Name the rangefinder fault ``det`` (a degrading one: in :attr:`lasting` until a
+        usable reading comes) and keep its ``run`` in ``runs``."""
+        runs.append(run)
+        self.lasting.add(det)
+        self._count(det, detail)
+
     def _reach(self) -> tuple[float, float]:
-        """The readings within the sensor's reach for ``range-silent``: from ``range_min`` to
-        the ``range-at-max`` bound below ``range_max`` (unknown limits: unbounded)."""
+        """The readings within the sensor's reach (``range-silent``, ``range-at-max``): from
+        ``range_min`` to the ``range-at-max`` bound below ``range_max`` (unknown limits:
+        unbounded)."""
         o = self.options
         lo = -math.inf if self.range_min is None else self.range_min
         hi = (
@@ -915,15 +923,15 @@ class FaultDetectors:
         if e is not None and math.isfinite(e) and not lo <= e < hi:
             self._silent_due = t + self.options.range_gap_s
             return
-        self.silent_runs.append((t_r, t))
-        self.lasting.add("range-silent")
         where = (
             f"; the estimate puts the ground {e:.2f} m away along its beam"
             if e is not None and math.isfinite(e)
             else ""
         )
-        self._count(
+        self._name_range_fault(
             "range-silent",
+            self.silent_runs,
+            (t_r, t),
             f"no range reading for {t - t_r:.2f} s since t={t_r:.2f} (the last {r:.3f} m, "
             f"within the sensor's reach{where}) while the IMU goes on: a rangefinder that "
             "stopped; no height from it",
