@@ -81,6 +81,7 @@ __all__ = [
     "RangeLimits",
     "gate_range",
     "make_range_factor",
+    "predicted_range",
     "range_at_max",
     "range_at_min",
     "range_clamps",
@@ -118,6 +119,25 @@ def tilted_range_error(
         skew(body_t_range),
         True,
     )
+
+
+def predicted_range(
+    world_R_body: np.ndarray,
+    world_t_body: np.ndarray,
+    ground: np.ndarray | float,
+    body_T_range: np.ndarray,
+) -> np.ndarray:
+    """The reading the model predicts, ``h(x)`` of :func:`tilted_range_error` without its floor:
+    the distance along the beam from the sensor to the plane ``z = ground`` [m], NaN where the
+    beam points 85 deg or more from down (``cos_tilt < MIN_COS_TILT``: no reading predicted).
+    Vectorised over leading axes: ``world_R_body`` (..., 3, 3), ``world_t_body`` (..., 3),
+    ``ground`` (...) [m]; ``body_T_range`` a 4x4 matrix."""
+    T = np.asarray(body_T_range, float)
+    R = np.asarray(world_R_body, float)
+    z = np.asarray(world_t_body, float)[..., 2] + (R @ T[:3, 3])[..., 2]
+    cos = -(R @ T[:3, 2])[..., 2]
+    ok = cos >= MIN_COS_TILT
+    return np.where(ok, (z - ground) / np.where(ok, cos, 1.0), np.nan)
 
 
 def _tilted_range(

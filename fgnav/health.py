@@ -1534,12 +1534,12 @@ def _range_expected(flight: Any, est: Any) -> Callable[[float], float | None]:
     vg = np.asarray(ground.value, float).reshape(len(tg), -1)[:, 0]
     if len(tg) == 0 or tr is None or len(tr.t) < 2:
         return none
+    from fgnav.factors.tilted_range import predicted_range
+
     g = vg[np.clip(np.searchsorted(tg, tr.t, side="right") - 1, 0, len(tg) - 1)]
-    T = np.asarray(flight.calib.body_T_range, float)
-    R = tr.world_R_body()
-    z = tr.world_t_body[:, 2] + (R @ T[:3, 3])[:, 2]
-    cos = -(R @ T[:3, 2])[:, 2]
-    expected = np.where(cos > math.cos(math.radians(85.0)), (z - g) / np.maximum(cos, 1e-3), np.nan)
+    expected = predicted_range(
+        tr.world_R_body(), tr.world_t_body, g, np.asarray(flight.calib.body_T_range, float)
+    )
     f = _interp(tr.t, expected)
 
     def range_expected(t: float) -> float | None:

@@ -176,7 +176,12 @@ from fgnav.factors.slam_scale import (
     make_slam_T_world,
     slam_alignment_parts,
 )
-from fgnav.factors.tilted_range import MIN_COS_TILT, gate_range, make_range_factor
+from fgnav.factors.tilted_range import (
+    MIN_COS_TILT,
+    gate_range,
+    make_range_factor,
+    predicted_range,
+)
 from fgnav.factors.yaw import make_yaw_factor
 from fgnav.frontends.vo_process import VoProcess
 from fgnav.health import (
@@ -1896,12 +1901,8 @@ class OnlineSmoother:
         if s.ground_height is None:
             return None
         T = np.asarray(s.world_T_body, float)
-        R = T[:3, :3]
-        cos = -float((R @ self.body_T_range[:3, 2])[2])
-        if cos < MIN_COS_TILT:
-            return None
-        z = float(T[2, 3] + (R @ self.body_T_range[:3, 3])[2])
-        return (z - float(s.ground_height)) / cos
+        e = float(predicted_range(T[:3, :3], T[:3, 3], float(s.ground_height), self.body_T_range))
+        return e if math.isfinite(e) else None
 
     def _reading_ground(self, range_m: float, pose: gtsam.Pose3) -> float:
         """World z of the flat ground a range reading sees from ``pose``."""

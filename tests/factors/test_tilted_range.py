@@ -9,6 +9,7 @@ from fgnav.factors.tilted_range import (
     MIN_COS_TILT,
     gate_range,
     make_range_factor,
+    predicted_range,
     tilted_range_error,
 )
 
@@ -36,6 +37,32 @@ def test_lever_arm_counts() -> None:
     e, _ = tilted_range_error(pose, np.array([0.0]), 0.0, body_T_range)
     expected = (3.0 - 0.2 * np.sin(pitch)) / np.cos(pitch)
     assert e[0] == pytest.approx(expected, abs=1e-12)
+
+
+def test_predicted_range_is_the_factors_prediction_and_nan_beyond_85_deg() -> None:
+    """``predicted_range`` (the health checks' expected reading) is ``h(x)`` of the factor at
+    random tilted states with a lever arm, one at a time and stacked; NaN once the beam points
+    85 deg or more from down (the factor floors its cosine there instead)."""
+    rng = np.random.default_rng(7)
+    body_T_range = gtsam.Pose3(
+        DOWN.rotation().compose(gtsam.Rot3.Expmap([0.1, -0.05, 0.0])), np.array([0.1, 0.0, -0.02])
+    )
+    T = body_T_range.matrix()
+    poses = [
+        gtsam.Pose3(gtsam.Rot3.Expmap(rng.uniform(-0.5, 0.5, 3)), rng.uniform(-3, 3, 3))
+        for _ in range(6)
+    ]
+    ground = rng.uniform(-5, -1, 6)
+    h = [
+        tilted_range_error(p, np.array([g]), 0.0, body_T_range)[0][0]
+        for p, g in zip(poses, ground, strict=True)
+    ]
+    R = np.stack([p.rotation().matrix() for p in poses])
+    t = np.stack([p.translation() for p in poses])
+    np.testing.assert_allclose(predicted_range(R, t, ground, T), h, rtol=1e-12)
+    assert predicted_range(R[0], t[0], ground[0], T) == pytest.approx(h[0], rel=1e-12)
+    on_side = gtsam.Rot3.Roll(np.pi / 2)  # beam horizontal (a body rolled 90 deg)
+    assert np.isnan(predicted_range(on_side.matrix(), np.zeros(3), -1.0, DOWN.matrix()))
 
 
 @pytest.mark.parametrize("seed", range(5))
